@@ -1,0 +1,63 @@
+#pragma once
+
+#include <array>
+#include <cmath>
+#include <limits>
+
+namespace vsm::core {
+
+struct Vec3f {
+  float x = 0, y = 0, z = 0;
+};
+
+struct Vec3d {
+  double x = 0, y = 0, z = 0;
+
+  friend Vec3d operator+(Vec3d a, Vec3d b) { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
+  friend Vec3d operator-(Vec3d a, Vec3d b) { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
+  friend Vec3d operator*(Vec3d a, double s) { return {a.x * s, a.y * s, a.z * s}; }
+  friend bool operator==(const Vec3d&, const Vec3d&) = default;
+  double norm() const { return std::sqrt(x * x + y * y + z * z); }
+  bool finite() const { return std::isfinite(x) && std::isfinite(y) && std::isfinite(z); }
+};
+
+/// Axis-aligned box; empty when min > max on any axis (the default).
+struct Box3d {
+  static constexpr double kInf = std::numeric_limits<double>::infinity();
+  Vec3d min{kInf, kInf, kInf};
+  Vec3d max{-kInf, -kInf, -kInf};
+
+  bool empty() const { return min.x > max.x || min.y > max.y || min.z > max.z; }
+  void extend(const Vec3d& p);
+  void extend(const Box3d& b);
+  Vec3d center() const { return (min + max) * 0.5; }
+  Vec3d size() const { return max - min; }
+  /// True when `b` lies inside this box, allowing `tolerance` on every side.
+  bool contains(const Box3d& b, double tolerance = 0) const;
+  bool intersects(const Box3d& b) const;
+  friend bool operator==(const Box3d&, const Box3d&) = default;
+};
+
+/// A 4x4 affine matrix, row-major (m[row * 4 + col]); translation in the last column, as OPC's
+/// Local2Global is written.
+struct Mat4d {
+  std::array<double, 16> m{1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};
+
+  static Mat4d identity() { return {}; }
+  static Mat4d translation(const Vec3d& t);
+  Vec3d apply(const Vec3d& p) const {
+    return {m[0] * p.x + m[1] * p.y + m[2] * p.z + m[3],
+            m[4] * p.x + m[5] * p.y + m[6] * p.z + m[7],
+            m[8] * p.x + m[9] * p.y + m[10] * p.z + m[11]};
+  }
+  Vec3d translationPart() const { return {m[3], m[7], m[11]}; }
+  /// True when the linear part is the identity (only a translation), as vsm writes it.
+  bool isTranslation() const;
+  /// True when the last row is (0, 0, 0, 1) and the linear part is invertible.
+  bool isAffineInvertible() const;
+  /// Inverse of an affine matrix; precondition: isAffineInvertible().
+  Mat4d inverse() const;
+  friend bool operator==(const Mat4d&, const Mat4d&) = default;
+};
+
+}  // namespace vsm::core

@@ -1,0 +1,148 @@
+#include "core/grid/patch_grid.hpp"
+
+#include <algorithm>
+#include <bit>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <string>
+
+#include "core/common/error.hpp"
+
+namespace vsm::core {
+
+PatchGrid::PatchGrid(int size, const Mat4d& local2global)
+    : size_(size), local2global_(local2global) {
+  if (size < 2 || size > 65537) {
+    throw Error(ErrorCode::InvalidArgument, "patch grid size " + std::to_string(size) +
+                                                " is outside 2..65537");
+  }
+  if (!local2global.isAffineInvertible()) {
+    throw Error(ErrorCode::InvalidArgument, "Local2Global is not an invertible affine matrix");
+  }
+  global2local_ = local2global.inverse();
+  positions_.assign(vertexCount() * 3, std::numeric_limits<float>::quiet_NaN());
+}
+
+void PatchGrid::setGlobal(int x, int y, const Vec3d& g) {
+  if (!g.finite()) {
+    setUndefined(x, y);
+    return;
+  }
+  const Vec3d l = global2local_.apply(g);
+  setLocal(x, y, {static_cast<float>(l.x), static_cast<float>(l.y), static_cast<float>(l.z)});
+}
+
+void PatchGrid::setUndefined(int x, int y) {
+  float* p = at(x, y);
+  p[0] = p[1] = p[2] = std::numeric_limits<float>::quiet_NaN();
+}
+
+bool PatchGrid::anyDefined() const {
+  for (int y = 0; y < size_; ++y) {
+    for (int x = 0; x < size_; ++x) {
+      if (defined(x, y)) {
+        return true;
+      }
+    }
+  }
+  return false;
+}
+
+std::size_t PatchGrid::definedCount() const {
+  std::size_t n = 0;
+  for (int y = 0; y < size_; ++y) {
+    for (int x = 0; x < size_; ++x) {
+      n += defined(x, y) ? 1 : 0;
+    }
+  }
+  return n;
+}
+
+GridRect PatchGrid::definedRect() const {
+  GridRect r{size_, size_, 0, 0};
+  for (int y = 0; y < size_; ++y) {
+    for (int x = 0; x < size_; ++x) {
+      if (defined(x, y)) {
+        r.x0 = std::min(r.x0, x);
+        r.y0 = std::min(r.y0, y);
+        r.x1 = std::max(r.x1, x + 1);
+        r.y1 = std::max(r.y1, y + 1);
+      }
+    }
+  }
+  return r.empty() ? GridRect{} : r;
+}
+
+Box3d PatchGrid::localBox() const {
+  Box3d box;
+  for (int y = 0; y < size_; ++y) {
+    for (int x = 0; x < size_; ++x) {
+      if (defined(x, y)) {
+        const Vec3f l = local(x, y);
+        box.extend(Vec3d{l.x, l.y, l.z});
+      }
+    }
+  }
+  return box;
+}
+
+Box3d PatchGrid::globalBox() const {
+  Box3d box;
+  for (int y = 0; y < size_; ++y) {
+    for (int x = 0; x < size_; ++x) {
+      if (defined(x, y)) {
+        box.extend(global(x, y));
+      }
+    }
+  }
+  return box;
+}
+
+double PatchGrid::resolution() const {
+  double sum = 0;
+  std::size_t count = 0;
+  for (int y = 0; y < size_; ++y) {
+    for (int x = 0; x < size_; ++x) {
+      if (!defined(x, y)) {
+        continue;
+      }
+      const Vec3d p = global(x, y);
+      if (x + 1 < size_ && defined(x + 1, y)) {
+        sum += (global(x + 1, y) - p).norm();
+        ++count;
+      }
+      if (y + 1 < size_ && defined(x, y + 1)) {
+        sum += (global(x, y + 1) - p).norm();
+        ++count;
+      }
+    }
+  }
+  return count == 0 ? 0.0 : sum / static_cast<double>(count);
+}
+
+double PatchGrid::maxAbsLocal() const {
+  double m = 0;
+  for (int y = 0; y < size_; ++y) {
+    for (int x = 0; x < size_; ++x) {
+      if (defined(x, y)) {
+        const Vec3f l = local(x, y);
+        m = std::max({m, std::fabs(double{l.x}), std::fabs(double{l.y}), std::fabs(double{l.z})});
+      }
+    }
+  }
+  return m;
+}
+
+bool operator==(const PatchGrid& a, const PatchGrid& b) {
+  // Bitwise, so that NaN == NaN: two grids are equal when they would be stored identically.
+  return a.size_ == b.size_ && a.local2global_ == b.local2global_ &&
+         std::memcmp(a.positions_.data(), b.positions_.data(),
+                     a.positions_.size() * sizeof(float)) == 0;
+}
+
+Mat4d originFor(const Box3d& box) {
+  return box.empty() ? Mat4d::identity() : Mat4d::translation(box.center());
+}
+
+}  // namespace vsm::core

@@ -1,0 +1,77 @@
+#pragma once
+
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "core/common/progress.hpp"
+#include "core/pyramid/model.hpp"
+
+namespace vsm::core {
+
+/// Reads an OPC directory's metadata: Patches/patchhierarchy.xml and every patch's Patch.xml
+/// (no vertex data). Lenient as OPC.md says: either letter case for file and folder names,
+/// optional elements missing, V3d positions, foreign folder names (keys are assigned by position in
+/// the quadtree, the root being 0_0_0). Our extension elements are used when present, never
+/// required.
+///
+/// Throws Error(NotFound) when `dir` holds no hierarchy, Error(Corrupt) with a one-line message on
+/// malformed XML, a hierarchy naming a missing folder, a cycle or a patch reached twice, a folder
+/// name containing "..", "/" or "\\", a bad number, or grids of differing sizes.
+Model readOpcModel(const std::filesystem::path& dir);
+
+/// Reads one patch's vertex data into a full gridSize x gridSize grid (cropped borders restored as
+/// undefined). V3d files are re-based on their own centre so float32 keeps precision; the returned
+/// grid's local2global() is then the patch's Local2Global times that translation.
+/// Throws Error(NotFound / Io / Corrupt).
+PatchGrid readPatchGrid(const std::filesystem::path& dir, const Model& model,
+                        const PatchInfo& info);
+
+/// Writes patches and the hierarchy of one OPC directory in the standard layout (`Patches/`,
+/// `Patch.xml`, `Positions.aara`, `patchhierarchy.xml`) plus vsm's extension elements.
+///
+/// Every file is written to a temporary name in its directory and renamed into place. With
+/// Durability::EachFile every file and directory is fsynced before the rename; with
+/// Durability::Deferred nothing is fsynced until sync(), which an importer calls once before it
+/// publishes the whole directory (far fewer disk flushes for a new model).
+class OpcWriter {
+ public:
+  enum class Durability { EachFile, Deferred };
+
+  /// Creates `dir`/Patches when missing.
+  OpcWriter(std::filesystem::path dir, Durability durability);
+
+  /// Writes all files of one patch (never one alone) into Patches/<info.folder>/, cropping
+  /// undefined border rows and columns, and updates `info` from `grid` (boxes, Local2Global,
+  /// resolution, stored rectangle). An empty info.folder becomes info.key.toString().
+  /// Precondition: grid.anyDefined().
+  void writePatch(PatchInfo& info, const PatchGrid& grid);
+
+  /// Writes Patches/patchhierarchy.xml atomically; call after every patch it names is written.
+  /// Removes a stale `hierarchy.cache` of other readers.
+  void writeHierarchy(const Model& model);
+
+  /// fsyncs every file and directory written since construction (Deferred durability).
+  void sync();
+
+ private:
+  std::filesystem::path dir_;
+  Durability durability_;
+  std::vector<std::filesystem::path> unsynced_;
+};
+
+/// One finding of validateOpc: where (a file or patch) and what is wrong.
+struct Finding {
+  std::string where;
+  std::string message;
+};
+
+/// Checks every invariant of the model and the format: the hierarchy is a tree whose folders
+/// exist; each .aara decodes with the right type and size; stored boxes contain exactly the
+/// vertices (within float32 rounding); parents' boxes contain their children's; every defined
+/// parent vertex equals the child vertex it was reduced from (within the float32 rounding of both
+/// patches' stored coordinates); resolutions match; AvgGeometrySizes has enough entries and
+/// realistic values; no stale hierarchy.cache. Returns all findings; empty when valid.
+std::vector<Finding> validateOpc(const std::filesystem::path& dir, Progress* progress = nullptr);
+
+}  // namespace vsm::core

@@ -1,0 +1,176 @@
+#include "core/pyramid/model.hpp"
+
+#include <algorithm>
+
+#include "core/common/error.hpp"
+#include "core/pyramid/reduce.hpp"
+
+namespace vsm::core {
+
+Model::Model(int gridSize) : gridSize_(gridSize) {
+  const int intervals = gridSize - 1;
+  if (intervals < 2 || intervals > (1 << 15) || (intervals & (intervals - 1)) != 0) {
+    throw Error(ErrorCode::InvalidArgument,
+                "patch size " + std::to_string(gridSize) + " is not 2^n+1 with n in 1..15");
+  }
+}
+
+int Model::maxDepth() const {
+  int depth = -1;
+  for (const auto& [key, info] : patches_) {
+    depth = std::max(depth, key.depth);
+  }
+  return depth;
+}
+
+const PatchInfo* Model::find(const PatchKey& key) const {
+  const auto it = patches_.find(key);
+  return it == patches_.end() ? nullptr : &it->second;
+}
+
+PatchInfo* Model::find(const PatchKey& key) {
+  const auto it = patches_.find(key);
+  return it == patches_.end() ? nullptr : &it->second;
+}
+
+const PatchInfo& Model::at(const PatchKey& key) const {
+  const PatchInfo* info = find(key);
+  if (info == nullptr) {
+    throw Error(ErrorCode::NotFound, "no patch " + key.toString());
+  }
+  return *info;
+}
+
+PatchInfo& Model::at(const PatchKey& key) {
+  return const_cast<PatchInfo&>(static_cast<const Model*>(this)->at(key));
+}
+
+PatchInfo& Model::insert(PatchInfo info) {
+  if (patches_.count(info.key) != 0) {
+    throw Error(ErrorCode::Conflict, "patch " + info.key.toString() + " exists");
+  }
+  if (const auto parentKey = info.key.parent()) {
+    PatchInfo* parent = find(*parentKey);
+    if (parent == nullptr) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "patch " + info.key.toString() + " has no parent in the model");
+    }
+    parent->childMask |= static_cast<std::uint8_t>(1u << static_cast<int>(info.key.quadrant()));
+  }
+  info.childMask = 0;
+  for (const Quadrant q : kQuadrants) {
+    if (find(info.key.child(q)) != nullptr) {
+      info.childMask |= static_cast<std::uint8_t>(1u << static_cast<int>(q));
+    }
+  }
+  const PatchKey key = info.key;
+  return patches_.emplace(key, std::move(info)).first->second;
+}
+
+std::vector<PatchKey> Model::children(const PatchKey& key) const {
+  std::vector<PatchKey> result;
+  const PatchInfo& info = at(key);
+  for (const Quadrant q : kQuadrants) {
+    if (info.hasChild(q)) {
+      result.push_back(key.child(q));
+    }
+  }
+  return result;
+}
+
+std::vector<PatchKey> Model::leaves() const {
+  std::vector<PatchKey> result;
+  for (const auto& [key, info] : patches_) {
+    if (info.isLeaf()) {
+      result.push_back(key);
+    }
+  }
+  return result;
+}
+
+void Model::setGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) {
+  PatchInfo& info = at(key);
+  if (grid->size() != gridSize_) {
+    throw Error(ErrorCode::InvalidArgument, "grid size differs from the model's patch size");
+  }
+  info.globalBox = grid->globalBox();
+  info.localBox = grid->localBox();
+  info.local2global = grid->local2global();
+  info.resolution = grid->resolution();
+  info.stored = grid->definedRect();
+  info.grid = std::move(grid);
+  ++info.version;
+  markChanged(key);
+}
+
+void Model::markChanged(const PatchKey& key) {
+  at(key).dirty = true;
+  for (auto parent = key.parent(); parent; parent = parent->parent()) {
+    at(*parent).stale = true;
+  }
+}
+
+void Model::refreshStale(const GridLoader& load) {
+  std::vector<PatchKey> stale;
+  for (const auto& [key, info] : patches_) {
+    if (info.stale) {
+      stale.push_back(key);
+    }
+  }
+  // Deepest first, so every child is fresh before its parent is reduced from it.
+  std::sort(stale.begin(), stale.end(), [](const PatchKey& a, const PatchKey& b) {
+    return a.depth > b.depth;
+  });
+  for (const PatchKey& key : stale) {
+    std::array<std::shared_ptr<const PatchGrid>, 4> held;
+    std::array<const PatchGrid*, 4> children{};
+    for (const Quadrant q : kQuadrants) {
+      if (const PatchInfo* child = find(key.child(q))) {
+        held[static_cast<int>(q)] = child->grid ? child->grid : load(*child);
+        children[static_cast<int>(q)] = held[static_cast<int>(q)].get();
+      }
+    }
+    setGrid(key, std::make_shared<const PatchGrid>(reduce(children)));
+    at(key).stale = false;
+  }
+}
+
+std::vector<LevelSummary> Model::levels() const {
+  std::vector<LevelSummary> levels(static_cast<std::size_t>(maxDepth() + 1));
+  std::vector<std::size_t> measured(levels.size(), 0);
+  for (std::size_t d = 0; d < levels.size(); ++d) {
+    levels[d].depth = static_cast<int>(d);
+  }
+  for (const auto& [key, info] : patches_) {
+    LevelSummary& level = levels[static_cast<std::size_t>(key.depth)];
+    ++level.patches;
+    level.leaves += info.isLeaf() ? 1 : 0;
+    level.bounds.extend(info.globalBox);
+    if (info.resolution > 0) {
+      level.resolution += info.resolution;
+      ++measured[static_cast<std::size_t>(key.depth)];
+    }
+  }
+  for (std::size_t d = 0; d < levels.size(); ++d) {
+    levels[d].resolution = measured[d] == 0 ? 0 : levels[d].resolution / measured[d];
+  }
+  return levels;
+}
+
+std::vector<double> Model::avgGeometrySizes() const {
+  const auto summary = levels();
+  std::vector<double> sizes(summary.size(), 0);
+  // Fill from the deepest level up so a level without measurable patches can borrow.
+  double finer = 0;
+  for (std::size_t i = summary.size(); i-- > 0;) {
+    double value = summary[i].resolution;
+    if (value <= 0) {
+      value = finer > 0 ? finer * 2 : 1;
+    }
+    sizes[summary.size() - 1 - i] = value;
+    finer = value;
+  }
+  return sizes;
+}
+
+}  // namespace vsm::core

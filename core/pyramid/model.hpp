@@ -1,0 +1,108 @@
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/grid/patch_grid.hpp"
+#include "core/pyramid/patch_key.hpp"
+
+namespace vsm::core {
+
+/// Everything known about a patch without its vertex data: always resident.
+struct PatchInfo {
+  PatchKey key;
+  /// Directory name under Patches/ (vsm writes key.toString(); foreign OPCs use their own names).
+  std::string folder;
+  /// Bit q is set when the child in Quadrant q exists.
+  std::uint8_t childMask = 0;
+  Box3d globalBox;
+  Box3d localBox;
+  Mat4d local2global;
+  /// Mean distance between defined grid neighbours, metres.
+  double resolution = 0;
+  /// Increases whenever the patch's data changes.
+  std::uint64_t version = 1;
+  /// The part of the full grid stored on disk (undefined border rows/columns are cropped).
+  GridRect stored;
+  std::string positionsFile = "Positions.aara";
+
+  /// States (thesis 3.4): the vertex data is in memory / changed and not yet written / an overview
+  /// whose descendants changed, to be recomputed before use.
+  std::shared_ptr<const PatchGrid> grid;
+  bool dirty = false;
+  bool stale = false;
+
+  bool resident() const { return grid != nullptr; }
+  bool isLeaf() const { return childMask == 0; }
+  bool hasChild(Quadrant q) const { return (childMask >> static_cast<int>(q)) & 1; }
+};
+
+/// Per-depth summary of a model.
+struct LevelSummary {
+  int depth = 0;
+  std::size_t patches = 0;
+  std::size_t leaves = 0;
+  Box3d bounds;
+  /// Mean of the patches' resolutions at this depth (metres).
+  double resolution = 0;
+};
+
+/// The pyramid: a quadtree of patches with one root, up to four children per patch, empty patches
+/// omitted, and variable depth (a leaf is the actual surface at its place, every patch above it an
+/// overview). Holds metadata and states; vertex data is attached per patch when resident.
+///
+/// Not thread-safe; the owner serialises access.
+class Model {
+ public:
+  /// Throws Error(InvalidArgument) unless gridSize is 2^n+1 with 1 <= n <= 15.
+  explicit Model(int gridSize);
+
+  int gridSize() const { return gridSize_; }
+  bool empty() const { return patches_.empty(); }
+  std::size_t patchCount() const { return patches_.size(); }
+  /// Depth of the deepest leaf; -1 for an empty model.
+  int maxDepth() const;
+
+  const PatchInfo* find(const PatchKey& key) const;
+  PatchInfo* find(const PatchKey& key);
+  /// Throws Error(NotFound) for a key that is not in the model.
+  const PatchInfo& at(const PatchKey& key) const;
+  PatchInfo& at(const PatchKey& key);
+
+  /// Adds a patch. Its parent must exist already (except for the root), and gets the matching
+  /// child bit. Throws Error(Conflict) when the key exists, Error(InvalidArgument) when the parent
+  /// is missing.
+  PatchInfo& insert(PatchInfo info);
+
+  std::vector<PatchKey> children(const PatchKey& key) const;
+  std::vector<PatchKey> leaves() const;
+  /// All patches, parents before children (by depth, then row, then column).
+  const std::map<PatchKey, PatchInfo>& patches() const { return patches_; }
+
+  /// Records new vertex data for a patch: attaches it, updates box, resolution and version, marks
+  /// the patch dirty and every ancestor stale.
+  void setGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid);
+  /// Marks `key` dirty and every ancestor stale.
+  void markChanged(const PatchKey& key);
+
+  /// Recomputes every stale overview bottom-up by reduction. `load` returns a patch's vertex data
+  /// when it is not resident.
+  using GridLoader = std::function<std::shared_ptr<const PatchGrid>(const PatchInfo&)>;
+  void refreshStale(const GridLoader& load);
+
+  std::vector<LevelSummary> levels() const;
+  /// OPC's AvgGeometrySizes: mean edge length per depth, finest first, root last; maxDepth()+1
+  /// entries. A depth with no measurable patch takes twice the finer depth's value.
+  std::vector<double> avgGeometrySizes() const;
+
+ private:
+  int gridSize_;
+  std::map<PatchKey, PatchInfo> patches_;
+};
+
+}  // namespace vsm::core
