@@ -1,1 +1,224 @@
-int main() { return 0; }
+// vsm: the offline command. Parses arguments and runs one command; everything else is in core.
+#include <unistd.h>
+
+#include <chrono>
+#include <cstdio>
+#include <cstring>
+#include <filesystem>
+#include <iostream>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "core/common/error.hpp"
+#include "core/common/numbers.hpp"
+#include "core/io/grid_source.hpp"
+#include "core/opc/opc_store.hpp"
+
+namespace fs = std::filesystem;
+using namespace vsm::core;
+
+namespace {
+
+constexpr std::string_view kUsage =
+    "usage: vsm <command> [arguments]\n"
+    "\n"
+    "commands:\n"
+    "  import <input> <out-dir> [--patch-size N]   import a georeferenced raster (GDAL) or an\n"
+    "                                              organized point cloud (.pcd, .ply) into a new OPC\n"
+    "  info <opc>                                  depth, patches per level, bounds, resolution, bytes\n"
+    "  validate <opc>                              check every invariant; exit 1 listing findings\n"
+    "  help                                        this text\n";
+
+struct UsageError {
+  std::string message;
+};
+
+/// Draws a progress bar on a terminal; prints a line per 10 % otherwise (logs, CI).
+class ConsoleProgress final : public Progress {
+ public:
+  ConsoleProgress() : tty_(isatty(STDERR_FILENO) == 1) {}
+  ~ConsoleProgress() override {
+    if (tty_ && drawn_) {
+      std::fputc('\n', stderr);
+    }
+  }
+
+  void report(std::string_view stage, double fraction) override {
+    if (stage != stage_) {
+      if (tty_ && drawn_) {
+        std::fputc('\n', stderr);
+      }
+      stage_ = std::string(stage);
+      lastPercent_ = -1;
+    }
+    const int percent = static_cast<int>(fraction * 100.0 + 1e-9);
+    if (tty_) {
+      if (percent == lastPercent_) {
+        return;
+      }
+      constexpr int kWidth = 40;
+      const int filled = percent * kWidth / 100;
+      std::fprintf(stderr, "\r%-10s [%s%s] %3d%%", stage_.c_str(), std::string(filled, '#').c_str(),
+                   std::string(kWidth - filled, ' ').c_str(), percent);
+      std::fflush(stderr);
+      drawn_ = true;
+    } else if (percent / 10 != lastPercent_ / 10 || lastPercent_ < 0) {
+      std::fprintf(stderr, "%s %d%%\n", stage_.c_str(), percent / 10 * 10);
+    }
+    lastPercent_ = percent;
+  }
+
+ private:
+  bool tty_;
+  bool drawn_ = false;
+  std::string stage_;
+  int lastPercent_ = -1;
+};
+
+std::string formatBox(const Box3d& b) {
+  if (b.empty()) {
+    return "(empty)";
+  }
+  char text[256];
+  std::snprintf(text, sizeof text, "[%.3f, %.3f, %.3f] .. [%.3f, %.3f, %.3f]", b.min.x, b.min.y,
+                b.min.z, b.max.x, b.max.y, b.max.z);
+  return text;
+}
+
+std::string formatBytes(std::uintmax_t bytes) {
+  const char* units[] = {"B", "KiB", "MiB", "GiB", "TiB"};
+  double value = static_cast<double>(bytes);
+  int unit = 0;
+  while (value >= 1024 && unit < 4) {
+    value /= 1024;
+    ++unit;
+  }
+  char text[64];
+  std::snprintf(text, sizeof text, unit == 0 ? "%.0f %s" : "%.1f %s", value, units[unit]);
+  return text;
+}
+
+std::uintmax_t directoryBytes(const fs::path& dir) {
+  std::uintmax_t total = 0;
+  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+    if (entry.is_regular_file()) {
+      total += entry.file_size();
+    }
+  }
+  return total;
+}
+
+int runImport(const std::vector<std::string_view>& args) {
+  std::vector<std::string_view> positional;
+  ImportOptions options;
+  for (std::size_t i = 0; i < args.size(); ++i) {
+    if (args[i] == "--patch-size") {
+      if (i + 1 >= args.size()) {
+        throw UsageError{"--patch-size needs a value"};
+      }
+      const auto value = parseInteger(args[++i]);
+      if (!value || *value < 3 || *value > 65537) {
+        throw UsageError{"--patch-size must be 2^n+1, e.g. 65, 129 or 257"};
+      }
+      options.patchSize = static_cast<int>(*value);
+    } else if (args[i].starts_with("--")) {
+      throw UsageError{"unknown option " + std::string(args[i])};
+    } else {
+      positional.push_back(args[i]);
+    }
+  }
+  if (positional.size() != 2) {
+    throw UsageError{"import needs <input> and <out-dir>"};
+  }
+  ConsoleProgress progress;
+  options.progress = &progress;
+  const auto start = std::chrono::steady_clock::now();
+  const Model model = importFile(fs::path(positional[0]), fs::path(positional[1]), options);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::printf("imported %s -> %s: %zu patches, depth %d, %.2f s\n",
+              std::string(positional[0]).c_str(), std::string(positional[1]).c_str(),
+              model.patchCount(), model.maxDepth(), seconds);
+  return 0;
+}
+
+int runInfo(const std::vector<std::string_view>& args) {
+  if (args.size() != 1) {
+    throw UsageError{"info needs <opc>"};
+  }
+  const fs::path dir(args[0]);
+  const Model model = readOpcModel(dir);
+  const auto levels = model.levels();
+  std::size_t leaves = 0;
+  for (const auto& level : levels) {
+    leaves += level.leaves;
+  }
+  const PatchInfo& root = model.at(PatchKey::root());
+  std::printf("model       %s\n", dir.string().c_str());
+  std::printf("patch size  %d x %d vertices\n", model.gridSize(), model.gridSize());
+  std::printf("depth       %d (%zu levels)\n", model.maxDepth(), levels.size());
+  std::printf("patches     %zu (%zu leaves)\n", model.patchCount(), leaves);
+  std::printf("bounds      %s\n", formatBox(root.globalBox).c_str());
+  std::printf("bytes       %s on disk\n", formatBytes(directoryBytes(dir)).c_str());
+  std::printf("\n%5s %8s %8s %14s  %s\n", "depth", "patches", "leaves", "resolution m", "bounds");
+  for (const auto& level : levels) {
+    std::printf("%5d %8zu %8zu %14.3f  %s\n", level.depth, level.patches, level.leaves,
+                level.resolution, formatBox(level.bounds).c_str());
+  }
+  return 0;
+}
+
+int runValidate(const std::vector<std::string_view>& args) {
+  if (args.size() != 1) {
+    throw UsageError{"validate needs <opc>"};
+  }
+  ConsoleProgress progress;
+  const auto findings = validateOpc(fs::path(args[0]), &progress);
+  if (findings.empty()) {
+    std::printf("%s: valid\n", std::string(args[0]).c_str());
+    return 0;
+  }
+  for (const Finding& finding : findings) {
+    std::printf("%s: %s\n", finding.where.c_str(), finding.message.c_str());
+  }
+  std::printf("%zu finding%s\n", findings.size(), findings.size() == 1 ? "" : "s");
+  return 1;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  std::vector<std::string_view> args(argv + 1, argv + argc);
+  if (args.empty() || args[0] == "help" || args[0] == "--help" || args[0] == "-h") {
+    std::cout << kUsage;
+    return args.empty() ? 2 : 0;
+  }
+  const std::string_view command = args[0];
+  args.erase(args.begin());
+  try {
+    if (command == "import") {
+      return runImport(args);
+    }
+    if (command == "info") {
+      return runInfo(args);
+    }
+    if (command == "validate") {
+      return runValidate(args);
+    }
+    throw UsageError{"unknown command '" + std::string(command) + "'"};
+  } catch (const UsageError& e) {
+    std::cerr << "vsm: " << e.message << "\n\n" << kUsage;
+    return 2;
+  } catch (const Error& e) {
+    std::cerr << "vsm: error: " << e.what() << '\n';
+    return 1;
+  } catch (const fs::filesystem_error& e) {
+    std::cerr << "vsm: error: " << e.what() << '\n';
+    return 1;
+  } catch (const std::bad_alloc&) {
+    std::cerr << "vsm: error: out of memory\n";
+    return 1;
+  }
+}

@@ -1,0 +1,209 @@
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <memory>
+
+#include "core/common/error.hpp"
+#include "core/pyramid/model.hpp"
+#include "core/pyramid/patch_key.hpp"
+#include "core/pyramid/reduce.hpp"
+
+namespace vsm::core {
+namespace {
+
+// A surface sampled on a global lattice: sample (u, v) at depth-independent spacing 1 m.
+Vec3d surface(int u, int v) { return {1000.0 + u, 2000.0 + v, std::sin(u * 0.1) * 10 + v * 0.5}; }
+
+// The child grid covering lattice samples [x0, x0 + size) x [y0, y0 + size).
+std::shared_ptr<PatchGrid> sampled(int size, int x0, int y0) {
+  auto grid = std::make_shared<PatchGrid>(size, Mat4d::translation({1000.0 + x0, 2000.0 + y0, 0}));
+  for (int y = 0; y < size; ++y) {
+    for (int x = 0; x < size; ++x) {
+      grid->setGlobal(x, y, surface(x0 + x, y0 + y));
+    }
+  }
+  return grid;
+}
+
+TEST(PatchKey, ParentOfRootIsEmpty) { EXPECT_FALSE(PatchKey::root().parent().has_value()); }
+
+TEST(PatchKey, ChildAndParentAreInverse) {
+  const PatchKey key{3, 5, 2};
+  for (const Quadrant q : kQuadrants) {
+    const PatchKey child = key.child(q);
+    EXPECT_EQ(child.depth, 4);
+    EXPECT_EQ(child.parent(), key);
+    EXPECT_EQ(child.quadrant(), q);
+    EXPECT_TRUE(key.isAncestorOrSelfOf(child));
+  }
+  EXPECT_EQ(key.child(Quadrant::SE), (PatchKey{4, 11, 5}));
+  EXPECT_FALSE((PatchKey{4, 0, 0}).isAncestorOrSelfOf(key));
+}
+
+TEST(PatchKey, ToStringAndParseRoundTrip) {
+  const PatchKey key{7, 100, 3};
+  EXPECT_EQ(key.toString(), "7_100_3");
+  EXPECT_EQ(PatchKey::parse("7_100_3"), key);
+}
+
+TEST(PatchKey, ParseRejectsEverythingElse) {
+  for (const char* text : {"", "1_0", "1_0_0_0", "-1_0_0", "1_2_0", "01_0_0", "1_0_0 ", "../x",
+                           "a_b_c", "31_0_0", "1__0"}) {
+    EXPECT_FALSE(PatchKey::parse(text).has_value()) << text;
+  }
+}
+
+TEST(Quadrant, NamesParseInEitherCase) {
+  EXPECT_EQ(parseQuadrant("NW"), Quadrant::NW);
+  EXPECT_EQ(parseQuadrant("se"), Quadrant::SE);
+  EXPECT_FALSE(parseQuadrant("north").has_value());
+}
+
+TEST(Reduce, EveryParentVertexIsTheChildVertexAtTwiceItsIndex) {
+  constexpr int kSize = 9;
+  constexpr int kHalf = kSize - 1;
+  std::array<std::shared_ptr<PatchGrid>, 4> children;
+  std::array<const PatchGrid*, 4> pointers{};
+  for (const Quadrant q : kQuadrants) {
+    const int qi = static_cast<int>(q);
+    children[qi] = sampled(kSize, (qi & 1) * kHalf, (qi >> 1) * kHalf);
+    pointers[qi] = children[qi].get();
+  }
+  const PatchGrid parent = reduce(pointers);
+  ASSERT_EQ(parent.size(), kSize);
+  for (int j = 0; j < kSize; ++j) {
+    for (int i = 0; i < kSize; ++i) {
+      const Vec3d expected = surface(2 * i, 2 * j);
+      const Vec3d got = parent.global(i, j);
+      // The parent stores float32 locals around its own origin: equal within that rounding.
+      EXPECT_NEAR(got.x, expected.x, 1e-4);
+      EXPECT_NEAR(got.y, expected.y, 1e-4);
+      EXPECT_NEAR(got.z, expected.z, 1e-4);
+    }
+  }
+  EXPECT_NEAR(parent.resolution(), 2 * children[0]->resolution(), 0.2);
+}
+
+TEST(Reduce, AMissingChildLeavesItsAreaUndefinedButKeepsTheSharedBorder) {
+  constexpr int kSize = 5;
+  constexpr int kHalf = kSize - 1;
+  auto nw = sampled(kSize, 0, 0);
+  const PatchGrid parent = reduce({nw.get(), nullptr, nullptr, nullptr});
+  for (int j = 0; j < kSize; ++j) {
+    for (int i = 0; i < kSize; ++i) {
+      const bool insideNw = 2 * i <= kHalf && 2 * j <= kHalf;
+      EXPECT_EQ(parent.defined(i, j), insideNw) << i << "," << j;
+    }
+  }
+}
+
+TEST(Reduce, RejectsChildrenOfDifferentSizes) {
+  auto a = sampled(5, 0, 0);
+  auto b = sampled(9, 4, 0);
+  EXPECT_THROW(reduce({a.get(), b.get(), nullptr, nullptr}), Error);
+  EXPECT_THROW(reduce({nullptr, nullptr, nullptr, nullptr}), Error);
+}
+
+PatchInfo infoFor(const PatchKey& key) {
+  PatchInfo info;
+  info.key = key;
+  info.folder = key.toString();
+  return info;
+}
+
+TEST(Model, RejectsPatchSizesThatAreNotPowerOfTwoPlusOne) {
+  EXPECT_THROW(Model(256), Error);
+  EXPECT_THROW(Model(2), Error);
+  EXPECT_NO_THROW(Model(257));
+  EXPECT_NO_THROW(Model(65));
+}
+
+TEST(Model, InsertNeedsTheParentAndSetsItsChildBit) {
+  Model model(5);
+  EXPECT_THROW(model.insert(infoFor({1, 0, 0})), Error);
+  model.insert(infoFor(PatchKey::root()));
+  model.insert(infoFor({1, 1, 0}));
+  model.insert(infoFor({2, 3, 1}));
+  EXPECT_TRUE(model.at(PatchKey::root()).hasChild(Quadrant::NE));
+  EXPECT_FALSE(model.at(PatchKey::root()).hasChild(Quadrant::NW));
+  EXPECT_EQ(model.children({1, 1, 0}), (std::vector<PatchKey>{{2, 3, 1}}));
+  EXPECT_EQ(model.leaves(), (std::vector<PatchKey>{{2, 3, 1}}));
+  EXPECT_EQ(model.maxDepth(), 2);
+  EXPECT_THROW(model.insert(infoFor({1, 1, 0})), Error);
+  EXPECT_THROW(model.at({1, 0, 0}), Error);
+  EXPECT_EQ(model.find({1, 0, 0}), nullptr);
+}
+
+TEST(Model, VariableDepthSubPyramidsHaveLeavesOnSeveralLevels) {
+  Model model(5);
+  model.insert(infoFor(PatchKey::root()));
+  for (const Quadrant q : kQuadrants) {
+    model.insert(infoFor(PatchKey::root().child(q)));
+  }
+  model.insert(infoFor({2, 0, 0}));
+  model.insert(infoFor({3, 1, 1}));
+  const auto levels = model.levels();
+  ASSERT_EQ(levels.size(), 4u);
+  EXPECT_EQ(levels[1].leaves, 3u);
+  EXPECT_EQ(levels[3].leaves, 1u);
+  EXPECT_EQ(model.leaves().size(), 4u);
+}
+
+TEST(Model, ChangingAPatchMarksItDirtyAndEveryAncestorStale) {
+  Model model(5);
+  model.insert(infoFor(PatchKey::root()));
+  model.insert(infoFor({1, 0, 0}));
+  model.insert(infoFor({1, 1, 0}));
+  model.insert(infoFor({2, 1, 1}));
+  model.markChanged({2, 1, 1});
+  EXPECT_TRUE(model.at({2, 1, 1}).dirty);
+  EXPECT_TRUE(model.at({1, 0, 0}).stale);
+  EXPECT_TRUE(model.at(PatchKey::root()).stale);
+  EXPECT_FALSE(model.at({1, 1, 0}).stale);
+  EXPECT_FALSE(model.at({1, 1, 0}).dirty);
+}
+
+TEST(Model, RefreshStaleRecomputesOverviewsBottomUpFromChangedChildren) {
+  constexpr int kSize = 5;
+  Model model(kSize);
+  model.insert(infoFor(PatchKey::root()));
+  model.insert(infoFor({1, 0, 0}));
+  model.insert(infoFor({2, 0, 0}));
+  model.insert(infoFor({2, 1, 1}));
+  model.setGrid({2, 0, 0}, sampled(kSize, 0, 0));
+  model.setGrid({2, 1, 1}, sampled(kSize, 4, 4));
+  int loads = 0;
+  model.refreshStale([&](const PatchInfo&) -> std::shared_ptr<const PatchGrid> {
+    ++loads;
+    return nullptr;
+  });
+  EXPECT_EQ(loads, 0);  // everything needed was resident
+  const PatchInfo& mid = model.at({1, 0, 0});
+  const PatchInfo& root = model.at(PatchKey::root());
+  ASSERT_TRUE(mid.resident());
+  ASSERT_TRUE(root.resident());
+  EXPECT_FALSE(mid.stale);
+  EXPECT_FALSE(root.stale);
+  EXPECT_TRUE(root.dirty);
+  // Mid (depth 1) keeps every second lattice sample of its 9x9 union; root every fourth.
+  EXPECT_NEAR(mid.grid->global(2, 2).z, surface(4, 4).z, 1e-4);
+  EXPECT_NEAR(root.grid->global(1, 1).z, surface(4, 4).z, 1e-4);
+  EXPECT_NEAR(root.grid->global(0, 0).z, surface(0, 0).z, 1e-4);
+  EXPECT_TRUE(root.globalBox.contains(mid.globalBox, 1e-3));
+}
+
+TEST(Model, AvgGeometrySizesRunFinestFirst) {
+  constexpr int kSize = 5;
+  Model model(kSize);
+  model.insert(infoFor(PatchKey::root()));
+  model.insert(infoFor({1, 0, 0}));
+  model.setGrid({1, 0, 0}, sampled(kSize, 0, 0));
+  model.refreshStale([](const PatchInfo&) { return nullptr; });
+  const auto sizes = model.avgGeometrySizes();
+  ASSERT_EQ(sizes.size(), 2u);
+  EXPECT_LT(sizes[0], sizes[1]);
+  EXPECT_NEAR(sizes[0], model.at({1, 0, 0}).resolution, 1e-9);
+}
+
+}  // namespace
+}  // namespace vsm::core

@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# Installs the Debian 12 packages VSM needs to build, run and test. Idempotent; run as root or with
+# sudo available.
+set -euo pipefail
+
+SUDO=""
+if [[ $(id -u) -ne 0 ]]; then
+  SUDO="sudo"
+fi
+
+PACKAGES=(
+  build-essential cmake ninja-build pkg-config git
+  libboost-dev libeigen3-dev libpcl-dev libpugixml-dev libopenimageio-dev nlohmann-json3-dev
+  libgtest-dev libgdal-dev
+  # tests: gdaladdo (benchmark), GDAL's Python bindings for the independent import checker,
+  # a comma-decimal locale (numbers in XML must not follow the locale), clang-format
+  gdal-bin python3 python3-gdal python3-numpy locales clang-format
+)
+
+missing=()
+for p in "${PACKAGES[@]}"; do
+  dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
+done
+if ((${#missing[@]})); then
+  echo "installing: ${missing[*]}"
+  $SUDO apt-get update -q
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -q --no-install-recommends "${missing[@]}"
+fi
+
+if ! locale -a 2>/dev/null | grep -qi '^de_DE\.utf-\?8$'; then
+  $SUDO sed -i 's/^# *de_DE.UTF-8 UTF-8/de_DE.UTF-8 UTF-8/' /etc/locale.gen
+  $SUDO locale-gen >/dev/null
+fi

@@ -1,0 +1,230 @@
+#!/usr/bin/python3
+"""End-to-end tests of the `vsm` command: clear errors for bad input, nothing half-written, and
+`vsm validate` reporting each deliberate break in a copy of a real model.
+
+Run by ctest with Debian's python3 (python3-gdal for making test rasters)."""
+
+import argparse
+import os
+import re
+import shutil
+import struct
+import subprocess
+import sys
+import unittest
+import xml.etree.ElementTree as ET
+
+from osgeo import gdal, osr
+
+gdal.UseExceptions()
+ARGS = None
+
+
+def vsm(*args):
+    return subprocess.run([ARGS.vsm, *map(str, args)], capture_output=True, text=True, timeout=600)
+
+
+def work(name):
+    path = os.path.join(ARGS.work, name)
+    shutil.rmtree(path, ignore_errors=True)
+    return path
+
+
+def find_ci(directory, name):
+    for entry in os.listdir(directory):
+        if entry.lower() == name.lower():
+            return os.path.join(directory, entry)
+    raise FileNotFoundError(os.path.join(directory, name))
+
+
+def hierarchy(opc):
+    patches = find_ci(opc, "Patches")
+    root = ET.parse(find_ci(patches, "patchhierarchy.xml")).getroot()
+    ph = root.find("PatchHierarchy")
+    children = {}
+    for item in ph.find("SubPatchMap"):
+        children[item.findtext("key").strip()] = [c.text.strip() for c in item.find("val")]
+    return patches, ph.findtext("RootPatch").strip(), children
+
+
+def make_raster(path, width, height, values, srs_epsg=4326, nodata=None):
+    ds = gdal.GetDriverByName("GTiff").Create(path, width, height, 1, gdal.GDT_Float32)
+    ds.SetGeoTransform((10.0, 0.01, 0, 47.0, 0, -0.01))
+    if srs_epsg is not None:
+        srs = osr.SpatialReference()
+        srs.ImportFromEPSG(srs_epsg)
+        ds.SetProjection(srs.ExportToWkt())
+    band = ds.GetRasterBand(1)
+    if nodata is not None:
+        band.SetNoDataValue(nodata)
+    band.WriteRaster(0, 0, width, height, struct.pack("<%df" % (width * height), *values))
+    ds = None
+
+
+class CliErrors(unittest.TestCase):
+    def assert_one_line_error(self, result, *fragments):
+        self.assertEqual(result.returncode, 1, result.stderr)
+        lines = result.stderr.strip().splitlines()
+        self.assertEqual(len(lines), 1, result.stderr)
+        self.assertTrue(lines[0].startswith("vsm: error: "), lines[0])
+        for fragment in fragments:
+            self.assertIn(fragment, lines[0])
+
+    def test_help_lists_the_commands(self):
+        result = vsm("help")
+        self.assertEqual(result.returncode, 0)
+        for command in ("import", "info", "validate"):
+            self.assertIn(command, result.stdout)
+
+    def test_unknown_command_is_a_usage_error(self):
+        result = vsm("frobnicate")
+        self.assertEqual(result.returncode, 2)
+        self.assertIn("unknown command", result.stderr)
+
+    def test_import_of_a_missing_file_fails_cleanly(self):
+        out = work("missing-out")
+        result = vsm("import", "/nonexistent/dem.tif", out)
+        self.assert_one_line_error(result, "/nonexistent/dem.tif")
+        self.assertFalse(os.path.exists(out))
+
+    def test_import_of_a_file_that_is_no_raster_fails_cleanly(self):
+        path = os.path.join(ARGS.work, "not-a-raster.tif")
+        with open(path, "w") as f:
+            f.write("this is not a GeoTIFF\n")
+        out = work("garbage-out")
+        self.assert_one_line_error(vsm("import", path, out), "not-a-raster.tif")
+        self.assertFalse(os.path.exists(out))
+        self.assertEqual([e for e in os.listdir(ARGS.work) if "garbage-out" in e], [])
+
+    def test_import_of_a_raster_without_crs_is_rejected(self):
+        path = os.path.join(ARGS.work, "no-crs.tif")
+        make_raster(path, 4, 4, [1.0] * 16, srs_epsg=None)
+        out = work("no-crs-out")
+        self.assert_one_line_error(vsm("import", path, out), "coordinate reference system")
+        self.assertFalse(os.path.exists(out))
+
+    def test_import_of_an_all_nodata_raster_is_rejected(self):
+        path = os.path.join(ARGS.work, "all-nodata.tif")
+        make_raster(path, 4, 4, [-9999.0] * 16, nodata=-9999.0)
+        out = work("all-nodata-out")
+        result = vsm("import", path, out)
+        self.assertEqual(result.returncode, 1, result.stderr)
+        self.assertIn("vsm: error:", result.stderr)
+        self.assertFalse(os.path.exists(out))
+
+    def test_import_never_overwrites_an_existing_directory(self):
+        out = work("existing")
+        os.makedirs(out)
+        marker = os.path.join(out, "keep.txt")
+        with open(marker, "w") as f:
+            f.write("mine")
+        result = vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), out)
+        self.assert_one_line_error(result, "exists")
+        self.assertEqual(os.listdir(out), ["keep.txt"])
+
+    def test_a_patch_size_that_is_not_a_power_of_two_plus_one_is_refused(self):
+        out = work("bad-size")
+        result = vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), out,
+                     "--patch-size", "100")
+        self.assertNotEqual(result.returncode, 0)
+        self.assertIn("2^n+1", result.stderr)
+        self.assertFalse(os.path.exists(out))
+
+    def test_info_of_a_directory_without_opc_fails_cleanly(self):
+        out = work("empty-dir")
+        os.makedirs(out)
+        self.assert_one_line_error(vsm("info", out))
+
+
+class ValidateFindsEachBreak(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        cls.good = work("jacksboro-good")
+        result = vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), cls.good,
+                     "--patch-size", "33")
+        assert result.returncode == 0, result.stderr
+
+    def broken_copy(self, name):
+        path = work(name)
+        shutil.copytree(self.good, path)
+        return path
+
+    def test_our_own_output_is_valid(self):
+        result = vsm("validate", self.good)
+        self.assertEqual(result.returncode, 0, result.stdout + result.stderr)
+
+    def test_info_describes_the_levels(self):
+        result = vsm("info", self.good)
+        self.assertEqual(result.returncode, 0, result.stderr)
+        self.assertRegex(result.stdout, r"patch size\s+33 x 33")
+        self.assertRegex(result.stdout, r"depth\s+\d+")
+
+    def test_three_breaks_give_three_findings(self):
+        opc = self.broken_copy("jacksboro-broken")
+        patches, root, children = hierarchy(opc)
+
+        # 1. A parent vertex that no longer equals its child's: shift the first defined vertex of
+        #    the root patch by 50 m in its stored float32 local coordinates.
+        root_positions = find_ci(os.path.join(patches, root), "Positions.aara")
+        with open(root_positions, "r+b") as f:
+            data = bytearray(f.read())
+            n = data[0]
+            offset = 1 + n + 1 + 8
+            while True:
+                x, y, z = struct.unpack_from("<3f", data, offset)
+                if x == x:
+                    break
+                offset += 12
+            struct.pack_into("<f", data, offset + 8, z + 50.0)
+            f.seek(0)
+            f.write(data)
+
+        # 2. A leaf whose stored box does not match its vertices.
+        leaves = [c for cs in children.values() for c in cs if c not in children]
+        leaf_box = leaves[0]
+        patch_xml = find_ci(os.path.join(patches, leaf_box), "Patch.xml")
+        text = open(patch_xml).read()
+        text = re.sub(r"<GlobalBoundingBox>\[\[([-0-9.e]+)",
+                      lambda m: "<GlobalBoundingBox>[[%r" % (float(m.group(1)) - 500.0), text)
+        open(patch_xml, "w").write(text)
+
+        # 3. Another leaf's positions truncated.
+        leaf_cut = leaves[-1]
+        cut = find_ci(os.path.join(patches, leaf_cut), "Positions.aara")
+        size = os.path.getsize(cut)
+        os.truncate(cut, size - 5)
+
+        result = vsm("validate", opc)
+        self.assertEqual(result.returncode, 1, result.stdout)
+        findings = [l for l in result.stdout.splitlines() if ":" in l and "finding" not in l]
+        for patch in (root, leaf_box, leaf_cut):
+            self.assertTrue(any(patch in l for l in findings),
+                            "no finding names %s in:\n%s" % (patch, result.stdout))
+
+    def test_a_hierarchy_naming_a_missing_folder_is_reported(self):
+        opc = self.broken_copy("jacksboro-missing-folder")
+        patches, root, children = hierarchy(opc)
+        leaf = [c for cs in children.values() for c in cs if c not in children][0]
+        shutil.rmtree(os.path.join(patches, leaf))
+        result = vsm("validate", opc)
+        self.assertEqual(result.returncode, 1)
+        self.assertIn(leaf, result.stdout)
+        info = vsm("info", opc)
+        self.assertEqual(info.returncode, 1)
+        self.assertIn(leaf, info.stderr)
+
+
+def main():
+    global ARGS
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--vsm", required=True)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--work", required=True)
+    ARGS, rest = parser.parse_known_args()
+    shutil.rmtree(ARGS.work, ignore_errors=True)
+    os.makedirs(ARGS.work)
+    unittest.main(argv=[sys.argv[0], "-v", *rest])
+
+
+if __name__ == "__main__":
+    main()
