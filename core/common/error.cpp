@@ -6,15 +6,24 @@ namespace vsm::core {
 
 std::string_view toString(ErrorCode code) {
   switch (code) {
-    case ErrorCode::InvalidArgument: return "invalid_argument";
-    case ErrorCode::NotFound: return "not_found";
-    case ErrorCode::Conflict: return "conflict";
-    case ErrorCode::Unavailable: return "unavailable";
-    case ErrorCode::ResourceExhausted: return "resource_exhausted";
-    case ErrorCode::Corrupt: return "corrupt";
-    case ErrorCode::Cancelled: return "cancelled";
-    case ErrorCode::Io: return "io";
-    case ErrorCode::Internal: return "internal";
+    case ErrorCode::InvalidArgument:
+      return "invalid_argument";
+    case ErrorCode::NotFound:
+      return "not_found";
+    case ErrorCode::Conflict:
+      return "conflict";
+    case ErrorCode::Unavailable:
+      return "unavailable";
+    case ErrorCode::ResourceExhausted:
+      return "resource_exhausted";
+    case ErrorCode::Corrupt:
+      return "corrupt";
+    case ErrorCode::Cancelled:
+      return "cancelled";
+    case ErrorCode::Io:
+      return "io";
+    case ErrorCode::Internal:
+      return "internal";
   }
   return "internal";
 }

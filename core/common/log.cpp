@@ -12,18 +12,27 @@ std::atomic<Level> gLevel{Level::Info};
 
 const char* name(Level level) {
   switch (level) {
-    case Level::Debug: return "DEBUG";
-    case Level::Info: return "INFO";
-    case Level::Warn: return "WARN";
-    case Level::Error: return "ERROR";
-    case Level::Off: return "OFF";
+    case Level::Debug:
+      return "DEBUG";
+    case Level::Info:
+      return "INFO";
+    case Level::Warn:
+      return "WARN";
+    case Level::Error:
+      return "ERROR";
+    case Level::Off:
+      return "OFF";
   }
   return "?";
 }
 }  // namespace
 
-void setLevel(Level level) { gLevel.store(level); }
-Level level() { return gLevel.load(); }
+void setLevel(Level level) {
+  gLevel.store(level);
+}
+Level level() {
+  return gLevel.load();
+}
 
 void write(Level lvl, std::string_view message) {
   if (lvl < gLevel.load(std::memory_order_relaxed)) {

@@ -14,8 +14,8 @@ namespace vsm::core {
 PatchGrid::PatchGrid(int size, const Mat4d& local2global)
     : size_(size), local2global_(local2global) {
   if (size < 2 || size > 65537) {
-    throw Error(ErrorCode::InvalidArgument, "patch grid size " + std::to_string(size) +
-                                                " is outside 2..65537");
+    throw Error(ErrorCode::InvalidArgument,
+                "patch grid size " + std::to_string(size) + " is outside 2..65537");
   }
   if (!local2global.isAffineInvertible()) {
     throw Error(ErrorCode::InvalidArgument, "Local2Global is not an invertible affine matrix");

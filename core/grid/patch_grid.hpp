@@ -77,7 +77,9 @@ class PatchGrid {
   friend bool operator==(const PatchGrid& a, const PatchGrid& b);
 
  private:
-  const float* at(int x, int y) const { return &positions_[(static_cast<std::size_t>(y) * size_ + x) * 3]; }
+  const float* at(int x, int y) const {
+    return &positions_[(static_cast<std::size_t>(y) * size_ + x) * 3];
+  }
   float* at(int x, int y) { return &positions_[(static_cast<std::size_t>(y) * size_ + x) * 3]; }
 
   int size_;

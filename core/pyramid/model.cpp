@@ -118,9 +118,8 @@ void Model::refreshStale(const GridLoader& load) {
     }
   }
   // Deepest first, so every child is fresh before its parent is reduced from it.
-  std::sort(stale.begin(), stale.end(), [](const PatchKey& a, const PatchKey& b) {
-    return a.depth > b.depth;
-  });
+  std::sort(stale.begin(), stale.end(),
+            [](const PatchKey& a, const PatchKey& b) { return a.depth > b.depth; });
   for (const PatchKey& key : stale) {
     std::array<std::shared_ptr<const PatchGrid>, 4> held;
     std::array<const PatchGrid*, 4> children{};

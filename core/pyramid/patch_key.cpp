@@ -6,10 +6,14 @@ namespace vsm::core {
 
 std::string_view toString(Quadrant q) {
   switch (q) {
-    case Quadrant::NW: return "nw";
-    case Quadrant::NE: return "ne";
-    case Quadrant::SW: return "sw";
-    case Quadrant::SE: return "se";
+    case Quadrant::NW:
+      return "nw";
+    case Quadrant::NE:
+      return "ne";
+    case Quadrant::SW:
+      return "sw";
+    case Quadrant::SE:
+      return "se";
   }
   return "nw";
 }
@@ -31,7 +35,9 @@ std::optional<PatchKey> PatchKey::parent() const {
   return PatchKey{depth - 1, x / 2, y / 2};
 }
 
-Quadrant PatchKey::quadrant() const { return static_cast<Quadrant>((x & 1) | ((y & 1) << 1)); }
+Quadrant PatchKey::quadrant() const {
+  return static_cast<Quadrant>((x & 1) | ((y & 1) << 1));
+}
 
 PatchKey PatchKey::child(Quadrant q) const {
   const auto qi = static_cast<std::uint32_t>(q);
@@ -55,7 +61,8 @@ std::optional<PatchKey> PatchKey::parse(std::string_view text) {
   const char* p = text.data();
   const char* end = text.data() + text.size();
   auto number = [&](auto& out) {
-    if (p == end || *p < '0' || *p > '9' || (*p == '0' && p + 1 != end && p[1] >= '0' && p[1] <= '9')) {
+    if (p == end || *p < '0' || *p > '9' ||
+        (*p == '0' && p + 1 != end && p[1] >= '0' && p[1] <= '9')) {
       return false;  // no sign, no leading zeros: exactly one spelling per key
     }
     const auto r = std::from_chars(p, end, out);

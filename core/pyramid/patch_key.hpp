@@ -49,8 +49,10 @@ struct PatchKey {
   friend bool operator==(const PatchKey&, const PatchKey&) = default;
   /// Orders by depth, then row, then column: parents before children, rows in reading order.
   friend std::strong_ordering operator<=>(const PatchKey& a, const PatchKey& b) {
-    if (auto c = a.depth <=> b.depth; c != 0) return c;
-    if (auto c = a.y <=> b.y; c != 0) return c;
+    if (auto c = a.depth <=> b.depth; c != 0)
+      return c;
+    if (auto c = a.y <=> b.y; c != 0)
+      return c;
     return a.x <=> b.x;
   }
 };

@@ -26,8 +26,10 @@ constexpr std::string_view kUsage =
     "\n"
     "commands:\n"
     "  import <input> <out-dir> [--patch-size N]   import a georeferenced raster (GDAL) or an\n"
-    "                                              organized point cloud (.pcd, .ply) into a new OPC\n"
-    "  info <opc>                                  depth, patches per level, bounds, resolution, bytes\n"
+    "                                              organized point cloud (.pcd, .ply) into a new "
+    "OPC\n"
+    "  info <opc>                                  depth, patches per level, bounds, resolution, "
+    "bytes\n"
     "  validate <opc>                              check every invariant; exit 1 listing findings\n"
     "  help                                        this text\n";
 

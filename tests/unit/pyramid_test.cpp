@@ -12,7 +12,9 @@ namespace vsm::core {
 namespace {
 
 // A surface sampled on a global lattice: sample (u, v) at depth-independent spacing 1 m.
-Vec3d surface(int u, int v) { return {1000.0 + u, 2000.0 + v, std::sin(u * 0.1) * 10 + v * 0.5}; }
+Vec3d surface(int u, int v) {
+  return {1000.0 + u, 2000.0 + v, std::sin(u * 0.1) * 10 + v * 0.5};
+}
 
 // The child grid covering lattice samples [x0, x0 + size) x [y0, y0 + size).
 std::shared_ptr<PatchGrid> sampled(int size, int x0, int y0) {
@@ -25,7 +27,9 @@ std::shared_ptr<PatchGrid> sampled(int size, int x0, int y0) {
   return grid;
 }
 
-TEST(PatchKey, ParentOfRootIsEmpty) { EXPECT_FALSE(PatchKey::root().parent().has_value()); }
+TEST(PatchKey, ParentOfRootIsEmpty) {
+  EXPECT_FALSE(PatchKey::root().parent().has_value());
+}
 
 TEST(PatchKey, ChildAndParentAreInverse) {
   const PatchKey key{3, 5, 2};

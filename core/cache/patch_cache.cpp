@@ -1,0 +1,567 @@
+#include "core/cache/patch_cache.hpp"
+
+#include <condition_variable>
+#include <list>
+#include <mutex>
+#include <unordered_map>
+#include <vector>
+
+#include "core/common/error.hpp"
+
+namespace vsm::core {
+
+std::string_view toString(MemoryCategory category) {
+  switch (category) {
+    case MemoryCategory::Positions:
+      return "positions";
+    case MemoryCategory::Coordinates:
+      return "coordinates";
+    case MemoryCategory::Textures:
+      return "textures";
+    case MemoryCategory::Tiles:
+      return "tiles";
+  }
+  return "unknown";
+}
+
+std::string_view toString(EvictionPolicy policy) {
+  switch (policy) {
+    case EvictionPolicy::FifoSecondChance:
+      return "fifo-second-chance";
+    case EvictionPolicy::CostAwareClock:
+      return "cost-aware-clock";
+  }
+  return "unknown";
+}
+
+namespace {
+
+struct FullKey {
+  PatchCache::ModelId model;
+  PatchKey key;
+  MemoryCategory category;
+  friend bool operator==(const FullKey&, const FullKey&) = default;
+};
+
+struct FullKeyHash {
+  std::size_t operator()(const FullKey& k) const noexcept {
+    return PatchKeyHash{}(k.key) * 131 + k.model * 7 + static_cast<std::size_t>(k.category);
+  }
+};
+
+enum class State { Loading, Resident, WritingBack };
+
+struct Entry {
+  FullKey id;
+  std::shared_ptr<const void> object;
+  /// Bytes charged to the budget: the object's size, or the reservation while loading.
+  std::size_t bytes = 0;
+  int pins = 0;
+  bool dirty = false;
+  State state = State::Loading;
+  /// CLOCK: used since the hand last passed.
+  bool referenced = false;
+  /// FIFO: this dirty entry's second chance was spent.
+  bool secondChanceSpent = false;
+  /// Passes a dirty entry has survived without use (CostAwareClock).
+  int dirtyPasses = 0;
+  std::list<Entry*>::iterator ringPos;
+};
+
+struct ModelSlot {
+  std::string name;
+  PatchStore* store = nullptr;
+  std::size_t residentBytes = 0;
+};
+
+}  // namespace
+
+struct PatchCache::Impl {
+  // mutex guards everything below. It is never held across a PatchStore call.
+  mutable std::mutex mutex;
+  std::condition_variable changed;  // an entry left Loading/WritingBack, or an entry was removed
+  std::unordered_map<FullKey, std::unique_ptr<Entry>, FullKeyHash> entries;
+  /// Eviction order: insertion order (FIFO) or the clock's circle (hand = clockHand).
+  std::list<Entry*> ring;
+  std::list<Entry*>::iterator clockHand = ring.end();
+  std::unordered_map<ModelId, ModelSlot> models;
+  ModelId nextModel = 1;
+  std::size_t used = 0;
+  std::array<std::size_t, kMemoryCategoryCount> usedByCategory{};
+  std::uint64_t hits = 0, misses = 0, evictions = 0, writeBacks = 0, exhausted = 0;
+
+  void charge(Entry& e, std::ptrdiff_t delta) {
+    used += delta;
+    usedByCategory[static_cast<std::size_t>(e.id.category)] += delta;
+    models.at(e.id.model).residentBytes += delta;
+  }
+
+  /// FIFO appends; CLOCK inserts just behind the hand, so a new entry is the last one it reaches.
+  /// (FIFO never moves the hand, which stays at end().)
+  void addToRing(Entry& e) { e.ringPos = ring.insert(clockHand, &e); }
+
+  void remove(Entry& e) {
+    charge(e, -static_cast<std::ptrdiff_t>(e.bytes));
+    if (clockHand == e.ringPos) {
+      ++clockHand;
+    }
+    ring.erase(e.ringPos);
+    entries.erase(e.id);  // destroys e
+    changed.notify_all();
+  }
+
+  bool evictable(const Entry& e) const { return e.pins == 0 && e.state == State::Resident; }
+
+  /// Picks the next victim by `policy`; nullptr when every entry is pinned or in transit.
+  Entry* chooseVictim(EvictionPolicy policy) {
+    if (ring.empty()) {
+      return nullptr;
+    }
+    // Each entry is passed at most three times: its reference bit, a dirty entry's extra pass,
+    // and the pass that takes it.
+    const std::size_t maxSteps = ring.size() * 3 + 1;
+    if (policy == EvictionPolicy::FifoSecondChance) {
+      for (std::size_t step = 0; step < maxSteps && !ring.empty(); ++step) {
+        auto it = ring.begin();
+        bool moved = false;
+        for (; it != ring.end(); ++it) {
+          Entry& e = **it;
+          if (!evictable(e)) {
+            continue;
+          }
+          if (e.dirty && !e.secondChanceSpent) {
+            e.secondChanceSpent = true;
+            ring.splice(ring.end(), ring, it);
+            moved = true;
+            break;
+          }
+          return &e;
+        }
+        if (!moved) {
+          return nullptr;
+        }
+      }
+      return nullptr;
+    }
+    for (std::size_t step = 0; step < maxSteps; ++step) {
+      if (clockHand == ring.end()) {
+        clockHand = ring.begin();
+      }
+      Entry& e = **clockHand;
+      ++clockHand;
+      if (!evictable(e)) {
+        continue;
+      }
+      if (e.referenced) {
+        e.referenced = false;
+        continue;
+      }
+      if (e.dirty && e.dirtyPasses == 0) {
+        e.dirtyPasses = 1;
+        continue;
+      }
+      return &e;
+    }
+    return nullptr;
+  }
+
+  /// True when an eviction's write-back is under way: its entry is freed when it completes.
+  bool anyEvictionInTransit() const {
+    for (const Entry* e : ring) {
+      if (e->state == State::WritingBack && e->pins == 0) {
+        return true;
+      }
+    }
+    return false;
+  }
+
+  ModelSlot& slot(ModelId model) {
+    const auto it = models.find(model);
+    if (it == models.end()) {
+      throw Error(ErrorCode::NotFound, "model " + std::to_string(model) + " is not in the cache");
+    }
+    return it->second;
+  }
+
+  void makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed, std::size_t budget,
+                EvictionPolicy policy);
+};
+
+PatchCache::PatchCache(std::size_t budgetBytes, EvictionPolicy policy)
+    : budget_(budgetBytes), policy_(policy), impl_(std::make_unique<Impl>()) {}
+
+PatchCache::~PatchCache() = default;
+
+// ---- Pin -------------------------------------------------------------------------------------
+
+PatchCache::Pin::Pin(Pin&& other) noexcept
+    : cache_(other.cache_), entry_(other.entry_), object_(std::move(other.object_)) {
+  other.cache_ = nullptr;
+  other.entry_ = nullptr;
+}
+
+PatchCache::Pin& PatchCache::Pin::operator=(Pin&& other) noexcept {
+  if (this != &other) {
+    release();
+    cache_ = other.cache_;
+    entry_ = other.entry_;
+    object_ = std::move(other.object_);
+    other.cache_ = nullptr;
+    other.entry_ = nullptr;
+  }
+  return *this;
+}
+
+PatchCache::Pin::~Pin() {
+  release();
+}
+
+void PatchCache::Pin::release() {
+  if (cache_ != nullptr && entry_ != nullptr) {
+    cache_->unpin(entry_);
+  }
+  cache_ = nullptr;
+  entry_ = nullptr;
+  object_.reset();
+}
+
+std::size_t PatchCache::Pin::bytes() const {
+  if (cache_ == nullptr) {
+    return 0;
+  }
+  std::lock_guard lock(cache_->impl_->mutex);
+  return static_cast<const Entry*>(entry_)->bytes;
+}
+
+void PatchCache::unpin(void* entry) {
+  std::lock_guard lock(impl_->mutex);
+  --static_cast<Entry*>(entry)->pins;
+}
+
+// ---- models ----------------------------------------------------------------------------------
+
+PatchCache::ModelId PatchCache::addModel(std::string name, PatchStore& store) {
+  std::lock_guard lock(impl_->mutex);
+  const ModelId id = impl_->nextModel++;
+  impl_->models.emplace(id, ModelSlot{std::move(name), &store, 0});
+  return id;
+}
+
+void PatchCache::removeModel(ModelId model) {
+  flush(model);  // throws NotFound for an unknown model
+  std::unique_lock lock(impl_->mutex);
+  for (;;) {
+    Entry* victim = nullptr;
+    bool waiting = false;
+    for (Entry* e : impl_->ring) {
+      if (e->id.model != model) {
+        continue;
+      }
+      if (e->state != State::Resident) {
+        waiting = true;
+        continue;
+      }
+      if (e->pins > 0) {
+        throw Error(ErrorCode::Conflict, "model is still in use");
+      }
+      victim = e;
+      break;
+    }
+    if (victim != nullptr) {
+      impl_->remove(*victim);
+    } else if (waiting) {
+      impl_->changed.wait(lock);
+    } else {
+      break;
+    }
+  }
+  impl_->models.erase(model);
+}
+
+// ---- room ------------------------------------------------------------------------------------
+
+/// Makes room for `needed` more bytes. Called and returns with `lock` held; releases it while a
+/// dirty victim is written back. Throws Error(ResourceExhausted) when everything left is pinned.
+void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed,
+                                std::size_t budget, EvictionPolicy policy) {
+  Impl& impl = *this;
+  if (needed > budget) {
+    ++impl.exhausted;
+    throw Error(ErrorCode::ResourceExhausted, "object of " + std::to_string(needed) +
+                                                  " bytes exceeds the memory budget of " +
+                                                  std::to_string(budget) + " bytes");
+  }
+  while (impl.used + needed > budget) {
+    Entry* victim = impl.chooseVictim(policy);
+    if (victim == nullptr) {
+      if (impl.anyEvictionInTransit()) {
+        impl.changed.wait(lock);
+        continue;
+      }
+      ++impl.exhausted;
+      throw Error(ErrorCode::ResourceExhausted,
+                  "memory budget of " + std::to_string(budget) +
+                      " bytes is exhausted: every resident patch is in use");
+    }
+    if (!victim->dirty) {
+      ++impl.evictions;
+      impl.remove(*victim);
+      continue;
+    }
+    // Write back outside the lock; the entry stays resident (and readable) meanwhile.
+    victim->state = State::WritingBack;
+    const FullKey id = victim->id;
+    const CacheValue value{victim->object, victim->bytes};
+    PatchStore* store = impl.slot(id.model).store;
+    lock.unlock();
+    try {
+      store->writeBack(id.key, id.category, value);
+    } catch (...) {
+      lock.lock();
+      victim->state = State::Resident;
+      impl.changed.notify_all();
+      throw;
+    }
+    lock.lock();
+    ++impl.writeBacks;
+    victim->state = State::Resident;
+    // A put() during the write-back replaces object and sets dirty again: keep it then.
+    if (victim->object == value.object) {
+      victim->dirty = false;
+      victim->dirtyPasses = 0;
+    }
+    impl.changed.notify_all();
+    if (impl.evictable(*victim) && !victim->dirty) {
+      ++impl.evictions;
+      impl.remove(*victim);
+    }
+  }
+}
+
+// ---- access ----------------------------------------------------------------------------------
+
+PatchCache::Pin PatchCache::get(ModelId model, const PatchKey& key, MemoryCategory category) {
+  const FullKey id{model, key, category};
+  std::unique_lock lock(impl_->mutex);
+  PatchStore* store = impl_->slot(model).store;
+  for (;;) {
+    const auto it = impl_->entries.find(id);
+    if (it == impl_->entries.end()) {
+      break;
+    }
+    Entry& e = *it->second;
+    if (e.state == State::Loading) {
+      impl_->changed.wait(lock);
+      continue;
+    }
+    ++impl_->hits;
+    ++e.pins;
+    e.referenced = true;
+    e.dirtyPasses = 0;
+    return Pin(this, &e, e.object);
+  }
+
+  ++impl_->misses;
+  lock.unlock();
+  const std::size_t expected = store->expectedBytes(key, category);
+  lock.lock();
+  impl_->makeRoom(lock, expected, budget_, policy_);
+  // Another thread may have started loading the same key while the lock was released.
+  if (impl_->entries.count(id) != 0) {
+    --impl_->misses;
+    lock.unlock();
+    return get(model, key, category);
+  }
+  auto owned = std::make_unique<Entry>();
+  Entry& e = *owned;
+  e.id = id;
+  e.bytes = expected;
+  e.pins = 1;
+  impl_->entries.emplace(id, std::move(owned));
+  impl_->addToRing(e);
+  impl_->charge(e, static_cast<std::ptrdiff_t>(expected));
+
+  lock.unlock();
+  CacheValue value;
+  try {
+    value = store->load(key, category);
+  } catch (...) {
+    lock.lock();
+    impl_->remove(e);
+    throw;
+  }
+  lock.lock();
+  if (value.bytes > e.bytes) {
+    const std::size_t extra = value.bytes - e.bytes;
+    try {  // still Loading and pinned: neither a victim nor served while we make room
+      impl_->makeRoom(lock, extra, budget_, policy_);
+    } catch (...) {
+      impl_->remove(e);
+      throw;
+    }
+  }
+  impl_->charge(e, static_cast<std::ptrdiff_t>(value.bytes) - static_cast<std::ptrdiff_t>(e.bytes));
+  e.bytes = value.bytes;
+  e.object = std::move(value.object);
+  e.state = State::Resident;
+  impl_->changed.notify_all();
+  return Pin(this, &e, e.object);
+}
+
+PatchCache::Pin PatchCache::put(ModelId model, const PatchKey& key, MemoryCategory category,
+                                CacheValue value, bool dirty) {
+  const FullKey id{model, key, category};
+  std::unique_lock lock(impl_->mutex);
+  impl_->slot(model);
+  for (;;) {
+    const auto it = impl_->entries.find(id);
+    if (it == impl_->entries.end()) {
+      break;
+    }
+    Entry& e = *it->second;
+    if (e.state != State::Resident) {
+      impl_->changed.wait(lock);
+      continue;
+    }
+    // Replace in place: pin first so making room cannot evict it.
+    ++e.pins;
+    if (value.bytes > e.bytes) {
+      try {
+        impl_->makeRoom(lock, value.bytes - e.bytes, budget_, policy_);
+      } catch (...) {
+        --e.pins;
+        throw;
+      }
+    }
+    impl_->charge(e,
+                  static_cast<std::ptrdiff_t>(value.bytes) - static_cast<std::ptrdiff_t>(e.bytes));
+    e.bytes = value.bytes;
+    e.object = std::move(value.object);
+    if (dirty && !e.dirty) {
+      e.secondChanceSpent = false;
+    }
+    e.dirty = e.dirty || dirty;
+    e.referenced = true;
+    e.dirtyPasses = 0;
+    return Pin(this, &e, e.object);
+  }
+  impl_->makeRoom(lock, value.bytes, budget_, policy_);
+  if (impl_->entries.count(id) != 0) {
+    lock.unlock();
+    return put(model, key, category, std::move(value), dirty);
+  }
+  auto owned = std::make_unique<Entry>();
+  Entry& e = *owned;
+  e.id = id;
+  e.bytes = value.bytes;
+  e.object = std::move(value.object);
+  e.pins = 1;
+  e.dirty = dirty;
+  e.state = State::Resident;
+  e.referenced = true;
+  impl_->entries.emplace(id, std::move(owned));
+  impl_->addToRing(e);
+  impl_->charge(e, static_cast<std::ptrdiff_t>(e.bytes));
+  return Pin(this, &e, e.object);
+}
+
+void PatchCache::flush(ModelId model) {
+  std::unique_lock lock(impl_->mutex);
+  PatchStore* store = impl_->slot(model).store;
+  for (;;) {
+    Entry* target = nullptr;
+    bool waiting = false;
+    for (Entry* e : impl_->ring) {
+      if (e->id.model != model || !e->dirty) {
+        continue;
+      }
+      if (e->state != State::Resident) {
+        waiting = true;
+        continue;
+      }
+      target = e;
+      break;
+    }
+    if (target == nullptr) {
+      if (!waiting) {
+        return;
+      }
+      impl_->changed.wait(lock);
+      continue;
+    }
+    target->state = State::WritingBack;
+    ++target->pins;  // keeps the entry alive while unlocked
+    const FullKey id = target->id;
+    const CacheValue value{target->object, target->bytes};
+    lock.unlock();
+    try {
+      store->writeBack(id.key, id.category, value);
+    } catch (...) {
+      lock.lock();
+      target->state = State::Resident;
+      --target->pins;
+      impl_->changed.notify_all();
+      throw;
+    }
+    lock.lock();
+    ++impl_->writeBacks;
+    target->state = State::Resident;
+    --target->pins;
+    if (target->object == value.object) {
+      target->dirty = false;
+      target->dirtyPasses = 0;
+    }
+    impl_->changed.notify_all();
+  }
+}
+
+void PatchCache::drop(ModelId model, const PatchKey& key, MemoryCategory category) {
+  const FullKey id{model, key, category};
+  std::unique_lock lock(impl_->mutex);
+  for (;;) {
+    const auto it = impl_->entries.find(id);
+    if (it == impl_->entries.end()) {
+      return;
+    }
+    Entry& e = *it->second;
+    if (e.state != State::Resident) {
+      impl_->changed.wait(lock);
+      continue;
+    }
+    if (e.pins > 0) {
+      throw Error(ErrorCode::Conflict, "patch " + key.toString() + " is in use");
+    }
+    impl_->remove(e);
+    return;
+  }
+}
+
+bool PatchCache::resident(ModelId model, const PatchKey& key, MemoryCategory category) const {
+  std::lock_guard lock(impl_->mutex);
+  const auto it = impl_->entries.find(FullKey{model, key, category});
+  return it != impl_->entries.end() && it->second->state != State::Loading;
+}
+
+CacheStats PatchCache::stats() const {
+  std::lock_guard lock(impl_->mutex);
+  CacheStats s;
+  s.budgetBytes = budget_;
+  s.residentBytes = impl_->used;
+  s.residentByCategory = impl_->usedByCategory;
+  for (const auto& [id, slot] : impl_->models) {
+    s.residentByModel[slot.name] += slot.residentBytes;
+  }
+  for (const Entry* e : impl_->ring) {
+    if (e->pins > 0) {
+      s.pinnedBytes += e->bytes;
+    }
+  }
+  s.hits = impl_->hits;
+  s.misses = impl_->misses;
+  s.evictions = impl_->evictions;
+  s.writeBacks = impl_->writeBacks;
+  s.exhausted = impl_->exhausted;
+  return s;
+}
+
+}  // namespace vsm::core

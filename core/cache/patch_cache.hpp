@@ -1,0 +1,145 @@
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <map>
+#include <memory>
+#include <string>
+
+#include "core/pyramid/patch_key.hpp"
+
+namespace vsm::core {
+
+/// What a cached object is, for accounting against the budget by category.
+enum class MemoryCategory : std::uint8_t { Positions = 0, Coordinates, Textures, Tiles };
+inline constexpr std::size_t kMemoryCategoryCount = 4;
+std::string_view toString(MemoryCategory category);
+
+/// A loaded object and the bytes it occupies.
+struct CacheValue {
+  std::shared_ptr<const void> object;
+  std::size_t bytes = 0;
+};
+
+/// The backing store of one model: where the cache loads from and writes dirty data back to.
+/// Implemented by the model's owner (e.g. over an OPC directory). Called WITHOUT any cache lock
+/// held, possibly from several threads at once for different keys; never twice at once for the same
+/// (key, category).
+class PatchStore {
+ public:
+  virtual ~PatchStore() = default;
+  /// Bytes the object will occupy once loaded; used to make room before loading.
+  virtual std::size_t expectedBytes(const PatchKey& key, MemoryCategory category) const = 0;
+  /// Loads an object. Throws Error (NotFound, Corrupt, Io) as the store does.
+  virtual CacheValue load(const PatchKey& key, MemoryCategory category) = 0;
+  /// Writes a dirty object back, atomically. Throws Error(Io) on failure (the entry then stays
+  /// resident and dirty).
+  virtual void writeBack(const PatchKey& key, MemoryCategory category, const CacheValue& value) = 0;
+};
+
+enum class EvictionPolicy {
+  /// The thesis' baseline: first in, first out; a dirty entry at the head gets one second chance
+  /// (moved to the tail) so clean entries are dropped before anything is written.
+  FifoSecondChance,
+  /// CLOCK with a write-back cost: an entry used since the hand last passed gets a second chance;
+  /// a dirty one needs two passes without use (writing it back costs a disk write).
+  CostAwareClock,
+};
+std::string_view toString(EvictionPolicy policy);
+
+struct CacheStats {
+  std::size_t budgetBytes = 0;
+  std::size_t residentBytes = 0;
+  std::size_t pinnedBytes = 0;
+  std::array<std::size_t, kMemoryCategoryCount> residentByCategory{};
+  /// Model name -> resident bytes.
+  std::map<std::string, std::size_t> residentByModel;
+  std::uint64_t hits = 0;
+  std::uint64_t misses = 0;
+  std::uint64_t evictions = 0;
+  std::uint64_t writeBacks = 0;
+  /// Loads refused because everything resident was pinned.
+  std::uint64_t exhausted = 0;
+};
+
+/// One memory budget over every open model. Only objects loaded through the cache count: model
+/// metadata stays outside it. Resident bytes never exceed the budget: room is made *before* a load
+/// by evicting unpinned entries (clean ones dropped, dirty ones written back first); when that is
+/// not enough the caller gets Error(ResourceExhausted), never an allocation failure.
+///
+/// Thread-safe. One mutex guards the table, the policy state and the counters; it is never held
+/// across a PatchStore call (load or write-back) — entries being loaded or written back are marked
+/// in the table and other threads wait on a condition variable for them.
+class PatchCache {
+ public:
+  using ModelId = std::uint32_t;
+
+  explicit PatchCache(std::size_t budgetBytes,
+                      EvictionPolicy policy = EvictionPolicy::CostAwareClock);
+  /// Precondition: every model removed (their dirty data written back).
+  ~PatchCache();
+  PatchCache(const PatchCache&) = delete;
+  PatchCache& operator=(const PatchCache&) = delete;
+
+  /// An RAII hold on a resident object: while it lives the entry is never evicted. Movable.
+  class Pin {
+   public:
+    Pin() = default;
+    Pin(Pin&& other) noexcept;
+    Pin& operator=(Pin&& other) noexcept;
+    ~Pin();
+
+    explicit operator bool() const { return entry_ != nullptr; }
+    template <typename T>
+    std::shared_ptr<const T> get() const {
+      return std::static_pointer_cast<const T>(object_);
+    }
+    std::size_t bytes() const;
+
+   private:
+    friend class PatchCache;
+    Pin(PatchCache* cache, void* entry, std::shared_ptr<const void> object)
+        : cache_(cache), entry_(entry), object_(std::move(object)) {}
+    void release();
+
+    PatchCache* cache_ = nullptr;
+    void* entry_ = nullptr;
+    std::shared_ptr<const void> object_;
+  };
+
+  /// Registers a model; `store` must outlive removeModel(). `name` is for statistics.
+  ModelId addModel(std::string name, PatchStore& store);
+  /// Writes back the model's dirty entries and drops all of them. Precondition: none pinned.
+  /// Throws the store's error when a write-back fails (entries stay until a retry succeeds).
+  void removeModel(ModelId model);
+
+  /// Returns the object, loading it on a miss. Throws Error(ResourceExhausted) when it cannot fit
+  /// even after evicting everything unpinned, or the store's error.
+  Pin get(ModelId model, const PatchKey& key, MemoryCategory category);
+
+  /// Inserts or replaces an object (new data from a merge or import), resident and pinned. When
+  /// `dirty`, it is written back before it is ever evicted. Throws Error(ResourceExhausted).
+  Pin put(ModelId model, const PatchKey& key, MemoryCategory category, CacheValue value,
+          bool dirty);
+
+  /// Writes back every dirty entry of the model (they stay resident, now clean).
+  void flush(ModelId model);
+  /// Forgets an entry without writing it back (its data is obsolete). Precondition: not pinned.
+  void drop(ModelId model, const PatchKey& key, MemoryCategory category);
+
+  bool resident(ModelId model, const PatchKey& key, MemoryCategory category) const;
+  CacheStats stats() const;
+  std::size_t budgetBytes() const { return budget_; }
+  EvictionPolicy policy() const { return policy_; }
+
+ private:
+  struct Impl;  // the table, the policy state and the counters; defined in the .cpp
+  void unpin(void* entry);
+
+  std::size_t budget_;
+  EvictionPolicy policy_;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace vsm::core

@@ -1,0 +1,341 @@
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <cmath>
+#include <cstring>
+#include <map>
+#include <mutex>
+#include <random>
+#include <set>
+#include <thread>
+#include <vector>
+
+#include "core/cache/patch_cache.hpp"
+#include "core/common/error.hpp"
+
+namespace vsm::core {
+namespace {
+
+constexpr std::size_t kMiB = 1024 * 1024;
+
+/// An object as the cache sees it: `bytes` of payload whose first word is a version number.
+using Blob = std::vector<std::uint64_t>;
+
+std::shared_ptr<const Blob> makeBlob(std::size_t bytes, std::uint64_t version) {
+  auto blob = std::make_shared<Blob>(bytes / sizeof(std::uint64_t), version);
+  return blob;
+}
+
+/// A store over "disk" kept in memory: every key has a size and a stored version. Counts loads
+/// and write-backs and checks that no key is loaded or written twice at the same time.
+class FakeStore final : public PatchStore {
+ public:
+  FakeStore(int patches, std::size_t bytesEach) : bytesEach_(bytesEach) {
+    for (int i = 0; i < patches; ++i) {
+      disk_[key(i)] = 1;
+    }
+  }
+  static PatchKey key(int i) { return PatchKey{10, static_cast<std::uint32_t>(i), 0}; }
+
+  std::size_t expectedBytes(const PatchKey&, MemoryCategory) const override { return bytesEach_; }
+
+  CacheValue load(const PatchKey& k, MemoryCategory) override {
+    Busy busy(*this, k);
+    std::uint64_t version = 0;
+    {
+      std::lock_guard lock(mutex_);
+      const auto it = disk_.find(k);
+      if (it == disk_.end()) {
+        throw Error(ErrorCode::NotFound, "no such patch");
+      }
+      version = it->second;
+      ++loads_;
+    }
+    return {makeBlob(bytesEach_, version), bytesEach_};
+  }
+
+  void writeBack(const PatchKey& k, MemoryCategory, const CacheValue& value) override {
+    Busy busy(*this, k);
+    if (failWrites_) {
+      throw Error(ErrorCode::Io, "disk full");
+    }
+    std::lock_guard lock(mutex_);
+    disk_[k] = static_cast<const Blob*>(value.object.get())->front();
+    ++writes_;
+  }
+
+  std::uint64_t stored(const PatchKey& k) {
+    std::lock_guard lock(mutex_);
+    return disk_.at(k);
+  }
+  int loads() {
+    std::lock_guard lock(mutex_);
+    return loads_;
+  }
+  int writes() {
+    std::lock_guard lock(mutex_);
+    return writes_;
+  }
+  bool overlapped() const { return overlapped_.load(); }
+  std::atomic<bool> failWrites_{false};
+
+ private:
+  struct Busy {
+    Busy(FakeStore& s, const PatchKey& k) : store(s), key(k) {
+      std::lock_guard lock(store.mutex_);
+      if (!store.busy_.insert({key.x, key.y}).second) {
+        store.overlapped_ = true;
+      }
+    }
+    ~Busy() {
+      std::lock_guard lock(store.mutex_);
+      store.busy_.erase({key.x, key.y});
+    }
+    FakeStore& store;
+    PatchKey key;
+  };
+
+  std::size_t bytesEach_;
+  std::mutex mutex_;  // guards disk_, busy_, loads_, writes_
+  std::map<PatchKey, std::uint64_t> disk_;
+  std::set<std::pair<std::uint32_t, std::uint32_t>> busy_;
+  int loads_ = 0;
+  int writes_ = 0;
+  std::atomic<bool> overlapped_{false};
+};
+
+std::uint64_t versionOf(const PatchCache::Pin& pin) {
+  return pin.get<Blob>()->front();
+}
+
+class CachePolicies : public ::testing::TestWithParam<EvictionPolicy> {};
+
+INSTANTIATE_TEST_SUITE_P(Both, CachePolicies,
+                         ::testing::Values(EvictionPolicy::FifoSecondChance,
+                                           EvictionPolicy::CostAwareClock),
+                         [](const auto& info) {
+                           return info.param == EvictionPolicy::FifoSecondChance ? "Fifo" : "Clock";
+                         });
+
+TEST_P(CachePolicies, ResidentBytesNeverExceedTheBudgetOverModelsFarLargerThanIt) {
+  // 16 MiB budget; four models of 64 patches of 792 KiB (a 257 x 257 V3f grid): ~200 MiB.
+  constexpr std::size_t kBudget = 16 * kMiB;
+  constexpr std::size_t kPatchBytes = 257 * 257 * 12;
+  constexpr int kPatches = 64;
+  PatchCache cache(kBudget, GetParam());
+  std::vector<std::unique_ptr<FakeStore>> stores;
+  std::vector<PatchCache::ModelId> models;
+  for (int m = 0; m < 4; ++m) {
+    stores.push_back(std::make_unique<FakeStore>(kPatches, kPatchBytes));
+    models.push_back(cache.addModel("model" + std::to_string(m), *stores.back()));
+  }
+  // What each patch must read as: bumped by every write below.
+  std::vector<std::vector<std::uint64_t>> expected(4, std::vector<std::uint64_t>(kPatches, 1));
+
+  std::mt19937 rng(42);
+  std::uniform_int_distribution<int> model(0, 3);
+  std::uniform_int_distribution<int> uniform(0, kPatches - 1);
+  // Skewed: Zipf-like by squaring a uniform variate.
+  std::uniform_real_distribution<double> unit(0, 1);
+  for (int op = 0; op < 3000; ++op) {
+    const int m = model(rng);
+    const int p = op % 2 == 0 ? uniform(rng) : static_cast<int>(std::pow(unit(rng), 3) * kPatches);
+    const PatchKey key = FakeStore::key(p);
+    if (op % 7 == 0) {
+      const std::uint64_t version = ++expected[m][p];
+      cache.put(models[m], key, MemoryCategory::Positions,
+                {makeBlob(kPatchBytes, version), kPatchBytes}, true);
+    } else {
+      const auto pin = cache.get(models[m], key, MemoryCategory::Positions);
+      ASSERT_EQ(versionOf(pin), expected[m][p]) << "model " << m << " patch " << p;
+    }
+    const CacheStats stats = cache.stats();
+    ASSERT_LE(stats.residentBytes, kBudget) << "after operation " << op;
+  }
+  const CacheStats stats = cache.stats();
+  EXPECT_GT(stats.evictions, 100u);
+  EXPECT_GT(stats.writeBacks, 0u);
+  EXPECT_GT(stats.hits, 0u);
+  EXPECT_EQ(stats.pinnedBytes, 0u);
+  for (int m = 0; m < 4; ++m) {
+    cache.removeModel(models[m]);
+    for (int p = 0; p < kPatches; ++p) {
+      EXPECT_EQ(stores[m]->stored(FakeStore::key(p)), expected[m][p]);
+    }
+  }
+  EXPECT_EQ(cache.stats().residentBytes, 0u);
+}
+
+TEST_P(CachePolicies, AnEvictedDirtyPatchReloadsWithItsChanges) {
+  FakeStore store(8, kMiB);
+  PatchCache cache(2 * kMiB, GetParam());
+  const auto model = cache.addModel("m", store);
+  cache.put(model, FakeStore::key(0), MemoryCategory::Positions, {makeBlob(kMiB, 7), kMiB}, true);
+  for (int i = 1; i < 8; ++i) {
+    cache.get(model, FakeStore::key(i), MemoryCategory::Positions);
+  }
+  EXPECT_FALSE(cache.resident(model, FakeStore::key(0), MemoryCategory::Positions));
+  EXPECT_EQ(store.stored(FakeStore::key(0)), 7u);
+  EXPECT_EQ(versionOf(cache.get(model, FakeStore::key(0), MemoryCategory::Positions)), 7u);
+  cache.removeModel(model);
+}
+
+TEST_P(CachePolicies, PinnedPatchesSurviveEviction) {
+  FakeStore store(16, kMiB);
+  PatchCache cache(4 * kMiB, GetParam());
+  const auto model = cache.addModel("m", store);
+  auto held = cache.get(model, FakeStore::key(0), MemoryCategory::Positions);
+  for (int round = 0; round < 3; ++round) {
+    for (int i = 1; i < 16; ++i) {
+      cache.get(model, FakeStore::key(i), MemoryCategory::Positions);
+      ASSERT_TRUE(cache.resident(model, FakeStore::key(0), MemoryCategory::Positions));
+    }
+  }
+  EXPECT_EQ(cache.stats().pinnedBytes, kMiB);
+  held = PatchCache::Pin();
+  EXPECT_EQ(cache.stats().pinnedBytes, 0u);
+  cache.removeModel(model);
+}
+
+TEST_P(CachePolicies, AnAllPinnedCacheAnswersResourceExhausted) {
+  FakeStore store(4, kMiB);
+  PatchCache cache(2 * kMiB, GetParam());
+  const auto model = cache.addModel("m", store);
+  auto a = cache.get(model, FakeStore::key(0), MemoryCategory::Positions);
+  auto b = cache.get(model, FakeStore::key(1), MemoryCategory::Positions);
+  try {
+    cache.get(model, FakeStore::key(2), MemoryCategory::Positions);
+    FAIL() << "no exception";
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), ErrorCode::ResourceExhausted);
+  }
+  EXPECT_EQ(cache.stats().exhausted, 1u);
+  EXPECT_LE(cache.stats().residentBytes, 2 * kMiB);
+  // Releasing one pin makes room again.
+  a = PatchCache::Pin();
+  EXPECT_NO_THROW(cache.get(model, FakeStore::key(2), MemoryCategory::Positions));
+  b = PatchCache::Pin();
+  cache.removeModel(model);
+}
+
+TEST(PatchCache, AnObjectLargerThanTheBudgetIsRefused) {
+  FakeStore store(1, 3 * kMiB);
+  PatchCache cache(2 * kMiB);
+  const auto model = cache.addModel("m", store);
+  EXPECT_THROW(cache.get(model, FakeStore::key(0), MemoryCategory::Positions), Error);
+  EXPECT_EQ(cache.stats().residentBytes, 0u);
+  cache.removeModel(model);
+}
+
+TEST(PatchCache, AFailedLoadLeavesNothingCharged) {
+  FakeStore store(1, kMiB);
+  PatchCache cache(2 * kMiB);
+  const auto model = cache.addModel("m", store);
+  EXPECT_THROW(cache.get(model, PatchKey{10, 99, 0}, MemoryCategory::Positions), Error);
+  EXPECT_EQ(cache.stats().residentBytes, 0u);
+  cache.removeModel(model);
+}
+
+TEST(PatchCache, AFailedWriteBackKeepsThePatchDirtyAndResident) {
+  FakeStore store(4, kMiB);
+  PatchCache cache(kMiB);
+  const auto model = cache.addModel("m", store);
+  cache.put(model, FakeStore::key(0), MemoryCategory::Positions, {makeBlob(kMiB, 5), kMiB}, true);
+  store.failWrites_ = true;
+  EXPECT_THROW(cache.get(model, FakeStore::key(1), MemoryCategory::Positions), Error);
+  EXPECT_TRUE(cache.resident(model, FakeStore::key(0), MemoryCategory::Positions));
+  store.failWrites_ = false;
+  EXPECT_NO_THROW(cache.get(model, FakeStore::key(1), MemoryCategory::Positions));
+  EXPECT_EQ(store.stored(FakeStore::key(0)), 5u);
+  cache.removeModel(model);
+}
+
+TEST(PatchCache, StatisticsCountByModelAndCategory) {
+  FakeStore a(2, kMiB);
+  FakeStore b(2, kMiB);
+  PatchCache cache(8 * kMiB);
+  const auto ma = cache.addModel("a", a);
+  const auto mb = cache.addModel("b", b);
+  cache.get(ma, FakeStore::key(0), MemoryCategory::Positions);
+  cache.get(ma, FakeStore::key(0), MemoryCategory::Positions);
+  cache.get(mb, FakeStore::key(1), MemoryCategory::Textures);
+  const CacheStats stats = cache.stats();
+  EXPECT_EQ(stats.hits, 1u);
+  EXPECT_EQ(stats.misses, 2u);
+  EXPECT_EQ(stats.residentByModel.at("a"), kMiB);
+  EXPECT_EQ(stats.residentByModel.at("b"), kMiB);
+  EXPECT_EQ(stats.residentByCategory[static_cast<int>(MemoryCategory::Positions)], kMiB);
+  EXPECT_EQ(stats.residentByCategory[static_cast<int>(MemoryCategory::Textures)], kMiB);
+  cache.removeModel(ma);
+  cache.removeModel(mb);
+}
+
+TEST(PatchCache, ClockKeepsAHotSetThatFifoEvicts) {
+  // A hot patch used between every cold load: CLOCK keeps it (its bit is set each time), FIFO
+  // throws it out once it reaches the head of the queue.
+  auto run = [](EvictionPolicy policy) {
+    FakeStore store(64, kMiB);
+    PatchCache cache(4 * kMiB, policy);
+    const auto model = cache.addModel("m", store);
+    for (int i = 1; i < 64; ++i) {
+      cache.get(model, FakeStore::key(0), MemoryCategory::Positions);
+      cache.get(model, FakeStore::key(i), MemoryCategory::Positions);
+    }
+    const auto hits = cache.stats().hits;
+    cache.removeModel(model);
+    return hits;
+  };
+  EXPECT_EQ(run(EvictionPolicy::CostAwareClock), 62u);
+  EXPECT_LT(run(EvictionPolicy::FifoSecondChance), 62u);
+}
+
+TEST_P(CachePolicies, ConcurrentReadersAndWritersStayWithinTheBudget) {
+  constexpr int kThreads = 6;
+  constexpr int kPatches = 40;
+  FakeStore store(kPatches, 256 * 1024);
+  PatchCache cache(2 * kMiB, GetParam());
+  const auto model = cache.addModel("m", store);
+  std::atomic<bool> overBudget{false};
+  std::atomic<int> exhausted{0};
+  std::vector<std::thread> threads;
+  for (int t = 0; t < kThreads; ++t) {
+    threads.emplace_back([&, t] {
+      std::mt19937 rng(t);
+      std::uniform_int_distribution<int> patch(0, kPatches - 1);
+      for (int op = 0; op < 400; ++op) {
+        const PatchKey key = FakeStore::key(patch(rng));
+        try {
+          if (op % 5 == 0) {
+            cache.put(model, key, MemoryCategory::Positions,
+                      {makeBlob(256 * 1024, 1000 + op), 256 * 1024}, true);
+          } else {
+            const auto pin = cache.get(model, key, MemoryCategory::Positions);
+            if (pin.get<Blob>()->size() != 256 * 1024 / 8) {
+              overBudget = true;
+            }
+          }
+        } catch (const Error& e) {
+          if (e.code() != ErrorCode::ResourceExhausted) {
+            throw;
+          }
+          ++exhausted;
+        }
+        if (cache.stats().residentBytes > 2 * kMiB) {
+          overBudget = true;
+        }
+      }
+    });
+  }
+  for (auto& thread : threads) {
+    thread.join();
+  }
+  EXPECT_FALSE(overBudget.load());
+  EXPECT_FALSE(store.overlapped()) << "a key was loaded or written twice at the same time";
+  // 6 threads pin at most one 256 KiB patch each: 8 fit, so nobody is ever refused.
+  EXPECT_EQ(exhausted.load(), 0);
+  cache.removeModel(model);
+  EXPECT_EQ(cache.stats().residentBytes, 0u);
+}
+
+}  // namespace
+}  // namespace vsm::core
