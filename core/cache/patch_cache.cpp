@@ -38,14 +38,14 @@ namespace {
 
 struct FullKey {
   PatchCache::ModelId model;
-  PatchKey key;
-  MemoryCategory category;
+  ObjectId object;
   friend bool operator==(const FullKey&, const FullKey&) = default;
 };
 
 struct FullKeyHash {
   std::size_t operator()(const FullKey& k) const noexcept {
-    return PatchKeyHash{}(k.key) * 131 + k.model * 7 + static_cast<std::size_t>(k.category);
+    return PatchKeyHash{}(k.object.key) * 131 + k.object.version * 1000003 + k.model * 7 +
+           static_cast<std::size_t>(k.object.category);
   }
 };
 
@@ -65,6 +65,8 @@ struct Entry {
   bool secondChanceSpent = false;
   /// Passes a dirty entry has survived without use (CostAwareClock).
   int dirtyPasses = 0;
+  /// Invalidated while pinned: out of the table, freed when the last pin goes.
+  bool detached = false;
   std::list<Entry*>::iterator ringPos;
 };
 
@@ -81,6 +83,8 @@ struct PatchCache::Impl {
   mutable std::mutex mutex;
   std::condition_variable changed;  // an entry left Loading/WritingBack, or an entry was removed
   std::unordered_map<FullKey, std::unique_ptr<Entry>, FullKeyHash> entries;
+  /// Invalidated entries still pinned by someone.
+  std::unordered_map<Entry*, std::unique_ptr<Entry>> detached;
   /// Eviction order: insertion order (FIFO) or the clock's circle (hand = clockHand).
   std::list<Entry*> ring;
   std::list<Entry*>::iterator clockHand = ring.end();
@@ -92,7 +96,7 @@ struct PatchCache::Impl {
 
   void charge(Entry& e, std::ptrdiff_t delta) {
     used += delta;
-    usedByCategory[static_cast<std::size_t>(e.id.category)] += delta;
+    usedByCategory[static_cast<std::size_t>(e.id.object.category)] += delta;
     models.at(e.id.model).residentBytes += delta;
   }
 
@@ -106,8 +110,21 @@ struct PatchCache::Impl {
       ++clockHand;
     }
     ring.erase(e.ringPos);
-    entries.erase(e.id);  // destroys e
+    if (e.detached) {
+      detached.erase(&e);  // destroys e
+    } else {
+      entries.erase(e.id);  // destroys e
+    }
     changed.notify_all();
+  }
+
+  /// Takes a pinned entry out of the table; it stays in the ring (charged, never a victim while
+  /// pinned) until its last pin goes.
+  void detach(Entry& e) {
+    const auto it = entries.find(e.id);
+    e.detached = true;
+    detached.emplace(&e, std::move(it->second));
+    entries.erase(it);
   }
 
   bool evictable(const Entry& e) const { return e.pins == 0 && e.state == State::Resident; }
@@ -235,7 +252,10 @@ std::size_t PatchCache::Pin::bytes() const {
 
 void PatchCache::unpin(void* entry) {
   std::lock_guard lock(impl_->mutex);
-  --static_cast<Entry*>(entry)->pins;
+  Entry& e = *static_cast<Entry*>(entry);
+  if (--e.pins == 0 && e.detached) {
+    impl_->remove(e);
+  }
 }
 
 // ---- models ----------------------------------------------------------------------------------
@@ -315,7 +335,7 @@ void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t 
     PatchStore* store = impl.slot(id.model).store;
     lock.unlock();
     try {
-      store->writeBack(id.key, id.category, value);
+      store->writeBack(id.object, value);
     } catch (...) {
       lock.lock();
       victim->state = State::Resident;
@@ -340,8 +360,8 @@ void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t 
 
 // ---- access ----------------------------------------------------------------------------------
 
-PatchCache::Pin PatchCache::get(ModelId model, const PatchKey& key, MemoryCategory category) {
-  const FullKey id{model, key, category};
+PatchCache::Pin PatchCache::get(ModelId model, const ObjectId& object) {
+  const FullKey id{model, object};
   std::unique_lock lock(impl_->mutex);
   PatchStore* store = impl_->slot(model).store;
   for (;;) {
@@ -363,14 +383,14 @@ PatchCache::Pin PatchCache::get(ModelId model, const PatchKey& key, MemoryCatego
 
   ++impl_->misses;
   lock.unlock();
-  const std::size_t expected = store->expectedBytes(key, category);
+  const std::size_t expected = store->expectedBytes(object);
   lock.lock();
   impl_->makeRoom(lock, expected, budget_, policy_);
   // Another thread may have started loading the same key while the lock was released.
   if (impl_->entries.count(id) != 0) {
     --impl_->misses;
     lock.unlock();
-    return get(model, key, category);
+    return get(model, object);
   }
   auto owned = std::make_unique<Entry>();
   Entry& e = *owned;
@@ -384,7 +404,7 @@ PatchCache::Pin PatchCache::get(ModelId model, const PatchKey& key, MemoryCatego
   lock.unlock();
   CacheValue value;
   try {
-    value = store->load(key, category);
+    value = store->load(object);
   } catch (...) {
     lock.lock();
     impl_->remove(e);
@@ -408,9 +428,9 @@ PatchCache::Pin PatchCache::get(ModelId model, const PatchKey& key, MemoryCatego
   return Pin(this, &e, e.object);
 }
 
-PatchCache::Pin PatchCache::put(ModelId model, const PatchKey& key, MemoryCategory category,
-                                CacheValue value, bool dirty) {
-  const FullKey id{model, key, category};
+PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValue value,
+                                bool dirty) {
+  const FullKey id{model, object};
   std::unique_lock lock(impl_->mutex);
   impl_->slot(model);
   for (;;) {
@@ -448,7 +468,7 @@ PatchCache::Pin PatchCache::put(ModelId model, const PatchKey& key, MemoryCatego
   impl_->makeRoom(lock, value.bytes, budget_, policy_);
   if (impl_->entries.count(id) != 0) {
     lock.unlock();
-    return put(model, key, category, std::move(value), dirty);
+    return put(model, object, std::move(value), dirty);
   }
   auto owned = std::make_unique<Entry>();
   Entry& e = *owned;
@@ -495,7 +515,7 @@ void PatchCache::flush(ModelId model) {
     const CacheValue value{target->object, target->bytes};
     lock.unlock();
     try {
-      store->writeBack(id.key, id.category, value);
+      store->writeBack(id.object, value);
     } catch (...) {
       lock.lock();
       target->state = State::Resident;
@@ -515,8 +535,8 @@ void PatchCache::flush(ModelId model) {
   }
 }
 
-void PatchCache::drop(ModelId model, const PatchKey& key, MemoryCategory category) {
-  const FullKey id{model, key, category};
+void PatchCache::drop(ModelId model, const ObjectId& object) {
+  const FullKey id{model, object};
   std::unique_lock lock(impl_->mutex);
   for (;;) {
     const auto it = impl_->entries.find(id);
@@ -529,16 +549,38 @@ void PatchCache::drop(ModelId model, const PatchKey& key, MemoryCategory categor
       continue;
     }
     if (e.pins > 0) {
-      throw Error(ErrorCode::Conflict, "patch " + key.toString() + " is in use");
+      throw Error(ErrorCode::Conflict, "patch " + object.key.toString() + " is in use");
     }
     impl_->remove(e);
     return;
   }
 }
 
-bool PatchCache::resident(ModelId model, const PatchKey& key, MemoryCategory category) const {
+void PatchCache::invalidate(ModelId model, const ObjectId& object) {
+  const FullKey id{model, object};
+  std::unique_lock lock(impl_->mutex);
+  for (;;) {
+    const auto it = impl_->entries.find(id);
+    if (it == impl_->entries.end()) {
+      return;
+    }
+    Entry& e = *it->second;
+    if (e.state != State::Resident) {
+      impl_->changed.wait(lock);
+      continue;
+    }
+    if (e.pins > 0) {
+      impl_->detach(e);
+    } else {
+      impl_->remove(e);
+    }
+    return;
+  }
+}
+
+bool PatchCache::resident(ModelId model, const ObjectId& object) const {
   std::lock_guard lock(impl_->mutex);
-  const auto it = impl_->entries.find(FullKey{model, key, category});
+  const auto it = impl_->entries.find(FullKey{model, object});
   return it != impl_->entries.end() && it->second->state != State::Loading;
 }
 

@@ -16,6 +16,16 @@ enum class MemoryCategory : std::uint8_t { Positions = 0, Coordinates, Textures,
 inline constexpr std::size_t kMemoryCategoryCount = 4;
 std::string_view toString(MemoryCategory category);
 
+/// What the cache holds: one version of one kind of data of one patch. Versions of a key are
+/// distinct entries, so a reader of an older published version and a writer preparing the next
+/// one never see each other's data.
+struct ObjectId {
+  PatchKey key;
+  std::uint64_t version = 1;
+  MemoryCategory category = MemoryCategory::Positions;
+  friend bool operator==(const ObjectId&, const ObjectId&) = default;
+};
+
 /// A loaded object and the bytes it occupies.
 struct CacheValue {
   std::shared_ptr<const void> object;
@@ -25,17 +35,17 @@ struct CacheValue {
 /// The backing store of one model: where the cache loads from and writes dirty data back to.
 /// Implemented by the model's owner (e.g. over an OPC directory). Called WITHOUT any cache lock
 /// held, possibly from several threads at once for different keys; never twice at once for the same
-/// (key, category).
+/// object.
 class PatchStore {
  public:
   virtual ~PatchStore() = default;
   /// Bytes the object will occupy once loaded; used to make room before loading.
-  virtual std::size_t expectedBytes(const PatchKey& key, MemoryCategory category) const = 0;
+  virtual std::size_t expectedBytes(const ObjectId& id) const = 0;
   /// Loads an object. Throws Error (NotFound, Corrupt, Io) as the store does.
-  virtual CacheValue load(const PatchKey& key, MemoryCategory category) = 0;
+  virtual CacheValue load(const ObjectId& id) = 0;
   /// Writes a dirty object back, atomically. Throws Error(Io) on failure (the entry then stays
   /// resident and dirty).
-  virtual void writeBack(const PatchKey& key, MemoryCategory category, const CacheValue& value) = 0;
+  virtual void writeBack(const ObjectId& id, const CacheValue& value) = 0;
 };
 
 enum class EvictionPolicy {
@@ -116,19 +126,22 @@ class PatchCache {
 
   /// Returns the object, loading it on a miss. Throws Error(ResourceExhausted) when it cannot fit
   /// even after evicting everything unpinned, or the store's error.
-  Pin get(ModelId model, const PatchKey& key, MemoryCategory category);
+  Pin get(ModelId model, const ObjectId& id);
 
   /// Inserts or replaces an object (new data from a merge or import), resident and pinned. When
   /// `dirty`, it is written back before it is ever evicted. Throws Error(ResourceExhausted).
-  Pin put(ModelId model, const PatchKey& key, MemoryCategory category, CacheValue value,
-          bool dirty);
+  Pin put(ModelId model, const ObjectId& id, CacheValue value, bool dirty);
 
   /// Writes back every dirty entry of the model (they stay resident, now clean).
   void flush(ModelId model);
   /// Forgets an entry without writing it back (its data is obsolete). Precondition: not pinned.
-  void drop(ModelId model, const PatchKey& key, MemoryCategory category);
+  void drop(ModelId model, const ObjectId& id);
+  /// Forgets an entry whose stored data was replaced behind the cache (a published new version):
+  /// the next get() loads afresh. Holders of pins keep their (old) object; its bytes stay charged
+  /// until the last pin goes. Never writes back.
+  void invalidate(ModelId model, const ObjectId& id);
 
-  bool resident(ModelId model, const PatchKey& key, MemoryCategory category) const;
+  bool resident(ModelId model, const ObjectId& id) const;
   CacheStats stats() const;
   std::size_t budgetBytes() const { return budget_; }
   EvictionPolicy policy() const { return policy_; }

@@ -88,16 +88,21 @@ std::vector<PatchKey> Model::leaves() const {
   return result;
 }
 
-void Model::setGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) {
+void Model::describe(const PatchKey& key, const PatchGrid& grid) {
   PatchInfo& info = at(key);
-  if (grid->size() != gridSize_) {
+  if (grid.size() != gridSize_) {
     throw Error(ErrorCode::InvalidArgument, "grid size differs from the model's patch size");
   }
-  info.globalBox = grid->globalBox();
-  info.localBox = grid->localBox();
-  info.local2global = grid->local2global();
-  info.resolution = grid->resolution();
-  info.stored = grid->definedRect();
+  info.globalBox = grid.globalBox();
+  info.localBox = grid.localBox();
+  info.local2global = grid.local2global();
+  info.resolution = grid.resolution();
+  info.stored = grid.definedRect();
+}
+
+void Model::setGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) {
+  describe(key, *grid);
+  PatchInfo& info = at(key);
   info.grid = std::move(grid);
   ++info.version;
   markChanged(key);

@@ -84,6 +84,9 @@ class Model {
   /// All patches, parents before children (by depth, then row, then column).
   const std::map<PatchKey, PatchInfo>& patches() const { return patches_; }
 
+  /// Updates a patch's metadata (boxes, Local2Global, resolution, stored rectangle) from its data;
+  /// changes no state.
+  void describe(const PatchKey& key, const PatchGrid& grid);
   /// Records new vertex data for a patch: attaches it, updates box, resolution and version, marks
   /// the patch dirty and every ancestor stale.
   void setGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid);

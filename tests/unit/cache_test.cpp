@@ -36,10 +36,15 @@ class FakeStore final : public PatchStore {
     }
   }
   static PatchKey key(int i) { return PatchKey{10, static_cast<std::uint32_t>(i), 0}; }
+  /// The cache's id of patch i's positions.
+  static ObjectId id(int i, MemoryCategory category = MemoryCategory::Positions) {
+    return {key(i), 1, category};
+  }
 
-  std::size_t expectedBytes(const PatchKey&, MemoryCategory) const override { return bytesEach_; }
+  std::size_t expectedBytes(const ObjectId&) const override { return bytesEach_; }
 
-  CacheValue load(const PatchKey& k, MemoryCategory) override {
+  CacheValue load(const ObjectId& id) override {
+    const PatchKey& k = id.key;
     Busy busy(*this, k);
     std::uint64_t version = 0;
     {
@@ -54,7 +59,8 @@ class FakeStore final : public PatchStore {
     return {makeBlob(bytesEach_, version), bytesEach_};
   }
 
-  void writeBack(const PatchKey& k, MemoryCategory, const CacheValue& value) override {
+  void writeBack(const ObjectId& id, const CacheValue& value) override {
+    const PatchKey& k = id.key;
     Busy busy(*this, k);
     if (failWrites_) {
       throw Error(ErrorCode::Io, "disk full");
@@ -143,10 +149,10 @@ TEST_P(CachePolicies, ResidentBytesNeverExceedTheBudgetOverModelsFarLargerThanIt
     const PatchKey key = FakeStore::key(p);
     if (op % 7 == 0) {
       const std::uint64_t version = ++expected[m][p];
-      cache.put(models[m], key, MemoryCategory::Positions,
+      cache.put(models[m], {key, 1, MemoryCategory::Positions},
                 {makeBlob(kPatchBytes, version), kPatchBytes}, true);
     } else {
-      const auto pin = cache.get(models[m], key, MemoryCategory::Positions);
+      const auto pin = cache.get(models[m], {key, 1, MemoryCategory::Positions});
       ASSERT_EQ(versionOf(pin), expected[m][p]) << "model " << m << " patch " << p;
     }
     const CacheStats stats = cache.stats();
@@ -170,13 +176,13 @@ TEST_P(CachePolicies, AnEvictedDirtyPatchReloadsWithItsChanges) {
   FakeStore store(8, kMiB);
   PatchCache cache(2 * kMiB, GetParam());
   const auto model = cache.addModel("m", store);
-  cache.put(model, FakeStore::key(0), MemoryCategory::Positions, {makeBlob(kMiB, 7), kMiB}, true);
+  cache.put(model, FakeStore::id(0), {makeBlob(kMiB, 7), kMiB}, true);
   for (int i = 1; i < 8; ++i) {
-    cache.get(model, FakeStore::key(i), MemoryCategory::Positions);
+    cache.get(model, FakeStore::id(i));
   }
-  EXPECT_FALSE(cache.resident(model, FakeStore::key(0), MemoryCategory::Positions));
+  EXPECT_FALSE(cache.resident(model, FakeStore::id(0)));
   EXPECT_EQ(store.stored(FakeStore::key(0)), 7u);
-  EXPECT_EQ(versionOf(cache.get(model, FakeStore::key(0), MemoryCategory::Positions)), 7u);
+  EXPECT_EQ(versionOf(cache.get(model, FakeStore::id(0))), 7u);
   cache.removeModel(model);
 }
 
@@ -184,11 +190,11 @@ TEST_P(CachePolicies, PinnedPatchesSurviveEviction) {
   FakeStore store(16, kMiB);
   PatchCache cache(4 * kMiB, GetParam());
   const auto model = cache.addModel("m", store);
-  auto held = cache.get(model, FakeStore::key(0), MemoryCategory::Positions);
+  auto held = cache.get(model, FakeStore::id(0));
   for (int round = 0; round < 3; ++round) {
     for (int i = 1; i < 16; ++i) {
-      cache.get(model, FakeStore::key(i), MemoryCategory::Positions);
-      ASSERT_TRUE(cache.resident(model, FakeStore::key(0), MemoryCategory::Positions));
+      cache.get(model, FakeStore::id(i));
+      ASSERT_TRUE(cache.resident(model, FakeStore::id(0)));
     }
   }
   EXPECT_EQ(cache.stats().pinnedBytes, kMiB);
@@ -201,10 +207,10 @@ TEST_P(CachePolicies, AnAllPinnedCacheAnswersResourceExhausted) {
   FakeStore store(4, kMiB);
   PatchCache cache(2 * kMiB, GetParam());
   const auto model = cache.addModel("m", store);
-  auto a = cache.get(model, FakeStore::key(0), MemoryCategory::Positions);
-  auto b = cache.get(model, FakeStore::key(1), MemoryCategory::Positions);
+  auto a = cache.get(model, FakeStore::id(0));
+  auto b = cache.get(model, FakeStore::id(1));
   try {
-    cache.get(model, FakeStore::key(2), MemoryCategory::Positions);
+    cache.get(model, FakeStore::id(2));
     FAIL() << "no exception";
   } catch (const Error& e) {
     EXPECT_EQ(e.code(), ErrorCode::ResourceExhausted);
@@ -213,7 +219,7 @@ TEST_P(CachePolicies, AnAllPinnedCacheAnswersResourceExhausted) {
   EXPECT_LE(cache.stats().residentBytes, 2 * kMiB);
   // Releasing one pin makes room again.
   a = PatchCache::Pin();
-  EXPECT_NO_THROW(cache.get(model, FakeStore::key(2), MemoryCategory::Positions));
+  EXPECT_NO_THROW(cache.get(model, FakeStore::id(2)));
   b = PatchCache::Pin();
   cache.removeModel(model);
 }
@@ -222,7 +228,7 @@ TEST(PatchCache, AnObjectLargerThanTheBudgetIsRefused) {
   FakeStore store(1, 3 * kMiB);
   PatchCache cache(2 * kMiB);
   const auto model = cache.addModel("m", store);
-  EXPECT_THROW(cache.get(model, FakeStore::key(0), MemoryCategory::Positions), Error);
+  EXPECT_THROW(cache.get(model, FakeStore::id(0)), Error);
   EXPECT_EQ(cache.stats().residentBytes, 0u);
   cache.removeModel(model);
 }
@@ -231,7 +237,7 @@ TEST(PatchCache, AFailedLoadLeavesNothingCharged) {
   FakeStore store(1, kMiB);
   PatchCache cache(2 * kMiB);
   const auto model = cache.addModel("m", store);
-  EXPECT_THROW(cache.get(model, PatchKey{10, 99, 0}, MemoryCategory::Positions), Error);
+  EXPECT_THROW(cache.get(model, {PatchKey{10, 99, 0}, 1, MemoryCategory::Positions}), Error);
   EXPECT_EQ(cache.stats().residentBytes, 0u);
   cache.removeModel(model);
 }
@@ -240,13 +246,35 @@ TEST(PatchCache, AFailedWriteBackKeepsThePatchDirtyAndResident) {
   FakeStore store(4, kMiB);
   PatchCache cache(kMiB);
   const auto model = cache.addModel("m", store);
-  cache.put(model, FakeStore::key(0), MemoryCategory::Positions, {makeBlob(kMiB, 5), kMiB}, true);
+  cache.put(model, FakeStore::id(0), {makeBlob(kMiB, 5), kMiB}, true);
   store.failWrites_ = true;
-  EXPECT_THROW(cache.get(model, FakeStore::key(1), MemoryCategory::Positions), Error);
-  EXPECT_TRUE(cache.resident(model, FakeStore::key(0), MemoryCategory::Positions));
+  EXPECT_THROW(cache.get(model, FakeStore::id(1)), Error);
+  EXPECT_TRUE(cache.resident(model, FakeStore::id(0)));
   store.failWrites_ = false;
-  EXPECT_NO_THROW(cache.get(model, FakeStore::key(1), MemoryCategory::Positions));
+  EXPECT_NO_THROW(cache.get(model, FakeStore::id(1)));
   EXPECT_EQ(store.stored(FakeStore::key(0)), 5u);
+  cache.removeModel(model);
+}
+
+TEST(PatchCache, InvalidateServesNewDataWhileOldPinsKeepTheirs) {
+  FakeStore store(2, kMiB);
+  PatchCache cache(4 * kMiB);
+  const auto model = cache.addModel("m", store);
+  auto old = cache.get(model, FakeStore::id(0));
+  EXPECT_EQ(versionOf(old), 1u);
+  // The stored version changes behind the cache (a publish), then the entry is invalidated.
+  cache.put(model, FakeStore::id(1), {makeBlob(kMiB, 9), kMiB}, true);
+  cache.flush(model);
+  cache.invalidate(model, FakeStore::id(0));
+  EXPECT_FALSE(cache.resident(model, FakeStore::id(0)));
+  EXPECT_EQ(cache.stats().residentBytes, 2 * kMiB);  // the old object is still held
+  auto fresh = cache.get(model, FakeStore::id(0));
+  EXPECT_EQ(store.loads(), 2);
+  EXPECT_EQ(versionOf(old), 1u);
+  EXPECT_EQ(cache.stats().residentBytes, 3 * kMiB);
+  old = PatchCache::Pin();
+  EXPECT_EQ(cache.stats().residentBytes, 2 * kMiB);
+  fresh = PatchCache::Pin();
   cache.removeModel(model);
 }
 
@@ -256,9 +284,9 @@ TEST(PatchCache, StatisticsCountByModelAndCategory) {
   PatchCache cache(8 * kMiB);
   const auto ma = cache.addModel("a", a);
   const auto mb = cache.addModel("b", b);
-  cache.get(ma, FakeStore::key(0), MemoryCategory::Positions);
-  cache.get(ma, FakeStore::key(0), MemoryCategory::Positions);
-  cache.get(mb, FakeStore::key(1), MemoryCategory::Textures);
+  cache.get(ma, FakeStore::id(0));
+  cache.get(ma, FakeStore::id(0));
+  cache.get(mb, FakeStore::id(1, MemoryCategory::Textures));
   const CacheStats stats = cache.stats();
   EXPECT_EQ(stats.hits, 1u);
   EXPECT_EQ(stats.misses, 2u);
@@ -278,8 +306,8 @@ TEST(PatchCache, ClockKeepsAHotSetThatFifoEvicts) {
     PatchCache cache(4 * kMiB, policy);
     const auto model = cache.addModel("m", store);
     for (int i = 1; i < 64; ++i) {
-      cache.get(model, FakeStore::key(0), MemoryCategory::Positions);
-      cache.get(model, FakeStore::key(i), MemoryCategory::Positions);
+      cache.get(model, FakeStore::id(0));
+      cache.get(model, FakeStore::id(i));
     }
     const auto hits = cache.stats().hits;
     cache.removeModel(model);
@@ -306,10 +334,10 @@ TEST_P(CachePolicies, ConcurrentReadersAndWritersStayWithinTheBudget) {
         const PatchKey key = FakeStore::key(patch(rng));
         try {
           if (op % 5 == 0) {
-            cache.put(model, key, MemoryCategory::Positions,
+            cache.put(model, {key, 1, MemoryCategory::Positions},
                       {makeBlob(256 * 1024, 1000 + op), 256 * 1024}, true);
           } else {
-            const auto pin = cache.get(model, key, MemoryCategory::Positions);
+            const auto pin = cache.get(model, {key, 1, MemoryCategory::Positions});
             if (pin.get<Blob>()->size() != 256 * 1024 / 8) {
               overBudget = true;
             }

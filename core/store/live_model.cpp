@@ -1,0 +1,318 @@
+#include "core/store/live_model.hpp"
+
+#include <algorithm>
+#include <cctype>
+#include <map>
+#include <regex>
+#include <utility>
+#include <vector>
+
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+#include "core/opc/opc_store.hpp"
+#include "core/pyramid/reduce.hpp"
+
+namespace fs = std::filesystem;
+
+namespace vsm::core {
+
+ModelSnapshot::~ModelSnapshot() {
+  if (onRelease) {
+    try {
+      onRelease();
+    } catch (const std::exception& e) {
+      log::warn(std::string("releasing a model version: ") + e.what());
+    }
+  }
+}
+
+namespace {
+
+/// Folder of a patch version written by an edit: never the name of an imported patch, so a crash
+/// leftover is recognisable (and removable) by its name alone.
+std::string draftFolder(const PatchKey& key, std::uint64_t version) {
+  return key.toString() + "-v" + std::to_string(version);
+}
+
+bool isDraftFolderName(const std::string& name) {
+  static const std::regex pattern("[0-9]+_[0-9]+_[0-9]+-v[0-9]+");
+  return std::regex_match(name, pattern);
+}
+
+fs::path patchesDir(const fs::path& dir) {
+  for (const auto& entry : fs::directory_iterator(dir)) {
+    std::string name = entry.path().filename().string();
+    std::transform(name.begin(), name.end(), name.begin(),
+                   [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+    if (name == "patches" && entry.is_directory()) {
+      return entry.path();
+    }
+  }
+  return dir / "Patches";
+}
+
+}  // namespace
+
+/// The PatchStore of one LiveModel: knows where every live version of every patch is stored.
+class LiveModel::Store final : public PatchStore {
+ public:
+  Store(fs::path dir, PatchCache& cache, const std::string& name, int gridSize)
+      : dir_(std::move(dir)), cache_(cache), shape_(gridSize) {
+    id_ = cache_.addModel(name, *this);
+  }
+  ~Store() override {
+    try {
+      cache_.removeModel(id_);
+    } catch (const std::exception& e) {
+      log::error(std::string("closing model: ") + e.what());
+    }
+  }
+
+  PatchCache& cache() { return cache_; }
+  PatchCache::ModelId id() const { return id_; }
+  const fs::path& dir() const { return dir_; }
+
+  /// Makes a version loadable (published or draft).
+  void add(const PatchInfo& info) {
+    PatchInfo copy = info;
+    copy.grid.reset();
+    std::lock_guard lock(mutex_);
+    versions_[{info.key, info.version}] = std::move(copy);
+  }
+  void forget(const PatchKey& key, std::uint64_t version) {
+    std::lock_guard lock(mutex_);
+    versions_.erase({key, version});
+  }
+
+  std::size_t expectedBytes(const ObjectId&) const override {
+    return static_cast<std::size_t>(shape_.gridSize()) * shape_.gridSize() * 3 * sizeof(float);
+  }
+
+  CacheValue load(const ObjectId& id) override {
+    const PatchInfo info = lookup(id);
+    auto grid = std::make_shared<const PatchGrid>(readPatchGrid(dir_, shape_, info));
+    const std::size_t bytes = grid->bytes();
+    return {std::move(grid), bytes};
+  }
+
+  void writeBack(const ObjectId& id, const CacheValue& value) override {
+    PatchInfo info = lookup(id);
+    OpcWriter writer(dir_, OpcWriter::Durability::EachFile);
+    writer.writePatch(info, *static_cast<const PatchGrid*>(value.object.get()));
+  }
+
+ private:
+  PatchInfo lookup(const ObjectId& id) const {
+    std::lock_guard lock(mutex_);
+    const auto it = versions_.find({id.key, id.version});
+    if (it == versions_.end()) {
+      throw Error(ErrorCode::NotFound, "patch " + id.key.toString() + " version " +
+                                           std::to_string(id.version) + " is not stored");
+    }
+    return it->second;
+  }
+
+  fs::path dir_;
+  PatchCache& cache_;
+  PatchCache::ModelId id_ = 0;
+  /// An empty model of the right patch size: what readPatchGrid needs to know of the model.
+  const Model shape_;
+  mutable std::mutex mutex_;  // guards versions_
+  std::map<std::pair<PatchKey, std::uint64_t>, PatchInfo> versions_;
+};
+
+// ---- LiveModel -------------------------------------------------------------------------------
+
+std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name,
+                                           PatchCache& cache) {
+  auto model = std::make_shared<Model>(readOpcModel(dir));
+  // Leftovers of edits interrupted by a crash: draft folders the hierarchy does not name.
+  std::set<std::string> named;
+  for (const auto& [key, info] : model->patches()) {
+    named.insert(info.folder);
+  }
+  const fs::path patches = patchesDir(dir);
+  std::vector<fs::path> orphans;
+  for (const auto& entry : fs::directory_iterator(patches)) {
+    const std::string folder = entry.path().filename().string();
+    if (entry.is_directory() && isDraftFolderName(folder) && named.count(folder) == 0) {
+      orphans.push_back(entry.path());
+    }
+  }
+  for (const fs::path& orphan : orphans) {
+    log::info("model=" + name + " removing unpublished folder " + orphan.filename().string());
+    fs::remove_all(orphan);
+  }
+
+  auto store = std::make_shared<Store>(dir, cache, name, model->gridSize());
+  for (const auto& [key, info] : model->patches()) {
+    store->add(info);
+  }
+  auto snapshot = std::make_shared<ModelSnapshot>();
+  snapshot->model = std::move(model);
+  return std::unique_ptr<LiveModel>(
+      new LiveModel(dir, std::move(name), std::move(store), std::move(snapshot)));
+}
+
+LiveModel::LiveModel(fs::path dir, std::string name, std::shared_ptr<Store> store,
+                     std::shared_ptr<ModelSnapshot> snapshot)
+    : dir_(std::move(dir)),
+      name_(std::move(name)),
+      store_(std::move(store)),
+      snapshot_(std::move(snapshot)) {}
+
+LiveModel::~LiveModel() = default;
+
+std::shared_ptr<const ModelSnapshot> LiveModel::snapshot() const {
+  std::lock_guard lock(mutex_);
+  return snapshot_;
+}
+
+PatchCache::Pin LiveModel::positions(const ModelSnapshot& snapshot, const PatchKey& key) {
+  const PatchInfo& info = snapshot.model->at(key);
+  return store_->cache().get(store_->id(), {key, info.version, MemoryCategory::Positions});
+}
+
+std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
+  bool expected = false;
+  if (!editing_.compare_exchange_strong(expected, true)) {
+    throw Error(ErrorCode::Conflict, "model '" + name_ + "' is being changed by another job");
+  }
+  return std::unique_ptr<ModelEdit>(new ModelEdit(*this, snapshot()));
+}
+
+// ---- ModelEdit -------------------------------------------------------------------------------
+
+ModelEdit::ModelEdit(LiveModel& live, std::shared_ptr<const ModelSnapshot> base)
+    : live_(live), base_(std::move(base)), model_(std::make_unique<Model>(*base_->model)) {}
+
+ModelEdit::~ModelEdit() {
+  if (!published_) {
+    // Discard: the drafts leave the cache unwritten and their folders (if evicted) go.
+    LiveModel::Store& store = *live_.store_;
+    for (const PatchKey& key : changed_) {
+      const ObjectId id = draftId(key);
+      try {
+        store.cache().drop(store.id(), id);
+        fs::remove_all(patchesDir(live_.dir_) / draftFolder(key, id.version));
+      } catch (const std::exception& e) {
+        log::warn("model=" + live_.name_ + " discarding " + key.toString() + ": " + e.what());
+      }
+      store.forget(key, id.version);
+    }
+  }
+  live_.editing_ = false;
+}
+
+ObjectId ModelEdit::draftId(const PatchKey& key) const {
+  const PatchInfo* published = base_->model->find(key);
+  return {key, published != nullptr ? published->version + 1 : 1, MemoryCategory::Positions};
+}
+
+PatchCache::Pin ModelEdit::positions(const PatchKey& key) {
+  const PatchInfo& info = model_->at(key);
+  return live_.store_->cache().get(live_.store_->id(),
+                                   {key, info.version, MemoryCategory::Positions});
+}
+
+void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) {
+  if (grid->size() != model_->gridSize()) {
+    throw Error(ErrorCode::InvalidArgument, "patch " + key.toString() + " has a grid of " +
+                                                std::to_string(grid->size()) + " instead of " +
+                                                std::to_string(model_->gridSize()));
+  }
+  if (model_->find(key) == nullptr) {
+    PatchInfo info;
+    info.key = key;
+    model_->insert(std::move(info));
+  }
+  const ObjectId id = draftId(key);
+  PatchInfo& info = model_->at(key);
+  info.version = id.version;
+  info.folder = draftFolder(key, id.version);
+  info.positionsFile = "Positions.aara";
+  model_->describe(key, *grid);
+  model_->markChanged(key);
+  info.dirty = false;  // the cache tracks dirtiness; the model only needs `changed_`
+  changed_.insert(key);
+  live_.store_->add(info);
+  const std::size_t bytes = grid->bytes();
+  live_.store_->cache().put(live_.store_->id(), id, {std::move(grid), bytes}, true);
+}
+
+void ModelEdit::refreshStale(const CancelToken* cancel) {
+  std::vector<PatchKey> stale;
+  for (const auto& [key, info] : model_->patches()) {
+    if (info.stale) {
+      stale.push_back(key);
+    }
+  }
+  // Deepest first, so every child is final before its parent is reduced from it.
+  std::stable_sort(stale.begin(), stale.end(),
+                   [](const PatchKey& a, const PatchKey& b) { return a.depth > b.depth; });
+  for (const PatchKey& key : stale) {
+    if (cancel != nullptr) {
+      cancel->throwIfCancelled();
+    }
+    std::array<PatchCache::Pin, 4> pins;
+    std::array<const PatchGrid*, 4> children{};
+    for (const Quadrant q : kQuadrants) {
+      const PatchKey child = key.child(q);
+      if (model_->find(child) != nullptr) {
+        auto& pin = pins[static_cast<int>(q)];
+        pin = positions(child);
+        children[static_cast<int>(q)] = pin.get<PatchGrid>().get();
+      }
+    }
+    auto parent = std::make_shared<const PatchGrid>(reduce(children));
+    for (auto& pin : pins) {
+      pin = PatchCache::Pin();
+    }
+    setPositions(key, std::move(parent));
+    model_->at(key).stale = false;
+  }
+}
+
+void ModelEdit::publish(const CancelToken* cancel) {
+  if (published_) {
+    throw Error(ErrorCode::Conflict, "edit already published");
+  }
+  refreshStale(cancel);
+  if (cancel != nullptr) {
+    cancel->throwIfCancelled();
+  }
+  LiveModel::Store& store = *live_.store_;
+  // 1. Every changed patch into its new folder (evicted ones were written already).
+  store.cache().flush(store.id());
+  // 2. The hierarchy naming them, atomically: this is the moment the new version exists.
+  auto next = std::make_shared<Model>(*model_);
+  OpcWriter(live_.dir_, OpcWriter::Durability::EachFile).writeHierarchy(*next);
+
+  auto snapshot = std::make_shared<ModelSnapshot>();
+  snapshot->model = std::move(next);
+  snapshot->version = base_->version + 1;
+
+  // 3. The folders only the old version used go when its last reader does.
+  std::vector<std::pair<PatchKey, PatchInfo>> obsolete;
+  for (const PatchKey& key : changed_) {
+    if (const PatchInfo* old = base_->model->find(key)) {
+      obsolete.emplace_back(key, *old);
+    }
+  }
+  std::shared_ptr<LiveModel::Store> keep = live_.store_;
+  const fs::path patches = patchesDir(live_.dir_);
+  {
+    std::lock_guard lock(live_.mutex_);
+    live_.snapshot_->onRelease = [keep, patches, obsolete = std::move(obsolete)] {
+      for (const auto& [key, info] : obsolete) {
+        keep->cache().invalidate(keep->id(), {key, info.version, MemoryCategory::Positions});
+        keep->forget(key, info.version);
+        fs::remove_all(patches / info.folder);
+      }
+    };
+    live_.snapshot_ = std::move(snapshot);
+  }
+  published_ = true;
+}
+
+}  // namespace vsm::core

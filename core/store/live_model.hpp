@@ -1,0 +1,135 @@
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <string>
+
+#include "core/cache/patch_cache.hpp"
+#include "core/common/progress.hpp"
+#include "core/pyramid/model.hpp"
+
+namespace vsm::core {
+
+/// One published version of a model: immutable metadata (no vertex data attached). Readers hold a
+/// snapshot for the length of a request and read every patch of it, so they see one consistent
+/// version however long they take.
+struct ModelSnapshot {
+  std::shared_ptr<const Model> model;
+  /// Increases with every publish.
+  std::uint64_t version = 1;
+  /// Runs when the last holder lets go (removes the folders only this version used).
+  std::function<void()> onRelease;
+
+  ModelSnapshot() = default;
+  ModelSnapshot(const ModelSnapshot&) = delete;
+  ModelSnapshot& operator=(const ModelSnapshot&) = delete;
+  ~ModelSnapshot();
+};
+
+class ModelEdit;
+
+/// An open model: its OPC directory, the published metadata, and its patch data in the shared
+/// cache. Readers work on snapshots; one edit at a time prepares the next version copy-on-write
+/// (changed patches go to new folders) and publishes it by replacing the hierarchy atomically, so
+/// a crash at any moment leaves the directory opening as exactly the old or the new version.
+///
+/// Thread-safe: any number of readers, one edit.
+class LiveModel {
+ public:
+  /// Opens `dir` (metadata only) and registers it with `cache` under `name`. Removes folders that
+  /// earlier, interrupted edits of vsm left behind (named like ours, not in the hierarchy).
+  /// Throws as readOpcModel.
+  static std::unique_ptr<LiveModel> open(const std::filesystem::path& dir, std::string name,
+                                         PatchCache& cache);
+  /// Precondition: no edit open.
+  ~LiveModel();
+  LiveModel(const LiveModel&) = delete;
+  LiveModel& operator=(const LiveModel&) = delete;
+
+  const std::string& name() const { return name_; }
+  const std::filesystem::path& dir() const { return dir_; }
+
+  /// The current published version.
+  std::shared_ptr<const ModelSnapshot> snapshot() const;
+
+  /// Vertex data of `key` as published in `snapshot`, through the cache (pinned while the Pin
+  /// lives). Throws Error(NotFound) when the snapshot has no such patch, Error(ResourceExhausted)
+  /// when the budget is full of pinned data, Error(Corrupt / Io) from the files.
+  PatchCache::Pin positions(const ModelSnapshot& snapshot, const PatchKey& key);
+
+  /// Starts the one edit of this model. Throws Error(Conflict) while another edit is open.
+  std::unique_ptr<ModelEdit> beginEdit();
+
+  class Store;  // the PatchStore over the directory; defined in the .cpp
+
+ private:
+  friend class ModelEdit;
+  LiveModel(std::filesystem::path dir, std::string name, std::shared_ptr<Store> store,
+            std::shared_ptr<ModelSnapshot> snapshot);
+
+  std::filesystem::path dir_;
+  std::string name_;
+  std::shared_ptr<Store> store_;
+  mutable std::mutex mutex_;  // guards snapshot_ (the pointer, not the snapshot)
+  std::shared_ptr<ModelSnapshot> snapshot_;
+  std::atomic<bool> editing_{false};
+};
+
+/// The next version of a LiveModel, invisible to readers until publish(). A changed patch gets
+/// version (published version + 1) and a new folder; its data lives in the cache as dirty and is
+/// written there when evicted or at publish. Destroying an unpublished edit discards it: its
+/// cache entries are dropped and its folders removed.
+///
+/// Not thread-safe: one thread drives an edit. Pins it returns must be released before publish()
+/// or destruction.
+class ModelEdit {
+ public:
+  ~ModelEdit();
+  ModelEdit(const ModelEdit&) = delete;
+  ModelEdit& operator=(const ModelEdit&) = delete;
+
+  /// The working metadata (structure, boxes, states) of the next version.
+  const Model& model() const { return *model_; }
+  /// The version this edit was started from.
+  const ModelSnapshot& base() const { return *base_; }
+
+  /// Current data of a patch in this edit: its new data if changed, else the published data.
+  /// Throws Error(NotFound) for a key not in the model.
+  PatchCache::Pin positions(const PatchKey& key);
+
+  /// Adds a patch (its parent must exist already) or replaces a patch's data. Marks the patch
+  /// changed and every ancestor stale. Throws Error(InvalidArgument) for a wrong grid size or a
+  /// missing parent, Error(ResourceExhausted) when the budget is full of pinned data.
+  void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid);
+
+  /// Recomputes every stale overview bottom-up by reduction, holding one parent's children at a
+  /// time.
+  void refreshStale(const CancelToken* cancel = nullptr);
+
+  /// Refreshes stale overviews, writes every changed patch (fsynced), then the hierarchy
+  /// atomically: from its return on, snapshot() is the new version. Folders only the old version
+  /// used are removed once no reader holds it. Throws Error(Io) when a write fails (the model
+  /// stays at the old version; the edit can be retried or discarded).
+  void publish(const CancelToken* cancel = nullptr);
+
+  /// Keys changed in this edit.
+  const std::set<PatchKey>& changed() const { return changed_; }
+
+ private:
+  friend class LiveModel;
+  ModelEdit(LiveModel& live, std::shared_ptr<const ModelSnapshot> base);
+  ObjectId draftId(const PatchKey& key) const;
+
+  LiveModel& live_;
+  std::shared_ptr<const ModelSnapshot> base_;
+  std::unique_ptr<Model> model_;
+  std::set<PatchKey> changed_;
+  bool published_ = false;
+};
+
+}  // namespace vsm::core

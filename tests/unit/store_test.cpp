@@ -1,0 +1,252 @@
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <fstream>
+#include <map>
+#include <sstream>
+
+#include "core/common/error.hpp"
+#include "core/opc/opc_store.hpp"
+#include "core/pyramid/reduce.hpp"
+#include "core/store/live_model.hpp"
+
+namespace fs = std::filesystem;
+
+namespace vsm::core {
+namespace {
+
+constexpr int kSize = 17;  // 2^4 + 1
+
+double height(int u, int v, double bump) {
+  return std::sin(u * 0.2) * 5 + v * 0.1 + bump;
+}
+
+/// Leaf (x, y) at depth 2 of a 4x4 bottom level, sampled from a surface on a 1 m lattice.
+std::shared_ptr<PatchGrid> leafGrid(std::uint32_t x, std::uint32_t y, double bump = 0) {
+  const int u0 = static_cast<int>(x) * (kSize - 1);
+  const int v0 = static_cast<int>(y) * (kSize - 1);
+  auto grid = std::make_shared<PatchGrid>(kSize, Mat4d::translation({u0 + 8.0, v0 + 8.0, 0}));
+  for (int j = 0; j < kSize; ++j) {
+    for (int i = 0; i < kSize; ++i) {
+      grid->setGlobal(i, j, {double(u0 + i), double(v0 + j), height(u0 + i, v0 + j, bump)});
+    }
+  }
+  return grid;
+}
+
+PatchInfo infoFor(const PatchKey& key) {
+  PatchInfo info;
+  info.key = key;
+  return info;
+}
+
+/// Writes a full three-level model (16 leaves, 4 + 1 overviews) to `dir`.
+void writeModel(const fs::path& dir) {
+  Model model(kSize);
+  std::map<PatchKey, std::shared_ptr<const PatchGrid>> grids;
+  model.insert(infoFor(PatchKey::root()));
+  for (std::uint32_t y = 0; y < 2; ++y) {
+    for (std::uint32_t x = 0; x < 2; ++x) {
+      model.insert(infoFor({1, x, y}));
+    }
+  }
+  for (std::uint32_t y = 0; y < 4; ++y) {
+    for (std::uint32_t x = 0; x < 4; ++x) {
+      model.insert(infoFor({2, x, y}));
+      model.setGrid({2, x, y}, leafGrid(x, y));
+    }
+  }
+  model.refreshStale([](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return nullptr; });
+  OpcWriter writer(dir, OpcWriter::Durability::EachFile);
+  for (const auto& [key, info] : model.patches()) {
+    PatchInfo& mutableInfo = model.at(key);
+    mutableInfo.folder = key.toString();
+    writer.writePatch(mutableInfo, *info.grid);
+  }
+  writer.writeHierarchy(model);
+}
+
+/// Path -> content of every file under `dir`.
+std::map<std::string, std::string> contents(const fs::path& dir) {
+  std::map<std::string, std::string> files;
+  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+    if (entry.is_regular_file()) {
+      std::ifstream in(entry.path(), std::ios::binary);
+      std::stringstream text;
+      text << in.rdbuf();
+      files[fs::relative(entry.path(), dir).string()] = text.str();
+    }
+  }
+  return files;
+}
+
+class StoreTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("vsm-store-test-" + std::to_string(::getpid()) + "-" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    writeModel(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  fs::path dir_;
+};
+
+double leafZ(LiveModel& live, const ModelSnapshot& snapshot, const PatchKey& key) {
+  return live.positions(snapshot, key).get<PatchGrid>()->global(3, 3).z;
+}
+
+TEST_F(StoreTest, ReadersSeeTheOldVersionUntilPublishAndTheNewOneAfter) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const auto before = live->snapshot();
+  const PatchKey leaf{2, 1, 2};
+  const double oldZ = leafZ(*live, *before, leaf);
+  {
+    auto edit = live->beginEdit();
+    edit->setPositions(leaf, leafGrid(1, 2, 100.0));
+    edit->refreshStale();
+    // Not yet published: every reader still gets the old surface.
+    EXPECT_EQ(live->snapshot()->version, 1u);
+    EXPECT_DOUBLE_EQ(leafZ(*live, *live->snapshot(), leaf), oldZ);
+    edit->publish();
+  }
+  const auto after = live->snapshot();
+  EXPECT_EQ(after->version, 2u);
+  EXPECT_NEAR(leafZ(*live, *after, leaf), oldZ + 100.0, 1e-3);
+  // The overviews above were recomputed: the root's vertex over the leaf's corner moved too.
+  const auto root = live->positions(*after, PatchKey::root()).get<PatchGrid>();
+  const auto leafData = live->positions(*after, leaf).get<PatchGrid>();
+  // Leaf (1, 2) at depth 2 starts at lattice (16, 32); the root keeps every 4th lattice vertex.
+  EXPECT_NEAR(root->global(4, 8).z, leafData->global(0, 0).z, 1e-3);
+  // A reader that took its snapshot before the publish still reads the old data...
+  EXPECT_DOUBLE_EQ(leafZ(*live, *before, leaf), oldZ);
+  const std::string oldFolder = before->model->at(leaf).folder;
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / oldFolder));
+}
+
+TEST_F(StoreTest, OldFoldersGoWhenTheirLastReaderDoes) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  auto before = live->snapshot();
+  const std::string oldFolder = before->model->at({2, 0, 0}).folder;
+  {
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 0, 0}, leafGrid(0, 0, 5.0));
+    edit->publish();
+  }
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / oldFolder));
+  before.reset();
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / oldFolder));
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+TEST_F(StoreTest, PublishedChangesSurviveReopening) {
+  {
+    PatchCache cache(64 << 20);
+    auto live = LiveModel::open(dir_, "m", cache);
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 3, 3}, leafGrid(3, 3, 7.0));
+    edit->publish();
+  }
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const auto snapshot = live->snapshot();
+  const double z = leafZ(*live, *snapshot, {2, 3, 3});
+  EXPECT_NEAR(z, height(3 * 16 + 3, 3 * 16 + 3, 7.0), 1e-3);
+  const auto findings = validateOpc(dir_);
+  for (const auto& f : findings) {
+    ADD_FAILURE() << f.where << ": " << f.message;
+  }
+}
+
+TEST_F(StoreTest, UnchangedPatchFilesStayByteIdentical) {
+  const auto before = contents(dir_);
+  {
+    PatchCache cache(64 << 20);
+    auto live = LiveModel::open(dir_, "m", cache);
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 0, 0}, leafGrid(0, 0, 1.0));
+    edit->publish();
+  }
+  const auto after = contents(dir_);
+  // Changed: leaf 2_0_0, its ancestors 1_0_0 and 0_0_0 (new folders), and the hierarchy.
+  for (const auto& [path, bytes] : before) {
+    const bool affected =
+        path.starts_with("Patches/2_0_0/") || path.starts_with("Patches/1_0_0/") ||
+        path.starts_with("Patches/0_0_0/") || path == "Patches/patchhierarchy.xml";
+    if (!affected) {
+      ASSERT_TRUE(after.count(path)) << path;
+      EXPECT_EQ(after.at(path), bytes) << path;
+    }
+  }
+}
+
+TEST_F(StoreTest, ADiscardedEditLeavesEveryFileAsItWas) {
+  const auto before = contents(dir_);
+  {
+    // A budget of three patches forces the edit's drafts out to disk before it is discarded.
+    PatchCache cache(3 * kSize * kSize * 12);
+    auto live = LiveModel::open(dir_, "m", cache);
+    auto edit = live->beginEdit();
+    for (std::uint32_t x = 0; x < 4; ++x) {
+      edit->setPositions({2, x, 1}, leafGrid(x, 1, 3.0));
+    }
+    edit->refreshStale();
+    EXPECT_GT(cache.stats().writeBacks, 0u);
+  }
+  EXPECT_EQ(contents(dir_), before);
+}
+
+TEST_F(StoreTest, OnlyOneEditAtATime) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  auto edit = live->beginEdit();
+  try {
+    live->beginEdit();
+    FAIL() << "second edit allowed";
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), ErrorCode::Conflict);
+  }
+  edit.reset();
+  EXPECT_NO_THROW(live->beginEdit());
+}
+
+TEST_F(StoreTest, AnEditLargerThanTheBudgetStaysWithinIt) {
+  // 4 patches of budget; the edit rewrites all 16 leaves and the 5 overviews above them.
+  const std::size_t budget = 4 * kSize * kSize * 12;
+  PatchCache cache(budget);
+  auto live = LiveModel::open(dir_, "m", cache);
+  {
+    auto edit = live->beginEdit();
+    for (std::uint32_t y = 0; y < 4; ++y) {
+      for (std::uint32_t x = 0; x < 4; ++x) {
+        edit->setPositions({2, x, y}, leafGrid(x, y, 2.0));
+        ASSERT_LE(cache.stats().residentBytes, budget);
+      }
+    }
+    edit->publish();
+    EXPECT_LE(cache.stats().residentBytes, budget);
+  }
+  const auto snapshot = live->snapshot();
+  EXPECT_NEAR(leafZ(*live, *snapshot, {2, 2, 1}), height(2 * 16 + 3, 16 + 3, 2.0), 1e-3);
+  live.reset();
+  const auto findings = validateOpc(dir_);
+  for (const auto& f : findings) {
+    ADD_FAILURE() << f.where << ": " << f.message;
+  }
+}
+
+TEST_F(StoreTest, OpeningRemovesFoldersOfAnInterruptedEdit) {
+  fs::create_directories(dir_ / "Patches" / "2_0_0-v9");
+  std::ofstream(dir_ / "Patches" / "2_0_0-v9" / "Patch.xml") << "half written";
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / "2_0_0-v9"));
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / "2_0_0"));
+}
+
+}  // namespace
+}  // namespace vsm::core
