@@ -81,4 +81,17 @@ Mat4d Mat4d::inverse() const {
   return r;
 }
 
+Box3d transformBox(const Mat4d& m, const Box3d& box) {
+  Box3d result;
+  if (box.empty()) {
+    return result;
+  }
+  for (int corner = 0; corner < 8; ++corner) {
+    result.extend(m.apply({(corner & 1) != 0 ? box.max.x : box.min.x,
+                           (corner & 2) != 0 ? box.max.y : box.min.y,
+                           (corner & 4) != 0 ? box.max.z : box.min.z}));
+  }
+  return result;
+}
+
 }  // namespace vsm::core

@@ -60,4 +60,7 @@ struct Mat4d {
   friend bool operator==(const Mat4d&, const Mat4d&) = default;
 };
 
+/// The axis-aligned box holding `box` transformed by `m` (its eight corners); empty stays empty.
+Box3d transformBox(const Mat4d& m, const Box3d& box);
+
 }  // namespace vsm::core

@@ -43,9 +43,10 @@ class OpcWriter {
 
   /// Writes all files of one patch (never one alone) into Patches/<info.folder>/, cropping
   /// undefined border rows and columns, and updates `info` from `grid` (boxes, Local2Global,
-  /// resolution, stored rectangle). An empty info.folder becomes info.key.toString().
-  /// Precondition: grid.anyDefined().
-  void writePatch(PatchInfo& info, const PatchGrid& grid);
+  /// resolution, stored rectangle) as Model::describe does: the boxes hold the grid's defined
+  /// vertices and `childrenBox`, the union of the children's global boxes (empty for a leaf).
+  /// An empty info.folder becomes info.key.toString(). Precondition: grid.anyDefined().
+  void writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox);
 
   /// Writes Patches/patchhierarchy.xml atomically; call after every patch it names is written.
   /// Removes a stale `hierarchy.cache` of other readers.

@@ -88,13 +88,26 @@ std::vector<PatchKey> Model::leaves() const {
   return result;
 }
 
+Box3d Model::childrenBox(const PatchKey& key) const {
+  Box3d box;
+  for (const Quadrant q : kQuadrants) {
+    if (const PatchInfo* child = find(key.child(q))) {
+      box.extend(child->globalBox);
+    }
+  }
+  return box;
+}
+
 void Model::describe(const PatchKey& key, const PatchGrid& grid) {
   PatchInfo& info = at(key);
   if (grid.size() != gridSize_) {
     throw Error(ErrorCode::InvalidArgument, "grid size differs from the model's patch size");
   }
+  const Box3d children = childrenBox(key);
   info.globalBox = grid.globalBox();
+  info.globalBox.extend(children);
   info.localBox = grid.localBox();
+  info.localBox.extend(transformBox(grid.local2global().inverse(), children));
   info.local2global = grid.local2global();
   info.resolution = grid.resolution();
   info.stored = grid.definedRect();

@@ -84,8 +84,12 @@ class Model {
   /// All patches, parents before children (by depth, then row, then column).
   const std::map<PatchKey, PatchInfo>& patches() const { return patches_; }
 
+  /// Union of the global boxes of the children of `key` (empty for a leaf).
+  Box3d childrenBox(const PatchKey& key) const;
+
   /// Updates a patch's metadata (boxes, Local2Global, resolution, stored rectangle) from its data;
-  /// changes no state.
+  /// changes no state. The boxes hold the grid's defined vertices and the children's boxes (OPC:
+  /// a parent's box contains its children's), so describe children before their parent.
   void describe(const PatchKey& key, const PatchGrid& grid);
   /// Records new vertex data for a patch: attaches it, updates box, resolution and version, marks
   /// the patch dirty and every ancestor stale.

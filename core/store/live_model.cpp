@@ -98,7 +98,8 @@ class LiveModel::Store final : public PatchStore {
   void writeBack(const ObjectId& id, const CacheValue& value) override {
     PatchInfo info = lookup(id);
     OpcWriter writer(dir_, OpcWriter::Durability::EachFile);
-    writer.writePatch(info, *static_cast<const PatchGrid*>(value.object.get()));
+    // The edit described the patch after its children: its box already holds theirs.
+    writer.writePatch(info, *static_cast<const PatchGrid*>(value.object.get()), info.globalBox);
   }
 
  private:

@@ -61,7 +61,7 @@ void writeModel(const fs::path& dir) {
   for (const auto& [key, info] : model.patches()) {
     PatchInfo& mutableInfo = model.at(key);
     mutableInfo.folder = key.toString();
-    writer.writePatch(mutableInfo, *info.grid);
+    writer.writePatch(mutableInfo, *info.grid, model.childrenBox(key));
   }
   writer.writeHierarchy(model);
 }
@@ -119,8 +119,9 @@ TEST_F(StoreTest, ReadersSeeTheOldVersionUntilPublishAndTheNewOneAfter) {
   // The overviews above were recomputed: the root's vertex over the leaf's corner moved too.
   const auto root = live->positions(*after, PatchKey::root()).get<PatchGrid>();
   const auto leafData = live->positions(*after, leaf).get<PatchGrid>();
-  // Leaf (1, 2) at depth 2 starts at lattice (16, 32); the root keeps every 4th lattice vertex.
-  EXPECT_NEAR(root->global(4, 8).z, leafData->global(0, 0).z, 1e-3);
+  // Leaf (1, 2) at depth 2 starts at lattice (16, 32); the root keeps every 4th lattice vertex,
+  // so root vertex (5, 9) is lattice (20, 36), the leaf's own (interior) vertex (4, 4).
+  EXPECT_NEAR(root->global(5, 9).z, leafData->global(4, 4).z, 1e-3);
   // A reader that took its snapshot before the publish still reads the old data...
   EXPECT_DOUBLE_EQ(leafZ(*live, *before, leaf), oldZ);
   const std::string oldFolder = before->model->at(leaf).folder;
@@ -187,8 +188,9 @@ TEST_F(StoreTest, UnchangedPatchFilesStayByteIdentical) {
 TEST_F(StoreTest, ADiscardedEditLeavesEveryFileAsItWas) {
   const auto before = contents(dir_);
   {
-    // A budget of three patches forces the edit's drafts out to disk before it is discarded.
-    PatchCache cache(3 * kSize * kSize * 12);
+    // A budget of six patches forces the edit's drafts out to disk before it is discarded
+    // (reducing one parent pins its four children and needs room for the parent).
+    PatchCache cache(6 * kSize * kSize * 12);
     auto live = LiveModel::open(dir_, "m", cache);
     auto edit = live->beginEdit();
     for (std::uint32_t x = 0; x < 4; ++x) {

@@ -1,0 +1,89 @@
+#pragma once
+
+// Internal to core/opc: shared by aara.cpp, opc_store.cpp and validate.cpp. Not part of the
+// module's interface; other modules include aara.hpp and opc_store.hpp only.
+
+#include <cstddef>
+#include <cstdint>
+#include <filesystem>
+#include <limits>
+#include <map>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "core/opc/aara.hpp"
+#include "core/pyramid/model.hpp"
+
+namespace vsm::core::detail {
+
+/// The header of an `.aara` file: what decodeAara checks before it looks at the data.
+struct AaraHeader {
+  AaraType type = AaraType::Byte;
+  std::vector<std::int32_t> sizes;
+  std::size_t headerBytes = 0;
+  /// count x element size: the exact number of bytes that must follow the header.
+  std::size_t dataBytes = 0;
+};
+
+/// Decodes and checks the header at the start of `bytes` (which may hold more than the header).
+/// Throws Error(Corrupt) naming `what` like decodeAara.
+AaraHeader decodeAaraHeader(std::span<const std::byte> bytes, std::string_view what);
+/// Reads only the header of an `.aara` file. Throws Error(NotFound / Io / Corrupt).
+AaraHeader readAaraHeader(const std::filesystem::path& path);
+
+/// Reads a whole file, or its first `maxBytes`. Throws Error(NotFound) when it does not exist,
+/// Error(Io) on any other failure.
+std::vector<std::byte> readFile(const std::filesystem::path& path,
+                                std::size_t maxBytes = std::numeric_limits<std::size_t>::max());
+
+/// The entry of `dir` called `name` in any letter case; the exact spelling wins when several
+/// match. nullopt when there is none (or `dir` cannot be listed).
+std::optional<std::filesystem::path> findEntry(const std::filesystem::path& dir,
+                                               std::string_view name);
+
+/// True for a name that stays inside its directory: not empty, not ".", no "..", "/" or "\".
+bool isSafeName(std::string_view name);
+
+/// `dir`/Patches in whatever letter case it exists. Throws Error(NotFound) when there is none.
+std::filesystem::path patchesDirOf(const std::filesystem::path& dir);
+
+/// What readOpc learnt about one patch beyond its PatchInfo (for validateOpc).
+struct PatchDetails {
+  std::filesystem::path xmlFile;
+  /// Standard elements other readers require that the Patch.xml lacks.
+  std::vector<std::string> missingElements;
+  std::string geometryType;
+  bool hasExtension = false;
+  std::optional<std::string> extensionKey;
+  std::optional<double> extensionResolution;
+  /// Boxes were missing from the XML and computed from the data.
+  bool boxesFromData = false;
+};
+
+/// Everything readOpc reads: the model plus what validation needs to know about the files.
+struct OpcContents {
+  Model model;
+  std::filesystem::path patchesDir;
+  std::filesystem::path hierarchyFile;
+  std::vector<double> avgGeometrySizes;
+  bool hasHierarchyExtension = false;
+  std::map<PatchKey, PatchDetails> patches;
+  /// SubPatchMap keys no walk from the root reaches.
+  std::vector<std::string> unreachableItems;
+  /// Other readers' caches (`hierarchy.cache`) found beside the hierarchy.
+  std::vector<std::filesystem::path> hierarchyCaches;
+};
+
+/// The reader behind readOpcModel; throws as it does.
+OpcContents readOpc(const std::filesystem::path& dir);
+
+/// Float32 rounding of one stored coordinate of `grid`, in global units: half an ulp of its
+/// largest local coordinate (2^-24 x maxAbsLocal), scaled by the linear part of Local2Global.
+double roundingOf(const PatchGrid& grid);
+/// Largest absolute row sum of the linear part: how much a local error can grow globally.
+double linearScale(const Mat4d& m);
+
+}  // namespace vsm::core::detail

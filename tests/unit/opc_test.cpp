@@ -1,0 +1,490 @@
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstring>
+#include <fstream>
+#include <map>
+#include <sstream>
+
+#include "core/common/error.hpp"
+#include "core/opc/aara.hpp"
+#include "core/opc/opc_store.hpp"
+
+namespace fs = std::filesystem;
+
+namespace vsm::core {
+namespace {
+
+std::vector<std::byte> bytesOf(std::initializer_list<int> values) {
+  std::vector<std::byte> out;
+  for (const int v : values) {
+    out.push_back(static_cast<std::byte>(v));
+  }
+  return out;
+}
+
+void appendFloat(std::vector<std::byte>& out, float f) {
+  unsigned char b[4];
+  std::memcpy(b, &f, 4);  // the test host is little-endian, as the format
+  for (const unsigned char c : b) {
+    out.push_back(static_cast<std::byte>(c));
+  }
+}
+
+/// OPC.md's example: a V3f grid of 3 x 2 with vertex (1, 1) undefined, 85 bytes.
+std::vector<std::byte> specExample() {
+  std::vector<std::byte> bytes = bytesOf({0x03, 'V', '3', 'f', 0x02, 3, 0, 0, 0, 2, 0, 0, 0});
+  const float nan = std::nanf("");
+  for (const float f : {0.f, 0.f, 0.f, 1.f, 0.f, 0.f, 2.f, 0.f, 0.5f, 0.f, 1.f, 0.f, nan, nan, nan,
+                        2.f, 1.f, 0.25f}) {
+    appendFloat(bytes, f);
+  }
+  return bytes;
+}
+
+ErrorCode codeOf(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.code();
+  }
+  ADD_FAILURE() << "no error";
+  return ErrorCode::Internal;
+}
+
+std::string messageOf(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  ADD_FAILURE() << "no error";
+  return {};
+}
+
+TEST(Aara, DecodesTheSpecExample) {
+  const std::vector<std::byte> bytes = specExample();
+  ASSERT_EQ(bytes.size(), 85u);
+  const AaraArray array = decodeAara(bytes, "example");
+  EXPECT_EQ(array.type, AaraType::V3f);
+  EXPECT_EQ(array.sizes, (std::vector<std::int32_t>{3, 2}));
+  ASSERT_EQ(array.data.size(), 72u);
+  float v[3];
+  std::memcpy(v, array.data.data() + 5 * 12, 12);  // (2, 1)
+  EXPECT_EQ(v[0], 2.f);
+  EXPECT_EQ(v[2], 0.25f);
+  std::memcpy(v, array.data.data() + 4 * 12, 12);  // (1, 1)
+  EXPECT_TRUE(std::isnan(v[0]));
+  EXPECT_EQ(encodeAara(array), bytes);
+}
+
+TEST(Aara, EveryTypeNameAndSizeIsTheSpecs) {
+  const std::map<std::string, std::size_t> spec{
+      {"byte", 1}, {"int", 4},  {"float", 4}, {"double", 8}, {"V2f", 8},  {"V3f", 12},
+      {"V2d", 16}, {"V3d", 24}, {"C3b", 3},   {"C4b", 4},    {"C3f", 12}, {"C4f", 16}};
+  for (const auto& [name, size] : spec) {
+    const auto type = parseAaraType(name);
+    ASSERT_TRUE(type) << name;
+    EXPECT_EQ(elementSize(*type), size) << name;
+    EXPECT_EQ(toString(*type), name);
+  }
+  EXPECT_FALSE(parseAaraType("v3f"));  // names are exact
+  EXPECT_FALSE(parseAaraType("V4f"));
+}
+
+TEST(Aara, CorruptInputsAreRejectedWithAClearMessage) {
+  const std::vector<std::byte> good = specExample();
+  auto truncated = good;
+  truncated.resize(good.size() - 5);
+  EXPECT_NE(messageOf([&] { decodeAara(truncated, "f.aara"); }).find("truncated"),
+            std::string::npos);
+  auto trailing = good;
+  trailing.push_back(std::byte{0});
+  EXPECT_NE(messageOf([&] { decodeAara(trailing, "f.aara"); }).find("trailing"), std::string::npos);
+  auto dims = good;
+  dims[4] = std::byte{7};
+  EXPECT_NE(messageOf([&] { decodeAara(dims, "f.aara"); }).find("dimension"), std::string::npos);
+  auto zeroDims = good;
+  zeroDims[4] = std::byte{0};
+  EXPECT_EQ(codeOf([&] { decodeAara(zeroDims, "f.aara"); }), ErrorCode::Corrupt);
+  auto type = good;
+  type[2] = std::byte{'9'};
+  const std::string message = messageOf([&] { decodeAara(type, "f.aara"); });
+  EXPECT_NE(message.find("V9f"), std::string::npos);
+  EXPECT_NE(message.find("f.aara"), std::string::npos);
+  auto negative = good;
+  negative[8] = std::byte{0x80};
+  EXPECT_EQ(codeOf([&] { decodeAara(negative, "f.aara"); }), ErrorCode::Corrupt);
+  auto huge = good;
+  for (int i = 5; i < 13; ++i) {
+    huge[i] = std::byte{0x7f};
+  }
+  EXPECT_EQ(codeOf([&] { decodeAara(huge, "f.aara"); }), ErrorCode::Corrupt);
+  EXPECT_EQ(codeOf([&] { decodeAara({}, "f.aara"); }), ErrorCode::Corrupt);
+  EXPECT_EQ(codeOf([&] { decodeAara(bytesOf({0xff, 'a'}), "f.aara"); }), ErrorCode::Corrupt);
+}
+
+TEST(Aara, AMissingFileIsNotFound) {
+  EXPECT_EQ(codeOf([] { readAaraFile("/nonexistent/Positions.aara"); }), ErrorCode::NotFound);
+}
+
+// ---- the store -------------------------------------------------------------------------------
+
+constexpr int kSize = 9;
+
+/// A surface sampled on a 2 m lattice around an ECEF-like offset; (u, v) in lattice units.
+Vec3d surface(int u, int v) {
+  return {4.0e6 + 2.0 * u, 5.0e5 + 2.0 * v, 4.9e6 + std::sin(u * 0.3) * 10 + v * 0.5};
+}
+
+/// A two-level model: a root over three leaves (the south-east one missing). The north-west
+/// leaf's first row is undefined, so that leaf is stored cropped (the root is not: the north-east
+/// leaf defines the rest of that row).
+Model makeModel() {
+  Model model(kSize);
+  PatchInfo root;
+  root.key = PatchKey::root();
+  model.insert(root);
+  for (const Quadrant q : {Quadrant::NW, Quadrant::NE, Quadrant::SW}) {
+    PatchInfo leaf;
+    leaf.key = PatchKey::root().child(q);
+    model.insert(leaf);
+    const int u0 = static_cast<int>(leaf.key.x) * (kSize - 1);
+    const int v0 = static_cast<int>(leaf.key.y) * (kSize - 1);
+    Box3d box;
+    box.extend(surface(u0, v0));
+    box.extend(surface(u0 + kSize - 1, v0 + kSize - 1));
+    auto grid = std::make_shared<PatchGrid>(kSize, originFor(box));
+    for (int j = 0; j < kSize; ++j) {
+      for (int i = 0; i < kSize; ++i) {
+        if (v0 + j > 0 || u0 + i > kSize - 1) {
+          grid->setGlobal(i, j, surface(u0 + i, v0 + j));
+        }
+      }
+    }
+    model.setGrid(leaf.key, grid);
+  }
+  model.refreshStale([](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return nullptr; });
+  return model;
+}
+
+void writeModel(Model& model, const fs::path& dir) {
+  OpcWriter writer(dir, OpcWriter::Durability::Deferred);
+  // Children before parents, so each parent's box can hold its children's.
+  std::vector<PatchKey> keys;
+  for (const auto& [key, info] : model.patches()) {
+    keys.push_back(key);
+  }
+  for (auto it = keys.rbegin(); it != keys.rend(); ++it) {
+    PatchInfo& info = model.at(*it);
+    writer.writePatch(info, *info.grid, model.childrenBox(*it));
+  }
+  writer.writeHierarchy(model);
+  writer.sync();
+}
+
+std::map<std::string, std::string> filesUnder(const fs::path& dir) {
+  std::map<std::string, std::string> files;
+  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+    if (entry.is_regular_file()) {
+      std::ifstream in(entry.path(), std::ios::binary);
+      std::stringstream text;
+      text << in.rdbuf();
+      files[fs::relative(entry.path(), dir).string()] = text.str();
+    }
+  }
+  return files;
+}
+
+std::string readText(const fs::path& file) {
+  std::ifstream in(file, std::ios::binary);
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+void writeText(const fs::path& file, const std::string& text) {
+  std::ofstream(file, std::ios::binary) << text;
+}
+
+void replaceIn(const fs::path& file, const std::string& from, const std::string& to) {
+  std::string text = readText(file);
+  const auto at = text.find(from);
+  ASSERT_NE(at, std::string::npos) << from << " not in " << file;
+  text.replace(at, from.size(), to);
+  writeText(file, text);
+}
+
+class OpcStoreTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("vsm-opc-test-" + std::to_string(::getpid()) + "-" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    model_ = std::make_unique<Model>(makeModel());
+    writeModel(*model_, dir_ / "a");
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  fs::path opc() const { return dir_ / "a"; }
+  fs::path patches() const { return opc() / "Patches"; }
+
+  fs::path dir_;
+  std::unique_ptr<Model> model_;
+};
+
+TEST_F(OpcStoreTest, WriteReadWriteGivesIdenticalFiles) {
+  Model read = readOpcModel(opc());
+  ASSERT_EQ(read.patchCount(), 4u);
+  for (const auto& [key, info] : read.patches()) {
+    read.at(key).grid = std::make_shared<const PatchGrid>(readPatchGrid(opc(), read, read.at(key)));
+  }
+  writeModel(read, dir_ / "b");
+  EXPECT_EQ(filesUnder(opc()), filesUnder(dir_ / "b"));
+}
+
+TEST_F(OpcStoreTest, ReadBackIsWhatWasWritten) {
+  const Model read = readOpcModel(opc());
+  EXPECT_EQ(read.gridSize(), kSize);
+  for (const auto& [key, info] : model_->patches()) {
+    const PatchInfo& other = read.at(key);
+    EXPECT_EQ(other.folder, key.toString());
+    EXPECT_EQ(other.childMask, info.childMask);
+    EXPECT_EQ(other.globalBox, info.globalBox);
+    EXPECT_EQ(other.local2global, info.local2global);
+    EXPECT_EQ(other.stored, info.stored);
+    EXPECT_DOUBLE_EQ(other.resolution, info.resolution);
+    EXPECT_EQ(readPatchGrid(opc(), read, other), *info.grid) << key.toString();
+  }
+}
+
+TEST_F(OpcStoreTest, UndefinedBordersAreCroppedAndTheCropRecorded) {
+  const PatchInfo& nw = model_->at(PatchKey::root().child(Quadrant::NW));
+  EXPECT_EQ(nw.stored, (GridRect{0, 1, kSize, kSize}));
+  const AaraArray positions = readAaraFile(patches() / "1_0_0" / "Positions.aara");
+  EXPECT_EQ(positions.sizes, (std::vector<std::int32_t>{kSize, kSize - 1}));
+  EXPECT_EQ(model_->at(PatchKey::root()).stored, (GridRect{0, 0, kSize, kSize}));
+  EXPECT_NE(readText(patches() / "1_0_0" / "Patch.xml").find("<Offset>[0, 1]</Offset>"),
+            std::string::npos);
+}
+
+TEST_F(OpcStoreTest, WritesTheStandardElementsInOrderAndTheRootLast) {
+  const std::string xml = readText(patches() / "0_0_0" / "Patch.xml");
+  std::size_t at = 0;
+  for (const char* element :
+       {"<TagList", "<GeometryType>QuadList", "<Local2Global>[[1, 0, 0, ", "<LocalBoundingBox>",
+        "<GlobalBoundingBox>", "<Positions>Positions.aara", "<Textures", "<Vsm>"}) {
+    const auto found = xml.find(element, at);
+    ASSERT_NE(found, std::string::npos) << element;
+    at = found;
+  }
+  const std::string hierarchy = readText(patches() / "patchhierarchy.xml");
+  EXPECT_NE(hierarchy.find("<RootPatch>0_0_0</RootPatch>"), std::string::npos);
+  EXPECT_NE(hierarchy.find("<nw>1_0_0</nw>"), std::string::npos);
+  EXPECT_EQ(hierarchy.find("<se>"), std::string::npos);
+  EXPECT_TRUE(validateOpc(opc()).empty());
+}
+
+TEST_F(OpcStoreTest, WritingTheHierarchyRemovesAStaleHierarchyCache) {
+  writeText(patches() / "hierarchy.cache", "old");
+  EXPECT_FALSE(validateOpc(opc()).empty());
+  OpcWriter(opc(), OpcWriter::Durability::EachFile).writeHierarchy(*model_);
+  EXPECT_FALSE(fs::exists(patches() / "hierarchy.cache"));
+  EXPECT_TRUE(validateOpc(opc()).empty());
+}
+
+/// Rewrites a patch's positions as V3d globals with no Local2Global translation, as other tools do.
+void toForeignV3d(const fs::path& folder) {
+  const fs::path xml = folder / "Patch.xml";
+  std::string text = readText(xml);
+  const auto l2gStart = text.find("<Local2Global>") + std::strlen("<Local2Global>");
+  const auto l2gEnd = text.find("</Local2Global>");
+  const auto numbers = text.substr(l2gStart, l2gEnd - l2gStart);
+  double m[16];
+  std::sscanf(numbers.c_str(), "[[%lf, %lf, %lf, %lf], [%lf, %lf, %lf, %lf], [%lf, %lf, %lf, %lf]",
+              &m[0], &m[1], &m[2], &m[3], &m[4], &m[5], &m[6], &m[7], &m[8], &m[9], &m[10], &m[11]);
+  const AaraArray f = readAaraFile(folder / "Positions.aara");
+  AaraArray d;
+  d.type = AaraType::V3d;
+  d.sizes = f.sizes;
+  for (std::size_t i = 0; i < f.elementCount(); ++i) {
+    float v[3];
+    std::memcpy(v, f.data.data() + i * 12, 12);
+    const double g[3] = {v[0] + m[3], v[1] + m[7], v[2] + m[11]};
+    const auto* b = reinterpret_cast<const std::byte*>(g);
+    d.data.insert(d.data.end(), b, b + 24);
+  }
+  fs::remove(folder / "Positions.aara");
+  const auto bytes = encodeAara(d);
+  std::ofstream(folder / "positions.aara", std::ios::binary)
+      .write(reinterpret_cast<const char*>(bytes.data()),
+             static_cast<std::streamsize>(bytes.size()));
+  text.replace(l2gStart, l2gEnd - l2gStart,
+               "[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]");
+  // Local is global now.
+  const auto globalStart = text.find("<GlobalBoundingBox>") + std::strlen("<GlobalBoundingBox>");
+  const std::string global =
+      text.substr(globalStart, text.find("</GlobalBoundingBox>") - globalStart);
+  const auto localStart = text.find("<LocalBoundingBox>") + std::strlen("<LocalBoundingBox>");
+  text.replace(localStart, text.find("</LocalBoundingBox>") - localStart, global);
+  const auto posStart = text.find("<Positions>");
+  const auto posEnd = text.find("</Positions>") + std::strlen("</Positions>");
+  text.replace(posStart, posEnd - posStart, "<Positions>positions.aara</Positions>");
+  writeText(xml, text);
+}
+
+TEST_F(OpcStoreTest, AForeignLayoutReadsCorrectly) {
+  // Another producer: lower-case names, opaque folder names, no extension elements, V3d
+  // positions without an origin, optional elements missing.
+  const fs::path foreign = dir_ / "foreign";
+  fs::create_directories(foreign / "patches");
+  const std::map<std::string, std::string> names{
+      {"0_0_0", "root"}, {"1_0_0", "a"}, {"1_1_0", "b"}, {"1_0_1", "c"}};
+  for (const auto& [ours, theirs] : names) {
+    fs::copy(patches() / ours, foreign / "patches" / theirs);
+    fs::rename(foreign / "patches" / theirs / "Patch.xml",
+               foreign / "patches" / theirs / "patch.xml");
+  }
+  // The root is uncropped, as other producers write: drop its extension, make it V3d and drop
+  // the optional QuadVertexSortOrder. The leaves keep their extension (one is cropped).
+  const fs::path root = foreign / "patches" / "root";
+  fs::rename(root / "patch.xml", root / "Patch.xml");
+  toForeignV3d(root);
+  std::string xml = readText(root / "Patch.xml");
+  xml.erase(xml.find("<Vsm>"), xml.find("</Vsm>") + 6 - xml.find("<Vsm>"));
+  xml.erase(xml.find("<QuadVertexSortOrder>"),
+            xml.find("</QuadVertexSortOrder>") + 22 - xml.find("<QuadVertexSortOrder>"));
+  writeText(root / "Patch.xml", xml);
+  std::string hierarchy = readText(patches() / "patchhierarchy.xml");
+  for (const auto& [ours, theirs] : names) {
+    for (std::size_t at; (at = hierarchy.find(">" + ours + "<")) != std::string::npos;) {
+      hierarchy.replace(at + 1, ours.size(), theirs);
+    }
+  }
+  hierarchy.erase(hierarchy.find("<Vsm>"), hierarchy.find("</Vsm>") + 6 - hierarchy.find("<Vsm>"));
+  writeText(foreign / "patches" / "PatchHierarchy.xml", hierarchy);
+
+  const Model read = readOpcModel(foreign);
+  ASSERT_EQ(read.patchCount(), 4u);
+  EXPECT_EQ(read.gridSize(), kSize);
+  EXPECT_EQ(read.at(PatchKey::root()).folder, "root");
+  EXPECT_EQ(read.at({1, 1, 0}).folder, "b");
+  for (const auto& [key, info] : model_->patches()) {
+    const PatchGrid grid = readPatchGrid(foreign, read, read.at(key));
+    ASSERT_EQ(grid.size(), kSize);
+    for (int y = 0; y < kSize; ++y) {
+      for (int x = 0; x < kSize; ++x) {
+        ASSERT_EQ(grid.defined(x, y), info.grid->defined(x, y)) << key.toString();
+        if (grid.defined(x, y)) {
+          const Vec3d a = grid.global(x, y);
+          const Vec3d b = info.grid->global(x, y);
+          EXPECT_LT((a - b).norm(), 1e-3) << key.toString() << " " << x << "," << y;
+        }
+      }
+    }
+  }
+  // The V3d root was re-based: its float32 locals stay small.
+  EXPECT_LT(readPatchGrid(foreign, read, read.at(PatchKey::root())).maxAbsLocal(), 1e3);
+  for (const Finding& f : validateOpc(foreign)) {
+    ADD_FAILURE() << f.where << ": " << f.message;
+  }
+}
+
+TEST_F(OpcStoreTest, BadHierarchiesAreCorruptAndNamed) {
+  const fs::path file = patches() / "patchhierarchy.xml";
+  const std::string good = readText(file);
+  struct Case {
+    std::string from, to, expect;
+  };
+  const std::vector<Case> cases{
+      {"</SubPatchMap>", "", "malformed XML"},
+      {"<nw>1_0_0</nw>", "<nw>9_9_9</nw>", "9_9_9"},
+      {"<nw>1_0_0</nw>", "<nw>0_0_0</nw>", "reached twice"},
+      {"<nw>1_0_0</nw>", "<nw>../1_0_0</nw>", "../1_0_0"},
+      {"<nw>1_0_0</nw>", "<nw>a/b</nw>", "a/b"},
+      {"<RootPatch>0_0_0</RootPatch>", "<RootPatch>..</RootPatch>", "not a plain folder name"},
+  };
+  for (const Case& c : cases) {
+    writeText(file, good);
+    replaceIn(file, c.from, c.to);
+    std::string message;
+    try {
+      readOpcModel(opc());
+      ADD_FAILURE() << "accepted " << c.to;
+    } catch (const Error& e) {
+      EXPECT_EQ(e.code(), ErrorCode::Corrupt) << c.to;
+      message = e.what();
+    }
+    EXPECT_NE(message.find(c.expect), std::string::npos) << message;
+    EXPECT_EQ(message.find('\n'), std::string::npos);
+    const auto findings = validateOpc(opc());
+    ASSERT_EQ(findings.size(), 1u) << c.to;
+    EXPECT_NE(findings[0].message.find(c.expect), std::string::npos);
+  }
+}
+
+TEST_F(OpcStoreTest, APatchXmlThatIsBrokenIsCorrupt) {
+  writeText(patches() / "1_0_0" / "Patch.xml", "<Aardvark><Patch><Local2Global>[[1, 2]");
+  EXPECT_EQ(codeOf([&] { readOpcModel(opc()); }), ErrorCode::Corrupt);
+  writeText(patches() / "1_0_0" / "Patch.xml",
+            "<Aardvark><Patch><Local2Global>[[1, 2]]</Local2Global></Patch></Aardvark>");
+  EXPECT_NE(messageOf([&] { readOpcModel(opc()); }).find("16 numbers"), std::string::npos);
+}
+
+TEST_F(OpcStoreTest, NoOpcIsNotFound) {
+  EXPECT_EQ(codeOf([&] { readOpcModel(dir_ / "missing"); }), ErrorCode::NotFound);
+  fs::create_directories(dir_ / "empty");
+  EXPECT_EQ(codeOf([&] { readOpcModel(dir_ / "empty"); }), ErrorCode::NotFound);
+}
+
+TEST_F(OpcStoreTest, ValidateReportsEachBreak) {
+  // 1. A parent vertex moved away from its child's.
+  {
+    const fs::path file = patches() / "0_0_0" / "Positions.aara";
+    AaraArray a = readAaraFile(file);
+    float v[3];
+    for (std::size_t i = 0;; ++i) {
+      std::memcpy(v, a.data.data() + i * 12, 12);
+      if (!std::isnan(v[0])) {
+        v[2] += 5;
+        std::memcpy(a.data.data() + i * 12, v, 12);
+        break;
+      }
+    }
+    const auto bytes = encodeAara(a);
+    std::ofstream(file, std::ios::binary)
+        .write(reinterpret_cast<const char*>(bytes.data()),
+               static_cast<std::streamsize>(bytes.size()));
+  }
+  // 2. A leaf's box off by 1000 km.
+  replaceIn(patches() / "1_1_0" / "Patch.xml", "<GlobalBoundingBox>[[4", "<GlobalBoundingBox>[[3");
+  // 3. A leaf's positions truncated.
+  fs::resize_file(patches() / "1_0_1" / "Positions.aara",
+                  fs::file_size(patches() / "1_0_1" / "Positions.aara") - 5);
+  const auto findings = validateOpc(opc());
+  std::map<std::string, std::vector<std::string>> byPatch;
+  for (const Finding& f : findings) {
+    byPatch[f.where].push_back(f.message);
+  }
+  ASSERT_TRUE(byPatch.count("Patches/0_0_0"));
+  EXPECT_TRUE(
+      std::any_of(byPatch["Patches/0_0_0"].begin(), byPatch["Patches/0_0_0"].end(),
+                  [](const std::string& m) { return m.find("reduce") != std::string::npos; }));
+  ASSERT_TRUE(byPatch.count("Patches/1_1_0"));
+  EXPECT_NE(byPatch["Patches/1_1_0"][0].find("GlobalBoundingBox"), std::string::npos);
+  ASSERT_TRUE(byPatch.count("Patches/1_0_1"));
+  EXPECT_NE(byPatch["Patches/1_0_1"][0].find("truncated"), std::string::npos);
+}
+
+TEST_F(OpcStoreTest, WritingRefusesFolderNamesThatLeaveTheDirectory) {
+  OpcWriter writer(opc(), OpcWriter::Durability::EachFile);
+  PatchInfo info = model_->at(PatchKey::root());
+  info.folder = "../escape";
+  EXPECT_EQ(codeOf([&] { writer.writePatch(info, *info.grid, {}); }), ErrorCode::InvalidArgument);
+  EXPECT_FALSE(fs::exists(dir_ / "escape"));
+}
+
+}  // namespace
+}  // namespace vsm::core
