@@ -1,1 +1,357 @@
-// placeholder
+// Builds a whole pyramid from a GridSource, depth first, and publishes it as a new OPC directory.
+#include <fcntl.h>
+#include <stdio.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <cerrno>
+#include <cstdint>
+#include <limits>
+#include <map>
+#include <memory>
+#include <string>
+#include <system_error>
+#include <vector>
+
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+#include "core/io/grid_source.hpp"
+#include "core/opc/opc_store.hpp"
+#include "core/pyramid/reduce.hpp"
+
+namespace vsm::core {
+namespace fs = std::filesystem;
+namespace {
+
+std::string quoted(const fs::path& path) {
+  return "'" + path.string() + "'";
+}
+
+/// Smallest depth D >= 0 with (patchSize - 1) * 2^D >= max(width, height) - 1: the bottom level
+/// then covers every sample.
+int bottomDepth(int patchSize, int width, int height) {
+  const std::int64_t needed = std::int64_t{std::max(width, height)} - 1;
+  int depth = 0;
+  while ((std::int64_t{patchSize} - 1) << depth < needed) {
+    ++depth;
+  }
+  return depth;
+}
+
+/// All three coordinates finite (x - x is 0 for finite x, NaN for NaN and infinities): one
+/// comparison instead of three classifications per vertex.
+inline bool isFinite(const Vec3d& g) {
+  return (g.x - g.x) + (g.y - g.y) + (g.z - g.z) == 0.0;
+}
+
+/// Removes the staging directory unless the build was published: on any exception, including
+/// Cancelled, nothing half-written stays beside the target.
+class StagingDirectory {
+ public:
+  explicit StagingDirectory(fs::path path) : path_(std::move(path)) {}
+  ~StagingDirectory() {
+    if (!published_) {
+      std::error_code ec;
+      fs::remove_all(path_, ec);
+      if (ec) {
+        log::warn("import: cannot remove staging directory " + quoted(path_) + ": " + ec.message());
+      }
+    }
+  }
+  StagingDirectory(const StagingDirectory&) = delete;
+  StagingDirectory& operator=(const StagingDirectory&) = delete;
+
+  const fs::path& path() const { return path_; }
+  void published() { published_ = true; }
+
+ private:
+  fs::path path_;
+  bool published_ = false;
+};
+
+void fsyncDirectory(const fs::path& dir) {
+  const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (fd < 0) {
+    throwIoError("cannot open directory", dir.string(), errno);
+  }
+  const int result = ::fsync(fd);
+  const int error = errno;
+  ::close(fd);
+  if (result != 0) {
+    throwIoError("cannot fsync directory", dir.string(), error);
+  }
+}
+
+/// Renames `from` to `to` unless `to` exists (also when another process creates it between our
+/// check and the rename: plain rename() would silently replace an empty directory).
+void renameNoReplace(const fs::path& from, const fs::path& to) {
+  if (::renameat2(AT_FDCWD, from.c_str(), AT_FDCWD, to.c_str(), RENAME_NOREPLACE) == 0) {
+    return;
+  }
+  int error = errno;
+  if (error == EINVAL || error == ENOSYS) {  // file system without RENAME_NOREPLACE
+    std::error_code ec;
+    if (fs::exists(fs::symlink_status(to, ec))) {
+      error = EEXIST;
+    } else if (::rename(from.c_str(), to.c_str()) == 0) {
+      return;
+    } else {
+      error = errno;
+    }
+  }
+  if (error == EEXIST || error == ENOTEMPTY) {
+    throw Error(ErrorCode::Conflict, "output directory " + quoted(to) + " exists");
+  }
+  throwIoError("cannot rename staging directory to", to.string(), error);
+}
+
+/// The depth-first build. Holds at most the finished siblings on the path from the root to the
+/// current patch (at most 4 per level) plus one source window.
+class PyramidBuilder {
+ public:
+  /// `patchesDir` is the writer's Patches/ directory, where dropSubtree deletes folders.
+  PyramidBuilder(GridSource& source, OpcWriter& writer, fs::path patchesDir,
+                 const ImportOptions& options)
+      : source_(source),
+        writer_(writer),
+        patchesDir_(std::move(patchesDir)),
+        options_(options),
+        size_(options.patchSize),
+        width_(source.width()),
+        height_(source.height()),
+        depth_(bottomDepth(options.patchSize, width_, height_)),
+        window_(static_cast<std::size_t>(size_) * static_cast<std::size_t>(size_)) {
+    const std::int64_t step = size_ - 1;
+    leavesTotal_ = static_cast<std::size_t>(startsAlong(width_, step)) *
+                   static_cast<std::size_t>(startsAlong(height_, step));
+  }
+
+  int depth() const { return depth_; }
+
+  /// Builds the patch `key` and its subtree, writes every descendant (not `key` itself) and
+  /// returns its grid; null when nothing of it can be shown.
+  std::unique_ptr<PatchGrid> build(const PatchKey& key) {
+    if (options_.cancel != nullptr) {
+      options_.cancel->throwIfCancelled();
+    }
+    if (key.depth == depth_) {
+      return readBottom(key);
+    }
+    const std::size_t firstWritten = written_.size();
+    std::array<std::unique_ptr<PatchGrid>, 4> children;
+    std::array<const PatchGrid*, 4> present{};
+    for (const Quadrant q : kQuadrants) {
+      const PatchKey child = key.child(q);
+      if (inside(child)) {
+        children[static_cast<int>(q)] = build(child);
+        present[static_cast<int>(q)] = children[static_cast<int>(q)].get();
+      }
+    }
+    if (std::all_of(present.begin(), present.end(), [](const PatchGrid* g) { return !g; })) {
+      return nullptr;
+    }
+    auto parent = std::make_unique<PatchGrid>(reduce(present));
+    if (!parent->anyDefined()) {
+      // Every defined child vertex sits between the vertices this level keeps (isolated samples
+      // in an empty area). A patch needs a defined vertex to be written and must exist for its
+      // children to be reachable, so this subtree cannot be stored.
+      dropSubtree(key, firstWritten);
+      return nullptr;
+    }
+    for (const Quadrant q : kQuadrants) {
+      if (children[static_cast<int>(q)]) {
+        write(key.child(q), *children[static_cast<int>(q)]);
+        children[static_cast<int>(q)].reset();
+      }
+    }
+    return parent;
+  }
+
+  /// Writes one patch and remembers its metadata for the model.
+  void write(const PatchKey& key, const PatchGrid& grid) {
+    PatchInfo info;
+    info.key = key;
+    Box3d children;
+    for (const Quadrant q : kQuadrants) {
+      if (const auto it = boxes_.find(key.child(q)); it != boxes_.end()) {
+        children.extend(it->second);
+        boxes_.erase(it);  // a box is needed once, by the parent
+      }
+    }
+    writer_.writePatch(info, grid, children);
+    boxes_.emplace(key, info.globalBox);
+    written_.push_back(std::move(info));
+  }
+
+  /// Metadata of every written patch, in the order written.
+  std::vector<PatchInfo> takeWritten() { return std::move(written_); }
+
+ private:
+  /// Number of patch starts k * step (k >= 0) holding at least one cell of an axis of `extent`
+  /// samples: every start before the last sample (a patch starting on it would only repeat its
+  /// neighbour's border line), or the single start 0 of a one-sample axis.
+  static std::int64_t startsAlong(int extent, std::int64_t step) {
+    return extent <= 1 ? 1 : (extent - 1 + step - 1) / step;
+  }
+
+  /// True when the patch's area holds a cell of the source (see startsAlong).
+  bool inside(const PatchKey& key) const {
+    const std::int64_t span = std::int64_t{size_ - 1} << (depth_ - key.depth);
+    const std::int64_t x0 = span * key.x;
+    const std::int64_t y0 = span * key.y;
+    return (x0 == 0 || x0 < width_ - 1) && (y0 == 0 || y0 < height_ - 1);
+  }
+
+  std::unique_ptr<PatchGrid> readBottom(const PatchKey& key) {
+    const int x0 = static_cast<int>(key.x) * (size_ - 1);
+    const int y0 = static_cast<int>(key.y) * (size_ - 1);
+    const int w = std::min(size_, width_ - x0);
+    const int h = std::min(size_, height_ - y0);
+    const std::size_t count = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
+    source_.read(x0, y0, w, h, std::span<Vec3d>(window_.data(), count));
+    ++leavesDone_;
+    if (options_.progress != nullptr) {
+      options_.progress->report(
+          "import", static_cast<double>(leavesDone_) / static_cast<double>(leavesTotal_));
+    }
+
+    // Two passes over the window: the origin is the centre of the defined vertices' box.
+    constexpr double kInf = std::numeric_limits<double>::infinity();
+    double lo[3] = {kInf, kInf, kInf};
+    double hi[3] = {-kInf, -kInf, -kInf};
+    bool any = false;
+    for (std::size_t i = 0; i < count; ++i) {
+      const Vec3d& g = window_[i];
+      if (!isFinite(g)) {
+        continue;
+      }
+      any = true;
+      lo[0] = g.x < lo[0] ? g.x : lo[0];
+      lo[1] = g.y < lo[1] ? g.y : lo[1];
+      lo[2] = g.z < lo[2] ? g.z : lo[2];
+      hi[0] = g.x > hi[0] ? g.x : hi[0];
+      hi[1] = g.y > hi[1] ? g.y : hi[1];
+      hi[2] = g.z > hi[2] ? g.z : hi[2];
+    }
+    if (!any) {
+      return nullptr;
+    }
+    auto grid = std::make_unique<PatchGrid>(
+        size_, originFor(Box3d{{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}}));
+    // The origin is a pure translation: local = global - origin, rounded once to float32.
+    const Vec3d origin = grid->local2global().translationPart();
+    float* positions = grid->positions().data();
+    for (int r = 0; r < h; ++r) {
+      const Vec3d* in = window_.data() + static_cast<std::size_t>(r) * w;
+      float* out = positions + static_cast<std::size_t>(r) * size_ * 3;
+      for (int c = 0; c < w; ++c) {
+        const Vec3d& g = in[c];
+        if (isFinite(g)) {
+          out[3 * c] = static_cast<float>(g.x - origin.x);
+          out[3 * c + 1] = static_cast<float>(g.y - origin.y);
+          out[3 * c + 2] = static_cast<float>(g.z - origin.z);
+        }
+      }
+    }
+    return grid;
+  }
+
+  /// Forgets and deletes every patch written below `key` (written_[firstWritten..]).
+  void dropSubtree(const PatchKey& key, std::size_t firstWritten) {
+    log::warn("import: the samples under patch " + key.toString() +
+              " are too sparse to appear in its overview; that area is left out of the model");
+    for (std::size_t i = firstWritten; i < written_.size(); ++i) {
+      std::error_code ec;
+      fs::remove_all(patchesDir_ / written_[i].folder, ec);
+      boxes_.erase(written_[i].key);
+    }
+    written_.resize(firstWritten);
+  }
+
+  GridSource& source_;
+  OpcWriter& writer_;
+  fs::path patchesDir_;
+  const ImportOptions& options_;
+  int size_;
+  int width_;
+  int height_;
+  int depth_;
+  std::vector<Vec3d> window_;  // one source window, reused
+  std::vector<PatchInfo> written_;
+  /// Global boxes of written patches whose parent is not written yet.
+  std::map<PatchKey, Box3d> boxes_;
+  std::size_t leavesDone_ = 0;
+  std::size_t leavesTotal_ = 1;
+};
+
+}  // namespace
+
+Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& options) {
+  Model model(options.patchSize);  // validates the patch size
+  if (source.width() < 1 || source.height() < 1) {
+    throw Error(ErrorCode::InvalidArgument, "source " + source.describe() + " has no samples");
+  }
+  if (bottomDepth(options.patchSize, source.width(), source.height()) > PatchKey::kMaxDepth) {
+    throw Error(ErrorCode::InvalidArgument, "source " + source.describe() +
+                                                " is too large for patch size " +
+                                                std::to_string(options.patchSize));
+  }
+
+  const fs::path target = outDir.filename().empty() ? outDir.parent_path() : outDir;
+  std::error_code ec;
+  if (fs::exists(fs::symlink_status(target, ec))) {
+    throw Error(ErrorCode::Conflict, "output directory " + quoted(target) + " exists");
+  }
+  const fs::path parent = target.parent_path().empty() ? fs::path(".") : target.parent_path();
+  fs::create_directories(parent, ec);
+  if (ec) {
+    throwIoError("cannot create directory", parent.string(), ec.value());
+  }
+  StagingDirectory staging(parent / (target.filename().string() + ".partial-" +
+                                     std::to_string(static_cast<long long>(::getpid()))));
+  if (!fs::create_directory(staging.path(), ec)) {
+    if (ec) {
+      throwIoError("cannot create directory", staging.path().string(), ec.value());
+    }
+    staging.published();  // not ours: leave it alone
+    throw Error(ErrorCode::Conflict, "staging directory " + quoted(staging.path()) +
+                                         " exists: another import into " + quoted(target) +
+                                         " is running or was interrupted");
+  }
+
+  OpcWriter writer(staging.path(), OpcWriter::Durability::Deferred);
+  PyramidBuilder builder(source, writer, staging.path() / "Patches", options);
+  std::unique_ptr<PatchGrid> root = builder.build(PatchKey::root());
+  if (!root) {
+    throw Error(ErrorCode::InvalidArgument,
+                "source " + source.describe() + " has no defined sample");
+  }
+  builder.write(PatchKey::root(), *root);
+  root.reset();
+
+  std::vector<PatchInfo> infos = builder.takeWritten();
+  std::sort(infos.begin(), infos.end(),
+            [](const PatchInfo& a, const PatchInfo& b) { return a.key < b.key; });
+  for (PatchInfo& info : infos) {
+    model.insert(std::move(info));  // parents first: the key order is by depth
+  }
+  writer.writeHierarchy(model);
+  writer.sync();
+  if (options.cancel != nullptr) {
+    options.cancel->throwIfCancelled();
+  }
+
+  renameNoReplace(staging.path(), target);
+  staging.published();
+  fsyncDirectory(parent);
+  if (options.progress != nullptr) {
+    options.progress->report("import", 1.0);
+  }
+  log::debug("import: " + source.describe() + " -> " + quoted(target) + ": " +
+             std::to_string(model.patchCount()) + " patches, depth " +
+             std::to_string(builder.depth()));
+  return model;
+}
+
+}  // namespace vsm::core

@@ -1,0 +1,91 @@
+#!/usr/bin/env bash
+# Benchmark (not a test): `vsm import` of a large raster against GDAL building the same overview
+# levels of it.
+#
+# The input is SYNTHETIC: an 8193 x 8193 float32 GeoTIFF (EPSG:4326, 1 arc-second spacing, about
+# 250 x 170 km in the Alps' latitudes) of fractal-ish terrain (value noise summed over octaves),
+# generated here with numpy and GDAL's Python bindings. Quote it as synthetic.
+#
+# With 257 x 257 patches (vsm's default) the pyramid has 8192 / 256 = 32 = 2^5 patches per side
+# at the bottom, so depth 5: five overview levels, the same as `gdaladdo -r average` with factors
+# 2 4 8 16 32 (written as an external .ovr, -ro, on a copy of the file). Both run single-threaded,
+# one after the other, on a warm page cache (the input was just written). vsm also fsyncs its
+# output before publishing it; gdaladdo does not.
+#
+#   tests/bench/import_bench.sh [path/to/vsm] [work-dir]
+# Defaults: build/server/cli/vsm and a temporary directory (removed afterwards). The time budget
+# the project set: vsm import within 3x gdaladdo.
+set -euo pipefail
+ROOT=$(cd "$(dirname "$0")/../.." && pwd)
+VSM=${1:-$ROOT/build/server/cli/vsm}
+PYTHON=/usr/bin/python3  # Debian's: it has python3-gdal and python3-numpy
+SIZE=${VSM_BENCH_SIZE:-8193}
+
+if [[ -n "${2:-}" ]]; then
+  WORK=$2
+  mkdir -p "$WORK"
+else
+  WORK=$(mktemp -d)
+  trap 'rm -rf "$WORK"' EXIT
+fi
+[[ -x "$VSM" ]] || { echo "no vsm binary at $VSM" >&2; exit 2; }
+
+echo "generating synthetic ${SIZE}x${SIZE} float32 terrain in $WORK ..."
+"$PYTHON" - "$WORK/terrain.tif" "$SIZE" <<'EOF'
+import sys
+import numpy as np
+from osgeo import gdal, osr
+
+gdal.UseExceptions()
+path, size = sys.argv[1], int(sys.argv[2])
+rng = np.random.default_rng(20240521)
+z = np.zeros((size, size), dtype=np.float32)
+amplitude = 1500.0
+cells = 2
+while cells <= 1024:
+    # Value noise: a (cells+1)^2 lattice of random heights, bilinearly interpolated.
+    lattice = rng.uniform(-1.0, 1.0, (cells + 1, cells + 1)).astype(np.float32)
+    t = np.linspace(0.0, cells, size, dtype=np.float64)
+    i = np.minimum(t.astype(np.int64), cells - 1)
+    f = (t - i).astype(np.float32)
+    rows = lattice[:, i] * (1 - f) + lattice[:, i + 1] * f          # (cells+1, size)
+    z += amplitude * (rows[i, :] * (1 - f)[:, None] + rows[i + 1, :] * f[:, None])
+    amplitude *= 0.5
+    cells *= 2
+z += 2000.0
+
+ds = gdal.GetDriverByName("GTiff").Create(path, size, size, 1, gdal.GDT_Float32)
+step = 1.0 / 3600.0
+ds.SetGeoTransform((10.0, step, 0.0, 47.5, 0.0, -step))
+srs = osr.SpatialReference()
+srs.ImportFromEPSG(4326)
+ds.SetProjection(srs.ExportToWkt())
+band = ds.GetRasterBand(1)
+band.SetNoDataValue(float("nan"))
+band.WriteArray(z)
+ds = None
+EOF
+cp "$WORK/terrain.tif" "$WORK/terrain-gdal.tif"
+ls -l "$WORK/terrain.tif"
+
+now() { date +%s.%N; }
+
+echo "gdaladdo -ro -r average terrain.tif 2 4 8 16 32 ..."
+start=$(now)
+gdaladdo -q -ro -r average "$WORK/terrain-gdal.tif" 2 4 8 16 32
+end=$(now)
+gdal_seconds=$(echo "$end - $start" | bc -l)
+
+echo "vsm import terrain.tif (patch size 257) ..."
+rm -rf "$WORK/terrain-opc"
+start=$(now)
+"$VSM" import "$WORK/terrain.tif" "$WORK/terrain-opc" --patch-size 257 2>/dev/null
+end=$(now)
+vsm_seconds=$(echo "$end - $start" | bc -l)
+
+printf 'input        synthetic %sx%s float32 GeoTIFF, %s\n' "$SIZE" "$SIZE" \
+  "$(du -h "$WORK/terrain.tif" | cut -f1)"
+printf 'gdaladdo     %8.2f s  (overviews %s)\n' "$gdal_seconds" \
+  "$(du -h "$WORK/terrain-gdal.tif.ovr" | cut -f1)"
+printf 'vsm import   %8.2f s  (OPC %s)\n' "$vsm_seconds" "$(du -sh "$WORK/terrain-opc" | cut -f1)"
+printf 'ratio        %8.2f  (vsm / gdaladdo; budget 3)\n' "$(echo "$vsm_seconds / $gdal_seconds" | bc -l)"

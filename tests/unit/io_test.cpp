@@ -1,0 +1,802 @@
+// Tests of core/io: GDAL rasters and PCL clouds as grid sources, and the pyramid builder.
+#include <gdal_priv.h>
+#include <gtest/gtest.h>
+#include <ogr_spatialref.h>
+#include <pcl/io/pcd_io.h>
+#include <pcl/io/ply_io.h>
+#include <pcl/point_cloud.h>
+#include <pcl/point_types.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <limits>
+#include <map>
+#include <optional>
+#include <set>
+#include <string>
+#include <tuple>
+#include <vector>
+
+#include "core/common/error.hpp"
+#include "core/io/grid_source.hpp"
+#include "core/opc/opc_store.hpp"
+
+namespace fs = std::filesystem;
+using namespace vsm::core;
+
+namespace {
+
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+constexpr double kA = 6378137.0;
+constexpr double kF = 1.0 / 298.257223563;
+
+/// WGS 84 geodetic -> ECEF written out independently of the code under test.
+Vec3d ecef(double lonDeg, double latDeg, double h) {
+  const double lon = lonDeg * M_PI / 180.0;
+  const double lat = latDeg * M_PI / 180.0;
+  const double e2 = 2 * kF - kF * kF;
+  const double n = kA / std::sqrt(1 - e2 * std::sin(lat) * std::sin(lat));
+  return {(n + h) * std::cos(lat) * std::cos(lon), (n + h) * std::cos(lat) * std::sin(lon),
+          (n * (1 - e2) + h) * std::sin(lat)};
+}
+
+double distance(const Vec3d& a, const Vec3d& b) {
+  return (a - b).norm();
+}
+
+bool undefined(const Vec3d& v) {
+  return std::isnan(v.x) && std::isnan(v.y) && std::isnan(v.z);
+}
+
+/// A fresh directory under the system temp dir, removed with everything in it.
+class TempDir {
+ public:
+  TempDir() {
+    std::string pattern = (fs::temp_directory_path() / "vsm-io-test-XXXXXX").string();
+    if (::mkdtemp(pattern.data()) == nullptr) {
+      throw std::runtime_error("mkdtemp failed");
+    }
+    path_ = pattern;
+  }
+  ~TempDir() {
+    std::error_code ec;
+    fs::remove_all(path_, ec);
+  }
+  const fs::path& path() const { return path_; }
+  fs::path operator/(const std::string& name) const { return path_ / name; }
+  /// Names of the entries directly inside the directory.
+  std::set<std::string> entries() const {
+    std::set<std::string> names;
+    for (const auto& e : fs::directory_iterator(path_)) {
+      names.insert(e.path().filename().string());
+    }
+    return names;
+  }
+
+ private:
+  fs::path path_;
+};
+
+struct RasterSpec {
+  RasterSpec() = default;
+  RasterSpec(int w, int h, std::array<double, 6> gt, int code = 4326)
+      : width(w), height(h), geoTransform(gt), epsg(code) {}
+
+  int width = 4;
+  int height = 3;
+  std::array<double, 6> geoTransform{10.0, 0.5, 0, 47.0, 0, -0.25};
+  /// EPSG code; 0 for none.
+  int epsg = 4326;
+  GDALDataType type = GDT_Float32;
+  std::optional<double> noData;
+  std::optional<double> scale;
+  std::optional<double> offset;
+};
+
+/// Writes a one-band GeoTIFF with `values` (row-major).
+void makeRaster(const fs::path& path, const RasterSpec& spec, const std::vector<double>& values) {
+  GDALAllRegister();
+  GDALDriver* driver = GetGDALDriverManager()->GetDriverByName("GTiff");
+  GDALDatasetUniquePtr ds(
+      driver->Create(path.c_str(), spec.width, spec.height, 1, spec.type, nullptr));
+  ASSERT_TRUE(ds);
+  std::array<double, 6> gt = spec.geoTransform;
+  ds->SetGeoTransform(gt.data());
+  if (spec.epsg != 0) {
+    OGRSpatialReference srs;
+    srs.importFromEPSG(spec.epsg);
+    ds->SetSpatialRef(&srs);
+  }
+  GDALRasterBand* band = ds->GetRasterBand(1);
+  if (spec.noData) {
+    band->SetNoDataValue(*spec.noData);
+  }
+  if (spec.scale) {
+    band->SetScale(*spec.scale);
+  }
+  if (spec.offset) {
+    band->SetOffset(*spec.offset);
+  }
+  std::vector<double> copy = values;
+  ASSERT_EQ(band->RasterIO(GF_Write, 0, 0, spec.width, spec.height, copy.data(), spec.width,
+                           spec.height, GDT_Float64, 0, 0, nullptr),
+            CE_None);
+}
+
+std::vector<Vec3d> readAll(GridSource& source) {
+  std::vector<Vec3d> out(static_cast<std::size_t>(source.width()) * source.height());
+  source.read(0, 0, source.width(), source.height(), out);
+  return out;
+}
+
+ErrorCode codeOf(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.code();
+  }
+  ADD_FAILURE() << "no Error thrown";
+  return ErrorCode::Internal;
+}
+
+std::string messageOf(const std::function<void()>& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.what();
+  }
+  return "";
+}
+
+// ---------------------------------------------------------------------------------------------
+// Rasters
+
+TEST(RasterSource, GeographicSamplesBecomeEcefAtTheirPixelCentres) {
+  TempDir dir;
+  RasterSpec spec;
+  std::vector<double> heights;
+  for (int i = 0; i < spec.width * spec.height; ++i) {
+    heights.push_back(100.0 + 37.5 * i);
+  }
+  makeRaster(dir / "geo.tif", spec, heights);
+  auto source = openRasterSource(dir / "geo.tif");
+  ASSERT_EQ(source->width(), 4);
+  ASSERT_EQ(source->height(), 3);
+  const auto out = readAll(*source);
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 4; ++c) {
+      const Vec3d expected =
+          ecef(10.0 + (c + 0.5) * 0.5, 47.0 - (r + 0.5) * 0.25, heights[r * 4 + c]);
+      EXPECT_LT(distance(out[r * 4 + c], expected), 1e-6) << "sample " << c << "," << r;
+    }
+  }
+}
+
+TEST(RasterSource, KnownPointsOfTheEllipsoidComeOutExactly) {
+  // Pixel centres at lon 0, 90, 180 and lat 90, 0, -90, all at height 0.
+  TempDir dir;
+  RasterSpec spec{3, 3, {-45, 90, 0, 135, 0, -90}};
+  makeRaster(dir / "globe.tif", spec, std::vector<double>(9, 0.0));
+  const auto out = readAll(*openRasterSource(dir / "globe.tif"));
+  const double b = kA * (1 - kF);
+  EXPECT_LT(distance(out[3], {kA, 0, 0}), 1e-6);   // lon 0, lat 0
+  EXPECT_LT(distance(out[4], {0, kA, 0}), 1e-6);   // lon 90, lat 0
+  EXPECT_LT(distance(out[5], {-kA, 0, 0}), 1e-6);  // lon 180, lat 0
+  EXPECT_LT(distance(out[1], {0, 0, b}), 1e-6);    // north pole
+  EXPECT_LT(distance(out[7], {0, 0, -b}), 1e-6);   // south pole
+}
+
+TEST(RasterSource, NoDataAndNanSamplesAreUndefined) {
+  TempDir dir;
+  RasterSpec spec;
+  spec.noData = -9999.0;
+  std::vector<double> heights(12, 250.0);
+  heights[1] = -9999.0;
+  heights[6] = kNaN;
+  makeRaster(dir / "holes.tif", spec, heights);
+  const auto out = readAll(*openRasterSource(dir / "holes.tif"));
+  for (int i = 0; i < 12; ++i) {
+    EXPECT_EQ(undefined(out[i]), i == 1 || i == 6) << "sample " << i;
+  }
+}
+
+TEST(RasterSource, IntegerBandsApplyNoDataScaleAndOffset) {
+  TempDir dir;
+  RasterSpec spec;
+  spec.type = GDT_Int16;
+  spec.noData = -32768;
+  spec.scale = 0.5;
+  spec.offset = 100;
+  std::vector<double> raw(12, 40);
+  raw[5] = -32768;
+  makeRaster(dir / "int16.tif", spec, raw);
+  const auto out = readAll(*openRasterSource(dir / "int16.tif"));
+  EXPECT_TRUE(undefined(out[5]));
+  EXPECT_LT(distance(out[0], ecef(10.25, 46.875, 120.0)), 1e-6);
+}
+
+TEST(RasterSource, AWindowReadsTheSameAsTheWholeRaster) {
+  TempDir dir;
+  RasterSpec spec{9, 7, {-3, 0.01, 0, 12, 0, -0.01}};
+  std::vector<double> heights;
+  for (int i = 0; i < 63; ++i) {
+    heights.push_back(std::sin(i) * 50);
+  }
+  makeRaster(dir / "w.tif", spec, heights);
+  auto source = openRasterSource(dir / "w.tif");
+  const auto all = readAll(*source);
+  std::vector<Vec3d> window(4 * 3);
+  source->read(5, 2, 4, 3, window);
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 4; ++c) {
+      EXPECT_EQ(window[r * 4 + c], all[(2 + r) * 9 + 5 + c]);
+    }
+  }
+}
+
+TEST(RasterSource, ARotatedGeotransformIsRejected) {
+  TempDir dir;
+  RasterSpec spec;
+  spec.geoTransform = {10.0, 0.5, 0.01, 47.0, 0, -0.25};
+  makeRaster(dir / "rotated.tif", spec, std::vector<double>(12, 1.0));
+  EXPECT_EQ(codeOf([&] { openRasterSource(dir / "rotated.tif"); }), ErrorCode::InvalidArgument);
+}
+
+TEST(RasterSource, ARasterWithoutCrsIsRejected) {
+  TempDir dir;
+  RasterSpec spec;
+  spec.epsg = 0;
+  makeRaster(dir / "nocrs.tif", spec, std::vector<double>(12, 1.0));
+  const auto open = [&] { openRasterSource(dir / "nocrs.tif"); };
+  EXPECT_EQ(codeOf(open), ErrorCode::InvalidArgument);
+  EXPECT_NE(messageOf(open).find("has no coordinate reference system"), std::string::npos);
+}
+
+TEST(RasterSource, AMissingFileIsNotFound) {
+  EXPECT_EQ(codeOf([] { openRasterSource("/nonexistent/dem.tif"); }), ErrorCode::NotFound);
+}
+
+TEST(RasterSource, AFileThatIsNoRasterIsCorruptAndNamedInTheMessage) {
+  TempDir dir;
+  std::ofstream(dir / "garbage.tif") << "this is not a GeoTIFF\n";
+  const auto open = [&] { openRasterSource(dir / "garbage.tif"); };
+  EXPECT_EQ(codeOf(open), ErrorCode::Corrupt);
+  const std::string message = messageOf(open);
+  EXPECT_NE(message.find("garbage.tif"), std::string::npos);
+  EXPECT_EQ(message.find('\n'), std::string::npos);
+}
+
+/// Pixel centres of `spec` through OGR to WGS 84 lon/lat, then ECEF: the expectation for
+/// rasters in other CRSs.
+std::vector<Vec3d> ecefThroughOgr(const RasterSpec& spec, const std::vector<double>& heights) {
+  OGRSpatialReference from;
+  from.importFromEPSG(spec.epsg);
+  from.SetAxisMappingStrategy(OAMS_TRADITIONAL_GIS_ORDER);
+  OGRSpatialReference to;
+  to.importFromEPSG(4326);
+  to.SetAxisMappingStrategy(OAMS_TRADITIONAL_GIS_ORDER);
+  std::unique_ptr<OGRCoordinateTransformation> ct(OGRCreateCoordinateTransformation(&from, &to));
+  std::vector<Vec3d> out;
+  const auto& gt = spec.geoTransform;
+  for (int r = 0; r < spec.height; ++r) {
+    for (int c = 0; c < spec.width; ++c) {
+      double x = gt[0] + (c + 0.5) * gt[1];
+      double y = gt[3] + (r + 0.5) * gt[5];
+      EXPECT_TRUE(ct->Transform(1, &x, &y));
+      out.push_back(ecef(x, y, heights[static_cast<std::size_t>(r * spec.width + c)]));
+    }
+  }
+  return out;
+}
+
+TEST(RasterSource, AUtmRasterLandsWithinCentimetresOfOgrsTransform) {
+  TempDir dir;
+  RasterSpec spec{5, 4, {500000, 30, 0, 5200000, 0, -30}, 32633};
+  std::vector<double> heights;
+  for (int i = 0; i < 20; ++i) {
+    heights.push_back(400 + 3.0 * i);
+  }
+  makeRaster(dir / "utm.tif", spec, heights);
+  const auto out = readAll(*openRasterSource(dir / "utm.tif"));
+  const auto expected = ecefThroughOgr(spec, heights);
+  for (std::size_t i = 0; i < out.size(); ++i) {
+    EXPECT_LT(distance(out[i], expected[i]), 0.02) << "sample " << i;
+  }
+  // Neighbours on the central meridian are 30 m / 0.9996 (UTM's scale) apart, 3 m higher.
+  EXPECT_NEAR(distance(out[0], out[1]), std::hypot(30.0 / 0.9996, 3.0), 0.01);
+}
+
+TEST(RasterSource, AGeographicCrsOnAnotherDatumIsShiftedToWgs84) {
+  TempDir dir;
+  RasterSpec spec{3, 2, {10.0, 0.01, 0, 50.0, 0, -0.01}, 4230};  // ED50
+  const std::vector<double> heights(6, 200.0);
+  makeRaster(dir / "ed50.tif", spec, heights);
+  const auto out = readAll(*openRasterSource(dir / "ed50.tif"));
+  const auto expected = ecefThroughOgr(spec, heights);
+  for (std::size_t i = 0; i < out.size(); ++i) {
+    EXPECT_LT(distance(out[i], expected[i]), 0.02) << "sample " << i;
+  }
+  // The datum shift is real: taking ED50 lon/lat as WGS 84 would be tens of metres off.
+  EXPECT_GT(distance(out[0], ecef(10.005, 49.995, 200.0)), 10.0);
+}
+
+TEST(RasterSource, DescribeNamesTheDriverSizeAndCrs) {
+  TempDir dir;
+  makeRaster(dir / "d.tif", RasterSpec{}, std::vector<double>(12, 1.0));
+  EXPECT_EQ(openRasterSource(dir / "d.tif")->describe(), "GTiff 4x3, EPSG:4326 -> ECEF");
+}
+
+// ---------------------------------------------------------------------------------------------
+// Point clouds
+
+pcl::PointCloud<pcl::PointXYZ> gridCloud(int width, int height) {
+  pcl::PointCloud<pcl::PointXYZ> cloud(static_cast<std::uint32_t>(width),
+                                       static_cast<std::uint32_t>(height));
+  for (int r = 0; r < height; ++r) {
+    for (int c = 0; c < width; ++c) {
+      cloud.at(c, r) = pcl::PointXYZ(static_cast<float>(c) * 2, static_cast<float>(r) * 3,
+                                     static_cast<float>(c * r));
+    }
+  }
+  cloud.at(1, 1).y = std::numeric_limits<float>::quiet_NaN();
+  cloud.is_dense = false;
+  return cloud;
+}
+
+void expectGridOrder(GridSource& source, int width, int height) {
+  ASSERT_EQ(source.width(), width);
+  ASSERT_EQ(source.height(), height);
+  const auto out = readAll(source);
+  for (int r = 0; r < height; ++r) {
+    for (int c = 0; c < width; ++c) {
+      const Vec3d& v = out[static_cast<std::size_t>(r * width + c)];
+      if (c == 1 && r == 1) {
+        EXPECT_TRUE(undefined(v));
+      } else {
+        EXPECT_EQ(v, (Vec3d{c * 2.0, r * 3.0, double(c * r)})) << c << "," << r;
+      }
+    }
+  }
+}
+
+TEST(CloudSource, AnOrganizedPcdKeepsItsGridOrder) {
+  TempDir dir;
+  ASSERT_EQ(pcl::io::savePCDFileBinary((dir / "grid.pcd").string(), gridCloud(5, 3)), 0);
+  auto source = openCloudSource(dir / "grid.pcd");
+  expectGridOrder(*source, 5, 3);
+}
+
+TEST(CloudSource, AnUnorganizedPcdIsRejected) {
+  TempDir dir;
+  pcl::PointCloud<pcl::PointXYZ> cloud;
+  for (int i = 0; i < 10; ++i) {
+    cloud.push_back(pcl::PointXYZ(i, i, i));
+  }
+  ASSERT_EQ(pcl::io::savePCDFileASCII((dir / "flat.pcd").string(), cloud), 0);
+  const auto open = [&] { openCloudSource(dir / "flat.pcd"); };
+  EXPECT_EQ(codeOf(open), ErrorCode::InvalidArgument);
+  EXPECT_NE(messageOf(open).find("not organized"), std::string::npos);
+}
+
+TEST(CloudSource, AnOrganizedPlyWrittenByPclKeepsItsGridOrder) {
+  TempDir dir;
+  ASSERT_EQ(pcl::io::savePLYFileBinary((dir / "grid.ply").string(), gridCloud(4, 6)), 0);
+  auto source = openCloudSource(dir / "grid.ply");
+  expectGridOrder(*source, 4, 6);
+}
+
+TEST(CloudSource, APlyGridWithObjInfoColumnsAndRowsKeepsItsGridOrder) {
+  TempDir dir;
+  std::ofstream(dir / "hand.ply") << "ply\nformat ascii 1.0\nobj_info num_cols 3\n"
+                                     "obj_info num_rows 2\nelement vertex 6\nproperty float x\n"
+                                     "property float y\nproperty float z\nend_header\n"
+                                     "0 0 0\n2 0 0\n4 0 0\n0 3 0\nnan nan nan\n4 3 2\n";
+  auto source = openCloudSource(dir / "hand.ply");
+  expectGridOrder(*source, 3, 2);
+}
+
+TEST(CloudSource, APlyWithoutGridSizeIsRejected) {
+  TempDir dir;
+  std::ofstream(dir / "list.ply") << "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\n"
+                                     "property float y\nproperty float z\nend_header\n"
+                                     "0 0 0\n1 0 0\n0 1 0\n1 1 0\n";
+  EXPECT_EQ(codeOf([&] { openCloudSource(dir / "list.ply"); }), ErrorCode::InvalidArgument);
+}
+
+TEST(CloudSource, AMissingCloudIsNotFound) {
+  EXPECT_EQ(codeOf([] { openCloudSource("/nonexistent/cloud.pcd"); }), ErrorCode::NotFound);
+}
+
+TEST(CloudSource, FilesThatAreNoCloudsAreCorrupt) {
+  // PCL itself crashes on some of these (an empty .pcd, a header without fields).
+  TempDir dir;
+  const std::map<std::string, std::string> files = {
+      {"empty.pcd", ""},
+      {"text.pcd", "this is not a point cloud\n"},
+      {"nofields.pcd", "# .PCD\nVERSION 0.7\nWIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA ascii\n1 2 3\n"},
+      {"noz.pcd",
+       "FIELDS x y\nSIZE 4 4\nTYPE F F\nWIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA ascii\n1 2\n1 2\n1 "
+       "2\n1 2\n"},
+      {"short.pcd",
+       "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nWIDTH 2\nHEIGHT 2\nPOINTS 4\nDATA binary\n123"},
+      {"empty.ply", ""},
+      {"noz.ply",
+       "ply\nformat ascii 1.0\nobj_info num_cols 2\nobj_info num_rows 2\nelement vertex 4\n"
+       "property float x\nproperty float y\nend_header\n1 2\n2 3\n3 4\n4 5\n"},
+      {"short.ply",
+       "ply\nformat ascii 1.0\nobj_info num_cols 3\nobj_info num_rows 2\nelement vertex 4\n"
+       "property float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n2 3 3\n3 4 3\n"
+       "4 5 3\n"},
+  };
+  for (const auto& [name, text] : files) {
+    std::ofstream(dir / name, std::ios::binary) << text;
+    EXPECT_EQ(codeOf([&] { openCloudSource(dir / name); }), ErrorCode::Corrupt) << name;
+  }
+}
+
+// ---------------------------------------------------------------------------------------------
+// The pyramid builder, on synthetic sources
+
+/// A width x height grid whose sample (c, r) is at a position far from the origin (as ECEF
+/// coordinates are) that encodes c and r; `defined` says which samples exist. Records the
+/// windows read; can fail or cancel after a number of reads.
+class SyntheticSource final : public GridSource {
+ public:
+  SyntheticSource(int width, int height, std::function<bool(int, int)> defined = nullptr)
+      : width_(width), height_(height), defined_(std::move(defined)) {}
+
+  static Vec3d position(int c, int r) {
+    return {4.0e6 + 10.0 * c + 0.25 * r, -2.0e6 + 10.0 * r, 4.5e6 + std::sin(c * 0.1) * 30.0};
+  }
+
+  int width() const override { return width_; }
+  int height() const override { return height_; }
+  std::string describe() const override { return "synthetic"; }
+  void read(int x0, int y0, int w, int h, std::span<Vec3d> out) override {
+    windows.push_back({x0, y0, w, h});
+    if (failAfter >= 0 && static_cast<int>(windows.size()) > failAfter) {
+      throw Error(ErrorCode::Io, "synthetic read failure");
+    }
+    if (cancelAfter >= 0 && static_cast<int>(windows.size()) >= cancelAfter && cancel) {
+      cancel->cancel();
+    }
+    for (int r = 0; r < h; ++r) {
+      for (int c = 0; c < w; ++c) {
+        const bool ok = !defined_ || defined_(x0 + c, y0 + r);
+        out[static_cast<std::size_t>(r * w + c)] =
+            ok ? position(x0 + c, y0 + r) : Vec3d{kNaN, kNaN, kNaN};
+      }
+    }
+  }
+
+  std::vector<std::array<int, 4>> windows;
+  int failAfter = -1;
+  int cancelAfter = -1;
+  CancelToken* cancel = nullptr;
+
+ private:
+  int width_;
+  int height_;
+  std::function<bool(int, int)> defined_;
+};
+
+/// float32 rounding of a patch's stored coordinates, with room for the double arithmetic.
+double roundingOf(const PatchGrid& grid) {
+  return std::ldexp(std::max(grid.maxAbsLocal(), 1.0), -23);
+}
+
+std::map<int, std::size_t> patchesPerDepth(const Model& model) {
+  std::map<int, std::size_t> counts;
+  for (const auto& [key, info] : model.patches()) {
+    ++counts[key.depth];
+  }
+  return counts;
+}
+
+ImportOptions withPatchSize(int size) {
+  ImportOptions options;
+  options.patchSize = size;
+  return options;
+}
+
+TEST(PyramidBuilder, An300By200RasterWithPatchSize65IsThreeLevelsBelowTheRoot) {
+  TempDir dir;
+  SyntheticSource source(300, 200);
+  const Model model = buildOpc(source, dir / "opc", withPatchSize(65));
+  EXPECT_EQ(model.maxDepth(), 3);  // 64 * 2^3 = 512 >= 299 > 64 * 2^2
+  // Bottom: columns start at 0, 64, .., 256 (5), rows at 0, 64, 128, 192 (4); above, each level
+  // keeps the patches whose area starts inside the raster.
+  EXPECT_EQ(patchesPerDepth(model), (std::map<int, std::size_t>{{0, 1}, {1, 2}, {2, 6}, {3, 20}}));
+  EXPECT_TRUE(fs::is_directory(dir / "opc" / "Patches"));
+}
+
+TEST(PyramidBuilder, QuadrantsOutsideTheSourceAreOmitted) {
+  TempDir dir;
+  SyntheticSource source(300, 200);
+  const Model model = buildOpc(source, dir / "opc", withPatchSize(65));
+  const PatchInfo& root = model.at(PatchKey::root());
+  EXPECT_TRUE(root.hasChild(Quadrant::NW));
+  EXPECT_TRUE(root.hasChild(Quadrant::NE));
+  EXPECT_FALSE(root.hasChild(Quadrant::SW));  // rows from 256 on: beyond the 200 rows
+  EXPECT_FALSE(root.hasChild(Quadrant::SE));
+  EXPECT_EQ(model.children({1, 1, 0}).size(), 2u);  // 2_2_0 and 2_2_1; 2_3_x start at column 384
+  EXPECT_EQ(model.find({3, 5, 0}), nullptr);        // would start at column 320
+  EXPECT_EQ(model.find({3, 0, 4}), nullptr);        // would start at row 256
+}
+
+TEST(PyramidBuilder, BottomWindowsOverlapByOneLineAndAreReadOnce) {
+  TempDir dir;
+  SyntheticSource source(300, 200);
+  buildOpc(source, dir / "opc", withPatchSize(65));
+  std::multiset<std::array<int, 4>> expected;
+  for (int y0 : {0, 64, 128, 192}) {
+    for (int x0 : {0, 64, 128, 192, 256}) {
+      expected.insert({x0, y0, std::min(65, 300 - x0), std::min(65, 200 - y0)});
+    }
+  }
+  const std::multiset<std::array<int, 4>> read(source.windows.begin(), source.windows.end());
+  EXPECT_EQ(read, expected);
+}
+
+TEST(PyramidBuilder, EveryLeafVertexIsItsSourceSampleAndPaddingIsUndefined) {
+  TempDir dir;
+  SyntheticSource source(300, 200);
+  const Model model = buildOpc(source, dir / "opc", withPatchSize(65));
+  for (const PatchKey& key : model.leaves()) {
+    ASSERT_EQ(key.depth, 3);
+    const PatchGrid grid = readPatchGrid(dir / "opc", model, model.at(key));
+    const double tolerance = roundingOf(grid) + 1e-9;
+    for (int j = 0; j < 65; ++j) {
+      for (int i = 0; i < 65; ++i) {
+        const int c = static_cast<int>(key.x) * 64 + i;
+        const int r = static_cast<int>(key.y) * 64 + j;
+        if (c < 300 && r < 200) {
+          ASSERT_TRUE(grid.defined(i, j)) << key.toString() << " " << i << "," << j;
+          ASSERT_LT(distance(grid.global(i, j), SyntheticSource::position(c, r)), tolerance);
+        } else {
+          ASSERT_FALSE(grid.defined(i, j)) << key.toString() << " " << i << "," << j;
+        }
+      }
+    }
+  }
+}
+
+/// Checks the pyramid rule on every inner patch: parent (i, j) is union (2i, 2j) of its
+/// children, defined exactly where a present child defines that vertex.
+void expectParentsAreReducedFromChildren(const fs::path& opc, const Model& model) {
+  const int n = model.gridSize();
+  const int half = n - 1;
+  std::size_t checked = 0;
+  for (const auto& [key, info] : model.patches()) {
+    if (info.isLeaf()) {
+      continue;
+    }
+    const PatchGrid parent = readPatchGrid(opc, model, info);
+    std::array<std::optional<PatchGrid>, 4> children;
+    for (const Quadrant q : kQuadrants) {
+      if (info.hasChild(q)) {
+        children[static_cast<int>(q)].emplace(readPatchGrid(opc, model, model.at(key.child(q))));
+      }
+    }
+    for (int j = 0; j < n; ++j) {
+      for (int i = 0; i < n; ++i) {
+        std::optional<Vec3d> fromChild;
+        double tolerance = roundingOf(parent);
+        for (const Quadrant q : kQuadrants) {
+          const auto& child = children[static_cast<int>(q)];
+          const int cx = 2 * i - (static_cast<int>(q) & 1) * half;
+          const int cy = 2 * j - (static_cast<int>(q) >> 1) * half;
+          if (child && cx >= 0 && cx <= half && cy >= 0 && cy <= half && child->defined(cx, cy)) {
+            fromChild = child->global(cx, cy);
+            tolerance += roundingOf(*child);
+            break;
+          }
+        }
+        ASSERT_EQ(parent.defined(i, j), fromChild.has_value())
+            << key.toString() << " vertex " << i << "," << j;
+        if (fromChild) {
+          ASSERT_LT(distance(parent.global(i, j), *fromChild), tolerance)
+              << key.toString() << " vertex " << i << "," << j;
+          ++checked;
+        }
+      }
+    }
+  }
+  EXPECT_GT(checked, 0u);
+}
+
+TEST(PyramidBuilder, EveryParentVertexEqualsTheChildVertexItCameFrom) {
+  TempDir dir;
+  SyntheticSource source(300, 200);
+  const Model model = buildOpc(source, dir / "opc", withPatchSize(65));
+  expectParentsAreReducedFromChildren(dir / "opc", model);
+}
+
+TEST(PyramidBuilder, UndefinedAreasHaveNoPatchesAndStayUndefinedAbove) {
+  TempDir dir;
+  // Defined: columns below 150 and a disc in the lower right.
+  SyntheticSource source(300, 200, [](int c, int r) {
+    return c < 150 || (c - 250) * (c - 250) + (r - 160) * (r - 160) < 400;
+  });
+  const Model model = buildOpc(source, dir / "opc", withPatchSize(33));
+  EXPECT_NE(model.find({4, 4, 0}), nullptr);  // columns 128..160: holds columns 128..149
+  EXPECT_EQ(model.find({4, 5, 0}), nullptr);  // columns 160..192: nothing defined
+  EXPECT_NE(model.find({4, 7, 4}), nullptr);  // the disc
+  expectParentsAreReducedFromChildren(dir / "opc", model);
+}
+
+TEST(PyramidBuilder, TheReturnedModelIsTheOneOnDisk) {
+  TempDir dir;
+  SyntheticSource source(300, 200, [](int c, int r) { return (c / 40 + r / 40) % 3 != 0; });
+  const Model built = buildOpc(source, dir / "opc", withPatchSize(33));
+  const Model read = readOpcModel(dir / "opc");
+  ASSERT_EQ(read.patchCount(), built.patchCount());
+  for (const auto& [key, info] : built.patches()) {
+    const PatchInfo* other = read.find(key);
+    ASSERT_NE(other, nullptr) << key.toString();
+    EXPECT_EQ(other->childMask, info.childMask) << key.toString();
+    EXPECT_EQ(other->stored, info.stored) << key.toString();
+    EXPECT_EQ(other->local2global, info.local2global) << key.toString();
+    EXPECT_TRUE(other->globalBox.contains(info.globalBox, 1e-3)) << key.toString();
+    EXPECT_TRUE(info.globalBox.contains(other->globalBox, 1e-3)) << key.toString();
+    EXPECT_FALSE(info.resident());
+    EXPECT_FALSE(info.dirty);
+    EXPECT_FALSE(info.stale);
+  }
+}
+
+TEST(PyramidBuilder, DepthIsTheSmallestWhoseBottomCoversTheSource) {
+  // (width, height, patch size) -> depth, bottom patches
+  const std::vector<std::tuple<int, int, int, int, std::size_t>> cases = {
+      {1, 1, 65, 0, 1},   {65, 65, 65, 0, 1},   {66, 1, 65, 1, 2},  {65, 2, 65, 0, 1},
+      {129, 3, 65, 1, 2}, {130, 130, 65, 2, 9}, {3, 200, 3, 7, 100}};
+  for (const auto& [w, h, n, depth, bottom] : cases) {
+    TempDir dir;
+    SyntheticSource source(w, h);
+    const Model model = buildOpc(source, dir / "opc", withPatchSize(n));
+    EXPECT_EQ(model.maxDepth(), depth) << w << "x" << h << " / " << n;
+    EXPECT_EQ(patchesPerDepth(model)[depth], bottom) << w << "x" << h << " / " << n;
+    EXPECT_EQ(source.windows.size(), bottom) << w << "x" << h << " / " << n;
+  }
+}
+
+TEST(PyramidBuilder, AnExistingOutputDirectoryIsAConflictAndNothingIsWritten) {
+  TempDir dir;
+  fs::create_directory(dir / "opc");
+  std::ofstream(dir / "opc" / "keep.txt") << "mine";
+  SyntheticSource source(100, 100);
+  EXPECT_EQ(codeOf([&] { buildOpc(source, dir / "opc", withPatchSize(33)); }), ErrorCode::Conflict);
+  EXPECT_TRUE(source.windows.empty());
+  EXPECT_EQ(dir.entries(), std::set<std::string>{"opc"});
+  EXPECT_EQ(fs::directory_iterator(dir / "opc")->path().filename(), "keep.txt");
+}
+
+TEST(PyramidBuilder, CancellingLeavesNeitherTheOutputNorTheStagingDirectory) {
+  TempDir dir;
+  CancelToken cancel;
+  SyntheticSource source(300, 200);
+  source.cancel = &cancel;
+  source.cancelAfter = 5;
+  ImportOptions options = withPatchSize(33);
+  options.cancel = &cancel;
+  EXPECT_EQ(codeOf([&] { buildOpc(source, dir / "opc", options); }), ErrorCode::Cancelled);
+  EXPECT_EQ(source.windows.size(), 5u);  // stops at the next patch
+  EXPECT_TRUE(dir.entries().empty());
+}
+
+TEST(PyramidBuilder, ASourceErrorLeavesNeitherTheOutputNorTheStagingDirectory) {
+  TempDir dir;
+  SyntheticSource source(300, 200);
+  source.failAfter = 7;
+  EXPECT_EQ(codeOf([&] { buildOpc(source, dir / "opc", withPatchSize(33)); }), ErrorCode::Io);
+  EXPECT_TRUE(dir.entries().empty());
+}
+
+TEST(PyramidBuilder, ASourceWithoutDefinedSamplesIsRejected) {
+  TempDir dir;
+  SyntheticSource source(100, 50, [](int, int) { return false; });
+  EXPECT_EQ(codeOf([&] { buildOpc(source, dir / "opc", withPatchSize(33)); }),
+            ErrorCode::InvalidArgument);
+  EXPECT_TRUE(dir.entries().empty());
+}
+
+TEST(PyramidBuilder, APatchSizeThatIsNotAPowerOfTwoPlusOneIsRejected) {
+  TempDir dir;
+  SyntheticSource source(100, 50);
+  const auto build = [&] { buildOpc(source, dir / "opc", withPatchSize(100)); };
+  EXPECT_EQ(codeOf(build), ErrorCode::InvalidArgument);
+  EXPECT_NE(messageOf(build).find("2^n+1"), std::string::npos);
+  EXPECT_TRUE(dir.entries().empty());
+}
+
+TEST(PyramidBuilder, SamplesTooSparseForTheirOverviewAreLeftOutWithTheirSubtree) {
+  // The defined left part plus one sample at an odd column and row far from it: the depth-3
+  // overview keeps only even union positions, so that sample's depth-3 patch would be empty and
+  // cannot be written; its subtree is left out rather than written as an empty patch.
+  TempDir dir;
+  SyntheticSource source(300, 200, [](int c, int r) { return c < 100 || (c == 271 && r == 133); });
+  const Model model = buildOpc(source, dir / "opc", withPatchSize(33));
+  EXPECT_EQ(model.find({4, 8, 4}), nullptr);
+  EXPECT_EQ(model.find({3, 4, 2}), nullptr);
+  expectParentsAreReducedFromChildren(dir / "opc", model);
+}
+
+class RecordingProgress final : public Progress {
+ public:
+  void report(std::string_view stage, double fraction) override {
+    EXPECT_EQ(stage, "import");
+    fractions.push_back(fraction);
+  }
+  std::vector<double> fractions;
+};
+
+TEST(PyramidBuilder, ProgressRisesToOneAndNeverFalls) {
+  TempDir dir;
+  SyntheticSource source(300, 200);
+  RecordingProgress progress;
+  ImportOptions options = withPatchSize(65);
+  options.progress = &progress;
+  buildOpc(source, dir / "opc", options);
+  ASSERT_FALSE(progress.fractions.empty());
+  EXPECT_TRUE(std::is_sorted(progress.fractions.begin(), progress.fractions.end()));
+  EXPECT_GT(progress.fractions.front(), 0.0);
+  EXPECT_EQ(progress.fractions.back(), 1.0);
+}
+
+// ---------------------------------------------------------------------------------------------
+// importFile
+
+TEST(ImportFile, AGeoTiffBecomesAnOpcWhoseVerticesAreItsSamples) {
+  TempDir dir;
+  RasterSpec spec{40, 30, {-84.4, 0.001, 0, 36.4, 0, -0.001}};
+  spec.type = GDT_Int16;
+  std::vector<double> heights;
+  for (int i = 0; i < 40 * 30; ++i) {
+    heights.push_back(300 + (i * 7) % 200);
+  }
+  makeRaster(dir / "dem.tif", spec, heights);
+  const Model model = importFile(dir / "dem.tif", dir / "opc", withPatchSize(17));
+  EXPECT_EQ(model.maxDepth(), 2);  // 16 * 4 >= 39
+  auto source = openRasterSource(dir / "dem.tif");
+  const auto samples = readAll(*source);
+  for (const PatchKey& key : model.leaves()) {
+    const PatchGrid grid = readPatchGrid(dir / "opc", model, model.at(key));
+    for (int j = 0; j < 17; ++j) {
+      for (int i = 0; i < 17; ++i) {
+        const int c = static_cast<int>(key.x) * 16 + i;
+        const int r = static_cast<int>(key.y) * 16 + j;
+        if (c < 40 && r < 30) {
+          ASSERT_LT(distance(grid.global(i, j), samples[static_cast<std::size_t>(r * 40 + c)]),
+                    roundingOf(grid));
+        }
+      }
+    }
+  }
+  expectParentsAreReducedFromChildren(dir / "opc", model);
+}
+
+TEST(ImportFile, AnUpperCasePcdExtensionIsReadAsAPointCloud) {
+  TempDir dir;
+  ASSERT_EQ(pcl::io::savePCDFileBinary((dir / "GRID.PCD").string(), gridCloud(5, 3)), 0);
+  const Model model = importFile(dir / "GRID.PCD", dir / "opc", withPatchSize(5));
+  ASSERT_EQ(model.maxDepth(), 0);
+  const PatchGrid root = readPatchGrid(dir / "opc", model, model.at(PatchKey::root()));
+  EXPECT_FALSE(root.defined(1, 1));
+  EXPECT_LT(distance(root.global(4, 2), {8, 6, 8}), 1e-5);
+  EXPECT_FALSE(root.defined(0, 3));  // padding below the 3 rows
+}
+
+TEST(ImportFile, AnExistingOutputDirectoryIsAConflictBeforeTheInputIsOpened) {
+  TempDir dir;
+  fs::create_directory(dir / "opc");
+  EXPECT_EQ(codeOf([&] { importFile("/nonexistent/dem.tif", dir / "opc", ImportOptions{}); }),
+            ErrorCode::Conflict);
+}
+
+}  // namespace
