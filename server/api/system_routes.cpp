@@ -1,0 +1,119 @@
+#include "server/api/system_routes.hpp"
+
+#include <nlohmann/json.hpp>
+
+#include "core/common/error.hpp"
+
+namespace vsm::server::api {
+
+using nlohmann::json;
+
+namespace {
+
+http::Response noStore(http::Response response) {
+  response.set("Cache-Control", std::string(http::cache_control::kNoStore));
+  return response;
+}
+
+constexpr core::MemoryCategory kCategories[] = {
+    core::MemoryCategory::Positions, core::MemoryCategory::Coordinates,
+    core::MemoryCategory::Textures, core::MemoryCategory::Tiles};
+
+}  // namespace
+
+json statsJson(const core::CacheStats& stats, core::EvictionPolicy policy) {
+  json byCategory = json::object();
+  for (const auto category : kCategories) {
+    byCategory[std::string(core::toString(category))] =
+        stats.residentByCategory[static_cast<std::size_t>(category)];
+  }
+  json byModel = json::object();
+  for (const auto& [model, bytes] : stats.residentByModel) {
+    byModel[model] = bytes;
+  }
+  return {
+      {"memory",
+       {{"budget_bytes", stats.budgetBytes},
+        {"resident_bytes", stats.residentBytes},
+        {"pinned_bytes", stats.pinnedBytes},
+        {"resident_bytes_by_category", std::move(byCategory)},
+        {"resident_bytes_by_model", std::move(byModel)}}},
+      {"cache",
+       {{"policy", core::toString(policy)},
+        {"hits", stats.hits},
+        {"misses", stats.misses},
+        {"evictions", stats.evictions},
+        {"write_backs", stats.writeBacks},
+        {"exhausted", stats.exhausted}}},
+  };
+}
+
+std::vector<metrics::Snapshot> cacheMetrics(const core::CacheStats& stats) {
+  using metrics::Snapshot;
+  using metrics::Type;
+  const auto single = [](std::string name, std::string help, Type type, double value) {
+    Snapshot s{std::move(name), std::move(help), type, {}, {}};
+    s.samples.push_back({{}, value});
+    return s;
+  };
+  std::vector<Snapshot> out;
+  out.push_back(single("vsm_memory_budget_bytes", "The memory budget of all models' patch data",
+                       Type::Gauge, static_cast<double>(stats.budgetBytes)));
+  out.push_back(single("vsm_memory_pinned_bytes", "Resident bytes pinned by requests and jobs",
+                       Type::Gauge, static_cast<double>(stats.pinnedBytes)));
+  Snapshot byCategory{"vsm_memory_resident_bytes", "Resident patch data by category", Type::Gauge,
+                      {"category"}, {}};
+  for (const auto category : kCategories) {
+    byCategory.samples.push_back(
+        {{std::string(core::toString(category))},
+         static_cast<double>(stats.residentByCategory[static_cast<std::size_t>(category)])});
+  }
+  out.push_back(std::move(byCategory));
+  Snapshot byModel{"vsm_memory_model_resident_bytes", "Resident patch data by model", Type::Gauge,
+                   {"model"}, {}};
+  for (const auto& [model, bytes] : stats.residentByModel) {
+    byModel.samples.push_back({{model}, static_cast<double>(bytes)});
+  }
+  out.push_back(std::move(byModel));
+  out.push_back(single("vsm_cache_hits_total", "Cache lookups served from memory", Type::Counter,
+                       static_cast<double>(stats.hits)));
+  out.push_back(single("vsm_cache_misses_total", "Cache lookups that loaded from disk",
+                       Type::Counter, static_cast<double>(stats.misses)));
+  out.push_back(single("vsm_cache_evictions_total", "Entries evicted to stay within the budget",
+                       Type::Counter, static_cast<double>(stats.evictions)));
+  out.push_back(single("vsm_cache_write_backs_total", "Dirty entries written back to disk",
+                       Type::Counter, static_cast<double>(stats.writeBacks)));
+  out.push_back(single("vsm_cache_exhausted_total",
+                       "Loads refused because everything resident was pinned", Type::Counter,
+                       static_cast<double>(stats.exhausted)));
+  return out;
+}
+
+void addSystemRoutes(http::Router& router, SystemContext context) {
+  // Liveness: answering at all is the signal (the handler ran on the CPU pool, so that is alive).
+  router.add(http::Method::Get, "/healthz", [](const http::Request&) {
+    return noStore(http::jsonResponse(200, {{"status", "ok"}}));
+  });
+  router.add(http::Method::Get, "/readyz", [ready = context.ready](const http::Request&) {
+    if (!ready()) {
+      throw core::Error(core::ErrorCode::Unavailable, "not ready: starting or stopping");
+    }
+    return noStore(http::jsonResponse(200, {{"status", "ready"}}));
+  });
+  router.add(http::Method::Get, "/metrics", [&metrics = context.metrics](const http::Request&) {
+    http::Response response;
+    response.contentType = std::string(metrics::kContentType);
+    response.body = metrics.render();
+    return noStore(std::move(response));
+  });
+  router.add(http::Method::Get, "/v1/stats", [&cache = context.cache](const http::Request&) {
+    return noStore(http::jsonResponse(200, statsJson(cache.stats(), cache.policy())));
+  });
+  // Open models are listed by the model registry, which arrives with the model routes and
+  // replaces this handler; until then no model can be open.
+  router.add(http::Method::Get, "/v1/models", [](const http::Request&) {
+    return noStore(http::jsonResponse(200, {{"models", json::array()}}));
+  });
+}
+
+}  // namespace vsm::server::api

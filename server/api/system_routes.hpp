@@ -1,0 +1,30 @@
+#pragma once
+
+#include <functional>
+
+#include <nlohmann/json_fwd.hpp>
+
+#include "core/cache/patch_cache.hpp"
+#include "server/http/router.hpp"
+#include "server/metrics/metrics.hpp"
+
+namespace vsm::server::api {
+
+/// What the system routes read. Every reference must outlive the router.
+struct SystemContext {
+  const core::PatchCache& cache;
+  const metrics::Registry& metrics;
+  /// True once the daemon serves and until it begins to stop.
+  std::function<bool()> ready;
+};
+
+/// GET /healthz, /readyz, /metrics, /v1/stats, /v1/models (see proto/openapi.yaml).
+void addSystemRoutes(http::Router& router, SystemContext context);
+
+/// The body of GET /v1/stats (proto/examples/stats.json).
+nlohmann::json statsJson(const core::CacheStats& stats, core::EvictionPolicy policy);
+
+/// Cache statistics as Prometheus families (vsm_cache_*), for a metrics::Registry collector.
+std::vector<metrics::Snapshot> cacheMetrics(const core::CacheStats& stats);
+
+}  // namespace vsm::server::api

@@ -1,0 +1,234 @@
+#include "server/app/application.hpp"
+
+#include <fcntl.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <chrono>
+#include <filesystem>
+#include <thread>
+
+#include "core/cache/patch_cache.hpp"
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+#include "server/api/system_routes.hpp"
+#include "server/exec/work_pool.hpp"
+#include "server/http/pipeline.hpp"
+#include "server/http/router.hpp"
+#include "server/http/server.hpp"
+#include "server/metrics/metrics.hpp"
+
+#ifndef VSM_VERSION
+#define VSM_VERSION "unknown"
+#endif
+
+namespace vsm::server {
+
+namespace fs = std::filesystem;
+using core::Error;
+using core::ErrorCode;
+namespace log = core::log;
+
+namespace {
+
+/// Writes "<port>\n" to `path` atomically: a temporary file in the same directory, renamed.
+void writePortFile(const fs::path& path, std::uint16_t port) {
+  const fs::path temporary = path.string() + ".tmp-" + std::to_string(getpid());
+  const int fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) {
+    core::throwIoError("cannot create port file", temporary.string(), errno);
+  }
+  const std::string text = std::to_string(port) + "\n";
+  const bool written = ::write(fd, text.data(), text.size()) == static_cast<ssize_t>(text.size());
+  const int writeErrno = errno;
+  if (::close(fd) != 0 || !written) {
+    ::unlink(temporary.c_str());
+    core::throwIoError("cannot write port file", temporary.string(), written ? errno : writeErrno);
+  }
+  if (::rename(temporary.c_str(), path.c_str()) != 0) {
+    const int renameErrno = errno;
+    ::unlink(temporary.c_str());
+    core::throwIoError("cannot rename port file into place", path.string(), renameErrno);
+  }
+}
+
+bool isLoopback(const std::string& host) {
+  return host == "localhost" || host == "::1" || host.starts_with("127.");
+}
+
+}  // namespace
+
+std::string_view version() {
+  return VSM_VERSION;
+}
+
+Application::Application(Config config) : config_(std::move(config)) {
+  config_.validate();
+  log::setLevel(config_.logLevel);
+  log::info("vsmd " + std::string(version()) + " starting");
+  for (const auto& [key, value] : config_.describe()) {
+    log::info("config " + key + "=" + value);
+  }
+  std::error_code ec;
+  if (!fs::is_directory(config_.dataRoot, ec)) {
+    throw Error(ErrorCode::NotFound, "data root '" + config_.dataRoot.string() +
+                                         "' is not a directory (set data_root or --data-root)");
+  }
+  if (config_.token.empty() && !isLoopback(config_.listen.host)) {
+    log::warn("no token configured: anyone who can reach " + config_.listen.toString() +
+              " may write (set token or --token)");
+  }
+
+  metrics_ = std::make_unique<metrics::Registry>();
+  cache_ = std::make_unique<core::PatchCache>(config_.memoryBudget, config_.cachePolicy);
+  const std::size_t cpuThreads =
+      config_.threads.cpu != 0 ? config_.threads.cpu
+                               : std::max<std::size_t>(1, std::thread::hardware_concurrency());
+  cpuPool_ = std::make_unique<exec::WorkPool>("cpu", cpuThreads);
+  // Merges and imports run here once the job routes exist; a pool of its own so that they can
+  // never take the threads request handlers need.
+  jobPool_ = std::make_unique<exec::WorkPool>("jobs", config_.threads.jobs);
+
+  router_ = std::make_unique<http::Router>();
+  api::addSystemRoutes(*router_, {*cache_, *metrics_, [this] { return ready(); }});
+  pipeline_ = std::make_unique<http::Pipeline>(*router_, config_.token);
+
+  http::ServerOptions options;
+  options.host = config_.listen.host;
+  options.port = config_.listen.port;
+  options.ioThreads = config_.threads.io;
+  options.bodyLimit = config_.limits.bodyBytes;
+  options.headerLimit = config_.limits.headerBytes;
+  options.readTimeout = config_.limits.readTimeout;
+  options.idleTimeout = config_.limits.idleTimeout;
+  options.writeTimeout = config_.limits.writeTimeout;
+  options.maxConnections = config_.limits.connections;
+  options.maxPipelined = config_.limits.pipelinedResponses;
+  server_ = std::make_unique<http::Server>(options, *pipeline_, *cpuPool_, *metrics_);
+
+  // Collectors run only while the server answers /metrics, i.e. while every component they read
+  // exists (the registry is built first and destroyed last).
+  metrics_->collector([cache = cache_.get()] { return api::cacheMetrics(cache->stats()); });
+  const double startTime = std::chrono::duration<double>(
+                               std::chrono::system_clock::now().time_since_epoch())
+                               .count();
+  metrics_->collector([this, startTime] {
+    using metrics::Snapshot;
+    using metrics::Type;
+    Snapshot threads{"vsm_pool_threads", "Threads per pool", Type::Gauge, {"pool"}, {}};
+    Snapshot queued{"vsm_pool_queued_tasks", "Tasks waiting for a thread", Type::Gauge, {"pool"},
+                    {}};
+    Snapshot active{"vsm_pool_active_tasks", "Tasks running", Type::Gauge, {"pool"}, {}};
+    for (const exec::WorkPool* pool : {cpuPool_.get(), jobPool_.get()}) {
+      threads.samples.push_back({{pool->name()}, static_cast<double>(pool->threads())});
+      queued.samples.push_back({{pool->name()}, static_cast<double>(pool->queued())});
+      active.samples.push_back({{pool->name()}, static_cast<double>(pool->active())});
+    }
+    Snapshot up{"vsm_ready", "1 while the daemon serves, 0 while starting or stopping",
+                Type::Gauge, {}, {{{}, ready() ? 1.0 : 0.0}}};
+    Snapshot build{"vsm_build_info", "The daemon's version", Type::Gauge, {"version"},
+                   {{{std::string(version())}, 1.0}}};
+    Snapshot start{"vsm_process_start_time_seconds", "Start time, seconds since the epoch",
+                   Type::Gauge, {}, {{{}, startTime}}};
+    return std::vector<Snapshot>{std::move(threads), std::move(queued), std::move(active),
+                                 std::move(up), std::move(build), std::move(start)};
+  });
+}
+
+Application::~Application() {
+  try {
+    shutdown();
+  } catch (const std::exception& e) {
+    log::error(std::string("shutdown: ") + e.what());
+  }
+}
+
+void Application::start() {
+  {
+    const std::lock_guard lock(mutex_);
+    if (started_) {
+      return;
+    }
+  }
+  server_->start();
+  log::info("listening on " + server_->address());
+  if (!config_.portFile.empty()) {
+    writePortFile(config_.portFile, server_->port());
+  }
+  {
+    const std::lock_guard lock(mutex_);
+    started_ = true;
+    ready_ = stopCalls_ == 0;
+  }
+  log::info("ready: " + std::to_string(cpuPool_->threads()) + " handler threads, " +
+            std::to_string(jobPool_->threads()) + " job threads, " +
+            std::to_string(config_.threads.io) + " network threads");
+}
+
+void Application::run() {
+  start();
+  {
+    std::unique_lock lock(mutex_);
+    stopRequested_.wait(lock, [this] { return stopCalls_ > 0; });
+  }
+  shutdown();
+}
+
+void Application::stop() {
+  int calls = 0;
+  {
+    const std::lock_guard lock(mutex_);
+    calls = ++stopCalls_;
+    ready_ = false;
+  }
+  stopRequested_.notify_all();
+  if (calls == 2) {
+    log::warn("stopping now: closing connections without waiting for the grace period");
+    server_->cutShort();
+  }
+}
+
+void Application::shutdown() {
+  bool wasStarted = false;
+  {
+    const std::lock_guard lock(mutex_);
+    if (shutDown_) {
+      return;
+    }
+    shutDown_ = true;
+    ready_ = false;
+    wasStarted = started_;
+  }
+  if (wasStarted) {
+    log::info("stopping: no new connections; " + std::to_string(server_->connections()) +
+              " open ones get up to " + formatDuration(config_.limits.shutdownGrace) +
+              " to finish");
+  }
+  server_->stop(config_.limits.shutdownGrace);
+  // Handlers still running (past the grace period) post their results into the stopped server;
+  // it must outlive them, so the pools are drained before any component is destroyed.
+  cpuPool_->join();
+  jobPool_->join();
+  if (wasStarted && !config_.portFile.empty()) {
+    std::error_code ignored;
+    fs::remove(config_.portFile, ignored);
+  }
+  if (wasStarted) {
+    log::info("stopped");
+  }
+}
+
+std::uint16_t Application::port() const {
+  return server_->port();
+}
+
+std::string Application::address() const {
+  return server_->address();
+}
+
+bool Application::ready() const {
+  const std::lock_guard lock(mutex_);
+  return ready_;
+}
+
+}  // namespace vsm::server

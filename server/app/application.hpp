@@ -1,0 +1,92 @@
+#pragma once
+
+#include <condition_variable>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <string_view>
+
+#include "server/config/config.hpp"
+
+namespace vsm::core {
+class PatchCache;
+}
+
+namespace vsm::server {
+
+namespace exec {
+class WorkPool;
+}
+namespace http {
+class Router;
+class Pipeline;
+class Server;
+}  // namespace http
+namespace metrics {
+class Registry;
+}
+
+/// The daemon's version ("0.1.0").
+std::string_view version();
+
+/// The composition root of vsmd: builds every component in order (metrics, patch cache, CPU and
+/// job pools, routes, HTTP server) and tears them down in reverse. main() only parses arguments
+/// and runs one; tests may run one in-process on 127.0.0.1:0.
+///
+/// Thread-safety: the constructor, start(), run() and the destructor from one thread; stop(),
+/// port(), address() and ready() from any thread.
+class Application {
+ public:
+  /// Validates the configuration, applies the log level, logs the effective configuration (token
+  /// redacted) and builds the components; serves nothing yet. Throws core::Error(InvalidArgument)
+  /// for an invalid configuration, core::Error(NotFound) when the data root is not a directory.
+  explicit Application(Config config);
+  /// Stops (with the configured grace) if still running, then destroys the components in reverse.
+  ~Application();
+  Application(const Application&) = delete;
+  Application& operator=(const Application&) = delete;
+
+  /// Binds and starts serving; logs "listening on HOST:PORT" and writes the port file. Returns
+  /// once connections are accepted. Throws core::Error(Unavailable) when the address cannot be
+  /// bound, core::Error(Io) when the port file cannot be written.
+  void start();
+
+  /// start() unless started, then blocks until stop() is called, then shuts down gracefully:
+  /// readiness off, no new connections, in-flight requests finished (for up to
+  /// limits.shutdown_grace), pools drained. Returns normally after a clean stop.
+  void run();
+
+  /// Makes run() return. The first call starts a graceful shutdown, a second one ends its grace
+  /// period at once. Safe from any thread (not from a signal handler).
+  void stop();
+
+  /// The bound port; valid after start().
+  std::uint16_t port() const;
+  /// "127.0.0.1:43123"; valid after start().
+  std::string address() const;
+  /// True while serving (GET /readyz answers 200).
+  bool ready() const;
+
+ private:
+  void shutdown();
+
+  // Components in construction order; destroyed in reverse.
+  Config config_;
+  std::unique_ptr<metrics::Registry> metrics_;
+  std::unique_ptr<core::PatchCache> cache_;
+  std::unique_ptr<exec::WorkPool> cpuPool_;
+  std::unique_ptr<exec::WorkPool> jobPool_;
+  std::unique_ptr<http::Router> router_;
+  std::unique_ptr<http::Pipeline> pipeline_;
+  std::unique_ptr<http::Server> server_;
+
+  mutable std::mutex mutex_;  // guards the state below
+  std::condition_variable stopRequested_;
+  bool started_ = false;
+  bool ready_ = false;
+  int stopCalls_ = 0;
+  bool shutDown_ = false;
+};
+
+}  // namespace vsm::server

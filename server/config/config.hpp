@@ -1,0 +1,131 @@
+#pragma once
+
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <filesystem>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
+
+#include <nlohmann/json_fwd.hpp>
+
+#include "core/cache/patch_cache.hpp"
+#include "core/common/log.hpp"
+
+namespace vsm::server {
+
+/// A host and a port to listen on: "127.0.0.1:8080", "[::1]:8080", "0.0.0.0:0" (0 = any free
+/// port). A small value type whose toString() and parse() round-trip.
+struct ListenAddress {
+  std::string host = "127.0.0.1";
+  std::uint16_t port = 8080;
+
+  std::string toString() const;
+  /// Throws core::Error(InvalidArgument) unless `text` is HOST:PORT with a non-empty host (IPv6 in
+  /// brackets) and a port in 0..65535.
+  static ListenAddress parse(std::string_view text);
+  friend bool operator==(const ListenAddress&, const ListenAddress&) = default;
+};
+
+/// Bounds on what one client can make the server hold or wait for.
+struct Limits {
+  /// Largest request body; larger ones are answered 413 and the connection is closed.
+  std::size_t bodyBytes = 1024 * 1024;
+  /// Largest request line plus header fields; larger ones are answered 431.
+  std::size_t headerBytes = 16 * 1024;
+  /// Time from a request's first byte to its last.
+  std::chrono::milliseconds readTimeout{30'000};
+  /// Time a connection may wait for its next request (keep-alive) or its first one.
+  std::chrono::milliseconds idleTimeout{60'000};
+  /// Time to write one response.
+  std::chrono::milliseconds writeTimeout{60'000};
+  /// Open connections; one more is answered 503 with Retry-After and closed.
+  std::size_t connections = 512;
+  /// Pipelined requests of one connection being handled or waiting to be written; the server
+  /// stops reading the connection while it has this many.
+  std::size_t pipelinedResponses = 8;
+  /// On SIGTERM/SIGINT, how long in-flight requests may take before connections are closed.
+  std::chrono::milliseconds shutdownGrace{10'000};
+};
+
+/// Sizes of the thread pools.
+struct ThreadCounts {
+  /// Network threads (accept, read, write; they never block).
+  std::size_t io = 2;
+  /// Request handlers (disk reads, decoding, encoding); 0 = one per hardware thread.
+  std::size_t cpu = 0;
+  /// Long jobs (merges, imports), separate so they cannot starve request handling.
+  std::size_t jobs = 2;
+};
+
+/// The daemon's configuration: defaults here, then a JSON file (--config), then command-line
+/// flags, each overriding the one before. Keys are dotted paths ("limits.body_bytes"); in a file
+/// they may be written nested ({"limits": {"body_bytes": "1MiB"}}) or dotted.
+///
+/// Value syntax: sizes are bytes as a number or a string with a suffix B, KiB, MiB, GiB, TiB
+/// (powers of 1024) or KB, MB, GB, TB (powers of 1000), e.g. "512MiB", "1.5GB"; durations are
+/// seconds as a number or a string with a suffix ms, s, m, h, e.g. "250ms", "30s".
+struct Config {
+  ListenAddress listen;
+  /// Where model directories live.
+  std::filesystem::path dataRoot = "/var/lib/vsm";
+  /// One budget (bytes) for the patch data of all open models.
+  std::size_t memoryBudget = std::size_t{1} << 30;
+  core::EvictionPolicy cachePolicy = core::EvictionPolicy::CostAwareClock;
+  /// Bearer token required for writes (POST, PUT, PATCH, DELETE); empty = writes are open.
+  std::string token;
+  /// When set, the bound port is written there (atomically) once listening; for tests and
+  /// supervisors that start the daemon on port 0.
+  std::filesystem::path portFile;
+  core::log::Level logLevel = core::log::Level::Info;
+  Limits limits;
+  ThreadCounts threads;
+
+  /// Sets one key from a JSON value (a string is accepted wherever a number is, "--set" style).
+  /// Throws core::Error(InvalidArgument) naming the key on an unknown key or a bad value.
+  void set(std::string_view key, const nlohmann::json& value);
+
+  /// Throws core::Error(InvalidArgument) naming the first key whose value is out of range.
+  void validate() const;
+
+  /// The effective configuration as "key=value" pairs in a fixed order, in the syntax set()
+  /// accepts; the token is shown as "(redacted)" or "(none)".
+  std::vector<std::pair<std::string, std::string>> describe() const;
+};
+
+/// Applies every key of `json` (nested objects are flattened to dotted keys) to `config`;
+/// keys not present keep their value. Throws core::Error(InvalidArgument).
+void from_json(const nlohmann::json& json, Config& config);
+
+/// Parses "1048576", "64MiB", "1.5GB" (see Config). Throws core::Error(InvalidArgument).
+std::size_t parseSize(std::string_view text);
+/// The shortest exact form parseSize() accepts: "64MiB", "1000KB", "1234".
+std::string formatSize(std::size_t bytes);
+/// Parses "30", "30s", "250ms", "2m", "1h", "0.5s" (see Config). Throws core::Error(InvalidArgument).
+std::chrono::milliseconds parseDuration(std::string_view text);
+/// "30s" for whole seconds, "250ms" otherwise.
+std::string formatDuration(std::chrono::milliseconds duration);
+
+/// What the command line asked for.
+struct CommandLine {
+  Config config;
+  bool help = false;
+  bool version = false;
+};
+
+/// Usage text for --help.
+std::string_view commandLineUsage();
+
+/// Parses the arguments after the program name: reads --config FILE first (wherever it appears),
+/// then applies the other flags in order, then validates. Throws core::Error(InvalidArgument) for
+/// an unknown flag, a missing value or an invalid configuration; core::Error(NotFound / Io /
+/// InvalidArgument) when the file cannot be read or is not a JSON object.
+CommandLine parseCommandLine(const std::vector<std::string>& args);
+
+/// Reads a JSON configuration file onto `config`. Throws as parseCommandLine.
+void loadConfigFile(const std::filesystem::path& file, Config& config);
+
+}  // namespace vsm::server

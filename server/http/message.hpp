@@ -1,0 +1,100 @@
+#pragma once
+
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
+
+#include <nlohmann/json_fwd.hpp>
+
+namespace vsm::server::http {
+
+/// Request methods the server knows; anything else is Other (answered 405 or 501 by routing).
+enum class Method { Get, Head, Post, Put, Patch, Delete, Options, Other };
+
+std::string_view toString(Method method);
+/// "GET" -> Get; unknown names -> Other. Case-sensitive, as HTTP methods are.
+Method parseMethod(std::string_view name);
+/// POST, PUT, PATCH, DELETE and unknown methods: the ones that need the bearer token.
+bool isWrite(Method method);
+
+/// One HTTP request as handlers see it: no Beast types, so handlers and their tests stay light.
+struct Request {
+  Method method = Method::Get;
+  /// The method as sent (for logs, and for Other).
+  std::string methodName = "GET";
+  /// The request-target as sent: path and query, percent-encoded.
+  std::string target = "/";
+  /// Header fields, names in lower case, in arrival order.
+  std::vector<std::pair<std::string, std::string>> headers;
+  std::string body;
+  /// Set by the server: "X-Request-Id" when the client sent a sane one, a fresh id otherwise.
+  std::string id;
+  /// Path parameters, percent-decoded; filled in by the Router ("{m}" -> params["m"]).
+  std::map<std::string, std::string, std::less<>> params;
+
+  /// The target up to '?', still percent-encoded.
+  std::string_view path() const;
+  /// The target after '?' (empty when none).
+  std::string_view query() const;
+  /// The first value of a header field; `name` in any case. nullptr when absent.
+  const std::string* header(std::string_view name) const;
+  /// A path parameter. Throws core::Error(Internal) when the route has no such parameter.
+  const std::string& param(std::string_view name) const;
+  /// The first query parameter `name`, percent- and '+'-decoded; nullopt when absent.
+  std::optional<std::string> queryParam(std::string_view name) const;
+};
+
+/// One HTTP response. Every header but Content-Type is in `headers`; the server adds
+/// Content-Length, Connection, CORS and X-Request-Id.
+struct Response {
+  int status = 200;
+  std::string contentType;
+  std::string body;
+  std::vector<std::pair<std::string, std::string>> headers;
+
+  /// Replaces every field `name` (any case) by one with `value`.
+  void set(std::string_view name, std::string value);
+  /// The first value of a header field; nullptr when absent.
+  const std::string* header(std::string_view name) const;
+};
+
+/// A response with `body` serialised as JSON (application/json).
+Response jsonResponse(int status, const nlohmann::json& body);
+/// The one error body: {"error": {"code": code, "message": message}}.
+Response errorResponse(int status, std::string_view code, std::string_view message);
+
+/// Parses a JSON request body. Throws core::Error(InvalidArgument) when it is empty, not JSON, or
+/// declared with a Content-Type other than application/json (or a +json type).
+nlohmann::json jsonBody(const Request& request);
+
+/// Cache-Control values the routes use.
+namespace cache_control {
+/// Health, readiness, metrics, statistics: always fresh.
+inline constexpr std::string_view kNoStore = "no-store";
+/// Cacheable, but revalidated with the ETag on every use (model summaries, hierarchies).
+inline constexpr std::string_view kRevalidate = "no-cache";
+/// Content addressed by version (patch data under a versioned ETag).
+inline constexpr std::string_view kImmutable = "public, max-age=31536000, immutable";
+}  // namespace cache_control
+
+/// A strong entity tag: `opaque` in double quotes (opaque must not contain '"').
+std::string strongEtag(std::string_view opaque);
+/// True when the request's If-None-Match lists `etag` (weak comparison, RFC 9110 13.1.2) or is
+/// "*": the client's copy is current and a GET may be answered 304.
+bool ifNoneMatch(const Request& request, std::string_view etag);
+/// 304 Not Modified for `etag`, without a body, keeping the validator and the cache policy.
+Response notModified(std::string_view etag, std::string_view cacheControl);
+
+/// A fresh request id (16 hex digits, unique within the process, unpredictable across restarts).
+std::string newRequestId();
+/// The client's X-Request-Id when it is 1..64 characters of [A-Za-z0-9._-]; a new id otherwise.
+std::string requestIdFor(const Request& request);
+
+/// Decodes %XX escapes (and '+' as space when `plusIsSpace`); nullopt on a malformed escape.
+std::optional<std::string> percentDecode(std::string_view text, bool plusIsSpace);
+
+}  // namespace vsm::server::http

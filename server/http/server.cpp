@@ -1,0 +1,786 @@
+// The network half of the HTTP server, after Boost.Beast's example/advanced/server: one strand per
+// connection (every member of a Connection is touched only on its strand), error codes instead of
+// exceptions, and tcp_stream timeouts for every read and write.
+//
+// Lock order: Server::Impl::mutex is the only lock here; it is never held while calling into a
+// connection, the pipeline or the pools (connections are copied out first).
+#include "server/http/server.hpp"
+
+#include <atomic>
+#include <condition_variable>
+#include <deque>
+#include <mutex>
+#include <optional>
+#include <thread>
+#include <unordered_map>
+#include <vector>
+
+#include <boost/asio/dispatch.hpp>
+#include <boost/asio/io_context.hpp>
+#include <boost/asio/ip/tcp.hpp>
+#include <boost/asio/post.hpp>
+#include <boost/asio/steady_timer.hpp>
+#include <boost/asio/strand.hpp>
+#include <boost/beast/core/flat_buffer.hpp>
+#include <boost/beast/core/tcp_stream.hpp>
+#include <boost/beast/http/parser.hpp>
+#include <boost/beast/http/read.hpp>
+#include <boost/beast/http/string_body.hpp>
+#include <boost/beast/http/write.hpp>
+
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+#include "server/exec/work_pool.hpp"
+#include "server/http/pipeline.hpp"
+#include "server/metrics/metrics.hpp"
+
+namespace vsm::server::http {
+
+namespace beast = boost::beast;
+namespace bhttp = boost::beast::http;
+namespace net = boost::asio;
+using tcp = net::ip::tcp;
+using beast::error_code;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+using BeastRequest = bhttp::request<bhttp::string_body>;
+using BeastResponse = bhttp::response<bhttp::string_body>;
+
+/// How long a closing connection keeps reading (and discarding) after its last response, so that
+/// request bytes still in flight do not make the kernel reset the connection before the client has
+/// read that response (413 after an unread body, 503 to a connection over the cap).
+constexpr std::chrono::milliseconds kLinger{1000};
+/// Bytes asked for per raw read (waiting for a request's first bytes, lingering).
+constexpr std::size_t kReadChunk = 16 * 1024;
+/// Pause before accepting again after the process ran out of descriptors.
+constexpr std::chrono::milliseconds kAcceptBackoff{100};
+/// Longest request target written to the access log.
+constexpr std::size_t kLoggedTargetMax = 256;
+
+std::string endpointText(const tcp::endpoint& endpoint) {
+  const auto address = endpoint.address();
+  const std::string host = address.to_string();
+  return (address.is_v6() ? "[" + host + "]" : host) + ":" + std::to_string(endpoint.port());
+}
+
+/// Quotes `target` for the access log: '"', '\\' and control bytes escaped, long ones cut.
+std::string quoted(std::string_view target) {
+  std::string out = "\"";
+  for (std::size_t i = 0; i < target.size() && i < kLoggedTargetMax; ++i) {
+    const auto c = static_cast<unsigned char>(target[i]);
+    if (c == '"' || c == '\\') {
+      out += '\\';
+      out += static_cast<char>(c);
+    } else if (c < 0x20 || c == 0x7f) {
+      char hex[8];
+      std::snprintf(hex, sizeof hex, "\\x%02x", c);
+      out += hex;
+    } else {
+      out += static_cast<char>(c);
+    }
+  }
+  out += target.size() > kLoggedTargetMax ? "...\"" : "\"";
+  return out;
+}
+
+/// True when a header value or name could split the header (CR, LF, NUL).
+bool unsafeHeaderText(std::string_view text) {
+  return text.find_first_of(std::string_view("\r\n\0", 3)) != std::string_view::npos;
+}
+
+bool isHttpError(const error_code& ec) {
+  return ec.category() == bhttp::make_error_code(bhttp::error::bad_target).category();
+}
+
+}  // namespace
+
+class Connection;
+
+struct Server::Impl {
+  Impl(ServerOptions o, const Pipeline& p, exec::WorkPool& h, metrics::Registry& m)
+      : options(std::move(o)),
+        pipeline(p),
+        handlers(h),
+        requests(m.counter("vsm_http_requests_total", "HTTP requests answered",
+                           {"method", "route", "status"})),
+        latency(m.histogram("vsm_http_request_duration_seconds",
+                            "Time from a request's last byte read to its response's last byte "
+                            "written",
+                            {"route", "status"}, metrics::latencyBuckets())),
+        responseBytes(m.counter("vsm_http_response_body_bytes_total",
+                                "Response body bytes written", {"route"})),
+        accepted(m.counter("vsm_http_connections_total", "Connections accepted")),
+        rejected(m.counter("vsm_http_connections_rejected_total",
+                           "Connections answered 503 (or closed) because the cap was reached")),
+        timeouts(m.counter("vsm_http_timeouts_total", "Connections closed by a timeout",
+                           {"phase"})),
+        acceptor(net::make_strand(ioc)),
+        acceptRetry(acceptor.get_executor()) {
+    for (const std::string_view phase : {"idle", "read", "write"}) {
+      timeouts.inc({phase}, 0);  // every series present from the start
+    }
+    // The registry may outlive the server: the collector holds the counter, not the server.
+    m.collector([count = openCount] {
+      metrics::Snapshot open{"vsm_http_connections_open", "Connections open now",
+                             metrics::Type::Gauge, {}, {}};
+      open.samples.push_back({{}, static_cast<double>(count->load())});
+      return std::vector<metrics::Snapshot>{std::move(open)};
+    });
+  }
+
+  void start();
+  void accept();
+  void onAccept(error_code ec, tcp::socket socket);
+  void stop(std::chrono::milliseconds grace);
+  void forget(const Connection* connection);
+  std::size_t openConnections() const {
+    const std::lock_guard lock(mutex);
+    return connections.size();
+  }
+  std::vector<std::shared_ptr<Connection>> liveConnections() const;
+  void warnFull();
+
+  const ServerOptions options;
+  const Pipeline& pipeline;
+  exec::WorkPool& handlers;
+  metrics::Counter& requests;
+  metrics::Histogram& latency;
+  metrics::Counter& responseBytes;
+  metrics::Counter& accepted;
+  metrics::Counter& rejected;
+  metrics::Counter& timeouts;
+
+  mutable std::mutex mutex;  // guards connections, stopping, deadline, cutShort
+  std::condition_variable drained;
+  std::unordered_map<const Connection*, std::weak_ptr<Connection>> connections;
+  std::shared_ptr<std::atomic<std::size_t>> openCount =
+      std::make_shared<std::atomic<std::size_t>>(0);  // connections.size(), for the collector
+  bool stopping = false;
+  bool cutShort = false;
+  Clock::time_point deadline;
+
+  std::atomic<std::size_t> rejecting{0};  // rejected connections still being answered
+  std::atomic<Clock::rep> lastFullWarning{0};
+  std::string boundAddress;
+  std::uint16_t boundPort = 0;
+  bool started = false;
+  bool stopped = false;
+
+  // Declared after everything a Connection touches in its destructor: destroying the io_context
+  // destroys the handlers still queued in it, and with them the last references to connections.
+  net::io_context ioc;
+  tcp::acceptor acceptor;   // used on its own strand only
+  net::steady_timer acceptRetry;
+  std::optional<net::executor_work_guard<net::io_context::executor_type>> work;
+  std::vector<std::thread> threads;
+};
+
+/// One client connection. Every member is touched only on the connection's strand; handlers run
+/// on the CPU pool and post their result back to the strand.
+class Connection : public std::enable_shared_from_this<Connection> {
+ public:
+  Connection(Server::Impl& server, tcp::socket&& socket, bool counted)
+      : server_(server), stream_(std::move(socket)), counted_(counted) {
+    error_code ec;
+    const auto remote = stream_.socket().remote_endpoint(ec);
+    peer_ = ec ? std::string("-") : endpointText(remote);
+  }
+  ~Connection() {
+    if (counted_) {
+      server_.forget(this);
+    } else {
+      server_.rejecting.fetch_sub(1);
+    }
+  }
+  Connection(const Connection&) = delete;
+  Connection& operator=(const Connection&) = delete;
+
+  void start() {
+    net::dispatch(stream_.get_executor(), [self = shared_from_this()] { self->readNext(); });
+  }
+
+  /// Answers 503 without reading a request, then closes.
+  void reject() {
+    net::dispatch(stream_.get_executor(), [self = shared_from_this()] {
+      Response response = errorResponse(
+          503, core::toString(core::ErrorCode::Unavailable),
+          "the server has " + std::to_string(self->server_.options.maxConnections) +
+              " connections open, its limit; retry shortly");
+      response.set("Retry-After", "1");
+      self->closing_ = true;
+      self->pushError(std::move(response), /*quiet=*/true);
+    });
+  }
+
+  /// Graceful shutdown: no new requests; idle connections close now, busy ones after their last
+  /// response.
+  void beginShutdown() {
+    net::post(stream_.get_executor(), [self = shared_from_this()] {
+      self->shutdown_ = true;
+      if (self->idleWait_ ||
+          (!self->reading_ && !self->writing_ && !self->lingering_ && self->queue_.empty())) {
+        self->closeNow();
+      }
+    });
+  }
+
+  /// The grace period is over.
+  void forceClose() {
+    net::post(stream_.get_executor(), [self = shared_from_this()] { self->closeNow(); });
+  }
+
+ private:
+  /// A request being handled or a response waiting to be written, in request order.
+  struct Slot {
+    std::uint64_t seq = 0;
+    Clock::time_point start;
+    std::string method = "-";
+    std::string target = "-";
+    std::string id;
+    unsigned version = 11;
+    bool head = false;
+    bool close = false;  // close the connection after this response
+    bool quiet = false;  // no access-log line (rejected connections)
+    bool ready = false;
+    Handled handled;
+    std::unique_ptr<BeastResponse> message;  // the serialised form, while being written
+  };
+
+  void readNext() {
+    if (reading_ || closing_ || shutdown_ || closed_ || lingering_ ||
+        queue_.size() >= server_.options.maxPipelined) {
+      return;
+    }
+    if (buffer_.size() == 0 && !queue_.empty()) {
+      // Nothing pipelined arrived yet: wait for the queue to drain rather than wait on the socket
+      // while busy (an idle timeout then could not tell a slow handler from an idle client).
+      return;
+    }
+    parser_.emplace();
+    parser_->body_limit(server_.options.bodyLimit);
+    parser_->header_limit(static_cast<std::uint32_t>(server_.options.headerLimit));
+    reading_ = true;
+    if (buffer_.size() > 0) {
+      readRest();
+      return;
+    }
+    // Idle: wait for the first byte of the next request under the idle timeout.
+    idleWait_ = true;
+    stream_.expires_after(server_.options.idleTimeout);
+    stream_.async_read_some(buffer_.prepare(kReadChunk),
+                            [self = shared_from_this()](error_code ec, std::size_t bytes) {
+                              self->buffer_.commit(bytes);
+                              self->idleWait_ = false;
+                              if (ec) {
+                                self->reading_ = false;
+                                self->onReadError(ec, true);
+                              } else {
+                                self->readRest();
+                              }
+                            });
+  }
+
+  /// The rest of a request whose first bytes are here, under the read timeout.
+  void readRest() {
+    stream_.expires_after(server_.options.readTimeout);
+    bhttp::async_read(stream_, buffer_, *parser_,
+                      [self = shared_from_this()](error_code ec, std::size_t) {
+                        self->reading_ = false;
+                        if (ec) {
+                          self->onReadError(ec, false);
+                        } else {
+                          self->onRequest();
+                        }
+                      });
+  }
+
+  void onReadError(error_code ec, bool idle) {
+    if (ec == bhttp::error::end_of_stream || ec == net::error::eof) {
+      // The client is done with this connection; answer what it already asked.
+      closing_ = true;
+      if (queue_.empty()) {
+        closeNow();
+      }
+      return;
+    }
+    if (ec == beast::error::timeout) {
+      server_.timeouts.inc({idle ? "idle" : "read"});
+      core::log::debug("peer=" + peer_ + (idle ? " idle" : " read") + " timeout: closed");
+      closeNow();  // the stream closed the socket already
+      return;
+    }
+    if (ec == net::error::operation_aborted || closed_) {
+      return;
+    }
+    if (!isHttpError(ec)) {
+      core::log::debug("peer=" + peer_ + " read: " + ec.message());
+      closeNow();
+      return;
+    }
+    Response response;
+    if (ec == bhttp::error::body_limit) {
+      response = errorResponse(413, "payload_too_large",
+                               "request body larger than " +
+                                   std::to_string(server_.options.bodyLimit) + " bytes");
+    } else if (ec == bhttp::error::header_limit) {
+      response = errorResponse(431, "headers_too_large",
+                               "request line and header larger than " +
+                                   std::to_string(server_.options.headerLimit) + " bytes");
+    } else {
+      response = errorResponse(400, core::toString(core::ErrorCode::InvalidArgument),
+                               "malformed HTTP request: " + ec.message());
+    }
+    // The stream position is unknown after a protocol error: answer, then close.
+    closing_ = true;
+    pushError(std::move(response), false);
+  }
+
+  /// Queues a response the server made itself, ready to be written; the connection closes after.
+  void pushError(Response response, bool quiet) {
+    Slot slot;
+    slot.seq = nextSeq_++;
+    slot.start = Clock::now();
+    if (parser_ && parser_->is_header_done()) {
+      slot.method = std::string(parser_->get().method_string());
+      slot.target = std::string(parser_->get().target());
+    }
+    slot.id = newRequestId();
+    slot.close = true;
+    slot.quiet = quiet;
+    slot.ready = true;
+    Pipeline::finish(response, slot.id);
+    slot.handled = Handled{std::move(response), "unmatched"};
+    queue_.push_back(std::move(slot));
+    maybeWrite();
+  }
+
+  void onRequest() {
+    BeastRequest message = parser_->release();
+    Request request;
+    request.methodName = std::string(message.method_string());
+    request.method = parseMethod(request.methodName);
+    request.target = std::string(message.target());
+    request.headers.reserve(16);
+    for (const auto& field : message) {
+      std::string name(field.name_string());
+      for (char& c : name) {
+        c = (c >= 'A' && c <= 'Z') ? static_cast<char>(c + 32) : c;
+      }
+      request.headers.emplace_back(std::move(name), std::string(field.value()));
+    }
+    request.body = std::move(message.body());
+    request.id = requestIdFor(request);
+
+    Slot slot;
+    slot.seq = nextSeq_++;
+    slot.start = Clock::now();
+    slot.method = request.methodName;
+    slot.target = request.target;
+    slot.id = request.id;
+    slot.version = message.version();
+    slot.head = request.method == Method::Head;
+    slot.close = !message.keep_alive();
+    closing_ = closing_ || slot.close;
+    const std::uint64_t seq = slot.seq;
+    queue_.push_back(std::move(slot));
+
+    // The handler runs on the CPU pool; its result comes back to this connection's strand.
+    server_.handlers.post([self = shared_from_this(), executor = stream_.get_executor(), seq,
+                           request = std::move(request)]() mutable {
+      Handled handled = self->server_.pipeline.handle(request);
+      net::post(executor, [self, seq, handled = std::move(handled)]() mutable {
+        self->onHandled(seq, std::move(handled));
+      });
+    });
+    readNext();
+  }
+
+  void onHandled(std::uint64_t seq, Handled handled) {
+    if (closed_ || queue_.empty() || seq < queue_.front().seq) {
+      return;  // the connection went away meanwhile
+    }
+    Slot& slot = queue_[seq - queue_.front().seq];
+    slot.handled = std::move(handled);
+    slot.ready = true;
+    maybeWrite();
+  }
+
+  void maybeWrite() {
+    if (writing_ || closed_ || queue_.empty() || !queue_.front().ready) {
+      return;
+    }
+    Slot& slot = queue_.front();
+    // The last response before closing says so: the client asked, a protocol error, the peer
+    // half-closed, or shutdown (then only once nothing else is pending).
+    slot.close = slot.close || ((closing_ || shutdown_) && queue_.size() == 1 && !reading_);
+    slot.message = toBeast(slot);
+    writing_ = true;
+    stream_.expires_after(server_.options.writeTimeout);
+    bhttp::async_write(stream_, *slot.message,
+                       [self = shared_from_this()](error_code ec, std::size_t bytes) {
+                         self->onWrite(ec, bytes);
+                       });
+  }
+
+  std::unique_ptr<BeastResponse> toBeast(Slot& slot) {
+    Response& r = slot.handled.response;
+    if (r.status < 100 || r.status > 599) {
+      core::log::error("req=" + slot.id + " handler returned status " + std::to_string(r.status) +
+                       " (a bug)");
+      r = errorResponse(500, core::toString(core::ErrorCode::Internal), "internal error");
+      Pipeline::finish(r, slot.id);
+    }
+    auto message = std::make_unique<BeastResponse>();
+    message->version(slot.version == 10 ? 10 : 11);
+    message->result(static_cast<unsigned>(r.status));
+    message->set(bhttp::field::server, "vsmd");
+    if (!r.contentType.empty()) {
+      message->set(bhttp::field::content_type, r.contentType);
+    }
+    for (const auto& [name, value] : r.headers) {
+      if (unsafeHeaderText(name) || unsafeHeaderText(value)) {
+        core::log::error("req=" + slot.id + " dropped header '" + quoted(name) +
+                         "': CR, LF or NUL (a bug)");
+        continue;
+      }
+      message->set(name, value);
+    }
+    message->keep_alive(!slot.close);
+    const bool bodiless = r.status == 204 || r.status == 304 || r.status < 200;
+    if (bodiless) {
+      // No body and no Content-Length (RFC 9110 8.6).
+    } else if (slot.head) {
+      message->content_length(r.body.size());  // what GET would send; the body itself is not
+    } else {
+      message->body() = std::move(r.body);
+      message->prepare_payload();
+    }
+    return message;
+  }
+
+  void onWrite(error_code ec, std::size_t) {
+    writing_ = false;
+    if (queue_.empty()) {
+      return;
+    }
+    Slot slot = std::move(queue_.front());
+    queue_.pop_front();
+    record(slot, ec);
+    if (ec) {
+      if (ec == beast::error::timeout) {
+        server_.timeouts.inc({"write"});
+      }
+      closeNow();
+      return;
+    }
+    if (slot.close) {
+      lingerClose();
+      return;
+    }
+    maybeWrite();
+    readNext();
+    if (queue_.empty() && !reading_ && (closing_ || shutdown_)) {
+      lingerClose();
+    }
+  }
+
+  /// Metrics and the access-log line of a written (or failed) response.
+  void record(const Slot& slot, error_code ec) {
+    const double seconds = std::chrono::duration<double>(Clock::now() - slot.start).count();
+    const int status = slot.handled.response.status;
+    const std::string statusText = std::to_string(status);
+    const std::size_t bytes = slot.message && !slot.head ? slot.message->body().size() : 0;
+    const std::string_view method = toString(parseMethod(slot.method));
+    server_.requests.inc({method, slot.handled.route, statusText});
+    server_.latency.observe({slot.handled.route, statusText}, seconds);
+    server_.responseBytes.inc({slot.handled.route}, static_cast<double>(bytes));
+    if (slot.quiet && !ec) {
+      core::log::debug("req=" + slot.id + " peer=" + peer_ + " rejected: connection limit");
+      return;
+    }
+    char ms[32];
+    std::snprintf(ms, sizeof ms, "%.3f", seconds * 1000.0);
+    // The method is a token (the parser checked it), the target is quoted.
+    std::string line = "access req=" + slot.id + " method=" + slot.method +
+                       " target=" + quoted(slot.target) + " status=" + statusText +
+                       " bytes=" + std::to_string(bytes) + " ms=" + ms + " peer=" + peer_;
+    if (ec) {
+      line += " error=\"" + ec.message() + "\"";
+    }
+    core::log::info(line);
+  }
+
+  /// Half-closes, then discards whatever the client still sends for a moment (see kLinger).
+  void lingerClose() {
+    if (closed_ || lingering_) {
+      return;
+    }
+    lingering_ = true;
+    error_code ignored;
+    stream_.socket().shutdown(tcp::socket::shutdown_send, ignored);
+    stream_.expires_after(kLinger);
+    drain();
+  }
+
+  void drain() {
+    buffer_.consume(buffer_.size());
+    stream_.async_read_some(buffer_.prepare(kReadChunk),
+                            [self = shared_from_this()](error_code ec, std::size_t) {
+                              if (ec) {
+                                self->closeNow();
+                              } else {
+                                self->drain();
+                              }
+                            });
+  }
+
+  void closeNow() {
+    if (closed_) {
+      return;
+    }
+    closed_ = true;
+    error_code ignored;
+    stream_.socket().shutdown(tcp::socket::shutdown_both, ignored);
+    stream_.close();
+  }
+
+  Server::Impl& server_;
+  beast::tcp_stream stream_;
+  beast::flat_buffer buffer_;
+  std::optional<bhttp::request_parser<bhttp::string_body>> parser_;
+  std::deque<Slot> queue_;
+  std::uint64_t nextSeq_ = 0;
+  std::string peer_;
+  const bool counted_;
+  bool reading_ = false;   // a read is outstanding
+  bool idleWait_ = false;  // ... and it waits for the first byte of a request
+  bool writing_ = false;
+  bool closing_ = false;   // read no more requests; close once the queue is written
+  bool shutdown_ = false;  // the server is stopping
+  bool lingering_ = false;
+  bool closed_ = false;
+};
+
+void Server::Impl::start() {
+  error_code ec;
+  tcp::resolver resolver(ioc);
+  const auto results = resolver.resolve(options.host, std::to_string(options.port),
+                                        tcp::resolver::passive | tcp::resolver::numeric_service, ec);
+  if (ec || results.empty()) {
+    throw core::Error(core::ErrorCode::InvalidArgument,
+                      "cannot resolve listen host '" + options.host + "': " + ec.message());
+  }
+  const tcp::endpoint endpoint = results.begin()->endpoint();
+  const auto fail = [&](std::string_view what) {
+    throw core::Error(core::ErrorCode::Unavailable, "cannot " + std::string(what) + " " +
+                                                        endpointText(endpoint) + ": " +
+                                                        ec.message());
+  };
+  if (acceptor.open(endpoint.protocol(), ec); ec) {
+    fail("open a socket for");
+  }
+  if (acceptor.set_option(net::socket_base::reuse_address(true), ec); ec) {
+    fail("set SO_REUSEADDR on");
+  }
+  if (acceptor.bind(endpoint, ec); ec) {
+    fail("bind");
+  }
+  if (acceptor.listen(net::socket_base::max_listen_connections, ec); ec) {
+    fail("listen on");
+  }
+  const tcp::endpoint bound = acceptor.local_endpoint(ec);
+  boundPort = bound.port();
+  boundAddress = endpointText(bound);
+  started = true;
+
+  work.emplace(net::make_work_guard(ioc));
+  net::dispatch(acceptor.get_executor(), [this] { accept(); });
+  for (std::size_t i = 0; i < std::max<std::size_t>(options.ioThreads, 1); ++i) {
+    threads.emplace_back([this] {
+      for (;;) {
+        try {
+          ioc.run();
+          return;
+        } catch (const std::exception& e) {
+          // Handlers report errors by error_code; this is a bug (or out of memory). The connection
+          // whose handler threw is gone with its shared_ptr; keep serving the others.
+          core::log::error(std::string("network thread: unexpected exception: ") + e.what());
+        }
+      }
+    });
+  }
+}
+
+void Server::Impl::accept() {
+  acceptor.async_accept(net::make_strand(ioc), [this](error_code ec, tcp::socket socket) {
+    onAccept(ec, std::move(socket));
+  });
+}
+
+void Server::Impl::onAccept(error_code ec, tcp::socket socket) {
+  if (ec == net::error::operation_aborted || !acceptor.is_open()) {
+    return;
+  }
+  if (ec) {
+    core::log::warn("accept: " + ec.message());
+    if (ec == net::error::no_descriptors || ec == net::error::no_buffer_space ||
+        ec == net::error::no_memory) {
+      // Retrying at once would spin: give connections a moment to close.
+      acceptRetry.expires_after(kAcceptBackoff);
+      acceptRetry.async_wait([this](error_code wait) {
+        if (!wait && acceptor.is_open()) {
+          accept();
+        }
+      });
+      return;
+    }
+    accept();
+    return;
+  }
+  error_code ignored;
+  socket.set_option(tcp::no_delay(true), ignored);
+  bool admit = false;
+  {
+    // Only this strand adds connections, so the count can only fall before the insert below.
+    const std::lock_guard lock(mutex);
+    admit = !stopping && connections.size() < options.maxConnections;
+  }
+  if (admit) {
+    auto connection = std::make_shared<Connection>(*this, std::move(socket), true);
+    {
+      const std::lock_guard lock(mutex);
+      admit = !stopping;
+      if (admit) {
+        connections.emplace(connection.get(), connection);
+        openCount->store(connections.size());
+      }
+    }
+    if (admit) {
+      accepted.inc({});
+      connection->start();
+    }
+  } else {
+    rejected.inc({});
+    warnFull();
+    // Answering is bounded too: beyond as many rejections in flight as connections, just close.
+    if (rejecting.fetch_add(1) < options.maxConnections) {
+      std::make_shared<Connection>(*this, std::move(socket), false)->reject();
+    } else {
+      rejecting.fetch_sub(1);
+    }
+  }
+  accept();
+}
+
+void Server::Impl::warnFull() {
+  const auto now = Clock::now().time_since_epoch().count();
+  auto last = lastFullWarning.load();
+  const auto interval = std::chrono::duration_cast<Clock::duration>(std::chrono::seconds(10));
+  if (now - last >= interval.count() && lastFullWarning.compare_exchange_strong(last, now)) {
+    core::log::warn("connection limit " + std::to_string(options.maxConnections) +
+                    " reached: new connections are answered 503 (limits.connections)");
+  }
+}
+
+std::vector<std::shared_ptr<Connection>> Server::Impl::liveConnections() const {
+  std::vector<std::shared_ptr<Connection>> out;
+  const std::lock_guard lock(mutex);
+  for (const auto& [key, weak] : connections) {
+    if (auto connection = weak.lock()) {
+      out.push_back(std::move(connection));
+    }
+  }
+  return out;
+}
+
+void Server::Impl::forget(const Connection* connection) {
+  const std::lock_guard lock(mutex);
+  connections.erase(connection);
+  openCount->store(connections.size());
+  if (connections.empty()) {
+    drained.notify_all();
+  }
+}
+
+void Server::Impl::stop(std::chrono::milliseconds grace) {
+  {
+    const std::lock_guard lock(mutex);
+    if (!started || stopping) {
+      return;
+    }
+    stopping = true;
+    deadline = Clock::now() + grace;
+  }
+  net::post(acceptor.get_executor(), [this] {
+    error_code ignored;
+    acceptor.close(ignored);
+    acceptRetry.cancel();
+  });
+  for (const auto& connection : liveConnections()) {
+    connection->beginShutdown();
+  }
+  bool late = false;
+  {
+    std::unique_lock lock(mutex);
+    while (!connections.empty() && !cutShort && Clock::now() < deadline) {
+      drained.wait_until(lock, deadline);
+    }
+    late = !connections.empty();
+  }
+  if (late) {
+    core::log::warn("shutdown: closing " + std::to_string(openConnections()) +
+                    " connections still busy after the grace period");
+    for (const auto& connection : liveConnections()) {
+      connection->forceClose();
+    }
+    std::unique_lock lock(mutex);
+    drained.wait_for(lock, std::chrono::seconds(1), [this] { return connections.empty(); });
+  }
+  work.reset();
+  ioc.stop();
+  for (std::thread& thread : threads) {
+    thread.join();
+  }
+  threads.clear();
+  stopped = true;
+}
+
+Server::Server(ServerOptions options, const Pipeline& pipeline, exec::WorkPool& handlers,
+               metrics::Registry& metrics)
+    : impl_(std::make_unique<Impl>(std::move(options), pipeline, handlers, metrics)) {}
+
+Server::~Server() {
+  impl_->stop(std::chrono::milliseconds(0));
+}
+
+void Server::start() {
+  impl_->start();
+}
+
+std::uint16_t Server::port() const {
+  return impl_->boundPort;
+}
+
+std::string Server::address() const {
+  return impl_->boundAddress;
+}
+
+std::size_t Server::connections() const {
+  return impl_->openConnections();
+}
+
+void Server::stop(std::chrono::milliseconds grace) {
+  impl_->stop(grace);
+}
+
+void Server::cutShort() {
+  {
+    const std::lock_guard lock(impl_->mutex);
+    impl_->cutShort = true;
+  }
+  impl_->drained.notify_all();
+}
+
+}  // namespace vsm::server::http

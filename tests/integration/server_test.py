@@ -1,0 +1,479 @@
+#!/usr/bin/python3
+"""End-to-end tests of the daemon: the real vsmd binary on 127.0.0.1, port 0, found through
+--port-file, driven over real HTTP with the standard library only (http.client, socket,
+subprocess, signal). Response bodies are compared with the examples in proto/examples.
+
+Every daemon runs in a temporary directory (its data root) and is stopped with SIGTERM; each
+wait is bounded. Run by ctest:
+    server_test.py --vsmd build/server/vsmd --proto proto"""
+
+import argparse
+import http.client
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import unittest
+
+ARGS = None
+TOKEN = "test-token-0123456789"
+MiB = 1024 * 1024
+BODY_LIMIT = 1024  # the main daemon's limits.body_bytes
+IDLE_TIMEOUT = 1.0  # the main daemon's limits.idle_timeout, seconds
+
+
+class Daemon:
+    """One vsmd process on 127.0.0.1:0 with its own data root; the port comes from --port-file."""
+
+    def __init__(self, *flags, config=None):
+        self.dir = tempfile.mkdtemp(prefix="vsmd-test-")
+        self.port_file = os.path.join(self.dir, "port")
+        self.log_path = os.path.join(self.dir, "vsmd.log")
+        args = [ARGS.vsmd, "--listen", "127.0.0.1:0", "--data-root", self.dir,
+                "--port-file", self.port_file, *flags]
+        if config is not None:
+            path = os.path.join(self.dir, "vsmd.json")
+            with open(path, "w") as f:
+                json.dump(config, f)
+            args += ["--config", path]
+        with open(self.log_path, "wb") as log:
+            self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log,
+                                         stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 15
+        while not os.path.exists(self.port_file):
+            if self.proc.poll() is not None:
+                raise AssertionError("vsmd exited with %d:\n%s" % (self.proc.returncode, self.log()))
+            if time.monotonic() > deadline:
+                self.kill()
+                raise AssertionError("vsmd wrote no port file within 15 s:\n" + self.log())
+            time.sleep(0.02)
+        with open(self.port_file) as f:
+            self.port = int(f.read())
+
+    def log(self):
+        with open(self.log_path, errors="replace") as f:
+            return f.read()
+
+    def connection(self, timeout=10):
+        return http.client.HTTPConnection("127.0.0.1", self.port, timeout=timeout)
+
+    def socket(self, timeout=10):
+        return socket.create_connection(("127.0.0.1", self.port), timeout=timeout)
+
+    def request(self, method, path, body=None, headers=None):
+        """One request on a fresh connection: (status, headers, body bytes)."""
+        conn = self.connection()
+        try:
+            conn.request(method, path, body=body, headers=headers or {})
+            response = conn.getresponse()
+            return response.status, response.headers, response.read()
+        finally:
+            conn.close()
+
+    def get_json(self, path):
+        status, headers, body = self.request("GET", path)
+        return status, headers, json.loads(body)
+
+    def stop(self, timeout=20):
+        """SIGTERM and the exit code."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+        try:
+            return self.proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            raise AssertionError("vsmd did not exit within %d s of SIGTERM:\n%s" % (timeout, self.log()))
+
+    def kill(self):
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=10)
+
+    def cleanup(self):
+        self.kill()
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def example(name):
+    with open(os.path.join(ARGS.proto, "examples", name)) as f:
+        return json.load(f)
+
+
+def shape(value, maps=("resident_bytes_by_model",), key=None):
+    """The structure of a JSON value: dict keys and value kinds, recursively. Objects named in
+    `maps` are maps (any keys, possibly none) of numbers."""
+    if isinstance(value, dict):
+        if key in maps:
+            if any(shape(v) != "number" for v in value.values()):
+                return "map with other values than numbers"
+            return "map of numbers"
+        return {k: shape(v, maps, k) for k, v in value.items()}
+    if isinstance(value, list):
+        return "list"
+    if isinstance(value, bool):
+        return "bool"
+    if isinstance(value, (int, float)):
+        return "number"
+    return type(value).__name__
+
+
+def read_until_closed(sock, limit=1 << 20):
+    chunks = []
+    while sum(map(len, chunks)) < limit:
+        try:
+            data = sock.recv(65536)
+        except ConnectionResetError:
+            break
+        if not data:
+            break
+        chunks.append(data)
+    return b"".join(chunks)
+
+
+def read_response(sock):
+    """Reads one response with a Content-Length (or none) from a raw socket: (status, headers
+    text, body)."""
+    data = b""
+    while b"\r\n\r\n" not in data:
+        chunk = sock.recv(65536)
+        if not chunk:
+            raise AssertionError("connection closed before a response: %r" % data)
+        data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    head = head.decode("latin-1")
+    match = re.search(r"(?im)^content-length:\s*(\d+)", head)
+    length = int(match.group(1)) if match else 0
+    while len(body) < length:
+        chunk = sock.recv(65536)
+        if not chunk:
+            break
+        body += chunk
+    return int(head.split(" ")[1]), head, body
+
+
+class MainDaemon(unittest.TestCase):
+    """One daemon with a token, a 1 KiB body limit and a 1 s idle timeout, configured through a
+    file whose memory budget the --memory-budget flag overrides."""
+
+    daemon = None
+
+    @classmethod
+    def setUpClass(cls):
+        config = {"memory_budget": "1GiB",
+                  "limits": {"body_bytes": BODY_LIMIT, "idle_timeout": "%gs" % IDLE_TIMEOUT},
+                  "threads": {"cpu": 2, "io": 2}}
+        cls.daemon = Daemon("--memory-budget", "64MiB", "--token", TOKEN, config=config)
+
+    @classmethod
+    def tearDownClass(cls):
+        try:
+            code = cls.daemon.stop()
+            log = cls.daemon.log()
+            if code != 0:
+                raise AssertionError("vsmd exited %d after SIGTERM:\n%s" % (code, log))
+            if TOKEN in log:
+                raise AssertionError("the token appears in the log")
+            if os.path.exists(cls.daemon.port_file):
+                raise AssertionError("the port file outlived the daemon")
+        finally:
+            cls.daemon.cleanup()
+
+    def assert_error(self, body, code, status=None, headers=None):
+        error = json.loads(body)
+        self.assertEqual(shape(error), shape(example("error-not-found.json")))
+        self.assertEqual(error["error"]["code"], code)
+        self.assertTrue(error["error"]["message"])
+        if headers is not None:
+            self.assertEqual(headers["Content-Type"], "application/json")
+
+    def test_healthz_answers_ok(self):
+        status, headers, body = self.daemon.get_json("/healthz")
+        self.assertEqual(status, 200)
+        self.assertEqual(body, example("healthz.json"))
+        self.assertEqual(headers["Content-Type"], "application/json")
+        self.assertEqual(headers["Cache-Control"], "no-store")
+        self.assertEqual(headers["Access-Control-Allow-Origin"], "*")
+        self.assertRegex(headers["X-Request-Id"], r"^[0-9a-f]{16}$")
+
+    def test_readyz_answers_ready_once_started(self):
+        status, _, body = self.daemon.get_json("/readyz")
+        self.assertEqual(status, 200)
+        self.assertEqual(body, example("readyz.json"))
+
+    def test_head_has_the_length_of_get_and_no_body(self):
+        status, headers, body = self.daemon.request("HEAD", "/healthz")
+        self.assertEqual(status, 200)
+        self.assertEqual(int(headers["Content-Length"]), len(json.dumps({"status": "ok"},
+                                                                       separators=(",", ":"))))
+        self.assertEqual(body, b"")
+
+    def test_a_sane_client_request_id_is_echoed(self):
+        _, headers, _ = self.daemon.request("GET", "/healthz", headers={"X-Request-Id": "abc-42"})
+        self.assertEqual(headers["X-Request-Id"], "abc-42")
+
+    def test_metrics_are_prometheus_text(self):
+        self.daemon.request("GET", "/healthz")
+        status, headers, body = self.daemon.request("GET", "/metrics")
+        self.assertEqual(status, 200)
+        self.assertTrue(headers["Content-Type"].startswith("text/plain; version=0.0.4"))
+        text = body.decode()
+        sample = re.compile(r'^[a-zA-Z_:][a-zA-Z0-9_:]*(\{([a-zA-Z_][a-zA-Z0-9_]*="([^"\\]|\\.)*",?)*\})? '
+                            r'(-?[0-9.e+-]+|[+-]Inf|NaN)$')
+        for line in text.splitlines():
+            if not line.startswith("#"):
+                self.assertRegex(line, sample)
+        for needle in ("# TYPE vsm_http_requests_total counter",
+                       'vsm_http_requests_total{method="GET",route="/healthz",status="200"}',
+                       "# TYPE vsm_http_request_duration_seconds histogram",
+                       'vsm_http_request_duration_seconds_bucket{route="/healthz",status="200",le="+Inf"}',
+                       "vsm_memory_budget_bytes %d" % (64 * MiB),
+                       'vsm_memory_resident_bytes{category="positions"} 0',
+                       'vsm_pool_threads{pool="cpu"} 2',
+                       "vsm_ready 1", "vsm_http_connections_open "):
+            self.assertIn(needle, text)
+
+    def test_stats_show_the_budget_from_the_flag_not_the_file(self):
+        status, headers, stats = self.daemon.get_json("/v1/stats")
+        self.assertEqual(status, 200)
+        self.assertEqual(shape(stats), shape(example("stats.json")))
+        self.assertEqual(stats["memory"]["budget_bytes"], 64 * MiB)
+        self.assertEqual(stats["memory"]["resident_bytes"], 0)
+        self.assertEqual(stats["memory"]["resident_bytes_by_model"], {})
+        self.assertEqual(stats["cache"]["policy"], "cost-aware-clock")
+        self.assertEqual(headers["Cache-Control"], "no-store")
+
+    def test_models_start_empty(self):
+        status, _, body = self.daemon.get_json("/v1/models")
+        self.assertEqual(status, 200)
+        self.assertEqual(body, example("models.json"))
+
+    def test_an_unknown_route_is_a_json_404(self):
+        status, headers, body = self.daemon.request("GET", "/v1/nothing?x=1")
+        self.assertEqual(status, 404)
+        self.assert_error(body, "not_found", headers=headers)
+        self.assertEqual(headers["Access-Control-Allow-Origin"], "*")
+
+    def test_a_wrong_method_is_405_with_allow(self):
+        status, headers, body = self.daemon.request(
+            "PUT", "/v1/stats", body=b"{}", headers={"Authorization": "Bearer " + TOKEN})
+        self.assertEqual(status, 405)
+        self.assert_error(body, "method_not_allowed")
+        self.assertEqual(headers["Allow"], "GET, HEAD, OPTIONS")
+
+    def test_cors_preflight_is_answered(self):
+        status, headers, body = self.daemon.request(
+            "OPTIONS", "/v1/models",
+            headers={"Origin": "https://viewer.example", "Access-Control-Request-Method": "GET",
+                     "Access-Control-Request-Headers": "authorization, if-none-match"})
+        self.assertEqual(status, 204)
+        self.assertEqual(body, b"")
+        self.assertEqual(headers["Access-Control-Allow-Origin"], "*")
+        self.assertIn("GET", headers["Access-Control-Allow-Methods"])
+        allowed = headers["Access-Control-Allow-Headers"].lower()
+        self.assertIn("authorization", allowed)
+        self.assertIn("if-none-match", allowed)
+        self.assertIn("GET", headers["Allow"])
+
+    def test_writes_need_the_bearer_token(self):
+        status, headers, body = self.daemon.request("POST", "/v1/models", body=b"{}")
+        self.assertEqual(status, 401)
+        self.assert_error(body, "unauthorized")
+        self.assertTrue(headers["WWW-Authenticate"].startswith("Bearer"))
+        status, _, _ = self.daemon.request("POST", "/v1/models", body=b"{}",
+                                           headers={"Authorization": "Bearer wrong-token"})
+        self.assertEqual(status, 401)
+        status, _, _ = self.daemon.request("DELETE", "/v1/models/x")
+        self.assertEqual(status, 401)
+        status, _, body = self.daemon.request("POST", "/v1/models", body=b"{}",
+                                              headers={"Authorization": "Bearer " + TOKEN,
+                                                       "Content-Type": "application/json"})
+        self.assertNotEqual(status, 401, body)
+
+    def test_an_oversize_body_is_413_and_the_server_goes_on(self):
+        status, headers, body = self.daemon.request(
+            "POST", "/v1/models", body=b"x" * (4 * BODY_LIMIT),
+            headers={"Authorization": "Bearer " + TOKEN, "Content-Type": "application/json"})
+        self.assertEqual(status, 413)
+        self.assert_error(body, "payload_too_large")
+        self.assertEqual(headers["Connection"], "close")
+        self.assertEqual(self.daemon.request("GET", "/healthz")[0], 200)
+
+    def test_an_oversize_header_is_431(self):
+        with self.daemon.socket() as sock:
+            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Big: " + b"a" * (20 * 1024) +
+                         b"\r\n\r\n")
+            status, _, body = read_response(sock)
+        self.assertEqual(status, 431)
+        self.assert_error(body, "headers_too_large")
+
+    def test_keep_alive_serves_several_requests_on_one_connection(self):
+        conn = self.daemon.connection()
+        try:
+            first_socket = None
+            for path, expected in (("/healthz", 200), ("/readyz", 200), ("/v1/stats", 200),
+                                   ("/nothing", 404), ("/v1/models", 200), ("/metrics", 200)):
+                conn.request("GET", path)
+                response = conn.getresponse()
+                response.read()
+                self.assertEqual(response.status, expected, path)
+                self.assertFalse(response.will_close, path)
+                first_socket = first_socket or conn.sock
+                self.assertIs(conn.sock, first_socket, "the connection was reopened")
+        finally:
+            conn.close()
+
+    def test_pipelined_requests_are_answered_in_order(self):
+        with self.daemon.socket() as sock:
+            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nX-Request-Id: one\r\n\r\n"
+                         b"GET /nothing HTTP/1.1\r\nHost: x\r\nX-Request-Id: two\r\n\r\n"
+                         b"GET /readyz HTTP/1.1\r\nHost: x\r\nX-Request-Id: three\r\n"
+                         b"Connection: close\r\n\r\n")
+            data = read_until_closed(sock).decode()
+        self.assertEqual(re.findall(r"HTTP/1.1 (\d{3})", data), ["200", "404", "200"])
+        self.assertEqual(re.findall(r"(?i)X-Request-Id: (\S+)", data), ["one", "two", "three"])
+
+    def test_a_malformed_request_gets_400_or_a_close_and_the_server_goes_on(self):
+        for junk in (b"THIS IS NOT HTTP\r\n\r\n", b"GET / HTTP/9.9\r\n\r\n",
+                     b"\x00\x01\x02\xff\r\n\r\n", b"GET /healthz HTTP/1.1\r\nBad Header\r\n\r\n"):
+            with self.daemon.socket() as sock:
+                sock.sendall(junk)
+                data = read_until_closed(sock)
+            if data:
+                self.assertTrue(data.startswith(b"HTTP/1.1 400 "), data)
+                body = data.partition(b"\r\n\r\n")[2]
+                self.assert_error(body, "invalid_argument")
+            self.assertEqual(self.daemon.request("GET", "/healthz")[0], 200, junk)
+
+    def test_an_idle_connection_is_closed_after_the_idle_timeout(self):
+        with self.daemon.socket() as sock:
+            sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            self.assertEqual(read_response(sock)[0], 200)
+            start = time.monotonic()
+            sock.settimeout(IDLE_TIMEOUT + 5)
+            self.assertEqual(sock.recv(1), b"")  # closed by the server, not by our timeout
+            elapsed = time.monotonic() - start
+        self.assertGreater(elapsed, IDLE_TIMEOUT * 0.8)
+        self.assertLess(elapsed, IDLE_TIMEOUT + 3)
+        # A connection that never sends anything goes the same way.
+        with self.daemon.socket() as sock:
+            sock.settimeout(IDLE_TIMEOUT + 5)
+            self.assertEqual(sock.recv(1), b"")
+
+    def test_the_log_names_the_port_redacts_the_token_and_logs_each_request(self):
+        self.daemon.request("GET", "/healthz", headers={"X-Request-Id": "log-check"})
+        deadline = time.monotonic() + 5
+        while "req=log-check" not in self.daemon.log() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        log = self.daemon.log()
+        self.assertIn("listening on 127.0.0.1:%d" % self.daemon.port, log)
+        self.assertIn("config token=(redacted)", log)
+        self.assertIn("config memory_budget=64MiB", log)
+        self.assertIn("config limits.body_bytes=1KiB", log)
+        self.assertNotIn(TOKEN, log)
+        self.assertRegex(log, r'access req=log-check method=GET target="/healthz" status=200 '
+                              r'bytes=15 ms=[0-9.]+ peer=127\.0\.0\.1:\d+')
+
+
+class ConnectionCap(unittest.TestCase):
+    def test_connections_over_the_cap_get_503_with_retry_after(self):
+        daemon = Daemon("--set", "limits.connections=2")
+        try:
+            held = [daemon.socket(), daemon.socket()]
+            for sock in held:  # a response proves the server counts the connection
+                sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+                self.assertEqual(read_response(sock)[0], 200)
+            status, headers, body = daemon.request("GET", "/healthz")
+            self.assertEqual(status, 503)
+            self.assertEqual(headers["Retry-After"], "1")
+            self.assertEqual(json.loads(body)["error"]["code"], "unavailable")
+            held.pop().close()
+            deadline = time.monotonic() + 5
+            while True:  # the server notices the close asynchronously
+                status = daemon.request("GET", "/healthz")[0]
+                if status == 200 or time.monotonic() > deadline:
+                    break
+                time.sleep(0.05)
+            self.assertEqual(status, 200)
+            # Asked on a held connection: a new one could race the server's noticing of the
+            # previous close and be over the cap again.
+            held[0].sendall(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")
+            status, _, metrics = read_response(held[0])
+            self.assertEqual(status, 200)
+            self.assertRegex(metrics.decode(), r"vsm_http_connections_rejected_total [1-9]")
+            for sock in held:
+                sock.close()
+            self.assertEqual(daemon.stop(), 0)
+        finally:
+            daemon.cleanup()
+
+
+class Shutdown(unittest.TestCase):
+    def test_sigterm_finishes_the_request_in_flight_and_exits_0(self):
+        daemon = Daemon("--set", "limits.shutdown_grace=10s")
+        try:
+            idle = daemon.socket()  # an idle keep-alive connection is closed at once
+            with daemon.socket() as sock:
+                # A request whose body is still arriving when SIGTERM comes.
+                sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nContent-Length: 10\r\n\r\n12345")
+                time.sleep(0.3)
+                daemon.proc.send_signal(signal.SIGTERM)
+                idle.settimeout(5)
+                self.assertEqual(idle.recv(1), b"")
+                time.sleep(0.3)
+                self.assertIsNone(daemon.proc.poll(), "vsmd exited with a request in flight")
+                with self.assertRaises(OSError):  # no new connections
+                    socket.create_connection(("127.0.0.1", daemon.port), timeout=2).close()
+                sock.sendall(b"67890")
+                status, head, body = read_response(sock)
+            self.assertEqual(status, 200)
+            self.assertRegex(head, r"(?im)^connection: close")
+            self.assertEqual(json.loads(body), example("healthz.json"))
+            self.assertEqual(daemon.proc.wait(timeout=15), 0)
+            self.assertIn("stopped", daemon.log())
+            idle.close()
+        finally:
+            daemon.cleanup()
+
+
+class CommandLine(unittest.TestCase):
+    def run_vsmd(self, *args):
+        return subprocess.run([ARGS.vsmd, *args], capture_output=True, text=True, timeout=30)
+
+    def test_bad_flags_exit_2_with_one_line(self):
+        result = self.run_vsmd("--memory-budget", "12XB")
+        self.assertEqual(result.returncode, 2)
+        self.assertIn("memory_budget", result.stderr)
+        result = self.run_vsmd("--no-such-flag")
+        self.assertEqual(result.returncode, 2)
+
+    def test_a_missing_data_root_exits_1(self):
+        result = self.run_vsmd("--listen", "127.0.0.1:0", "--data-root", "/nonexistent/vsm")
+        self.assertEqual(result.returncode, 1)
+        self.assertIn("data root", result.stderr)
+
+    def test_help_and_version(self):
+        result = self.run_vsmd("--help")
+        self.assertEqual(result.returncode, 0)
+        self.assertIn("--listen HOST:PORT", result.stdout)
+        result = self.run_vsmd("--version")
+        self.assertEqual(result.returncode, 0)
+        self.assertTrue(result.stdout.startswith("vsmd "))
+
+
+def main():
+    global ARGS
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--vsmd", required=True)
+    parser.add_argument("--proto", required=True)
+    ARGS, rest = parser.parse_known_args()
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
+
+
+if __name__ == "__main__":
+    main()

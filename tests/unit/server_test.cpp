@@ -1,0 +1,641 @@
+#include <gtest/gtest.h>
+
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <string>
+#include <vector>
+
+#include <nlohmann/json.hpp>
+
+#include "core/cache/patch_cache.hpp"
+#include "core/common/error.hpp"
+#include "server/api/system_routes.hpp"
+#include "server/config/config.hpp"
+#include "server/http/message.hpp"
+#include "server/http/pipeline.hpp"
+#include "server/http/router.hpp"
+#include "server/metrics/metrics.hpp"
+
+namespace vsm::server {
+namespace {
+
+using core::Error;
+using core::ErrorCode;
+using namespace std::chrono_literals;
+using nlohmann::json;
+
+constexpr std::size_t kKiB = 1024;
+constexpr std::size_t kMiB = 1024 * kKiB;
+constexpr std::size_t kGiB = 1024 * kMiB;
+
+/// Runs `f` and returns the code and message of the core::Error it throws.
+template <typename F>
+std::pair<ErrorCode, std::string> errorOf(F&& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return {e.code(), e.what()};
+  }
+  ADD_FAILURE() << "no core::Error thrown";
+  return {ErrorCode::Internal, ""};
+}
+
+/// A file that is removed again at the end of the test.
+class TempFile {
+ public:
+  explicit TempFile(const std::string& text)
+      : path_(std::filesystem::temp_directory_path() /
+              ("vsm_server_test_" + std::to_string(getpid()) + "_" + std::to_string(counter_++) +
+               ".json")) {
+    std::ofstream(path_) << text;
+  }
+  ~TempFile() { std::filesystem::remove(path_); }
+  std::string path() const { return path_.string(); }
+
+ private:
+  static inline int counter_ = 0;
+  std::filesystem::path path_;
+};
+
+// --- config ---------------------------------------------------------------------------------
+
+TEST(ConfigSize, AcceptsBytesAndBinaryAndDecimalSuffixes) {
+  EXPECT_EQ(parseSize("1048576"), 1048576u);
+  EXPECT_EQ(parseSize("0"), 0u);
+  EXPECT_EQ(parseSize("512B"), 512u);
+  EXPECT_EQ(parseSize("4KiB"), 4 * kKiB);
+  EXPECT_EQ(parseSize("64MiB"), 64 * kMiB);
+  EXPECT_EQ(parseSize("2GiB"), 2 * kGiB);
+  EXPECT_EQ(parseSize("1TiB"), 1024 * kGiB);
+  EXPECT_EQ(parseSize("3KB"), 3000u);
+  EXPECT_EQ(parseSize("5MB"), 5'000'000u);
+  EXPECT_EQ(parseSize("1GB"), 1'000'000'000u);
+  EXPECT_EQ(parseSize(" 2 gib "), 2 * kGiB);
+  EXPECT_EQ(parseSize("1.5GiB"), 3 * kGiB / 2);
+}
+
+TEST(ConfigSize, RejectsJunkNegativesAndOverflow) {
+  for (const char* text : {"", "MiB", "-1", "1XB", "1.2.3MiB", "1 K", "0x10", "99999999999TiB",
+                           "18446744073709551616"}) {
+    EXPECT_EQ(errorOf([&] { parseSize(text); }).first, ErrorCode::InvalidArgument) << text;
+  }
+}
+
+TEST(ConfigSize, FormatRoundTrips) {
+  for (const std::size_t bytes : {std::size_t{0}, std::size_t{1000}, 4 * kKiB, 64 * kMiB,
+                                  3 * kGiB, kGiB + 1, 1536 * kMiB}) {
+    EXPECT_EQ(parseSize(formatSize(bytes)), bytes) << formatSize(bytes);
+  }
+  EXPECT_EQ(formatSize(64 * kMiB), "64MiB");
+  EXPECT_EQ(formatSize(1000), "1000");
+}
+
+TEST(ConfigDuration, AcceptsSecondsAndSuffixes) {
+  EXPECT_EQ(parseDuration("30"), 30s);
+  EXPECT_EQ(parseDuration("30s"), 30s);
+  EXPECT_EQ(parseDuration("250ms"), 250ms);
+  EXPECT_EQ(parseDuration("0.5"), 500ms);
+  EXPECT_EQ(parseDuration("2m"), 120s);
+  EXPECT_EQ(parseDuration("1h"), 3600s);
+  for (const char* text : {"", "s", "-1", "5d", "1.5.2s"}) {
+    EXPECT_EQ(errorOf([&] { parseDuration(text); }).first, ErrorCode::InvalidArgument) << text;
+  }
+  EXPECT_EQ(formatDuration(30s), "30s");
+  EXPECT_EQ(formatDuration(250ms), "250ms");
+}
+
+TEST(ListenAddress, ParsesHostAndPortAndRoundTrips) {
+  EXPECT_EQ(ListenAddress::parse("127.0.0.1:8080"), (ListenAddress{"127.0.0.1", 8080}));
+  EXPECT_EQ(ListenAddress::parse("[::1]:0"), (ListenAddress{"::1", 0}));
+  EXPECT_EQ(ListenAddress::parse("localhost:65535").port, 65535);
+  for (const char* text : {"127.0.0.1:8080", "[::1]:0", "0.0.0.0:1"}) {
+    EXPECT_EQ(ListenAddress::parse(text).toString(), text);
+  }
+  for (const char* text : {"", "host", ":80", "::1:80", "h:65536", "h:-1", "h:8o", "[]:80"}) {
+    EXPECT_EQ(errorOf([&] { ListenAddress::parse(text); }).first, ErrorCode::InvalidArgument)
+        << text;
+  }
+}
+
+TEST(Config, DefaultsAreValid) {
+  const Config config;
+  EXPECT_NO_THROW(config.validate());
+  EXPECT_EQ(config.listen.toString(), "127.0.0.1:8080");
+  EXPECT_EQ(config.memoryBudget, kGiB);
+  EXPECT_TRUE(config.token.empty());
+}
+
+TEST(Config, FlagsOverrideTheFileWhateverTheirOrder) {
+  const TempFile file(R"({"memory_budget": "2GiB", "listen": "0.0.0.0:9000",
+                          "limits": {"body_bytes": "4KiB"}, "threads.cpu": 3})");
+  const CommandLine cl = parseCommandLine(
+      {"--memory-budget", "64MiB", "--config", file.path(), "--listen=127.0.0.1:0"});
+  EXPECT_EQ(cl.config.memoryBudget, 64 * kMiB);
+  EXPECT_EQ(cl.config.listen, (ListenAddress{"127.0.0.1", 0}));
+  EXPECT_EQ(cl.config.limits.bodyBytes, 4 * kKiB);  // only in the file
+  EXPECT_EQ(cl.config.threads.cpu, 3u);             // a dotted key in the file
+}
+
+TEST(Config, FileTakesNumbersStringsDurationsAndComments) {
+  const TempFile file(R"({
+    // comments are allowed
+    "data_root": "/srv/vsm",
+    "token": "abc-123",
+    "log_level": "debug",
+    "cache_policy": "fifo-second-chance",
+    "limits": {"read_timeout": 5, "idle_timeout": "750ms", "connections": 7,
+               "header_bytes": 8192, "shutdown_grace": "1m"}
+  })");
+  const Config config = parseCommandLine({"--config", file.path()}).config;
+  EXPECT_EQ(config.dataRoot, "/srv/vsm");
+  EXPECT_EQ(config.token, "abc-123");
+  EXPECT_EQ(config.logLevel, core::log::Level::Debug);
+  EXPECT_EQ(config.cachePolicy, core::EvictionPolicy::FifoSecondChance);
+  EXPECT_EQ(config.limits.readTimeout, 5s);
+  EXPECT_EQ(config.limits.idleTimeout, 750ms);
+  EXPECT_EQ(config.limits.connections, 7u);
+  EXPECT_EQ(config.limits.headerBytes, 8 * kKiB);
+  EXPECT_EQ(config.limits.shutdownGrace, 60s);
+}
+
+TEST(Config, SetReachesEveryKeyFromTheCommandLine) {
+  const Config config = parseCommandLine({"--set", "limits.pipelined_responses=3", "--set",
+                                          "threads.jobs=5", "--token", "t0k3n",
+                                          "--port-file", "/tmp/p", "--log-level", "warn"})
+                            .config;
+  EXPECT_EQ(config.limits.pipelinedResponses, 3u);
+  EXPECT_EQ(config.threads.jobs, 5u);
+  EXPECT_EQ(config.token, "t0k3n");
+  EXPECT_EQ(config.portFile, "/tmp/p");
+  EXPECT_EQ(config.logLevel, core::log::Level::Warn);
+}
+
+TEST(Config, UnknownKeysAndBadValuesNameTheKey) {
+  const TempFile typo(R"({"limits": {"body_byte": 10}})");
+  auto [code, message] = errorOf([&] { parseCommandLine({"--config", typo.path()}); });
+  EXPECT_EQ(code, ErrorCode::InvalidArgument);
+  EXPECT_NE(message.find("limits.body_byte"), std::string::npos) << message;
+
+  std::tie(code, message) = errorOf([] { parseCommandLine({"--memory-budget", "lots"}); });
+  EXPECT_EQ(code, ErrorCode::InvalidArgument);
+  EXPECT_NE(message.find("memory_budget"), std::string::npos) << message;
+
+  const TempFile wrongType(R"({"limits": {"connections": -3}})");
+  EXPECT_EQ(errorOf([&] { parseCommandLine({"--config", wrongType.path()}); }).first,
+            ErrorCode::InvalidArgument);
+  const TempFile notObject(R"([1, 2])");
+  EXPECT_EQ(errorOf([&] { parseCommandLine({"--config", notObject.path()}); }).first,
+            ErrorCode::InvalidArgument);
+  const TempFile notJson(R"({"listen": )");
+  EXPECT_EQ(errorOf([&] { parseCommandLine({"--config", notJson.path()}); }).first,
+            ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([] { parseCommandLine({"--config", "/nonexistent/vsmd.json"}); }).first,
+            ErrorCode::NotFound);
+}
+
+TEST(Config, ValidationRejectsOutOfRangeValues) {
+  const std::vector<std::vector<std::string>> cases = {
+      {"--set", "limits.connections=0"},   {"--set", "limits.body_bytes=0"},
+      {"--set", "limits.header_bytes=10"}, {"--set", "limits.idle_timeout=0"},
+      {"--set", "threads.io=0"},           {"--set", "limits.pipelined_responses=1000"},
+      {"--memory-budget", "1000"},         {"--data-root", ""},
+  };
+  for (const auto& args : cases) {
+    const auto [code, message] = errorOf([&] { parseCommandLine(args); });
+    EXPECT_EQ(code, ErrorCode::InvalidArgument) << args[1];
+    const std::string key = args[1].substr(0, args[1].find('='));
+    if (args[0] == "--set") {
+      EXPECT_NE(message.find(key), std::string::npos) << message;
+    }
+  }
+}
+
+TEST(Config, ABadTokenIsRejectedWithoutEchoingIt) {
+  const auto [code, message] = errorOf([] { parseCommandLine({"--token", "sec ret"}); });
+  EXPECT_EQ(code, ErrorCode::InvalidArgument);
+  EXPECT_EQ(message.find("sec ret"), std::string::npos) << message;
+}
+
+TEST(Config, UnknownFlagsAndMissingValuesAreUsageErrors) {
+  EXPECT_EQ(errorOf([] { parseCommandLine({"--frobnicate"}); }).first,
+            ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([] { parseCommandLine({"--listen"}); }).first, ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([] { parseCommandLine({"--set", "novalue"}); }).first,
+            ErrorCode::InvalidArgument);
+  EXPECT_TRUE(parseCommandLine({"--help"}).help);
+  EXPECT_TRUE(parseCommandLine({"--version"}).version);
+}
+
+TEST(Config, DescribeListsEveryKeyAndRedactsTheToken) {
+  Config config;
+  config.token = "super-secret";
+  const auto pairs = config.describe();
+  std::string all;
+  for (const auto& [key, value] : pairs) {
+    all += key + "=" + value + "\n";
+  }
+  EXPECT_EQ(all.find("super-secret"), std::string::npos);
+  EXPECT_NE(all.find("token=(redacted)"), std::string::npos);
+  EXPECT_NE(all.find("limits.body_bytes=1MiB"), std::string::npos);
+  // describe() prints what set() reads back.
+  Config copy;
+  for (const auto& [key, value] : pairs) {
+    if (key != "token" && key != "port_file") {
+      copy.set(key, json(value));
+    }
+  }
+  EXPECT_EQ(copy.describe(), Config{}.describe());
+}
+
+// --- router ---------------------------------------------------------------------------------
+
+http::Handler named(std::string name) {
+  return [name](const http::Request&) {
+    http::Response r;
+    r.body = name;
+    return r;
+  };
+}
+
+http::Router sampleRouter() {
+  http::Router router;
+  router.add(http::Method::Get, "/v1/models", named("list"));
+  router.add(http::Method::Post, "/v1/models", named("open"));
+  router.add(http::Method::Get, "/v1/models/{m}", named("model"));
+  router.add(http::Method::Delete, "/v1/models/{m}", named("close"));
+  router.add(http::Method::Get, "/v1/models/stats", named("literal"));
+  router.add(http::Method::Get, "/v1/models/{m}/patches/{p}", named("patch"));
+  router.add(http::Method::Get, "/v1/models/{m}/3dtiles/tileset.json", named("tileset"));
+  router.add(http::Method::Get, "/v1/models/{m}/3dtiles/{p}.glb", named("glb"));
+  router.add(http::Method::Get, "/v1/models/{m}/3dtiles/{p}", named("bare"));
+  return router;
+}
+
+std::string routed(const http::Router& router, http::Method method, std::string_view path) {
+  const http::RouteMatch match = router.match(method, path);
+  return match.route != nullptr ? match.route->handler(http::Request{}).body : "-";
+}
+
+TEST(Router, MatchesLiteralsAndDecodesParameters) {
+  const http::Router router = sampleRouter();
+  EXPECT_EQ(routed(router, http::Method::Get, "/v1/models"), "list");
+  EXPECT_EQ(routed(router, http::Method::Post, "/v1/models"), "open");
+  const auto match = router.match(http::Method::Get, "/v1/models/a%20b/patches/3_1_2");
+  ASSERT_EQ(match.kind, http::RouteMatch::Kind::Found);
+  EXPECT_EQ(match.route->pattern, "/v1/models/{m}/patches/{p}");
+  EXPECT_EQ(match.params.at("m"), "a b");
+  EXPECT_EQ(match.params.at("p"), "3_1_2");
+}
+
+TEST(Router, AnEncodedSlashStaysInsideItsSegment) {
+  const http::Router router = sampleRouter();
+  const auto match = router.match(http::Method::Get, "/v1/models/a%2Fb");
+  ASSERT_EQ(match.kind, http::RouteMatch::Kind::Found);
+  EXPECT_EQ(match.params.at("m"), "a/b");
+}
+
+TEST(Router, TheMostSpecificPatternWins) {
+  const http::Router router = sampleRouter();
+  EXPECT_EQ(routed(router, http::Method::Get, "/v1/models/stats"), "literal");
+  EXPECT_EQ(routed(router, http::Method::Get, "/v1/models/other"), "model");
+  EXPECT_EQ(routed(router, http::Method::Get, "/v1/models/m/3dtiles/tileset.json"), "tileset");
+  EXPECT_EQ(routed(router, http::Method::Get, "/v1/models/m/3dtiles/0_0_0.glb"), "glb");
+  EXPECT_EQ(routed(router, http::Method::Get, "/v1/models/m/3dtiles/0_0_0"), "bare");
+  EXPECT_EQ(sampleRouter().match(http::Method::Get, "/v1/models/m/3dtiles/7.glb").params.at("p"),
+            "7");
+}
+
+TEST(Router, UnknownPathsAreNotFound) {
+  const http::Router router = sampleRouter();
+  for (const char* path : {"/", "/v1", "/v1/models/", "/v1//models", "/v1/models/m/patches",
+                           "/v1/models/%zz", "v1/models", ""}) {
+    EXPECT_EQ(router.match(http::Method::Get, path).kind, http::RouteMatch::Kind::NotFound)
+        << path;
+  }
+  // ".glb" alone leaves the parameter empty: no match for the affixed pattern.
+  EXPECT_EQ(routed(router, http::Method::Get, "/v1/models/m/3dtiles/.glb"), "bare");
+}
+
+TEST(Router, AWrongMethodListsTheAllowedOnes) {
+  const http::Router router = sampleRouter();
+  auto match = router.match(http::Method::Put, "/v1/models");
+  EXPECT_EQ(match.kind, http::RouteMatch::Kind::MethodNotAllowed);
+  EXPECT_EQ(match.allowed, (std::vector<http::Method>{http::Method::Get, http::Method::Head,
+                                                      http::Method::Post, http::Method::Options}));
+  match = router.match(http::Method::Delete, "/v1/models/m/patches/p");
+  EXPECT_EQ(match.kind, http::RouteMatch::Kind::MethodNotAllowed);
+}
+
+TEST(Router, HeadIsRoutedToGet) {
+  const http::Router router = sampleRouter();
+  const auto match = router.match(http::Method::Head, "/v1/models");
+  ASSERT_EQ(match.kind, http::RouteMatch::Kind::Found);
+  EXPECT_EQ(match.route->method, http::Method::Get);
+}
+
+TEST(Router, RejectsMalformedAndDuplicatePatterns) {
+  http::Router router;
+  router.add(http::Method::Get, "/a/{x}", named("x"));
+  for (const char* pattern : {"a", "/a//b", "/a/{", "/a/}", "/a/{}", "/a/{x-y}", "/a/{x}{y}",
+                              "/a/{x}/{x}"}) {
+    EXPECT_EQ(errorOf([&] { router.add(http::Method::Get, pattern, named("")); }).first,
+              ErrorCode::InvalidArgument)
+        << pattern;
+  }
+  EXPECT_EQ(errorOf([&] { router.add(http::Method::Get, "/a/{x}", named("")); }).first,
+            ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([&] { router.add(http::Method::Head, "/b", named("")); }).first,
+            ErrorCode::InvalidArgument);
+  EXPECT_EQ(router.size(), 1u);
+}
+
+// --- pipeline -------------------------------------------------------------------------------
+
+http::Request request(http::Method method, std::string target) {
+  http::Request r;
+  r.method = method;
+  r.methodName = std::string(http::toString(method));
+  r.target = std::move(target);
+  r.id = "req-1";
+  return r;
+}
+
+json errorBody(const http::Response& response) {
+  const json body = json::parse(response.body);
+  EXPECT_EQ(body.size(), 1u);
+  EXPECT_EQ(body.at("error").size(), 2u);
+  EXPECT_TRUE(body.at("error").at("code").is_string());
+  EXPECT_TRUE(body.at("error").at("message").is_string());
+  return body.at("error");
+}
+
+TEST(ErrorTable, MapsEveryCodeToOneStatus) {
+  EXPECT_EQ(http::statusFor(ErrorCode::InvalidArgument).status, 400);
+  EXPECT_EQ(http::statusFor(ErrorCode::NotFound).status, 404);
+  EXPECT_EQ(http::statusFor(ErrorCode::Conflict).status, 409);
+  EXPECT_EQ(http::statusFor(ErrorCode::Cancelled).status, 409);
+  EXPECT_EQ(http::statusFor(ErrorCode::Unavailable).status, 503);
+  EXPECT_TRUE(http::statusFor(ErrorCode::Unavailable).retryAfter);
+  EXPECT_EQ(http::statusFor(ErrorCode::ResourceExhausted).status, 503);
+  EXPECT_TRUE(http::statusFor(ErrorCode::ResourceExhausted).retryAfter);
+  for (const auto code : {ErrorCode::Corrupt, ErrorCode::Io, ErrorCode::Internal}) {
+    EXPECT_EQ(http::statusFor(code).status, 500);
+    EXPECT_TRUE(http::statusFor(code).internal);
+  }
+}
+
+/// A router whose one route throws what the test puts in `thrown`.
+struct ThrowingRoute {
+  std::function<void()> thrown;
+  http::Router router;
+  ThrowingRoute() {
+    router.add(http::Method::Get, "/x", [this](const http::Request&) -> http::Response {
+      thrown();
+      return {};
+    });
+    router.add(http::Method::Post, "/x", named("posted"));
+  }
+};
+
+TEST(Pipeline, TurnsCoreErrorsIntoJsonErrors) {
+  ThrowingRoute route;
+  const http::Pipeline pipeline(route.router, "");
+  route.thrown = [] { throw Error(ErrorCode::NotFound, "no model 'm'"); };
+  auto r = request(http::Method::Get, "/x");
+  http::Handled handled = pipeline.handle(r);
+  EXPECT_EQ(handled.response.status, 404);
+  EXPECT_EQ(handled.route, "/x");
+  EXPECT_EQ(errorBody(handled.response).at("code"), "not_found");
+  EXPECT_EQ(errorBody(handled.response).at("message"), "no model 'm'");
+
+  route.thrown = [] { throw Error(ErrorCode::ResourceExhausted, "budget full"); };
+  handled = pipeline.handle(r);
+  EXPECT_EQ(handled.response.status, 503);
+  ASSERT_NE(handled.response.header("Retry-After"), nullptr);
+  EXPECT_EQ(*handled.response.header("retry-after"), "1");
+}
+
+TEST(Pipeline, InternalErrorsHideTheirMessageAndNameTheRequestId) {
+  ThrowingRoute route;
+  const http::Pipeline pipeline(route.router, "");
+  auto r = request(http::Method::Get, "/x");
+  const core::log::Level saved = core::log::level();
+  core::log::setLevel(core::log::Level::Off);  // the test provokes error lines on purpose
+  for (const auto& thrown : std::vector<std::function<void()>>{
+           [] { throw Error(ErrorCode::Io, "cannot read '/srv/secret/path'"); },
+           [] { throw std::runtime_error("/srv/secret/path"); }, [] { throw 42; }}) {
+    route.thrown = thrown;
+    const http::Handled handled = pipeline.handle(r);
+    EXPECT_EQ(handled.response.status, 500);
+    const std::string message = errorBody(handled.response).at("message");
+    EXPECT_EQ(message.find("secret"), std::string::npos);
+    EXPECT_NE(message.find("req-1"), std::string::npos);
+  }
+  core::log::setLevel(saved);
+}
+
+TEST(Pipeline, WritesNeedTheBearerTokenReadsDoNot) {
+  ThrowingRoute route;
+  route.thrown = [] {};
+  const http::Pipeline pipeline(route.router, "s3cret");
+
+  auto post = request(http::Method::Post, "/x");
+  http::Handled handled = pipeline.handle(post);
+  EXPECT_EQ(handled.response.status, 401);
+  EXPECT_EQ(errorBody(handled.response).at("code"), "unauthorized");
+  ASSERT_NE(handled.response.header("WWW-Authenticate"), nullptr);
+
+  post.headers = {{"authorization", "Bearer wrong"}};
+  handled = pipeline.handle(post);
+  EXPECT_EQ(handled.response.status, 401);
+  EXPECT_NE(handled.response.header("WWW-Authenticate")->find("invalid_token"),
+            std::string::npos);
+
+  post.headers = {{"authorization", "Bearer s3cret"}};
+  handled = pipeline.handle(post);
+  EXPECT_EQ(handled.response.status, 200);
+  EXPECT_EQ(handled.response.body, "posted");
+
+  // Writes to unknown paths are refused before routing: no probing without the token.
+  auto probe = request(http::Method::Delete, "/nothing");
+  EXPECT_EQ(pipeline.handle(probe).response.status, 401);
+
+  auto get = request(http::Method::Get, "/x");
+  EXPECT_EQ(pipeline.handle(get).response.status, 200);
+}
+
+TEST(Pipeline, AnswersNotFoundMethodNotAllowedAndPreflight) {
+  const http::Router router = sampleRouter();
+  const http::Pipeline pipeline(router, "");
+  auto r = request(http::Method::Get, "/v2/nothing?x=1");
+  http::Handled handled = pipeline.handle(r);
+  EXPECT_EQ(handled.response.status, 404);
+  EXPECT_EQ(errorBody(handled.response).at("code"), "not_found");
+  EXPECT_EQ(handled.route, "unmatched");
+
+  r = request(http::Method::Put, "/v1/models");
+  handled = pipeline.handle(r);
+  EXPECT_EQ(handled.response.status, 405);
+  EXPECT_EQ(errorBody(handled.response).at("code"), "method_not_allowed");
+  EXPECT_EQ(*handled.response.header("Allow"), "GET, HEAD, POST, OPTIONS");
+
+  r = request(http::Method::Options, "/v1/models/m");
+  r.headers = {{"origin", "https://viewer.example"}, {"access-control-request-method", "DELETE"}};
+  handled = pipeline.handle(r);
+  EXPECT_EQ(handled.response.status, 204);
+  EXPECT_EQ(*handled.response.header("Access-Control-Allow-Methods"),
+            "GET, HEAD, DELETE, OPTIONS");
+  EXPECT_NE(handled.response.header("Access-Control-Allow-Headers")->find("Authorization"),
+            std::string::npos);
+}
+
+TEST(Pipeline, EveryResponseCarriesCorsTheRequestIdAndACachePolicy) {
+  const http::Router router = sampleRouter();
+  const http::Pipeline pipeline(router, "");
+  for (const char* target : {"/v1/models", "/missing"}) {
+    auto r = request(http::Method::Get, target);
+    const http::Handled handled = pipeline.handle(r);
+    EXPECT_EQ(*handled.response.header("Access-Control-Allow-Origin"), "*");
+    EXPECT_EQ(*handled.response.header("X-Request-Id"), "req-1");
+    EXPECT_EQ(*handled.response.header("Cache-Control"), "no-store");
+  }
+}
+
+// --- messages -------------------------------------------------------------------------------
+
+TEST(Etag, IfNoneMatchComparesWeaklyAndHandlesListsAndStar) {
+  const std::string etag = http::strongEtag("m-0_0_0-v3");
+  auto r = request(http::Method::Get, "/");
+  EXPECT_FALSE(http::ifNoneMatch(r, etag));
+  for (const char* header : {R"("m-0_0_0-v3")", R"(W/"m-0_0_0-v3")", R"("a", "m-0_0_0-v3")",
+                             R"("a,b" , W/"m-0_0_0-v3")", "*"}) {
+    r.headers = {{"if-none-match", header}};
+    EXPECT_TRUE(http::ifNoneMatch(r, etag)) << header;
+  }
+  for (const char* header : {R"("m-0_0_0-v2")", "m-0_0_0-v3", R"("m-0_0_0-v3)", ""}) {
+    r.headers = {{"if-none-match", header}};
+    EXPECT_FALSE(http::ifNoneMatch(r, etag)) << header;
+  }
+  const http::Response notModified = http::notModified(etag, http::cache_control::kRevalidate);
+  EXPECT_EQ(notModified.status, 304);
+  EXPECT_TRUE(notModified.body.empty());
+  EXPECT_EQ(*notModified.header("ETag"), etag);
+  EXPECT_EQ(*notModified.header("Cache-Control"), "no-cache");
+}
+
+TEST(Request, SplitsTheTargetAndDecodesQueryParameters) {
+  auto r = request(http::Method::Get, "/v1/models/m/lod?box=0,0,0,1,1,1&resolution=0.5&q=a+b%21&e");
+  EXPECT_EQ(r.path(), "/v1/models/m/lod");
+  EXPECT_EQ(r.queryParam("box"), "0,0,0,1,1,1");
+  EXPECT_EQ(r.queryParam("resolution"), "0.5");
+  EXPECT_EQ(r.queryParam("q"), "a b!");
+  EXPECT_EQ(r.queryParam("e"), "");
+  EXPECT_EQ(r.queryParam("missing"), std::nullopt);
+  r.target = "/x?bad=%g0";
+  EXPECT_EQ(errorOf([&] { r.queryParam("bad"); }).first, ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([&] { r.param("m"); }).first, ErrorCode::Internal);
+}
+
+TEST(Request, KeepsASaneClientRequestIdAndReplacesOthers) {
+  auto r = request(http::Method::Get, "/");
+  r.headers = {{"x-request-id", "abc-123_x.y"}};
+  EXPECT_EQ(http::requestIdFor(r), "abc-123_x.y");
+  r.headers = {{"x-request-id", "bad id\r\n"}};
+  const std::string fresh = http::requestIdFor(r);
+  EXPECT_EQ(fresh.size(), 16u);
+  EXPECT_NE(fresh, http::newRequestId());
+}
+
+TEST(Request, JsonBodyNeedsJson) {
+  auto r = request(http::Method::Post, "/");
+  r.body = R"({"id": "m"})";
+  EXPECT_EQ(http::jsonBody(r).at("id"), "m");
+  r.headers = {{"content-type", "application/json; charset=utf-8"}};
+  EXPECT_EQ(http::jsonBody(r).at("id"), "m");
+  r.headers = {{"content-type", "text/plain"}};
+  EXPECT_EQ(errorOf([&] { http::jsonBody(r); }).first, ErrorCode::InvalidArgument);
+  r.headers.clear();
+  r.body = "{";
+  EXPECT_EQ(errorOf([&] { http::jsonBody(r); }).first, ErrorCode::InvalidArgument);
+}
+
+// --- metrics --------------------------------------------------------------------------------
+
+TEST(Metrics, RendersCountersHistogramsAndCollectorsInTextFormat) {
+  metrics::Registry registry;
+  metrics::Counter& requests =
+      registry.counter("vsm_test_requests_total", "Requests", {"route", "status"});
+  metrics::Histogram& latency =
+      registry.histogram("vsm_test_seconds", "Latency", {"route"}, {0.001, 0.1});
+  registry.counter("vsm_test_idle_total", "Never incremented");
+  registry.collector([] {
+    return std::vector<metrics::Snapshot>{{"vsm_test_open", "Open now", metrics::Type::Gauge,
+                                           {"name"}, {{{"a\"b\\c"}, 2.5}}}};
+  });
+  requests.inc({"/x", "200"});
+  requests.inc({"/x", "200"}, 2);
+  latency.observe({"/x"}, 0.0005);
+  latency.observe({"/x"}, 0.05);
+  latency.observe({"/x"}, 7);
+
+  const std::string text = registry.render();
+  EXPECT_NE(text.find("# TYPE vsm_test_requests_total counter\n"), std::string::npos);
+  EXPECT_NE(text.find("vsm_test_requests_total{route=\"/x\",status=\"200\"} 3\n"),
+            std::string::npos);
+  EXPECT_NE(text.find("vsm_test_idle_total 0\n"), std::string::npos);
+  EXPECT_NE(text.find("# TYPE vsm_test_seconds histogram\n"), std::string::npos);
+  EXPECT_NE(text.find("vsm_test_seconds_bucket{route=\"/x\",le=\"0.001\"} 1\n"), std::string::npos);
+  EXPECT_NE(text.find("vsm_test_seconds_bucket{route=\"/x\",le=\"0.1\"} 2\n"), std::string::npos);
+  EXPECT_NE(text.find("vsm_test_seconds_bucket{route=\"/x\",le=\"+Inf\"} 3\n"), std::string::npos);
+  EXPECT_NE(text.find("vsm_test_seconds_count{route=\"/x\"} 3\n"), std::string::npos);
+  EXPECT_NE(text.find("vsm_test_seconds_sum{route=\"/x\"} 7.0505\n"), std::string::npos);
+  EXPECT_NE(text.find("vsm_test_open{name=\"a\\\"b\\\\c\"} 2.5\n"), std::string::npos);
+  EXPECT_EQ(requests.value({"/x", "200"}), 3.0);
+}
+
+TEST(Metrics, RejectsBadNamesDuplicatesAndWrongLabelCounts) {
+  metrics::Registry registry;
+  metrics::Counter& counter = registry.counter("ok_total", "", {"a"});
+  EXPECT_EQ(errorOf([&] { registry.counter("ok_total", ""); }).first, ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([&] { registry.counter("1bad", ""); }).first, ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([&] { registry.counter("x", "", {"le"}); }).first,
+            ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([&] { registry.histogram("h", "", {}, {1, 0.5}); }).first,
+            ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([&] { counter.inc({"a", "b"}); }).first, ErrorCode::Internal);
+}
+
+// --- system routes --------------------------------------------------------------------------
+
+TEST(SystemRoutes, StatsReportTheBudgetAndEveryCategory) {
+  const core::PatchCache cache(64 * kMiB);
+  const json stats = api::statsJson(cache.stats(), cache.policy());
+  EXPECT_EQ(stats.at("memory").at("budget_bytes"), 64 * kMiB);
+  EXPECT_EQ(stats.at("memory").at("resident_bytes"), 0);
+  EXPECT_EQ(stats.at("memory").at("resident_bytes_by_category").size(), 4u);
+  EXPECT_TRUE(stats.at("memory").at("resident_bytes_by_model").is_object());
+  for (const char* key : {"hits", "misses", "evictions", "write_backs", "exhausted"}) {
+    EXPECT_EQ(stats.at("cache").at(key), 0) << key;
+  }
+  EXPECT_EQ(stats.at("cache").at("policy"), "cost-aware-clock");
+}
+
+TEST(SystemRoutes, ReadinessFollowsTheFlagAndModelsStartEmpty) {
+  const core::PatchCache cache(64 * kMiB);
+  const metrics::Registry registry;
+  bool ready = false;
+  http::Router router;
+  api::addSystemRoutes(router, {cache, registry, [&] { return ready; }});
+  const http::Pipeline pipeline(router, "");
+  auto r = request(http::Method::Get, "/readyz");
+  EXPECT_EQ(pipeline.handle(r).response.status, 503);
+  ready = true;
+  EXPECT_EQ(pipeline.handle(r).response.status, 200);
+  r = request(http::Method::Get, "/v1/models");
+  EXPECT_EQ(json::parse(pipeline.handle(r).response.body), json::parse(R"({"models": []})"));
+}
+
+}  // namespace
+}  // namespace vsm::server
