@@ -57,7 +57,8 @@ Result replay(const std::vector<std::string>& dirs, const std::vector<Item>& tra
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   Result r{};
   r.stats = cache.stats();
-  r.hitRate = static_cast<double>(r.stats.hits) / static_cast<double>(r.stats.hits + r.stats.misses);
+  r.hitRate =
+      static_cast<double>(r.stats.hits) / static_cast<double>(r.stats.hits + r.stats.misses);
   r.accessesPerSecond = static_cast<double>(trace.size()) / seconds;
   if (checksum == 12345.678) {
     std::puts("");  // keeps the reads from being optimised away
@@ -87,8 +88,9 @@ int main(int argc, char** argv) {
     }
   }
   if (dirs.empty()) {
-    std::fprintf(stderr, "usage: cache_bench <opc-dir>... [--budget-fraction F] [--accesses N] "
-                         "[--zipf S]\n");
+    std::fprintf(stderr,
+                 "usage: cache_bench <opc-dir>... [--budget-fraction F] [--accesses N] "
+                 "[--zipf S]\n");
     return 2;
   }
   try {
@@ -131,17 +133,19 @@ int main(int argc, char** argv) {
                                         EvictionPolicy::CostAwareClock};
     for (int p = 0; p < 2; ++p) {
       results[p] = replay(dirs, trace, budget, policies[p]);
-      std::printf("%-20s %8.2f%% %14.0f %10llu %10llu\n", std::string(toString(policies[p])).c_str(),
-                  results[p].hitRate * 100, results[p].accessesPerSecond,
+      std::printf("%-20s %8.2f%% %14.0f %10llu %10llu\n",
+                  std::string(toString(policies[p])).c_str(), results[p].hitRate * 100,
+                  results[p].accessesPerSecond,
                   static_cast<unsigned long long>(results[p].stats.misses),
                   static_cast<unsigned long long>(results[p].stats.evictions));
     }
-    std::printf("\ndefault (cost-aware-clock) / baseline (fifo-second-chance): hit rate %.3fx, "
-                "throughput %.3fx, misses %.3fx\n",
-                results[1].hitRate / results[0].hitRate,
-                results[1].accessesPerSecond / results[0].accessesPerSecond,
-                static_cast<double>(results[1].stats.misses) /
-                    static_cast<double>(results[0].stats.misses));
+    std::printf(
+        "\ndefault (cost-aware-clock) / baseline (fifo-second-chance): hit rate %.3fx, "
+        "throughput %.3fx, misses %.3fx\n",
+        results[1].hitRate / results[0].hitRate,
+        results[1].accessesPerSecond / results[0].accessesPerSecond,
+        static_cast<double>(results[1].stats.misses) /
+            static_cast<double>(results[0].stats.misses));
   } catch (const Error& e) {
     std::fprintf(stderr, "cache_bench: %s\n", e.what());
     return 1;
