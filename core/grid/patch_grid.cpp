@@ -75,19 +75,35 @@ GridRect PatchGrid::definedRect() const {
 }
 
 Box3d PatchGrid::localBox() const {
-  Box3d box;
-  for (int y = 0; y < size_; ++y) {
-    for (int x = 0; x < size_; ++x) {
-      if (defined(x, y)) {
-        const Vec3f l = local(x, y);
-        box.extend(Vec3d{l.x, l.y, l.z});
+  float lo[3] = {std::numeric_limits<float>::infinity(), std::numeric_limits<float>::infinity(),
+                 std::numeric_limits<float>::infinity()};
+  float hi[3] = {-lo[0], -lo[0], -lo[0]};
+  const float* p = positions_.data();
+  for (std::size_t i = 0, n = vertexCount(); i < n; ++i, p += 3) {
+    if (p[0] == p[0] && p[1] == p[1] && p[2] == p[2]) {
+      for (int c = 0; c < 3; ++c) {
+        lo[c] = p[c] < lo[c] ? p[c] : lo[c];
+        hi[c] = p[c] > hi[c] ? p[c] : hi[c];
       }
     }
   }
-  return box;
+  if (lo[0] > hi[0]) {
+    return {};
+  }
+  return {{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
 }
 
 Box3d PatchGrid::globalBox() const {
+  if (local2global_.isTranslation()) {
+    // global = local + t, rounded once: monotonic, so the box of the globals is the local box
+    // moved (bit for bit what transforming every vertex gives).
+    const Box3d local = localBox();
+    if (local.empty()) {
+      return local;
+    }
+    const Vec3d t = local2global_.translationPart();
+    return {local.min + t, local.max + t};
+  }
   Box3d box;
   for (int y = 0; y < size_; ++y) {
     for (int x = 0; x < size_; ++x) {
@@ -100,6 +116,22 @@ Box3d PatchGrid::globalBox() const {
 }
 
 double PatchGrid::resolution() const {
+  // Distances from local differences: the translation cancels, the linear part (identity for
+  // grids vsm writes) applies to the difference.
+  const bool identity = local2global_.isTranslation();
+  const auto& m = local2global_.m;
+  auto length = [&](const float* a, const float* b) {
+    const double dx = double{b[0]} - a[0];
+    const double dy = double{b[1]} - a[1];
+    const double dz = double{b[2]} - a[2];
+    if (identity) {
+      return std::sqrt(dx * dx + dy * dy + dz * dz);
+    }
+    const double gx = m[0] * dx + m[1] * dy + m[2] * dz;
+    const double gy = m[4] * dx + m[5] * dy + m[6] * dz;
+    const double gz = m[8] * dx + m[9] * dy + m[10] * dz;
+    return std::sqrt(gx * gx + gy * gy + gz * gz);
+  };
   double sum = 0;
   std::size_t count = 0;
   for (int y = 0; y < size_; ++y) {
@@ -107,13 +139,13 @@ double PatchGrid::resolution() const {
       if (!defined(x, y)) {
         continue;
       }
-      const Vec3d p = global(x, y);
+      const float* p = at(x, y);
       if (x + 1 < size_ && defined(x + 1, y)) {
-        sum += (global(x + 1, y) - p).norm();
+        sum += length(p, at(x + 1, y));
         ++count;
       }
       if (y + 1 < size_ && defined(x, y + 1)) {
-        sum += (global(x, y + 1) - p).norm();
+        sum += length(p, at(x, y + 1));
         ++count;
       }
     }

@@ -133,10 +133,26 @@ void fsyncPath(const fs::path& path, bool directory) {
   ::close(fd);
 }
 
+/// Writes all of `bytes` to `fd`; 0 or the errno of the failure.
+int writeAll(int fd, std::span<const std::byte> bytes) {
+  std::size_t done = 0;
+  while (done < bytes.size()) {
+    const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
+    if (n < 0) {
+      if (errno == EINTR) {
+        continue;
+      }
+      return errno;
+    }
+    done += static_cast<std::size_t>(n);
+  }
+  return 0;
+}
+
 /// Writes `bytes` to a temporary name beside `target` and renames it into place: a reader sees
-/// the old file or the new one, never a part. With `durable` the file is fsynced before the
-/// rename and its directory after it.
-void writeAtomically(const fs::path& target, std::span<const std::byte> bytes, bool durable) {
+/// the old file or the new one, never a part. The file is fsynced before the rename and its
+/// directory after it, so after a crash the new file is there complete or not at all.
+void writeAtomically(const fs::path& target, std::span<const std::byte> bytes) {
   static std::atomic<unsigned> counter{0};
   const fs::path temp =
       target.parent_path() / ("." + target.filename().string() + ".tmp-" +
@@ -145,25 +161,16 @@ void writeAtomically(const fs::path& target, std::span<const std::byte> bytes, b
   if (fd < 0) {
     throwIoError("cannot create", temp.string(), errno);
   }
-  auto fail = [&](std::string_view what) {
-    const int errnum = errno;
+  auto fail = [&](std::string_view what, int errnum) {
     ::close(fd);
     ::unlink(temp.c_str());
     throwIoError(what, temp.string(), errnum);
   };
-  std::size_t done = 0;
-  while (done < bytes.size()) {
-    const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
-    if (n < 0) {
-      if (errno == EINTR) {
-        continue;
-      }
-      fail("cannot write");
-    }
-    done += static_cast<std::size_t>(n);
+  if (const int errnum = writeAll(fd, bytes); errnum != 0) {
+    fail("cannot write", errnum);
   }
-  if (durable && ::fsync(fd) != 0) {
-    fail("cannot fsync");
+  if (::fsync(fd) != 0) {
+    fail("cannot fsync", errno);
   }
   if (::close(fd) != 0) {
     const int errnum = errno;
@@ -175,9 +182,7 @@ void writeAtomically(const fs::path& target, std::span<const std::byte> bytes, b
     ::unlink(temp.c_str());
     throwIoError("cannot rename into", target.string(), errnum);
   }
-  if (durable) {
-    fsyncPath(target.parent_path(), true);
-  }
+  fsyncPath(target.parent_path(), true);
 }
 
 std::span<const std::byte> bytesOf(const std::string& text) {
@@ -612,7 +617,7 @@ OpcWriter::OpcWriter(fs::path dir, Durability durability)
     if (durability_ == Durability::EachFile) {
       fsyncPath(dir_.parent_path(), true);
     } else {
-      unsynced_.push_back(dir_.parent_path());
+      unsynced_ = true;
     }
   }
 }
@@ -637,17 +642,19 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
     if (durable) {
       fsyncPath(dir_, true);
     } else {
-      unsynced_.push_back(dir_);
+      unsynced_ = true;
     }
   } else if (ec) {
     throw Error(ErrorCode::Io, "cannot create '" + folderDir.string() + "': " + ec.message());
   }
 
-  info.globalBox = grid.globalBox();
-  info.globalBox.extend(childrenBox);
-  info.localBox = grid.localBox();
-  info.localBox.extend(transformBox(grid.local2global().inverse(), childrenBox));
   info.local2global = grid.local2global();
+  info.localBox = grid.localBox();
+  info.globalBox = grid.local2global().isTranslation()
+                       ? transformBox(info.local2global, info.localBox)
+                       : grid.globalBox();
+  info.globalBox.extend(childrenBox);
+  info.localBox.extend(transformBox(grid.local2global().inverse(), childrenBox));
   info.resolution = grid.resolution();
   info.stored = grid.definedRect();
   const GridRect& r = info.stored;
@@ -675,7 +682,7 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
     }
   }
   const fs::path positionsFile = folderDir / info.positionsFile;
-  writeAtomically(positionsFile, encodeAara(positions), durable);
+  writeFile(positionsFile, encodeAara(positions));
 
   pugi::xml_document doc;
   pugi::xml_node decl = doc.append_child(pugi::node_declaration);
@@ -697,12 +704,7 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
   addText(vsm, "Resolution", formatDouble(info.resolution));
   addText(vsm, "Version", std::to_string(info.version));
   const fs::path xmlFile = folderDir / "Patch.xml";
-  writeAtomically(xmlFile, bytesOf(xmlText(doc)), durable);
-  if (!durable) {
-    unsynced_.push_back(positionsFile);
-    unsynced_.push_back(xmlFile);
-    unsynced_.push_back(folderDir);
-  }
+  writeFile(xmlFile, bytesOf(xmlText(doc)));
 }
 
 void OpcWriter::writeHierarchy(const Model& model) {
@@ -741,12 +743,7 @@ void OpcWriter::writeHierarchy(const Model& model) {
   pugi::xml_node vsm = hierarchy.append_child("Vsm");
   addText(vsm, "GridSize", std::to_string(model.gridSize()));
   addText(vsm, "FormatVersion", "1");
-  const bool durable = durability_ == Durability::EachFile;
-  const fs::path file = dir_ / "patchhierarchy.xml";
-  writeAtomically(file, bytesOf(xmlText(doc)), durable);
-  if (!durable) {
-    unsynced_.push_back(file);
-  }
+  writeFile(dir_ / "patchhierarchy.xml", bytesOf(xmlText(doc)));
   // Another reader's cache of the old hierarchy would hide this one from it.
   while (const auto cache = detail::findEntry(dir_, "hierarchy.cache")) {
     std::error_code ec;
@@ -756,20 +753,39 @@ void OpcWriter::writeHierarchy(const Model& model) {
   }
 }
 
+void OpcWriter::writeFile(const fs::path& file, std::span<const std::byte> bytes) {
+  if (durability_ == Durability::EachFile) {
+    writeAtomically(file, bytes);
+    return;
+  }
+  const int fd = ::open(file.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd < 0) {
+    throwIoError("cannot create", file.string(), errno);
+  }
+  const int errnum = writeAll(fd, bytes);
+  if (::close(fd) != 0 || errnum != 0) {
+    throwIoError("cannot write", file.string(), errnum != 0 ? errnum : errno);
+  }
+  unsynced_ = true;
+}
+
 void OpcWriter::sync() {
-  std::set<fs::path> dirs;
-  for (const fs::path& path : unsynced_) {
-    std::error_code ec;
-    const bool directory = fs::is_directory(path, ec);
-    fsyncPath(path, directory);
-    if (!directory) {
-      dirs.insert(path.parent_path());
-    }
+  if (!unsynced_) {
+    return;
   }
-  for (const fs::path& dir : dirs) {
-    fsyncPath(dir, true);
+  // One flush of the whole file system: fsyncing thousands of files one by one costs a journal
+  // commit each (seconds for a large model); syncfs commits once.
+  const int fd = ::open(dir_.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (fd < 0) {
+    throwIoError("cannot open for syncfs", dir_.string(), errno);
   }
-  unsynced_.clear();
+  if (::syncfs(fd) != 0) {
+    const int errnum = errno;
+    ::close(fd);
+    throwIoError("cannot syncfs", dir_.string(), errnum);
+  }
+  ::close(fd);
+  unsynced_ = false;
 }
 
 }  // namespace vsm::core

@@ -1,6 +1,7 @@
 #pragma once
 
 #include <filesystem>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -30,10 +31,11 @@ PatchGrid readPatchGrid(const std::filesystem::path& dir, const Model& model,
 /// Writes patches and the hierarchy of one OPC directory in the standard layout (`Patches/`,
 /// `Patch.xml`, `Positions.aara`, `patchhierarchy.xml`) plus vsm's extension elements.
 ///
-/// Every file is written to a temporary name in its directory and renamed into place. With
-/// Durability::EachFile every file and directory is fsynced before the rename; with
-/// Durability::Deferred nothing is fsynced until sync(), which an importer calls once before it
-/// publishes the whole directory (far fewer disk flushes for a new model).
+/// Durability::EachFile, for a directory others read: every file is written to a temporary name
+/// in its directory, fsynced and renamed into place, and the directory fsynced, so a crash leaves
+/// the old file or the new one. Durability::Deferred, for a private staging directory its owner
+/// publishes as a whole (an import): files are written in place and nothing is fsynced until
+/// sync(), which the owner calls once before it publishes (far fewer creates and disk flushes).
 class OpcWriter {
  public:
   enum class Durability { EachFile, Deferred };
@@ -52,13 +54,17 @@ class OpcWriter {
   /// Removes a stale `hierarchy.cache` of other readers.
   void writeHierarchy(const Model& model);
 
-  /// fsyncs every file and directory written since construction (Deferred durability).
+  /// Makes everything written so far durable (Deferred durability): one syncfs of the file
+  /// system holding the directory.
   void sync();
 
  private:
+  /// Writes one file as the durability says.
+  void writeFile(const std::filesystem::path& file, std::span<const std::byte> bytes);
+
   std::filesystem::path dir_;
   Durability durability_;
-  std::vector<std::filesystem::path> unsynced_;
+  bool unsynced_ = false;  // Deferred: something written since the last sync()
 };
 
 /// One finding of validateOpc: where (a file or patch) and what is wrong.
