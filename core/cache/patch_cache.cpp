@@ -1,5 +1,6 @@
 #include "core/cache/patch_cache.hpp"
 
+#include <algorithm>
 #include <condition_variable>
 #include <list>
 #include <mutex>
@@ -91,11 +92,13 @@ struct PatchCache::Impl {
   std::unordered_map<ModelId, ModelSlot> models;
   ModelId nextModel = 1;
   std::size_t used = 0;
+  std::size_t peak = 0;
   std::array<std::size_t, kMemoryCategoryCount> usedByCategory{};
   std::uint64_t hits = 0, misses = 0, evictions = 0, writeBacks = 0, exhausted = 0;
 
   void charge(Entry& e, std::ptrdiff_t delta) {
     used += delta;
+    peak = std::max(peak, used);
     usedByCategory[static_cast<std::size_t>(e.id.object.category)] += delta;
     models.at(e.id.model).residentBytes += delta;
   }
@@ -589,6 +592,7 @@ CacheStats PatchCache::stats() const {
   CacheStats s;
   s.budgetBytes = budget_;
   s.residentBytes = impl_->used;
+  s.peakResidentBytes = impl_->peak;
   s.residentByCategory = impl_->usedByCategory;
   for (const auto& [id, slot] : impl_->models) {
     s.residentByModel[slot.name] += slot.residentBytes;

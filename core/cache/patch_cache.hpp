@@ -61,6 +61,8 @@ std::string_view toString(EvictionPolicy policy);
 struct CacheStats {
   std::size_t budgetBytes = 0;
   std::size_t residentBytes = 0;
+  /// The most ever resident at once.
+  std::size_t peakResidentBytes = 0;
   std::size_t pinnedBytes = 0;
   std::array<std::size_t, kMemoryCategoryCount> residentByCategory{};
   /// Model name -> resident bytes.

@@ -163,6 +163,9 @@ TEST_P(CachePolicies, ResidentBytesNeverExceedTheBudgetOverModelsFarLargerThanIt
   EXPECT_GT(stats.writeBacks, 0u);
   EXPECT_GT(stats.hits, 0u);
   EXPECT_EQ(stats.pinnedBytes, 0u);
+  // The high-water mark: the budget was reached (the cache was full) and never passed.
+  EXPECT_LE(stats.peakResidentBytes, kBudget);
+  EXPECT_GT(stats.peakResidentBytes, kBudget - kPatchBytes);
   for (int m = 0; m < 4; ++m) {
     cache.removeModel(models[m]);
     for (int p = 0; p < kPatches; ++p) {
