@@ -61,16 +61,22 @@ std::vector<metrics::Snapshot> cacheMetrics(const core::CacheStats& stats) {
                        Type::Gauge, static_cast<double>(stats.budgetBytes)));
   out.push_back(single("vsm_memory_pinned_bytes", "Resident bytes pinned by requests and jobs",
                        Type::Gauge, static_cast<double>(stats.pinnedBytes)));
-  Snapshot byCategory{"vsm_memory_resident_bytes", "Resident patch data by category", Type::Gauge,
-                      {"category"}, {}};
+  Snapshot byCategory{"vsm_memory_resident_bytes",
+                      "Resident patch data by category",
+                      Type::Gauge,
+                      {"category"},
+                      {}};
   for (const auto category : kCategories) {
     byCategory.samples.push_back(
         {{std::string(core::toString(category))},
          static_cast<double>(stats.residentByCategory[static_cast<std::size_t>(category)])});
   }
   out.push_back(std::move(byCategory));
-  Snapshot byModel{"vsm_memory_model_resident_bytes", "Resident patch data by model", Type::Gauge,
-                   {"model"}, {}};
+  Snapshot byModel{"vsm_memory_model_resident_bytes",
+                   "Resident patch data by model",
+                   Type::Gauge,
+                   {"model"},
+                   {}};
   for (const auto& [model, bytes] : stats.residentByModel) {
     byModel.samples.push_back({{model}, static_cast<double>(bytes)});
   }

@@ -109,29 +109,37 @@ Application::Application(Config config) : config_(std::move(config)) {
   // Collectors run only while the server answers /metrics, i.e. while every component they read
   // exists (the registry is built first and destroyed last).
   metrics_->collector([cache = cache_.get()] { return api::cacheMetrics(cache->stats()); });
-  const double startTime = std::chrono::duration<double>(
-                               std::chrono::system_clock::now().time_since_epoch())
-                               .count();
+  const double startTime =
+      std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
   metrics_->collector([this, startTime] {
     using metrics::Snapshot;
     using metrics::Type;
     Snapshot threads{"vsm_pool_threads", "Threads per pool", Type::Gauge, {"pool"}, {}};
-    Snapshot queued{"vsm_pool_queued_tasks", "Tasks waiting for a thread", Type::Gauge, {"pool"},
-                    {}};
+    Snapshot queued{
+        "vsm_pool_queued_tasks", "Tasks waiting for a thread", Type::Gauge, {"pool"}, {}};
     Snapshot active{"vsm_pool_active_tasks", "Tasks running", Type::Gauge, {"pool"}, {}};
     for (const exec::WorkPool* pool : {cpuPool_.get(), jobPool_.get()}) {
       threads.samples.push_back({{pool->name()}, static_cast<double>(pool->threads())});
       queued.samples.push_back({{pool->name()}, static_cast<double>(pool->queued())});
       active.samples.push_back({{pool->name()}, static_cast<double>(pool->active())});
     }
-    Snapshot up{"vsm_ready", "1 while the daemon serves, 0 while starting or stopping",
-                Type::Gauge, {}, {{{}, ready() ? 1.0 : 0.0}}};
-    Snapshot build{"vsm_build_info", "The daemon's version", Type::Gauge, {"version"},
+    Snapshot up{"vsm_ready",
+                "1 while the daemon serves, 0 while starting or stopping",
+                Type::Gauge,
+                {},
+                {{{}, ready() ? 1.0 : 0.0}}};
+    Snapshot build{"vsm_build_info",
+                   "The daemon's version",
+                   Type::Gauge,
+                   {"version"},
                    {{{std::string(version())}, 1.0}}};
-    Snapshot start{"vsm_process_start_time_seconds", "Start time, seconds since the epoch",
-                   Type::Gauge, {}, {{{}, startTime}}};
+    Snapshot start{"vsm_process_start_time_seconds",
+                   "Start time, seconds since the epoch",
+                   Type::Gauge,
+                   {},
+                   {{{}, startTime}}};
     return std::vector<Snapshot>{std::move(threads), std::move(queued), std::move(active),
-                                 std::move(up), std::move(build), std::move(start)};
+                                 std::move(up),      std::move(build),  std::move(start)};
   });
 }
 

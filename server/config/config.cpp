@@ -176,7 +176,8 @@ const Key kKeys[] = {
      [](const Config& c) { return formatSize(c.memoryBudget); }},
     {"cache_policy",
      [](Config& c, std::string_view k, const json& v) {
-       const std::string text = lower(textOf(k, v, "\"cost-aware-clock\" or \"fifo-second-chance\""));
+       const std::string text =
+           lower(textOf(k, v, "\"cost-aware-clock\" or \"fifo-second-chance\""));
        if (text == core::toString(core::EvictionPolicy::CostAwareClock)) {
          c.cachePolicy = core::EvictionPolicy::CostAwareClock;
        } else if (text == core::toString(core::EvictionPolicy::FifoSecondChance)) {
@@ -191,14 +192,16 @@ const Key kKeys[] = {
      [](const Config& c) { return std::string(c.token.empty() ? "(none)" : "(redacted)"); }},
     {"port_file",
      [](Config& c, std::string_view k, const json& v) { c.portFile = textOf(k, v, "a path"); },
-     [](const Config& c) { return c.portFile.empty() ? std::string("(none)") : c.portFile.string(); }},
+     [](const Config& c) {
+       return c.portFile.empty() ? std::string("(none)") : c.portFile.string();
+     }},
     {"log_level",
      [](Config& c, std::string_view k, const json& v) {
        constexpr std::string_view kExpected = "one of debug, info, warn, error, off";
        const std::string text = lower(textOf(k, v, kExpected));
-       for (const auto level : {core::log::Level::Debug, core::log::Level::Info,
-                                core::log::Level::Warn, core::log::Level::Error,
-                                core::log::Level::Off}) {
+       for (const auto level :
+            {core::log::Level::Debug, core::log::Level::Info, core::log::Level::Warn,
+             core::log::Level::Error, core::log::Level::Off}) {
          if (text == levelName(level)) {
            c.logLevel = level;
            return;
@@ -231,7 +234,9 @@ const Key kKeys[] = {
      },
      [](const Config& c) { return std::to_string(c.limits.pipelinedResponses); }},
     {"limits.shutdown_grace",
-     [](Config& c, std::string_view k, const json& v) { c.limits.shutdownGrace = durationOf(k, v); },
+     [](Config& c, std::string_view k, const json& v) {
+       c.limits.shutdownGrace = durationOf(k, v);
+     },
      [](const Config& c) { return formatDuration(c.limits.shutdownGrace); }},
     {"threads.io",
      [](Config& c, std::string_view k, const json& v) { c.threads.io = countOf(k, v); },
@@ -346,9 +351,10 @@ std::size_t parseSize(std::string_view text) {
       break;
     }
   }
-  throw Error(ErrorCode::InvalidArgument,
-              "'" + std::string(text) +
-                  "' is not a size (bytes, or a number with B, KiB, MiB, GiB, TiB, KB, MB, GB, TB)");
+  throw Error(
+      ErrorCode::InvalidArgument,
+      "'" + std::string(text) +
+          "' is not a size (bytes, or a number with B, KiB, MiB, GiB, TiB, KB, MB, GB, TB)");
 }
 
 std::string formatSize(std::size_t bytes) {
@@ -493,9 +499,14 @@ std::string_view commandLineUsage() {
 
 CommandLine parseCommandLine(const std::vector<std::string>& args) {
   static const std::pair<std::string_view, std::string_view> kFlags[] = {
-      {"--listen", "listen"},       {"--data-root", "data_root"}, {"--memory-budget", "memory_budget"},
-      {"--token", "token"},         {"--port-file", "port_file"}, {"--log-level", "log_level"},
-      {"--config", ""},             {"--set", ""},
+      {"--listen", "listen"},
+      {"--data-root", "data_root"},
+      {"--memory-budget", "memory_budget"},
+      {"--token", "token"},
+      {"--port-file", "port_file"},
+      {"--log-level", "log_level"},
+      {"--config", ""},
+      {"--set", ""},
   };
   CommandLine out;
   std::optional<std::filesystem::path> configFile;

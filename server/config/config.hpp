@@ -104,7 +104,8 @@ void from_json(const nlohmann::json& json, Config& config);
 std::size_t parseSize(std::string_view text);
 /// The shortest exact form parseSize() accepts: "64MiB", "1000KB", "1234".
 std::string formatSize(std::size_t bytes);
-/// Parses "30", "30s", "250ms", "2m", "1h", "0.5s" (see Config). Throws core::Error(InvalidArgument).
+/// Parses "30", "30s", "250ms", "2m", "1h", "0.5s" (see Config). Throws
+/// core::Error(InvalidArgument).
 std::chrono::milliseconds parseDuration(std::string_view text);
 /// "30s" for whole seconds, "250ms" otherwise.
 std::string formatDuration(std::chrono::milliseconds duration);

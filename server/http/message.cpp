@@ -188,8 +188,9 @@ Response errorResponse(int status, std::string_view code, std::string_view messa
 nlohmann::json jsonBody(const Request& request) {
   if (const std::string* type = request.header("content-type")) {
     const std::string_view media = trim(std::string_view(*type).substr(0, type->find(';')));
-    const bool json = equalsIgnoreCase(media, "application/json") ||
-                      (media.size() > 5 && equalsIgnoreCase(media.substr(media.size() - 5), "+json"));
+    const bool json =
+        equalsIgnoreCase(media, "application/json") ||
+        (media.size() > 5 && equalsIgnoreCase(media.substr(media.size() - 5), "+json"));
     if (!json) {
       throw Error(ErrorCode::InvalidArgument,
                   "request body must be application/json, not '" + std::string(media) + "'");

@@ -34,9 +34,9 @@ bool sameSecret(std::string_view a, std::string_view b) {
 
 Response internalError(std::string_view requestId, std::string_view what) {
   core::log::error("req=" + std::string(requestId) + " internal error: " + std::string(what));
-  return errorResponse(500, core::toString(ErrorCode::Internal),
-                       "internal error; the server log has the details under request id " +
-                           std::string(requestId));
+  return errorResponse(
+      500, core::toString(ErrorCode::Internal),
+      "internal error; the server log has the details under request id " + std::string(requestId));
 }
 
 }  // namespace
@@ -68,8 +68,9 @@ Response errorFor(const core::Error& error, std::string_view requestId) {
     core::log::error("req=" + std::string(requestId) + " " + std::string(code) + ": " +
                      error.what());
     return errorResponse(mapped.status, code,
-                         std::string(code) + " error; the server log has the details under "
-                                             "request id " +
+                         std::string(code) +
+                             " error; the server log has the details under "
+                             "request id " +
                              std::string(requestId));
   }
   Response response = errorResponse(mapped.status, code, error.what());
@@ -99,8 +100,8 @@ bool Pipeline::authorized(const Request& request, bool* wrongToken) const {
   while (credentials.starts_with(' ')) {
     credentials.remove_prefix(1);
   }
-  const bool bearer = scheme.size() == 6 && (scheme[0] == 'B' || scheme[0] == 'b') &&
-                      scheme.substr(1) == "earer";
+  const bool bearer =
+      scheme.size() == 6 && (scheme[0] == 'B' || scheme[0] == 'b') && scheme.substr(1) == "earer";
   *wrongToken = true;
   return bearer && sameSecret(credentials, token_);
 }
@@ -128,8 +129,8 @@ Handled Pipeline::handle(Request& request) const noexcept {
       out.route = match.route->pattern;
     }
     if (match.kind == RouteMatch::Kind::NotFound) {
-      out.response = errorResponse(404, core::toString(ErrorCode::NotFound),
-                                   "no resource at " + path);
+      out.response =
+          errorResponse(404, core::toString(ErrorCode::NotFound), "no resource at " + path);
     } else if (request.method == Method::Options) {
       out.route = kOptions;
       // Plain OPTIONS and CORS preflight alike: what the path supports, and what browsers may send.

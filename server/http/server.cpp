@@ -109,13 +109,13 @@ struct Server::Impl {
                             "Time from a request's last byte read to its response's last byte "
                             "written",
                             {"route", "status"}, metrics::latencyBuckets())),
-        responseBytes(m.counter("vsm_http_response_body_bytes_total",
-                                "Response body bytes written", {"route"})),
+        responseBytes(m.counter("vsm_http_response_body_bytes_total", "Response body bytes written",
+                                {"route"})),
         accepted(m.counter("vsm_http_connections_total", "Connections accepted")),
         rejected(m.counter("vsm_http_connections_rejected_total",
                            "Connections answered 503 (or closed) because the cap was reached")),
-        timeouts(m.counter("vsm_http_timeouts_total", "Connections closed by a timeout",
-                           {"phase"})),
+        timeouts(
+            m.counter("vsm_http_timeouts_total", "Connections closed by a timeout", {"phase"})),
         acceptor(net::make_strand(ioc)),
         acceptRetry(acceptor.get_executor()) {
     for (const std::string_view phase : {"idle", "read", "write"}) {
@@ -123,8 +123,8 @@ struct Server::Impl {
     }
     // The registry may outlive the server: the collector holds the counter, not the server.
     m.collector([count = openCount] {
-      metrics::Snapshot open{"vsm_http_connections_open", "Connections open now",
-                             metrics::Type::Gauge, {}, {}};
+      metrics::Snapshot open{
+          "vsm_http_connections_open", "Connections open now", metrics::Type::Gauge, {}, {}};
       open.samples.push_back({{}, static_cast<double>(count->load())});
       return std::vector<metrics::Snapshot>{std::move(open)};
     });
@@ -171,7 +171,7 @@ struct Server::Impl {
   // Declared after everything a Connection touches in its destructor: destroying the io_context
   // destroys the handlers still queued in it, and with them the last references to connections.
   net::io_context ioc;
-  tcp::acceptor acceptor;   // used on its own strand only
+  tcp::acceptor acceptor;  // used on its own strand only
   net::steady_timer acceptRetry;
   std::optional<net::executor_work_guard<net::io_context::executor_type>> work;
   std::vector<std::thread> threads;
@@ -204,10 +204,10 @@ class Connection : public std::enable_shared_from_this<Connection> {
   /// Answers 503 without reading a request, then closes.
   void reject() {
     net::dispatch(stream_.get_executor(), [self = shared_from_this()] {
-      Response response = errorResponse(
-          503, core::toString(core::ErrorCode::Unavailable),
-          "the server has " + std::to_string(self->server_.options.maxConnections) +
-              " connections open, its limit; retry shortly");
+      Response response =
+          errorResponse(503, core::toString(core::ErrorCode::Unavailable),
+                        "the server has " + std::to_string(self->server_.options.maxConnections) +
+                            " connections open, its limit; retry shortly");
       response.set("Retry-After", "1");
       self->closing_ = true;
       self->pushError(std::move(response), /*quiet=*/true);
@@ -321,9 +321,9 @@ class Connection : public std::enable_shared_from_this<Connection> {
     }
     Response response;
     if (ec == bhttp::error::body_limit) {
-      response = errorResponse(413, "payload_too_large",
-                               "request body larger than " +
-                                   std::to_string(server_.options.bodyLimit) + " bytes");
+      response = errorResponse(
+          413, "payload_too_large",
+          "request body larger than " + std::to_string(server_.options.bodyLimit) + " bytes");
     } else if (ec == bhttp::error::header_limit) {
       response = errorResponse(431, "headers_too_large",
                                "request line and header larger than " +
@@ -566,17 +566,18 @@ class Connection : public std::enable_shared_from_this<Connection> {
 void Server::Impl::start() {
   error_code ec;
   tcp::resolver resolver(ioc);
-  const auto results = resolver.resolve(options.host, std::to_string(options.port),
-                                        tcp::resolver::passive | tcp::resolver::numeric_service, ec);
+  const auto results =
+      resolver.resolve(options.host, std::to_string(options.port),
+                       tcp::resolver::passive | tcp::resolver::numeric_service, ec);
   if (ec || results.empty()) {
     throw core::Error(core::ErrorCode::InvalidArgument,
                       "cannot resolve listen host '" + options.host + "': " + ec.message());
   }
   const tcp::endpoint endpoint = results.begin()->endpoint();
   const auto fail = [&](std::string_view what) {
-    throw core::Error(core::ErrorCode::Unavailable, "cannot " + std::string(what) + " " +
-                                                        endpointText(endpoint) + ": " +
-                                                        ec.message());
+    throw core::Error(
+        core::ErrorCode::Unavailable,
+        "cannot " + std::string(what) + " " + endpointText(endpoint) + ": " + ec.message());
   };
   if (acceptor.open(endpoint.protocol(), ec); ec) {
     fail("open a socket for");

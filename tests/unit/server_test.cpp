@@ -84,8 +84,8 @@ TEST(ConfigSize, RejectsJunkNegativesAndOverflow) {
 }
 
 TEST(ConfigSize, FormatRoundTrips) {
-  for (const std::size_t bytes : {std::size_t{0}, std::size_t{1000}, 4 * kKiB, 64 * kMiB,
-                                  3 * kGiB, kGiB + 1, 1536 * kMiB}) {
+  for (const std::size_t bytes :
+       {std::size_t{0}, std::size_t{1000}, 4 * kKiB, 64 * kMiB, 3 * kGiB, kGiB + 1, 1536 * kMiB}) {
     EXPECT_EQ(parseSize(formatSize(bytes)), bytes) << formatSize(bytes);
   }
   EXPECT_EQ(formatSize(64 * kMiB), "64MiB");
@@ -161,10 +161,10 @@ TEST(Config, FileTakesNumbersStringsDurationsAndComments) {
 }
 
 TEST(Config, SetReachesEveryKeyFromTheCommandLine) {
-  const Config config = parseCommandLine({"--set", "limits.pipelined_responses=3", "--set",
-                                          "threads.jobs=5", "--token", "t0k3n",
-                                          "--port-file", "/tmp/p", "--log-level", "warn"})
-                            .config;
+  const Config config =
+      parseCommandLine({"--set", "limits.pipelined_responses=3", "--set", "threads.jobs=5",
+                        "--token", "t0k3n", "--port-file", "/tmp/p", "--log-level", "warn"})
+          .config;
   EXPECT_EQ(config.limits.pipelinedResponses, 3u);
   EXPECT_EQ(config.threads.jobs, 5u);
   EXPECT_EQ(config.token, "t0k3n");
@@ -183,15 +183,23 @@ TEST(Config, UnknownKeysAndBadValuesNameTheKey) {
   EXPECT_NE(message.find("memory_budget"), std::string::npos) << message;
 
   const TempFile wrongType(R"({"limits": {"connections": -3}})");
-  EXPECT_EQ(errorOf([&] { parseCommandLine({"--config", wrongType.path()}); }).first,
+  EXPECT_EQ(errorOf([&] {
+              parseCommandLine({"--config", wrongType.path()});
+            }).first,
             ErrorCode::InvalidArgument);
   const TempFile notObject(R"([1, 2])");
-  EXPECT_EQ(errorOf([&] { parseCommandLine({"--config", notObject.path()}); }).first,
+  EXPECT_EQ(errorOf([&] {
+              parseCommandLine({"--config", notObject.path()});
+            }).first,
             ErrorCode::InvalidArgument);
   const TempFile notJson(R"({"listen": )");
-  EXPECT_EQ(errorOf([&] { parseCommandLine({"--config", notJson.path()}); }).first,
+  EXPECT_EQ(errorOf([&] {
+              parseCommandLine({"--config", notJson.path()});
+            }).first,
             ErrorCode::InvalidArgument);
-  EXPECT_EQ(errorOf([] { parseCommandLine({"--config", "/nonexistent/vsmd.json"}); }).first,
+  EXPECT_EQ(errorOf([] {
+              parseCommandLine({"--config", "/nonexistent/vsmd.json"});
+            }).first,
             ErrorCode::NotFound);
 }
 
@@ -219,10 +227,11 @@ TEST(Config, ABadTokenIsRejectedWithoutEchoingIt) {
 }
 
 TEST(Config, UnknownFlagsAndMissingValuesAreUsageErrors) {
-  EXPECT_EQ(errorOf([] { parseCommandLine({"--frobnicate"}); }).first,
-            ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([] { parseCommandLine({"--frobnicate"}); }).first, ErrorCode::InvalidArgument);
   EXPECT_EQ(errorOf([] { parseCommandLine({"--listen"}); }).first, ErrorCode::InvalidArgument);
-  EXPECT_EQ(errorOf([] { parseCommandLine({"--set", "novalue"}); }).first,
+  EXPECT_EQ(errorOf([] {
+              parseCommandLine({"--set", "novalue"});
+            }).first,
             ErrorCode::InvalidArgument);
   EXPECT_TRUE(parseCommandLine({"--help"}).help);
   EXPECT_TRUE(parseCommandLine({"--version"}).version);
@@ -311,8 +320,7 @@ TEST(Router, UnknownPathsAreNotFound) {
   const http::Router router = sampleRouter();
   for (const char* path : {"/", "/v1", "/v1/models/", "/v1//models", "/v1/models/m/patches",
                            "/v1/models/%zz", "v1/models", ""}) {
-    EXPECT_EQ(router.match(http::Method::Get, path).kind, http::RouteMatch::Kind::NotFound)
-        << path;
+    EXPECT_EQ(router.match(http::Method::Get, path).kind, http::RouteMatch::Kind::NotFound) << path;
   }
   // ".glb" alone leaves the parameter empty: no match for the affixed pattern.
   EXPECT_EQ(routed(router, http::Method::Get, "/v1/models/m/3dtiles/.glb"), "bare");
@@ -338,8 +346,8 @@ TEST(Router, HeadIsRoutedToGet) {
 TEST(Router, RejectsMalformedAndDuplicatePatterns) {
   http::Router router;
   router.add(http::Method::Get, "/a/{x}", named("x"));
-  for (const char* pattern : {"a", "/a//b", "/a/{", "/a/}", "/a/{}", "/a/{x-y}", "/a/{x}{y}",
-                              "/a/{x}/{x}"}) {
+  for (const char* pattern :
+       {"a", "/a//b", "/a/{", "/a/}", "/a/{}", "/a/{x-y}", "/a/{x}{y}", "/a/{x}/{x}"}) {
     EXPECT_EQ(errorOf([&] { router.add(http::Method::Get, pattern, named("")); }).first,
               ErrorCode::InvalidArgument)
         << pattern;
@@ -450,8 +458,7 @@ TEST(Pipeline, WritesNeedTheBearerTokenReadsDoNot) {
   post.headers = {{"authorization", "Bearer wrong"}};
   handled = pipeline.handle(post);
   EXPECT_EQ(handled.response.status, 401);
-  EXPECT_NE(handled.response.header("WWW-Authenticate")->find("invalid_token"),
-            std::string::npos);
+  EXPECT_NE(handled.response.header("WWW-Authenticate")->find("invalid_token"), std::string::npos);
 
   post.headers = {{"authorization", "Bearer s3cret"}};
   handled = pipeline.handle(post);
@@ -485,8 +492,7 @@ TEST(Pipeline, AnswersNotFoundMethodNotAllowedAndPreflight) {
   r.headers = {{"origin", "https://viewer.example"}, {"access-control-request-method", "DELETE"}};
   handled = pipeline.handle(r);
   EXPECT_EQ(handled.response.status, 204);
-  EXPECT_EQ(*handled.response.header("Access-Control-Allow-Methods"),
-            "GET, HEAD, DELETE, OPTIONS");
+  EXPECT_EQ(*handled.response.header("Access-Control-Allow-Methods"), "GET, HEAD, DELETE, OPTIONS");
   EXPECT_NE(handled.response.header("Access-Control-Allow-Headers")->find("Authorization"),
             std::string::npos);
 }
@@ -571,8 +577,8 @@ TEST(Metrics, RendersCountersHistogramsAndCollectorsInTextFormat) {
       registry.histogram("vsm_test_seconds", "Latency", {"route"}, {0.001, 0.1});
   registry.counter("vsm_test_idle_total", "Never incremented");
   registry.collector([] {
-    return std::vector<metrics::Snapshot>{{"vsm_test_open", "Open now", metrics::Type::Gauge,
-                                           {"name"}, {{{"a\"b\\c"}, 2.5}}}};
+    return std::vector<metrics::Snapshot>{
+        {"vsm_test_open", "Open now", metrics::Type::Gauge, {"name"}, {{{"a\"b\\c"}, 2.5}}}};
   });
   requests.inc({"/x", "200"});
   requests.inc({"/x", "200"}, 2);
@@ -600,9 +606,10 @@ TEST(Metrics, RejectsBadNamesDuplicatesAndWrongLabelCounts) {
   metrics::Counter& counter = registry.counter("ok_total", "", {"a"});
   EXPECT_EQ(errorOf([&] { registry.counter("ok_total", ""); }).first, ErrorCode::InvalidArgument);
   EXPECT_EQ(errorOf([&] { registry.counter("1bad", ""); }).first, ErrorCode::InvalidArgument);
-  EXPECT_EQ(errorOf([&] { registry.counter("x", "", {"le"}); }).first,
-            ErrorCode::InvalidArgument);
-  EXPECT_EQ(errorOf([&] { registry.histogram("h", "", {}, {1, 0.5}); }).first,
+  EXPECT_EQ(errorOf([&] { registry.counter("x", "", {"le"}); }).first, ErrorCode::InvalidArgument);
+  EXPECT_EQ(errorOf([&] {
+              registry.histogram("h", "", {}, {1, 0.5});
+            }).first,
             ErrorCode::InvalidArgument);
   EXPECT_EQ(errorOf([&] { counter.inc({"a", "b"}); }).first, ErrorCode::Internal);
 }
