@@ -1,0 +1,286 @@
+#include "core/merge/merge.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+#include "core/merge/subdivider.hpp"
+#include "core/merge/surface_sampler.hpp"
+
+namespace vsm::core {
+
+namespace {
+
+constexpr int kMaxNewLevels = 16;
+
+Box3d transformed(const Box3d& box, const std::optional<Mat4d>& transform) {
+  if (!transform || box.empty()) {
+    return box;
+  }
+  Box3d out;
+  for (int c = 0; c < 8; ++c) {
+    out.extend(transform->apply({(c & 1) ? box.max.x : box.min.x, (c & 2) ? box.max.y : box.min.y,
+                                 (c & 4) ? box.max.z : box.min.z}));
+  }
+  return out;
+}
+
+void report(const MergeOptions& options, std::string_view stage, double fraction) {
+  if (options.progress != nullptr) {
+    options.progress->report(stage, std::clamp(fraction, 0.0, 1.0));
+  }
+}
+
+void checkCancelled(const MergeOptions& options) {
+  if (options.cancel != nullptr) {
+    options.cancel->throwIfCancelled();
+  }
+}
+
+/// The smallest k >= 1 with 2^k >= ratio.
+int levelsFor(double ratio) {
+  int k = 1;
+  // A ratio that is a power of two up to rounding (e.g. 4.0000000001) needs no extra level.
+  while (k <= kMaxNewLevels && std::ldexp(1.0, k) < ratio * (1 - 1e-9)) {
+    ++k;
+  }
+  return k;
+}
+
+struct Match {
+  PatchKey target;
+  std::vector<PatchKey> detail;
+  int levels = 1;
+};
+
+}  // namespace
+
+MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOptions& options) {
+  const auto start = std::chrono::steady_clock::now();
+  MergeResult result;
+  const Model& a = target.model();
+  const Model& b = detail.model();
+  if (a.empty() || b.empty()) {
+    throw Error(ErrorCode::InvalidArgument, "merge: the target or the detail model is empty");
+  }
+  if (a.gridSize() != b.gridSize()) {
+    // Not needed by the algorithm, but new patches take the target's size; say so plainly.
+    log::info("merge: detail grid size " + std::to_string(b.gridSize()) + " differs from target " +
+              std::to_string(a.gridSize()));
+  }
+
+  // ---- matching ------------------------------------------------------------------------------
+  report(options, "matching", 0);
+  const Box3d bBox = transformed(b.at(PatchKey::root()).globalBox, options.transform);
+  const Box3d aBox = a.at(PatchKey::root()).globalBox;
+  if (bBox.empty() || aBox.empty()) {
+    throw Error(ErrorCode::InvalidArgument, "merge: a model has no defined vertex");
+  }
+  const Vec3d up = options.up ? *options.up : defaultUp(bBox);
+  const UpFrame frame(bBox.center(), up);
+  const Rect2d bFoot = frame.footprint(bBox);
+  const Rect2d aFoot = frame.footprint(aBox);
+  if (!aFoot.intersects(bFoot)) {
+    throw Error(ErrorCode::InvalidArgument, "detail model lies outside the target");
+  }
+  const double tolerance =
+      1e-6 * std::max({aFoot.max.u - aFoot.min.u, aFoot.max.v - aFoot.min.v, 1.0});
+  if (!aFoot.contains(bFoot, tolerance)) {
+    throw Error(ErrorCode::InvalidArgument,
+                "detail model lies partly outside the target (its footprint is not inside the "
+                "target's)");
+  }
+
+  // B's leaves with their footprints (metadata only).
+  std::vector<std::pair<PatchKey, Rect2d>> bLeaves;
+  for (const PatchKey& key : b.leaves()) {
+    const Rect2d foot = frame.footprint(transformed(b.at(key).globalBox, options.transform));
+    if (!foot.empty()) {
+      bLeaves.emplace_back(key, foot);
+    }
+  }
+
+  // A's leaves under B: descend from the root through patches whose footprint meets B's, so the
+  // cost follows the affected subtree, not A's size (a parent's box contains its children's).
+  std::vector<Match> matches;
+  std::vector<PatchKey> pending{PatchKey::root()};
+  std::vector<bool> bUsed(bLeaves.size(), false);
+  while (!pending.empty()) {
+    const PatchKey key = pending.back();
+    pending.pop_back();
+    const PatchInfo& info = a.at(key);
+    const Rect2d foot = frame.footprint(info.globalBox);
+    if (!foot.intersects(bFoot)) {
+      continue;
+    }
+    if (!info.isLeaf()) {
+      for (const PatchKey& child : a.children(key)) {
+        pending.push_back(child);
+      }
+      continue;
+    }
+    Match match{key, {}, 1};
+    double resolutionSum = 0;
+    std::size_t resolutionCount = 0;
+    for (std::size_t i = 0; i < bLeaves.size(); ++i) {
+      if (bLeaves[i].second.intersects(foot)) {
+        match.detail.push_back(bLeaves[i].first);
+        bUsed[i] = true;
+        const double r = b.at(bLeaves[i].first).resolution;
+        if (r > 0) {
+          resolutionSum += r;
+          ++resolutionCount;
+        }
+      }
+    }
+    if (match.detail.empty()) {
+      continue;
+    }
+    if (resolutionCount > 0 && info.resolution > 0) {
+      match.levels = levelsFor(info.resolution / (resolutionSum / resolutionCount));
+    }
+    if (match.levels > kMaxNewLevels || key.depth + match.levels > PatchKey::kMaxDepth) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "merge: patch " + key.toString() + " would need more than " +
+                      std::to_string(kMaxNewLevels) + " new levels (resolution ratio " +
+                      std::to_string(info.resolution / (resolutionSum / resolutionCount)) + ")");
+    }
+    matches.push_back(std::move(match));
+  }
+  if (matches.empty()) {
+    throw Error(ErrorCode::InvalidArgument, "detail model lies outside the target");
+  }
+  std::sort(matches.begin(), matches.end(),
+            [](const Match& x, const Match& y) { return x.target < y.target; });
+  result.detailLeaves = static_cast<std::size_t>(std::count(bUsed.begin(), bUsed.end(), true));
+  report(options, "matching", 1);
+
+  // ---- placing -------------------------------------------------------------------------------
+  report(options, "placing", 0);
+  for (std::size_t m = 0; m < matches.size(); ++m) {
+    checkCancelled(options);
+    const Match& match = matches[m];
+    const int k = match.levels;
+
+    // B's surface over this leaf; its grids are released once copied into the sampler.
+    std::optional<SurfaceSampler> sampler;
+    {
+      std::vector<std::shared_ptr<const PatchGrid>> grids;
+      grids.reserve(match.detail.size());
+      for (const PatchKey& key : match.detail) {
+        grids.push_back(detail.positions(key));
+      }
+      sampler.emplace(grids, up, options.transform);
+    }
+    std::optional<Subdivider> subdivider;
+    Rect2d aFootprint;
+    {
+      const std::shared_ptr<const PatchGrid> grid = target.positions(match.target);
+      if (grid->size() != a.gridSize()) {
+        throw Error(ErrorCode::Corrupt,
+                    "merge: patch " + match.target.toString() + " has a grid of the wrong size");
+      }
+      subdivider.emplace(*grid, k);
+      for (int y = 0; y < grid->size(); ++y) {
+        for (int x = 0; x < grid->size(); ++x) {
+          if (grid->defined(x, y)) {
+            aFootprint.extend(sampler->frame().project(grid->global(x, y)));
+          }
+        }
+      }
+    }
+    // Boxes are conservative: skip a leaf over which B has no cell at all, leaving it as it was.
+    if (!aFootprint.intersects(sampler->footprint())) {
+      continue;
+    }
+
+    // Adaptive refinement: a new patch is refined further only where B may have surface;
+    // elsewhere it stays a leaf holding a's surface interpolated to its level (the actual surface
+    // there is unchanged, only denser), so the cost follows B's area, not a's times 4^k. Every
+    // refined patch gets all its (non-empty) children, so reduction covers its whole area.
+    const PatchKey& top = match.target;
+    std::size_t added = 0;
+    std::size_t done = 0;  // level-1 quarters finished, for progress
+    // Refined patches waiting to be inserted: a parent goes in just before its first child.
+    std::vector<std::pair<PatchKey, PatchGrid>> pending;
+    auto insert = [&](const PatchKey& key, std::vector<Vec3d>& positions) {
+      for (auto& [parentKey, placeholder] : pending) {
+        if (target.model().find(parentKey) != nullptr) {
+          continue;
+        }
+        if (!placeholder.anyDefined()) {
+          // Only possible when k exceeds the grid's own levels: any defined vertex will do, the
+          // placeholder never outlives the reducing stage (it is stale from now on).
+          const auto first = std::find_if(positions.begin(), positions.end(),
+                                          [](const Vec3d& p) { return p.finite(); });
+          placeholder.setGlobal(0, 0, *first);
+        }
+        target.setPositions(parentKey, std::make_shared<const PatchGrid>(placeholder));
+        ++added;
+      }
+      target.setPositions(
+          key, std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions)));
+      ++added;
+    };
+    std::function<void(int, std::uint32_t, std::uint32_t)> place = [&](int level, std::uint32_t i,
+                                                                       std::uint32_t j) {
+      checkCancelled(options);
+      const PatchKey key{top.depth + level, (top.x << level) + i, (top.y << level) + j};
+      const bool refine =
+          level < k && sampler->covers(subdivider->footprint(level, i, j, sampler->frame()));
+      if (!refine) {
+        std::size_t taken = 0;
+        std::vector<Vec3d> positions =
+            subdivider->positions(level, i, j, level == k ? &*sampler : nullptr, &taken);
+        if (std::any_of(positions.begin(), positions.end(),
+                        [](const Vec3d& p) { return p.finite(); })) {
+          insert(key, positions);  // an empty patch is omitted
+          result.verticesFromDetail += taken;
+        }
+        return;
+      }
+      pending.emplace_back(key, subdivider->patch(level, i, j, nullptr));
+      for (const Quadrant q : kQuadrants) {
+        const auto qi = static_cast<std::uint32_t>(q);
+        place(level + 1, 2 * i + (qi & 1), 2 * j + (qi >> 1));
+      }
+      pending.pop_back();
+    };
+    for (const Quadrant q : kQuadrants) {
+      const auto qi = static_cast<std::uint32_t>(q);
+      place(1, qi & 1, qi >> 1);
+      ++done;
+      report(options, "placing",
+             (static_cast<double>(m) + static_cast<double>(done) / 4) /
+                 static_cast<double>(matches.size()));
+    }
+    if (added > 0) {
+      ++result.matchedLeaves;
+      result.newPatches += added;
+      result.levels[top] = k;
+      result.maxLevels = std::max(result.maxLevels, k);
+    }
+  }
+  report(options, "placing", 1);
+
+  // ---- reducing ------------------------------------------------------------------------------
+  checkCancelled(options);
+  report(options, "reducing", 0);
+  target.refreshStale(options.cancel);
+  report(options, "reducing", 1);
+
+  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  log::info("merge: " + std::to_string(result.matchedLeaves) + " target leaves, " +
+            std::to_string(result.detailLeaves) + " detail leaves, " +
+            std::to_string(result.newPatches) + " new patches, up to " +
+            std::to_string(result.maxLevels) + " new levels, " + std::to_string(result.seconds) +
+            " s");
+  return result;
+}
+
+}  // namespace vsm::core

@@ -1,0 +1,98 @@
+#pragma once
+
+#include <cstddef>
+#include <map>
+#include <memory>
+#include <optional>
+
+#include "core/common/progress.hpp"
+#include "core/grid/geometry.hpp"
+#include "core/pyramid/model.hpp"
+
+namespace vsm::core {
+
+class LiveModel;
+class ModelEdit;
+
+/// Read access to a model's metadata and patch data, as a merge needs it.
+class PatchSource {
+ public:
+  virtual ~PatchSource() = default;
+  virtual const Model& model() const = 0;
+  /// The vertex data of an existing patch; the data stays available (e.g. pinned in the cache) for
+  /// as long as the returned pointer lives. Throws as the store does.
+  virtual std::shared_ptr<const PatchGrid> positions(const PatchKey& key) = 0;
+};
+
+/// A model being changed by a merge (ModelEdit adapts to it).
+class MergeTarget : public PatchSource {
+ public:
+  /// Adds a patch (its parent exists) or replaces a patch's data; marks every ancestor stale.
+  virtual void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) = 0;
+  /// Recomputes every stale overview bottom-up by reduction.
+  virtual void refreshStale(const CancelToken* cancel) = 0;
+};
+
+struct MergeOptions {
+  /// Receives the stages "matching", "placing" and "reducing".
+  Progress* progress = nullptr;
+  /// Polled between patches; a cancelled merge throws Error(Cancelled) and leaves the edit to be
+  /// discarded.
+  const CancelToken* cancel = nullptr;
+  /// Rigid transform applied to every vertex (and box) of the detail model, e.g. from
+  /// registerModels(). Never applied per patch.
+  std::optional<Mat4d> transform;
+  /// Direction along which the detail surface is placed into the target (see SurfaceSampler).
+  /// Default: defaultUp() of the detail model's root box (the local vertical for ECEF models, +z
+  /// otherwise).
+  std::optional<Vec3d> up;
+};
+
+struct MergeResult {
+  /// Bottom patches of the target that received new levels.
+  std::size_t matchedLeaves = 0;
+  /// Bottom patches of the detail model that meet at least one matched target patch.
+  std::size_t detailLeaves = 0;
+  /// Patches added to the target (all new levels).
+  std::size_t newPatches = 0;
+  /// New vertices placed on the detail surface (the rest interpolate the target's old data).
+  std::size_t verticesFromDetail = 0;
+  /// Levels added below each matched target leaf (its deepest new level), and their maximum.
+  std::map<PatchKey, int> levels;
+  int maxLevels = 0;
+  double seconds = 0;
+};
+
+/// Inserts the detail model B into the target model A (DESIGN.md section 3, thesis 3.3):
+///
+/// 1. matching: A's bottom patches whose footprint meets B's root footprint (found by descending
+///    A's tree, so the cost does not grow with A), then for each the bottom patches of B whose
+///    footprint meets it. Footprints are boxes projected onto the plane perpendicular to `up`, so
+///    a B whose heights differ from A's (the reason to merge it) still matches;
+/// 2. placing: under each matched leaf a, k new levels with 2^k >= res(a) / res(B's matched
+///    leaves), k >= 1. A new patch is a's surface subdivided to its level (Subdivider); it is
+///    refined further only where B may have surface (SurfaceSampler::covers), down to level k,
+///    whose vertices are placed per vertex on B's surface (SurfaceSampler). Elsewhere it stays a
+///    leaf with a's surface interpolated (the thesis fills the whole new bottom level; this keeps
+///    the cost proportional to B's area instead of a's area times 4^k). Refined patches are added
+///    before their children as placeholders;
+/// 3. reducing: every stale overview, from the new levels up to the root, is recomputed by
+///    reduction. Patches outside the matched leaves' subtrees and their ancestors are not touched.
+///
+/// The target is not published: the caller publishes the edit (or discards it on error).
+///
+/// Throws Error(InvalidArgument) when either model is empty, when B lies outside A ("detail model
+/// lies outside the target") or only partly inside it, or when more than 16 levels would be
+/// needed; Error(Cancelled); the stores' errors. Where A is undefined nothing of B is placed (a
+/// new vertex needs A's position to look B up).
+MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOptions& options = {});
+
+/// The same over the store: `target` is an open edit of A, `detail` the open model B (read at its
+/// current snapshot).
+MergeResult mergeModels(ModelEdit& target, LiveModel& detail, const MergeOptions& options = {});
+
+/// Store adapters, also for registerModels().
+std::unique_ptr<MergeTarget> editTarget(ModelEdit& edit);
+std::unique_ptr<PatchSource> liveSource(LiveModel& model);
+
+}  // namespace vsm::core

@@ -1,0 +1,65 @@
+// The store adapters of the merge, in their own file so that the algorithm (merge.cpp) links
+// without the store.
+#include <utility>
+
+#include "core/merge/merge.hpp"
+#include "core/store/live_model.hpp"
+
+namespace vsm::core {
+
+namespace {
+
+/// The pin rides along with the grid pointer, so the data stays pinned exactly as long as it is
+/// used.
+std::shared_ptr<const PatchGrid> pinned(PatchCache::Pin pin) {
+  auto holder = std::make_shared<PatchCache::Pin>(std::move(pin));
+  const PatchGrid* grid = holder->get<PatchGrid>().get();
+  return std::shared_ptr<const PatchGrid>(std::move(holder), grid);
+}
+
+class EditTarget final : public MergeTarget {
+ public:
+  explicit EditTarget(ModelEdit& edit) : edit_(edit) {}
+  const Model& model() const override { return edit_.model(); }
+  std::shared_ptr<const PatchGrid> positions(const PatchKey& key) override {
+    return pinned(edit_.positions(key));
+  }
+  void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) override {
+    edit_.setPositions(key, std::move(grid));
+  }
+  void refreshStale(const CancelToken* cancel) override { edit_.refreshStale(cancel); }
+
+ private:
+  ModelEdit& edit_;
+};
+
+class LiveSource final : public PatchSource {
+ public:
+  explicit LiveSource(LiveModel& live) : live_(live), snapshot_(live.snapshot()) {}
+  const Model& model() const override { return *snapshot_->model; }
+  std::shared_ptr<const PatchGrid> positions(const PatchKey& key) override {
+    return pinned(live_.positions(*snapshot_, key));
+  }
+
+ private:
+  LiveModel& live_;
+  std::shared_ptr<const ModelSnapshot> snapshot_;  // one version for the whole merge
+};
+
+}  // namespace
+
+std::unique_ptr<MergeTarget> editTarget(ModelEdit& edit) {
+  return std::make_unique<EditTarget>(edit);
+}
+
+std::unique_ptr<PatchSource> liveSource(LiveModel& model) {
+  return std::make_unique<LiveSource>(model);
+}
+
+MergeResult mergeModels(ModelEdit& target, LiveModel& detail, const MergeOptions& options) {
+  EditTarget t(target);
+  LiveSource d(detail);
+  return mergeModels(t, d, options);
+}
+
+}  // namespace vsm::core

@@ -1,0 +1,372 @@
+#include "core/merge/register.hpp"
+
+#include <pcl/point_cloud.h>
+#include <pcl/point_types.h>
+#include <pcl/registration/icp.h>
+#include <pcl/search/kdtree.h>
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+#include "core/merge/merge.hpp"
+#include "core/merge/surface_sampler.hpp"
+
+namespace vsm::core {
+
+namespace {
+
+constexpr std::size_t kMinCoarsePoints = 1000;
+constexpr std::size_t kMinPoints = 12;
+
+using Grids = std::vector<std::shared_ptr<const PatchGrid>>;
+
+/// The grids of `depth` (or of shallower leaves) whose footprint meets `rect`, found by
+/// descending from the root.
+Grids gridsAt(PatchSource& source, int depth, const UpFrame& frame, const Rect2d& rect) {
+  const Model& model = source.model();
+  Grids grids;
+  std::vector<PatchKey> pending{PatchKey::root()};
+  while (!pending.empty()) {
+    const PatchKey key = pending.back();
+    pending.pop_back();
+    const PatchInfo& info = model.at(key);
+    if (!frame.footprint(info.globalBox).intersects(rect)) {
+      continue;
+    }
+    if (key.depth >= depth || info.isLeaf()) {
+      grids.push_back(source.positions(key));
+      continue;
+    }
+    for (const PatchKey& child : model.children(key)) {
+      pending.push_back(child);
+    }
+  }
+  return grids;
+}
+
+/// Mean resolution of a model's levels, by depth (0 where unknown).
+std::vector<double> levelResolutions(const Model& model) {
+  std::vector<double> out(static_cast<std::size_t>(std::max(model.maxDepth() + 1, 1)), 0.0);
+  for (const LevelSummary& level : model.levels()) {
+    out[static_cast<std::size_t>(level.depth)] = level.resolution;
+  }
+  return out;
+}
+
+/// The depth whose resolution is closest to `resolution` (in ratio).
+int closestDepth(const std::vector<double>& resolutions, double resolution) {
+  int best = static_cast<int>(resolutions.size()) - 1;
+  double bestScore = std::numeric_limits<double>::infinity();
+  for (std::size_t d = 0; d < resolutions.size(); ++d) {
+    if (resolutions[d] > 0) {
+      const double score = std::fabs(std::log(resolutions[d] / resolution));
+      if (score < bestScore) {
+        bestScore = score;
+        best = static_cast<int>(d);
+      }
+    }
+  }
+  return best;
+}
+
+/// A grid vertex's normal from its neighbours (central differences, one-sided at borders and
+/// holes), oriented along `up`; nullopt when the neighbourhood is too sparse.
+std::optional<Vec3d> normalAt(const PatchGrid& g, int x, int y, const Vec3d& up) {
+  auto diff = [&](int x0, int y0, int x1, int y1) -> std::optional<Vec3d> {
+    const bool d0 = x0 >= 0 && y0 >= 0 && x0 < g.size() && y0 < g.size() && g.defined(x0, y0);
+    const bool d1 = x1 >= 0 && y1 >= 0 && x1 < g.size() && y1 < g.size() && g.defined(x1, y1);
+    if (d0 && d1) {
+      return g.global(x1, y1) - g.global(x0, y0);
+    }
+    if (d1) {
+      return g.global(x1, y1) - g.global(x, y);
+    }
+    if (d0) {
+      return g.global(x, y) - g.global(x0, y0);
+    }
+    return std::nullopt;
+  };
+  const auto du = diff(x - 1, y, x + 1, y);
+  const auto dv = diff(x, y - 1, x, y + 1);
+  if (!du || !dv) {
+    return std::nullopt;
+  }
+  Vec3d n{du->y * dv->z - du->z * dv->y, du->z * dv->x - du->x * dv->z,
+          du->x * dv->y - du->y * dv->x};
+  const double len = n.norm();
+  if (!(len > 0)) {
+    return std::nullopt;
+  }
+  n = n * (1.0 / len);
+  if (n.x * up.x + n.y * up.y + n.z * up.z < 0) {
+    n = n * -1.0;
+  }
+  return n;
+}
+
+struct Cloud {
+  std::vector<Vec3d> points;
+  std::vector<Vec3d> normals;
+};
+
+Cloud cloudOf(const Grids& grids, const Vec3d& up) {
+  Cloud cloud;
+  for (const auto& g : grids) {
+    for (int y = 0; y < g->size(); ++y) {
+      for (int x = 0; x < g->size(); ++x) {
+        if (!g->defined(x, y)) {
+          continue;
+        }
+        if (const auto n = normalAt(*g, x, y, up)) {
+          cloud.points.push_back(g->global(x, y));
+          cloud.normals.push_back(*n);
+        }
+      }
+    }
+  }
+  return cloud;
+}
+
+pcl::PointCloud<pcl::PointNormal>::Ptr toPcl(const Cloud& cloud,
+                                             const std::vector<std::size_t>& use,
+                                             const Vec3d& centre) {
+  auto out = pcl::make_shared<pcl::PointCloud<pcl::PointNormal>>();
+  out->reserve(use.size());
+  for (const std::size_t i : use) {
+    pcl::PointNormal p;
+    const Vec3d l = cloud.points[i] - centre;
+    p.x = static_cast<float>(l.x);
+    p.y = static_cast<float>(l.y);
+    p.z = static_cast<float>(l.z);
+    p.normal_x = static_cast<float>(cloud.normals[i].x);
+    p.normal_y = static_cast<float>(cloud.normals[i].y);
+    p.normal_z = static_cast<float>(cloud.normals[i].z);
+    p.curvature = 0;
+    out->push_back(p);
+  }
+  return out;
+}
+
+/// Every `step`-th index so that at most `limit` remain.
+std::vector<std::size_t> thinned(std::vector<std::size_t> indices, std::size_t limit) {
+  if (indices.size() <= limit || limit == 0) {
+    return indices;
+  }
+  const double step = static_cast<double>(indices.size()) / static_cast<double>(limit);
+  std::vector<std::size_t> out;
+  out.reserve(limit);
+  for (std::size_t k = 0; k < limit; ++k) {
+    out.push_back(indices[static_cast<std::size_t>(static_cast<double>(k) * step)]);
+  }
+  return out;
+}
+
+Mat4d toMat(const Eigen::Matrix4d& e) {
+  Mat4d m;
+  for (int r = 0; r < 4; ++r) {
+    for (int c = 0; c < 4; ++c) {
+      m.m[static_cast<std::size_t>(r * 4 + c)] = e(r, c);
+    }
+  }
+  return m;
+}
+
+Vec3d applyLocal(const Eigen::Matrix4d& u, const Vec3d& centre, const Vec3d& p) {
+  const Vec3d l = p - centre;
+  const Eigen::Vector4d r = u * Eigen::Vector4d(l.x, l.y, l.z, 1);
+  return Vec3d{r.x(), r.y(), r.z()} + centre;
+}
+
+}  // namespace
+
+RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
+                                  const RegistrationOptions& options) {
+  const auto start = std::chrono::steady_clock::now();
+  const Model& a = target.model();
+  const Model& b = detail.model();
+  if (a.empty() || b.empty()) {
+    throw Error(ErrorCode::InvalidArgument, "register: the target or the detail model is empty");
+  }
+  const Box3d bBox = b.at(PatchKey::root()).globalBox;
+  if (bBox.empty()) {
+    throw Error(ErrorCode::InvalidArgument, "register: the detail model has no defined vertex");
+  }
+  const Vec3d up = options.up ? *options.up : defaultUp(bBox);
+  const UpFrame frame(bBox.center(), up);
+  const Vec3d centre = bBox.center();
+  const Rect2d bFoot = frame.footprint(bBox);
+  const double area = (bFoot.max.u - bFoot.min.u) * (bFoot.max.v - bFoot.min.v);
+
+  const std::vector<double> aRes = levelResolutions(a);
+  const std::vector<double> bRes = levelResolutions(b);
+  // Coarse stage: A's coarsest level with enough vertices over B (estimated from metadata).
+  int aCoarse = a.maxDepth();
+  for (int d = 0; d <= a.maxDepth(); ++d) {
+    const double r = aRes[static_cast<std::size_t>(d)];
+    if (r > 0 && area / (r * r) >= static_cast<double>(kMinCoarsePoints)) {
+      aCoarse = d;
+      break;
+    }
+  }
+  const double aCoarseRes = aRes[static_cast<std::size_t>(aCoarse)];
+  const double aFineRes = aRes[static_cast<std::size_t>(a.maxDepth())];
+  if (!(aCoarseRes > 0) || !(aFineRes > 0)) {
+    throw Error(ErrorCode::InvalidArgument, "register: the target has no measurable resolution");
+  }
+
+  struct Stage {
+    int aDepth, bDepth;
+    double distance;
+  };
+  std::vector<Stage> stages;
+  const double search = options.searchRadius ? *options.searchRadius : 4 * aCoarseRes;
+  stages.push_back({aCoarse, closestDepth(bRes, aCoarseRes), search});
+  // Refinement: A's bottom vertices against B about twice as fine, shrinking the distance.
+  const int bFine = closestDepth(bRes, aFineRes / 2);
+  const double bFineRes = bRes[static_cast<std::size_t>(bFine)];
+  for (double d = std::min(search / 2, 2 * aFineRes); stages.size() < 6; d /= 2) {
+    stages.push_back({a.maxDepth(), bFine, d});
+    if (d <= 3 * bFineRes) {
+      break;
+    }
+  }
+
+  RegistrationResult result;
+  result.targetDepth = stages.front().aDepth;
+  result.detailDepth = stages.front().bDepth;
+  Eigen::Matrix4d u = Eigen::Matrix4d::Identity();  // moves A onto B, centred coordinates
+  struct DetailLevel {
+    Cloud cloud;
+    std::shared_ptr<SurfaceSampler> surface;
+    pcl::PointCloud<pcl::PointNormal>::Ptr points;
+    pcl::search::KdTree<pcl::PointNormal>::Ptr tree;  // built once, shared by the stages
+  };
+  std::map<int, DetailLevel> bLevels;
+  for (std::size_t s = 0; s < stages.size(); ++s) {
+    if (options.cancel != nullptr) {
+      options.cancel->throwIfCancelled();
+    }
+    if (options.progress != nullptr) {
+      options.progress->report("registering", static_cast<double>(s) / stages.size());
+    }
+    const Stage& stage = stages[s];
+    DetailLevel& bLevel = bLevels[stage.bDepth];
+    if (!bLevel.surface) {
+      const Grids grids = gridsAt(detail, stage.bDepth, frame, bFoot);
+      bLevel.cloud = cloudOf(grids, up);
+      bLevel.surface = std::make_shared<SurfaceSampler>(grids, up);
+      std::vector<std::size_t> all(bLevel.cloud.points.size());
+      for (std::size_t i = 0; i < all.size(); ++i) {
+        all[i] = i;
+      }
+      bLevel.points = toPcl(bLevel.cloud, thinned(std::move(all), options.maxPoints * 4), centre);
+      bLevel.tree = pcl::make_shared<pcl::search::KdTree<pcl::PointNormal>>();
+      bLevel.tree->setInputCloud(bLevel.points);
+    }
+    const SurfaceSampler& bSurface = *bLevel.surface;
+
+    // A's vertices whose current image lies over B with a margin of the search distance.
+    Rect2d near = bFoot;
+    near.min = {near.min.u - stage.distance, near.min.v - stage.distance};
+    near.max = {near.max.u + stage.distance, near.max.v + stage.distance};
+    const Cloud aCloud = cloudOf(gridsAt(target, stage.aDepth, frame, near), up);
+    std::vector<std::size_t> use;
+    // The margin keeps B's border from attracting A's vertices that have no partner on B; it never
+    // takes more than a quarter of B's width (a B only a few A cells wide must keep some).
+    const double m = std::min(
+        stage.distance, 0.25 * std::min(bFoot.max.u - bFoot.min.u, bFoot.max.v - bFoot.min.v));
+    for (std::size_t i = 0; i < aCloud.points.size(); ++i) {
+      const Vec3d q = applyLocal(u, centre, aCloud.points[i]);
+      if (bSurface.sample(q) && bSurface.sample(q + frame.e1 * m) &&
+          bSurface.sample(q - frame.e1 * m) && bSurface.sample(q + frame.e2 * m) &&
+          bSurface.sample(q - frame.e2 * m)) {
+        use.push_back(i);
+      }
+    }
+    if (use.size() < kMinPoints) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "register: the models overlap too little to register (" +
+                      std::to_string(use.size()) + " target vertices over the detail model)");
+    }
+    use = thinned(std::move(use), options.maxPoints);
+    const auto source = toPcl(aCloud, use, centre);
+    const auto& targetCloud = bLevel.points;
+
+    pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
+    icp.setInputSource(source);
+    icp.setInputTarget(targetCloud);
+    icp.setSearchMethodTarget(bLevel.tree, true);
+    icp.setMaxCorrespondenceDistance(stage.distance);
+    icp.setMaximumIterations(options.maxIterations);
+    icp.setTransformationEpsilon(1e-10);
+    icp.setEuclideanFitnessEpsilon(1e-10);
+    pcl::PointCloud<pcl::PointNormal> aligned;
+    icp.align(aligned, u.cast<float>());
+    u = icp.getFinalTransformation().cast<double>();
+    result.converged = icp.hasConverged();
+    result.fitness = icp.getFitnessScore(stage.distance);
+    result.stages = static_cast<int>(s + 1);
+    // The residual along up: how far A's vertices, moved by u, lie from B's surface.
+    double sum = 0;
+    std::size_t count = 0;
+    for (const std::size_t i : use) {
+      const Vec3d q = applyLocal(u, centre, aCloud.points[i]);
+      if (const auto onB = bSurface.sample(q)) {
+        const double h = frame.height(*onB) - frame.height(q);
+        sum += h * h;
+        ++count;
+      }
+    }
+    result.rms = count > 0 ? std::sqrt(sum / static_cast<double>(count)) : 0;
+    log::debug("register: stage " + std::to_string(s) + " A depth " + std::to_string(stage.aDepth) +
+               " B depth " + std::to_string(stage.bDepth) + " distance " +
+               std::to_string(stage.distance) + " points " + std::to_string(source->size()) + "/" +
+               std::to_string(targetCloud->size()) + " fitness " + std::to_string(result.fitness));
+  }
+  if (options.progress != nullptr) {
+    options.progress->report("registering", 1);
+  }
+
+  // u moves A onto B around `centre`; B needs the inverse, in global coordinates.
+  Eigen::Matrix4d shift = Eigen::Matrix4d::Identity();
+  shift.block<3, 1>(0, 3) = Eigen::Vector3d(centre.x, centre.y, centre.z);
+  Eigen::Matrix4d unshift = Eigen::Matrix4d::Identity();
+  unshift.block<3, 1>(0, 3) = -Eigen::Vector3d(centre.x, centre.y, centre.z);
+  Eigen::Matrix4d inv = Eigen::Matrix4d::Identity();
+  const Eigen::Matrix3d r = u.block<3, 3>(0, 0);
+  // Re-orthonormalise the float32 rotation so the transform is exactly rigid.
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(r, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d rot = svd.matrixU() * svd.matrixV().transpose();
+  if (rot.determinant() < 0) {
+    Eigen::Matrix3d fix = Eigen::Matrix3d::Identity();
+    fix(2, 2) = -1;
+    rot = svd.matrixU() * fix * svd.matrixV().transpose();
+  }
+  inv.block<3, 3>(0, 0) = rot.transpose();
+  inv.block<3, 1>(0, 3) = -rot.transpose() * u.block<3, 1>(0, 3);
+  result.transform = toMat(shift * inv * unshift);
+  result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  log::info("register: " + std::to_string(result.stages) + " stages, fitness " +
+            std::to_string(result.fitness) + " m2, rms along up " + std::to_string(result.rms) +
+            " m" + (result.converged ? ", converged" : ", not converged") + ", " +
+            std::to_string(result.seconds) + " s");
+  return result;
+}
+
+RegistrationResult registerModels(LiveModel& target, LiveModel& detail,
+                                  const RegistrationOptions& options) {
+  const auto t = liveSource(target);
+  const auto d = liveSource(detail);
+  return registerModels(*t, *d, options);
+}
+
+}  // namespace vsm::core

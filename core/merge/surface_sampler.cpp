@@ -1,0 +1,406 @@
+#include "core/merge/surface_sampler.hpp"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <limits>
+
+#include "core/common/error.hpp"
+
+namespace vsm::core {
+
+namespace {
+
+double dot(const Vec3d& a, const Vec3d& b) {
+  return a.x * b.x + a.y * b.y + a.z * b.z;
+}
+
+Vec3d cross(const Vec3d& a, const Vec3d& b) {
+  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
+
+double cross2(const Vec2d& a, const Vec2d& b) {
+  return a.u * b.v - a.v * b.u;
+}
+
+Vec2d sub2(const Vec2d& a, const Vec2d& b) {
+  return {a.u - b.u, a.v - b.v};
+}
+
+// Barycentric coordinates may come out a few ulps negative for a point on a shared edge; both
+// neighbours then accept it (and agree on the result), so no point falls between triangles.
+constexpr double kBarycentricSlack = 1e-9;
+
+constexpr std::uint32_t kNoVertex = std::numeric_limits<std::uint32_t>::max();
+
+/// Barycentric coordinates of q in the projected triangle (a, b, c); NaN when it is degenerate.
+std::array<double, 3> barycentric(const Vec2d& a, const Vec2d& b, const Vec2d& c, const Vec2d& q) {
+  const Vec2d ab = sub2(b, a), ac = sub2(c, a), aq = sub2(q, a);
+  const double d = cross2(ab, ac);
+  const double l1 = cross2(aq, ac) / d;
+  const double l2 = cross2(ab, aq) / d;
+  return {1 - l1 - l2, l1, l2};
+}
+
+bool inside(const std::array<double, 3>& l) {
+  return l[0] >= -kBarycentricSlack && l[1] >= -kBarycentricSlack && l[2] >= -kBarycentricSlack;
+}
+
+}  // namespace
+
+void Rect2d::extend(const Vec2d& p) {
+  min = {std::min(min.u, p.u), std::min(min.v, p.v)};
+  max = {std::max(max.u, p.u), std::max(max.v, p.v)};
+}
+
+bool Rect2d::intersects(const Rect2d& r) const {
+  if (empty() || r.empty()) {
+    return false;
+  }
+  return min.u <= r.max.u && r.min.u <= max.u && min.v <= r.max.v && r.min.v <= max.v;
+}
+
+bool Rect2d::contains(const Rect2d& r, double tolerance) const {
+  if (r.empty()) {
+    return true;
+  }
+  return r.min.u >= min.u - tolerance && r.min.v >= min.v - tolerance &&
+         r.max.u <= max.u + tolerance && r.max.v <= max.v + tolerance;
+}
+
+UpFrame::UpFrame(const Vec3d& originIn, const Vec3d& upIn) : origin(originIn) {
+  const double n = upIn.norm();
+  if (!upIn.finite() || n == 0) {
+    throw Error(ErrorCode::InvalidArgument, "up direction must be finite and non-zero");
+  }
+  up = upIn * (1.0 / n);
+  // e1: the coordinate axis least aligned with up, made perpendicular to it.
+  const Vec3d axis = std::fabs(up.x) <= std::fabs(up.y) && std::fabs(up.x) <= std::fabs(up.z)
+                         ? Vec3d{1, 0, 0}
+                         : (std::fabs(up.y) <= std::fabs(up.z) ? Vec3d{0, 1, 0} : Vec3d{0, 0, 1});
+  const Vec3d t = axis - up * dot(axis, up);
+  e1 = t * (1.0 / t.norm());
+  e2 = cross(up, e1);
+}
+
+Vec2d UpFrame::project(const Vec3d& p) const {
+  const Vec3d d = p - origin;
+  return {dot(d, e1), dot(d, e2)};
+}
+
+double UpFrame::height(const Vec3d& p) const {
+  return dot(p - origin, up);
+}
+
+Rect2d UpFrame::footprint(const Box3d& box) const {
+  Rect2d r;
+  if (box.empty()) {
+    return r;
+  }
+  for (int c = 0; c < 8; ++c) {
+    r.extend(project({(c & 1) ? box.max.x : box.min.x, (c & 2) ? box.max.y : box.min.y,
+                      (c & 4) ? box.max.z : box.min.z}));
+  }
+  return r;
+}
+
+Vec3d defaultUp(const Box3d& box) {
+  const Vec3d c = box.center();
+  if (!box.empty() && c.norm() > 1e5) {
+    return c * (1.0 / c.norm());
+  }
+  return {0, 0, 1};
+}
+
+SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid>>& grids,
+                               const Vec3d& up, const std::optional<Mat4d>& transform)
+    : frame_({}, up) {
+  // The frame's origin is the centre of B, so projected coordinates stay small (ECEF!).
+  Box3d box;
+  for (const auto& grid : grids) {
+    if (grid) {
+      Box3d b = grid->globalBox();
+      if (transform && !b.empty()) {
+        Box3d t;
+        for (int c = 0; c < 8; ++c) {
+          t.extend(transform->apply({(c & 1) ? b.max.x : b.min.x, (c & 2) ? b.max.y : b.min.y,
+                                     (c & 4) ? b.max.z : b.min.z}));
+        }
+        b = t;
+      }
+      box.extend(b);
+    }
+  }
+  frame_ = UpFrame(box.empty() ? Vec3d{} : box.center(), up);
+
+  constexpr std::uint32_t kNone = kNoVertex;
+  std::vector<std::uint32_t> index;  // grid vertex -> vertices_ index, per grid
+  for (const auto& grid : grids) {
+    if (!grid) {
+      continue;
+    }
+    const int s = grid->size();
+    index.assign(static_cast<std::size_t>(s) * s, kNone);
+    for (int y = 0; y < s; ++y) {
+      for (int x = 0; x < s; ++x) {
+        if (!grid->defined(x, y)) {
+          continue;
+        }
+        Vec3d g = grid->global(x, y);
+        if (transform) {
+          g = transform->apply(g);
+        }
+        index[static_cast<std::size_t>(y) * s + x] = static_cast<std::uint32_t>(vertices_.size());
+        vertices_.push_back(g);
+        projected_.push_back(frame_.project(g));
+      }
+    }
+    auto area2 = [&](std::uint32_t a, std::uint32_t b, std::uint32_t c) {
+      return cross2(sub2(projected_[b], projected_[a]), sub2(projected_[c], projected_[a]));
+    };
+    for (int y = 0; y + 1 < s; ++y) {
+      for (int x = 0; x + 1 < s; ++x) {
+        const std::size_t i = static_cast<std::size_t>(y) * s + x;
+        const std::uint32_t c00 = index[i], c10 = index[i + 1], c01 = index[i + s],
+                            c11 = index[i + s + 1];
+        const int undefinedCorners =
+            (c00 == kNone) + (c10 == kNone) + (c01 == kNone) + (c11 == kNone);
+        if (undefinedCorners == 0) {
+          // A cell that projects to a segment (a vertical wall) has no height to give.
+          if (area2(c00, c10, c11) != 0 || area2(c00, c11, c01) != 0) {
+            cells_.insert(cells_.end(), {c00, c10, c11, c01});
+          }
+        } else if (undefinedCorners == 1) {
+          std::uint32_t rest[3];
+          int n = 0;
+          for (const std::uint32_t c : {c00, c10, c11, c01}) {
+            if (c != kNone) {
+              rest[n++] = c;
+            }
+          }
+          if (area2(rest[0], rest[1], rest[2]) != 0) {
+            cells_.insert(cells_.end(), {rest[0], rest[1], rest[2], kNoVertex});
+          }
+        }
+      }
+    }
+  }
+
+  // Bucket size: the mean projected extent of a cell, so a query scans a handful of them.
+  const std::size_t count = cellCount();
+  auto cellRect = [&](std::size_t t) {
+    Rect2d r;
+    for (int c = 0; c < 4; ++c) {
+      if (cells_[4 * t + c] != kNoVertex) {
+        r.extend(projected_[cells_[4 * t + c]]);
+      }
+    }
+    return r;
+  };
+  double extentSum = 0;
+  for (std::size_t t = 0; t < count; ++t) {
+    const Rect2d r = cellRect(t);
+    for (int c = 0; c < 4; ++c) {
+      for (int e = c + 1; e < 4; ++e) {
+        if (cells_[4 * t + c] != kNoVertex && cells_[4 * t + e] != kNoVertex) {
+          const Vec2d a = projected_[cells_[4 * t + c]];
+          const Vec2d b = projected_[cells_[4 * t + e]];
+          maxEdge_ = std::max(maxEdge_, std::hypot(a.u - b.u, a.v - b.v));
+        }
+      }
+    }
+    extentSum += std::max(r.max.u - r.min.u, r.max.v - r.min.v);
+    bounds_.extend(r.min);
+    bounds_.extend(r.max);
+  }
+  if (count == 0) {
+    bucketStart_.assign(1, 0);
+    return;
+  }
+  const double width = bounds_.max.u - bounds_.min.u;
+  const double height = bounds_.max.v - bounds_.min.v;
+  bucketSize_ = std::max(extentSum / static_cast<double>(count), 1e-12);
+  // Never more buckets than 4 per cell (a sparse B spread over a large area).
+  const double maxBuckets = 4.0 * static_cast<double>(count) + 16;
+  while ((std::floor(width / bucketSize_) + 1) * (std::floor(height / bucketSize_) + 1) >
+         maxBuckets) {
+    bucketSize_ *= 1.5;
+  }
+  bucketsU_ = static_cast<int>(std::floor(width / bucketSize_)) + 1;
+  bucketsV_ = static_cast<int>(std::floor(height / bucketSize_)) + 1;
+  auto bucketRange = [&](std::size_t t, int& u0, int& v0, int& u1, int& v1) {
+    const Rect2d r = cellRect(t);
+    u0 = std::clamp(static_cast<int>(std::floor((r.min.u - bounds_.min.u) / bucketSize_)), 0,
+                    bucketsU_ - 1);
+    u1 = std::clamp(static_cast<int>(std::floor((r.max.u - bounds_.min.u) / bucketSize_)), 0,
+                    bucketsU_ - 1);
+    v0 = std::clamp(static_cast<int>(std::floor((r.min.v - bounds_.min.v) / bucketSize_)), 0,
+                    bucketsV_ - 1);
+    v1 = std::clamp(static_cast<int>(std::floor((r.max.v - bounds_.min.v) / bucketSize_)), 0,
+                    bucketsV_ - 1);
+  };
+  const std::size_t buckets = static_cast<std::size_t>(bucketsU_) * bucketsV_;
+  bucketStart_.assign(buckets + 1, 0);
+  for (std::size_t t = 0; t < count; ++t) {
+    int u0, v0, u1, v1;
+    bucketRange(t, u0, v0, u1, v1);
+    for (int v = v0; v <= v1; ++v) {
+      for (int u = u0; u <= u1; ++u) {
+        ++bucketStart_[static_cast<std::size_t>(v) * bucketsU_ + u + 1];
+      }
+    }
+  }
+  for (std::size_t b = 0; b < buckets; ++b) {
+    bucketStart_[b + 1] += bucketStart_[b];
+  }
+  bucketItems_.resize(bucketStart_[buckets]);
+  std::vector<std::uint32_t> fill(bucketStart_.begin(), bucketStart_.end() - 1);
+  for (std::size_t t = 0; t < count; ++t) {
+    int u0, v0, u1, v1;
+    bucketRange(t, u0, v0, u1, v1);
+    for (int v = v0; v <= v1; ++v) {
+      for (int u = u0; u <= u1; ++u) {
+        bucketItems_[fill[static_cast<std::size_t>(v) * bucketsU_ + u]++] =
+            static_cast<std::uint32_t>(t);
+      }
+    }
+  }
+}
+
+std::optional<Vec3d> SurfaceSampler::onTriangle(const std::uint32_t* t, const Vec2d& q) const {
+  auto l = barycentric(projected_[t[0]], projected_[t[1]], projected_[t[2]], q);
+  if (!inside(l)) {
+    return std::nullopt;
+  }
+  for (double& w : l) {
+    w = std::max(w, 0.0);
+  }
+  const double sum = l[0] + l[1] + l[2];
+  return (vertices_[t[0]] * l[0] + vertices_[t[1]] * l[1] + vertices_[t[2]] * l[2]) * (1.0 / sum);
+}
+
+std::optional<Vec3d> SurfaceSampler::onQuad(const std::uint32_t* c, const Vec2d& q) const {
+  // c = (0,0), (1,0), (1,1), (0,1). The quad is located by its two triangles; their barycentric
+  // coordinates give the exact (s, t) of a parallelogram and a close start for Newton otherwise.
+  const Vec2d p00 = projected_[c[0]], p10 = projected_[c[1]], p11 = projected_[c[2]],
+              p01 = projected_[c[3]];
+  double s = 0, t = 0;
+  const auto l1 = barycentric(p00, p10, p11, q);
+  if (inside(l1)) {
+    s = l1[1] + l1[2];
+    t = l1[2];
+  } else {
+    const auto l2 = barycentric(p00, p11, p01, q);
+    if (!inside(l2)) {
+      return std::nullopt;
+    }
+    s = l2[1];
+    t = l2[1] + l2[2];
+  }
+  // Invert q = p00 + s e + t f + s t g (the projected bilinear map).
+  const Vec2d e = sub2(p10, p00), f = sub2(p01, p00);
+  const Vec2d g{p00.u - p10.u - p01.u + p11.u, p00.v - p10.v - p01.v + p11.v};
+  bool converged = g.u == 0 && g.v == 0;  // a parallelogram: the start is exact
+  for (int iteration = 0; iteration < 12 && !converged; ++iteration) {
+    const Vec2d residual{p00.u + s * e.u + t * f.u + s * t * g.u - q.u,
+                         p00.v + s * e.v + t * f.v + s * t * g.v - q.v};
+    const Vec2d ds{e.u + t * g.u, e.v + t * g.v};  // d/ds
+    const Vec2d dt{f.u + s * g.u, f.v + s * g.v};  // d/dt
+    const double det = cross2(ds, dt);
+    if (det == 0 || !std::isfinite(det)) {
+      break;
+    }
+    const double stepS = cross2(residual, dt) / det;
+    const double stepT = cross2(ds, residual) / det;
+    s -= stepS;
+    t -= stepT;
+    converged = std::fabs(stepS) + std::fabs(stepT) < 1e-13;
+  }
+  if (!converged || s < -kBarycentricSlack || t < -kBarycentricSlack || s > 1 + kBarycentricSlack ||
+      t > 1 + kBarycentricSlack) {
+    // A strongly distorted (non-convex) cell: fall back to its triangles.
+    const std::uint32_t first[3] = {c[0], c[1], c[2]};
+    const std::uint32_t second[3] = {c[0], c[2], c[3]};
+    if (auto r = onTriangle(first, q)) {
+      return r;
+    }
+    return onTriangle(second, q);
+  }
+  s = std::clamp(s, 0.0, 1.0);
+  t = std::clamp(t, 0.0, 1.0);
+  return vertices_[c[0]] * ((1 - s) * (1 - t)) + vertices_[c[1]] * (s * (1 - t)) +
+         vertices_[c[2]] * (s * t) + vertices_[c[3]] * ((1 - s) * t);
+}
+
+std::optional<Vec3d> SurfaceSampler::sample(const Vec3d& p) const {
+  if (!p.finite() || bucketsU_ == 0) {
+    return std::nullopt;
+  }
+  const Vec2d q = frame_.project(p);
+  const double slack = bucketSize_ * 1e-9;
+  if (q.u < bounds_.min.u - slack || q.u > bounds_.max.u + slack || q.v < bounds_.min.v - slack ||
+      q.v > bounds_.max.v + slack) {
+    return std::nullopt;
+  }
+  const int bu = std::clamp(static_cast<int>(std::floor((q.u - bounds_.min.u) / bucketSize_)), 0,
+                            bucketsU_ - 1);
+  const int bv = std::clamp(static_cast<int>(std::floor((q.v - bounds_.min.v) / bucketSize_)), 0,
+                            bucketsV_ - 1);
+  const std::size_t b = static_cast<std::size_t>(bv) * bucketsU_ + bu;
+
+  std::optional<Vec3d> best;
+  double bestDistance = std::numeric_limits<double>::infinity();
+  const double ph = frame_.height(p);
+  for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
+    const std::uint32_t* c = &cells_[4 * static_cast<std::size_t>(bucketItems_[i])];
+    std::optional<Vec3d> r = c[3] == kNoVertex ? onTriangle(c, q) : onQuad(c, q);
+    if (!r) {
+      continue;
+    }
+    const double distance = std::fabs(frame_.height(*r) - ph);
+    if (distance < bestDistance) {
+      bestDistance = distance;
+      best = r;
+    }
+  }
+  return best;
+}
+
+bool SurfaceSampler::covers(const Rect2d& rect) const {
+  if (bucketsU_ == 0 || !rect.intersects(bounds_)) {
+    return false;
+  }
+  auto bucket = [&](double value, double origin, int count) {
+    return std::clamp(static_cast<int>(std::floor((value - origin) / bucketSize_)), 0, count - 1);
+  };
+  const int u0 = bucket(rect.min.u, bounds_.min.u, bucketsU_);
+  const int u1 = bucket(rect.max.u, bounds_.min.u, bucketsU_);
+  const int v0 = bucket(rect.min.v, bounds_.min.v, bucketsV_);
+  const int v1 = bucket(rect.max.v, bounds_.min.v, bucketsV_);
+  for (int v = v0; v <= v1; ++v) {
+    for (int u = u0; u <= u1; ++u) {
+      const std::size_t b = static_cast<std::size_t>(v) * bucketsU_ + u;
+      for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
+        const std::uint32_t* c = &cells_[4 * static_cast<std::size_t>(bucketItems_[i])];
+        Rect2d r;
+        for (int k = 0; k < 4; ++k) {
+          if (c[k] != kNoVertex) {
+            r.extend(projected_[c[k]]);
+          }
+        }
+        if (r.intersects(rect)) {
+          return true;
+        }
+      }
+    }
+  }
+  return false;
+}
+
+std::size_t SurfaceSampler::bytes() const {
+  return vertices_.capacity() * sizeof(Vec3d) + projected_.capacity() * sizeof(Vec2d) +
+         (cells_.capacity() + bucketStart_.capacity() + bucketItems_.capacity()) *
+             sizeof(std::uint32_t);
+}
+
+}  // namespace vsm::core

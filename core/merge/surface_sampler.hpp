@@ -1,0 +1,129 @@
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <vector>
+
+#include "core/grid/geometry.hpp"
+#include "core/grid/patch_grid.hpp"
+
+namespace vsm::core {
+
+/// A 2D point/extent in the plane perpendicular to a frame's up direction.
+struct Vec2d {
+  double u = 0, v = 0;
+};
+
+/// Axis-aligned rectangle in an UpFrame's plane; empty when min > max (the default).
+struct Rect2d {
+  static constexpr double kInf = Box3d::kInf;
+  Vec2d min{kInf, kInf};
+  Vec2d max{-kInf, -kInf};
+
+  bool empty() const { return min.u > max.u || min.v > max.v; }
+  void extend(const Vec2d& p);
+  bool intersects(const Rect2d& r) const;
+  /// True when `r` lies inside this rectangle, allowing `tolerance` on every side.
+  bool contains(const Rect2d& r, double tolerance = 0) const;
+};
+
+/// An orthonormal frame (e1, e2, up) around an origin: projects points onto the plane
+/// perpendicular to `up`. Merging places B's surface along `up`, so everything that decides
+/// "which part of B lies over this point" works in this plane.
+struct UpFrame {
+  Vec3d origin;
+  Vec3d e1{1, 0, 0};
+  Vec3d e2{0, 1, 0};
+  Vec3d up{0, 0, 1};
+
+  /// Precondition: `up` is finite and non-zero (it is normalised here).
+  UpFrame(const Vec3d& origin, const Vec3d& up);
+
+  Vec2d project(const Vec3d& p) const;
+  /// Signed distance of `p` above the plane through the origin.
+  double height(const Vec3d& p) const;
+  /// The rectangle covering the projection of all 8 corners of `box` (conservative footprint).
+  Rect2d footprint(const Box3d& box) const;
+};
+
+/// The up direction vsm uses for a model with bounding box `box`: for earth-centred (ECEF)
+/// coordinates (box centre farther than 100 km from the origin) the normalised centre, i.e. the
+/// local vertical; otherwise +z (a local Cartesian frame).
+Vec3d defaultUp(const Box3d& box);
+
+/// B's surface as a function over the plane perpendicular to `up`: built from B's bottom grids in
+/// global coordinates, it answers "where does the line through p along up meet B's surface".
+///
+/// B's surface is its grid's own: in a cell (quad) whose four corners are defined, the bilinear
+/// surface of the corners; in a cell with one undefined corner, the triangle of the other three;
+/// cells with two or more undefined corners have none. Cells are indexed by their projection in a
+/// uniform 2D bucket grid. sample(p) finds the cell whose projection contains p's projection (a
+/// full cell is tested as its two triangles), inverts the projected bilinear map by Newton's method
+/// (starting from the triangle's barycentric estimate) and evaluates the 3D bilinear surface there,
+/// so the result projects exactly onto p's projection: only p's height changes. Each query is
+/// located by its own coordinates: a rotated, sheared or unevenly spaced B is reproduced as it
+/// is, not re-gridded (the thesis' section 5.3 limitation).
+///
+/// Interpolation error. Let B sample a smooth height field h over the plane (height along up), and
+/// let M bound the second directional derivative of h (the spectral norm of its Hessian). Both
+/// interpolants are convex combinations sum_i w_i v_i of the cell's corners that reproduce the
+/// query position (w_i >= 0, sum w_i = 1, sum w_i v_i = p in the plane). Taylor expansion around p
+/// gives  sum_i w_i h(v_i) - h(p) = 1/2 sum_i w_i (v_i - p)^T H(xi_i) (v_i - p),  and for the
+/// centre c of any disc of radius R holding the corners, sum_i w_i |v_i - p|^2 = sum_i w_i |v_i -
+/// c|^2 - |p - c|^2 <= R^2. Hence
+///   |sample(p) - h(p)| <= (1/2) M R^2,
+/// i.e. (1/4) M s^2 for a square cell of side s (R = s / sqrt 2) and <= (1/6) M h^2 for a
+/// triangle with longest edge h. Add float32 rounding of B's stored vertices (maxAbsLocal * 2^-24
+/// per coordinate).
+///
+/// Thread-safe for concurrent const calls after construction.
+class SurfaceSampler {
+ public:
+  /// `grids`: B's bottom grids (their vertex data is copied, in double, after `transform` when
+  /// given). `up`: the projection direction (normalised here); throws Error(InvalidArgument) when
+  /// it is zero or not finite.
+  SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid>>& grids, const Vec3d& up,
+                 const std::optional<Mat4d>& transform = std::nullopt);
+
+  /// The point of B's surface on the line through `p` along up; nullopt where B has no surface
+  /// (outside B, in B's holes, or for an undefined `p`). Where several layers of B lie over the
+  /// same point (an overhang) the one nearest to `p` is returned.
+  std::optional<Vec3d> sample(const Vec3d& p) const;
+
+  /// True when some indexed cell's projected bounding rectangle meets `rect` (in frame()):
+  /// a conservative "may B have surface there".
+  bool covers(const Rect2d& rect) const;
+
+  const UpFrame& frame() const { return frame_; }
+  /// Indexed cells (full quads and 3-corner triangles).
+  std::size_t cellCount() const { return cells_.size() / 4; }
+  /// Footprint (in frame()) of every indexed cell.
+  const Rect2d& footprint() const { return bounds_; }
+  /// Longest projected edge or diagonal over all indexed cells.
+  double maxEdge() const { return maxEdge_; }
+  /// Bytes held (vertices, cells, index), for accounting.
+  std::size_t bytes() const;
+
+ private:
+  std::optional<Vec3d> onTriangle(const std::uint32_t* corners, const Vec2d& q) const;
+  std::optional<Vec3d> onQuad(const std::uint32_t* corners, const Vec2d& q) const;
+
+  UpFrame frame_;
+  std::vector<Vec3d> vertices_;   // global (transformed) positions of defined vertices
+  std::vector<Vec2d> projected_;  // their projections into frame_
+  // 4 vertex indices per cell: (0,0), (1,0), (1,1), (0,1) of a full quad, or a triangle's three
+  // corners and kNoVertex.
+  std::vector<std::uint32_t> cells_;
+  Rect2d bounds_;
+  double maxEdge_ = 0;
+  // Uniform bucket grid over bounds_: bucket (bx, by) holds the cells whose projected
+  // bounding rectangle meets it, as bucketItems_[bucketStart_[b] .. bucketStart_[b + 1]).
+  double bucketSize_ = 1;
+  int bucketsU_ = 0, bucketsV_ = 0;
+  std::vector<std::uint32_t> bucketStart_;
+  std::vector<std::uint32_t> bucketItems_;
+};
+
+}  // namespace vsm::core
