@@ -11,10 +11,15 @@
 #include <string_view>
 #include <vector>
 
+#include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
 #include "core/io/grid_source.hpp"
+#include "core/merge/merge.hpp"
+#include "core/merge/register.hpp"
 #include "core/opc/opc_store.hpp"
+#include "core/store/live_model.hpp"
+#include "server/config/config.hpp"
 
 namespace fs = std::filesystem;
 using namespace vsm::core;
@@ -31,6 +36,11 @@ constexpr std::string_view kUsage =
     "  info <opc>                                  depth, patches per level, bounds, resolution, "
     "bytes\n"
     "  validate <opc>                              check every invariant; exit 1 listing findings\n"
+    "  merge <target> <detail> [--register] [--out <dir>] [--memory-budget SIZE]\n"
+    "                                              insert the detail model into the target (in\n"
+    "                                              place, or into a new <dir>); --register aligns\n"
+    "                                              it first (ICP); SIZE like 512MiB (default "
+    "1GiB)\n"
     "  help                                        this text\n";
 
 struct UsageError {
@@ -189,6 +199,120 @@ int runValidate(const std::vector<std::string_view>& args) {
   return 1;
 }
 
+/// A directory removed on destruction unless kept: the copy a merge with --out works on until it
+/// is complete and renamed into place.
+class StagingCopy {
+ public:
+  StagingCopy(const fs::path& from, const fs::path& to)
+      : path_(to.parent_path() /
+              (to.filename().string() + ".partial-" + std::to_string(::getpid()))) {
+    std::error_code ec;
+    if (fs::exists(fs::symlink_status(to, ec))) {
+      throw Error(ErrorCode::Conflict, "output directory '" + to.string() + "' exists");
+    }
+    fs::copy(from, path_, fs::copy_options::recursive);
+  }
+  ~StagingCopy() {
+    std::error_code ec;
+    fs::remove_all(path_, ec);
+  }
+  StagingCopy(const StagingCopy&) = delete;
+  StagingCopy& operator=(const StagingCopy&) = delete;
+
+  const fs::path& path() const { return path_; }
+  /// Renames the finished copy to `to`.
+  void publish(const fs::path& to) {
+    fs::rename(path_, to);
+    path_.clear();
+  }
+
+ private:
+  fs::path path_;
+};
+
+int runMerge(const std::vector<std::string_view>& args) {
+  std::vector<std::string_view> positional;
+  bool registerFirst = false;
+  std::optional<fs::path> out;
+  std::size_t budget = std::size_t{1} << 30;
+  for (std::size_t i = 0; i < args.size(); ++i) {
+    if (args[i] == "--register") {
+      registerFirst = true;
+    } else if (args[i] == "--out" || args[i] == "--memory-budget") {
+      if (i + 1 >= args.size()) {
+        throw UsageError{std::string(args[i]) + " needs a value"};
+      }
+      if (args[i] == "--out") {
+        out = fs::path(args[++i]);
+      } else {
+        try {
+          budget = vsm::server::parseSize(args[++i]);
+        } catch (const Error& e) {
+          throw UsageError{e.what()};
+        }
+      }
+    } else if (args[i].starts_with("--")) {
+      throw UsageError{"unknown option " + std::string(args[i])};
+    } else {
+      positional.push_back(args[i]);
+    }
+  }
+  if (positional.size() != 2) {
+    throw UsageError{"merge needs <target> and <detail>"};
+  }
+  const fs::path target(positional[0]);
+  const fs::path detailDir(positional[1]);
+  const auto start = std::chrono::steady_clock::now();
+  PatchCache cache(budget);
+  // Open both before copying anything: a corrupt model fails here and nothing is written.
+  auto detail = LiveModel::open(detailDir, "detail", cache);
+  readOpcModel(target);
+  std::optional<StagingCopy> copy;
+  if (out) {
+    copy.emplace(target, *out);
+  }
+  auto live = LiveModel::open(copy ? copy->path() : target, "target", cache);
+  ConsoleProgress progress;
+  MergeOptions options;
+  options.progress = &progress;
+  if (registerFirst) {
+    RegistrationOptions registration;
+    registration.progress = &progress;
+    const RegistrationResult r = registerModels(*live, *detail, registration);
+    options.transform = r.transform;
+    std::printf("registration: fitness %.6g m^2, rms %.4g m, %s, %d stages, %.2f s\n", r.fitness,
+                r.rms, r.converged ? "converged" : "NOT converged", r.stages, r.seconds);
+    for (int row = 0; row < 3; ++row) {
+      const auto& m = r.transform.m;
+      std::printf("  [%.9f %.9f %.9f %.4f]\n", m[row * 4], m[row * 4 + 1], m[row * 4 + 2],
+                  m[row * 4 + 3]);
+    }
+  }
+  auto edit = live->beginEdit();
+  const MergeResult result = mergeModels(*edit, *detail, options);
+  progress.report("publishing", 0.0);
+  edit->publish();
+  progress.report("publishing", 1.0);
+  edit.reset();
+  live.reset();
+  if (copy) {
+    copy->publish(*out);
+  }
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const CacheStats stats = cache.stats();
+  std::printf(
+      "merged %s into %s: %zu target leaves matched, %zu detail leaves, %zu new patches, up to %d "
+      "new levels, %.2f s\n",
+      detailDir.string().c_str(), out.value_or(target).string().c_str(), result.matchedLeaves,
+      result.detailLeaves, result.newPatches, result.maxLevels, seconds);
+  std::printf("memory: budget %s, peak resident %s, %llu evictions, %llu write-backs\n",
+              formatBytes(stats.budgetBytes).c_str(), formatBytes(stats.peakResidentBytes).c_str(),
+              static_cast<unsigned long long>(stats.evictions),
+              static_cast<unsigned long long>(stats.writeBacks));
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -208,6 +332,9 @@ int main(int argc, char** argv) {
     }
     if (command == "validate") {
       return runValidate(args);
+    }
+    if (command == "merge") {
+      return runMerge(args);
     }
     throw UsageError{"unknown command '" + std::string(command) + "'"};
   } catch (const UsageError& e) {
