@@ -115,11 +115,6 @@ void addSystemRoutes(http::Router& router, SystemContext context) {
   router.add(http::Method::Get, "/v1/stats", [&cache = context.cache](const http::Request&) {
     return noStore(http::jsonResponse(200, statsJson(cache.stats(), cache.policy())));
   });
-  // Open models are listed by the model registry, which arrives with the model routes and
-  // replaces this handler; until then no model can be open.
-  router.add(http::Method::Get, "/v1/models", [](const http::Request&) {
-    return noStore(http::jsonResponse(200, {{"models", json::array()}}));
-  });
 }
 
 }  // namespace vsm::server::api

@@ -18,7 +18,8 @@ struct SystemContext {
   std::function<bool()> ready;
 };
 
-/// GET /healthz, /readyz, /metrics, /v1/stats, /v1/models (see proto/openapi.yaml).
+/// GET /healthz, /readyz, /metrics, /v1/stats (see proto/openapi.yaml; the model and job routes
+/// are in model_routes.hpp).
 void addSystemRoutes(http::Router& router, SystemContext context);
 
 /// The body of GET /v1/stats (proto/examples/stats.json).

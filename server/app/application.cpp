@@ -11,12 +11,15 @@
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "server/api/model_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/exec/work_pool.hpp"
 #include "server/http/pipeline.hpp"
 #include "server/http/router.hpp"
 #include "server/http/server.hpp"
+#include "server/jobs/job_registry.hpp"
 #include "server/metrics/metrics.hpp"
+#include "server/models/model_registry.hpp"
 
 #ifndef VSM_VERSION
 #define VSM_VERSION "unknown"
@@ -85,12 +88,21 @@ Application::Application(Config config) : config_(std::move(config)) {
       config_.threads.cpu != 0 ? config_.threads.cpu
                                : std::max<std::size_t>(1, std::thread::hardware_concurrency());
   cpuPool_ = std::make_unique<exec::WorkPool>("cpu", cpuThreads);
-  // Merges and imports run here once the job routes exist; a pool of its own so that they can
-  // never take the threads request handlers need.
+  // Merges and imports run here, a pool of its own so that they can never take the threads
+  // request handlers need.
   jobPool_ = std::make_unique<exec::WorkPool>("jobs", config_.threads.jobs);
+  models_ = std::make_unique<models::ModelRegistry>(config_.dataRoot, *cache_);
+  const std::size_t opened = models_->openAll();
+  log::info("data root " + models_->dataRoot().string() + ": " + std::to_string(opened) +
+            " model(s) open");
+  // Jobs live in memory only: after a restart none is listed, and a merge that had not published
+  // left its model at the last published version (drafts are removed when the model opens).
+  jobs_ = std::make_unique<jobs::JobRegistry>(*jobPool_);
 
   router_ = std::make_unique<http::Router>();
   api::addSystemRoutes(*router_, {*cache_, *metrics_, [this] { return ready(); }});
+  api::addModelRoutes(*router_, {*models_, *jobs_});
+  api::addJobRoutes(*router_, {*models_, *jobs_});
   pipeline_ = std::make_unique<http::Pipeline>(*router_, config_.token);
 
   http::ServerOptions options;
@@ -123,6 +135,16 @@ Application::Application(Config config) : config_(std::move(config)) {
       queued.samples.push_back({{pool->name()}, static_cast<double>(pool->queued())});
       active.samples.push_back({{pool->name()}, static_cast<double>(pool->active())});
     }
+    Snapshot jobStates{"vsm_jobs", "Jobs remembered, by state", Type::Gauge, {"state"}, {}};
+    for (const auto& [state, count] : jobs_->counts()) {
+      jobStates.samples.push_back(
+          {{std::string(jobs::toString(state))}, static_cast<double>(count)});
+    }
+    Snapshot openModels{"vsm_models_open",
+                        "Open models",
+                        Type::Gauge,
+                        {},
+                        {{{}, static_cast<double>(models_->size())}}};
     Snapshot up{"vsm_ready",
                 "1 while the daemon serves, 0 while starting or stopping",
                 Type::Gauge,
@@ -138,8 +160,9 @@ Application::Application(Config config) : config_(std::move(config)) {
                    Type::Gauge,
                    {},
                    {{{}, startTime}}};
-    return std::vector<Snapshot>{std::move(threads), std::move(queued), std::move(active),
-                                 std::move(up),      std::move(build),  std::move(start)};
+    return std::vector<Snapshot>{std::move(threads),   std::move(queued),     std::move(active),
+                                 std::move(jobStates), std::move(openModels), std::move(up),
+                                 std::move(build),     std::move(start)};
   });
 }
 
@@ -212,6 +235,9 @@ void Application::shutdown() {
               " open ones get up to " + formatDuration(config_.limits.shutdownGrace) +
               " to finish");
   }
+  // Jobs stop first (at their next check), so a long merge does not hold the exit; their edits
+  // are discarded and the models stay at their last published version.
+  jobs_->cancelAll();
   server_->stop(config_.limits.shutdownGrace);
   // Handlers still running (past the grace period) post their results into the stopped server;
   // it must outlive them, so the pools are drained before any component is destroyed.

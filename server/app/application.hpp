@@ -26,12 +26,19 @@ class Server;
 namespace metrics {
 class Registry;
 }
+namespace models {
+class ModelRegistry;
+}
+namespace jobs {
+class JobRegistry;
+}
 
 /// The daemon's version ("0.1.0").
 std::string_view version();
 
 /// The composition root of vsmd: builds every component in order (metrics, patch cache, CPU and
-/// job pools, routes, HTTP server) and tears them down in reverse. main() only parses arguments
+/// job pools, model registry with every model under the data root opened, job registry, routes,
+/// HTTP server) and tears them down in reverse. main() only parses arguments
 /// and runs one; tests may run one in-process on 127.0.0.1:0.
 ///
 /// Thread-safety: the constructor, start(), run() and the destructor from one thread; stop(),
@@ -54,7 +61,9 @@ class Application {
 
   /// start() unless started, then blocks until stop() is called, then shuts down gracefully:
   /// readiness off, no new connections, in-flight requests finished (for up to
-  /// limits.shutdown_grace), pools drained. Returns normally after a clean stop.
+  /// limits.shutdown_grace), jobs cancelled (their edits discarded), pools drained; the models
+  /// are closed (dirty data written back) when the Application is destroyed. Returns normally
+  /// after a clean stop.
   void run();
 
   /// Makes run() return. The first call starts a graceful shutdown, a second one ends its grace
@@ -77,6 +86,8 @@ class Application {
   std::unique_ptr<core::PatchCache> cache_;
   std::unique_ptr<exec::WorkPool> cpuPool_;
   std::unique_ptr<exec::WorkPool> jobPool_;
+  std::unique_ptr<models::ModelRegistry> models_;
+  std::unique_ptr<jobs::JobRegistry> jobs_;
   std::unique_ptr<http::Router> router_;
   std::unique_ptr<http::Pipeline> pipeline_;
   std::unique_ptr<http::Server> server_;

@@ -31,8 +31,11 @@ IDLE_TIMEOUT = 1.0  # the main daemon's limits.idle_timeout, seconds
 class Daemon:
     """One vsmd process on 127.0.0.1:0 with its own data root; the port comes from --port-file."""
 
-    def __init__(self, *flags, config=None):
-        self.dir = tempfile.mkdtemp(prefix="vsmd-test-")
+    def __init__(self, *flags, config=None, prepare=None, root=None):
+        """`prepare(dir)` fills the data root before the daemon starts; `root` reuses one."""
+        self.dir = root or tempfile.mkdtemp(prefix="vsmd-test-")
+        if prepare is not None:
+            prepare(self.dir)
         self.port_file = os.path.join(self.dir, "port")
         self.log_path = os.path.join(self.dir, "vsmd.log")
         args = [ARGS.vsmd, "--listen", "127.0.0.1:0", "--data-root", self.dir,
@@ -95,9 +98,10 @@ class Daemon:
             self.proc.kill()
             self.proc.wait(timeout=10)
 
-    def cleanup(self):
+    def cleanup(self, keep=False):
         self.kill()
-        shutil.rmtree(self.dir, ignore_errors=True)
+        if not keep:
+            shutil.rmtree(self.dir, ignore_errors=True)
 
 
 def example(name):
@@ -249,9 +253,10 @@ class MainDaemon(unittest.TestCase):
         self.assertEqual(headers["Cache-Control"], "no-store")
 
     def test_models_start_empty(self):
-        status, _, body = self.daemon.get_json("/v1/models")
+        status, headers, body = self.daemon.get_json("/v1/models")
         self.assertEqual(status, 200)
-        self.assertEqual(body, example("models.json"))
+        self.assertEqual(body, {"models": []})
+        self.assertEqual(headers["Cache-Control"], "no-cache")
 
     def test_an_unknown_route_is_a_json_404(self):
         status, headers, body = self.daemon.request("GET", "/v1/nothing?x=1")
@@ -471,6 +476,8 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--vsmd", required=True)
     parser.add_argument("--proto", required=True)
+    parser.add_argument("--vsm", help="the vsm command (model tests are skipped without it)")
+    parser.add_argument("--data", help="the shared real data (../shared/data)")
     ARGS, rest = parser.parse_known_args()
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 

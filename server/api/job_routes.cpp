@@ -1,0 +1,82 @@
+// The job routes: GET/POST /v1/jobs, GET/DELETE /v1/jobs/{j} (declared in model_routes.hpp).
+#include <nlohmann/json.hpp>
+
+#include "core/common/error.hpp"
+#include "server/api/model_routes.hpp"
+#include "server/jobs/job_registry.hpp"
+#include "server/jobs/model_jobs.hpp"
+
+namespace vsm::server::api {
+
+using core::Error;
+using core::ErrorCode;
+using nlohmann::json;
+
+namespace {
+
+http::Response jobResponse(int status, const jobs::JobStatus& job) {
+  http::Response response = http::jsonResponse(status, jobs::toJson(job));
+  response.set("Cache-Control", std::string(http::cache_control::kNoStore));
+  return response;
+}
+
+http::Response postJob(const ModelContext& c, const http::Request& request) {
+  const json body = http::jsonBody(request);
+  if (!body.is_object()) {
+    throw Error(ErrorCode::InvalidArgument, "request body must be a JSON object");
+  }
+  for (const auto& [key, value] : body.items()) {
+    if (key != "type" && key != "target" && key != "source" && key != "register") {
+      throw Error(ErrorCode::InvalidArgument, "unknown member '" + key.substr(0, 64) + "'");
+    }
+  }
+  const auto type = body.find("type");
+  if (type == body.end() || !type->is_string() || *type != "merge") {
+    throw Error(ErrorCode::InvalidArgument,
+                R"('type' must be "merge" (imports are submitted with POST /v1/models))");
+  }
+  const auto target = body.find("target");
+  const auto source = body.find("source");
+  if (target == body.end() || !target->is_string() || source == body.end() ||
+      !source->is_string()) {
+    throw Error(ErrorCode::InvalidArgument, "'target' and 'source' must be model ids (strings)");
+  }
+  bool registerFirst = false;
+  if (const auto reg = body.find("register"); reg != body.end()) {
+    if (!reg->is_boolean()) {
+      throw Error(ErrorCode::InvalidArgument, "'register' must be true or false");
+    }
+    registerFirst = reg->get<bool>();
+  }
+  const jobs::JobStatus job = jobs::submitMerge(c.jobs, c.models, target->get<std::string>(),
+                                                source->get<std::string>(), registerFirst);
+  http::Response response = jobResponse(202, job);
+  response.set("Location", "/v1/jobs/" + job.id);
+  return response;
+}
+
+}  // namespace
+
+void addJobRoutes(http::Router& router, ModelContext context) {
+  router.add(http::Method::Get, "/v1/jobs", [context](const http::Request&) {
+    json list = json::array();
+    for (const jobs::JobStatus& job : context.jobs.list()) {
+      list.push_back(jobs::toJson(job));
+    }
+    http::Response response = http::jsonResponse(200, {{"jobs", std::move(list)}});
+    response.set("Cache-Control", std::string(http::cache_control::kNoStore));
+    return response;
+  });
+  router.add(http::Method::Post, "/v1/jobs",
+             [context](const http::Request& request) { return postJob(context, request); });
+  router.add(http::Method::Get, "/v1/jobs/{j}", [context](const http::Request& request) {
+    return jobResponse(200, context.jobs.get(request.param("j")));
+  });
+  router.add(http::Method::Delete, "/v1/jobs/{j}", [context](const http::Request& request) {
+    const jobs::JobStatus job = context.jobs.cancel(request.param("j"));
+    // Cancelled at once when it was queued (200); otherwise it stops at its next check (202).
+    return jobResponse(jobs::isFinal(job.state) ? 200 : 202, job);
+  });
+}
+
+}  // namespace vsm::server::api

@@ -1,0 +1,31 @@
+#pragma once
+
+#include <filesystem>
+#include <string>
+
+#include "server/jobs/job_registry.hpp"
+#include "server/models/model_registry.hpp"
+
+namespace vsm::server::jobs {
+
+/// Submits an import: `input` (a raster or organized point cloud inside the data root, resolved
+/// already) is built into the OPC directory <data root>/<id> with `patchSize` vertices per side
+/// (importFile), which is then opened as model `id`. The id is reserved until the job ends.
+///
+/// Throws core::Error(InvalidArgument) for a bad id or patch size, Conflict when the id is open
+/// or reserved or <data root>/<id> exists, Unavailable when the job queue is full.
+JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const std::string& id,
+                       const std::filesystem::path& input, int patchSize);
+
+/// Submits a merge of the open model `source` (the detail) into the open model `target`
+/// (DESIGN.md section 3): target->beginEdit(), registerModels() when `registerFirst`,
+/// mergeModels(), publish(). Readers see the old version until publish() returns and the new one
+/// after; on error or cancellation the edit is discarded. Both models are leased (cannot be
+/// closed) until the job ends.
+///
+/// Throws core::Error(InvalidArgument) when target == source, NotFound for a model that is not
+/// open, Unavailable when the job queue is full.
+JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const std::string& target,
+                      const std::string& source, bool registerFirst);
+
+}  // namespace vsm::server::jobs

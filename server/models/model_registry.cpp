@@ -1,0 +1,316 @@
+#include "server/models/model_registry.hpp"
+
+#include <algorithm>
+#include <system_error>
+#include <utility>
+
+#include "core/cache/patch_cache.hpp"
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+#include "core/store/live_model.hpp"
+
+namespace vsm::server::models {
+
+namespace fs = std::filesystem;
+using core::Error;
+using core::ErrorCode;
+namespace log = core::log;
+
+namespace {
+
+bool isIdChar(char c) {
+  return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '_' ||
+         c == '-';
+}
+
+/// True when `path` lies strictly below `root` (both lexically normal and absolute).
+bool isStrictlyInside(const fs::path& root, const fs::path& path) {
+  auto r = root.begin();
+  auto p = path.begin();
+  for (; r != root.end(); ++r, ++p) {
+    if (r->empty() && std::next(r) == root.end()) {
+      break;  // a trailing separator of the root ("/data/") adds an empty last element
+    }
+    if (p == path.end() || *r != *p) {
+      return false;
+    }
+  }
+  for (; p != path.end(); ++p) {
+    if (!p->empty()) {
+      return true;
+    }
+  }
+  return false;
+}
+
+}  // namespace
+
+bool isValidModelId(std::string_view id) {
+  return !id.empty() && id.size() <= 64 && std::all_of(id.begin(), id.end(), isIdChar);
+}
+
+void checkModelId(std::string_view id, std::string_view what) {
+  if (!isValidModelId(id)) {
+    // The id is not echoed verbatim: it may hold control characters or be very long.
+    throw Error(ErrorCode::InvalidArgument,
+                std::string(what) + " must be 1 to 64 characters of A-Z, a-z, 0-9, '_' and '-'");
+  }
+}
+
+fs::path resolveInside(const fs::path& root, std::string_view relative) {
+  const auto bad = [](std::string_view why) {
+    throw Error(ErrorCode::InvalidArgument, "source path " + std::string(why));
+  };
+  if (relative.empty()) {
+    bad("is empty");
+  }
+  if (relative.find('\0') != std::string_view::npos) {
+    bad("contains a NUL byte");
+  }
+  const fs::path path(relative);
+  if (path.is_absolute() || relative.front() == '/' || path.has_root_name()) {
+    bad("must be relative to the data root");
+  }
+  for (const fs::path& part : path) {
+    if (part == "..") {
+      bad("must not contain '..'");
+    }
+  }
+  std::error_code ec;
+  // Resolves every symbolic link of the part that exists: a link out of the root is caught here.
+  fs::path resolved = fs::weakly_canonical(root / path, ec);
+  if (ec) {
+    bad("cannot be resolved (" + ec.message() + ")");
+  }
+  if (!resolved.has_filename()) {
+    resolved = resolved.parent_path();  // "a/b/" names the directory "a/b"
+  }
+  if (!isStrictlyInside(root, resolved)) {
+    bad("leads outside the data root");
+  }
+  return resolved;
+}
+
+// ---- Lease -----------------------------------------------------------------------------------
+
+ModelRegistry::Lease::Lease(Lease&& other) noexcept
+    : registry_(std::exchange(other.registry_, nullptr)), id_(std::move(other.id_)) {}
+
+ModelRegistry::Lease& ModelRegistry::Lease::operator=(Lease&& other) noexcept {
+  if (this != &other) {
+    release();
+    registry_ = std::exchange(other.registry_, nullptr);
+    id_ = std::move(other.id_);
+  }
+  return *this;
+}
+
+ModelRegistry::Lease::~Lease() {
+  release();
+}
+
+void ModelRegistry::Lease::release() {
+  if (registry_ != nullptr) {
+    std::exchange(registry_, nullptr)->unlease(id_);
+  }
+}
+
+// ---- ModelRegistry ---------------------------------------------------------------------------
+
+ModelRegistry::ModelRegistry(const fs::path& dataRoot, core::PatchCache& cache)
+    : root_(fs::canonical(dataRoot)), cache_(cache) {}
+
+ModelRegistry::~ModelRegistry() {
+  std::map<std::string, std::shared_ptr<core::LiveModel>, std::less<>> models;
+  {
+    const std::lock_guard lock(mutex_);
+    models.swap(models_);
+  }
+  models.clear();  // outside the lock: closing writes dirty data back
+}
+
+std::size_t ModelRegistry::openAll() {
+  std::vector<fs::path> dirs;
+  std::error_code ec;
+  for (fs::directory_iterator it(root_, ec), end; !ec && it != end; it.increment(ec)) {
+    std::error_code typeError;
+    if (it->is_directory(typeError)) {
+      dirs.push_back(it->path());
+    }
+  }
+  if (ec) {
+    log::warn("cannot list the data root " + root_.string() + ": " + ec.message());
+  }
+  std::sort(dirs.begin(), dirs.end());
+  std::size_t opened = 0;
+  for (const fs::path& dir : dirs) {
+    const std::string id = dir.filename().string();
+    if (!isValidModelId(id)) {
+      log::info("data root: skipping '" + id + "' (not a model id)");
+      continue;
+    }
+    std::error_code linkError;
+    const fs::path resolved = fs::canonical(dir, linkError);
+    if (linkError || !isStrictlyInside(root_, resolved)) {
+      log::warn("model=" + id + " skipped: the directory leads outside the data root");
+      continue;
+    }
+    try {
+      open(id, resolved);
+      ++opened;
+    } catch (const Error& e) {
+      if (e.code() == ErrorCode::NotFound) {
+        log::info("data root: skipping '" + id + "' (no OPC hierarchy)");
+      } else {
+        log::warn("model=" + id + " skipped: cannot open: " + e.what());
+      }
+    } catch (const std::exception& e) {
+      log::warn("model=" + id + " skipped: cannot open: " + e.what());
+    }
+  }
+  return opened;
+}
+
+std::shared_ptr<core::LiveModel> ModelRegistry::open(const std::string& id, const fs::path& dir) {
+  return openChecked(id, dir, false);
+}
+
+std::shared_ptr<core::LiveModel> ModelRegistry::openReserved(const Lease& reservation,
+                                                             const fs::path& dir) {
+  if (reservation.registry_ != this) {
+    throw Error(ErrorCode::Internal, "openReserved without a reservation");
+  }
+  return openChecked(reservation.id_, dir, true);
+}
+
+std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& id,
+                                                            const fs::path& dir, bool reserved) {
+  checkModelId(id);
+  std::error_code ec;
+  const fs::path canonical = fs::weakly_canonical(dir, ec);
+  if (ec) {
+    throw Error(ErrorCode::NotFound, "cannot resolve '" + dir.string() + "': " + ec.message());
+  }
+  {
+    const std::lock_guard lock(mutex_);
+    if (models_.contains(id) || opening_.contains(id)) {
+      throw Error(ErrorCode::Conflict, "model '" + id + "' is open already");
+    }
+    if (reserved_.contains(id) && !reserved) {
+      throw Error(ErrorCode::Conflict, "model '" + id + "' is being imported");
+    }
+    for (const auto& [other, model] : models_) {
+      if (model->dir() == canonical) {
+        throw Error(ErrorCode::Conflict, "that directory is open already as model '" + other + "'");
+      }
+    }
+    opening_.insert(id);
+  }
+  std::shared_ptr<core::LiveModel> model;
+  try {
+    model = core::LiveModel::open(canonical, id, cache_);
+  } catch (...) {
+    const std::lock_guard lock(mutex_);
+    opening_.erase(id);
+    throw;
+  }
+  {
+    const std::lock_guard lock(mutex_);
+    opening_.erase(id);
+    reserved_.erase(id);
+    models_.emplace(id, model);
+  }
+  const auto snapshot = model->snapshot();
+  log::info("model=" + id + " opened " + canonical.string() + ": " +
+            std::to_string(snapshot->model->patchCount()) + " patches, depth " +
+            std::to_string(snapshot->model->maxDepth()));
+  return model;
+}
+
+std::shared_ptr<core::LiveModel> ModelRegistry::find(std::string_view id) const {
+  const std::lock_guard lock(mutex_);
+  const auto it = models_.find(id);
+  return it == models_.end() ? nullptr : it->second;
+}
+
+std::shared_ptr<core::LiveModel> ModelRegistry::get(std::string_view id) const {
+  auto model = find(id);
+  if (model == nullptr) {
+    throw Error(ErrorCode::NotFound, isValidModelId(id)
+                                         ? "no open model '" + std::string(id) + "'"
+                                         : std::string("no such model (not a valid model id)"));
+  }
+  return model;
+}
+
+std::vector<std::shared_ptr<core::LiveModel>> ModelRegistry::list() const {
+  std::vector<std::shared_ptr<core::LiveModel>> out;
+  const std::lock_guard lock(mutex_);
+  out.reserve(models_.size());
+  for (const auto& [id, model] : models_) {
+    out.push_back(model);
+  }
+  return out;
+}
+
+std::size_t ModelRegistry::size() const {
+  const std::lock_guard lock(mutex_);
+  return models_.size();
+}
+
+void ModelRegistry::close(std::string_view id) {
+  std::shared_ptr<core::LiveModel> closed;
+  {
+    const std::lock_guard lock(mutex_);
+    const auto it = models_.find(id);
+    if (it == models_.end()) {
+      throw Error(ErrorCode::NotFound, isValidModelId(id)
+                                           ? "no open model '" + std::string(id) + "'"
+                                           : std::string("no such model (not a valid model id)"));
+    }
+    if (const auto lease = leases_.find(id); lease != leases_.end() && lease->second > 0) {
+      throw Error(ErrorCode::Conflict,
+                  "model '" + std::string(id) + "' is in use by a job; cancel the job first");
+    }
+    closed = std::move(it->second);
+    models_.erase(it);
+  }
+  log::info("model=" + std::string(id) + " closed");
+  // `closed` goes here, outside the lock; requests still holding the model keep it until they end.
+}
+
+ModelRegistry::Lease ModelRegistry::lease(std::string_view id) {
+  const std::lock_guard lock(mutex_);
+  if (!models_.contains(id)) {
+    throw Error(ErrorCode::NotFound, isValidModelId(id)
+                                         ? "no open model '" + std::string(id) + "'"
+                                         : std::string("no such model (not a valid model id)"));
+  }
+  ++leases_[std::string(id)];
+  return Lease(this, std::string(id));
+}
+
+ModelRegistry::Lease ModelRegistry::reserve(const std::string& id) {
+  checkModelId(id);
+  const std::lock_guard lock(mutex_);
+  if (models_.contains(id) || opening_.contains(id)) {
+    throw Error(ErrorCode::Conflict, "model '" + id + "' is open already");
+  }
+  if (reserved_.contains(id)) {
+    throw Error(ErrorCode::Conflict, "model '" + id + "' is being imported");
+  }
+  reserved_.insert(id);
+  ++leases_[id];
+  return Lease(this, id);
+}
+
+void ModelRegistry::unlease(const std::string& id) {
+  const std::lock_guard lock(mutex_);
+  const auto it = leases_.find(id);
+  if (it != leases_.end() && --it->second <= 0) {
+    leases_.erase(it);
+    reserved_.erase(id);
+  }
+}
+
+}  // namespace vsm::server::models

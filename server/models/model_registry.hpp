@@ -1,0 +1,123 @@
+#pragma once
+
+#include <cstddef>
+#include <filesystem>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace vsm::core {
+class LiveModel;
+class PatchCache;
+}  // namespace vsm::core
+
+namespace vsm::server::models {
+
+/// True for a valid model id: 1 to 64 of [A-Za-z0-9_-]. Ids name directories under the data root
+/// and appear in URLs, so nothing else (no '.', no '/', no '%') is allowed.
+bool isValidModelId(std::string_view id);
+
+/// Throws core::Error(InvalidArgument) naming `what` unless isValidModelId(id).
+void checkModelId(std::string_view id, std::string_view what = "model id");
+
+/// Resolves a path a client named, relative to `root` (canonical, see ModelRegistry::dataRoot()),
+/// to a path inside it. Rejects with core::Error(InvalidArgument) an empty path, an absolute one,
+/// one with a NUL byte, a ".." component, and one that leaves `root` through a symbolic link
+/// (the result is made weakly canonical, i.e. existing links are resolved, and must lie strictly
+/// below `root`). Touches nothing on disk but reading links.
+std::filesystem::path resolveInside(const std::filesystem::path& root, std::string_view relative);
+
+/// The open models of the daemon, by id, over the one shared PatchCache.
+///
+/// Models are shared: a request or job holds a std::shared_ptr<LiveModel> for its duration, so a
+/// model closed meanwhile stays usable until the last holder lets go (then its cache entries are
+/// written back and dropped). Holders must release their cache pins before the LiveModel.
+///
+/// A *lease* marks a model (or a reserved id) as used by a job: close() answers Conflict while one
+/// exists, so a merge target or an import cannot be closed under a job.
+///
+/// Thread-safe. One mutex guards the tables; it is never held while a model is opened or
+/// destroyed (both read the disk).
+class ModelRegistry {
+ public:
+  /// `dataRoot` must be an existing directory; `cache` must outlive the registry.
+  ModelRegistry(const std::filesystem::path& dataRoot, core::PatchCache& cache);
+  /// Closes every model (their dirty data is written back by the cache).
+  ~ModelRegistry();
+  ModelRegistry(const ModelRegistry&) = delete;
+  ModelRegistry& operator=(const ModelRegistry&) = delete;
+
+  /// The canonical data root.
+  const std::filesystem::path& dataRoot() const { return root_; }
+
+  /// Opens every directory directly under the data root whose name is a valid id and that holds
+  /// an OPC (metadata only). A directory that fails to open is logged and skipped. Returns the
+  /// number opened.
+  std::size_t openAll();
+
+  /// Opens the OPC directory `dir` (inside the data root) as `id`. Throws core::Error(Conflict)
+  /// when the id is open or reserved, or the directory is open under another id;
+  /// InvalidArgument for a bad id; the errors of LiveModel::open (NotFound when `dir` holds no
+  /// OPC, Corrupt, Io).
+  std::shared_ptr<core::LiveModel> open(const std::string& id, const std::filesystem::path& dir);
+
+  /// The open model `id`, or nullptr.
+  std::shared_ptr<core::LiveModel> find(std::string_view id) const;
+  /// The open model `id`. Throws core::Error(NotFound).
+  std::shared_ptr<core::LiveModel> get(std::string_view id) const;
+  /// Every open model, ordered by id.
+  std::vector<std::shared_ptr<core::LiveModel>> list() const;
+  std::size_t size() const;
+
+  /// Removes `id` from the registry; its data stays on disk. Throws core::Error(NotFound) for an
+  /// unknown id, Conflict while a job holds a lease on it.
+  void close(std::string_view id);
+
+  /// An RAII hold of a job on a model id (see the class comment). Movable.
+  class Lease {
+   public:
+    Lease() = default;
+    Lease(Lease&& other) noexcept;
+    Lease& operator=(Lease&& other) noexcept;
+    ~Lease();
+
+   private:
+    friend class ModelRegistry;
+    Lease(ModelRegistry* registry, std::string id) : registry_(registry), id_(std::move(id)) {}
+    void release();
+    ModelRegistry* registry_ = nullptr;
+    std::string id_;
+  };
+
+  /// A lease on the open model `id`. Throws core::Error(NotFound).
+  Lease lease(std::string_view id);
+  /// Reserves an id that is not open yet (an import in progress): open() under it is then allowed
+  /// only to the holder (pass the lease), and a second reservation or open() by others is a
+  /// Conflict. Throws core::Error(InvalidArgument) for a bad id, Conflict when open or reserved.
+  Lease reserve(const std::string& id);
+  /// open() for the holder of reserve(id)'s lease.
+  std::shared_ptr<core::LiveModel> openReserved(const Lease& reservation,
+                                                const std::filesystem::path& dir);
+
+ private:
+  std::shared_ptr<core::LiveModel> openChecked(const std::string& id,
+                                               const std::filesystem::path& dir, bool reserved);
+  void unlease(const std::string& id);
+
+  std::filesystem::path root_;
+  core::PatchCache& cache_;
+  mutable std::mutex mutex_;  // guards models_, leases_, reserved_, opening_
+  std::map<std::string, std::shared_ptr<core::LiveModel>, std::less<>> models_;
+  /// Id -> number of leases (on open models and reservations alike).
+  std::map<std::string, int, std::less<>> leases_;
+  /// Ids reserved for imports.
+  std::set<std::string, std::less<>> reserved_;
+  /// Ids being opened right now (open() reads the disk without the lock).
+  std::set<std::string, std::less<>> opening_;
+};
+
+}  // namespace vsm::server::models

@@ -1,0 +1,541 @@
+#!/usr/bin/python3
+"""End-to-end tests of vsmd's model, patch, LOD and job routes on real data: the real daemon on
+127.0.0.1:0 (see server_test.py for the harness) over a data root holding the Jacksboro DEM
+imported by `vsm import` at 65 x 65, and PRISM imported over HTTP as a job, then merged with
+Jacksboro as a job. Responses are checked against proto/examples and decoded independently
+(the .aara bytes with struct). Run by ctest:
+    server_models_test.py --vsmd build/server/vsmd --vsm build/server/cli/vsm \\
+        --data ../shared/data --proto proto"""
+
+import argparse
+import json
+import math
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import unittest
+import urllib.parse
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import server_test as base  # noqa: E402  (the Daemon harness and helpers)
+from server_test import Daemon, example, shape  # noqa: E402
+
+TOKEN = "models-token-0123456789"
+AUTH = {"Authorization": "Bearer " + TOKEN}
+JSON = {"Content-Type": "application/json"}
+PATCH = 65
+ARGS = None
+
+
+
+def import_opc(dem, out, size=PATCH):
+    subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, dem), out, "--patch-size",
+                    str(size)], check=True, capture_output=True, timeout=300)
+
+
+def decode_aara(data):
+    """(type name, sizes, payload) of .aara bytes, per ../shared/docs/OPC.md."""
+    n = data[0]
+    name = data[1:1 + n].decode("ascii")
+    dims = data[1 + n]
+    sizes = struct.unpack_from("<%di" % dims, data, 2 + n)
+    return name, sizes, data[2 + n + 4 * dims:]
+
+
+def wait_job(daemon, job_id, timeout=600, seen=None):
+    """Polls a job until it is final; `seen` collects (state, stage, progress) along the way."""
+    deadline = time.monotonic() + timeout
+    while True:
+        status, _, job = daemon.get_json("/v1/jobs/" + job_id)
+        assert status == 200, job
+        if seen is not None:
+            seen.append((job["state"], job["stage"], job["progress"]))
+        if job["state"] in ("succeeded", "failed", "cancelled"):
+            return job
+        if time.monotonic() > deadline:
+            raise AssertionError("job %s not final after %d s: %r" % (job_id, timeout, job))
+        time.sleep(0.02)
+
+
+def post_json(daemon, path, body, headers=AUTH):
+    status, hdrs, data = daemon.request("POST", path, body=json.dumps(body).encode(),
+                                        headers={**JSON, **headers})
+    return status, hdrs, json.loads(data) if data else None
+
+
+def walk(node):
+    yield node
+    for child in node.get("children", []):
+        yield from walk(child)
+
+
+def key_parts(key):
+    d, x, y = (int(v) for v in key.split("_"))
+    return d, x, y
+
+
+class Models(unittest.TestCase):
+    """One daemon over a data root with Jacksboro (imported by `vsm`), a copy of the PRISM raster,
+    an outside directory reachable through a symlink, and entries that are not models."""
+
+    daemon = None
+    outside = None
+
+    @classmethod
+    def setUpClass(cls):
+        if not ARGS.vsm or not ARGS.data:
+            raise unittest.SkipTest("--vsm and --data are needed")
+        cls.outside = tempfile.mkdtemp(prefix="vsmd-outside-")
+        import_opc("jacksboro_fault_dem.tif", os.path.join(cls.outside, "outside-model"))
+        with open(os.path.join(cls.outside, "secret.tif"), "wb") as f:
+            f.write(b"not for clients")
+
+        def prepare(root):
+            import_opc("jacksboro_fault_dem.tif", os.path.join(root, "jacksboro"))
+            os.mkdir(os.path.join(root, "rasters"))
+            shutil.copy(os.path.join(ARGS.data, "PRISMelevation.tif"),
+                        os.path.join(root, "rasters", "prism.tif"))
+            os.mkdir(os.path.join(root, "empty-dir"))
+            os.mkdir(os.path.join(root, "bad.name"))
+            os.symlink(cls.outside, os.path.join(root, "escape"))
+
+        cls.daemon = Daemon("--token", TOKEN, "--memory-budget", "256MiB",
+                            "--set", "threads.cpu=4", "--set", "limits.body_bytes=4KiB",
+                            prepare=prepare)
+        cls.outside_before = cls.snapshot_outside()
+
+    @classmethod
+    def snapshot_outside(cls):
+        out = {}
+        for dirpath, dirnames, filenames in os.walk(cls.outside):
+            for name in dirnames + filenames:
+                path = os.path.join(dirpath, name)
+                st = os.lstat(path)
+                out[os.path.relpath(path, cls.outside)] = (st.st_size, st.st_mtime_ns)
+        return out
+
+    @classmethod
+    def tearDownClass(cls):
+        try:
+            if cls.daemon is not None:
+                code = cls.daemon.stop()
+                if code != 0:
+                    raise AssertionError("vsmd exited %d:\n%s" % (code, cls.daemon.log()))
+        finally:
+            if cls.daemon is not None:
+                cls.daemon.cleanup()
+            if cls.outside is not None:
+                shutil.rmtree(cls.outside, ignore_errors=True)
+
+    def assert_error(self, status, body, expected_status, code):
+        self.assertEqual(status, expected_status, body)
+        error = json.loads(body) if isinstance(body, bytes) else body
+        self.assertEqual(shape(error), shape(example("error-not-found.json")))
+        self.assertEqual(error["error"]["code"], code)
+
+    # ---- start-up and reads ----------------------------------------------------------------
+
+    def test_startup_opens_the_opcs_and_skips_the_rest(self):
+        status, headers, body = self.daemon.get_json("/v1/models")
+        self.assertEqual(status, 200)
+        self.assertEqual(headers["Cache-Control"], "no-cache")
+        ids = [m["id"] for m in body["models"]]
+        self.assertIn("jacksboro", ids)
+        for skipped in ("empty-dir", "bad.name", "rasters", "escape"):
+            self.assertNotIn(skipped, ids)
+        entry = next(m for m in body["models"] if m["id"] == "jacksboro")
+        self.assertEqual(shape(entry), shape(example("models.json")["models"][0]))
+        log = self.daemon.log()
+        self.assertIn("model=jacksboro opened", log)
+        self.assertIn("skipping 'bad.name'", log)
+
+    def test_summary_has_bounds_levels_and_an_etag(self):
+        status, headers, body = self.daemon.get_json("/v1/models/jacksboro")
+        self.assertEqual(status, 200)
+        self.assertEqual(shape(body), shape(example("model.json")))
+        self.assertEqual(body["grid_size"], PATCH)
+        self.assertEqual(len(body["levels"]), body["depth"] + 1)
+        self.assertEqual(sum(level["patches"] for level in body["levels"]), body["patches"])
+        self.assertEqual(body["levels"][0]["patches"], 1)
+        # ECEF metres, Tennessee: about 6.37e6 m from the earth's centre.
+        lo, hi = body["bounds"]["min"], body["bounds"]["max"]
+        self.assertAlmostEqual(math.dist([0, 0, 0], [(a + b) / 2 for a, b in zip(lo, hi)]),
+                               6.37e6, delta=0.02e6)
+        etag = headers["ETag"]
+        self.assertRegex(etag, r'^"[^"]+"$')
+        self.assertEqual(headers["Cache-Control"], "no-cache")
+        status, headers, data = self.daemon.request("GET", "/v1/models/jacksboro",
+                                                    headers={"If-None-Match": etag})
+        self.assertEqual(status, 304)
+        self.assertEqual(data, b"")
+        self.assertEqual(headers["ETag"], etag)
+
+    def test_hierarchy_is_the_whole_tree_or_a_cut_of_it(self):
+        _, _, summary = self.daemon.get_json("/v1/models/jacksboro")
+        status, _, tree = self.daemon.get_json("/v1/models/jacksboro/hierarchy")
+        self.assertEqual(status, 200)
+        self.assertEqual(tree["model"], "jacksboro")
+        nodes = list(walk(tree["root"]))
+        self.assertEqual(len(nodes), summary["patches"])
+        self.assertEqual(sum(1 for n in nodes if n["leaf"]), summary["leaves"])
+        for node in nodes:  # children are the node's quadrants, inside its box
+            d, x, y = key_parts(node["key"])
+            for child in node.get("children", []):
+                cd, cx, cy = key_parts(child["key"])
+                self.assertEqual((cd, cx // 2, cy // 2), (d + 1, x, y))
+                for axis in range(3):
+                    self.assertGreaterEqual(child["box"]["min"][axis],
+                                            node["box"]["min"][axis] - 1e-6)
+                    self.assertLessEqual(child["box"]["max"][axis],
+                                         node["box"]["max"][axis] + 1e-6)
+        status, _, top = self.daemon.get_json("/v1/models/jacksboro/hierarchy?depth=1")
+        self.assertEqual(status, 200)
+        self.assertEqual(shape(top), shape(example("hierarchy.json")))
+        for child in top["root"]["children"]:
+            self.assertNotIn("children", child)
+        first = top["root"]["children"][0]["key"]
+        status, _, sub = self.daemon.get_json("/v1/models/jacksboro/hierarchy?root=" + first)
+        self.assertEqual(sub["root"]["key"], first)
+        for query, code in (("root=9_9", 400), ("root=1_7_0", 400), ("depth=abc", 400),
+                            ("depth=-2", 400), ("root=25_0_0", 404)):
+            status, _, body = self.daemon.request("GET", "/v1/models/jacksboro/hierarchy?" + query)
+            self.assert_error(status, body, code,
+                              "invalid_argument" if code == 400 else "not_found")
+
+    def a_leaf(self):
+        _, _, tree = self.daemon.get_json("/v1/models/jacksboro/hierarchy")
+        leaves = [n for n in walk(tree["root"]) if n["leaf"]]
+        return leaves[len(leaves) // 2]
+
+    def test_patch_metadata_and_positions_agree(self):
+        leaf = self.a_leaf()
+        status, headers, meta = self.daemon.get_json("/v1/models/jacksboro/patches/" + leaf["key"])
+        self.assertEqual(status, 200)
+        self.assertEqual(shape(meta), shape(example("patch.json")))
+        self.assertEqual(meta["key"], leaf["key"])
+        self.assertEqual(meta["box"], leaf["box"])
+        self.assertEqual(headers["Cache-Control"], "public, max-age=60")
+        etag = headers["ETag"]
+
+        status, headers, data = self.daemon.request(
+            "GET", "/v1/models/jacksboro/patches/%s/positions" % leaf["key"])
+        self.assertEqual(status, 200)
+        self.assertEqual(headers["Content-Type"], "application/octet-stream")
+        self.assertEqual(headers["ETag"], etag)
+        self.assertIn("X-VSM-Local2Global", headers["Access-Control-Expose-Headers"])
+        self.assertEqual(data[:13], b"\x03V3f\x02" + struct.pack("<ii", PATCH, PATCH))
+        name, sizes, payload = decode_aara(data)
+        self.assertEqual((name, sizes), ("V3f", (PATCH, PATCH)))
+        self.assertEqual(len(payload), PATCH * PATCH * 12)
+        floats = struct.unpack("<%df" % (PATCH * PATCH * 3), payload)
+        vertices = [floats[i:i + 3] for i in range(0, len(floats), 3)]
+        defined = [v for v in vertices if not any(math.isnan(c) for c in v)]
+        self.assertGreater(len(defined), 0)
+        self.assertEqual(len(vertices), PATCH * PATCH)
+        # Local + Local2Global = global, inside the patch's box.
+        m = [float(v) for v in headers["X-VSM-Local2Global"].split(",")]
+        self.assertEqual(len(m), 16)
+        self.assertEqual(m, meta["local2global"])
+        lo, hi = meta["box"]["min"], meta["box"]["max"]
+        for v in defined[:: max(1, len(defined) // 50)]:
+            g = [m[4 * r] * v[0] + m[4 * r + 1] * v[1] + m[4 * r + 2] * v[2] + m[4 * r + 3]
+                 for r in range(3)]
+            for axis in range(3):
+                self.assertGreaterEqual(g[axis], lo[axis] - 0.01)
+                self.assertLessEqual(g[axis], hi[axis] + 0.01)
+
+        status, headers, data = self.daemon.request(
+            "GET", "/v1/models/jacksboro/patches/%s/positions" % leaf["key"],
+            headers={"If-None-Match": etag})
+        self.assertEqual(status, 304)
+        self.assertEqual(data, b"")
+        status, headers, data = self.daemon.request(
+            "HEAD", "/v1/models/jacksboro/patches/%s/positions" % leaf["key"])
+        self.assertEqual(status, 200)
+        self.assertEqual(int(headers["Content-Length"]), 13 + PATCH * PATCH * 12)
+
+    def test_unknown_models_and_patches_are_404_and_bad_keys_400(self):
+        for path in ("/v1/models/nope", "/v1/models/nope/hierarchy",
+                     "/v1/models/nope/patches/0_0_0", "/v1/models/nope/patches/0_0_0/positions",
+                     "/v1/models/nope/lod?box=0,0,0,1,1,1&resolution=1",
+                     "/v1/models/jacksboro/patches/20_0_0",
+                     "/v1/models/jacksboro/patches/20_0_0/positions",
+                     "/v1/models/%2E%2E", "/v1/models/..%2Fjacksboro", "/v1/jobs/nope"):
+            status, _, body = self.daemon.request("GET", path)
+            self.assert_error(status, body, 404, "not_found")
+        for path in ("/v1/models/jacksboro/patches/0_0", "/v1/models/jacksboro/patches/x_y_z",
+                     "/v1/models/jacksboro/patches/1_2_0", "/v1/models/jacksboro/patches/-1_0_0",
+                     "/v1/models/jacksboro/patches/0_0_0_0/positions"):
+            status, _, body = self.daemon.request("GET", path)
+            self.assert_error(status, body, 400, "invalid_argument")
+
+    def test_lod_cuts_the_tree_by_box_and_resolution(self):
+        _, _, summary = self.daemon.get_json("/v1/models/jacksboro")
+        lo, hi = summary["bounds"]["min"], summary["bounds"]["max"]
+        box = ",".join("%.17g" % v for v in lo + hi)
+        status, headers, coarse = self.daemon.get_json(
+            "/v1/models/jacksboro/lod?box=%s&resolution=1e9" % box)
+        self.assertEqual(status, 200)
+        self.assertEqual(shape(coarse), shape(example("lod.json")))
+        self.assertEqual([p["key"] for p in coarse["patches"]], ["0_0_0"])
+        _, _, fine = self.daemon.get_json("/v1/models/jacksboro/lod?box=%s&resolution=0.001" % box)
+        self.assertEqual(len(fine["patches"]), summary["leaves"])
+        self.assertTrue(all(p["leaf"] for p in fine["patches"]))
+        finest = summary["resolution"]["finest"]
+        _, _, mid = self.daemon.get_json(
+            "/v1/models/jacksboro/lod?box=%s&resolution=%r" % (box, finest * 2.5))
+        self.assertLess(len(mid["patches"]), len(fine["patches"]))
+        for p in mid["patches"]:
+            self.assertTrue(p["leaf"] or p["resolution"] <= finest * 2.5)
+        # A small box in a corner selects only the patches that meet it.
+        corner = ",".join("%.17g" % v for v in lo + [lo[i] + (hi[i] - lo[i]) * 0.05 for i in range(3)])
+        _, _, small = self.daemon.get_json(
+            "/v1/models/jacksboro/lod?box=%s&resolution=0.001" % urllib.parse.quote(corner))
+        self.assertLess(len(small["patches"]), len(fine["patches"]))
+        self.assertEqual(self.daemon.request(
+            "GET", "/v1/models/jacksboro/lod?box=%s&resolution=1e9" % box,
+            headers={"If-None-Match": headers["ETag"]})[0], 304)
+        for query in ("", "box=%s" % box, "resolution=5", "box=1,2,3&resolution=5",
+                      "box=%s&resolution=0" % box, "box=%s&resolution=abc" % box,
+                      "box=3,0,0,1,1,1&resolution=5", "box=0,0,0,1,1,inf&resolution=5"):
+            status, _, body = self.daemon.request("GET", "/v1/models/jacksboro/lod?" + query)
+            self.assert_error(status, body, 400, "invalid_argument")
+
+    # ---- writes --------------------------------------------------------------------------
+
+    def test_writes_need_the_token(self):
+        status, _, body = self.daemon.request(
+            "POST", "/v1/models", body=b'{"id": "x", "source": {"path": "jacksboro"}}',
+            headers=JSON)
+        self.assert_error(status, body, 401, "unauthorized")
+        for method, path in (("DELETE", "/v1/models/jacksboro"), ("POST", "/v1/jobs"),
+                             ("DELETE", "/v1/jobs/x")):
+            self.assertEqual(self.daemon.request(method, path)[0], 401, path)
+        self.assertEqual(self.daemon.get_json("/v1/models/jacksboro")[0], 200)
+
+    def test_an_oversize_body_is_413(self):
+        status, _, body = self.daemon.request(
+            "POST", "/v1/models", body=json.dumps({"id": "x" * 5000}).encode(),
+            headers={**JSON, **AUTH})
+        self.assert_error(status, body, 413, "payload_too_large")
+
+    def test_bad_json_and_bad_requests_are_400(self):
+        for body in (b"not json", b"[]", b'{"id": "x"}', b'{"id": "x", "source": {}}',
+                     b'{"id": "x", "source": {"path": "jacksboro"}, "extra": 1}',
+                     b'{"id": "x", "source": {"import": "rasters/prism.tif", "patch_size": 64}}'):
+            status, _, data = self.daemon.request("POST", "/v1/models", body=body,
+                                                  headers={**JSON, **AUTH})
+            self.assert_error(status, data, 400, "invalid_argument")
+        for body in (b'{"type": "merge"}', b'{"type": "split", "target": "a", "source": "b"}',
+                     b'{"type": "merge", "target": "jacksboro", "source": "jacksboro"}'):
+            status, _, data = self.daemon.request("POST", "/v1/jobs", body=body,
+                                                  headers={**JSON, **AUTH})
+            self.assert_error(status, data, 400, "invalid_argument")
+
+    def test_path_tricks_in_ids_and_sources_are_400_and_touch_nothing_outside(self):
+        before = sorted(os.listdir(self.daemon.dir))
+        tricks = [
+            {"id": "../evil", "source": {"path": "jacksboro"}},
+            {"id": "a/b", "source": {"path": "jacksboro"}},
+            {"id": "..", "source": {"path": "jacksboro"}},
+            {"id": "x" * 65, "source": {"path": "jacksboro"}},
+            {"id": "", "source": {"path": "jacksboro"}},
+            {"id": "ok", "source": {"path": "../" + os.path.basename(self.outside)}},
+            {"id": "ok", "source": {"path": self.outside}},
+            {"id": "ok", "source": {"path": "escape/outside-model"}},
+            {"id": "ok", "source": {"path": "escape"}},
+            {"id": "ok", "source": {"path": "jacksboro/../../x"}},
+            {"id": "ok", "source": {"path": "."}},
+            {"id": "ok", "source": {"import": "escape/secret.tif", "patch_size": 65}},
+            {"id": "ok", "source": {"import": "/etc/passwd", "patch_size": 65}},
+            {"id": "ok", "source": {"import": "../../etc/passwd", "patch_size": 65}},
+            {"id": "../../tmp/evil", "source": {"import": "rasters/prism.tif", "patch_size": 65}},
+        ]
+        for body in tricks:
+            status, _, data = post_json(self.daemon, "/v1/models", body)
+            self.assert_error(status, data, 400, "invalid_argument")
+        for path in ("/v1/models/..%2F..%2Fetc", "/v1/models/%2E%2E%2Fx/hierarchy"):
+            status, _, data = self.daemon.request("DELETE", path, headers=AUTH)
+            self.assertIn(status, (404, 405), data)
+        self.assertEqual(sorted(os.listdir(self.daemon.dir)), before)
+        self.assertEqual(self.snapshot_outside(), self.outside_before)
+        ids = [m["id"] for m in self.daemon.get_json("/v1/models")[2]["models"]]
+        self.assertNotIn("ok", ids)
+
+    def test_open_conflict_close_and_reopen(self):
+        status, _, body = post_json(self.daemon, "/v1/models",
+                                    {"id": "jacksboro", "source": {"path": "jacksboro"}})
+        self.assert_error(status, body, 409, "conflict")
+        status, _, body = post_json(self.daemon, "/v1/models",
+                                    {"id": "twin", "source": {"path": "jacksboro"}})
+        self.assert_error(status, body, 409, "conflict")
+        status, _, body = post_json(self.daemon, "/v1/models",
+                                    {"id": "nothing", "source": {"path": "empty-dir"}})
+        self.assert_error(status, body, 404, "not_found")
+        # A second copy, opened by path, closed, and opened again.
+        shutil.copytree(os.path.join(self.daemon.dir, "jacksboro"),
+                        os.path.join(self.daemon.dir, "rasters", "copy"))
+        status, headers, body = post_json(self.daemon, "/v1/models",
+                                          {"id": "copy", "source": {"path": "rasters/copy"}})
+        self.assertEqual(status, 201, body)
+        self.assertEqual(headers["Location"], "/v1/models/copy")
+        self.assertEqual(shape(body), shape(example("model.json")))
+        status, _, data = self.daemon.request("DELETE", "/v1/models/copy", headers=AUTH)
+        self.assertEqual(status, 204)
+        self.assertEqual(data, b"")
+        self.assertEqual(self.daemon.get_json("/v1/models/copy")[0], 404)
+        self.assertEqual(self.daemon.request("DELETE", "/v1/models/copy", headers=AUTH)[0], 404)
+        self.assertTrue(os.path.isdir(os.path.join(self.daemon.dir, "rasters", "copy", "Patches")))
+        status, _, body = post_json(self.daemon, "/v1/models",
+                                    {"id": "copy", "source": {"path": "rasters/copy"}})
+        self.assertEqual(status, 201, body)
+        self.assertEqual(self.daemon.request("DELETE", "/v1/models/copy", headers=AUTH)[0], 204)
+
+    # ---- jobs: import, merge with reads during it, cancel, restart ------------------------
+
+    def test_z_import_then_merge_then_cancel_then_restart(self):
+        d = self.daemon
+        # Import PRISM as a job.
+        status, headers, job = post_json(d, "/v1/models", {
+            "id": "prism", "source": {"import": "rasters/prism.tif", "patch_size": PATCH}})
+        self.assertEqual(status, 202, job)
+        self.assertEqual(shape(job), shape(example("job-import.json")))
+        self.assertEqual(headers["Location"], "/v1/jobs/" + job["id"])
+        status, _, again = post_json(d, "/v1/models", {
+            "id": "prism", "source": {"import": "rasters/prism.tif", "patch_size": PATCH}})
+        self.assert_error(status, again, 409, "conflict")
+        done = wait_job(d, job["id"])
+        self.assertEqual(done["state"], "succeeded", done)
+        self.assertEqual(done["progress"], 1)
+        status, _, prism = d.get_json("/v1/models/prism")
+        self.assertEqual(status, 200)
+        self.assertEqual(prism["version"], 1)
+        self.assertEqual(done["result"]["patches"], prism["patches"])
+
+        # Merge Jacksboro into PRISM; readers hammer PRISM meanwhile.
+        _, before_headers, before_tree = d.get_json("/v1/models/prism/hierarchy")
+        before_count = len(list(walk(before_tree["root"])))
+        status, _, job = post_json(d, "/v1/jobs", {"type": "merge", "target": "prism",
+                                                   "source": "jacksboro", "register": False})
+        self.assertEqual(status, 202, job)
+        self.assertEqual(shape(job), shape(example("job.json")))
+        self.assertIn(job["state"], ("queued", "running"))
+        if d.get_json("/v1/jobs/" + job["id"])[2]["state"] in ("queued", "running"):
+            # The job holds the target: it cannot be closed under it.
+            status, _, body = d.request("DELETE", "/v1/models/prism", headers=AUTH)
+            if status == 204:  # the job ended between the two requests: open it again
+                self.assertEqual(post_json(d, "/v1/models", {
+                    "id": "prism", "source": {"path": "prism"}})[0], 201)
+            else:
+                self.assert_error(status, body, 409, "conflict")
+
+        stop = threading.Event()
+        failures = []
+        versions = {}
+
+        def reader():
+            while not stop.is_set():
+                try:
+                    status, headers, tree = d.get_json("/v1/models/prism/hierarchy")
+                    if status != 200:
+                        failures.append(("hierarchy", status))
+                        continue
+                    nodes = list(walk(tree["root"]))
+                    keys = sorted(n["key"] for n in nodes)
+                    seen = versions.setdefault(tree["version"], (headers["ETag"], keys))
+                    if seen != (headers["ETag"], keys):
+                        failures.append(("two trees for version %d" % tree["version"],))
+                    for n in nodes:
+                        if not n["leaf"] and len(n.get("children", [])) != n["child_count"]:
+                            failures.append(("node without its children", n["key"]))
+                    status, headers, data = d.request(
+                        "GET", "/v1/models/prism/patches/0_0_0/positions")
+                    if status != 200 or len(data) != 13 + PATCH * PATCH * 12:
+                        failures.append(("positions", status, len(data)))
+                except Exception as e:  # noqa: BLE001 - reported below
+                    failures.append(("exception", repr(e)))
+
+        readers = [threading.Thread(target=reader) for _ in range(3)]
+        for t in readers:
+            t.start()
+        seen = []
+        try:
+            done = wait_job(d, job["id"], seen=seen)
+        finally:
+            stop.set()
+            for t in readers:
+                t.join(timeout=60)
+        self.assertEqual(done["state"], "succeeded", done)
+        self.assertEqual(failures, [])
+        self.assertLessEqual(set(versions), {1, 2})
+        progress = [p for _, _, p in seen]
+        self.assertEqual(progress, sorted(progress), "progress went down")
+        self.assertEqual(progress[-1], 1)
+        self.assertTrue(any(0 < p < 1 for p in progress), seen[:20])
+        self.assertEqual(done["result"]["version"], 2)
+        self.assertGreater(done["result"]["new_patches"], 0)
+        _, after_headers, after = d.get_json("/v1/models/prism")
+        self.assertEqual(after["version"], 2)
+        self.assertEqual(after["patches"], before_count + done["result"]["new_patches"])
+        self.assertGreater(after["depth"], prism["depth"])
+        self.assertNotEqual(after_headers["ETag"], before_headers["ETag"])
+        status, _, _ = d.request("GET", "/v1/models/prism/hierarchy",
+                                 headers={"If-None-Match": before_headers["ETag"]})
+        self.assertEqual(status, 200)
+        status, _, jobs = d.get_json("/v1/jobs")
+        self.assertEqual(status, 200)
+        self.assertIn(job["id"], [j["id"] for j in jobs["jobs"]])
+
+        # Cancel a second merge: the model stays as it is.
+        _, summary_headers, summary = d.get_json("/v1/models/prism")
+        status, _, job = post_json(d, "/v1/jobs", {"type": "merge", "target": "prism",
+                                                   "source": "jacksboro"})
+        self.assertEqual(status, 202, job)
+        status, _, cancelled = d.request("DELETE", "/v1/jobs/" + job["id"], headers=AUTH)
+        self.assertIn(status, (200, 202), cancelled)
+        self.assertTrue(json.loads(cancelled)["cancel_requested"])
+        final = wait_job(d, job["id"])
+        self.assertEqual(final["state"], "cancelled", final)
+        self.assertEqual(final["error"]["code"], "cancelled")
+        status, headers, now = d.get_json("/v1/models/prism")
+        self.assertEqual(now, summary)
+        self.assertEqual(headers["ETag"], summary_headers["ETag"])
+        status, _, body = d.request("DELETE", "/v1/jobs/" + job["id"], headers=AUTH)
+        self.assert_error(status, body, 409, "conflict")
+        self.assertFalse([n for n in os.listdir(os.path.join(d.dir, "prism", "Patches"))
+                          if n.endswith("-v3")], "a discarded edit left folders")
+
+        # Restart: the merged model opens at its published version, with the same content.
+        self.assertEqual(d.stop(), 0)
+        restarted = Daemon("--token", TOKEN, root=d.dir)
+        try:
+            status, headers, reopened = restarted.get_json("/v1/models/prism")
+            self.assertEqual(status, 200)
+            self.assertEqual(reopened["patches"], after["patches"])
+            self.assertEqual(reopened["depth"], after["depth"])
+            self.assertEqual(headers["ETag"], after_headers["ETag"])
+            self.assertEqual(restarted.get_json("/v1/jobs")[2], {"jobs": []})
+        finally:
+            self.assertEqual(restarted.stop(), 0)
+            restarted.cleanup(keep=True)
+
+
+def main():
+    global ARGS
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--vsmd", required=True)
+    parser.add_argument("--proto", required=True)
+    parser.add_argument("--vsm")
+    parser.add_argument("--data")
+    ARGS, rest = parser.parse_known_args()
+    base.ARGS = ARGS
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,567 @@
+// The daemon's model registry, job registry and model/job routes, in-process: a synthetic OPC in a
+// temporary data root, requests through the real Router and Pipeline (no sockets).
+#include <gtest/gtest.h>
+
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <condition_variable>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <map>
+#include <mutex>
+#include <span>
+#include <thread>
+
+#include <nlohmann/json.hpp>
+
+#include "core/cache/patch_cache.hpp"
+#include "core/common/error.hpp"
+#include "core/opc/aara.hpp"
+#include "core/opc/opc_store.hpp"
+#include "core/store/live_model.hpp"
+#include "server/api/model_routes.hpp"
+#include "server/exec/work_pool.hpp"
+#include "server/http/pipeline.hpp"
+#include "server/http/router.hpp"
+#include "server/jobs/job_registry.hpp"
+#include "server/models/model_registry.hpp"
+
+namespace fs = std::filesystem;
+
+namespace vsm::server {
+namespace {
+
+using core::Error;
+using core::ErrorCode;
+using nlohmann::json;
+using namespace std::chrono_literals;
+
+constexpr int kSize = 17;  // 2^4 + 1
+constexpr std::size_t kMiB = 1024 * 1024;
+
+template <typename F>
+ErrorCode codeOf(F&& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return e.code();
+  }
+  ADD_FAILURE() << "no core::Error thrown";
+  return ErrorCode::Internal;
+}
+
+/// Leaf (x, y) at depth 2 of a 4x4 bottom level on a 1 m lattice; leaf (3, 3) is left out.
+std::shared_ptr<core::PatchGrid> leafGrid(std::uint32_t x, std::uint32_t y) {
+  const int u0 = static_cast<int>(x) * (kSize - 1);
+  const int v0 = static_cast<int>(y) * (kSize - 1);
+  auto grid =
+      std::make_shared<core::PatchGrid>(kSize, core::Mat4d::translation({u0 + 8.0, v0 + 8.0, 0}));
+  for (int j = 0; j < kSize; ++j) {
+    for (int i = 0; i < kSize; ++i) {
+      grid->setGlobal(i, j, {double(u0 + i), double(v0 + j), std::sin((u0 + i) * 0.2) * 5});
+    }
+  }
+  return grid;
+}
+
+/// Writes a three-level model (15 leaves, 4 + 1 overviews) to `dir`.
+void writeModel(const fs::path& dir) {
+  core::Model model(kSize);
+  const auto info = [](const core::PatchKey& key) {
+    core::PatchInfo i;
+    i.key = key;
+    return i;
+  };
+  model.insert(info(core::PatchKey::root()));
+  for (std::uint32_t y = 0; y < 2; ++y) {
+    for (std::uint32_t x = 0; x < 2; ++x) {
+      model.insert(info({1, x, y}));
+    }
+  }
+  for (std::uint32_t y = 0; y < 4; ++y) {
+    for (std::uint32_t x = 0; x < 4; ++x) {
+      if (x == 3 && y == 3) {
+        continue;
+      }
+      model.insert(info({2, x, y}));
+      model.setGrid({2, x, y}, leafGrid(x, y));
+    }
+  }
+  model.refreshStale([](const core::PatchInfo&) { return nullptr; });
+  core::OpcWriter writer(dir, core::OpcWriter::Durability::EachFile);
+  for (const auto& [key, patch] : model.patches()) {
+    core::PatchInfo& mutableInfo = model.at(key);
+    mutableInfo.folder = key.toString();
+    writer.writePatch(mutableInfo, *patch.grid, model.childrenBox(key));
+  }
+  writer.writeHierarchy(model);
+}
+
+/// A temporary data root, removed at the end of the test.
+class DataRoot {
+ public:
+  DataRoot()
+      : path_(fs::temp_directory_path() / ("vsm_server_models_test_" + std::to_string(getpid()) +
+                                           "_" + std::to_string(counter_++))) {
+    fs::remove_all(path_);
+    fs::create_directories(path_);
+    path_ = fs::canonical(path_);
+  }
+  ~DataRoot() { fs::remove_all(path_); }
+  const fs::path& path() const { return path_; }
+
+ private:
+  static inline int counter_ = 0;
+  fs::path path_;
+};
+
+http::Request request(http::Method method, std::string target, std::string body = {}) {
+  http::Request r;
+  r.method = method;
+  r.methodName = std::string(http::toString(method));
+  r.target = std::move(target);
+  r.body = std::move(body);
+  r.id = "req-1";
+  if (!r.body.empty()) {
+    r.headers.emplace_back("content-type", "application/json");
+  }
+  return r;
+}
+
+// ---- ids and paths ---------------------------------------------------------------------------
+
+TEST(ModelId, AcceptsOnlyShortWordsWithDashes) {
+  for (const std::string& id :
+       {std::string("a"), std::string("prism_65"), std::string("Jacks-boro"), std::string("0"),
+        std::string(64, 'x')}) {
+    EXPECT_TRUE(models::isValidModelId(id)) << id;
+  }
+  for (const std::string& id : {std::string(), std::string(65, 'x'), std::string("a.b"),
+                                std::string("a/b"), std::string(".."), std::string("a b"),
+                                std::string("a%2F"), std::string("é"), std::string("a\0b", 3)}) {
+    EXPECT_FALSE(models::isValidModelId(id)) << id;
+    EXPECT_EQ(codeOf([&] { models::checkModelId(id); }), ErrorCode::InvalidArgument);
+  }
+}
+
+TEST(ResolveInside, KeepsPathsInsideTheDataRoot) {
+  const DataRoot root;
+  fs::create_directories(root.path() / "a" / "b");
+  EXPECT_EQ(models::resolveInside(root.path(), "a/b"), root.path() / "a" / "b");
+  EXPECT_EQ(models::resolveInside(root.path(), "a/./b/"), root.path() / "a" / "b");
+  EXPECT_EQ(models::resolveInside(root.path(), "new.tif"), root.path() / "new.tif");
+  for (const std::string& bad :
+       {std::string(), std::string("/etc"), std::string(".."), std::string("../x"),
+        std::string("a/../../x"), std::string("a/.."), std::string("."), std::string("a\0b", 3)}) {
+    EXPECT_EQ(codeOf([&] { models::resolveInside(root.path(), bad); }), ErrorCode::InvalidArgument)
+        << bad;
+  }
+}
+
+TEST(ResolveInside, RejectsSymbolicLinksOutOfTheRoot) {
+  const DataRoot root;
+  const DataRoot outside;
+  fs::create_directory_symlink(outside.path(), root.path() / "out");
+  fs::create_directory_symlink(root.path() / "in", root.path() / "alias");
+  fs::create_directories(root.path() / "in");
+  EXPECT_EQ(codeOf([&] { models::resolveInside(root.path(), "out"); }), ErrorCode::InvalidArgument);
+  EXPECT_EQ(codeOf([&] { models::resolveInside(root.path(), "out/x.tif"); }),
+            ErrorCode::InvalidArgument);
+  EXPECT_EQ(models::resolveInside(root.path(), "alias"), root.path() / "in");
+}
+
+// ---- registry --------------------------------------------------------------------------------
+
+TEST(ModelRegistry, OpensEveryOpcUnderTheRootAndSkipsTheRest) {
+  const DataRoot root;
+  writeModel(root.path() / "good");
+  writeModel(root.path() / "bad.id");
+  fs::create_directories(root.path() / "empty");
+  fs::create_directories(root.path() / "broken" / "Patches");
+  { std::ofstream(root.path() / "broken" / "Patches" / "patchhierarchy.xml") << "<not xml"; }
+  core::PatchCache cache(64 * kMiB);
+  models::ModelRegistry registry(root.path(), cache);
+  EXPECT_EQ(registry.openAll(), 1u);
+  ASSERT_EQ(registry.list().size(), 1u);
+  EXPECT_EQ(registry.list()[0]->name(), "good");
+  EXPECT_EQ(registry.get("good")->snapshot()->model->patchCount(), 20u);
+  EXPECT_EQ(codeOf([&] { registry.get("bad.id"); }), ErrorCode::NotFound);
+}
+
+TEST(ModelRegistry, IdsAndDirectoriesAreOpenOnceAndLeasesBlockClosing) {
+  const DataRoot root;
+  writeModel(root.path() / "m");
+  core::PatchCache cache(64 * kMiB);
+  models::ModelRegistry registry(root.path(), cache);
+  registry.open("m", root.path() / "m");
+  EXPECT_EQ(codeOf([&] { registry.open("m", root.path() / "m"); }), ErrorCode::Conflict);
+  EXPECT_EQ(codeOf([&] { registry.open("other", root.path() / "m"); }), ErrorCode::Conflict);
+  EXPECT_EQ(codeOf([&] { registry.open("x", root.path() / "missing"); }), ErrorCode::NotFound);
+  EXPECT_EQ(codeOf([&] { registry.reserve("m"); }), ErrorCode::Conflict);
+  {
+    const auto lease = registry.lease("m");
+    EXPECT_EQ(codeOf([&] { registry.close("m"); }), ErrorCode::Conflict);
+  }
+  const auto held = registry.get("m");
+  registry.close("m");
+  EXPECT_EQ(registry.find("m"), nullptr);
+  EXPECT_EQ(codeOf([&] { registry.close("m"); }), ErrorCode::NotFound);
+  // A request that still holds the closed model reads on.
+  EXPECT_TRUE(held->positions(*held->snapshot(), core::PatchKey::root()));
+}
+
+TEST(ModelRegistry, AReservedIdOpensOnlyForItsHolder) {
+  const DataRoot root;
+  writeModel(root.path() / "m");
+  core::PatchCache cache(64 * kMiB);
+  models::ModelRegistry registry(root.path(), cache);
+  {
+    const auto reservation = registry.reserve("m");
+    EXPECT_EQ(codeOf([&] { registry.reserve("m"); }), ErrorCode::Conflict);
+    EXPECT_EQ(codeOf([&] { registry.open("m", root.path() / "m"); }), ErrorCode::Conflict);
+    registry.openReserved(reservation, root.path() / "m");
+    EXPECT_EQ(codeOf([&] { registry.close("m"); }), ErrorCode::Conflict);
+  }
+  registry.close("m");
+  const auto reservation = registry.reserve("m");  // free again
+}
+
+// ---- jobs ------------------------------------------------------------------------------------
+
+/// A gate a test opens to let a job go on.
+class Gate {
+ public:
+  void open() {
+    {
+      const std::lock_guard lock(mutex_);
+      open_ = true;
+    }
+    cv_.notify_all();
+  }
+  void wait() {
+    std::unique_lock lock(mutex_);
+    cv_.wait(lock, [this] { return open_; });
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  bool open_ = false;
+};
+
+jobs::JobStatus waitFinal(const jobs::JobRegistry& registry, const std::string& id) {
+  const auto deadline = std::chrono::steady_clock::now() + 10s;
+  for (;;) {
+    jobs::JobStatus status = registry.get(id);
+    if (jobs::isFinal(status.state) || std::chrono::steady_clock::now() > deadline) {
+      return status;
+    }
+    std::this_thread::sleep_for(2ms);
+  }
+}
+
+TEST(JobRegistry, RunsAJobAndMapsStagesOntoOneRisingFraction) {
+  exec::WorkPool pool("jobs", 1);
+  jobs::JobRegistry registry(pool);
+  Gate halfway;
+  Gate resume;
+  const auto job = registry.submit(
+      "test", {{"a", 1}}, {{"first", 1}, {"second", 3}}, [&](jobs::JobContext& context) {
+        context.report("first", 1);
+        context.report("second", 0.5);
+        context.report("unplanned", 0.1);  // shown, but the fraction stays
+        halfway.open();
+        resume.wait();
+        return json{{"answer", 42}};
+      });
+  EXPECT_EQ(job.state, jobs::JobState::Queued);
+  halfway.wait();
+  const jobs::JobStatus running = registry.get(job.id);
+  EXPECT_EQ(running.state, jobs::JobState::Running);
+  EXPECT_EQ(running.stage, "unplanned");
+  EXPECT_DOUBLE_EQ(running.progress, 0.25 + 0.75 * 0.5);
+  resume.open();
+  const jobs::JobStatus done = waitFinal(registry, job.id);
+  EXPECT_EQ(done.state, jobs::JobState::Succeeded);
+  EXPECT_EQ(done.progress, 1);
+  EXPECT_EQ(done.result, json({{"answer", 42}}));
+  const json wire = jobs::toJson(done);
+  EXPECT_EQ(wire.at("state"), "succeeded");
+  EXPECT_TRUE(wire.at("error").is_null());
+  EXPECT_TRUE(wire.at("finished_at").is_string());
+  EXPECT_EQ(codeOf([&] { registry.cancel(job.id); }), ErrorCode::Conflict);
+  EXPECT_EQ(codeOf([&] { registry.get("nope"); }), ErrorCode::NotFound);
+  pool.join();
+}
+
+TEST(JobRegistry, CancelStopsQueuedJobsAtOnceAndRunningOnesAtTheirNextCheck) {
+  exec::WorkPool pool("jobs", 1);
+  jobs::JobRegistry registry(pool);
+  Gate started;
+  std::atomic<bool> secondRan{false};
+  const auto first = registry.submit("test", json::object(), {}, [&](jobs::JobContext& context) {
+    started.open();
+    while (true) {
+      context.throwIfCancelled();
+      std::this_thread::sleep_for(1ms);
+    }
+    return json();
+  });
+  const auto second = registry.submit("test", json::object(), {}, [&](jobs::JobContext&) {
+    secondRan = true;
+    return json();
+  });
+  started.wait();
+  const auto queued = registry.cancel(second.id);
+  EXPECT_EQ(queued.state, jobs::JobState::Cancelled);
+  const auto running = registry.cancel(first.id);
+  EXPECT_EQ(running.state, jobs::JobState::Running);
+  EXPECT_TRUE(running.cancelRequested);
+  const auto done = waitFinal(registry, first.id);
+  EXPECT_EQ(done.state, jobs::JobState::Cancelled);
+  EXPECT_EQ(done.errorCode, ErrorCode::Cancelled);
+  pool.join();
+  EXPECT_FALSE(secondRan);
+  EXPECT_EQ(registry.counts().at(jobs::JobState::Cancelled), 2u);
+}
+
+TEST(JobRegistry, FailuresKeepTheirCodeAndTheQueueIsBounded) {
+  exec::WorkPool pool("jobs", 1);
+  jobs::JobRegistry registry(pool, {.active = 2, .finished = 1});
+  Gate gate;
+  const auto failing = registry.submit("test", json::object(), {}, [&](jobs::JobContext&) -> json {
+    gate.wait();
+    throw Error(ErrorCode::InvalidArgument, "bad input");
+  });
+  const auto second =
+      registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json::object(); });
+  EXPECT_EQ(codeOf([&] {
+              registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json(); });
+            }),
+            ErrorCode::Unavailable);
+  gate.open();
+  EXPECT_EQ(waitFinal(registry, second.id).state, jobs::JobState::Succeeded);
+  // Only the newest finished job is remembered.
+  EXPECT_EQ(codeOf([&] { registry.get(failing.id); }), ErrorCode::NotFound);
+  registry.cancelAll();
+  EXPECT_EQ(codeOf([&] {
+              registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json(); });
+            }),
+            ErrorCode::Unavailable);
+  pool.join();
+}
+
+// ---- routes ----------------------------------------------------------------------------------
+
+/// The model and job routes over a data root holding the synthetic model as "m".
+class ModelRoutes : public ::testing::Test {
+ protected:
+  ModelRoutes() {
+    writeModel(root_.path() / "m");
+    registry_.openAll();
+    api::addModelRoutes(router_, {registry_, jobs_});
+    api::addJobRoutes(router_, {registry_, jobs_});
+  }
+  ~ModelRoutes() override { pool_.join(); }
+
+  http::Response get(std::string target, std::string ifNoneMatch = {}) {
+    auto r = request(http::Method::Get, std::move(target));
+    if (!ifNoneMatch.empty()) {
+      r.headers.emplace_back("if-none-match", ifNoneMatch);
+    }
+    return pipeline_.handle(r).response;
+  }
+  http::Response send(http::Method method, std::string target, std::string body = {}) {
+    auto r = request(method, std::move(target), std::move(body));
+    return pipeline_.handle(r).response;
+  }
+  static std::string codeOf(const http::Response& response) {
+    return json::parse(response.body).at("error").at("code");
+  }
+
+  DataRoot root_;
+  core::PatchCache cache_{64 * kMiB};
+  models::ModelRegistry registry_{root_.path(), cache_};
+  exec::WorkPool pool_{"jobs", 1};
+  jobs::JobRegistry jobs_{pool_};
+  http::Router router_;
+  http::Pipeline pipeline_{router_, ""};
+};
+
+TEST_F(ModelRoutes, ListAndSummaryDescribeTheModel) {
+  const auto list = get("/v1/models");
+  EXPECT_EQ(list.status, 200);
+  EXPECT_EQ(*list.header("Cache-Control"), "no-cache");
+  const json models = json::parse(list.body).at("models");
+  ASSERT_EQ(models.size(), 1u);
+  EXPECT_EQ(models[0].at("id"), "m");
+  EXPECT_FALSE(models[0].contains("levels"));
+
+  const auto summary = get("/v1/models/m");
+  EXPECT_EQ(summary.status, 200);
+  const json body = json::parse(summary.body);
+  EXPECT_EQ(body.at("grid_size"), kSize);
+  EXPECT_EQ(body.at("depth"), 2);
+  EXPECT_EQ(body.at("patches"), 20);
+  EXPECT_EQ(body.at("leaves"), 15);
+  EXPECT_EQ(body.at("levels").size(), 3u);
+  EXPECT_EQ(body.at("bounds").at("min").at(0), 0.0);
+  EXPECT_EQ(body.at("bounds").at("max").at(0), 64.0);
+  EXPECT_NEAR(body.at("resolution").at("finest").get<double>(), 1.0, 0.2);
+
+  const std::string etag = *summary.header("ETag");
+  EXPECT_EQ(etag.front(), '"');
+  const auto again = get("/v1/models/m", etag);
+  EXPECT_EQ(again.status, 304);
+  EXPECT_TRUE(again.body.empty());
+  EXPECT_EQ(get("/v1/models/m", "\"other\"").status, 200);
+  EXPECT_EQ(get("/v1/models/nope").status, 404);
+  EXPECT_EQ(get("/v1/models/..").status, 404);
+}
+
+TEST_F(ModelRoutes, HierarchyIsATreeCutAtTheRequestedDepth) {
+  const json full = json::parse(get("/v1/models/m/hierarchy").body);
+  EXPECT_EQ(full.at("root").at("key"), "0_0_0");
+  ASSERT_EQ(full.at("root").at("children").size(), 4u);
+  EXPECT_EQ(full.at("root").at("children")[3].at("children").size(), 3u);  // 3_3 is absent
+  const json top = json::parse(get("/v1/models/m/hierarchy?depth=0").body);
+  EXPECT_FALSE(top.at("root").contains("children"));
+  EXPECT_EQ(top.at("root").at("child_count"), 4);
+  const json sub = json::parse(get("/v1/models/m/hierarchy?root=1_1_0&depth=1").body);
+  EXPECT_EQ(sub.at("root").at("children").size(), 4u);
+  EXPECT_TRUE(sub.at("root").at("children")[0].at("leaf"));
+  EXPECT_EQ(get("/v1/models/m/hierarchy?root=1_5_0").status, 400);  // x out of range
+  EXPECT_EQ(get("/v1/models/m/hierarchy?root=2_3_3").status, 404);
+  EXPECT_EQ(get("/v1/models/m/hierarchy?depth=-1").status, 400);
+  EXPECT_EQ(get("/v1/models/m/hierarchy?depth=x").status, 400);
+  const auto first = get("/v1/models/m/hierarchy?depth=1");
+  EXPECT_NE(*first.header("ETag"), *get("/v1/models/m/hierarchy").header("ETag"));
+  EXPECT_EQ(get("/v1/models/m/hierarchy?depth=1", *first.header("ETag")).status, 304);
+}
+
+TEST_F(ModelRoutes, PatchMetadataAndPositionsComeFromOneVersion) {
+  const auto meta = get("/v1/models/m/patches/2_1_2");
+  ASSERT_EQ(meta.status, 200) << meta.body;
+  const json patch = json::parse(meta.body);
+  EXPECT_EQ(patch.at("key"), "2_1_2");
+  EXPECT_EQ(patch.at("parent"), "1_0_1");
+  EXPECT_TRUE(patch.at("children").empty());
+  EXPECT_EQ(patch.at("local2global").size(), 16u);
+  EXPECT_EQ(patch.at("stored").at("x1"), kSize);
+  EXPECT_EQ(*meta.header("Cache-Control"), "public, max-age=60");
+
+  const auto data = get("/v1/models/m/patches/2_1_2/positions");
+  ASSERT_EQ(data.status, 200) << data.body;
+  EXPECT_EQ(data.contentType, "application/octet-stream");
+  EXPECT_EQ(*data.header("ETag"), *meta.header("ETag"));
+  EXPECT_EQ(*data.header("X-VSM-Local2Global"), "1,0,0,24,0,1,0,40,0,0,1,0,0,0,0,1");
+  EXPECT_EQ(data.body.size(), 13u + kSize * kSize * 12u);
+  const core::AaraArray array =
+      core::decodeAara(std::as_bytes(std::span(data.body.data(), data.body.size())), "response");
+  EXPECT_EQ(array.type, core::AaraType::V3f);
+  EXPECT_EQ(array.sizes, (std::vector<std::int32_t>{kSize, kSize}));
+  float first[3];
+  std::memcpy(first, array.data.data(), sizeof first);
+  EXPECT_EQ(first[0], -8.0f);  // global (16, 32) minus the origin (24, 40)
+  EXPECT_EQ(first[1], -8.0f);
+
+  EXPECT_EQ(get("/v1/models/m/patches/2_1_2/positions", *data.header("ETag")).status, 304);
+  EXPECT_EQ(get("/v1/models/m/patches/2_3_3").status, 404);
+  EXPECT_EQ(get("/v1/models/m/patches/2_3_3/positions").status, 404);
+  EXPECT_EQ(get("/v1/models/m/patches/nonsense").status, 400);
+  EXPECT_EQ(get("/v1/models/m/patches/1_1").status, 400);
+  EXPECT_EQ(get("/v1/models/x/patches/0_0_0").status, 404);
+}
+
+TEST_F(ModelRoutes, LodStopsAtTheTargetResolutionOrALeafInsideTheBox) {
+  const auto coarse = json::parse(get("/v1/models/m/lod?box=0,0,-10,64,64,10&resolution=100").body);
+  ASSERT_EQ(coarse.at("patches").size(), 1u);
+  EXPECT_EQ(coarse.at("patches")[0].at("key"), "0_0_0");
+  const auto fine = json::parse(get("/v1/models/m/lod?box=0,0,-10,64,64,10&resolution=0.5").body);
+  EXPECT_EQ(fine.at("patches").size(), 15u);
+  // A corner box: only the patches that meet it, at the finest level.
+  const auto corner = json::parse(get("/v1/models/m/lod?box=1,1,-10,2,2,10&resolution=0.5").body);
+  ASSERT_EQ(corner.at("patches").size(), 1u);
+  EXPECT_EQ(corner.at("patches")[0].at("key"), "2_0_0");
+  const auto mid = json::parse(get("/v1/models/m/lod?box=0,0,-10,64,64,10&resolution=2.5").body);
+  EXPECT_EQ(mid.at("patches").size(), 4u);
+  EXPECT_EQ(mid.at("patches")[0].at("key"), "1_0_0");
+  const auto outside =
+      json::parse(get("/v1/models/m/lod?box=100,100,0,200,200,1&resolution=1").body);
+  EXPECT_TRUE(outside.at("patches").empty());
+  for (const char* bad : {"/v1/models/m/lod", "/v1/models/m/lod?box=0,0,0,1,1,1",
+                          "/v1/models/m/lod?box=0,0,0,1,1&resolution=1",
+                          "/v1/models/m/lod?box=0,0,0,1,1,1,1&resolution=1",
+                          "/v1/models/m/lod?box=1,0,0,0,1,1&resolution=1",
+                          "/v1/models/m/lod?box=0,0,0,1,1,nan&resolution=1",
+                          "/v1/models/m/lod?box=0,0,0,1,1,1&resolution=0",
+                          "/v1/models/m/lod?box=0,0,0,1,1,1x&resolution=1",
+                          "/v1/models/m/lod?box=0,0,0,1,1,1&resolution=-2"}) {
+    const auto response = get(bad);
+    EXPECT_EQ(response.status, 400) << bad;
+    EXPECT_EQ(codeOf(response), "invalid_argument");
+  }
+}
+
+TEST_F(ModelRoutes, OpenByPathCloseAndPathTricks) {
+  writeModel(root_.path() / "nested" / "copy");
+  const auto opened = send(http::Method::Post, "/v1/models",
+                           R"({"id": "copy", "source": {"path": "nested/copy"}})");
+  ASSERT_EQ(opened.status, 201) << opened.body;
+  EXPECT_EQ(*opened.header("Location"), "/v1/models/copy");
+  EXPECT_EQ(json::parse(opened.body).at("patches"), 20);
+  EXPECT_EQ(
+      send(http::Method::Post, "/v1/models", R"({"id": "copy", "source": {"path": "nested/copy"}})")
+          .status,
+      409);
+  EXPECT_EQ(
+      send(http::Method::Post, "/v1/models", R"({"id": "again", "source": {"path": "m"}})").status,
+      409);
+  const DataRoot outside;
+  writeModel(outside.path() / "o");
+  fs::create_directory_symlink(outside.path() / "o", root_.path() / "link");
+  for (const char* body :
+       {R"({"id": "x", "source": {"path": "../x"}})", R"({"id": "x", "source": {"path": "/tmp"}})",
+        R"({"id": "x", "source": {"path": "link"}})", R"({"id": "x", "source": {"path": ""}})",
+        R"({"id": "x", "source": {"path": "."}})", R"({"id": "../x", "source": {"path": "m"}})",
+        R"({"id": "a/b", "source": {"path": "m"}})", R"({"id": "x", "source": {"import": "../a"}})",
+        R"({"id": "x", "source": {"import": "/etc/passwd", "patch_size": 65}})",
+        R"({"id": "x", "source": {"path": "m", "import": "a"}})", R"({"id": "x"})",
+        R"({"id": 5, "source": {"path": "m"}})", R"({"id": "x", "source": {"path": "m"}, "y": 1})",
+        R"({"id": "x", "source": {"import": "a.tif", "patch_size": 64}})", "[1]", "not json"}) {
+    const auto response = send(http::Method::Post, "/v1/models", body);
+    EXPECT_EQ(response.status, 400) << body << " -> " << response.body;
+  }
+  EXPECT_EQ(
+      send(http::Method::Post, "/v1/models", R"({"id": "x", "source": {"path": "none"}})").status,
+      404);
+  EXPECT_EQ(registry_.size(), 2u);
+  EXPECT_EQ(send(http::Method::Delete, "/v1/models/copy").status, 204);
+  EXPECT_EQ(send(http::Method::Delete, "/v1/models/copy").status, 404);
+  EXPECT_EQ(get("/v1/models/copy").status, 404);
+  EXPECT_TRUE(fs::exists(root_.path() / "nested" / "copy" / "Patches"));
+}
+
+TEST_F(ModelRoutes, JobRoutesValidateAndReportMergeJobs) {
+  for (const char* body :
+       {R"({"type": "merge", "target": "m"})", R"({"type": "nope", "target": "m", "source": "m"})",
+        R"({"type": "merge", "target": "m", "source": "m"})",
+        R"({"type": "merge", "target": "m", "source": "s", "x": 1})",
+        R"({"type": "merge", "target": "m", "source": "s", "register": 1})"}) {
+    EXPECT_EQ(send(http::Method::Post, "/v1/jobs", body).status, 400) << body;
+  }
+  EXPECT_EQ(send(http::Method::Post, "/v1/jobs",
+                 R"({"type": "merge", "target": "m", "source": "absent"})")
+                .status,
+            404);
+  EXPECT_EQ(get("/v1/jobs/absent").status, 404);
+  EXPECT_EQ(send(http::Method::Delete, "/v1/jobs/absent").status, 404);
+  EXPECT_EQ(json::parse(get("/v1/jobs").body).at("jobs").size(), 0u);
+}
+
+}  // namespace
+}  // namespace vsm::server
