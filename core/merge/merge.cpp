@@ -54,7 +54,8 @@ int levelsFor(double ratio) {
 
 struct Match {
   PatchKey target;
-  std::vector<PatchKey> detail;
+  /// Indices of the B leaves (in bLeaves) whose footprint meets the target leaf's.
+  std::vector<std::size_t> detail;
   int levels = 1;
 };
 
@@ -129,7 +130,7 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
     std::size_t resolutionCount = 0;
     for (std::size_t i = 0; i < bLeaves.size(); ++i) {
       if (bLeaves[i].second.intersects(foot)) {
-        match.detail.push_back(bLeaves[i].first);
+        match.detail.push_back(i);
         bUsed[i] = true;
         const double r = b.at(bLeaves[i].first).resolution;
         if (r > 0) {
@@ -167,15 +168,11 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
     const Match& match = matches[m];
     const int k = match.levels;
 
-    // B's surface over this leaf; its grids are released once copied into the sampler.
-    std::optional<SurfaceSampler> sampler;
-    {
-      std::vector<std::shared_ptr<const PatchGrid>> grids;
-      grids.reserve(match.detail.size());
-      for (const PatchKey& key : match.detail) {
-        grids.push_back(detail.positions(key));
-      }
-      sampler.emplace(grids, up, options.transform);
+    // B's leaves over this leaf (footprints, metadata only).
+    Rect2d nearFoot;
+    for (const std::size_t i : match.detail) {
+      nearFoot.extend(bLeaves[i].second.min);
+      nearFoot.extend(bLeaves[i].second.max);
     }
     std::optional<Subdivider> subdivider;
     Rect2d aFootprint;
@@ -189,15 +186,46 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       for (int y = 0; y < grid->size(); ++y) {
         for (int x = 0; x < grid->size(); ++x) {
           if (grid->defined(x, y)) {
-            aFootprint.extend(sampler->frame().project(grid->global(x, y)));
+            aFootprint.extend(frame.project(grid->global(x, y)));
           }
         }
       }
     }
-    // Boxes are conservative: skip a leaf over which B has no cell at all, leaving it as it was.
-    if (!aFootprint.intersects(sampler->footprint())) {
+    if (!aFootprint.intersects(nearFoot)) {
       continue;
     }
+    // B's leaves whose footprint meets `rect`.
+    auto detailUnder = [&](const Rect2d& rect) {
+      std::vector<PatchKey> keys;
+      for (const std::size_t i : match.detail) {
+        if (bLeaves[i].second.intersects(rect)) {
+          keys.push_back(bLeaves[i].first);
+        }
+      }
+      return keys;
+    };
+    // B's surface under one new bottom patch, from only the B leaves meeting it: held (and pinned)
+    // one patch at a time, so a merge's working set stays a few patches whatever B's size. The
+    // last one is kept for the next patch when it needs the same leaves (neighbours mostly do).
+    std::vector<PatchKey> samplerKeys;
+    std::optional<SurfaceSampler> sampler;
+    auto samplerFor = [&](const Rect2d& rect) -> const SurfaceSampler* {
+      std::vector<PatchKey> keys = detailUnder(rect);
+      if (keys.empty()) {
+        return nullptr;
+      }
+      if (!sampler || keys != samplerKeys) {
+        sampler.reset();
+        std::vector<std::shared_ptr<const PatchGrid>> grids;
+        grids.reserve(keys.size());
+        for (const PatchKey& key : keys) {
+          grids.push_back(detail.positions(key));
+        }
+        sampler.emplace(grids, up, options.transform);
+        samplerKeys = std::move(keys);
+      }
+      return &*sampler;
+    };
 
     // Adaptive refinement: a new patch is refined further only where B may have surface;
     // elsewhere it stays a leaf holding a's surface interpolated to its level (the actual surface
@@ -231,12 +259,12 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
                                                                        std::uint32_t j) {
       checkCancelled(options);
       const PatchKey key{top.depth + level, (top.x << level) + i, (top.y << level) + j};
-      const bool refine =
-          level < k && sampler->covers(subdivider->footprint(level, i, j, sampler->frame()));
+      const Rect2d foot = subdivider->footprint(level, i, j, frame);
+      const bool refine = level < k && !detailUnder(foot).empty();
       if (!refine) {
         std::size_t taken = 0;
         std::vector<Vec3d> positions =
-            subdivider->positions(level, i, j, level == k ? &*sampler : nullptr, &taken);
+            subdivider->positions(level, i, j, level == k ? samplerFor(foot) : nullptr, &taken);
         if (std::any_of(positions.begin(), positions.end(),
                         [](const Vec3d& p) { return p.finite(); })) {
           insert(key, positions);  // an empty patch is omitted

@@ -770,22 +770,23 @@ void OpcWriter::writeFile(const fs::path& file, std::span<const std::byte> bytes
 }
 
 void OpcWriter::sync() {
-  if (!unsynced_) {
-    return;
+  if (unsynced_) {
+    syncFileSystem(dir_);
+    unsynced_ = false;
   }
-  // One flush of the whole file system: fsyncing thousands of files one by one costs a journal
-  // commit each (seconds for a large model); syncfs commits once.
-  const int fd = ::open(dir_.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+}
+
+void syncFileSystem(const fs::path& dir) {
+  const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
   if (fd < 0) {
-    throwIoError("cannot open for syncfs", dir_.string(), errno);
+    throwIoError("cannot open for syncfs", dir.string(), errno);
   }
   if (::syncfs(fd) != 0) {
     const int errnum = errno;
     ::close(fd);
-    throwIoError("cannot syncfs", dir_.string(), errnum);
+    throwIoError("cannot syncfs", dir.string(), errnum);
   }
   ::close(fd);
-  unsynced_ = false;
 }
 
 }  // namespace vsm::core

@@ -67,6 +67,10 @@ class OpcWriter {
   bool unsynced_ = false;  // Deferred: something written since the last sync()
 };
 
+/// Makes every file written so far on the file system holding `dir` durable: one syncfs (a single
+/// journal commit, where fsyncing thousands of files costs one each). Throws Error(Io).
+void syncFileSystem(const std::filesystem::path& dir);
+
 /// One finding of validateOpc: where (a file or patch) and what is wrong.
 struct Finding {
   std::string where;

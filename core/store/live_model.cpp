@@ -97,7 +97,9 @@ class LiveModel::Store final : public PatchStore {
 
   void writeBack(const ObjectId& id, const CacheValue& value) override {
     PatchInfo info = lookup(id);
-    OpcWriter writer(dir_, OpcWriter::Durability::EachFile);
+    // Only drafts are ever dirty: their folders are invisible until publish() makes them durable
+    // (one syncfs) before the hierarchy names them, so no fsync or temp file per file here.
+    OpcWriter writer(dir_, OpcWriter::Durability::Deferred);
     // The edit described the patch after its children: its box already holds theirs.
     writer.writePatch(info, *static_cast<const PatchGrid*>(value.object.get()), info.globalBox);
   }
@@ -285,6 +287,7 @@ void ModelEdit::publish(const CancelToken* cancel) {
   LiveModel::Store& store = *live_.store_;
   // 1. Every changed patch into its new folder (evicted ones were written already).
   store.cache().flush(store.id());
+  syncFileSystem(live_.dir_);
   // 2. The hierarchy naming them, atomically: this is the moment the new version exists.
   auto next = std::make_shared<Model>(*model_);
   OpcWriter(live_.dir_, OpcWriter::Durability::EachFile).writeHierarchy(*next);
