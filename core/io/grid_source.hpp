@@ -5,6 +5,7 @@
 #include <span>
 #include <string>
 
+#include "core/common/executor.hpp"
 #include "core/common/progress.hpp"
 #include "core/grid/geometry.hpp"
 #include "core/pyramid/model.hpp"
@@ -31,6 +32,10 @@ struct ImportOptions {
   int patchSize = 257;
   Progress* progress = nullptr;
   const CancelToken* cancel = nullptr;
+  /// When given, the four quarters below the root are built as parallel tasks (the source is
+  /// read under a lock: GDAL datasets are not thread-safe). Progress is reported from them under
+  /// a lock too.
+  Executor* executor = nullptr;
 };
 
 /// Builds the full pyramid of `source` (bottom patches with one line of overlap, padded with

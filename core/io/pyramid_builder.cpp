@@ -7,9 +7,12 @@
 #include <array>
 #include <cerrno>
 #include <cstdint>
+#include <functional>
 #include <limits>
 #include <map>
 #include <memory>
+#include <mutex>
+#include <optional>
 #include <string>
 #include <system_error>
 #include <vector>
@@ -106,25 +109,42 @@ void renameNoReplace(const fs::path& from, const fs::path& to) {
   throwIoError("cannot rename staging directory to", to.string(), error);
 }
 
-/// The depth-first build. Holds at most the finished siblings on the path from the root to the
-/// current patch (at most 4 per level) plus one source window.
+/// What the builders of one import share: the source (read under a lock), the writer (whose
+/// writePatch may run concurrently for different patches) and the progress.
+struct BuildShared {
+  GridSource& source;
+  OpcWriter& writer;
+  /// The writer's Patches/ directory, where dropSubtree deletes folders.
+  fs::path patchesDir;
+  const ImportOptions& options;
+  std::mutex sourceMutex;
+  std::mutex progressMutex;  // guards leavesDone and options.progress
+  std::size_t leavesDone = 0;
+  std::size_t leavesTotal = 1;
+};
+
+/// The depth-first build of one subtree. Holds at most the finished siblings on the path from its
+/// top to the current patch (at most 4 per level) plus one source window. Builders of disjoint
+/// subtrees may run concurrently.
 class PyramidBuilder {
  public:
-  /// `patchesDir` is the writer's Patches/ directory, where dropSubtree deletes folders.
-  PyramidBuilder(GridSource& source, OpcWriter& writer, fs::path patchesDir,
-                 const ImportOptions& options)
-      : source_(source),
-        writer_(writer),
-        patchesDir_(std::move(patchesDir)),
-        options_(options),
-        size_(options.patchSize),
-        width_(source.width()),
-        height_(source.height()),
-        depth_(bottomDepth(options.patchSize, width_, height_)),
-        window_(static_cast<std::size_t>(size_) * static_cast<std::size_t>(size_)) {
-    const std::int64_t step = size_ - 1;
-    leavesTotal_ = static_cast<std::size_t>(startsAlong(width_, step)) *
-                   static_cast<std::size_t>(startsAlong(height_, step));
+  explicit PyramidBuilder(BuildShared& shared)
+      : shared_(shared),
+        source_(shared.source),
+        writer_(shared.writer),
+        patchesDir_(shared.patchesDir),
+        options_(shared.options),
+        size_(shared.options.patchSize),
+        width_(shared.source.width()),
+        height_(shared.source.height()),
+        depth_(bottomDepth(size_, width_, height_)),
+        window_(static_cast<std::size_t>(size_) * static_cast<std::size_t>(size_)) {}
+
+  /// Number of bottom patches holding a cell of the source.
+  static std::size_t leafCount(int size, int width, int height) {
+    const std::int64_t step = size - 1;
+    return static_cast<std::size_t>(startsAlong(width, step)) *
+           static_cast<std::size_t>(startsAlong(height, step));
   }
 
   int depth() const { return depth_; }
@@ -140,13 +160,23 @@ class PyramidBuilder {
     }
     const std::size_t firstWritten = written_.size();
     std::array<std::unique_ptr<PatchGrid>, 4> children;
-    std::array<const PatchGrid*, 4> present{};
     for (const Quadrant q : kQuadrants) {
       const PatchKey child = key.child(q);
       if (inside(child)) {
         children[static_cast<int>(q)] = build(child);
-        present[static_cast<int>(q)] = children[static_cast<int>(q)].get();
       }
+    }
+    return combine(key, children, firstWritten);
+  }
+
+  /// The parent of `children` (built by this builder or adopted from others) by reduction;
+  /// writes the children. Null, and the subtree dropped, when nothing of it can be shown.
+  std::unique_ptr<PatchGrid> combine(const PatchKey& key,
+                                     std::array<std::unique_ptr<PatchGrid>, 4>& children,
+                                     std::size_t firstWritten) {
+    std::array<const PatchGrid*, 4> present{};
+    for (int q = 0; q < 4; ++q) {
+      present[q] = children[q].get();
     }
     if (std::all_of(present.begin(), present.end(), [](const PatchGrid* g) { return !g; })) {
       return nullptr;
@@ -166,6 +196,22 @@ class PyramidBuilder {
       }
     }
     return parent;
+  }
+
+  /// Takes over what `other` wrote (a subtree built concurrently).
+  void adopt(PyramidBuilder& other) {
+    written_.insert(written_.end(), std::make_move_iterator(other.written_.begin()),
+                    std::make_move_iterator(other.written_.end()));
+    boxes_.merge(other.boxes_);
+    other.written_.clear();
+  }
+
+  /// True when the patch's area holds a cell of the source (see startsAlong).
+  bool inside(const PatchKey& key) const {
+    const std::int64_t span = std::int64_t{size_ - 1} << (depth_ - key.depth);
+    const std::int64_t x0 = span * key.x;
+    const std::int64_t y0 = span * key.y;
+    return (x0 == 0 || x0 < width_ - 1) && (y0 == 0 || y0 < height_ - 1);
   }
 
   /// Writes one patch and remembers its metadata for the model.
@@ -195,25 +241,23 @@ class PyramidBuilder {
     return extent <= 1 ? 1 : (extent - 1 + step - 1) / step;
   }
 
-  /// True when the patch's area holds a cell of the source (see startsAlong).
-  bool inside(const PatchKey& key) const {
-    const std::int64_t span = std::int64_t{size_ - 1} << (depth_ - key.depth);
-    const std::int64_t x0 = span * key.x;
-    const std::int64_t y0 = span * key.y;
-    return (x0 == 0 || x0 < width_ - 1) && (y0 == 0 || y0 < height_ - 1);
-  }
-
   std::unique_ptr<PatchGrid> readBottom(const PatchKey& key) {
     const int x0 = static_cast<int>(key.x) * (size_ - 1);
     const int y0 = static_cast<int>(key.y) * (size_ - 1);
     const int w = std::min(size_, width_ - x0);
     const int h = std::min(size_, height_ - y0);
     const std::size_t count = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
-    source_.read(x0, y0, w, h, std::span<Vec3d>(window_.data(), count));
-    ++leavesDone_;
-    if (options_.progress != nullptr) {
-      options_.progress->report(
-          "import", static_cast<double>(leavesDone_) / static_cast<double>(leavesTotal_));
+    {
+      std::lock_guard lock(shared_.sourceMutex);
+      source_.read(x0, y0, w, h, std::span<Vec3d>(window_.data(), count));
+    }
+    {
+      std::lock_guard lock(shared_.progressMutex);
+      ++shared_.leavesDone;
+      if (options_.progress != nullptr) {
+        options_.progress->report("import", static_cast<double>(shared_.leavesDone) /
+                                                static_cast<double>(shared_.leavesTotal));
+      }
     }
 
     // Two passes over the window: the origin is the centre of the defined vertices' box.
@@ -269,9 +313,10 @@ class PyramidBuilder {
     written_.resize(firstWritten);
   }
 
+  BuildShared& shared_;
   GridSource& source_;
   OpcWriter& writer_;
-  fs::path patchesDir_;
+  const fs::path& patchesDir_;
   const ImportOptions& options_;
   int size_;
   int width_;
@@ -281,8 +326,6 @@ class PyramidBuilder {
   std::vector<PatchInfo> written_;
   /// Global boxes of written patches whose parent is not written yet.
   std::map<PatchKey, Box3d> boxes_;
-  std::size_t leavesDone_ = 0;
-  std::size_t leavesTotal_ = 1;
 };
 
 }  // namespace
@@ -321,8 +364,38 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
   }
 
   OpcWriter writer(staging.path(), OpcWriter::Durability::Deferred);
-  PyramidBuilder builder(source, writer, staging.path() / "Patches", options);
-  std::unique_ptr<PatchGrid> root = builder.build(PatchKey::root());
+  BuildShared shared{source,
+                     writer,
+                     staging.path() / "Patches",
+                     options,
+                     {},
+                     {},
+                     0,
+                     PyramidBuilder::leafCount(options.patchSize, source.width(), source.height())};
+  PyramidBuilder builder(shared);
+  std::unique_ptr<PatchGrid> root;
+  if (options.executor != nullptr && builder.depth() > 0) {
+    // The four quarters in parallel, each by its own builder; the root from their results.
+    std::array<std::optional<PyramidBuilder>, 4> quarters;
+    std::array<std::unique_ptr<PatchGrid>, 4> grids;
+    std::vector<std::function<void()>> tasks;
+    for (const Quadrant q : kQuadrants) {
+      const int i = static_cast<int>(q);
+      if (builder.inside(PatchKey::root().child(q))) {
+        quarters[i].emplace(shared);
+        tasks.emplace_back([&, i, q] { grids[i] = quarters[i]->build(PatchKey::root().child(q)); });
+      }
+    }
+    options.executor->runAll(std::move(tasks));
+    for (auto& quarter : quarters) {
+      if (quarter) {
+        builder.adopt(*quarter);
+      }
+    }
+    root = builder.combine(PatchKey::root(), grids, 0);
+  } else {
+    root = builder.build(PatchKey::root());
+  }
   if (!root) {
     throw Error(ErrorCode::InvalidArgument,
                 "source " + source.describe() + " has no defined sample");

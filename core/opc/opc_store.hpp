@@ -1,5 +1,6 @@
 #pragma once
 
+#include <atomic>
 #include <filesystem>
 #include <span>
 #include <string>
@@ -36,6 +37,9 @@ PatchGrid readPatchGrid(const std::filesystem::path& dir, const Model& model,
 /// the old file or the new one. Durability::Deferred, for a private staging directory its owner
 /// publishes as a whole (an import): files are written in place and nothing is fsynced until
 /// sync(), which the owner calls once before it publishes (far fewer creates and disk flushes).
+///
+/// writePatch() may run concurrently for different patches; writeHierarchy() and sync() run
+/// after them, from one thread.
 class OpcWriter {
  public:
   enum class Durability { EachFile, Deferred };
@@ -64,7 +68,7 @@ class OpcWriter {
 
   std::filesystem::path dir_;
   Durability durability_;
-  bool unsynced_ = false;  // Deferred: something written since the last sync()
+  std::atomic<bool> unsynced_{false};  // Deferred: something written since the last sync()
 };
 
 /// Makes every file written so far on the file system holding `dir` durable: one syncfs (a single

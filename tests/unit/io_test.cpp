@@ -19,7 +19,9 @@
 #include <map>
 #include <optional>
 #include <set>
+#include <sstream>
 #include <string>
+#include <thread>
 #include <tuple>
 #include <vector>
 
@@ -649,6 +651,80 @@ TEST(PyramidBuilder, TheReturnedModelIsTheOneOnDisk) {
     EXPECT_FALSE(info.dirty);
     EXPECT_FALSE(info.stale);
   }
+}
+
+/// Runs each task on its own thread, as a caller lending threads would.
+class ThreadPerTask final : public Executor {
+ public:
+  void runAll(std::vector<std::function<void()>> tasks) override {
+    std::vector<std::exception_ptr> errors(tasks.size());
+    {
+      std::vector<std::jthread> threads;
+      for (std::size_t i = 0; i < tasks.size(); ++i) {
+        threads.emplace_back([&, i] {
+          try {
+            tasks[i]();
+          } catch (...) {
+            errors[i] = std::current_exception();
+          }
+        });
+      }
+    }
+    ++batches;
+    for (const auto& e : errors) {
+      if (e) {
+        std::rethrow_exception(e);
+      }
+    }
+  }
+  int batches = 0;
+};
+
+std::map<std::string, std::string> filesUnder(const fs::path& dir) {
+  std::map<std::string, std::string> files;
+  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
+    if (entry.is_regular_file()) {
+      std::ifstream in(entry.path(), std::ios::binary);
+      std::stringstream text;
+      text << in.rdbuf();
+      files[fs::relative(entry.path(), dir).string()] = text.str();
+    }
+  }
+  return files;
+}
+
+TEST(PyramidBuilder, QuartersBuiltConcurrentlyWriteTheSameFilesAsASerialBuild) {
+  TempDir dir;
+  auto defined = [](int c, int r) { return (c / 40 + r / 40) % 3 != 0; };
+  SyntheticSource serialSource(300, 200, defined);
+  const Model serial = buildOpc(serialSource, dir / "serial", withPatchSize(33));
+  SyntheticSource parallelSource(300, 200, defined);
+  ThreadPerTask executor;
+  ImportOptions options = withPatchSize(33);
+  options.executor = &executor;
+  const Model parallel = buildOpc(parallelSource, dir / "parallel", options);
+  EXPECT_EQ(executor.batches, 1);
+  EXPECT_EQ(parallel.patchCount(), serial.patchCount());
+  EXPECT_EQ(parallelSource.windows.size(), serialSource.windows.size());
+  const auto a = filesUnder(dir / "serial");
+  const auto b = filesUnder(dir / "parallel");
+  ASSERT_EQ(a.size(), b.size());
+  for (const auto& [path, bytes] : a) {
+    ASSERT_TRUE(b.count(path)) << path;
+    EXPECT_TRUE(b.at(path) == bytes) << path;
+  }
+  EXPECT_TRUE(validateOpc(dir / "parallel").empty());
+}
+
+TEST(PyramidBuilder, AFailingQuarterFailsAConcurrentImportAndLeavesNothing) {
+  TempDir dir;
+  SyntheticSource source(300, 200);
+  source.failAfter = 7;
+  ThreadPerTask executor;
+  ImportOptions options = withPatchSize(33);
+  options.executor = &executor;
+  EXPECT_EQ(codeOf([&] { buildOpc(source, dir / "opc", options); }), ErrorCode::Io);
+  EXPECT_TRUE(fs::is_empty(dir.path()));
 }
 
 TEST(PyramidBuilder, DepthIsTheSmallestWhoseBottomCoversTheSource) {
