@@ -28,11 +28,16 @@
 #include "core/common/error.hpp"
 #include "core/io/grid_source.hpp"
 #include "core/opc/opc_store.hpp"
+#include "tests/unit/test_support.hpp"
 
 namespace fs = std::filesystem;
 using namespace vsm::core;
 
 namespace {
+
+using test::codeOf;
+using test::filesUnder;
+using test::messageOf;
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 constexpr double kA = 6378137.0;
@@ -135,25 +140,6 @@ std::vector<Vec3d> readAll(GridSource& source) {
   std::vector<Vec3d> out(static_cast<std::size_t>(source.width()) * source.height());
   source.read(0, 0, source.width(), source.height(), out);
   return out;
-}
-
-ErrorCode codeOf(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.code();
-  }
-  ADD_FAILURE() << "no Error thrown";
-  return ErrorCode::Internal;
-}
-
-std::string messageOf(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.what();
-  }
-  return "";
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -679,19 +665,6 @@ class ThreadPerTask final : public Executor {
   }
   int batches = 0;
 };
-
-std::map<std::string, std::string> filesUnder(const fs::path& dir) {
-  std::map<std::string, std::string> files;
-  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
-    if (entry.is_regular_file()) {
-      std::ifstream in(entry.path(), std::ios::binary);
-      std::stringstream text;
-      text << in.rdbuf();
-      files[fs::relative(entry.path(), dir).string()] = text.str();
-    }
-  }
-  return files;
-}
 
 TEST(PyramidBuilder, QuartersBuiltConcurrentlyWriteTheSameFilesAsASerialBuild) {
   TempDir dir;

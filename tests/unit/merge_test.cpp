@@ -22,9 +22,14 @@
 #include "core/pyramid/model.hpp"
 #include "core/pyramid/reduce.hpp"
 #include "core/store/live_model.hpp"
+#include "tests/unit/test_support.hpp"
 
 namespace vsm::core {
 namespace {
+
+using test::codeOf;
+using test::filesUnder;
+using test::messageOf;
 
 // ---- synthetic data ----------------------------------------------------------------------------
 
@@ -700,20 +705,6 @@ void writeOpc(Model& model, const fs::path& dir) {
   writer.sync();
 }
 
-/// Path -> content of every file under `dir`.
-std::map<std::string, std::string> contents(const fs::path& dir) {
-  std::map<std::string, std::string> files;
-  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
-    if (entry.is_regular_file()) {
-      std::ifstream in(entry.path(), std::ios::binary);
-      std::stringstream text;
-      text << in.rdbuf();
-      files[fs::relative(entry.path(), dir).string()] = text.str();
-    }
-  }
-  return files;
-}
-
 class MergeStoreTest : public ::testing::Test {
  protected:
   void SetUp() override {
@@ -734,7 +725,7 @@ class MergeStoreTest : public ::testing::Test {
 };
 
 TEST_F(MergeStoreTest, MergedModelValidatesFollowsTheDetailAndLeavesOtherFilesAlone) {
-  const auto before = contents(root_ / "a");
+  const auto before = filesUnder(root_ / "a");
   const Model oldModel = readOpcModel(root_ / "a");
   PatchCache cache(64 << 20);
   auto a = LiveModel::open(root_ / "a", "a", cache);
@@ -795,7 +786,7 @@ TEST_F(MergeStoreTest, MergedModelValidatesFollowsTheDetailAndLeavesOtherFilesAl
   EXPECT_GT(checked, 5000u);
 
   // Patches outside the matched subtrees and their ancestors: same folder, byte-identical files.
-  const auto after = contents(root_ / "a");
+  const auto after = filesUnder(root_ / "a");
   std::size_t untouched = 0;
   for (const auto& [key, info] : oldModel.patches()) {
     bool affected = false;
@@ -821,7 +812,7 @@ TEST_F(MergeStoreTest, DetailOutsideTheTargetLeavesTheTargetUntouched) {
   fs::remove_all(root_ / "b");
   auto far = latticeModel({5000, 9000, 1, 0.2}, 17, 1);
   writeOpc(*far, root_ / "b");
-  const auto before = contents(root_ / "a");
+  const auto before = filesUnder(root_ / "a");
   PatchCache cache(64 << 20);
   auto a = LiveModel::open(root_ / "a", "a", cache);
   auto b = LiveModel::open(root_ / "b", "b", cache);
@@ -836,7 +827,7 @@ TEST_F(MergeStoreTest, DetailOutsideTheTargetLeavesTheTargetUntouched) {
     }
   }  // the edit is discarded
   EXPECT_EQ(a->snapshot()->version, 1u);
-  EXPECT_EQ(contents(root_ / "a"), before);
+  EXPECT_EQ(filesUnder(root_ / "a"), before);
 }
 
 TEST_F(MergeStoreTest, WorksUnderATightMemoryBudget) {

@@ -10,11 +10,16 @@
 #include "core/common/error.hpp"
 #include "core/opc/aara.hpp"
 #include "core/opc/opc_store.hpp"
+#include "tests/unit/test_support.hpp"
 
 namespace fs = std::filesystem;
 
 namespace vsm::core {
 namespace {
+
+using test::codeOf;
+using test::filesUnder;
+using test::messageOf;
 
 std::vector<std::byte> bytesOf(std::initializer_list<int> values) {
   std::vector<std::byte> out;
@@ -41,26 +46,6 @@ std::vector<std::byte> specExample() {
     appendFloat(bytes, f);
   }
   return bytes;
-}
-
-ErrorCode codeOf(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.code();
-  }
-  ADD_FAILURE() << "no error";
-  return ErrorCode::Internal;
-}
-
-std::string messageOf(const std::function<void()>& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.what();
-  }
-  ADD_FAILURE() << "no error";
-  return {};
 }
 
 TEST(Aara, DecodesTheSpecExample) {
@@ -182,19 +167,6 @@ void writeModel(Model& model, const fs::path& dir) {
   }
   writer.writeHierarchy(model);
   writer.sync();
-}
-
-std::map<std::string, std::string> filesUnder(const fs::path& dir) {
-  std::map<std::string, std::string> files;
-  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
-    if (entry.is_regular_file()) {
-      std::ifstream in(entry.path(), std::ios::binary);
-      std::stringstream text;
-      text << in.rdbuf();
-      files[fs::relative(entry.path(), dir).string()] = text.str();
-    }
-  }
-  return files;
 }
 
 std::string readText(const fs::path& file) {

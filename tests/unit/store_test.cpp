@@ -9,11 +9,16 @@
 #include "core/opc/opc_store.hpp"
 #include "core/pyramid/reduce.hpp"
 #include "core/store/live_model.hpp"
+#include "tests/unit/test_support.hpp"
 
 namespace fs = std::filesystem;
 
 namespace vsm::core {
 namespace {
+
+using test::codeOf;
+using test::filesUnder;
+using test::messageOf;
 
 constexpr int kSize = 17;  // 2^4 + 1
 
@@ -64,20 +69,6 @@ void writeModel(const fs::path& dir) {
     writer.writePatch(mutableInfo, *info.grid, model.childrenBox(key));
   }
   writer.writeHierarchy(model);
-}
-
-/// Path -> content of every file under `dir`.
-std::map<std::string, std::string> contents(const fs::path& dir) {
-  std::map<std::string, std::string> files;
-  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
-    if (entry.is_regular_file()) {
-      std::ifstream in(entry.path(), std::ios::binary);
-      std::stringstream text;
-      text << in.rdbuf();
-      files[fs::relative(entry.path(), dir).string()] = text.str();
-    }
-  }
-  return files;
 }
 
 class StoreTest : public ::testing::Test {
@@ -164,7 +155,7 @@ TEST_F(StoreTest, PublishedChangesSurviveReopening) {
 }
 
 TEST_F(StoreTest, UnchangedPatchFilesStayByteIdentical) {
-  const auto before = contents(dir_);
+  const auto before = filesUnder(dir_);
   {
     PatchCache cache(64 << 20);
     auto live = LiveModel::open(dir_, "m", cache);
@@ -172,7 +163,7 @@ TEST_F(StoreTest, UnchangedPatchFilesStayByteIdentical) {
     edit->setPositions({2, 0, 0}, leafGrid(0, 0, 1.0));
     edit->publish();
   }
-  const auto after = contents(dir_);
+  const auto after = filesUnder(dir_);
   // Changed: leaf 2_0_0, its ancestors 1_0_0 and 0_0_0 (new folders), and the hierarchy.
   for (const auto& [path, bytes] : before) {
     const bool affected =
@@ -186,7 +177,7 @@ TEST_F(StoreTest, UnchangedPatchFilesStayByteIdentical) {
 }
 
 TEST_F(StoreTest, ADiscardedEditLeavesEveryFileAsItWas) {
-  const auto before = contents(dir_);
+  const auto before = filesUnder(dir_);
   {
     // A budget of six patches forces the edit's drafts out to disk before it is discarded
     // (reducing one parent pins its four children and needs room for the parent).
@@ -199,7 +190,7 @@ TEST_F(StoreTest, ADiscardedEditLeavesEveryFileAsItWas) {
     edit->refreshStale();
     EXPECT_GT(cache.stats().writeBacks, 0u);
   }
-  EXPECT_EQ(contents(dir_), before);
+  EXPECT_EQ(filesUnder(dir_), before);
 }
 
 TEST_F(StoreTest, OnlyOneEditAtATime) {
