@@ -47,9 +47,6 @@ std::optional<std::filesystem::path> findEntry(const std::filesystem::path& dir,
 /// True for a name that stays inside its directory: not empty, not ".", no "..", "/" or "\".
 bool isSafeName(std::string_view name);
 
-/// `dir`/Patches in whatever letter case it exists. Throws Error(NotFound) when there is none.
-std::filesystem::path patchesDirOf(const std::filesystem::path& dir);
-
 /// What readOpc learnt about one patch beyond its PatchInfo (for validateOpc).
 struct PatchDetails {
   std::filesystem::path xmlFile;

@@ -381,15 +381,6 @@ bool isSafeName(std::string_view name) {
          name.find('\0') == std::string_view::npos;
 }
 
-fs::path patchesDirOf(const fs::path& dir) {
-  const auto found = findEntry(dir, "Patches");
-  std::error_code ec;
-  if (!found || !fs::is_directory(*found, ec)) {
-    throw Error(ErrorCode::NotFound, "no OPC at '" + dir.string() + "' (no Patches directory)");
-  }
-  return *found;
-}
-
 double linearScale(const Mat4d& m) {
   double scale = 0;
   for (int row = 0; row < 3; ++row) {
@@ -590,12 +581,21 @@ OpcContents readOpc(const fs::path& dir) {
 
 // ---- public ----------------------------------------------------------------------------------
 
+fs::path patchesDirOf(const fs::path& dir) {
+  const auto found = detail::findEntry(dir, "Patches");
+  std::error_code ec;
+  if (!found || !fs::is_directory(*found, ec)) {
+    throw Error(ErrorCode::NotFound, "no OPC at '" + dir.string() + "' (no Patches directory)");
+  }
+  return *found;
+}
+
 Model readOpcModel(const fs::path& dir) {
   return std::move(detail::readOpc(dir).model);
 }
 
 PatchGrid readPatchGrid(const fs::path& dir, const Model& model, const PatchInfo& info) {
-  const fs::path file = positionsPath(detail::patchesDirOf(dir), info);
+  const fs::path file = positionsPath(patchesDirOf(dir), info);
   return gridFromArray(readAaraFile(file), model.gridSize(), info, file);
 }
 

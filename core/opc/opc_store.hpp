@@ -22,6 +22,9 @@ namespace vsm::core {
 /// name containing "..", "/" or "\\", a bad number, or grids of differing sizes.
 Model readOpcModel(const std::filesystem::path& dir);
 
+/// `dir`/Patches in whatever letter case it exists. Throws Error(NotFound) when there is none.
+std::filesystem::path patchesDirOf(const std::filesystem::path& dir);
+
 /// Reads one patch's vertex data into a full gridSize x gridSize grid (cropped borders restored as
 /// undefined). V3d files are re-based on their own centre so float32 keeps precision; the returned
 /// grid's local2global() is then the patch's Local2Global times that translation.

@@ -34,21 +34,16 @@ std::string draftFolder(const PatchKey& key, std::uint64_t version) {
   return key.toString() + "-v" + std::to_string(version);
 }
 
-bool isDraftFolderName(const std::string& name) {
-  static const std::regex pattern("[0-9]+_[0-9]+_[0-9]+-v[0-9]+");
+/// Folders vsm names: "d_x_y" as an import writes them, "d_x_y-vN" as an edit does.
+bool isOurFolderName(const std::string& name) {
+  static const std::regex pattern("[0-9]+_[0-9]+_[0-9]+(-v[0-9]+)?");
   return std::regex_match(name, pattern);
 }
 
-fs::path patchesDir(const fs::path& dir) {
-  for (const auto& entry : fs::directory_iterator(dir)) {
-    std::string name = entry.path().filename().string();
-    std::transform(name.begin(), name.end(), name.begin(),
-                   [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
-    if (name == "patches" && entry.is_directory()) {
-      return entry.path();
-    }
-  }
-  return dir / "Patches";
+/// The temporary files of an interrupted atomic write (".Patch.xml.tmp-<pid>-<n>").
+bool isTempFileName(const std::string& name) {
+  static const std::regex pattern("\\..+\\.tmp-[0-9]+-[0-9]+");
+  return std::regex_match(name, pattern);
 }
 
 }  // namespace
@@ -129,21 +124,24 @@ class LiveModel::Store final : public PatchStore {
 std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name,
                                            PatchCache& cache) {
   auto model = std::make_shared<Model>(readOpcModel(dir));
-  // Leftovers of edits interrupted by a crash: draft folders the hierarchy does not name.
+  // Leftovers of edits interrupted by a crash: folders named like ours that the hierarchy does not
+  // name (unpublished drafts, or the old version's folders when the crash came between the
+  // hierarchy's rename and their removal), and temporary files of interrupted writes.
   std::set<std::string> named;
   for (const auto& [key, info] : model->patches()) {
     named.insert(info.folder);
   }
-  const fs::path patches = patchesDir(dir);
+  const fs::path patches = patchesDirOf(dir);
   std::vector<fs::path> orphans;
   for (const auto& entry : fs::directory_iterator(patches)) {
     const std::string folder = entry.path().filename().string();
-    if (entry.is_directory() && isDraftFolderName(folder) && named.count(folder) == 0) {
+    if ((entry.is_directory() && isOurFolderName(folder) && named.count(folder) == 0) ||
+        (entry.is_regular_file() && isTempFileName(folder))) {
       orphans.push_back(entry.path());
     }
   }
   for (const fs::path& orphan : orphans) {
-    log::info("model=" + name + " removing unpublished folder " + orphan.filename().string());
+    log::info("model=" + name + " removing leftover " + orphan.filename().string());
     fs::remove_all(orphan);
   }
 
@@ -197,7 +195,7 @@ ModelEdit::~ModelEdit() {
       const ObjectId id = draftId(key);
       try {
         store.cache().drop(store.id(), id);
-        fs::remove_all(patchesDir(live_.dir_) / draftFolder(key, id.version));
+        fs::remove_all(patchesDirOf(live_.dir_) / draftFolder(key, id.version));
       } catch (const std::exception& e) {
         log::warn("model=" + live_.name_ + " discarding " + key.toString() + ": " + e.what());
       }
@@ -304,7 +302,7 @@ void ModelEdit::publish(const CancelToken* cancel) {
     }
   }
   std::shared_ptr<LiveModel::Store> keep = live_.store_;
-  const fs::path patches = patchesDir(live_.dir_);
+  const fs::path patches = patchesDirOf(live_.dir_);
   {
     std::lock_guard lock(live_.mutex_);
     live_.snapshot_->onRelease = [keep, patches, obsolete = std::move(obsolete)] {

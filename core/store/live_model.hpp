@@ -41,9 +41,10 @@ class ModelEdit;
 /// Thread-safe: any number of readers, one edit.
 class LiveModel {
  public:
-  /// Opens `dir` (metadata only) and registers it with `cache` under `name`. Removes folders that
-  /// earlier, interrupted edits of vsm left behind (named like ours, not in the hierarchy).
-  /// Throws as readOpcModel.
+  /// Opens `dir` (metadata only) and registers it with `cache` under `name`. Removes what
+  /// interrupted edits of vsm left behind: folders named like vsm's ("d_x_y", "d_x_y-vN") that the
+  /// hierarchy does not name, and temporary files of interrupted writes. One process edits a
+  /// directory at a time. Throws as readOpcModel.
   static std::unique_ptr<LiveModel> open(const std::filesystem::path& dir, std::string name,
                                          PatchCache& cache);
   /// Precondition: no edit open.

@@ -235,9 +235,17 @@ TEST_F(StoreTest, AnEditLargerThanTheBudgetStaysWithinIt) {
 TEST_F(StoreTest, OpeningRemovesFoldersOfAnInterruptedEdit) {
   fs::create_directories(dir_ / "Patches" / "2_0_0-v9");
   std::ofstream(dir_ / "Patches" / "2_0_0-v9" / "Patch.xml") << "half written";
+  // An old version's folder the new hierarchy no longer names, a half-written temporary file,
+  // and something that is not ours.
+  fs::create_directories(dir_ / "Patches" / "3_0_0");
+  std::ofstream(dir_ / "Patches" / ".patchhierarchy.xml.tmp-123-4") << "<Aard";
+  fs::create_directories(dir_ / "Patches" / "notes");
   PatchCache cache(64 << 20);
   auto live = LiveModel::open(dir_, "m", cache);
   EXPECT_FALSE(fs::exists(dir_ / "Patches" / "2_0_0-v9"));
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / "3_0_0"));
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / ".patchhierarchy.xml.tmp-123-4"));
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / "notes"));
   EXPECT_TRUE(fs::exists(dir_ / "Patches" / "2_0_0"));
 }
 
