@@ -1,0 +1,115 @@
+#!/usr/bin/env bash
+# Benchmark (not a test): `vsm merge` times against the targets of the merge issue.
+#
+# The inputs are SYNTHETIC: GeoTIFFs (EPSG:4326, float32) sampling one analytic terrain function
+# (merge_terrain.py beside this file: sinusoids from 60 km to 120 m wavelength), so a coarse target
+# and a fine detail model inside it describe the same surface. Quote the figures as synthetic.
+# All models are imported with 257 x 257 patches (vsm's default). The target spacing is 3", the
+# detail spacing 0.8" (ratio 3.75: two new levels).
+#
+#   (a) the same detail model (513 x 513 at 0.8") merged into a target of 1025 x 1025 at 3" and
+#       into one of 3241 x 3241 at 3" (ten times the vertices, same spacing, containing the first,
+#       its origin 4 bottom patches (4 x 256 x 3") north-west of the first so the detail model
+#       meets the same bottom patches in both: the same merge work); target: at most 1.2x the time;
+#   (b) a ~60 MB detail model (1921 x 1921 at 0.8", OPC on disk) into a ~200 MB model (3585 x 3585
+#       at 3"); target: under 10 s;
+#   (c) the extra time --register adds: the small detail model's surface shifted 4 m east and
+#       1.5 m up (so ICP has something to find), merged into the small target with and without
+#       --register; target: at most 25 %.
+#
+# Every figure is the median of $VSM_BENCH_REPEAT (default 3) in-place merges, each into a fresh
+# copy of the target (the copy is made before the clock starts, then `sync`), wall time of the
+# whole `vsm merge` process (opening, merging, fsynced publish). `--out` would add a copy of the
+# whole target to every figure (it copies A before merging), so it is not used here.
+#
+#   tests/bench/merge_bench.sh [path/to/vsm] [work-dir]
+# Defaults: build/server/cli/vsm and a temporary directory (removed afterwards; needs ~2 GB).
+set -euo pipefail
+ROOT=$(cd "$(dirname "$0")/../.." && pwd)
+HERE=$(cd "$(dirname "$0")" && pwd)
+VSM=${1:-$ROOT/build/server/cli/vsm}
+PYTHON=/usr/bin/python3  # Debian's: it has python3-gdal and python3-numpy
+REPEAT=${VSM_BENCH_REPEAT:-3}
+
+if [[ -n "${2:-}" ]]; then
+  WORK=$2
+  mkdir -p "$WORK"
+else
+  WORK=$(mktemp -d)
+  trap 'rm -rf "$WORK"' EXIT
+fi
+[[ -x "$VSM" ]] || { echo "no vsm binary at $VSM" >&2; exit 2; }
+
+gen() {  # gen <name> <west> <north> <spacing"> <size> [shift options]: raster + OPC, once
+  local name=$1
+  shift
+  if [[ ! -d "$WORK/$name" ]]; then
+    "$PYTHON" "$HERE/merge_terrain.py" "$WORK/$name.tif" "$@"
+    "$VSM" import "$WORK/$name.tif" "$WORK/$name.partial" --patch-size 257 >/dev/null 2>&1
+    mv "$WORK/$name.partial" "$WORK/$name"
+  fi
+  printf '  %-14s %5d x %-5d at %s"  OPC %4d MB\n' "$name" "$4" "$4" "$3" \
+    $(( $(du -sb "$WORK/$name" | cut -f1) / 1000000 ))
+}
+
+echo "synthetic inputs in $WORK (generated and imported once):"
+gen target-small -100.5 36.5 3 1025
+gen target-large -101.3533333333333 37.3533333333333 3 3241
+gen target-200mb -101.5 37.5 3 3585
+gen detail-small -100.1 36.1 0.8 513
+gen detail-60mb  -100.3 36.3 0.8 1921
+gen detail-shift -100.1 36.1 0.8 513 --shift-east 4 --up 1.5
+
+now() { date +%s.%N; }
+
+# merge_time <target> <detail> [options]: median wall seconds of $REPEAT in-place merges.
+merge_time() {
+  local target=$1 detail=$2
+  shift 2
+  local times=() i start end
+  for (( i = 0; i < REPEAT; i++ )); do
+    rm -rf "$WORK/copy"
+    cp -a "$WORK/$target" "$WORK/copy"
+    sync
+    start=$(now)
+    /usr/bin/time -f '%e s wall, %U s user, %S s system' -o "$WORK/last.time" \
+      "$VSM" merge "$WORK/copy" "$WORK/$detail" "$@" >"$WORK/last.out" 2>"$WORK/last.err"
+    end=$(now)
+    times+=("$(echo "$end - $start" | bc -l)")
+  done
+  "$VSM" validate "$WORK/copy" >/dev/null 2>&1 || { echo "merged model does not validate" >&2; exit 1; }
+  printf '%s\n' "${times[@]}" | sort -n | sed -n "$(( (REPEAT + 1) / 2 ))p"
+}
+
+# The last run's own report and its CPU time.
+summary() {
+  grep -h '^merged\|^registration\|^memory' "$WORK/last.out" | sed 's/^/    /'
+  sed 's/^/    last run: /' "$WORK/last.time"
+}
+
+echo
+echo "(a) the same detail model into a target and into one ten times larger"
+small=$(merge_time target-small detail-small)
+summary
+large=$(merge_time target-large detail-small)
+summary
+printf '  into target-small %8.3f s\n  into target-large %8.3f s\n' "$small" "$large"
+printf '  ratio             %8.2f   (target: at most 1.2)\n' "$(echo "$large / $small" | bc -l)"
+
+echo
+echo "(b) a ~60 MB detail model into a ~200 MB model"
+big=$(merge_time target-200mb detail-60mb)
+summary
+printf '  detail-60mb into target-200mb %8.3f s   (target: under 10 s)\n' "$big"
+
+echo
+echo "(c) the extra time of --register (detail shifted 4 m east, 1.5 m up)"
+plain=$(merge_time target-small detail-shift)
+summary
+registered=$(merge_time target-small detail-shift --register)
+summary
+printf '    the transform moves the detail centre by %s (expected: -4 east, 0 north, -1.5 up)\n' \
+  "$("$PYTHON" "$HERE/merge_transform.py" "$WORK/last.out" -100.043 36.043)"
+printf '  without --register %8.3f s\n  with --register    %8.3f s\n' "$plain" "$registered"
+printf '  extra             %8.1f %%  (target: at most 25 %%)\n' \
+  "$(echo "($registered - $plain) / $plain * 100" | bc -l)"
