@@ -307,7 +307,7 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     icp.setSearchMethodTarget(bLevel.tree, true);
     icp.setMaxCorrespondenceDistance(stage.distance);
     icp.setMaximumIterations(options.maxIterations);
-    icp.setTransformationEpsilon(1e-10);
+    icp.setTransformationEpsilon(1e-8);
     icp.setEuclideanFitnessEpsilon(1e-10);
     pcl::PointCloud<pcl::PointNormal> aligned;
     icp.align(aligned, u.cast<float>());

@@ -20,7 +20,7 @@ struct RegistrationOptions {
   int maxIterations = 50;
   /// At most this many target vertices per stage, and 4 times as many detail points (evenly
   /// thinned beyond).
-  std::size_t maxPoints = 20000;
+  std::size_t maxPoints = 10000;
   /// Largest misalignment searched for, metres; default: 4 cells of the target's coarse level.
   std::optional<double> searchRadius;
   /// As MergeOptions::up.
