@@ -2,13 +2,23 @@
 
 #include <algorithm>
 #include <bit>
+#include <cerrno>
 #include <charconv>
 #include <cmath>
 #include <cstring>
+#include <list>
+#include <mutex>
 #include <set>
+#include <unordered_map>
+
+#include <fcntl.h>
+#include <sys/mman.h>
+#include <sys/uio.h>
+#include <unistd.h>
 
 #include <nlohmann/json.hpp>
 
+#include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
 #include "core/pyramid/model.hpp"
@@ -25,6 +35,134 @@ using core::ErrorCode;
 using nlohmann::json;
 
 namespace {
+
+/// The .aara bytes of a patch's positions in an anonymous in-memory file (memfd), sealed against
+/// writes, so that the server can send them with sendfile(2) like a static file.
+struct PositionFile {
+  int fd = -1;
+  std::size_t size = 0;
+  PositionFile() = default;
+  PositionFile(const PositionFile&) = delete;
+  PositionFile& operator=(const PositionFile&) = delete;
+  ~PositionFile() {
+    if (fd >= 0) {
+      ::close(fd);
+    }
+  }
+};
+
+/// What a positions response holds until written: the grid (the bytes in memory) and its file.
+struct PositionBody {
+  std::shared_ptr<const core::PatchGrid> grid;
+  std::shared_ptr<const PositionFile> file;
+};
+
+/// The position files of recently served grids, least recently used dropped first, bounded in
+/// bytes (memory outside the patch cache's budget: a quarter of it, at most 256 MiB). Keyed by
+/// the cached grid object, which is immutable and unique to one version of one patch of one
+/// open model; an entry whose grid has gone (evicted, a newer version published, the model
+/// closed) is never served and is replaced on the next use of its address.
+///
+/// Thread-safe: one mutex guards the table, the LRU list and the byte count; it is not held while
+/// a file is made (a copy of the grid: two threads may make one each, the first in wins).
+class PositionFiles {
+ public:
+  explicit PositionFiles(std::size_t limit) : limit_(limit) {}
+
+  /// The file of `grid`, made on first use; nullptr when it would not fit or the system has no
+  /// memfd (the caller then writes from memory).
+  std::shared_ptr<const PositionFile> get(const std::shared_ptr<const core::PatchGrid>& grid) {
+    {
+      const std::lock_guard lock(mutex_);
+      const auto it = entries_.find(grid.get());
+      if (it != entries_.end() && it->second.grid.lock() == grid) {
+        lru_.splice(lru_.end(), lru_, it->second.lru);
+        return it->second.file;
+      }
+    }
+    const std::size_t size = 13 + grid->positions().size_bytes();
+    if (size > limit_) {
+      return nullptr;
+    }
+    auto file = make(*grid, size);
+    if (!file) {
+      return nullptr;
+    }
+    const std::lock_guard lock(mutex_);
+    auto it = entries_.find(grid.get());
+    if (it != entries_.end()) {
+      if (it->second.grid.lock() == grid) {
+        return it->second.file;  // another thread was first
+      }
+      erase(it);  // a dead grid's entry at a reused address
+    }
+    while (bytes_ + size > limit_ && !lru_.empty()) {
+      erase(entries_.find(lru_.front()));
+    }
+    lru_.push_back(grid.get());
+    entries_.emplace(grid.get(), Entry{grid, file, std::prev(lru_.end())});
+    bytes_ += size;
+    return file;
+  }
+
+ private:
+  struct Entry {
+    std::weak_ptr<const core::PatchGrid> grid;
+    std::shared_ptr<const PositionFile> file;
+    std::list<const void*>::iterator lru;
+  };
+
+  static std::shared_ptr<const PositionFile> make(const core::PatchGrid& grid, std::size_t size) {
+    auto file = std::make_shared<PositionFile>();
+    file->fd = ::memfd_create("vsm-positions", MFD_CLOEXEC | MFD_ALLOW_SEALING);
+    if (file->fd < 0) {
+      return nullptr;
+    }
+    const std::string header = aaraHeader(grid.size());
+    const std::span<const float> floats = grid.positions();
+    const iovec parts[2] = {{const_cast<char*>(header.data()), header.size()},
+                            {const_cast<float*>(floats.data()), floats.size_bytes()}};
+    std::size_t written = 0;
+    while (written < size) {
+      // One writev for the common case; a short write continues from where it stopped.
+      iovec rest[2];
+      int count = 0;
+      std::size_t skip = written;
+      for (const iovec& part : parts) {
+        if (skip >= part.iov_len) {
+          skip -= part.iov_len;
+          continue;
+        }
+        rest[count++] = {static_cast<char*>(part.iov_base) + skip, part.iov_len - skip};
+        skip = 0;
+      }
+      const ssize_t n = ::writev(file->fd, rest, count);
+      if (n < 0 && errno == EINTR) {
+        continue;
+      }
+      if (n <= 0) {
+        return nullptr;
+      }
+      written += static_cast<std::size_t>(n);
+    }
+    // Sealed: nobody can change the bytes a response is being sent from.
+    ::fcntl(file->fd, F_ADD_SEALS, F_SEAL_SHRINK | F_SEAL_GROW | F_SEAL_WRITE | F_SEAL_SEAL);
+    file->size = size;
+    return file;
+  }
+
+  void erase(std::unordered_map<const void*, Entry>::iterator it) {
+    bytes_ -= it->second.file->size;
+    lru_.erase(it->second.lru);
+    entries_.erase(it);
+  }
+
+  const std::size_t limit_;
+  std::mutex mutex_;  // guards entries_, lru_ and bytes_
+  std::unordered_map<const void*, Entry> entries_;
+  std::list<const void*> lru_;  // least recently used first
+  std::size_t bytes_ = 0;
+};
 
 /// Patch metadata and data: revalidated after a minute. The URL names no version, so a merge
 /// changes what it returns; a minute of staleness in client caches is the trade for fewer
@@ -330,7 +468,8 @@ http::Response getPatch(const ModelContext& c, const http::Request& request) {
                    etag);
 }
 
-http::Response getPositions(const ModelContext& c, const http::Request& request) {
+http::Response getPositions(const ModelContext& c, PositionFiles& files,
+                            const http::Request& request) {
   const std::string& id = request.param("m");
   const auto live = c.models.get(id);
   const core::PatchKey key = parseKey(request.param("p"));
@@ -346,7 +485,18 @@ http::Response getPositions(const ModelContext& c, const http::Request& request)
     // released before the snapshot and the model.
     const core::PatchCache::Pin pin = live->positions(*snapshot, key);
     const auto grid = pin.get<core::PatchGrid>();
-    response.body = positionsAara(*grid);
+    // The .aara payload is the grid's own float array: it is written to the socket from the
+    // cache, not copied (a 257 x 257 patch is 774 KiB; copying it per request halved the rate).
+    // The published grid is immutable; the response holds it until written. Should the cache
+    // evict it meanwhile, its bytes outlive their charge for that long, as a copy would.
+    response.body = aaraHeader(grid->size());
+    const std::span<const float> floats = grid->positions();
+    response.sharedBody =
+        std::string_view(reinterpret_cast<const char*>(floats.data()), floats.size_bytes());
+    // The same bytes as a file for sendfile(2), when one can be had within its bound.
+    auto file = files.get(grid);
+    response.bodyFd = file ? file->fd : -1;
+    response.bodyOwner = std::make_shared<const PositionBody>(PositionBody{grid, std::move(file)});
     response.set("X-VSM-Local2Global", matrixText(grid->local2global()));
     response.set("X-VSM-Grid-Size", std::to_string(grid->size()));
   }
@@ -470,12 +620,10 @@ json hierarchyJson(const core::Model& model, const core::PatchKey& root, int lev
   return nodeJson(model, model.at(root), levels);
 }
 
-std::string positionsAara(const core::PatchGrid& grid) {
+std::string aaraHeader(std::size_t gridSize) {
   static_assert(std::endian::native == std::endian::little, ".aara is little-endian");
-  const auto size = static_cast<std::int32_t>(grid.size());
-  const std::span<const float> floats = grid.positions();
-  std::string out;
-  out.resize(13 + floats.size_bytes());
+  const auto size = static_cast<std::int32_t>(gridSize);
+  std::string out(13, '\0');
   char* p = out.data();
   *p++ = 3;
   std::memcpy(p, "V3f", 3);
@@ -483,7 +631,13 @@ std::string positionsAara(const core::PatchGrid& grid) {
   *p++ = 2;
   std::memcpy(p, &size, 4);
   std::memcpy(p + 4, &size, 4);
-  std::memcpy(p + 8, floats.data(), floats.size_bytes());
+  return out;
+}
+
+std::string positionsAara(const core::PatchGrid& grid) {
+  const std::span<const float> floats = grid.positions();
+  std::string out = aaraHeader(grid.size());
+  out.append(reinterpret_cast<const char*>(floats.data()), floats.size_bytes());
   return out;
 }
 
@@ -563,7 +717,12 @@ void addModelRoutes(http::Router& router, ModelContext context) {
   router.add(http::Method::Delete, "/v1/models/{m}", bind(deleteModel));
   router.add(http::Method::Get, "/v1/models/{m}/hierarchy", bind(getHierarchy));
   router.add(http::Method::Get, "/v1/models/{m}/patches/{p}", bind(getPatch));
-  router.add(http::Method::Get, "/v1/models/{m}/patches/{p}/positions", bind(getPositions));
+  const auto files = std::make_shared<PositionFiles>(
+      std::min<std::size_t>(context.models.cache().budgetBytes() / 4, std::size_t{256} << 20));
+  router.add(http::Method::Get, "/v1/models/{m}/patches/{p}/positions",
+             [context, files](const http::Request& request) {
+               return getPositions(context, *files, request);
+             });
   router.add(http::Method::Get, "/v1/models/{m}/lod", bind(getLod));
 }
 

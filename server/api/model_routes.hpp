@@ -58,6 +58,8 @@ nlohmann::json hierarchyJson(const core::Model& model, const core::PatchKey& roo
 /// A patch's full grid as `.aara` bytes: V3f, 2 dimensions (size x size), the 13-byte header of
 /// ../shared/docs/OPC.md followed by the little-endian floats; NaN marks undefined vertices.
 std::string positionsAara(const core::PatchGrid& grid);
+/// The 13-byte .aara header of a V3f grid of gridSize x gridSize (what precedes the floats).
+std::string aaraHeader(std::size_t gridSize);
 /// 16 numbers, row-major, comma-separated, shortest round-trip form ("1,0,0,12.5,...").
 std::string matrixText(const core::Mat4d& m);
 

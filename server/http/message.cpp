@@ -152,6 +152,14 @@ std::optional<std::string> Request::queryParam(std::string_view name) const {
   return std::nullopt;
 }
 
+std::string Response::bodyText() const {
+  std::string out;
+  out.reserve(bodySize());
+  out.append(body);
+  out.append(sharedBody);
+  return out;
+}
+
 void Response::set(std::string_view name, std::string value) {
   std::erase_if(headers, [&](const auto& h) { return equalsIgnoreCase(h.first, name); });
   headers.emplace_back(std::string(name), std::move(value));

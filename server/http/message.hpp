@@ -2,6 +2,7 @@
 
 #include <cstdint>
 #include <map>
+#include <memory>
 #include <optional>
 #include <string>
 #include <string_view>
@@ -54,7 +55,21 @@ struct Response {
   int status = 200;
   std::string contentType;
   std::string body;
+  /// More body bytes, sent after `body` straight from where they live (no copy): e.g. a patch's
+  /// floats in the patch cache. `bodyOwner` keeps them alive until the response is written. Empty
+  /// unless a handler serves shared, immutable data this way.
+  std::string_view sharedBody;
+  std::shared_ptr<const void> bodyOwner;
+  /// When >= 0: a file whose first bodySize() bytes are the whole body (`body` then
+  /// `sharedBody`), kept open by `bodyOwner` and never written again. The server may send it with
+  /// sendfile(2), which hands the file's pages to the socket without a copy.
+  int bodyFd = -1;
   std::vector<std::pair<std::string, std::string>> headers;
+
+  /// body.size() + sharedBody.size(): what Content-Length says.
+  std::size_t bodySize() const { return body.size() + sharedBody.size(); }
+  /// The whole body in one string (a copy; for tests and small bodies).
+  std::string bodyText() const;
 
   /// Replaces every field `name` (any case) by one with `value`.
   void set(std::string_view name, std::string value);

@@ -6,7 +6,14 @@
 // connection, the pipeline or the pools (connections are copied out first).
 #include "server/http/server.hpp"
 
+#include <pthread.h>
+#include <sys/sendfile.h>
+
+#include <csignal>
+
+#include <array>
 #include <atomic>
+#include <cerrno>
 #include <condition_variable>
 #include <deque>
 #include <mutex>
@@ -15,6 +22,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include <boost/asio/buffer.hpp>
 #include <boost/asio/dispatch.hpp>
 #include <boost/asio/io_context.hpp>
 #include <boost/asio/ip/tcp.hpp>
@@ -23,10 +31,13 @@
 #include <boost/asio/strand.hpp>
 #include <boost/beast/core/flat_buffer.hpp>
 #include <boost/beast/core/tcp_stream.hpp>
+#include <boost/beast/http/message.hpp>
 #include <boost/beast/http/parser.hpp>
 #include <boost/beast/http/read.hpp>
+#include <boost/beast/http/serializer.hpp>
 #include <boost/beast/http/string_body.hpp>
 #include <boost/beast/http/write.hpp>
+#include <boost/optional/optional.hpp>
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
@@ -45,8 +56,48 @@ using Clock = std::chrono::steady_clock;
 
 namespace {
 
+/// A response body of two parts written with one gather write: an owned string (JSON, a small
+/// header) and bytes owned elsewhere, kept alive by a shared_ptr, written without a copy (a
+/// patch's floats straight from the patch cache; see Response::sharedBody).
+struct GatherBody {
+  struct value_type {
+    std::string owned;
+    std::string_view shared;
+    std::shared_ptr<const void> owner;
+  };
+
+  static std::uint64_t size(const value_type& body) {
+    return body.owned.size() + body.shared.size();
+  }
+
+  class writer {
+   public:
+    using const_buffers_type = std::array<net::const_buffer, 2>;
+
+    template <bool isRequest, class Fields>
+    writer(const bhttp::header<isRequest, Fields>&, const value_type& body) : body_(body) {}
+
+    void init(error_code& ec) { ec = {}; }
+
+    boost::optional<std::pair<const_buffers_type, bool>> get(error_code& ec) {
+      ec = {};
+      if (done_) {
+        return boost::none;
+      }
+      done_ = true;
+      return {{const_buffers_type{net::const_buffer(body_.owned.data(), body_.owned.size()),
+                                  net::const_buffer(body_.shared.data(), body_.shared.size())},
+               false}};
+    }
+
+   private:
+    const value_type& body_;
+    bool done_ = false;
+  };
+};
+
 using BeastRequest = bhttp::request<bhttp::string_body>;
-using BeastResponse = bhttp::response<bhttp::string_body>;
+using BeastResponse = bhttp::response<GatherBody>;
 
 /// How long a closing connection keeps reading (and discarding) after its last response, so that
 /// request bytes still in flight do not make the kernel reset the connection before the client has
@@ -182,7 +233,10 @@ struct Server::Impl {
 class Connection : public std::enable_shared_from_this<Connection> {
  public:
   Connection(Server::Impl& server, tcp::socket&& socket, bool counted)
-      : server_(server), stream_(std::move(socket)), counted_(counted) {
+      : server_(server),
+        stream_(std::move(socket)),
+        fileTimer_(stream_.get_executor()),
+        counted_(counted) {
     error_code ec;
     const auto remote = stream_.socket().remote_endpoint(ec);
     peer_ = ec ? std::string("-") : endpointText(remote);
@@ -246,6 +300,10 @@ class Connection : public std::enable_shared_from_this<Connection> {
     bool ready = false;
     Handled handled;
     std::unique_ptr<BeastResponse> message;  // the serialised form, while being written
+    // A body sent from a file (Response::bodyFd): the header goes through this serializer, the
+    // body by sendfile(2) from `fileOffset` on.
+    std::unique_ptr<bhttp::serializer<false, GatherBody>> serializer;
+    std::size_t fileOffset = 0;
   };
 
   void readNext() {
@@ -418,6 +476,28 @@ class Connection : public std::enable_shared_from_this<Connection> {
     slot.message = toBeast(slot);
     writing_ = true;
     stream_.expires_after(server_.options.writeTimeout);
+    const Response& r = slot.handled.response;
+    if (r.bodyFd >= 0 && !slot.head && GatherBody::size(slot.message->body()) > 0) {
+      // The header by Beast, the body by sendfile(2): the kernel sends the file's pages without
+      // copying them through user space (as nginx serves static files).
+      slot.serializer = std::make_unique<bhttp::serializer<false, GatherBody>>(*slot.message);
+      bhttp::async_write_header(
+          stream_, *slot.serializer, [self = shared_from_this()](error_code ec, std::size_t) {
+            if (ec) {
+              self->onWrite(ec, 0);
+            } else {
+              self->fileTimer_.expires_after(self->server_.options.writeTimeout);
+              self->fileTimer_.async_wait([self](error_code wait) {
+                if (!wait) {
+                  self->server_.timeouts.inc({"write"});
+                  self->closeNow();
+                }
+              });
+              self->sendFile();
+            }
+          });
+      return;
+    }
     bhttp::async_write(stream_, *slot.message,
                        [self = shared_from_this()](error_code ec, std::size_t bytes) {
                          self->onWrite(ec, bytes);
@@ -452,12 +532,52 @@ class Connection : public std::enable_shared_from_this<Connection> {
     if (bodiless) {
       // No body and no Content-Length (RFC 9110 8.6).
     } else if (slot.head) {
-      message->content_length(r.body.size());  // what GET would send; the body itself is not
+      message->content_length(r.bodySize());  // what GET would send; the body itself is not
     } else {
-      message->body() = std::move(r.body);
+      message->body().owned = std::move(r.body);
+      message->body().shared = r.sharedBody;
+      message->body().owner = std::move(r.bodyOwner);
       message->prepare_payload();
     }
     return message;
+  }
+
+  /// Sends the rest of the front slot's body file; waits for the socket whenever it is full.
+  void sendFile() {
+    if (closed_ || queue_.empty()) {
+      return;
+    }
+    Slot& slot = queue_.front();
+    const std::size_t size = GatherBody::size(slot.message->body());
+    const int fd = slot.handled.response.bodyFd;
+    tcp::socket& socket = stream_.socket();
+    error_code ec;
+    socket.native_non_blocking(true, ec);
+    while (!ec && slot.fileOffset < size) {
+      auto offset = static_cast<off_t>(slot.fileOffset);
+      const ssize_t sent = ::sendfile(socket.native_handle(), fd, &offset, size - slot.fileOffset);
+      if (sent > 0) {
+        slot.fileOffset = static_cast<std::size_t>(offset);
+      } else if (sent < 0 && errno == EINTR) {
+        continue;
+      } else if (sent < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) {
+        socket.async_wait(tcp::socket::wait_write, [self = shared_from_this()](error_code wait) {
+          if (wait) {
+            self->fileTimer_.cancel();
+            self->onWrite(wait, 0);
+          } else {
+            self->sendFile();
+          }
+        });
+        return;
+      } else {
+        // 0: the file is shorter than it claimed (a bug in the handler); < 0: a socket error.
+        ec = sent == 0 ? net::error::make_error_code(net::error::eof)
+                       : error_code(errno, boost::system::system_category());
+      }
+    }
+    fileTimer_.cancel();
+    onWrite(ec, slot.fileOffset);
   }
 
   void onWrite(error_code ec, std::size_t) {
@@ -491,7 +611,8 @@ class Connection : public std::enable_shared_from_this<Connection> {
     const double seconds = std::chrono::duration<double>(Clock::now() - slot.start).count();
     const int status = slot.handled.response.status;
     const std::string statusText = std::to_string(status);
-    const std::size_t bytes = slot.message && !slot.head ? slot.message->body().size() : 0;
+    const std::size_t bytes =
+        slot.message && !slot.head ? GatherBody::size(slot.message->body()) : 0;
     const std::string_view method = toString(parseMethod(slot.method));
     server_.requests.inc({method, slot.handled.route, statusText});
     server_.latency.observe({slot.handled.route, statusText}, seconds);
@@ -541,6 +662,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
       return;
     }
     closed_ = true;
+    fileTimer_.cancel();
     error_code ignored;
     stream_.socket().shutdown(tcp::socket::shutdown_both, ignored);
     stream_.close();
@@ -548,6 +670,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
 
   Server::Impl& server_;
   beast::tcp_stream stream_;
+  net::steady_timer fileTimer_;  // the write timeout of a body sent by sendfile()
   beast::flat_buffer buffer_;
   std::optional<bhttp::request_parser<bhttp::string_body>> parser_;
   std::deque<Slot> queue_;
@@ -600,6 +723,12 @@ void Server::Impl::start() {
   net::dispatch(acceptor.get_executor(), [this] { accept(); });
   for (std::size_t i = 0; i < std::max<std::size_t>(options.ioThreads, 1); ++i) {
     threads.emplace_back([this] {
+      // sendfile(2) has no MSG_NOSIGNAL: with SIGPIPE blocked in this thread, a write to a
+      // connection the peer closed fails with EPIPE instead of killing the process.
+      sigset_t pipe;
+      sigemptyset(&pipe);
+      sigaddset(&pipe, SIGPIPE);
+      pthread_sigmask(SIG_BLOCK, &pipe, nullptr);
       for (;;) {
         try {
           ioc.run();

@@ -53,6 +53,8 @@ class ModelRegistry {
 
   /// The canonical data root.
   const std::filesystem::path& dataRoot() const { return root_; }
+  /// The one patch cache of every model.
+  core::PatchCache& cache() const { return cache_; }
 
   /// Opens every directory directly under the data root whose name is a valid id and that holds
   /// an OPC (metadata only). A directory that fails to open is logged and skipped. Returns the

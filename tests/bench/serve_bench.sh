@@ -1,0 +1,185 @@
+#!/usr/bin/env bash
+# Benchmark (not a test): requests per second of vsmd serving one resident 257 x 257 patch's
+# positions (.aara, 792 KiB) against nginx (Debian nginx-light) serving the same bytes as a static
+# file, both on loopback in the same run, then vsmd again while merge jobs run in it.
+#
+#   tests/bench/serve_bench.sh [BUILD_DIR]          (default build/, built already)
+#
+#   VSM_DATA         the shared data (default ../shared/data)
+#   BENCH_DURATION   per wrk run (default 10s)
+#   BENCH_THREADS    wrk threads (default 2)
+#   BENCH_CONNS      wrk connections, keep-alive (default 32)
+#   BENCH_ACCESS_LOG on: both servers write an access-log line per request (vsmd at log level
+#                    info to a file, nginx access_log to a file); off (default): neither does
+#                    (vsmd at log level warn, nginx access_log off)
+#
+# Settings, the same for both servers: one worker per core (nginx worker_processes auto; vsmd one
+# handler thread per core and 2 network threads), keep-alive without a request cap, TCP_NODELAY,
+# nginx with sendfile on. Targets: vsmd >= 1.0x nginx idle; vsmd during a merge >= 0.8x of vsmd
+# idle. Installs wrk and nginx-light with apt when missing (for this benchmark only).
+set -euo pipefail
+ROOT=$(cd "$(dirname "$0")/../.." && pwd)
+BUILD=$(cd "${1:-$ROOT/build}" && pwd)
+DATA=${VSM_DATA:-$ROOT/../shared/data}
+DURATION=${BENCH_DURATION:-10s}
+THREADS=${BENCH_THREADS:-2}
+CONNS=${BENCH_CONNS:-32}
+ACCESS_LOG=${BENCH_ACCESS_LOG:-off}
+VSM=$BUILD/server/cli/vsm
+VSMD=$BUILD/server/vsmd
+
+missing=()
+command -v wrk >/dev/null || missing+=(wrk)
+[[ -x /usr/sbin/nginx ]] || missing+=(nginx-light)
+command -v curl >/dev/null || missing+=(curl)
+command -v jq >/dev/null || missing+=(jq)
+if ((${#missing[@]})); then
+  SUDO=""
+  [[ $(id -u) -ne 0 ]] && SUDO=sudo
+  echo "installing for the benchmark: ${missing[*]}"
+  $SUDO apt-get update -q
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -q --no-install-recommends "${missing[@]}"
+fi
+
+WORK=$(mktemp -d /tmp/vsm-serve-bench.XXXXXX)
+VSMD_PID=""
+NGINX_PID=""
+MERGER_PID=""
+cleanup() {
+  for pid in $MERGER_PID $NGINX_PID $VSMD_PID; do
+    kill "$pid" 2>/dev/null || true
+  done
+  wait 2>/dev/null || true
+  rm -rf "$WORK"
+}
+trap cleanup EXIT
+
+free_port() {
+  python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'
+}
+
+# ---- models: PRISM at 257 (the served patch), and a PRISM + Jacksboro pair at 65 to merge ----
+mkdir -p "$WORK/data"
+echo "importing the models into $WORK/data"
+"$VSM" import "$DATA/PRISMelevation.tif" "$WORK/data/prism" --patch-size 257 >/dev/null 2>&1
+"$VSM" import "$DATA/PRISMelevation.tif" "$WORK/data/target" --patch-size 65 >/dev/null 2>&1
+"$VSM" import "$DATA/jacksboro_fault_dem.tif" "$WORK/data/detail" --patch-size 65 >/dev/null 2>&1
+
+# ---- vsmd ----
+TOKEN=bench-$$
+LEVEL=warn
+[[ $ACCESS_LOG == on ]] && LEVEL=info
+"$VSMD" --listen 127.0.0.1:0 --data-root "$WORK/data" --port-file "$WORK/vsmd.port" \
+  --token "$TOKEN" --memory-budget 1GiB --log-level "$LEVEL" >"$WORK/vsmd.log" 2>&1 &
+VSMD_PID=$!
+for _ in $(seq 200); do [[ -s $WORK/vsmd.port ]] && break; sleep 0.05; done
+VSMD_URL=http://127.0.0.1:$(cat "$WORK/vsmd.port")
+
+# The 257 x 257 patch: the root of PRISM (every model has one).
+PATCH_PATH=/v1/models/prism/patches/0_0_0/positions
+curl -sS --fail -o "$WORK/patch.aara" "$VSMD_URL$PATCH_PATH"
+read -r COLS ROWS < <(od -A n -t d4 -j 5 -N 8 --endian=little "$WORK/patch.aara")
+BYTES=$(stat -c %s "$WORK/patch.aara")
+echo "patch: $PATCH_PATH, $COLS x $ROWS, $BYTES bytes"
+[[ $COLS == 257 && $ROWS == 257 ]] || { echo "not a 257 x 257 patch" >&2; exit 1; }
+
+# ---- nginx serving the same bytes ----
+mkdir -p "$WORK/nginx/www" "$WORK/nginx/tmp"
+cp "$WORK/patch.aara" "$WORK/nginx/www/patch.aara"
+NGINX_PORT=$(free_port)
+NGINX_LOG="access_log off;"
+[[ $ACCESS_LOG == on ]] && NGINX_LOG="access_log $WORK/nginx/access.log;"
+cat >"$WORK/nginx/nginx.conf" <<EOF
+user root;
+worker_processes auto;
+pid $WORK/nginx/nginx.pid;
+error_log $WORK/nginx/error.log warn;
+daemon off;
+events { worker_connections 4096; }
+http {
+  $NGINX_LOG
+  sendfile on;
+  tcp_nopush on;
+  tcp_nodelay on;
+  keepalive_timeout 65s;
+  keepalive_requests 100000000;
+  client_body_temp_path $WORK/nginx/tmp;
+  proxy_temp_path $WORK/nginx/tmp;
+  fastcgi_temp_path $WORK/nginx/tmp;
+  uwsgi_temp_path $WORK/nginx/tmp;
+  scgi_temp_path $WORK/nginx/tmp;
+  types { }
+  default_type application/octet-stream;
+  server {
+    listen 127.0.0.1:$NGINX_PORT;
+    root $WORK/nginx/www;
+  }
+}
+EOF
+/usr/sbin/nginx -p "$WORK/nginx" -c "$WORK/nginx/nginx.conf" &
+NGINX_PID=$!
+NGINX_URL=http://127.0.0.1:$NGINX_PORT
+for _ in $(seq 100); do curl -sf -o /dev/null "$NGINX_URL/patch.aara" && break; sleep 0.05; done
+cmp <(curl -sS --fail "$NGINX_URL/patch.aara") "$WORK/patch.aara"
+cmp <(curl -sS --fail "$VSMD_URL$PATCH_PATH") "$WORK/patch.aara"
+
+# ---- runs ----
+# Prints requests/s of one wrk run (after a short warm-up on the same connections count).
+bench() {
+  wrk -t"$THREADS" -c"$CONNS" -d2s "$1" >/dev/null
+  wrk -t"$THREADS" -c"$CONNS" -d"$DURATION" --latency "$1" >"$WORK/wrk.out"
+  if grep -q "Non-2xx" "$WORK/wrk.out"; then
+    cat "$WORK/wrk.out" >&2
+    echo "errors in the run" >&2
+    exit 1
+  fi
+  sed -n 's/^Requests\/sec: *//p' "$WORK/wrk.out"
+}
+latency() { sed -n 's/^ *99% *//p' "$WORK/wrk.out"; }
+ratio() { python3 -c "print('%.2f' % ($1 / $2))"; }
+
+echo "wrk -t$THREADS -c$CONNS -d$DURATION (keep-alive), access logs $ACCESS_LOG, $(nproc) cores"
+NGINX_RPS=$(bench "$NGINX_URL/patch.aara")
+NGINX_P99=$(latency)
+VSMD_RPS=$(bench "$VSMD_URL$PATCH_PATH")
+VSMD_P99=$(latency)
+
+# Merge jobs back to back (Jacksboro into a PRISM copy, both at 65 x 65) while wrk runs.
+echo 0 >"$WORK/merges"
+merger() {
+  local count=0 id state
+  while [[ ! -e $WORK/stop-merging ]]; do
+    id=$(curl -sS --fail -X POST -H "Authorization: Bearer $TOKEN" \
+      -H 'Content-Type: application/json' \
+      -d '{"type": "merge", "target": "target", "source": "detail"}' "$VSMD_URL/v1/jobs" |
+      jq -r .id)
+    while :; do
+      state=$(curl -sS --fail "$VSMD_URL/v1/jobs/$id" | jq -r .state)
+      [[ $state == queued || $state == running ]] || break
+      sleep 0.1
+    done
+    [[ $state == succeeded ]] || { echo "merge job $id $state" >&2; break; }
+    count=$((count + 1))
+    echo "$count" >"$WORK/merges"
+  done
+}
+merger &
+MERGER_PID=$!
+sleep 0.5
+RUNNING_BEFORE=$(curl -sS "$VSMD_URL/v1/jobs" | jq '[.jobs[] | select(.state == "running")] | length')
+MERGE_RPS=$(bench "$VSMD_URL$PATCH_PATH")
+MERGE_P99=$(latency)
+RUNNING_AFTER=$(curl -sS "$VSMD_URL/v1/jobs" | jq '[.jobs[] | select(.state == "running")] | length')
+touch "$WORK/stop-merging"
+wait "$MERGER_PID" || true
+MERGER_PID=""
+MERGES=$(cat "$WORK/merges")
+
+printf '\n%-28s %12s %10s\n' "server" "requests/s" "p99"
+printf '%-28s %12s %10s\n' "nginx (static file)" "$NGINX_RPS" "$NGINX_P99"
+printf '%-28s %12s %10s\n' "vsmd (idle)" "$VSMD_RPS" "$VSMD_P99"
+printf '%-28s %12s %10s\n' "vsmd (merge jobs running)" "$MERGE_RPS" "$MERGE_P99"
+echo
+echo "vsmd / nginx:        $(ratio "$VSMD_RPS" "$NGINX_RPS")x   (target >= 1.0x)"
+echo "vsmd merging / idle: $(ratio "$MERGE_RPS" "$VSMD_RPS")x   (target >= 0.8x;" \
+  "$MERGES merge(s) finished during the run, running at start/end: $RUNNING_BEFORE/$RUNNING_AFTER)"

@@ -1,0 +1,250 @@
+#!/usr/bin/python3
+"""SIGTERM loses nothing: the real vsmd on 127.0.0.1:0 (server_test.py's harness) with a memory
+budget so small that a merge of Jacksboro into PRISM (both imported by `vsm import` at 65 x 65)
+writes dirty patches back to disk before it publishes. SIGTERM while that merge runs, SIGTERM
+after it published, and SIGTERM with a patch download in flight: vsmd exits 0 every time, and the
+model reopens (`vsm validate` passes, a fresh daemon serves it) as exactly the old version or the
+new one. Run by ctest:
+    shutdown_test.py --vsmd build/server/vsmd --vsm build/server/cli/vsm --data ../shared/data \\
+        --proto proto"""
+
+import argparse
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+import unittest
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import server_test as base  # noqa: E402  (the Daemon harness)
+from server_test import Daemon  # noqa: E402
+
+TOKEN = "shutdown-token-0123456789"
+AUTH = {"Authorization": "Bearer " + TOKEN, "Content-Type": "application/json"}
+PATCH = 65
+# 65 x 65 positions are 50 KiB: a few dozen patches fit, a merge makes a few hundred.
+BUDGET = "3MiB"
+ARGS = None
+
+
+def vsm(*args, check=True):
+    return subprocess.run([ARGS.vsm, *args], capture_output=True, text=True, check=check,
+                          timeout=600)
+
+
+def walk(node):
+    yield node
+    for child in node.get("children", []):
+        yield from walk(child)
+
+
+class Shutdown(unittest.TestCase):
+    """Each test copies the pristine models (imported once) into a fresh data root."""
+
+    pristine = None
+
+    @classmethod
+    def setUpClass(cls):
+        cls.pristine = tempfile.mkdtemp(prefix="vsmd-shutdown-")
+        vsm("import", os.path.join(ARGS.data, "PRISMelevation.tif"),
+            os.path.join(cls.pristine, "prism"), "--patch-size", str(PATCH))
+        vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
+            os.path.join(cls.pristine, "jacksboro"), "--patch-size", str(PATCH))
+        # 257 x 257 patches (774 KiB each): eight of them overflow a socket's send buffer.
+        vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
+            os.path.join(cls.pristine, "jacksboro257"), "--patch-size", "257")
+
+    @classmethod
+    def tearDownClass(cls):
+        if cls.pristine is not None:
+            shutil.rmtree(cls.pristine, ignore_errors=True)
+
+    def setUp(self):
+        self.daemons = []
+
+    def tearDown(self):
+        for daemon in self.daemons:
+            daemon.cleanup()
+
+    def start(self, root=None, *flags, models=("prism", "jacksboro")):
+        def prepare(dir):
+            for name in models:
+                shutil.copytree(os.path.join(self.pristine, name), os.path.join(dir, name))
+
+        daemon = Daemon("--token", TOKEN, "--memory-budget", BUDGET, *flags,
+                        prepare=None if root else prepare, root=root)
+        self.daemons.append(daemon)
+        return daemon
+
+    def model_state(self, daemon):
+        """What identifies a published version: the summary's ETag, the tree, and a hash of the
+        positions of every patch."""
+        status, headers, summary = daemon.get_json("/v1/models/prism")
+        self.assertEqual(status, 200, summary)
+        _, _, tree = daemon.get_json("/v1/models/prism/hierarchy")
+        keys = sorted(n["key"] for n in walk(tree["root"]))
+        conn = daemon.connection(timeout=30)
+        data = {}
+        try:
+            for key in keys:
+                conn.request("GET", "/v1/models/prism/patches/%s/positions" % key)
+                response = conn.getresponse()
+                body = response.read()
+                self.assertEqual(response.status, 200, key)
+                data[key] = hash(body)
+        finally:
+            conn.close()
+        return {"etag": headers["ETag"], "patches": summary["patches"],
+                "depth": summary["depth"], "keys": keys, "data": data}
+
+    def submit_merge(self, daemon):
+        status, _, body = daemon.request("POST", "/v1/jobs", body=json.dumps(
+            {"type": "merge", "target": "prism", "source": "jacksboro"}).encode(), headers=AUTH)
+        self.assertEqual(status, 202, body)
+        return json.loads(body)["id"]
+
+    def wait_job(self, daemon, job_id, until, timeout=600):
+        deadline = time.monotonic() + timeout
+        while True:
+            _, _, job = daemon.get_json("/v1/jobs/" + job_id)
+            if until(job):
+                return job
+            self.assertLess(time.monotonic(), deadline, job)
+            time.sleep(0.01)
+
+    def stop_and_reopen(self, daemon):
+        """SIGTERM (exit 0, no leftovers of an edit), `vsm validate`, then a fresh daemon on the
+        same data root; returns the reopened state and the first daemon's log."""
+        self.assertEqual(daemon.stop(timeout=60), 0, daemon.log())
+        log = daemon.log()  # the reopened daemon writes the same file
+        self.assertIn("stopped", log)
+        result = vsm("validate", os.path.join(daemon.dir, "prism"), check=False)
+        self.assertEqual(result.returncode, 0, result.stdout + result.stderr)
+        reopened = self.start(daemon.dir)
+        state = self.model_state(reopened)
+        self.assertEqual(reopened.stop(), 0, reopened.log())
+        self.assertIn("stopped", reopened.log())
+        return state, log
+
+    def test_sigterm_during_a_merge_that_wrote_dirty_patches_reopens_the_old_version(self):
+        daemon = self.start()
+        before = self.model_state(daemon)
+        job_id = self.submit_merge(daemon)
+        # Into the merge far enough that the budget forced dirty patches out to disk.
+        job = self.wait_job(daemon, job_id, lambda j: j["state"] != "queued" and (
+            j["state"] != "running" or daemon.get_json("/v1/stats")[2]["cache"]["write_backs"] > 0))
+        self.assertEqual(job["state"], "running", "the merge ended before SIGTERM: %r" % job)
+        daemon.proc.send_signal(signal.SIGTERM)
+        after, log = self.stop_and_reopen(daemon)
+        outcome = re.search(r"job=%s (succeeded|cancelled)" % job_id, log)
+        self.assertIsNotNone(outcome, log)
+        print("\n  merge at SIGTERM: %s, then %s" % (job["stage"], outcome.group(1)), file=sys.stderr)
+        if outcome.group(1) == "cancelled":
+            self.assertEqual(after, before)
+        else:  # published in the instant before the signal took effect: the new version, whole
+            self.assertGreater(after["patches"], before["patches"])
+        leftovers = [n for n in os.listdir(os.path.join(daemon.dir, "prism", "Patches"))
+                     if n.endswith("-v2")] if outcome.group(1) == "cancelled" else []
+        self.assertEqual(leftovers, [], "the cancelled edit left folders")
+
+    def test_sigterm_after_a_merge_published_reopens_the_new_version(self):
+        daemon = self.start()
+        before = self.model_state(daemon)
+        job_id = self.submit_merge(daemon)
+        job = self.wait_job(daemon, job_id, lambda j: j["state"] in ("succeeded", "failed"))
+        self.assertEqual(job["state"], "succeeded", job)
+        _, _, stats = daemon.get_json("/v1/stats")
+        self.assertGreater(stats["cache"]["write_backs"], 0, "the budget never forced a write-back")
+        self.assertLessEqual(stats["memory"]["resident_bytes"], stats["memory"]["budget_bytes"])
+        merged = self.model_state(daemon)
+        self.assertGreater(merged["patches"], before["patches"])
+        self.assertEqual(self.stop_and_reopen(daemon)[0], merged)
+
+    def test_sigterm_finishes_a_patch_download_in_flight_then_exits_0(self):
+        daemon = self.start()
+        _, _, tree = daemon.get_json("/v1/models/prism/hierarchy")
+        keys = [n["key"] for n in walk(tree["root"])][:8]
+        with daemon.socket(timeout=30) as sock:
+            # Eight pipelined downloads, the last one's request not yet complete.
+            requests = b"".join(b"GET /v1/models/prism/patches/%s/positions HTTP/1.1\r\nHost: x\r\n"
+                                b"\r\n" % k.encode() for k in keys)
+            sock.sendall(requests[:-2])
+            time.sleep(0.3)
+            daemon.proc.send_signal(signal.SIGTERM)
+            time.sleep(0.3)
+            self.assertIsNone(daemon.proc.poll(), "vsmd exited with requests in flight")
+            sock.sendall(requests[-2:])
+            reader = sock.makefile("rb")
+            for i, key in enumerate(keys):
+                status_line = reader.readline()
+                self.assertIn(b" 200 ", status_line, key)
+                length, close = 0, False
+                while True:
+                    line = reader.readline().strip()
+                    if not line:
+                        break
+                    name, _, value = line.partition(b":")
+                    if name.lower() == b"content-length":
+                        length = int(value)
+                    if name.lower() == b"connection" and value.strip().lower() == b"close":
+                        close = True
+                body = reader.read(length)
+                self.assertEqual(len(body), 13 + PATCH * PATCH * 12, key)
+                self.assertEqual(body[:5], b"\x03V3f\x02")
+                self.assertEqual(close, i == len(keys) - 1, "Connection: close on the last only")
+            self.assertEqual(reader.read(1), b"")
+        self.assertEqual(daemon.proc.wait(timeout=30), 0, daemon.log())
+        self.assertIn("stopped", daemon.log())
+        with self.assertRaises(OSError):
+            socket.create_connection(("127.0.0.1", daemon.port), timeout=2).close()
+
+    def test_clients_that_vanish_mid_download_do_not_stop_vsmd(self):
+        # Patch data goes out by sendfile(2), which raises SIGPIPE on a connection the peer reset
+        # unless the network threads block it.
+        daemon = self.start(models=("jacksboro257",))
+        _, _, tree = daemon.get_json("/v1/models/jacksboro257/hierarchy")
+        keys = [n["key"] for n in walk(tree["root"])]
+        keys = (keys * 8)[:8]
+        requests = b"".join(b"GET /v1/models/jacksboro257/patches/%s/positions HTTP/1.1\r\nHost: x\r\n"
+                            b"\r\n" % k.encode() for k in keys)
+        for _ in range(20):
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            sock.connect(("127.0.0.1", daemon.port))
+            sock.sendall(requests)
+            sock.recv(100)
+            time.sleep(0.02)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            sock.close()  # a reset, with most of the bodies unsent
+        time.sleep(0.3)
+        self.assertIsNone(daemon.proc.poll(), daemon.log())
+        self.assertEqual(daemon.get_json("/healthz")[0], 200)
+        status, _, data = daemon.request("GET",
+                                         "/v1/models/jacksboro257/patches/%s/positions" % keys[0])
+        self.assertEqual((status, len(data)), (200, 13 + 257 * 257 * 12))
+        self.assertEqual(daemon.stop(), 0, daemon.log())
+        self.assertRegex(daemon.log(), r'error="(Broken pipe|Connection reset by peer)"',
+                         "no download was cut short: the test tests nothing")
+
+
+def main():
+    global ARGS
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--vsmd", required=True)
+    parser.add_argument("--vsm", required=True)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--proto", required=True)
+    ARGS, rest = parser.parse_known_args()
+    base.ARGS = ARGS
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
+
+
+if __name__ == "__main__":
+    main()
