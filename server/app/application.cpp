@@ -13,6 +13,7 @@
 #include "core/common/log.hpp"
 #include "server/api/model_routes.hpp"
 #include "server/api/system_routes.hpp"
+#include "server/api/tiles_routes.hpp"
 #include "server/exec/work_pool.hpp"
 #include "server/http/pipeline.hpp"
 #include "server/http/router.hpp"
@@ -103,6 +104,7 @@ Application::Application(Config config) : config_(std::move(config)) {
   api::addSystemRoutes(*router_, {*cache_, *metrics_, [this] { return ready(); }});
   api::addModelRoutes(*router_, {*models_, *jobs_});
   api::addJobRoutes(*router_, {*models_, *jobs_});
+  api::addTilesRoutes(*router_, *models_);
   pipeline_ = std::make_unique<http::Pipeline>(*router_, config_.token);
 
   http::ServerOptions options;

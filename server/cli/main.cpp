@@ -2,6 +2,7 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <charconv>
 #include <chrono>
 #include <cstdio>
 #include <cstring>
@@ -16,6 +17,8 @@
 #include <thread>
 #include <vector>
 
+#include <OpenImageIO/imageio.h>
+
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
@@ -24,6 +27,7 @@
 #include "core/merge/register.hpp"
 #include "core/opc/opc_store.hpp"
 #include "core/store/live_model.hpp"
+#include "core/tiles/lod_render.hpp"
 #include "server/config/config.hpp"
 
 namespace fs = std::filesystem;
@@ -46,6 +50,10 @@ constexpr std::string_view kUsage =
     "                                              place, or into a new <dir>); --register aligns\n"
     "                                              it first (ICP); SIZE like 512MiB (default "
     "1GiB)\n"
+    "  render-lod <opc> <out.png> [--size N]       top-down picture of which depth covers which\n"
+    "                                              area (colours: core/tiles/README.md), N pixels\n"
+    "                                              on the longer side (default 1024), and a world\n"
+    "                                              file <out>.pgw (lon/lat for ECEF models)\n"
     "  help                                        this text\n";
 
 /// Runs a batch of tasks on up to one thread per core, for imports.
@@ -353,6 +361,81 @@ int runMerge(const std::vector<std::string_view>& args) {
   return 0;
 }
 
+/// `vsm render-lod`: the leaves coloured by depth, seen from above, as an RGBA PNG (transparent
+/// where no leaf is) plus a world file so GDAL and GIS tools place it.
+int runRenderLod(const std::vector<std::string_view>& args) {
+  std::vector<std::string_view> positional;
+  LodRenderOptions options;
+  for (std::size_t i = 0; i < args.size(); ++i) {
+    if (args[i] == "--size") {
+      if (i + 1 >= args.size()) {
+        throw UsageError{"--size needs a value"};
+      }
+      const std::string_view text = args[++i];
+      const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), options.size);
+      if (ec != std::errc() || end != text.data() + text.size() || options.size < 1 ||
+          options.size > 16384) {
+        throw UsageError{"--size must be an integer from 1 to 16384"};
+      }
+    } else if (args[i].starts_with("--")) {
+      throw UsageError{"unknown option " + std::string(args[i])};
+    } else {
+      positional.push_back(args[i]);
+    }
+  }
+  if (positional.size() != 2) {
+    throw UsageError{"render-lod needs <opc> and <out.png>"};
+  }
+  const fs::path dir(positional[0]);
+  const fs::path out(positional[1]);
+  const Model model = readOpcModel(dir);
+  const LodImage image = renderLod(
+      model,
+      [&](const PatchInfo& info) {
+        return std::make_shared<const PatchGrid>(readPatchGrid(dir, model, info));
+      },
+      options);
+
+  // Written under a temporary name in the same directory (ending in the extension, which picks
+  // the format), then renamed: a reader never sees half a picture.
+  const fs::path temporary =
+      out.parent_path() / ("." + out.filename().string() + ".tmp-" + std::to_string(::getpid()) +
+                           out.extension().string());
+  const auto output = OIIO::ImageOutput::create(temporary.string());
+  if (!output) {
+    throw Error(ErrorCode::InvalidArgument,
+                "cannot write '" + out.string() + "': " + OIIO::geterror());
+  }
+  const OIIO::ImageSpec spec(image.width, image.height, 4, OIIO::TypeDesc::UINT8);
+  if (!output->open(temporary.string(), spec) ||
+      !output->write_image(OIIO::TypeDesc::UINT8, image.rgba.data()) || !output->close()) {
+    const std::string message = output->geterror();
+    std::error_code ignored;
+    fs::remove(temporary, ignored);
+    throw Error(ErrorCode::Io, "cannot write '" + out.string() + "': " + message);
+  }
+  fs::rename(temporary, out);
+  // World file: pixel sizes, rotations, then the centre of the upper-left pixel.
+  fs::path world = out;
+  world.replace_extension(".pgw");
+  if (FILE* f = std::fopen(world.c_str(), "w")) {
+    std::fprintf(f, "%.17g\n0\n0\n%.17g\n%.17g\n%.17g\n", image.dx, -image.dy,
+                 image.x0 + 0.5 * image.dx, image.y0 - 0.5 * image.dy);
+    std::fclose(f);
+  }
+
+  std::printf("%s: %d x %d pixels, %s x %.10g .. %.10g, y %.10g .. %.10g\n", out.string().c_str(),
+              image.width, image.height, image.geographic ? "lon/lat (degrees)" : "global x/y,",
+              image.x0, image.x0 + image.width * image.dx, image.y0 - image.height * image.dy,
+              image.y0);
+  for (std::size_t depth = 0; depth < image.pixelsPerDepth.size(); ++depth) {
+    const Rgb8 c = depthColour(static_cast<int>(depth));
+    std::printf("depth %2zu  #%02x%02x%02x  %zu pixels\n", depth, c.r, c.g, c.b,
+                image.pixelsPerDepth[depth]);
+  }
+  return 0;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -375,6 +458,9 @@ int main(int argc, char** argv) {
     }
     if (command == "merge") {
       return runMerge(args);
+    }
+    if (command == "render-lod") {
+      return runRenderLod(args);
     }
     throw UsageError{"unknown command '" + std::string(command) + "'"};
   } catch (const UsageError& e) {

@@ -1,0 +1,58 @@
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "core/grid/geometry.hpp"
+
+namespace vsm::core {
+
+class PatchGrid;
+
+/// An encoded image to embed as the mesh's base colour texture (the texture hook of issue 6: the
+/// importer's texture tiles go here once patches carry them).
+struct GlbTexture {
+  /// The encoded file (PNG or JPEG bytes, as glTF 2.0 allows), copied into the GLB's buffer.
+  std::span<const std::byte> image;
+  /// "image/png" or "image/jpeg".
+  std::string mimeType;
+};
+
+/// Options of encodeGlb(). The defaults make an untextured, double-sided grey mesh.
+struct GlbOptions {
+  /// Embedded as material 0's baseColorTexture when set (image.empty() means no texture).
+  GlbTexture texture;
+  /// Per-vertex texture coordinates (u, v interleaved, size x size pairs, row-major, v = 0 the top
+  /// image row, as OPC's Coordinates.aara): used for TEXCOORD_0 instead of the default (u, v) =
+  /// (x / (size - 1), y / (size - 1)). Empty: the default. Precondition: empty or 2 x vertexCount.
+  std::span<const float> texcoords;
+  /// Linear RGBA base colour factor (multiplies the texture when there is one).
+  std::array<double, 4> baseColor{0.8, 0.8, 0.8, 1.0};
+};
+
+/// Encodes a patch grid as a binary glTF 2.0 (GLB) holding one triangle mesh:
+///
+/// - every grid quad whose four corners are defined becomes two triangles (along the shorter
+///   diagonal); quads touching an undefined (or non-finite) vertex are skipped, and only vertices
+///   used by a triangle are stored (a grid without a complete quad gives a valid GLB without a
+///   mesh);
+/// - POSITION is float32, relative to `centre` (global coordinates, e.g. ECEF metres) and turned
+///   from the model's z-up axes into glTF's y-up ones, (x, y, z) -> (x, z, -y), so a 3D Tiles
+///   runtime (which rotates glTF content y-up -> z-up) places it at centre + (x, y, z) under a tile
+///   transform translating by `centre`;
+/// - NORMAL: unit per-vertex normals (area-weighted face normals, same axes); TEXCOORD_0: see
+///   GlbOptions::texcoords; indices UNSIGNED_SHORT when the vertices fit, UNSIGNED_INT otherwise.
+///   Triangles wind counter-clockwise seen from +z for a grid whose rows run north to south and
+///   columns west to east (rasters as vsm imports them); the material is double-sided anyway;
+/// - every accessor carries its exact min/max; buffer views are 4-byte aligned, the JSON chunk is
+///   padded with spaces and the BIN chunk with zeros.
+///
+/// Thread-safe (reads `grid` only). Throws Error(InvalidArgument) when `centre` is not finite,
+/// when texcoords has the wrong size, or when the GLB would exceed 4 GiB.
+std::vector<std::byte> encodeGlb(const PatchGrid& grid, const Vec3d& centre,
+                                 const GlbOptions& options = {});
+
+}  // namespace vsm::core

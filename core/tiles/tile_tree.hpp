@@ -1,0 +1,45 @@
+#pragma once
+
+#include <vector>
+
+#include "core/grid/geometry.hpp"
+#include "core/pyramid/patch_key.hpp"
+
+namespace vsm::core {
+
+class Model;
+struct PatchInfo;
+
+/// One tile of the 3D Tiles view of a model: a patch, its children, and what a tileset needs to
+/// know about it. Built from metadata only (no vertex data).
+struct TileNode {
+  PatchKey key;
+  /// Global point the tile's content is relative to (tileCentre() of the patch).
+  Vec3d centre;
+  /// Global axis-aligned box holding the patch's defined vertices and every descendant's box,
+  /// padded (tilePadding()) so float32 rounding of the content never leaves it. Never empty.
+  Box3d box;
+  /// Metres: 0 for a leaf; otherwise at least the patch's resolution and at least twice the
+  /// largest child's, so it falls strictly from parent to child.
+  double geometricError = 0;
+  /// In quadrant order (NW, NE, SW, SE), missing children left out.
+  std::vector<TileNode> children;
+};
+
+/// The point a patch's tile content (encodeGlb) is relative to: the centre of its global box, or
+/// the translation of its Local2Global when the box is empty.
+Vec3d tileCentre(const PatchInfo& info);
+
+/// The padding added on every side of a tile box of the given (unpadded) box: 1 mm plus 1e-6 of
+/// its largest half extent (float32 positions relative to the centre round by at most ~1e-7 of it).
+/// Grows with the box, so a padded child stays inside its padded parent.
+double tilePadding(const Box3d& box);
+
+/// The tile tree of a model, from its root. Precondition: the model is not empty.
+TileNode buildTileTree(const Model& model);
+
+/// The error of the whole tileset (what not rendering the root costs): twice the root's, or the
+/// root's box diagonal for a single-tile model.
+double tilesetGeometricError(const TileNode& root);
+
+}  // namespace vsm::core

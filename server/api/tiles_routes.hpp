@@ -1,0 +1,42 @@
+#pragma once
+
+#include <string>
+#include <string_view>
+
+#include <nlohmann/json_fwd.hpp>
+
+#include "server/http/router.hpp"
+
+namespace vsm::core {
+struct ModelSnapshot;
+struct PatchInfo;
+struct TileNode;
+}  // namespace vsm::core
+
+namespace vsm::server::models {
+class ModelRegistry;
+}
+
+namespace vsm::server::api {
+
+/// GET /v1/models/{m}/3dtiles/tileset.json and GET /v1/models/{m}/3dtiles/{p}.glb: the OGC 3D
+/// Tiles 1.1 view of every open model (see proto/openapi.yaml). The tileset is built from one
+/// snapshot's metadata; a GLB is encoded on request from the patch's data, read through the cache
+/// on the CPU pool. `models` must outlive the router.
+void addTilesRoutes(http::Router& router, models::ModelRegistry& models);
+
+// ---- wire mapping, public for tests -----------------------------------------------------------
+
+/// The tileset.json of a tile tree (core::buildTileTree): asset.version "1.1", per tile a
+/// transform (column-major 4x4 translating by the tile's centre minus its parent's; the root's by
+/// its centre, in ECEF for models imported from georeferenced rasters), boundingVolume.box
+/// relative to the tile's centre, geometricError, refine "REPLACE", content.uri "{key}.glb"
+/// (relative to the tileset's URL) and children.
+nlohmann::json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion);
+
+/// The entity tags of a model's tileset and of one patch's GLB: derived from the model's and the
+/// patch's tags and the encoder's format version (a change of the encoder changes every tag).
+std::string tilesetEtag(const core::ModelSnapshot& snapshot);
+std::string glbEtag(const core::PatchInfo& info);
+
+}  // namespace vsm::server::api

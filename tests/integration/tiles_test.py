@@ -1,0 +1,343 @@
+#!/usr/bin/python3
+"""The OGC 3D Tiles view of a real merged model, end to end: the real vsmd on 127.0.0.1:0 (see
+server_test.py for the harness) over a data root holding PRISM with Jacksboro merged into it
+(imported at 65 x 65 by `vsm import`, merged by `vsm merge`: the `tiles.prepare` fixture), then
+
+- tileset.json fetched and checked against the 3D Tiles 1.1 rules with our own reader: asset
+  version, geometricError strictly decreasing from parent to child (0 at leaves), children's
+  bounding volumes inside their parent's, every content URI resolving (200, model/gltf-binary);
+- every GLB decoded independently (struct, json): header and chunks, accessor min/max equal to the
+  data, positions (through the tile transforms and glTF's y-up -> z-up rotation) inside the tile's
+  bounding volume, and one triangle pair per complete quad of the patch's own grid (fetched as
+  .aara from /positions);
+- every GLB validated by Khronos' glTF validator (npm `gltf-validator`, installed into the build
+  directory by install-node-tools.sh): zero errors;
+- ETags (If-None-Match -> 304), CORS, HEAD, and errors for unknown tiles.
+
+Run by ctest:
+    tiles_test.py --vsmd build/server/vsmd --model build/.../tiles/merged \\
+        --node-tools build/node-tools --validator tests/integration/validate_gltf.js"""
+
+import argparse
+import json
+import math
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+import unittest
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import server_test as base  # noqa: E402  (the Daemon harness)
+from server_test import Daemon  # noqa: E402
+
+ARGS = None
+MODEL = "merged"
+PREFIX = "/v1/models/%s/3dtiles/" % MODEL
+
+
+# ---- an independent reader of GLB and 3D Tiles -------------------------------------------------
+
+COMPONENT = {5126: ("f", 4), 5125: ("I", 4), 5123: ("H", 2), 5121: ("B", 1)}
+WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
+
+
+def decode_glb(data):
+    """(gltf JSON, BIN bytes) of a GLB, checking the container per the glTF 2.0 spec."""
+    assert len(data) >= 20, "GLB shorter than header + chunk header"
+    magic, version, length = struct.unpack_from("<4sII", data, 0)
+    assert magic == b"glTF", magic
+    assert version == 2, version
+    assert length == len(data), (length, len(data))
+    assert length % 4 == 0
+    json_length, json_type = struct.unpack_from("<I4s", data, 12)
+    assert json_type == b"JSON", json_type
+    assert json_length % 4 == 0
+    gltf = json.loads(data[20:20 + json_length].decode("utf-8"))
+    at = 20 + json_length
+    bin_chunk = b""
+    if at < length:
+        bin_length, bin_type = struct.unpack_from("<I4s", data, at)
+        assert bin_type == b"BIN\0", bin_type
+        assert bin_length % 4 == 0
+        assert at + 8 + bin_length == length
+        bin_chunk = data[at + 8:at + 8 + bin_length]
+        assert gltf["buffers"][0]["byteLength"] <= len(bin_chunk)
+    return gltf, bin_chunk
+
+
+def read_accessor(gltf, bin_chunk, index):
+    """The accessor's elements as a flat list (tightly packed views only, as vsm writes)."""
+    accessor = gltf["accessors"][index]
+    view = gltf["bufferViews"][accessor["bufferView"]]
+    fmt, size = COMPONENT[accessor["componentType"]]
+    width = WIDTH[accessor["type"]]
+    offset = view.get("byteOffset", 0) + accessor.get("byteOffset", 0)
+    assert offset % size == 0, "misaligned accessor %d" % index
+    assert "byteStride" not in view or view["byteStride"] == size * width
+    count = accessor["count"] * width
+    assert count * size <= view["byteLength"]
+    return list(struct.unpack_from("<%d%s" % (count, fmt), bin_chunk, offset))
+
+
+def matmul(a, b):
+    """Product of two column-major 4x4 matrices (3D Tiles' layout)."""
+    return [sum(a[k * 4 + r] * b[c * 4 + k] for k in range(4)) for c in range(4) for r in range(4)]
+
+
+def apply(m, p):
+    """A column-major 4x4 matrix applied to a point."""
+    return [m[r] * p[0] + m[4 + r] * p[1] + m[8 + r] * p[2] + m[12 + r] for r in range(3)]
+
+
+IDENTITY = [1.0 if r == c else 0.0 for c in range(4) for r in range(4)]
+
+
+def box_corners(box, m):
+    """The eight corners of a 3D Tiles box (centre + three half-axis vectors) under `m`."""
+    c, u, v, w = box[0:3], box[3:6], box[6:9], box[9:12]
+    out = []
+    for su in (-1, 1):
+        for sv in (-1, 1):
+            for sw in (-1, 1):
+                p = [c[i] + su * u[i] + sv * v[i] + sw * w[i] for i in range(3)]
+                out.append(apply(m, p))
+    return out
+
+
+def aabb(points):
+    return ([min(p[i] for p in points) for i in range(3)],
+            [max(p[i] for p in points) for i in range(3)])
+
+
+def inside(inner, outer, tolerance=0.0):
+    (lo1, hi1), (lo2, hi2) = inner, outer
+    return all(lo2[i] - tolerance <= lo1[i] and hi1[i] <= hi2[i] + tolerance for i in range(3))
+
+
+def walk(tile, parent=IDENTITY, parent_tile=None):
+    """(tile, world transform, parent tile) for every tile, parents first."""
+    world = matmul(parent, tile["transform"]) if "transform" in tile else parent
+    yield tile, world, parent_tile
+    for child in tile.get("children", []):
+        yield from walk(child, world, tile)
+
+
+def decode_aara(data):
+    n = data[0]
+    name = data[1:1 + n].decode("ascii")
+    dims = data[1 + n]
+    sizes = struct.unpack_from("<%di" % dims, data, 2 + n)
+    return name, sizes, data[2 + n + 4 * dims:]
+
+
+def complete_quads(aara):
+    name, (w, h), payload = decode_aara(aara)
+    assert name == "V3f" and w == h, (name, w, h)
+    values = struct.unpack("<%df" % (w * h * 3), payload)
+    defined = [not any(math.isnan(values[i * 3 + k]) for k in range(3)) for i in range(w * h)]
+    return sum(1 for y in range(h - 1) for x in range(w - 1)
+               if defined[y * w + x] and defined[y * w + x + 1] and defined[(y + 1) * w + x]
+               and defined[(y + 1) * w + x + 1])
+
+
+class Tiles(unittest.TestCase):
+    daemon = None
+
+    @classmethod
+    def setUpClass(cls):
+        def prepare(root):
+            shutil.copytree(ARGS.model, os.path.join(root, MODEL))
+
+        cls.daemon = Daemon("--set", "threads.cpu=2", prepare=prepare)
+        cls.glb_dir = tempfile.mkdtemp(prefix="vsm-glb-")
+        start = time.monotonic()
+        status, headers, body = cls.daemon.request("GET", PREFIX + "tileset.json")
+        cls.tileset_seconds = time.monotonic() - start
+        assert status == 200, body
+        cls.tileset_headers = headers
+        cls.tileset_bytes = len(body)
+        cls.tileset = json.loads(body)
+        cls.tiles = list(walk(cls.tileset["root"]))
+        # Every content, fetched once (the URIs relative to the tileset's URL).
+        cls.glbs = {}
+        cls.glb_headers = {}
+        start = time.monotonic()
+        for tile, _, _ in cls.tiles:
+            uri = tile["content"]["uri"]
+            status, headers, body = cls.daemon.request("GET", PREFIX + uri)
+            assert status == 200, (uri, status, body[:200])
+            cls.glbs[uri] = body
+            cls.glb_headers[uri] = headers
+        cls.glb_seconds = time.monotonic() - start
+
+    @classmethod
+    def tearDownClass(cls):
+        if cls.daemon is not None:
+            code = cls.daemon.stop()
+            keep = code != 0
+            cls.daemon.cleanup(keep=keep)
+        shutil.rmtree(cls.glb_dir, ignore_errors=True)
+
+    def test_tileset_is_3d_tiles_1_1(self):
+        t = self.tileset
+        self.assertEqual(t["asset"]["version"], "1.1")
+        self.assertEqual(self.tileset_headers["Content-Type"], "application/json")
+        self.assertEqual(self.tileset_headers["Access-Control-Allow-Origin"], "*")
+        self.assertGreaterEqual(t["geometricError"], t["root"]["geometricError"])
+        self.assertEqual(t["root"]["refine"], "REPLACE")
+        status, _, model = self.daemon.get_json("/v1/models/" + MODEL)
+        self.assertEqual(status, 200)
+        self.assertEqual(len(self.tiles), model["patches"])
+        keys = {tile["content"]["uri"][:-4] for tile, _, _ in self.tiles}
+        self.assertEqual(len(keys), len(self.tiles))
+        # The content sits on the earth in ECEF: the root's vertices, through its transform, lie
+        # 6350..6390 km from the earth's centre.
+        root, world, _ = self.tiles[0]
+        gltf, bin_chunk = decode_glb(self.glbs[root["content"]["uri"]])
+        positions = read_accessor(gltf, bin_chunk,
+                                  gltf["meshes"][0]["primitives"][0]["attributes"]["POSITION"])
+        for v in range(0, len(positions), 3):
+            x, y, z = positions[v:v + 3]
+            self.assertTrue(6.35e6 < math.dist(apply(world, [x, -z, y]), [0, 0, 0]) < 6.39e6)
+        print("\ntileset: %d tiles, %d bytes, %.3f s; %d GLBs, %d bytes, %.3f s"
+              % (len(self.tiles), self.tileset_bytes, self.tileset_seconds, len(self.glbs),
+                 sum(len(b) for b in self.glbs.values()), self.glb_seconds), file=sys.stderr)
+
+    def test_geometric_error_falls_strictly_from_parent_to_child(self):
+        for tile, _, parent in self.tiles:
+            uri = tile["content"]["uri"]
+            self.assertIn(tile.get("refine", "REPLACE"), ("REPLACE",))
+            if "children" not in tile:
+                self.assertEqual(tile["geometricError"], 0, uri)
+            else:
+                self.assertGreater(tile["geometricError"], 0, uri)
+            if parent is not None:
+                self.assertLess(tile["geometricError"], parent["geometricError"], uri)
+
+    def test_children_volumes_lie_inside_their_parents(self):
+        volumes = {}
+        for tile, world, parent in self.tiles:
+            volume = aabb(box_corners(tile["boundingVolume"]["box"], world))
+            volumes[id(tile)] = volume
+            if parent is not None:
+                self.assertTrue(inside(volume, volumes[id(parent)]),
+                                "%s not inside its parent" % tile["content"]["uri"])
+
+    def test_every_uri_resolves_as_gltf_binary_with_an_etag(self):
+        for uri, headers in self.glb_headers.items():
+            self.assertEqual(headers["Content-Type"], "model/gltf-binary", uri)
+            self.assertTrue(headers["ETag"].startswith('"'), uri)
+            self.assertEqual(headers["Access-Control-Allow-Origin"], "*")
+            self.assertIn("max-age", headers["Cache-Control"])
+
+    def test_content_lies_inside_its_tile_volume_and_matches_the_grid(self):
+        for tile, world, _ in self.tiles:
+            uri = tile["content"]["uri"]
+            gltf, bin_chunk = decode_glb(self.glbs[uri])
+            self.assertEqual(gltf["asset"]["version"], "2.0")
+            corners = box_corners(tile["boundingVolume"]["box"], world)
+            lo, hi = aabb(corners)
+            status, _, aara = self.daemon.request("GET", "/v1/models/%s/patches/%s/positions"
+                                                  % (MODEL, uri[:-4]))
+            self.assertEqual(status, 200)
+            quads = complete_quads(aara)
+            if "meshes" not in gltf:
+                self.assertEqual(quads, 0, uri)
+                continue
+            primitive = gltf["meshes"][0]["primitives"][0]
+            self.assertEqual(primitive.get("mode", 4), 4)
+            accessors = [primitive["attributes"]["POSITION"], primitive["attributes"]["NORMAL"],
+                         primitive["attributes"]["TEXCOORD_0"], primitive["indices"]]
+            data = [read_accessor(gltf, bin_chunk, a) for a in accessors]
+            for index, values in zip(accessors, data):
+                accessor = gltf["accessors"][index]
+                width = WIDTH[accessor["type"]]
+                for c in range(width):
+                    column = values[c::width]
+                    self.assertEqual(accessor["min"][c], min(column), (uri, index))
+                    self.assertEqual(accessor["max"][c], max(column), (uri, index))
+            positions, _, _, indices = data
+            count = len(positions) // 3
+            self.assertEqual(len(indices), 6 * quads, uri)
+            self.assertLess(max(indices), count)
+            self.assertEqual(len(set(indices)), count, "%s stores unused vertices" % uri)
+            for v in range(count):
+                x, y, z = positions[v * 3:v * 3 + 3]
+                # glTF y-up -> 3D Tiles z-up: (x, y, z) -> (x, -z, y), then the tile transform.
+                p = apply(world, [x, -z, y])
+                self.assertTrue(all(lo[i] <= p[i] <= hi[i] for i in range(3)),
+                                "%s vertex %d %r outside %r..%r" % (uri, v, p, lo, hi))
+
+    def test_every_glb_passes_the_khronos_validator(self):
+        paths = []
+        for uri, body in self.glbs.items():
+            path = os.path.join(self.glb_dir, uri)
+            with open(path, "wb") as f:
+                f.write(body)
+            paths.append(path)
+        start = time.monotonic()
+        result = subprocess.run(["node", ARGS.validator, ARGS.node_tools, *paths],
+                                capture_output=True, text=True, timeout=600)
+        seconds = time.monotonic() - start
+        self.assertEqual(result.returncode, 0, result.stderr)
+        reports = [json.loads(line) for line in result.stdout.splitlines() if line.strip()]
+        self.assertEqual(len(reports), len(paths))
+        failed = [r for r in reports if r["errors"] != 0]
+        self.assertEqual(failed, [], "validator errors:\n" + "\n".join(
+            "%s: %s" % (r["file"], "; ".join(r["messages"])) for r in failed[:5]))
+        warnings = sum(r["warnings"] for r in reports)
+        infos = sum(r["infos"] for r in reports)
+        print("\ngltf-validator %s: %d GLBs, 0 errors, %d warnings, %d infos, %.1f s"
+              % (reports[0]["validator"], len(reports), warnings, infos, seconds),
+              file=sys.stderr)
+        examples = [m for r in reports for m in r["messages"]][:5]
+        if examples:
+            print("  e.g. " + "\n  e.g. ".join(examples), file=sys.stderr)
+
+    def test_etags_answer_304_and_head_has_no_body(self):
+        uri = self.tiles[-1][0]["content"]["uri"]
+        etag = self.glb_headers[uri]["ETag"]
+        status, headers, body = self.daemon.request("GET", PREFIX + uri,
+                                                    headers={"If-None-Match": etag})
+        self.assertEqual(status, 304)
+        self.assertEqual(body, b"")
+        self.assertEqual(headers["ETag"], etag)
+        etag = self.tileset_headers["ETag"]
+        status, _, _ = self.daemon.request("GET", PREFIX + "tileset.json",
+                                           headers={"If-None-Match": etag})
+        self.assertEqual(status, 304)
+        status, headers, body = self.daemon.request("HEAD", PREFIX + uri)
+        self.assertEqual(status, 200)
+        self.assertEqual(body, b"")
+        self.assertEqual(int(headers["Content-Length"]), len(self.glbs[uri]))
+        # Same bytes on a second request (generated again from the same patch version).
+        status, _, body = self.daemon.request("GET", PREFIX + uri)
+        self.assertEqual(body, self.glbs[uri])
+
+    def test_unknown_tiles_and_models_are_json_errors(self):
+        for path, expected in ((PREFIX + "29_0_0.glb", 404), (PREFIX + "abc.glb", 400),
+                               ("/v1/models/nope/3dtiles/tileset.json", 404),
+                               ("/v1/models/nope/3dtiles/0_0_0.glb", 404)):
+            status, headers, body = self.daemon.request("GET", path)
+            self.assertEqual(status, expected, path)
+            self.assertIn("error", json.loads(body), path)
+
+
+def main():
+    global ARGS
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--vsmd", required=True)
+    parser.add_argument("--model", required=True, help="the merged OPC (copied into the data root)")
+    parser.add_argument("--node-tools", required=True, help="prefix holding node_modules")
+    parser.add_argument("--validator", required=True, help="validate_gltf.js")
+    ARGS, rest = parser.parse_known_args()
+    base.ARGS = ARGS
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
+
+
+if __name__ == "__main__":
+    main()

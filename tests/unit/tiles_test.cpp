@@ -1,0 +1,496 @@
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <map>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <numbers>
+#include <set>
+#include <string>
+#include <vector>
+
+#include "core/common/error.hpp"
+#include "core/grid/patch_grid.hpp"
+#include "core/pyramid/model.hpp"
+#include "core/tiles/glb.hpp"
+#include "core/tiles/lod_render.hpp"
+#include "core/tiles/tile_tree.hpp"
+#include "server/api/tiles_routes.hpp"
+
+namespace vsm::core {
+namespace {
+
+using nlohmann::json;
+
+// ---- an independent GLB reader (glTF 2.0, "GLB File Format Specification") ---------------------
+
+std::uint32_t u32(const std::vector<std::byte>& b, std::size_t at) {
+  std::uint32_t v = 0;
+  for (int i = 3; i >= 0; --i) {
+    v = v << 8 | std::to_integer<std::uint32_t>(b.at(at + i));
+  }
+  return v;
+}
+
+struct DecodedGlb {
+  json gltf;
+  std::vector<std::byte> bin;
+  std::uint32_t jsonChunkLength = 0;
+
+  /// The accessor's elements as doubles (components interleaved); checks that it lies in its view.
+  std::vector<double> read(int accessorIndex) const {
+    const json& a = gltf["accessors"][accessorIndex];
+    const json& view = gltf["bufferViews"][a["bufferView"].get<int>()];
+    const int type = a["componentType"];
+    const std::string kind = a["type"];
+    const std::size_t components = kind == "SCALAR" ? 1 : kind == "VEC2" ? 2 : 3;
+    const std::size_t size = type == 5126 || type == 5125 ? 4 : type == 5123 ? 2 : 0;
+    EXPECT_NE(size, 0u);
+    const std::size_t count = a["count"];
+    const std::size_t offset = view.value("byteOffset", 0) + a.value("byteOffset", 0);
+    EXPECT_EQ(offset % size, 0u) << "accessor " << accessorIndex << " misaligned";
+    EXPECT_LE(count * components * size, view["byteLength"].get<std::size_t>());
+    EXPECT_LE(offset + count * components * size, bin.size());
+    std::vector<double> out(count * components);
+    for (std::size_t i = 0; i < out.size(); ++i) {
+      const std::byte* p = bin.data() + offset + i * size;
+      if (type == 5126) {
+        float f;
+        std::memcpy(&f, p, 4);
+        out[i] = f;
+      } else if (type == 5125) {
+        std::uint32_t v;
+        std::memcpy(&v, p, 4);
+        out[i] = v;
+      } else {
+        std::uint16_t v;
+        std::memcpy(&v, p, 2);
+        out[i] = v;
+      }
+    }
+    return out;
+  }
+};
+
+DecodedGlb decodeGlb(const std::vector<std::byte>& glb) {
+  DecodedGlb out;
+  EXPECT_GE(glb.size(), 20u);
+  EXPECT_EQ(u32(glb, 0), 0x46546C67u) << "magic glTF";
+  EXPECT_EQ(u32(glb, 4), 2u) << "version";
+  EXPECT_EQ(u32(glb, 8), glb.size()) << "length";
+  EXPECT_EQ(glb.size() % 4, 0u);
+  out.jsonChunkLength = u32(glb, 12);
+  EXPECT_EQ(u32(glb, 16), 0x4E4F534Au) << "first chunk JSON";
+  EXPECT_EQ(out.jsonChunkLength % 4, 0u);
+  const auto* text = reinterpret_cast<const char*>(glb.data() + 20);
+  out.gltf = json::parse(std::string(text, out.jsonChunkLength));
+  const std::size_t next = 20 + out.jsonChunkLength;
+  if (next < glb.size()) {
+    const std::uint32_t length = u32(glb, next);
+    EXPECT_EQ(u32(glb, next + 4), 0x004E4942u) << "second chunk BIN";
+    EXPECT_EQ(length % 4, 0u);
+    EXPECT_EQ(next + 8 + length, glb.size());
+    out.bin.assign(glb.begin() + static_cast<std::ptrdiff_t>(next + 8), glb.end());
+    EXPECT_EQ(out.gltf["buffers"][0]["byteLength"].get<std::size_t>(), out.bin.size());
+  }
+  return out;
+}
+
+// ---- synthetic data ----------------------------------------------------------------------------
+
+// Terrain in ECEF near lon -84.25, lat 36.3 (Jacksboro): a local east/north/up frame, 10 m grid.
+constexpr double kLat = 36.3 * std::numbers::pi / 180, kLon = -84.25 * std::numbers::pi / 180;
+const Vec3d kEast{-std::sin(kLon), std::cos(kLon), 0};
+const Vec3d kNorth{-std::sin(kLat) * std::cos(kLon), -std::sin(kLat) * std::sin(kLon),
+                   std::cos(kLat)};
+const Vec3d kUp{std::cos(kLat) * std::cos(kLon), std::cos(kLat) * std::sin(kLon), std::sin(kLat)};
+const Vec3d kOrigin = kUp * 6371000.0;
+
+Vec3d terrain(double east, double north) {
+  const double h = 300 + 40 * std::sin(east * 0.01) + 25 * std::cos(north * 0.013);
+  return kOrigin + kEast * east + kNorth * north + kUp * h;
+}
+
+/// A size x size grid with 10 m spacing, rows running north to south; `undefined(x, y)` marks
+/// holes.
+template <typename Hole>
+PatchGrid terrainGrid(int size, Hole undefined) {
+  Box3d box;
+  for (int y = 0; y < size; y += size - 1) {
+    for (int x = 0; x < size; x += size - 1) {
+      box.extend(terrain(10.0 * x, -10.0 * y));
+    }
+  }
+  PatchGrid grid(size, originFor(box));
+  for (int y = 0; y < size; ++y) {
+    for (int x = 0; x < size; ++x) {
+      if (!undefined(x, y)) {
+        grid.setGlobal(x, y, terrain(10.0 * x, -10.0 * y));
+      }
+    }
+  }
+  return grid;
+}
+
+Vec3d dot3(const Vec3d& a, const Vec3d& b) {
+  return {a.x * b.x, a.y * b.y, a.z * b.z};
+}
+double dot(const Vec3d& a, const Vec3d& b) {
+  const Vec3d p = dot3(a, b);
+  return p.x + p.y + p.z;
+}
+
+/// Checks everything the tileset and the validator need of one GLB of `grid`, decoded
+/// independently; returns the decoded asset.
+DecodedGlb checkGlb(const PatchGrid& grid, const Vec3d& centre) {
+  const std::vector<std::byte> bytes = encodeGlb(grid, centre);
+  DecodedGlb glb = decodeGlb(bytes);
+  const json& gltf = glb.gltf;
+  EXPECT_EQ(gltf["asset"]["version"], "2.0");
+  const int n = grid.size();
+  std::size_t quads = 0;
+  for (int y = 0; y + 1 < n; ++y) {
+    for (int x = 0; x + 1 < n; ++x) {
+      quads += grid.defined(x, y) && grid.defined(x + 1, y) && grid.defined(x, y + 1) &&
+               grid.defined(x + 1, y + 1);
+    }
+  }
+  if (quads == 0) {
+    EXPECT_FALSE(gltf.contains("meshes"));
+    return glb;
+  }
+  const json& primitive = gltf["meshes"][0]["primitives"][0];
+  EXPECT_EQ(primitive.value("mode", 4), 4);
+  const int positionAccessor = primitive["attributes"]["POSITION"];
+  const int normalAccessor = primitive["attributes"]["NORMAL"];
+  const int uvAccessor = primitive["attributes"]["TEXCOORD_0"];
+  const int indexAccessor = primitive["indices"];
+  const std::vector<double> positions = glb.read(positionAccessor);
+  const std::vector<double> normals = glb.read(normalAccessor);
+  const std::vector<double> uvs = glb.read(uvAccessor);
+  const std::vector<double> indices = glb.read(indexAccessor);
+  const std::size_t count = positions.size() / 3;
+
+  // Every accessor's min/max are exactly the extremes of its data.
+  for (const int accessor : {positionAccessor, normalAccessor, uvAccessor, indexAccessor}) {
+    const json& a = gltf["accessors"][accessor];
+    const std::vector<double> data = glb.read(accessor);
+    const std::size_t components = a["min"].size();
+    EXPECT_GT(components, 0u);
+    for (std::size_t c = 0; c < components; ++c) {
+      double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+      for (std::size_t i = c; i < data.size(); i += components) {
+        lo = std::min(lo, data[i]);
+        hi = std::max(hi, data[i]);
+      }
+      EXPECT_EQ(a["min"][c].get<double>(), lo) << "accessor " << accessor;
+      EXPECT_EQ(a["max"][c].get<double>(), hi) << "accessor " << accessor;
+    }
+  }
+  for (const int view : {0, 1, 2, 3}) {
+    EXPECT_EQ(gltf["bufferViews"][view]["byteOffset"].get<std::size_t>() % 4, 0u);
+  }
+
+  // Two triangles per complete quad; no index past the vertices, no unused vertex.
+  EXPECT_EQ(indices.size(), quads * 6);
+  std::set<std::size_t> usedVertices;
+  for (const double i : indices) {
+    EXPECT_LT(i, static_cast<double>(count));
+    usedVertices.insert(static_cast<std::size_t>(i));
+  }
+  EXPECT_EQ(usedVertices.size(), count);
+  const int expectedIndexType = count <= 65535 ? 5123 : 5125;
+  EXPECT_EQ(gltf["accessors"][indexAccessor]["componentType"], expectedIndexType);
+
+  // Each vertex: its grid position from TEXCOORD_0, that grid vertex defined, the position equal
+  // to it (y-up axes, relative to the centre) up to float32 rounding, the normal a unit vector.
+  std::vector<std::pair<int, int>> gridOf(count);
+  for (std::size_t v = 0; v < count; ++v) {
+    const double gx = uvs[v * 2] * (n - 1), gy = uvs[v * 2 + 1] * (n - 1);
+    const int x = static_cast<int>(std::lround(gx)), y = static_cast<int>(std::lround(gy));
+    EXPECT_NEAR(gx, x, 1e-4);
+    EXPECT_NEAR(gy, y, 1e-4);
+    if (x < 0 || x >= n || y < 0 || y >= n) {
+      ADD_FAILURE() << "vertex " << v << " outside the grid";
+      continue;
+    }
+    EXPECT_TRUE(grid.defined(x, y))
+        << "vertex " << v << " is undefined grid vertex " << x << "," << y;
+    gridOf[v] = {x, y};
+    const Vec3d expected = grid.global(x, y) - centre;
+    const Vec3d zUp{positions[v * 3], -positions[v * 3 + 2], positions[v * 3 + 1]};
+    const double tolerance = 1e-6 * (expected.norm() + 1);
+    EXPECT_NEAR(zUp.x, expected.x, tolerance);
+    EXPECT_NEAR(zUp.y, expected.y, tolerance);
+    EXPECT_NEAR(zUp.z, expected.z, tolerance);
+    const double length =
+        std::sqrt(normals[v * 3] * normals[v * 3] + normals[v * 3 + 1] * normals[v * 3 + 1] +
+                  normals[v * 3 + 2] * normals[v * 3 + 2]);
+    EXPECT_NEAR(length, 1.0, 1e-6);
+  }
+  // Triangles connect grid neighbours within one quad.
+  for (std::size_t t = 0; t < indices.size(); t += 3) {
+    int minX = n, maxX = -1, minY = n, maxY = -1;
+    for (int k = 0; k < 3; ++k) {
+      const auto [x, y] = gridOf[static_cast<std::size_t>(indices[t + k])];
+      minX = std::min(minX, x);
+      maxX = std::max(maxX, x);
+      minY = std::min(minY, y);
+      maxY = std::max(maxY, y);
+    }
+    EXPECT_EQ(maxX - minX, 1);
+    EXPECT_EQ(maxY - minY, 1);
+  }
+  return glb;
+}
+
+TEST(Glb, EncodesEveryCompleteQuadAndNothingUndefined) {
+  const PatchGrid grid = terrainGrid(17, [](int x, int y) {
+    return (x == 3 && y == 4) || (y == 10 && x > 8) || x == 16;  // a hole, a ragged edge, a column
+  });
+  const DecodedGlb glb = checkGlb(grid, grid.globalBox().center());
+  EXPECT_EQ(glb.gltf["meshes"][0]["primitives"][0]["material"], 0);
+  EXPECT_TRUE(glb.gltf["materials"][0]["doubleSided"].get<bool>());
+}
+
+TEST(Glb, NormalsPointUpAndTrianglesWindCounterClockwiseFromAbove) {
+  const PatchGrid grid = terrainGrid(9, [](int, int) { return false; });
+  const Vec3d centre = grid.globalBox().center();
+  const DecodedGlb glb = checkGlb(grid, centre);
+  const std::vector<double> p = glb.read(0), normals = glb.read(1), indices = glb.read(3);
+  const auto zUp = [](const std::vector<double>& v, std::size_t i) {
+    return Vec3d{v[i * 3], -v[i * 3 + 2], v[i * 3 + 1]};
+  };
+  for (std::size_t v = 0; v < normals.size() / 3; ++v) {
+    EXPECT_GT(dot(zUp(normals, v), kUp), 0.9);
+  }
+  for (std::size_t t = 0; t < indices.size(); t += 3) {
+    const Vec3d a = zUp(p, static_cast<std::size_t>(indices[t]));
+    const Vec3d b = zUp(p, static_cast<std::size_t>(indices[t + 1]));
+    const Vec3d c = zUp(p, static_cast<std::size_t>(indices[t + 2]));
+    const Vec3d u = b - a, w = c - a;
+    const Vec3d face{u.y * w.z - u.z * w.y, u.z * w.x - u.x * w.z, u.x * w.y - u.y * w.x};
+    EXPECT_GT(dot(face, kUp), 0);
+  }
+}
+
+TEST(Glb, LargeGridsUseUnsignedIntIndices) {
+  const PatchGrid grid = terrainGrid(257, [](int x, int y) { return x + y < 20; });
+  checkGlb(grid, grid.globalBox().center());
+}
+
+TEST(Glb, GridWithoutCompleteQuadIsAValidEmptyAsset) {
+  const PatchGrid grid = terrainGrid(9, [](int x, int y) { return (x + y) % 2 == 1; });
+  const DecodedGlb glb = checkGlb(grid, grid.globalBox().center());
+  EXPECT_TRUE(glb.bin.empty());
+  EXPECT_EQ(glb.gltf["scenes"].size(), 1u);
+}
+
+TEST(Glb, NonFiniteVerticesCountAsUndefined) {
+  PatchGrid grid = terrainGrid(5, [](int, int) { return false; });
+  const Vec3d centre = grid.globalBox().center();
+  grid.setLocal(2, 2, {std::numeric_limits<float>::infinity(), 0, 0});
+  const DecodedGlb glb = decodeGlb(encodeGlb(grid, centre));
+  EXPECT_EQ(glb.read(3).size(), (16u - 4u) * 6);
+  for (const int accessor : {0, 1, 2}) {
+    for (const double v : glb.read(accessor)) {
+      EXPECT_TRUE(std::isfinite(v));
+    }
+  }
+}
+
+TEST(Glb, TextureHookEmbedsTheImageAndCoordinates) {
+  const PatchGrid grid = terrainGrid(5, [](int, int) { return false; });
+  const std::vector<std::byte> image(37, std::byte{0xab});
+  std::vector<float> texcoords(grid.vertexCount() * 2);
+  for (std::size_t i = 0; i < texcoords.size(); ++i) {
+    texcoords[i] = static_cast<float>(i % 7) / 8;
+  }
+  GlbOptions options;
+  options.texture = {image, "image/png"};
+  options.texcoords = texcoords;
+  const DecodedGlb glb = decodeGlb(encodeGlb(grid, grid.globalBox().center(), options));
+  const json& gltf = glb.gltf;
+  ASSERT_EQ(gltf["images"].size(), 1u);
+  EXPECT_EQ(gltf["images"][0]["mimeType"], "image/png");
+  const json& view = gltf["bufferViews"][gltf["images"][0]["bufferView"].get<int>()];
+  EXPECT_EQ(view["byteLength"], 37);
+  EXPECT_EQ(view["byteOffset"].get<std::size_t>() % 4, 0u);
+  EXPECT_EQ(glb.bin.at(view["byteOffset"].get<std::size_t>()), std::byte{0xab});
+  EXPECT_EQ(gltf["materials"][0]["pbrMetallicRoughness"]["baseColorTexture"]["index"], 0);
+  const std::vector<double> uvs = glb.read(2);
+  EXPECT_EQ(uvs[2], texcoords[2]);  // vertex 1 = grid vertex 1: all are used
+  EXPECT_THROW(
+      encodeGlb(grid, {0, 0, 0}, {.texture = {}, .texcoords = std::span(texcoords).first(3)}),
+      Error);
+}
+
+// ---- the tile tree and tileset.json -----------------------------------------------------------
+
+/// A three-level model on a 10 m terrain lattice: the root, its four children, and four
+/// grandchildren under the north-west child only (a deeper area, as after a merge).
+struct Pyramid {
+  static constexpr int kSize = 9;
+  Model model{kSize};
+  std::map<PatchKey, std::shared_ptr<const PatchGrid>> grids;
+
+  Pyramid() {
+    // Depth 2 covers the lattice at spacing 1 (x 10 m), patches of 8 cells.
+    const auto sampled = [](int step, int x0, int y0) {
+      return std::make_shared<PatchGrid>(terrainGridAt(step, x0, y0));
+    };
+    PatchInfo root;
+    root.key = PatchKey::root();
+    model.insert(root);
+    for (const Quadrant q : kQuadrants) {
+      PatchInfo info;
+      info.key = root.key.child(q);
+      model.insert(info);
+    }
+    const PatchKey nw = root.key.child(Quadrant::NW);
+    for (const Quadrant q : kQuadrants) {
+      PatchInfo info;
+      info.key = nw.child(q);
+      model.insert(info);
+      grids[info.key] =
+          sampled(1, 8 * static_cast<int>(info.key.x), 8 * static_cast<int>(info.key.y));
+    }
+    for (const Quadrant q : kQuadrants) {
+      const PatchKey key = root.key.child(q);
+      grids[key] = sampled(2, 16 * static_cast<int>(key.x), 16 * static_cast<int>(key.y));
+    }
+    grids[root.key] = sampled(4, 0, 0);
+    for (auto it = grids.rbegin(); it != grids.rend(); ++it) {
+      model.describe(it->first, *it->second);
+    }
+  }
+
+  /// Lattice samples x0 + step * i, y0 + step * j.
+  static PatchGrid terrainGridAt(int step, int x0, int y0) {
+    Box3d box;
+    box.extend(terrain(10.0 * x0, -10.0 * y0));
+    box.extend(terrain(10.0 * (x0 + step * (kSize - 1)), -10.0 * (y0 + step * (kSize - 1))));
+    PatchGrid grid(kSize, originFor(box));
+    for (int j = 0; j < kSize; ++j) {
+      for (int i = 0; i < kSize; ++i) {
+        grid.setGlobal(i, j, terrain(10.0 * (x0 + step * i), -10.0 * (y0 + step * j)));
+      }
+    }
+    return grid;
+  }
+};
+
+void checkTile(const TileNode& node, const Pyramid& p, int& visited) {
+  ++visited;
+  const PatchGrid& grid = *p.grids.at(node.key);
+  EXPECT_EQ(node.centre, tileCentre(p.model.at(node.key)));
+  EXPECT_TRUE(node.box.contains(grid.globalBox())) << node.key.toString();
+  if (node.children.empty()) {
+    EXPECT_EQ(node.geometricError, 0) << node.key.toString();
+  } else {
+    EXPECT_GE(node.geometricError, p.model.at(node.key).resolution);
+  }
+  for (const TileNode& child : node.children) {
+    EXPECT_EQ(*child.key.parent(), node.key);
+    EXPECT_LT(child.geometricError, node.geometricError);
+    EXPECT_TRUE(node.box.contains(child.box)) << child.key.toString();
+    checkTile(child, p, visited);
+  }
+}
+
+TEST(TileTree, ErrorsFallAndBoxesNestFromRootToLeaves) {
+  const Pyramid p;
+  const TileNode root = buildTileTree(p.model);
+  int visited = 0;
+  checkTile(root, p, visited);
+  EXPECT_EQ(visited, 9);
+  EXPECT_EQ(root.children.size(), 4u);
+  EXPECT_EQ(root.children[0].children.size(), 4u);
+  EXPECT_GT(tilesetGeometricError(root), root.geometricError);
+}
+
+TEST(Tileset, TransformsAreColumnMajorTranslationsBetweenCentres) {
+  const Pyramid p;
+  const TileNode tree = buildTileTree(p.model);
+  const json tileset = server::api::tilesetJson(tree, "v7");
+  EXPECT_EQ(tileset["asset"]["version"], "1.1");
+  EXPECT_EQ(tileset["asset"]["tilesetVersion"], "v7");
+  EXPECT_GT(tileset["geometricError"].get<double>(),
+            tileset["root"]["geometricError"].get<double>());
+  const json& root = tileset["root"];
+  EXPECT_EQ(root["refine"], "REPLACE");
+  EXPECT_EQ(root["content"]["uri"], "0_0_0.glb");
+  const json& t = root["transform"];
+  ASSERT_EQ(t.size(), 16u);
+  EXPECT_EQ(t[12].get<double>(), tree.centre.x);
+  EXPECT_EQ(t[13].get<double>(), tree.centre.y);
+  EXPECT_EQ(t[14].get<double>(), tree.centre.z);
+  EXPECT_EQ(t[15].get<double>(), 1.0);
+  EXPECT_EQ(t[3].get<double>(), 0.0);
+  // The box, moved by the root's transform, is the tree's box.
+  const json& box = root["boundingVolume"]["box"];
+  ASSERT_EQ(box.size(), 12u);
+  EXPECT_NEAR(box[0].get<double>() + tree.centre.x - box[3].get<double>(), tree.box.min.x, 1e-6);
+  EXPECT_NEAR(box[2].get<double>() + tree.centre.z + box[11].get<double>(), tree.box.max.z, 1e-6);
+  // A child's transform is relative to its parent's.
+  const json& child = root["children"][0];
+  EXPECT_EQ(child["content"]["uri"], "1_0_0.glb");
+  EXPECT_NEAR(child["transform"][12].get<double>() + tree.centre.x, tree.children[0].centre.x,
+              1e-6);
+  EXPECT_EQ(child["children"].size(), 4u);
+  EXPECT_FALSE(root["children"][1].contains("children"));
+  EXPECT_EQ(root["children"][1]["geometricError"], 0.0);
+}
+
+// ---- render-lod --------------------------------------------------------------------------------
+
+TEST(Geodesy, EcefToGeodeticInvertsTheWgs84Formulas) {
+  for (const auto& [lonDeg, latDeg, h] : {std::tuple{-84.25, 36.3, 500.0},
+                                          {10.0, -60.0, -30.0},
+                                          {179.0, 89.0, 4000.0},
+                                          {-125.0, 24.0, 0.0}}) {
+    const double a = 6378137.0, f = 1 / 298.257223563, e2 = f * (2 - f);
+    const double lat = latDeg * std::numbers::pi / 180, lon = lonDeg * std::numbers::pi / 180;
+    const double n = a / std::sqrt(1 - e2 * std::sin(lat) * std::sin(lat));
+    const Vec3d ecef{(n + h) * std::cos(lat) * std::cos(lon),
+                     (n + h) * std::cos(lat) * std::sin(lon), (n * (1 - e2) + h) * std::sin(lat)};
+    const Vec3d g = ecefToGeodetic(ecef);
+    EXPECT_NEAR(g.x, lonDeg, 1e-9);
+    EXPECT_NEAR(g.y, latDeg, 1e-9);
+    EXPECT_NEAR(g.z, h, 1e-4);
+  }
+}
+
+TEST(RenderLod, DeeperColoursCoverExactlyTheDeeperArea) {
+  const Pyramid p;
+  const LodImage image = renderLod(
+      p.model, [&](const PatchInfo& info) { return p.grids.at(info.key); }, {.size = 200});
+  ASSERT_TRUE(image.geographic);
+  EXPECT_EQ(std::max(image.width, image.height), 200);
+  ASSERT_EQ(image.pixelsPerDepth.size(), 3u);
+  EXPECT_EQ(image.pixelsPerDepth[0], 0u);
+  EXPECT_GT(image.pixelsPerDepth[1], 0u);
+  EXPECT_GT(image.pixelsPerDepth[2], 0u);
+  // Depth 2 is the north-west quarter: roughly a quarter of the picture, all in its upper left.
+  const double total = static_cast<double>(image.pixelsPerDepth[1] + image.pixelsPerDepth[2]);
+  EXPECT_NEAR(image.pixelsPerDepth[2] / total, 0.25, 0.05);
+  for (int y = 0; y < image.height; ++y) {
+    for (int x = 0; x < image.width; ++x) {
+      const std::size_t i = static_cast<std::size_t>(y) * image.width + x;
+      if (image.depth[i] == 2) {
+        EXPECT_LE(x, image.width / 2 + 2);
+        EXPECT_LE(y, image.height / 2 + 2);
+        const Rgb8 c = depthColour(2);
+        EXPECT_EQ(image.rgba[i * 4], c.r);
+        EXPECT_EQ(image.rgba[i * 4 + 3], 255);
+      }
+    }
+  }
+  EXPECT_EQ(depthColour(40), kDepthPalette.back());
+}
+
+}  // namespace
+}  // namespace vsm::core
