@@ -17,6 +17,8 @@ PACKAGES=(
   gdal-bin python3 python3-gdal python3-numpy locales clang-format
   # the curl walk-through of the daemon's API (client-examples/curl.sh, run by the tests)
   curl jq
+  # the browser check of the viewer and CesiumJS (tests/integration/viewer_test.py)
+  chromium
 )
 
 missing=()

@@ -12,6 +12,7 @@
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "server/api/model_routes.hpp"
+#include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/api/tiles_routes.hpp"
 #include "server/exec/work_pool.hpp"
@@ -105,6 +106,10 @@ Application::Application(Config config) : config_(std::move(config)) {
   api::addModelRoutes(*router_, {*models_, *jobs_});
   api::addJobRoutes(*router_, {*models_, *jobs_});
   api::addTilesRoutes(*router_, *models_);
+  if (!config_.viewerDir.empty()) {
+    api::addStaticRoutes(*router_, "/viewer", config_.viewerDir);
+    log::info("viewer: files of " + config_.viewerDir.string() + " at /viewer/");
+  }
   pipeline_ = std::make_unique<http::Pipeline>(*router_, config_.token);
 
   http::ServerOptions options;

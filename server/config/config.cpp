@@ -195,6 +195,11 @@ const Key kKeys[] = {
      [](const Config& c) {
        return c.portFile.empty() ? std::string("(none)") : c.portFile.string();
      }},
+    {"viewer_dir",
+     [](Config& c, std::string_view k, const json& v) { c.viewerDir = textOf(k, v, "a path"); },
+     [](const Config& c) {
+       return c.viewerDir.empty() ? std::string("(none)") : c.viewerDir.string();
+     }},
     {"log_level",
      [](Config& c, std::string_view k, const json& v) {
        constexpr std::string_view kExpected = "one of debug, info, warn, error, off";
@@ -485,12 +490,13 @@ std::string_view commandLineUsage() {
          "  --token TOKEN          bearer token required for POST/PUT/PATCH/DELETE\n"
          "  --port-file PATH       write the bound port there once listening\n"
          "  --log-level LEVEL      debug, info, warn, error or off (default info)\n"
+         "  --viewer-dir DIR       serve the browser viewer's files from DIR at /viewer/\n"
          "  --set KEY=VALUE        any configuration key, e.g. --set limits.body_bytes=4MiB\n"
          "  --help, --version\n"
          "\n"
          "configuration keys (file or --set):\n"
          "  listen, data_root, memory_budget, cache_policy (cost-aware-clock |\n"
-         "  fifo-second-chance), token, port_file, log_level,\n"
+         "  fifo-second-chance), token, port_file, viewer_dir, log_level,\n"
          "  limits.body_bytes, limits.header_bytes, limits.read_timeout, limits.idle_timeout,\n"
          "  limits.write_timeout, limits.connections, limits.pipelined_responses,\n"
          "  limits.shutdown_grace, threads.io, threads.cpu (0 = one per core), threads.jobs\n"
@@ -505,6 +511,7 @@ CommandLine parseCommandLine(const std::vector<std::string>& args) {
       {"--token", "token"},
       {"--port-file", "port_file"},
       {"--log-level", "log_level"},
+      {"--viewer-dir", "viewer_dir"},
       {"--config", ""},
       {"--set", ""},
   };

@@ -80,6 +80,9 @@ struct Config {
   /// When set, the bound port is written there (atomically) once listening; for tests and
   /// supervisors that start the daemon on port 0.
   std::filesystem::path portFile;
+  /// When set, the files of the browser viewer (client-examples/web, built) are served from this
+  /// directory at /viewer/; empty = no /viewer/ route.
+  std::filesystem::path viewerDir;
   core::log::Level logLevel = core::log::Level::Info;
   Limits limits;
   ThreadCounts threads;

@@ -44,7 +44,9 @@ void Router::add(Method method, std::string_view pattern, Handler handler) {
   }
   auto entry = std::make_unique<Entry>();
   std::set<std::string, std::less<>> names;
-  for (const std::string_view text : split(pattern)) {
+  const std::vector<std::string_view> texts = split(pattern);
+  for (std::size_t i = 0; i < texts.size(); ++i) {
+    const std::string_view text = texts[i];
     if (text.empty() && pattern != "/") {
       bad("empty segment");
     }
@@ -60,7 +62,14 @@ void Router::add(Method method, std::string_view pattern, Handler handler) {
       if (close == std::string_view::npos) {
         bad("unbalanced '{'");
       }
-      const std::string_view name = text.substr(open + 1, close - open - 1);
+      std::string_view name = text.substr(open + 1, close - open - 1);
+      if (name.ends_with("...")) {
+        if (i + 1 != texts.size() || open != 0 || close + 1 != text.size()) {
+          bad("a tail parameter '{name...}' is a whole last segment");
+        }
+        name.remove_suffix(3);
+        segment.tail = true;
+      }
       if (name.empty() || !std::all_of(name.begin(), name.end(), isNameChar)) {
         bad("parameter names are [A-Za-z0-9_]+");
       }
@@ -89,13 +98,24 @@ void Router::add(Method method, std::string_view pattern, Handler handler) {
 bool Router::matches(const Entry& entry, const std::vector<std::string>& segments,
                      std::map<std::string, std::string, std::less<>>* params,
                      std::vector<int>* specificity) {
-  if (entry.segments.size() != segments.size()) {
+  const bool tail = !entry.segments.empty() && entry.segments.back().tail;
+  if (tail ? segments.size() + 1 < entry.segments.size()
+           : entry.segments.size() != segments.size()) {
     return false;
   }
   params->clear();
   specificity->clear();
-  for (std::size_t i = 0; i < segments.size(); ++i) {
+  for (std::size_t i = 0; i < entry.segments.size(); ++i) {
     const Segment& s = entry.segments[i];
+    if (s.tail) {
+      std::string rest;
+      for (std::size_t j = i; j < segments.size(); ++j) {
+        rest += (j == i ? "" : "/") + segments[j];
+      }
+      (*params)[s.param] = std::move(rest);
+      specificity->push_back(-1);
+      break;
+    }
     const std::string& text = segments[i];
     if (s.param.empty()) {
       if (text != s.prefix) {

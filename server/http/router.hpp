@@ -38,9 +38,12 @@ struct RouteMatch {
 /// Maps (method, path) to a handler. A pattern is "/"-separated segments; a segment is a literal
 /// ("models") or holds one parameter "{name}" with an optional literal prefix and suffix
 /// ("{p}.glb"). A parameter matches one non-empty segment; segments are percent-decoded before
-/// comparing, so "%2F" never splits a segment. When several patterns match, the most specific one
-/// wins (literal before affixed parameter before bare parameter, decided at the first segment
-/// where they differ). HEAD is routed to GET.
+/// comparing, so "%2F" never splits a segment. A last segment "{name...}" is a tail: it matches
+/// the rest of the path, zero or more segments (empty ones too), decoded and joined by '/' (so
+/// "/viewer/{path...}" matches "/viewer/" with path "" and "/viewer/a/b.js" with "a/b.js"; a
+/// handler must check the components itself, "a%2F..%2Fb" arrives as "a/../b"). When several
+/// patterns match, the most specific one wins (literal before affixed parameter before bare
+/// parameter before tail, decided at the first segment where they differ). HEAD is routed to GET.
 ///
 /// Not thread-safe while routes are added; match() may be called from any number of threads once
 /// the router is built.
@@ -61,6 +64,7 @@ class Router {
     std::string prefix;  // the literal, or the text before "{"
     std::string param;   // empty for a literal
     std::string suffix;  // text after "}"
+    bool tail = false;   // "{name...}": the rest of the path
   };
   struct Entry {
     Route route;

@@ -11,6 +11,7 @@
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
+#include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/config/config.hpp"
 #include "server/http/message.hpp"
@@ -251,7 +252,7 @@ TEST(Config, DescribeListsEveryKeyAndRedactsTheToken) {
   // describe() prints what set() reads back.
   Config copy;
   for (const auto& [key, value] : pairs) {
-    if (key != "token" && key != "port_file") {
+    if (key != "token" && key != "port_file" && key != "viewer_dir") {
       copy.set(key, json(value));
     }
   }
@@ -640,6 +641,133 @@ TEST(SystemRoutes, ReadinessFollowsTheFlag) {
   EXPECT_EQ(pipeline.handle(r).response.status, 503);
   ready = true;
   EXPECT_EQ(pipeline.handle(r).response.status, 200);
+}
+
+// --- static files (the viewer at /viewer/) -------------------------------------------------
+
+TEST(Router, ATailParameterTakesTheRestOfThePath) {
+  http::Router router;
+  router.add(http::Method::Get, "/viewer/{path...}", named("static"));
+  router.add(http::Method::Get, "/viewer/api", named("literal"));
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"/viewer/", ""},
+      {"/viewer", ""},
+      {"/viewer/index.html", "index.html"},
+      {"/viewer/vendor/three/three.module.js", "vendor/three/three.module.js"},
+      {"/viewer/a//b/", "a//b/"},
+      {"/viewer/a%2F..%2Fb", "a/../b"}};
+  for (const auto& [path, rest] : cases) {
+    const auto match = router.match(http::Method::Get, path);
+    ASSERT_EQ(match.kind, http::RouteMatch::Kind::Found) << path;
+    EXPECT_EQ(match.route->pattern, "/viewer/{path...}") << path;
+    EXPECT_EQ(match.params.at("path"), rest) << path;
+  }
+  EXPECT_EQ(router.match(http::Method::Get, "/viewer/api").route->pattern, "/viewer/api");
+  EXPECT_EQ(router.match(http::Method::Get, "/other/x").kind, http::RouteMatch::Kind::NotFound);
+  for (const char* pattern : {"/a/{x...}/b", "/a/p{x...}", "/a/{x...}.js", "/a/{...}"}) {
+    EXPECT_EQ(errorOf([&] { router.add(http::Method::Get, pattern, named("")); }).first,
+              ErrorCode::InvalidArgument)
+        << pattern;
+  }
+}
+
+/// A viewer directory with an index, a nested module, a hidden file, a link inside the tree and
+/// links out of it, next to a secret that must never be served.
+class StaticFiles : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    base_ = std::filesystem::temp_directory_path() /
+            ("vsm-static-" + std::to_string(::getpid()) + "-" +
+             ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    std::filesystem::remove_all(base_);
+    root_ = base_ / "viewer";
+    std::filesystem::create_directories(root_ / "vendor" / "three");
+    std::filesystem::create_directories(base_ / "viewer-secrets");
+    write(root_ / "index.html", "<!doctype html>");
+    write(root_ / "vendor" / "three" / "three.module.js", "export {};");
+    write(root_ / ".hidden", "no");
+    write(base_ / "secret.txt", "secret");
+    write(base_ / "viewer-secrets" / "key.txt", "secret");
+    std::filesystem::create_symlink(root_ / "index.html", root_ / "inside.html");
+    std::filesystem::create_symlink(base_ / "secret.txt", root_ / "out.txt");
+    std::filesystem::create_directory_symlink(base_, root_ / "up");
+    root_ = std::filesystem::canonical(root_);
+  }
+  void TearDown() override { std::filesystem::remove_all(base_); }
+
+  static void write(const std::filesystem::path& path, const std::string& text) {
+    std::ofstream(path, std::ios::binary) << text;
+  }
+
+  std::filesystem::path base_;
+  std::filesystem::path root_;
+};
+
+TEST_F(StaticFiles, ResolvesFilesAndDirectoryIndexesInsideTheRoot) {
+  EXPECT_EQ(api::resolveStaticFile(root_, ""), root_ / "index.html");
+  EXPECT_EQ(api::resolveStaticFile(root_, "index.html"), root_ / "index.html");
+  EXPECT_EQ(api::resolveStaticFile(root_, "vendor/three/three.module.js"),
+            root_ / "vendor" / "three" / "three.module.js");
+  // A link inside the tree is followed.
+  EXPECT_EQ(api::resolveStaticFile(root_, "inside.html"), root_ / "index.html");
+}
+
+TEST_F(StaticFiles, RefusesTraversalHiddenFilesLinksOutAndDirectories) {
+  for (const char* path :
+       {"..", "../secret.txt", "vendor/../../secret.txt", "./index.html", "vendor/./three", "a//b",
+        "/index.html", ".hidden", "out.txt", "up/secret.txt", "../viewer-secrets/key.txt", "vendor",
+        "vendor/three", "missing.js", "vendor\\..\\x"}) {
+    EXPECT_EQ(api::resolveStaticFile(root_, path), std::nullopt) << path;
+  }
+  EXPECT_EQ(api::resolveStaticFile(root_, std::string("index.html\0x", 12)), std::nullopt);
+  EXPECT_EQ(api::resolveStaticFile(root_, std::string(2000, 'a')), std::nullopt);
+}
+
+TEST_F(StaticFiles, AreServedWithTypesETagsRedirectsAnd404s) {
+  http::Router router;
+  api::addStaticRoutes(router, "/viewer", base_ / "viewer");
+  const http::Pipeline pipeline(router, "");
+
+  http::Request r = request(http::Method::Get, "/viewer/?model=merged");
+  http::Handled handled = pipeline.handle(r);
+  EXPECT_EQ(handled.response.status, 200);
+  EXPECT_EQ(handled.response.bodyText(), "<!doctype html>");
+  EXPECT_EQ(handled.response.contentType, "text/html; charset=utf-8");
+  ASSERT_NE(handled.response.header("ETag"), nullptr);
+  const std::string etag = *handled.response.header("ETag");
+  r = request(http::Method::Get, "/viewer/index.html");
+  r.headers.emplace_back("if-none-match", etag);
+  EXPECT_EQ(pipeline.handle(r).response.status, 304);
+
+  r = request(http::Method::Get, "/viewer/vendor/three/three.module.js");
+  EXPECT_EQ(pipeline.handle(r).response.contentType, "text/javascript; charset=utf-8");
+
+  r = request(http::Method::Get, "/viewer?model=merged");
+  handled = pipeline.handle(r);
+  EXPECT_EQ(handled.response.status, 301);
+  ASSERT_NE(handled.response.header("Location"), nullptr);
+  EXPECT_EQ(*handled.response.header("Location"), "/viewer/?model=merged");
+
+  for (const char* target : {"/viewer/../secret.txt", "/viewer/%2e%2e/secret.txt",
+                             "/viewer/vendor%2F..%2F..%2Fsecret.txt", "/viewer/out.txt",
+                             "/viewer/up/secret.txt", "/viewer/nope.js"}) {
+    r = request(http::Method::Get, target);
+    handled = pipeline.handle(r);
+    EXPECT_EQ(handled.response.status, 404) << target;
+    EXPECT_NE(handled.response.bodyText(), "secret") << target;
+  }
+  EXPECT_EQ(errorOf([&] { api::addStaticRoutes(router, "/x", base_ / "none"); }).first,
+            ErrorCode::NotFound);
+}
+
+TEST(StaticContentType, FollowsTheExtension) {
+  EXPECT_EQ(api::staticContentType("a/index.html"), "text/html; charset=utf-8");
+  EXPECT_EQ(api::staticContentType("main.js"), "text/javascript; charset=utf-8");
+  EXPECT_EQ(api::staticContentType("x.MJS"), "text/javascript; charset=utf-8");
+  EXPECT_EQ(api::staticContentType("widgets.css"), "text/css; charset=utf-8");
+  EXPECT_EQ(api::staticContentType("a.json"), "application/json");
+  EXPECT_EQ(api::staticContentType("draco.wasm"), "application/wasm");
+  EXPECT_EQ(api::staticContentType("LICENSE"), "application/octet-stream");
 }
 
 }  // namespace
