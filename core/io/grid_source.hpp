@@ -1,7 +1,9 @@
 #pragma once
 
+#include <array>
 #include <filesystem>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 
@@ -11,6 +13,14 @@
 #include "core/pyramid/model.hpp"
 
 namespace vsm::core {
+
+/// Where a georeferenced grid lies: sample (col, row) has its pixel centre at
+/// (gt[0] + (col + 0.5) gt[1] + (row + 0.5) gt[2], gt[3] + (col + 0.5) gt[4] + (row + 0.5) gt[5])
+/// in the CRS `crsWkt` (GDAL's geotransform convention; x = easting/longitude).
+struct Georeference {
+  std::array<double, 6> geoTransform{};
+  std::string crsWkt;
+};
 
 /// Vertex positions laid out on a width x height grid: a raster, an organized point cloud.
 /// Grid neighbours are surface neighbours.
@@ -25,6 +35,8 @@ class GridSource {
   /// [x0, x0 + w) x [y0, y0 + h); NaN for undefined samples. The window lies inside the grid.
   /// Throws Error(Io / Corrupt) when the source cannot be read.
   virtual void read(int x0, int y0, int w, int h, std::span<Vec3d> out) = 0;
+  /// The grid's georeference when it has one (rasters); nullopt otherwise (point clouds).
+  virtual std::optional<Georeference> georeference() const { return std::nullopt; }
 };
 
 struct ImportOptions {
@@ -36,6 +48,12 @@ struct ImportOptions {
   /// read under a lock: GDAL datasets are not thread-safe). Progress is reported from them under
   /// a lock too.
   Executor* executor = nullptr;
+  /// An image to drape over the model when not empty: georeferenced (GDAL reads a geotransform
+  /// and a CRS) it is placed by each vertex's geographic position, otherwise stretched over the
+  /// grid's extent (pixel edge to pixel edge). Every patch then gets a texture tile
+  /// (Images/Diffuse/<patch>.tif, leaves resampled from the image, parents downsampled from their
+  /// children's tiles) and Coordinates.aara.
+  std::filesystem::path texture;
 };
 
 /// Builds the full pyramid of `source` (bottom patches with one line of overlap, padded with
@@ -45,7 +63,8 @@ struct ImportOptions {
 /// when complete, so no half-written model is ever left at `outDir`.
 ///
 /// Throws Error(Conflict) when outDir exists, Error(InvalidArgument) when the source has no defined
-/// sample or the patch size is invalid, Error(Cancelled), or the source's errors.
+/// sample or the patch size is invalid, Error(NotFound / Corrupt / InvalidArgument) for an
+/// unreadable or unplaceable texture, Error(Cancelled), or the source's errors.
 Model buildOpc(GridSource& source, const std::filesystem::path& outDir,
                const ImportOptions& options);
 

@@ -20,6 +20,7 @@
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "core/io/grid_source.hpp"
+#include "core/io/texture_source.hpp"
 #include "core/opc/opc_store.hpp"
 #include "core/pyramid/reduce.hpp"
 
@@ -114,13 +115,20 @@ void renameNoReplace(const fs::path& from, const fs::path& to) {
 struct BuildShared {
   GridSource& source;
   OpcWriter& writer;
-  /// The writer's Patches/ directory, where dropSubtree deletes folders.
-  fs::path patchesDir;
+  /// The image draped over the model; null for an untextured import. Thread-safe itself.
+  const TextureSource* texture;
   const ImportOptions& options;
   std::mutex sourceMutex;
   std::mutex progressMutex;  // guards leavesDone and options.progress
   std::size_t leavesDone = 0;
   std::size_t leavesTotal = 1;
+};
+
+/// A built patch not written yet: its grid and, in a textured import, its texture tile.
+struct BuiltPatch {
+  std::unique_ptr<PatchGrid> grid;
+  std::unique_ptr<TextureTile> texture;
+  explicit operator bool() const { return grid != nullptr; }
 };
 
 /// The depth-first build of one subtree. Holds at most the finished siblings on the path from its
@@ -132,7 +140,6 @@ class PyramidBuilder {
       : shared_(shared),
         source_(shared.source),
         writer_(shared.writer),
-        patchesDir_(shared.patchesDir),
         options_(shared.options),
         size_(shared.options.patchSize),
         width_(shared.source.width()),
@@ -150,8 +157,8 @@ class PyramidBuilder {
   int depth() const { return depth_; }
 
   /// Builds the patch `key` and its subtree, writes every descendant (not `key` itself) and
-  /// returns its grid; null when nothing of it can be shown.
-  std::unique_ptr<PatchGrid> build(const PatchKey& key) {
+  /// returns its grid and texture; empty when nothing of it can be shown.
+  BuiltPatch build(const PatchKey& key) {
     if (options_.cancel != nullptr) {
       options_.cancel->throwIfCancelled();
     }
@@ -159,7 +166,7 @@ class PyramidBuilder {
       return readBottom(key);
     }
     const std::size_t firstWritten = written_.size();
-    std::array<std::unique_ptr<PatchGrid>, 4> children;
+    std::array<BuiltPatch, 4> children;
     for (const Quadrant q : kQuadrants) {
       const PatchKey child = key.child(q);
       if (inside(child)) {
@@ -171,28 +178,36 @@ class PyramidBuilder {
 
   /// The parent of `children` (built by this builder or adopted from others) by reduction;
   /// writes the children. Null, and the subtree dropped, when nothing of it can be shown.
-  std::unique_ptr<PatchGrid> combine(const PatchKey& key,
-                                     std::array<std::unique_ptr<PatchGrid>, 4>& children,
-                                     std::size_t firstWritten) {
+  BuiltPatch combine(const PatchKey& key, std::array<BuiltPatch, 4>& children,
+                     std::size_t firstWritten) {
     std::array<const PatchGrid*, 4> present{};
+    std::array<const TextureTile*, 4> textures{};
     for (int q = 0; q < 4; ++q) {
-      present[q] = children[q].get();
+      present[q] = children[q].grid.get();
+      textures[q] = children[q].texture.get();
     }
     if (std::all_of(present.begin(), present.end(), [](const PatchGrid* g) { return !g; })) {
-      return nullptr;
+      return {};
     }
-    auto parent = std::make_unique<PatchGrid>(reduce(present));
-    if (!parent->anyDefined()) {
+    BuiltPatch parent;
+    parent.grid = std::make_unique<PatchGrid>(reduce(present));
+    if (!parent.grid->anyDefined()) {
       // Every defined child vertex sits between the vertices this level keeps (isolated samples
       // in an empty area). A patch needs a defined vertex to be written and must exist for its
       // children to be reachable, so this subtree cannot be stored.
       dropSubtree(key, firstWritten);
-      return nullptr;
+      return {};
+    }
+    if (shared_.texture != nullptr) {
+      // The parent's tile from the children's: 2 x 2 box filter, each child in its quadrant.
+      parent.texture =
+          std::make_unique<TextureTile>(downsampleQuadrants(textures, textureTileSize(size_)));
     }
     for (const Quadrant q : kQuadrants) {
-      if (children[static_cast<int>(q)]) {
-        write(key.child(q), *children[static_cast<int>(q)]);
-        children[static_cast<int>(q)].reset();
+      BuiltPatch& child = children[static_cast<int>(q)];
+      if (child) {
+        write(key.child(q), *child.grid, child.texture.get());
+        child = {};
       }
     }
     return parent;
@@ -214,8 +229,8 @@ class PyramidBuilder {
     return (x0 == 0 || x0 < width_ - 1) && (y0 == 0 || y0 < height_ - 1);
   }
 
-  /// Writes one patch and remembers its metadata for the model.
-  void write(const PatchKey& key, const PatchGrid& grid) {
+  /// Writes one patch (with its texture tile when given) and remembers its metadata.
+  void write(const PatchKey& key, const PatchGrid& grid, const TextureTile* texture) {
     PatchInfo info;
     info.key = key;
     Box3d children;
@@ -225,7 +240,7 @@ class PyramidBuilder {
         boxes_.erase(it);  // a box is needed once, by the parent
       }
     }
-    writer_.writePatch(info, grid, children);
+    writer_.writePatch(info, grid, children, texture);
     boxes_.emplace(key, info.globalBox);
     written_.push_back(std::move(info));
   }
@@ -241,7 +256,7 @@ class PyramidBuilder {
     return extent <= 1 ? 1 : (extent - 1 + step - 1) / step;
   }
 
-  std::unique_ptr<PatchGrid> readBottom(const PatchKey& key) {
+  BuiltPatch readBottom(const PatchKey& key) {
     const int x0 = static_cast<int>(key.x) * (size_ - 1);
     const int y0 = static_cast<int>(key.y) * (size_ - 1);
     const int w = std::min(size_, width_ - x0);
@@ -279,7 +294,7 @@ class PyramidBuilder {
       hi[2] = g.z > hi[2] ? g.z : hi[2];
     }
     if (!any) {
-      return nullptr;
+      return {};
     }
     auto grid = std::make_unique<PatchGrid>(
         size_, originFor(Box3d{{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}}));
@@ -298,7 +313,12 @@ class PyramidBuilder {
         }
       }
     }
-    return grid;
+    BuiltPatch built{std::move(grid), nullptr};
+    if (shared_.texture != nullptr) {
+      built.texture = std::make_unique<TextureTile>(textureTileSize(size_));
+      shared_.texture->fillTile(x0, y0, *built.texture);
+    }
+    return built;
   }
 
   /// Forgets and deletes every patch written below `key` (written_[firstWritten..]).
@@ -306,8 +326,7 @@ class PyramidBuilder {
     log::warn("import: the samples under patch " + key.toString() +
               " are too sparse to appear in its overview; that area is left out of the model");
     for (std::size_t i = firstWritten; i < written_.size(); ++i) {
-      std::error_code ec;
-      fs::remove_all(patchesDir_ / written_[i].folder, ec);
+      writer_.removePatchFiles(written_[i]);
       boxes_.erase(written_[i].key);
     }
     written_.resize(firstWritten);
@@ -316,7 +335,6 @@ class PyramidBuilder {
   BuildShared& shared_;
   GridSource& source_;
   OpcWriter& writer_;
-  const fs::path& patchesDir_;
   const ImportOptions& options_;
   int size_;
   int width_;
@@ -363,21 +381,27 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
                                          " is running or was interrupted");
   }
 
+  std::unique_ptr<TextureSource> texture;
+  if (!options.texture.empty()) {
+    texture = std::make_unique<TextureSource>(options.texture, source.width(), source.height(),
+                                              source.georeference());
+    log::info("import: texture " + options.texture.string() + ": " + texture->describe());
+  }
   OpcWriter writer(staging.path(), OpcWriter::Durability::Deferred);
   BuildShared shared{source,
                      writer,
-                     staging.path() / "Patches",
+                     texture.get(),
                      options,
                      {},
                      {},
                      0,
                      PyramidBuilder::leafCount(options.patchSize, source.width(), source.height())};
   PyramidBuilder builder(shared);
-  std::unique_ptr<PatchGrid> root;
+  BuiltPatch root;
   if (options.executor != nullptr && builder.depth() > 0) {
     // The four quarters in parallel, each by its own builder; the root from their results.
     std::array<std::optional<PyramidBuilder>, 4> quarters;
-    std::array<std::unique_ptr<PatchGrid>, 4> grids;
+    std::array<BuiltPatch, 4> grids;
     std::vector<std::function<void()>> tasks;
     for (const Quadrant q : kQuadrants) {
       const int i = static_cast<int>(q);
@@ -400,8 +424,8 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
     throw Error(ErrorCode::InvalidArgument,
                 "source " + source.describe() + " has no defined sample");
   }
-  builder.write(PatchKey::root(), *root);
-  root.reset();
+  builder.write(PatchKey::root(), *root.grid, root.texture.get());
+  root = {};
 
   std::vector<PatchInfo> infos = builder.takeWritten();
   std::sort(infos.begin(), infos.end(),

@@ -213,6 +213,12 @@ class RasterSource final : public GridSource {
                                                     ") to WGS 84: " + lastGdalMessage());
       }
     }
+    char* wkt = nullptr;
+    const char* const wktOptions[] = {"FORMAT=WKT2_2018", nullptr};
+    if (crs->exportToWkt(&wkt, wktOptions) == OGRERR_NONE && wkt != nullptr) {
+      crsWkt_ = wkt;
+    }
+    CPLFree(wkt);
     description_ = std::string(dataset_->GetDriver()->GetDescription()) + " " +
                    std::to_string(width_) + "x" + std::to_string(height_) + ", " + crsName(*crs) +
                    " -> ECEF";
@@ -221,6 +227,12 @@ class RasterSource final : public GridSource {
   int width() const override { return width_; }
   int height() const override { return height_; }
   std::string describe() const override { return description_; }
+  std::optional<Georeference> georeference() const override {
+    Georeference g;
+    g.geoTransform = geoTransform_;
+    g.crsWkt = crsWkt_;
+    return g;
+  }
 
   void read(int x0, int y0, int w, int h, std::span<Vec3d> out) override {
     const std::size_t count = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
@@ -315,6 +327,7 @@ class RasterSource final : public GridSource {
   double scale_ = 1;   // metres per raw band unit, band scale and unit folded in
   double offset_ = 0;  // metres
   std::string description_;
+  std::string crsWkt_;
 
   // WGS 84 geographic rasters: lon depends only on the column and lat only on the row.
   std::vector<double> cosLon_;

@@ -47,6 +47,16 @@ std::optional<std::filesystem::path> findEntry(const std::filesystem::path& dir,
 /// True for a name that stays inside its directory: not empty, not ".", no "..", "/" or "\".
 bool isSafeName(std::string_view name);
 
+/// True for a texture path relative to Images/ (segments separated by "\\" or "/") whose every
+/// segment is a safe name.
+bool isSafeTexturePath(std::string_view path);
+
+/// The texture file a Patch.xml entry names: Images/ (any letter case) joined with the entry's
+/// segments, each resolved case-insensitively, trying the extensions readers try (.dds, .tif,
+/// .tiff) when the named file does not exist. nullopt when nothing matches.
+std::optional<std::filesystem::path> findTextureFile(const std::filesystem::path& dir,
+                                                     std::string_view entry);
+
 /// What readOpc learnt about one patch beyond its PatchInfo (for validateOpc).
 struct PatchDetails {
   std::filesystem::path xmlFile;

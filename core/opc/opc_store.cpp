@@ -18,6 +18,7 @@
 #include "core/common/numbers.hpp"
 #include "core/opc/aara.hpp"
 #include "core/opc/opc_detail.hpp"
+#include "core/opc/texture_file.hpp"
 
 namespace vsm::core {
 namespace fs = std::filesystem;
@@ -252,6 +253,30 @@ ParsedPatch readPatchXml(const fs::path& folderDir, const std::string& folder) {
   if (!detail::isSafeName(info.positionsFile)) {
     corrupt(*xmlFile, "positions file name '" + info.positionsFile + "' leaves its folder");
   }
+  // Textures: the first <Textures> entry and the first coordinates (DiffuseColor1Coordinates when
+  // present). Unusable names are ignored (lenient): the patch then reads as untextured.
+  if (const pugi::xml_node coordinates = childCi(patch, "Coordinates")) {
+    pugi::xml_node entry = childCi(coordinates, "DiffuseColor1Coordinates");
+    if (!entry) {
+      entry = coordinates.find_child(
+          [](const pugi::xml_node& n) { return n.type() == pugi::node_element; });
+    }
+    const std::string name = entry ? textOf(entry) : std::string();
+    if (detail::isSafeName(name)) {
+      info.coordinatesFile = name;
+    }
+  }
+  if (const pugi::xml_node textures = childCi(patch, "Textures")) {
+    for (pugi::xml_node entry : textures.children()) {
+      if (entry.type() == pugi::node_element) {
+        const std::string name = textOf(entry);
+        if (detail::isSafeTexturePath(name)) {
+          info.textureFile = name;
+        }
+        break;
+      }
+    }
+  }
   if (const pugi::xml_node vsm = childCi(patch, "Vsm")) {
     details.hasExtension = true;
     if (const pugi::xml_node key = childCi(vsm, "Key")) {
@@ -379,6 +404,59 @@ bool isSafeName(std::string_view name) {
   return !name.empty() && name != "." && name.find("..") == std::string_view::npos &&
          name.find('/') == std::string_view::npos && name.find('\\') == std::string_view::npos &&
          name.find('\0') == std::string_view::npos;
+}
+
+bool isSafeTexturePath(std::string_view path) {
+  if (path.empty()) {
+    return false;
+  }
+  std::size_t start = 0;
+  while (true) {
+    const std::size_t end = path.find_first_of("\\/", start);
+    const std::string_view segment =
+        path.substr(start, end == std::string_view::npos ? std::string_view::npos : end - start);
+    if (!isSafeName(segment)) {
+      return false;
+    }
+    if (end == std::string_view::npos) {
+      return true;
+    }
+    start = end + 1;
+  }
+}
+
+std::optional<fs::path> findTextureFile(const fs::path& dir, std::string_view entry) {
+  if (!isSafeTexturePath(entry)) {
+    return std::nullopt;
+  }
+  std::optional<fs::path> at = findEntry(dir, "Images");
+  std::vector<std::string> segments;
+  for (std::size_t start = 0;;) {
+    const std::size_t end = entry.find_first_of("\\/", start);
+    segments.emplace_back(
+        entry.substr(start, end == std::string_view::npos ? std::string_view::npos : end - start));
+    if (end == std::string_view::npos) {
+      break;
+    }
+    start = end + 1;
+  }
+  for (std::size_t i = 0; at && i + 1 < segments.size(); ++i) {
+    at = findEntry(*at, segments[i]);
+  }
+  if (!at) {
+    return std::nullopt;
+  }
+  const fs::path name(segments.back());
+  if (auto found = findEntry(*at, name.string())) {
+    return found;
+  }
+  // Readers swap the extension (OPC.md): .dds first, then .tif and .tiff.
+  for (const char* ext : {".dds", ".tif", ".tiff"}) {
+    if (auto found = findEntry(*at, fs::path(name).replace_extension(ext).string())) {
+      return found;
+    }
+  }
+  return std::nullopt;
 }
 
 double linearScale(const Mat4d& m) {
@@ -622,7 +700,8 @@ OpcWriter::OpcWriter(fs::path dir, Durability durability)
   }
 }
 
-void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox) {
+void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox,
+                           const TextureTile* texture) {
   // By value: callers may pass info.globalBox, which is overwritten below.
   if (!grid.anyDefined()) {
     throw Error(ErrorCode::InvalidArgument,
@@ -684,6 +763,23 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
   const fs::path positionsFile = folderDir / info.positionsFile;
   writeFile(positionsFile, encodeAara(positions));
 
+  info.coordinatesFile.clear();
+  info.textureFile.clear();
+  if (texture != nullptr) {
+    // Texture coordinates of the stored vertices and the tile, before the Patch.xml naming them.
+    AaraArray coordinates;
+    coordinates.type = AaraType::V2f;
+    coordinates.sizes = {r.width(), r.height()};
+    const std::vector<float> uvs =
+        textureCoordinates(grid.size(), r.x0, r.y0, r.width(), r.height());
+    coordinates.data.resize(uvs.size() * sizeof(float));
+    std::memcpy(coordinates.data.data(), uvs.data(), coordinates.data.size());
+    info.coordinatesFile = "Coordinates.aara";
+    writeFile(folderDir / info.coordinatesFile, encodeAara(coordinates));
+    writeFile(imagesLayerDir() / (info.folder + ".tif"), encodeTextureTiff(*texture));
+    info.textureFile = std::string(kTextureLayer) + "\\" + info.folder + ".tif";
+  }
+
   pugi::xml_document doc;
   pugi::xml_node decl = doc.append_child(pugi::node_declaration);
   decl.append_attribute("version") = "1.0";
@@ -696,7 +792,12 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
   addText(patch, "LocalBoundingBox", formatBox(info.localBox));
   addText(patch, "GlobalBoundingBox", formatBox(info.globalBox));
   addText(patch, "Positions", info.positionsFile);
-  patch.append_child("Textures");
+  if (!info.textureFile.empty()) {
+    addText(patch.append_child("Coordinates"), "DiffuseColor1Coordinates", info.coordinatesFile);
+    addText(patch.append_child("Textures"), "DiffuseColor1Texture", info.textureFile);
+  } else {
+    patch.append_child("Textures");
+  }
   pugi::xml_node vsm = patch.append_child("Vsm");
   addText(vsm, "Key", info.key.toString());
   addText(vsm, "GridSize", std::to_string(grid.size()));
@@ -705,6 +806,38 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
   addText(vsm, "Version", std::to_string(info.version));
   const fs::path xmlFile = folderDir / "Patch.xml";
   writeFile(xmlFile, bytesOf(xmlText(doc)));
+}
+
+fs::path OpcWriter::imagesLayerDir() {
+  const fs::path layer = dir_.parent_path() / "Images" / std::string(kTextureLayer);
+  std::lock_guard lock(imagesMutex_);
+  if (!imagesCreated_) {
+    std::error_code ec;
+    for (const fs::path& d : {layer.parent_path(), layer}) {
+      const bool created = fs::create_directory(d, ec);
+      if (ec) {
+        throw Error(ErrorCode::Io, "cannot create '" + d.string() + "': " + ec.message());
+      }
+      if (created) {
+        if (durability_ == Durability::EachFile) {
+          fsyncPath(d.parent_path(), true);
+        } else {
+          unsynced_ = true;
+        }
+      }
+    }
+    imagesCreated_ = true;
+  }
+  return layer;
+}
+
+void OpcWriter::removePatchFiles(const PatchInfo& info) {
+  std::error_code ec;
+  fs::remove_all(dir_ / info.folder, ec);
+  if (!info.textureFile.empty()) {
+    fs::remove(dir_.parent_path() / "Images" / std::string(kTextureLayer) / (info.folder + ".tif"),
+               ec);
+  }
 }
 
 void OpcWriter::writeHierarchy(const Model& model) {

@@ -2,11 +2,13 @@
 
 #include <atomic>
 #include <filesystem>
+#include <mutex>
 #include <span>
 #include <string>
 #include <vector>
 
 #include "core/common/progress.hpp"
+#include "core/grid/texture_tile.hpp"
 #include "core/pyramid/model.hpp"
 
 namespace vsm::core {
@@ -55,7 +57,17 @@ class OpcWriter {
   /// resolution, stored rectangle) as Model::describe does: the boxes hold the grid's defined
   /// vertices and `childrenBox`, the union of the children's global boxes (empty for a leaf).
   /// An empty info.folder becomes info.key.toString(). Precondition: grid.anyDefined().
-  void writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox);
+  ///
+  /// With a `texture`, also writes Coordinates.aara (V2f per stored vertex, see
+  /// textureCoordinates) in the folder and the tile as Images/Diffuse/<folder>.tif (RGBA 8-bit
+  /// TIFF), and names both in Patch.xml's <Coordinates> and <Textures> (OPC.md); info's
+  /// coordinatesFile and textureFile say what was written (empty without a texture).
+  void writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox,
+                  const TextureTile* texture = nullptr);
+
+  /// Removes every file writePatch wrote for `info` (its folder and its texture tile), ignoring
+  /// errors: for a builder discarding a subtree of its own staging directory.
+  void removePatchFiles(const PatchInfo& info);
 
   /// Writes Patches/patchhierarchy.xml atomically; call after every patch it names is written.
   /// Removes a stale `hierarchy.cache` of other readers.
@@ -68,10 +80,14 @@ class OpcWriter {
  private:
   /// Writes one file as the durability says.
   void writeFile(const std::filesystem::path& file, std::span<const std::byte> bytes);
+  /// Images/<layer>/, created (once, under imagesMutex_) on first use.
+  std::filesystem::path imagesLayerDir();
 
   std::filesystem::path dir_;
   Durability durability_;
   std::atomic<bool> unsynced_{false};  // Deferred: something written since the last sync()
+  std::mutex imagesMutex_;             // guards imagesCreated_ (writePatch runs concurrently)
+  bool imagesCreated_ = false;
 };
 
 /// Makes every file written so far on the file system holding `dir` durable: one syncfs (a single

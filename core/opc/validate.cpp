@@ -1,5 +1,6 @@
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <map>
 #include <memory>
 #include <optional>
@@ -102,6 +103,7 @@ class Validator {
       add(where(info), "<Vsm><Key> says " + *details.extensionKey + " but the patch sits at " +
                            key.toString() + " in the hierarchy");
     }
+    checkTexture(info);
     const PatchGrid* g = grid(info);
     if (g == nullptr) {
       return;
@@ -146,6 +148,59 @@ class Validator {
     }
     measured_[key.depth].first += g->resolution();
     measured_[key.depth].second += 1;
+  }
+
+  /// A textured patch: its coordinates decode as V2f (V2d) of the stored positions' size with
+  /// finite values, and its texture file exists under Images/.
+  void checkTexture(const PatchInfo& info) {
+    if (info.textureFile.empty()) {
+      if (!info.coordinatesFile.empty()) {
+        add(where(info),
+            "<Coordinates> names " + info.coordinatesFile + " but <Textures> is empty");
+      }
+      return;
+    }
+    if (!detail::findTextureFile(dir_, info.textureFile)) {
+      add(where(info), "texture '" + info.textureFile + "' does not exist under Images/");
+    }
+    if (info.coordinatesFile.empty()) {
+      add(where(info), "has a texture but no <Coordinates><DiffuseColor1Coordinates>");
+      return;
+    }
+    const fs::path folder =
+        detail::findEntry(c_.patchesDir, info.folder).value_or(c_.patchesDir / info.folder);
+    const fs::path file =
+        detail::findEntry(folder, info.coordinatesFile).value_or(folder / info.coordinatesFile);
+    AaraArray coordinates;
+    try {
+      coordinates = readAaraFile(file);
+    } catch (const Error& e) {
+      add(where(info), e.what());
+      return;
+    }
+    if (coordinates.type != AaraType::V2f && coordinates.type != AaraType::V2d) {
+      add(where(info),
+          info.coordinatesFile + " holds " + std::string(toString(coordinates.type)) + ", not V2f");
+      return;
+    }
+    const GridRect& r = info.stored;
+    if (coordinates.sizes.size() != 2 || coordinates.sizes[0] != r.width() ||
+        coordinates.sizes[1] != r.height()) {
+      add(where(info), info.coordinatesFile + " does not have the stored positions' size " +
+                           std::to_string(r.width()) + " x " + std::to_string(r.height()));
+      return;
+    }
+    if (coordinates.type == AaraType::V2f) {
+      const std::size_t count = coordinates.elementCount() * 2;
+      for (std::size_t i = 0; i < count; ++i) {
+        float v = 0;
+        std::memcpy(&v, coordinates.data.data() + i * 4, 4);
+        if (!std::isfinite(v)) {
+          add(where(info), info.coordinatesFile + " holds a coordinate that is not finite");
+          break;
+        }
+      }
+    }
   }
 
   /// Every defined parent vertex must be the child vertex it was reduced from.

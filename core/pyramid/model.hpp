@@ -30,6 +30,12 @@ struct PatchInfo {
   /// The part of the full grid stored on disk (undefined border rows/columns are cropped).
   GridRect stored;
   std::string positionsFile = "Positions.aara";
+  /// Texture coordinates (V2f per stored vertex) in the patch folder: Patch.xml's
+  /// <Coordinates><DiffuseColor1Coordinates>; empty when the patch has no texture.
+  std::string coordinatesFile;
+  /// The texture tile relative to Images/ as Patch.xml names it (backslash-separated, e.g.
+  /// "Diffuse\\2_0_0.tif"): the first <Textures> entry; empty when the patch has no texture.
+  std::string textureFile;
 
   /// States (thesis 3.4): the vertex data is in memory / changed and not yet written / an overview
   /// whose descendants changed, to be recomputed before use.

@@ -232,6 +232,9 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
   info.version = id.version;
   info.folder = draftFolder(key, id.version);
   info.positionsFile = "Positions.aara";
+  // New data is written without a texture (merges do not carry textures yet).
+  info.coordinatesFile.clear();
+  info.textureFile.clear();
   model_->describe(key, *grid);
   model_->markChanged(key);
   info.dirty = false;  // the cache tracks dirtiness; the model only needs `changed_`

@@ -1,9 +1,12 @@
 #include "server/api/tiles_routes.hpp"
 
+#include <optional>
+
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
+#include "core/opc/texture_file.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
 #include "core/tiles/glb.hpp"
@@ -21,7 +24,7 @@ namespace {
 
 /// Bumped whenever encodeGlb() or tilesetJson() change what they produce for the same model, so
 /// clients holding the old bytes under an ETag revalidate to the new ones.
-constexpr std::string_view kTilesFormat = "t1";
+constexpr std::string_view kTilesFormat = "t2";  // t2: textures embedded
 
 /// As patch data (model_routes.cpp): the URL names no version, so revalidate after a minute.
 constexpr std::string_view kTileCacheControl = "public, max-age=60";
@@ -115,8 +118,17 @@ http::Response getGlb(models::ModelRegistry& models, const http::Request& reques
     // On the CPU pool, like every handler: a cache miss reads the disk here, and the encoding is
     // CPU work. The pin is released before the snapshot.
     const core::PatchCache::Pin pin = live->positions(*snapshot, key);
+    // The patch's texture tile (converted to PNG) and coordinates, read from disk per request.
+    const std::optional<core::PatchTexture> texture =
+        core::readPatchTexture(live->dir(), *snapshot->model, *info);
+    core::GlbOptions options;
+    if (texture) {
+      options.texture = {texture->png, "image/png"};
+      options.texcoords = texture->texcoords;
+      options.baseColor = {1.0, 1.0, 1.0, 1.0};  // the texture's own colours
+    }
     const std::vector<std::byte> glb =
-        core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(*info));
+        core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(*info), options);
     response.body.assign(reinterpret_cast<const char*>(glb.data()), glb.size());
   }
   response.contentType = std::string(kGlbType);

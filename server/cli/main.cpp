@@ -42,6 +42,9 @@ constexpr std::string_view kUsage =
     "  import <input> <out-dir> [--patch-size N]   import a georeferenced raster (GDAL) or an\n"
     "                                              organized point cloud (.pcd, .ply) into a new "
     "OPC\n"
+    "         [--texture <image>]                  and drape an image over it: placed by its\n"
+    "                                              georeference, or stretched over the input's\n"
+    "                                              extent (a texture tile per patch)\n"
     "  info <opc>                                  depth, patches per level, bounds, resolution, "
     "bytes\n"
     "  validate <opc>                              check every invariant; exit 1 listing findings\n"
@@ -181,6 +184,11 @@ int runImport(const std::vector<std::string_view>& args) {
         throw UsageError{"--patch-size must be 2^n+1, e.g. 65, 129 or 257"};
       }
       options.patchSize = static_cast<int>(*value);
+    } else if (args[i] == "--texture") {
+      if (i + 1 >= args.size()) {
+        throw UsageError{"--texture needs an image"};
+      }
+      options.texture = fs::path(args[++i]);
     } else if (args[i].starts_with("--")) {
       throw UsageError{"unknown option " + std::string(args[i])};
     } else {

@@ -4,6 +4,7 @@
 
 #include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
+#include "core/grid/texture_tile.hpp"
 
 namespace vsm::core {
 namespace {
@@ -103,3 +104,110 @@ TEST(OriginFor, IsTheCentreOfTheBox) {
 
 }  // namespace
 }  // namespace vsm::core
+
+// ---- texture tiles --------------------------------------------------------------------------
+
+namespace {
+
+/// A tile whose texel (i, j) has a distinct, position-derived colour.
+vsm::core::TextureTile patternTile(int size, int seed) {
+  vsm::core::TextureTile tile(size);
+  for (int j = 0; j < size; ++j) {
+    for (int i = 0; i < size; ++i) {
+      std::uint8_t* t = tile.at(i, j);
+      t[0] = static_cast<std::uint8_t>((i * 7 + j * 3 + seed) % 256);
+      t[1] = static_cast<std::uint8_t>((i * 11 + j * 5 + 2 * seed) % 256);
+      t[2] = static_cast<std::uint8_t>((i + j * 13 + 3 * seed) % 256);
+      t[3] = static_cast<std::uint8_t>(200 + (i + j) % 50);
+    }
+  }
+  return tile;
+}
+
+}  // namespace
+
+TEST(TextureTile, TileSizeIsOneTexelPerGridQuad) {
+  EXPECT_EQ(vsm::core::textureTileSize(257), 256);
+  EXPECT_EQ(vsm::core::textureTileSize(65), 64);
+  EXPECT_EQ(vsm::core::textureTileSize(3), 2);
+}
+
+TEST(TextureTile, RejectsOddOrTinySizes) {
+  EXPECT_THROW(vsm::core::TextureTile(3), vsm::core::Error);
+  EXPECT_THROW(vsm::core::TextureTile(0), vsm::core::Error);
+}
+
+TEST(TextureTile, NewTileIsTransparent) {
+  vsm::core::TextureTile tile(4);
+  EXPECT_TRUE(tile.transparent());
+  tile.at(3, 3)[3] = 1;
+  EXPECT_FALSE(tile.transparent());
+}
+
+TEST(TextureTile, CoordinatesRunFromZeroAtTheFirstVertexToOneAtTheLast) {
+  EXPECT_EQ(vsm::core::textureCoordinate(0, 65), 0.0f);
+  EXPECT_EQ(vsm::core::textureCoordinate(64, 65), 1.0f);
+  EXPECT_FLOAT_EQ(vsm::core::textureCoordinate(16, 65), 0.25f);
+}
+
+TEST(TextureTile, CoordinatesOfACroppedRectangleAreThoseOfItsVertices) {
+  // Vertices (2..4) x (1..2) of a 5 x 5 grid: u = x / 4, v = y / 4 (v = 0 the top row).
+  const std::vector<float> uv = vsm::core::textureCoordinates(5, 2, 1, 3, 2);
+  ASSERT_EQ(uv.size(), 3u * 2u * 2u);
+  EXPECT_FLOAT_EQ(uv[0], 0.5f);
+  EXPECT_FLOAT_EQ(uv[1], 0.25f);
+  EXPECT_FLOAT_EQ(uv[4], 1.0f);  // vertex (4, 1)
+  EXPECT_FLOAT_EQ(uv[5], 0.25f);
+  EXPECT_FLOAT_EQ(uv[6], 0.5f);  // vertex (2, 2): second row
+  EXPECT_FLOAT_EQ(uv[7], 0.5f);
+}
+
+TEST(TextureTile, ParentTexelIsTheMeanOfItsTwoByTwoChildTexels) {
+  const int size = 8;
+  const std::array<vsm::core::TextureTile, 4> children{patternTile(size, 0), patternTile(size, 1),
+                                                       patternTile(size, 2), patternTile(size, 3)};
+  const vsm::core::TextureTile parent = vsm::core::downsampleQuadrants(
+      {&children[0], &children[1], &children[2], &children[3]}, size);
+  const int half = size / 2;
+  for (int q = 0; q < 4; ++q) {
+    const int ox = (q & 1) * half;  // nw, ne, sw, se
+    const int oy = (q >> 1) * half;
+    for (int j = 0; j < half; ++j) {
+      for (int i = 0; i < half; ++i) {
+        for (int c = 0; c < 4; ++c) {
+          const int sum = children[q].at(2 * i, 2 * j)[c] + children[q].at(2 * i + 1, 2 * j)[c] +
+                          children[q].at(2 * i, 2 * j + 1)[c] +
+                          children[q].at(2 * i + 1, 2 * j + 1)[c];
+          EXPECT_NEAR(parent.at(ox + i, oy + j)[c], sum / 4.0, 0.5)
+              << "quadrant " << q << " texel " << i << "," << j << " channel " << c;
+        }
+      }
+    }
+  }
+}
+
+TEST(TextureTile, MissingChildLeavesItsQuadrantTransparent) {
+  const vsm::core::TextureTile nw = patternTile(4, 5);
+  const vsm::core::TextureTile parent =
+      vsm::core::downsampleQuadrants({&nw, nullptr, nullptr, nullptr}, 4);
+  EXPECT_NE(parent.at(0, 0)[3], 0);
+  for (int j = 0; j < 4; ++j) {
+    for (int i = 0; i < 4; ++i) {
+      if (i >= 2 || j >= 2) {
+        EXPECT_EQ(parent.at(i, j)[3], 0);
+      }
+    }
+  }
+}
+
+TEST(TextureTile, UniformChildrenGiveTheSameUniformParent) {
+  vsm::core::TextureTile child(4);
+  for (std::size_t k = 0; k < child.texels().size(); ++k) {
+    child.texels()[k] = static_cast<std::uint8_t>(k % 4 == 3 ? 255 : 77 + k % 4);
+  }
+  const vsm::core::TextureTile parent =
+      vsm::core::downsampleQuadrants({&child, &child, &child, &child}, 4);
+  for (std::size_t k = 0; k < parent.texels().size(); ++k) {
+    EXPECT_EQ(parent.texels()[k], child.texels()[k]);
+  }
+}

@@ -26,8 +26,12 @@
 #include <vector>
 
 #include "core/common/error.hpp"
+#include "core/grid/texture_tile.hpp"
 #include "core/io/grid_source.hpp"
+#include "core/io/texture_source.hpp"
+#include "core/opc/aara.hpp"
 #include "core/opc/opc_store.hpp"
+#include "core/opc/texture_file.hpp"
 #include "tests/unit/test_support.hpp"
 
 namespace fs = std::filesystem;
@@ -849,3 +853,146 @@ TEST(ImportFile, AnExistingOutputDirectoryIsAConflictBeforeTheInputIsOpened) {
 }
 
 }  // namespace
+
+// ---------------------------------------------------------------------------------------------
+// Textures
+
+namespace {
+
+/// Writes an RGB GeoTIFF whose pixel (x, y) is (x * 16, y * 16, 100); georeferenced when `gt` is.
+void makeImage(const fs::path& path, int width, int height,
+               std::optional<std::array<double, 6>> gt) {
+  GDALAllRegister();
+  GDALDriver* driver = GetGDALDriverManager()->GetDriverByName("GTiff");
+  GDALDatasetUniquePtr ds(driver->Create(path.c_str(), width, height, 3, GDT_Byte, nullptr));
+  ASSERT_TRUE(ds);
+  if (gt) {
+    ds->SetGeoTransform(gt->data());
+    OGRSpatialReference srs;
+    srs.importFromEPSG(4326);
+    ds->SetSpatialRef(&srs);
+  }
+  std::vector<std::uint8_t> pixels(static_cast<std::size_t>(width) * height * 3);
+  for (int y = 0; y < height; ++y) {
+    for (int x = 0; x < width; ++x) {
+      std::uint8_t* p = pixels.data() + (static_cast<std::size_t>(y) * width + x) * 3;
+      p[0] = static_cast<std::uint8_t>(x * 16);
+      p[1] = static_cast<std::uint8_t>(y * 16);
+      p[2] = 100;
+    }
+  }
+  ASSERT_EQ(ds->RasterIO(GF_Write, 0, 0, width, height, pixels.data(), width, height, GDT_Byte, 3,
+                         nullptr, 3, static_cast<GSpacing>(width) * 3, 1, nullptr),
+            CE_None);
+}
+
+}  // namespace
+
+TEST(TextureSource, AStretchedImageMapsGridEdgesToImageEdges) {
+  TempDir dir;
+  makeImage(dir / "plain.tif", 16, 8, std::nullopt);
+  const TextureSource texture(dir / "plain.tif", 8, 4, std::nullopt);
+  EXPECT_FALSE(texture.georeferenced());
+  // Grid point -0.5 (the grid's left pixel edge) is the image's left edge; 7.5 its right edge.
+  const auto left = texture.imagePoint(-0.5, -0.5);
+  ASSERT_TRUE(left);
+  EXPECT_DOUBLE_EQ(left->first, 0.0);
+  EXPECT_DOUBLE_EQ(left->second, 0.0);
+  const auto right = texture.imagePoint(7.5, 3.5);
+  ASSERT_TRUE(right);
+  EXPECT_DOUBLE_EQ(right->first, 16.0);
+  EXPECT_DOUBLE_EQ(right->second, 8.0);
+}
+
+TEST(TextureSource, AGeoreferencedImageIsPlacedByGeographicPosition) {
+  TempDir dir;
+  // The image is twice as fine as the grid and starts one grid sample further west and north.
+  makeImage(dir / "geo.tif", 16, 16, std::array<double, 6>{9.5, 0.25, 0, 47.25, 0, -0.125});
+  Georeference grid;
+  grid.geoTransform = {10.0, 0.5, 0, 47.0, 0, -0.25};
+  OGRSpatialReference srs;
+  srs.importFromEPSG(4326);
+  char* wkt = nullptr;
+  srs.exportToWkt(&wkt);
+  grid.crsWkt = wkt;
+  CPLFree(wkt);
+  const TextureSource texture(dir / "geo.tif", 4, 3, grid);
+  EXPECT_TRUE(texture.georeferenced());
+  // Grid sample (0, 0) has its centre at lon 10.25, lat 46.875: image pixel edge (3, 3).
+  const auto p = texture.imagePoint(0, 0);
+  ASSERT_TRUE(p);
+  EXPECT_NEAR(p->first, 3.0, 1e-9);
+  EXPECT_NEAR(p->second, 3.0, 1e-9);
+
+  // Texel (0, 0) of the tile at sample (0, 0) is the quad centre (0.5, 0.5): image (4, 4), the
+  // corner of pixels 3 and 4: the bilinear mean of their colours.
+  TextureTile tile(2);
+  texture.fillTile(0, 0, tile);
+  EXPECT_NEAR(tile.at(0, 0)[0], 3.5 * 16, 1);
+  EXPECT_NEAR(tile.at(0, 0)[1], 3.5 * 16, 1);
+  EXPECT_EQ(tile.at(0, 0)[2], 100);
+  EXPECT_EQ(tile.at(0, 0)[3], 255);
+}
+
+TEST(TexturedImport, EveryPatchGetsATileCoordinatesAndXmlAsOpcSays) {
+  TempDir dir;
+  // 9 x 9 samples with 5 x 5 patches: a root and four leaves.
+  std::vector<double> heights(81);
+  for (std::size_t i = 0; i < heights.size(); ++i) {
+    heights[i] = 100.0 + static_cast<double>(i);
+  }
+  makeRaster(dir / "dem.tif", RasterSpec(9, 9, {10.0, 0.01, 0, 47.0, 0, -0.01}), heights);
+  makeImage(dir / "plain.tif", 16, 16, std::nullopt);
+  ImportOptions options;
+  options.patchSize = 5;
+  options.texture = dir / "plain.tif";
+  const Model model = importFile(dir / "dem.tif", dir / "opc", options);
+  EXPECT_EQ(model.patchCount(), 5u);
+  for (const auto& [key, info] : model.patches()) {
+    EXPECT_EQ(info.textureFile, "Diffuse\\" + key.toString() + ".tif");
+    EXPECT_EQ(info.coordinatesFile, "Coordinates.aara");
+    EXPECT_TRUE(fs::exists(dir / "opc" / "Images" / "Diffuse" / (key.toString() + ".tif")));
+    const AaraArray uv =
+        readAaraFile(dir / "opc" / "Patches" / key.toString() / "Coordinates.aara");
+    EXPECT_EQ(uv.type, AaraType::V2f);
+    EXPECT_EQ(uv.sizes, (std::vector<std::int32_t>{info.stored.width(), info.stored.height()}));
+  }
+  // Read back: the reader sees the same texture entries, and validation passes.
+  const Model read = readOpcModel(dir / "opc");
+  EXPECT_EQ(read.at(PatchKey::root()).textureFile, "Diffuse\\0_0_0.tif");
+  EXPECT_TRUE(validateOpc(dir / "opc").empty());
+
+  // The root's texel is the mean of the 2 x 2 texels of the child it covers.
+  const TextureTile root = readTextureTile(dir / "opc" / "Images" / "Diffuse" / "0_0_0.tif");
+  const TextureTile nw = readTextureTile(dir / "opc" / "Images" / "Diffuse" / "1_0_0.tif");
+  ASSERT_EQ(root.size(), 4);
+  for (int c = 0; c < 4; ++c) {
+    const double mean = (nw.at(0, 0)[c] + nw.at(1, 0)[c] + nw.at(0, 1)[c] + nw.at(1, 1)[c]) / 4.0;
+    EXPECT_NEAR(root.at(0, 0)[c], mean, 0.5);
+  }
+  // The leaf's texel (0, 0) covers grid quad centre (0.5, 0.5): image edge coordinate
+  // (1 * 16 / 9) -> centre coordinate 1.28, between pixels 1 and 2.
+  const double expected = (1.0 * 16.0 / 9.0 - 0.5) * 16.0;
+  EXPECT_NEAR(nw.at(0, 0)[0], expected, 1.0);
+  EXPECT_NEAR(nw.at(0, 0)[1], expected, 1.0);
+
+  // The served form: PNG bytes and full-grid coordinates.
+  const auto texture = readPatchTexture(dir / "opc", read, read.at(PatchKey::root()));
+  ASSERT_TRUE(texture);
+  ASSERT_GE(texture->png.size(), 8u);
+  EXPECT_EQ(static_cast<unsigned char>(texture->png[1]), 'P');
+  EXPECT_EQ(texture->texcoords.size(), 5u * 5u * 2u);
+  EXPECT_FLOAT_EQ(texture->texcoords[(4 * 5 + 4) * 2], 1.0f);
+}
+
+TEST(TexturedImport, AMissingTextureFailsAndLeavesNothingBehind) {
+  TempDir dir;
+  makeRaster(dir / "dem.tif", RasterSpec(9, 9, {10.0, 0.01, 0, 47.0, 0, -0.01}),
+             std::vector<double>(81, 5.0));
+  ImportOptions options;
+  options.patchSize = 5;
+  options.texture = dir / "missing.png";
+  EXPECT_EQ(codeOf([&] { importFile(dir / "dem.tif", dir / "opc", options); }),
+            ErrorCode::NotFound);
+  EXPECT_EQ(dir.entries(), (std::set<std::string>{"dem.tif"}));
+}

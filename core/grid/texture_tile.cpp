@@ -1,0 +1,73 @@
+#include "core/grid/texture_tile.hpp"
+
+#include <algorithm>
+#include <string>
+
+#include "core/common/error.hpp"
+
+namespace vsm::core {
+
+TextureTile::TextureTile(int size) : size_(size) {
+  if (size < 2 || size > 32768 || size % 2 != 0) {
+    throw Error(ErrorCode::InvalidArgument,
+                "texture tile size must be even and in 2..32768, not " + std::to_string(size));
+  }
+  texels_.assign(static_cast<std::size_t>(size) * size * kChannels, 0);
+}
+
+bool TextureTile::transparent() const {
+  for (std::size_t i = 3; i < texels_.size(); i += kChannels) {
+    if (texels_[i] != 0) {
+      return false;
+    }
+  }
+  return true;
+}
+
+std::vector<float> textureCoordinates(int gridSize, int x0, int y0, int width, int height) {
+  std::vector<float> out(static_cast<std::size_t>(width) * height * 2);
+  float* p = out.data();
+  for (int y = y0; y < y0 + height; ++y) {
+    const float v = textureCoordinate(y, gridSize);
+    for (int x = x0; x < x0 + width; ++x) {
+      *p++ = textureCoordinate(x, gridSize);
+      *p++ = v;
+    }
+  }
+  return out;
+}
+
+TextureTile downsampleQuadrants(const std::array<const TextureTile*, 4>& children, int size) {
+  TextureTile parent(size);
+  const int half = size / 2;
+  for (int q = 0; q < 4; ++q) {
+    const TextureTile* child = children[q];
+    if (child == nullptr) {
+      continue;
+    }
+    if (child->size() != size) {
+      throw Error(ErrorCode::InvalidArgument, "child texture tile of size " +
+                                                  std::to_string(child->size()) + ", expected " +
+                                                  std::to_string(size));
+    }
+    // Quadrant order nw, ne, sw, se: bit 0 is east, bit 1 south.
+    const int offsetX = (q & 1) * half;
+    const int offsetY = (q >> 1) * half;
+    for (int j = 0; j < half; ++j) {
+      const std::uint8_t* top = child->at(0, 2 * j);
+      const std::uint8_t* bottom = child->at(0, 2 * j + 1);
+      std::uint8_t* out = parent.at(offsetX, offsetY + j);
+      for (int i = 0; i < half; ++i) {
+        for (int c = 0; c < TextureTile::kChannels; ++c) {
+          const int k = 2 * i * TextureTile::kChannels + c;
+          const int sum = top[k] + top[k + TextureTile::kChannels] + bottom[k] +
+                          bottom[k + TextureTile::kChannels];
+          out[i * TextureTile::kChannels + c] = static_cast<std::uint8_t>((sum + 2) / 4);
+        }
+      }
+    }
+  }
+  return parent;
+}
+
+}  // namespace vsm::core

@@ -1,0 +1,305 @@
+// The image an import drapes over its grid, through GDAL (placement) and OGR (CRS change).
+#include "core/io/texture_source.hpp"
+
+#include <cpl_error.h>
+#include <gdal_priv.h>
+#include <ogr_spatialref.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <limits>
+#include <mutex>
+#include <string>
+#include <system_error>
+#include <vector>
+
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+
+namespace vsm::core {
+namespace {
+
+void CPL_STDCALL logGdalMessage(CPLErr level, CPLErrorNum /*number*/, const char* message) {
+  if (level != CE_Debug) {
+    log::debug(std::string("gdal: ") + (message != nullptr ? message : ""));
+  }
+}
+
+/// GDAL's messages to our debug log instead of stderr while alive (per thread).
+class GdalMessagesToLog {
+ public:
+  GdalMessagesToLog() { CPLPushErrorHandler(logGdalMessage); }
+  ~GdalMessagesToLog() { CPLPopErrorHandler(); }
+  GdalMessagesToLog(const GdalMessagesToLog&) = delete;
+  GdalMessagesToLog& operator=(const GdalMessagesToLog&) = delete;
+};
+
+std::string lastGdalMessage() {
+  const char* message = CPLGetLastErrorMsg();
+  return message != nullptr && *message != '\0' ? message : "unknown GDAL error";
+}
+
+struct TransformDeleter {
+  void operator()(OGRCoordinateTransformation* ct) const {
+    OGRCoordinateTransformation::DestroyCT(ct);
+  }
+};
+
+/// A read window is capped at this many times the tile size per axis: a much finer image is read
+/// averaged down by GDAL (memory stays a few tiles, whatever the image size).
+constexpr int kMaxWindowPerTexel = 2;
+
+}  // namespace
+
+struct TextureSource::Impl {
+  std::filesystem::path path;
+  int gridWidth = 0;
+  int gridHeight = 0;
+  GDALDatasetUniquePtr dataset;  // guarded by mutex
+  int imageWidth = 0;
+  int imageHeight = 0;
+  int bands = 0;  // bands read: 1 (grey), 2 (grey, alpha), 3 (RGB) or 4 (RGBA)
+  bool georeferenced = false;
+  std::array<double, 6> gridTransform{};  // grid sample -> grid CRS (pixel-edge convention)
+  std::array<double, 6> imageInverse{};   // image CRS -> image pixel (pixel-edge convention)
+  std::unique_ptr<OGRCoordinateTransformation, TransformDeleter> transform;  // guarded by mutex
+  std::string description;
+  mutable std::mutex mutex;  // guards dataset and transform (neither is thread-safe)
+
+  /// Image pixel coordinates of grid points (in place: xs, ys in, out); NaN where not placeable.
+  /// Caller holds the mutex when georeferenced.
+  void toImage(std::vector<double>& xs, std::vector<double>& ys) const {
+    const std::size_t n = xs.size();
+    if (!georeferenced) {
+      const double sx = static_cast<double>(imageWidth) / gridWidth;
+      const double sy = static_cast<double>(imageHeight) / gridHeight;
+      for (std::size_t i = 0; i < n; ++i) {
+        xs[i] = (xs[i] + 0.5) * sx;
+        ys[i] = (ys[i] + 0.5) * sy;
+      }
+      return;
+    }
+    const auto& g = gridTransform;
+    for (std::size_t i = 0; i < n; ++i) {
+      const double ex = xs[i] + 0.5;  // sample coordinates to pixel-edge ones
+      const double ey = ys[i] + 0.5;
+      xs[i] = g[0] + ex * g[1] + ey * g[2];
+      ys[i] = g[3] + ex * g[4] + ey * g[5];
+    }
+    std::vector<int> ok(n, 1);
+    if (transform) {
+      transform->Transform(static_cast<int>(n), xs.data(), ys.data(), nullptr, ok.data());
+    }
+    const auto& v = imageInverse;
+    for (std::size_t i = 0; i < n; ++i) {
+      if (ok[i] == 0 || !std::isfinite(xs[i]) || !std::isfinite(ys[i])) {
+        xs[i] = ys[i] = std::numeric_limits<double>::quiet_NaN();
+        continue;
+      }
+      const double x = xs[i];
+      const double y = ys[i];
+      xs[i] = v[0] + x * v[1] + y * v[2];
+      ys[i] = v[3] + x * v[4] + y * v[5];
+    }
+  }
+};
+
+TextureSource::TextureSource(const std::filesystem::path& image, int gridWidth, int gridHeight,
+                             const std::optional<Georeference>& grid)
+    : impl_(std::make_unique<Impl>()) {
+  static std::once_flag once;
+  std::call_once(once, [] { GDALAllRegister(); });
+  Impl& m = *impl_;
+  m.path = image;
+  m.gridWidth = gridWidth;
+  m.gridHeight = gridHeight;
+  std::error_code ec;
+  if (!image.string().starts_with("/vsi") && !std::filesystem::exists(image, ec)) {
+    throw Error(ErrorCode::NotFound, "texture '" + image.string() + "' does not exist");
+  }
+  GdalMessagesToLog quiet;
+  CPLErrorReset();
+  m.dataset.reset(GDALDataset::Open(image.string().c_str(), GDAL_OF_RASTER | GDAL_OF_READONLY));
+  if (!m.dataset) {
+    throw Error(ErrorCode::Corrupt,
+                "cannot read texture '" + image.string() + "': " + lastGdalMessage());
+  }
+  m.imageWidth = m.dataset->GetRasterXSize();
+  m.imageHeight = m.dataset->GetRasterYSize();
+  const int count = m.dataset->GetRasterCount();
+  if (count < 1 || m.imageWidth < 1 || m.imageHeight < 1) {
+    throw Error(ErrorCode::InvalidArgument, "texture '" + image.string() + "' has no pixels");
+  }
+  m.bands = std::min(count, 4);
+
+  std::array<double, 6> imageTransform{};
+  const OGRSpatialReference* imageCrs = m.dataset->GetSpatialRef();
+  const bool imageGeo = imageCrs != nullptr && !imageCrs->IsEmpty() &&
+                        m.dataset->GetGeoTransform(imageTransform.data()) == CE_None;
+  std::string crsText = "no CRS";
+  if (imageGeo && grid && !grid->crsWkt.empty()) {
+    OGRSpatialReference gridCrs;
+    if (gridCrs.importFromWkt(grid->crsWkt.c_str()) != OGRERR_NONE) {
+      throw Error(ErrorCode::InvalidArgument, "the grid's CRS cannot be read back");
+    }
+    gridCrs.SetAxisMappingStrategy(OAMS_TRADITIONAL_GIS_ORDER);
+    OGRSpatialReference target(*imageCrs);
+    target.SetAxisMappingStrategy(OAMS_TRADITIONAL_GIS_ORDER);
+    if (!gridCrs.IsSame(&target)) {
+      m.transform.reset(OGRCreateCoordinateTransformation(&gridCrs, &target));
+      if (!m.transform) {
+        throw Error(ErrorCode::InvalidArgument,
+                    "cannot transform the grid's CRS to that of texture '" + image.string() +
+                        "': " + lastGdalMessage());
+      }
+    }
+    if (GDALInvGeoTransform(imageTransform.data(), m.imageInverse.data()) == 0) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "texture '" + image.string() + "' has a non-invertible geotransform");
+    }
+    m.gridTransform = grid->geoTransform;
+    m.georeferenced = true;
+    const char* authority = imageCrs->GetAuthorityName(nullptr);
+    const char* code = imageCrs->GetAuthorityCode(nullptr);
+    crsText = authority != nullptr && code != nullptr ? std::string(authority) + ":" + code
+                                                      : std::string("a CRS");
+  }
+  m.description = std::string(m.dataset->GetDriver()->GetDescription()) + " " +
+                  std::to_string(m.imageWidth) + "x" + std::to_string(m.imageHeight) + " " +
+                  std::to_string(count) + " band" + (count == 1 ? "" : "s") + ", " + crsText +
+                  (m.georeferenced ? ", georeferenced" : ", stretched over the grid");
+}
+
+TextureSource::~TextureSource() = default;
+
+std::string TextureSource::describe() const {
+  return impl_->description;
+}
+
+bool TextureSource::georeferenced() const {
+  return impl_->georeferenced;
+}
+
+std::optional<std::pair<double, double>> TextureSource::imagePoint(double gx, double gy) const {
+  std::vector<double> xs{gx};
+  std::vector<double> ys{gy};
+  {
+    std::lock_guard lock(impl_->mutex);
+    impl_->toImage(xs, ys);
+  }
+  if (std::isnan(xs[0])) {
+    return std::nullopt;
+  }
+  return std::pair{xs[0], ys[0]};
+}
+
+void TextureSource::fillTile(int x0, int y0, TextureTile& tile) const {
+  const Impl& m = *impl_;
+  const int t = tile.size();
+  const std::size_t n = static_cast<std::size_t>(t) * t;
+  std::vector<double> xs(n);
+  std::vector<double> ys(n);
+  for (int j = 0; j < t; ++j) {
+    for (int i = 0; i < t; ++i) {
+      xs[static_cast<std::size_t>(j) * t + i] = x0 + i + 0.5;
+      ys[static_cast<std::size_t>(j) * t + i] = y0 + j + 0.5;
+    }
+  }
+  {
+    std::unique_lock lock(m.mutex, std::defer_lock);
+    if (m.georeferenced) {
+      lock.lock();
+    }
+    m.toImage(xs, ys);
+  }
+
+  // The image window the texels fall in (pixel-edge coordinates), one pixel of margin for the
+  // bilinear neighbours.
+  double minX = std::numeric_limits<double>::infinity(), minY = minX;
+  double maxX = -minX, maxY = -minX;
+  for (std::size_t k = 0; k < n; ++k) {
+    if (std::isnan(xs[k]) || xs[k] < 0 || ys[k] < 0 || xs[k] > m.imageWidth ||
+        ys[k] > m.imageHeight) {
+      xs[k] = std::numeric_limits<double>::quiet_NaN();  // outside the image: transparent
+      continue;
+    }
+    minX = std::min(minX, xs[k]);
+    maxX = std::max(maxX, xs[k]);
+    minY = std::min(minY, ys[k]);
+    maxY = std::max(maxY, ys[k]);
+  }
+  std::fill(tile.texels().begin(), tile.texels().end(), std::uint8_t{0});
+  if (!(minX <= maxX)) {
+    return;
+  }
+  const int wx0 = std::max(0, static_cast<int>(std::floor(minX)) - 1);
+  const int wy0 = std::max(0, static_cast<int>(std::floor(minY)) - 1);
+  const int wx1 = std::min(m.imageWidth, static_cast<int>(std::ceil(maxX)) + 1);
+  const int wy1 = std::min(m.imageHeight, static_cast<int>(std::ceil(maxY)) + 1);
+  const int ww = std::max(1, wx1 - wx0);
+  const int wh = std::max(1, wy1 - wy0);
+  const int bw = std::min(ww, kMaxWindowPerTexel * t);
+  const int bh = std::min(wh, kMaxWindowPerTexel * t);
+  const double scaleX = static_cast<double>(bw) / ww;
+  const double scaleY = static_cast<double>(bh) / wh;
+  const int bands = m.bands;
+  std::vector<std::uint8_t> buffer(static_cast<std::size_t>(bw) * bh * bands);
+  {
+    std::lock_guard lock(m.mutex);
+    GdalMessagesToLog quiet;
+    CPLErrorReset();
+    GDALRasterIOExtraArg extra;
+    INIT_RASTERIO_EXTRA_ARG(extra);
+    extra.eResampleAlg = (bw < ww || bh < wh) ? GRIORA_Average : GRIORA_NearestNeighbour;
+    std::array<int, 4> bandList{1, 2, 3, 4};
+    if (m.dataset->RasterIO(GF_Read, wx0, wy0, ww, wh, buffer.data(), bw, bh, GDT_Byte, bands,
+                            bandList.data(), bands, static_cast<GSpacing>(bw) * bands, 1,
+                            &extra) != CE_None) {
+      throw Error(CPLGetLastErrorNo() == CPLE_FileIO ? ErrorCode::Io : ErrorCode::Corrupt,
+                  "cannot read texture '" + m.path.string() + "': " + lastGdalMessage());
+    }
+  }
+
+  const auto pixel = [&](int bx, int by) {
+    bx = std::clamp(bx, 0, bw - 1);
+    by = std::clamp(by, 0, bh - 1);
+    return buffer.data() + (static_cast<std::size_t>(by) * bw + bx) * bands;
+  };
+  for (std::size_t k = 0; k < n; ++k) {
+    if (std::isnan(xs[k])) {
+      continue;
+    }
+    // Buffer pixel-centre coordinates: centres at integers.
+    const double cx = (xs[k] - wx0) * scaleX - 0.5;
+    const double cy = (ys[k] - wy0) * scaleY - 0.5;
+    const int ix = static_cast<int>(std::floor(cx));
+    const int iy = static_cast<int>(std::floor(cy));
+    const double fx = cx - ix;
+    const double fy = cy - iy;
+    const std::uint8_t* p00 = pixel(ix, iy);
+    const std::uint8_t* p10 = pixel(ix + 1, iy);
+    const std::uint8_t* p01 = pixel(ix, iy + 1);
+    const std::uint8_t* p11 = pixel(ix + 1, iy + 1);
+    double rgba[4] = {0, 0, 0, 255};
+    for (int b = 0; b < bands; ++b) {
+      rgba[b] =
+          (1 - fy) * ((1 - fx) * p00[b] + fx * p10[b]) + fy * ((1 - fx) * p01[b] + fx * p11[b]);
+    }
+    std::uint8_t* out = tile.texels().data() + k * TextureTile::kChannels;
+    const auto byte = [](double v) {
+      return static_cast<std::uint8_t>(std::clamp(std::lround(v), 0L, 255L));
+    };
+    if (bands <= 2) {
+      out[0] = out[1] = out[2] = byte(rgba[0]);
+      out[3] = bands == 2 ? byte(rgba[1]) : 255;
+    } else {
+      out[0] = byte(rgba[0]);
+      out[1] = byte(rgba[1]);
+      out[2] = byte(rgba[2]);
+      out[3] = bands == 4 ? byte(rgba[3]) : 255;
+    }
+  }
+}
+
+}  // namespace vsm::core

@@ -1,0 +1,55 @@
+#pragma once
+
+// Internal to core/io (and its tests): the image an import drapes over its grid.
+
+#include <filesystem>
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "core/grid/texture_tile.hpp"
+#include "core/io/grid_source.hpp"
+
+namespace vsm::core {
+
+/// An image placed over a grid of gridWidth x gridHeight samples, read through GDAL.
+///
+/// Placement: when the image has a geotransform and a CRS and the grid a georeference, a point of
+/// the grid (sample coordinates, pixel centres at integers) goes to its geographic position in the
+/// grid's CRS, through OGR to the image's CRS, and through the image's inverse geotransform to
+/// image pixels. Otherwise the image is stretched over the grid's extent, pixel edge to pixel
+/// edge: grid edge coordinate e in [0, gridWidth] maps to image edge coordinate e * imageWidth /
+/// gridWidth (rows alike). Colours are bilinear between image pixel centres; points outside the
+/// image are transparent.
+///
+/// Thread-safe: the GDAL dataset and the OGR transformation are used under an internal lock, the
+/// sampling runs outside it.
+class TextureSource {
+ public:
+  /// Throws Error(NotFound) when `image` does not exist, Error(Corrupt) when GDAL cannot read it,
+  /// Error(InvalidArgument) when it has no band or its CRS cannot be reached from the grid's.
+  TextureSource(const std::filesystem::path& image, int gridWidth, int gridHeight,
+                const std::optional<Georeference>& grid);
+  ~TextureSource();
+  TextureSource(const TextureSource&) = delete;
+  TextureSource& operator=(const TextureSource&) = delete;
+
+  /// "GTiff 333x147 RGB, EPSG:4326, georeferenced" or "... stretched".
+  std::string describe() const;
+  bool georeferenced() const;
+
+  /// Image pixel coordinates (pixel-edge convention: (0, 0) the top left corner of the image) of
+  /// grid point (gx, gy) (sample coordinates). nullopt when the point cannot be transformed.
+  std::optional<std::pair<double, double>> imagePoint(double gx, double gy) const;
+
+  /// Fills the tile of a bottom patch whose vertex (0, 0) is grid sample (x0, y0): texel (i, j)
+  /// takes the colour at grid point (x0 + i + 0.5, y0 + j + 0.5), the centre of the quad it covers.
+  /// Throws Error(Io / Corrupt) when the image cannot be read.
+  void fillTile(int x0, int y0, TextureTile& tile) const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace vsm::core

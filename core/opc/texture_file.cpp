@@ -1,0 +1,168 @@
+// Texture tiles through OpenImageIO (kept out of every public header).
+#include "core/opc/texture_file.hpp"
+
+#include <OpenImageIO/filesystem.h>
+#include <OpenImageIO/imageio.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <memory>
+#include <string>
+
+#include "core/common/error.hpp"
+#include "core/opc/aara.hpp"
+#include "core/opc/opc_detail.hpp"
+#include "core/opc/opc_store.hpp"
+
+namespace vsm::core {
+namespace fs = std::filesystem;
+namespace {
+
+/// Encodes `pixels` (width x height x channels bytes) in the format of `name`'s extension, in
+/// memory (OpenImageIO's IOVecOutput proxy).
+std::vector<std::byte> encodeImage(const char* name, const std::uint8_t* pixels, int width,
+                                   int height, int channels, const char* compression) {
+  std::vector<unsigned char> buffer;
+  OIIO::Filesystem::IOVecOutput proxy(buffer);
+  std::unique_ptr<OIIO::ImageOutput> out = OIIO::ImageOutput::create(name);
+  if (!out || !out->supports("ioproxy")) {
+    throw Error(ErrorCode::Internal, std::string("OpenImageIO cannot write ") + name +
+                                         " to memory: " + OIIO::geterror());
+  }
+  OIIO::ImageSpec spec(width, height, channels, OIIO::TypeDesc::UINT8);
+  if (compression != nullptr) {
+    spec.attribute("compression", compression);
+  }
+  out->set_ioproxy(&proxy);
+  if (!out->open(name, spec) || !out->write_image(OIIO::TypeDesc::UINT8, pixels) || !out->close()) {
+    throw Error(ErrorCode::Internal,
+                std::string("OpenImageIO cannot encode ") + name + ": " + out->geterror());
+  }
+  std::vector<std::byte> bytes(buffer.size());
+  std::memcpy(bytes.data(), buffer.data(), buffer.size());
+  return bytes;
+}
+
+/// The whole first subimage of `file` as 8-bit pixels; channels in `channels`.
+std::vector<std::uint8_t> readImage(const fs::path& file, int& width, int& height, int& channels) {
+  std::error_code ec;
+  if (!fs::exists(file, ec)) {
+    throw Error(ErrorCode::NotFound, "texture '" + file.string() + "' does not exist");
+  }
+  std::unique_ptr<OIIO::ImageInput> in = OIIO::ImageInput::open(file.string());
+  if (!in) {
+    throw Error(ErrorCode::Corrupt,
+                "cannot read texture '" + file.string() + "': " + OIIO::geterror());
+  }
+  const OIIO::ImageSpec& spec = in->spec();
+  width = spec.width;
+  height = spec.height;
+  channels = spec.nchannels;
+  if (width < 1 || height < 1 || channels < 1 || width > 32768 || height > 32768) {
+    throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has unusable dimensions");
+  }
+  std::vector<std::uint8_t> pixels(static_cast<std::size_t>(width) * height * channels);
+  if (!in->read_image(0, 0, 0, channels, OIIO::TypeDesc::UINT8, pixels.data())) {
+    throw Error(ErrorCode::Corrupt,
+                "cannot decode texture '" + file.string() + "': " + in->geterror());
+  }
+  return pixels;
+}
+
+}  // namespace
+
+std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
+  return encodeImage("tile.tif", tile.texels().data(), tile.size(), tile.size(),
+                     TextureTile::kChannels, "zip");
+}
+
+TextureTile readTextureTile(const fs::path& file) {
+  int width = 0, height = 0, channels = 0;
+  const std::vector<std::uint8_t> pixels = readImage(file, width, height, channels);
+  if (width != height || width % 2 != 0) {
+    throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' is " + std::to_string(width) +
+                                        " x " + std::to_string(height) +
+                                        ", not a square tile of even size");
+  }
+  TextureTile tile(width);
+  std::uint8_t* out = tile.texels().data();
+  for (std::size_t i = 0; i < static_cast<std::size_t>(width) * height; ++i) {
+    const std::uint8_t* p = pixels.data() + i * channels;
+    const bool gray = channels < 3;
+    out[4 * i] = p[0];
+    out[4 * i + 1] = gray ? p[0] : p[1];
+    out[4 * i + 2] = gray ? p[0] : p[2];
+    out[4 * i + 3] = channels == 2 ? p[1] : channels >= 4 ? p[3] : 255;
+  }
+  return tile;
+}
+
+std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& model,
+                                             const PatchInfo& info) {
+  if (info.textureFile.empty()) {
+    return std::nullopt;
+  }
+  const auto file = detail::findTextureFile(dir, info.textureFile);
+  if (!file) {
+    throw Error(ErrorCode::NotFound, "texture '" + info.textureFile + "' of patch " + info.folder +
+                                         " does not exist under Images/");
+  }
+  PatchTexture texture;
+  int width = 0, height = 0, channels = 0;
+  const std::vector<std::uint8_t> pixels = readImage(*file, width, height, channels);
+  if (channels > 4) {
+    throw Error(ErrorCode::Corrupt, "texture '" + file->string() + "' has more than 4 channels");
+  }
+  // PNG holds 1 to 4 channels of 8 bits: the image as it is.
+  texture.png = encodeImage("tile.png", pixels.data(), width, height, channels, nullptr);
+
+  const int n = model.gridSize();
+  const GridRect& r = info.stored;
+  texture.texcoords.assign(static_cast<std::size_t>(n) * n * 2, 0.0f);
+  if (info.coordinatesFile.empty()) {
+    // A texture without coordinates: the tile stretched over the grid.
+    for (int y = 0; y < n; ++y) {
+      for (int x = 0; x < n; ++x) {
+        texture.texcoords[(static_cast<std::size_t>(y) * n + x) * 2] = textureCoordinate(x, n);
+        texture.texcoords[(static_cast<std::size_t>(y) * n + x) * 2 + 1] = textureCoordinate(y, n);
+      }
+    }
+    return texture;
+  }
+  const fs::path patchesDir = patchesDirOf(dir);
+  const fs::path folderDir =
+      detail::findEntry(patchesDir, info.folder).value_or(patchesDir / info.folder);
+  const fs::path coordinatesPath =
+      detail::findEntry(folderDir, info.coordinatesFile).value_or(folderDir / info.coordinatesFile);
+  const AaraArray array = readAaraFile(coordinatesPath);
+  if ((array.type != AaraType::V2f && array.type != AaraType::V2d) || array.sizes.size() != 2 ||
+      array.sizes[0] != r.width() || array.sizes[1] != r.height()) {
+    throw Error(ErrorCode::Corrupt, coordinatesPath.string() +
+                                        ": texture coordinates must be V2f or V2d of the stored "
+                                        "positions' size " +
+                                        std::to_string(r.width()) + " x " +
+                                        std::to_string(r.height()));
+  }
+  const std::size_t count = static_cast<std::size_t>(r.width()) * r.height();
+  for (std::size_t i = 0; i < count; ++i) {
+    float uv[2];
+    if (array.type == AaraType::V2f) {
+      std::memcpy(uv, array.data.data() + i * 8, 8);
+    } else {
+      double d[2];
+      std::memcpy(d, array.data.data() + i * 16, 16);
+      uv[0] = static_cast<float>(d[0]);
+      uv[1] = static_cast<float>(d[1]);
+    }
+    const int x = r.x0 + static_cast<int>(i % r.width());
+    const int y = r.y0 + static_cast<int>(i / r.width());
+    const std::size_t at = (static_cast<std::size_t>(y) * n + x) * 2;
+    // glTF forbids non-finite accessor values.
+    texture.texcoords[at] = std::isfinite(uv[0]) ? uv[0] : 0.0f;
+    texture.texcoords[at + 1] = std::isfinite(uv[1]) ? uv[1] : 0.0f;
+  }
+  return texture;
+}
+
+}  // namespace vsm::core

@@ -1,0 +1,42 @@
+#pragma once
+
+#include <cstddef>
+#include <filesystem>
+#include <optional>
+#include <string_view>
+#include <vector>
+
+#include "core/grid/texture_tile.hpp"
+#include "core/pyramid/model.hpp"
+
+namespace vsm::core {
+
+/// The layer (folder under Images/) of the texture tiles vsm writes.
+inline constexpr std::string_view kTextureLayer = "Diffuse";
+
+/// A tile as an RGBA 8-bit TIFF file (deflate-compressed, through OpenImageIO).
+/// Throws Error(Internal) when OpenImageIO cannot encode it.
+std::vector<std::byte> encodeTextureTiff(const TextureTile& tile);
+
+/// Decodes an image file OpenImageIO reads (our TIFF tiles, foreign .tif/.dds/.png) into a tile.
+/// Throws Error(NotFound) when the file does not exist, Error(Corrupt) when it cannot be decoded
+/// or is not a square tile of even size. 1, 2 and 3 channel images get alpha 255.
+TextureTile readTextureTile(const std::filesystem::path& file);
+
+/// The texture of one patch, ready for a GLB.
+struct PatchTexture {
+  /// The tile as a PNG file.
+  std::vector<std::byte> png;
+  /// (u, v) per vertex of the full gridSize x gridSize grid (cropped borders: 0), as
+  /// GlbOptions::texcoords wants them.
+  std::vector<float> texcoords;
+};
+
+/// Reads the texture of a patch of the OPC at `dir` (its tile converted to PNG through OpenImageIO
+/// and its Coordinates.aara expanded to the full grid); nullopt when `info` names no texture.
+/// Throws Error(NotFound) when a named file is missing, Error(Corrupt) when it cannot be decoded,
+/// when the coordinates are not V2f/V2d of the stored positions' size.
+std::optional<PatchTexture> readPatchTexture(const std::filesystem::path& dir, const Model& model,
+                                             const PatchInfo& info);
+
+}  // namespace vsm::core

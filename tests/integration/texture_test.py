@@ -1,0 +1,227 @@
+#!/usr/bin/python3
+"""A textured import of a real DEM with a real image, checked independently of vsm's code:
+
+`vsm import jacksboro_fault_dem.tif <opc> --texture conus_visible_earth.tif --patch-size 65`
+(the NASA Visible Earth image, georeferenced in EPSG:4326, covers the Jacksboro area), then with
+our own XML and .aara readers and GDAL's Python bindings:
+
+- every patch's Patch.xml names Coordinates.aara and Diffuse\\<folder>.tif exactly as OPC.md shows,
+  and Images/Diffuse/<folder>.tif is an RGB(A) 8-bit tile of 64 x 64 texels;
+- Coordinates.aara is V2f of the positions' size with values in [0, 1] (u = x / 64, v = y / 64 of
+  the stored vertices, v = 0 the top row);
+- leaf texels match the source image at their mapped position (DEM quad centre -> lon/lat ->
+  image pixel, bilinear between pixel centres) within a tolerance;
+- a parent texel is the mean of the 2 x 2 child texels it covers;
+- `vsm validate` passes;
+- with --vsmd: the real vsmd serves the root's GLB with the tile embedded as a PNG image and
+  TEXCOORD_0 in [0, 1]; with --node-tools holding Khronos' gltf-validator (installed by the
+  node-tools fixture), that GLB validates with zero errors.
+
+Run by ctest:  texture_test.py --vsm build/server/cli/vsm --data ../shared/data --work <dir>"""
+
+import argparse
+import json
+import os
+import shutil
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+import xml.etree.ElementTree as ET
+
+import numpy as np
+from osgeo import gdal
+
+gdal.UseExceptions()
+
+TYPES = {"V2f": ("<f", 2, 8), "V2d": ("<d", 2, 16), "V3f": ("<f", 3, 12), "V3d": ("<d", 3, 24)}
+
+
+def read_aara(path):
+    """(type name, [columns, rows], float array of shape (rows, columns, k)) per OPC.md."""
+    with open(path, "rb") as f:
+        data = f.read()
+    n = data[0]
+    name = data[1:1 + n].decode("ascii")
+    dims = data[1 + n]
+    sizes = list(struct.unpack_from("<%di" % dims, data, 2 + n))
+    header = 2 + n + 4 * dims
+    fmt, k, size = TYPES[name]
+    count = sizes[0] * sizes[1]
+    assert len(data) == header + count * size, (path, len(data), header, count, size)
+    values = np.frombuffer(data, dtype=np.dtype(fmt), offset=header).reshape(sizes[1], sizes[0], k)
+    return name, sizes, values
+
+
+def bilinear(image, x, y):
+    """image (bands, rows, cols) at pixel-edge coordinates (x, y): bilinear between centres."""
+    cx, cy = x - 0.5, y - 0.5
+    x0, y0 = int(np.floor(cx)), int(np.floor(cy))
+    fx, fy = cx - x0, cy - y0
+    rows, cols = image.shape[1], image.shape[2]
+
+    def px(i, j):
+        return image[:, min(max(j, 0), rows - 1), min(max(i, 0), cols - 1)].astype(float)
+
+    return ((1 - fy) * ((1 - fx) * px(x0, y0) + fx * px(x0 + 1, y0))
+            + fy * ((1 - fx) * px(x0, y0 + 1) + fx * px(x0 + 1, y0 + 1)))
+
+
+def check_glb(args, opc):
+    """The root's GLB from a real vsmd: texture embedded, coordinates in [0, 1], valid glTF."""
+    root = tempfile.mkdtemp(prefix="vsm-texture-")
+    shutil.copytree(opc, os.path.join(root, "jack"))
+    port_file = os.path.join(root, "port")
+    log = open(os.path.join(root, "vsmd.log"), "w")
+    daemon = subprocess.Popen([args.vsmd, "--listen", "127.0.0.1:0", "--data-root", root,
+                               "--port-file", port_file], stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 15
+        while not os.path.exists(port_file):
+            assert daemon.poll() is None and time.monotonic() < deadline, "vsmd did not start"
+            time.sleep(0.05)
+        time.sleep(0.05)
+        with open(port_file) as f:
+            port = int(f.read())
+        url = "http://127.0.0.1:%d/v1/models/jack/3dtiles/0_0_0.glb" % port
+        with urllib.request.urlopen(url, timeout=60) as response:
+            data = response.read()
+    finally:
+        daemon.terminate()
+        daemon.wait(timeout=30)
+        log.close()
+    json_length = struct.unpack_from("<I", data, 12)[0]
+    gltf = json.loads(data[20:20 + json_length])
+    assert gltf["images"][0]["mimeType"] == "image/png", gltf.get("images")
+    bin_start = 20 + json_length + 8
+    view = gltf["bufferViews"][gltf["images"][0]["bufferView"]]
+    png = data[bin_start + view.get("byteOffset", 0):][:8]
+    assert png == b"\x89PNG\r\n\x1a\n", png
+    material = gltf["materials"][0]["pbrMetallicRoughness"]
+    assert material["baseColorTexture"]["index"] == 0
+    uv = gltf["accessors"][gltf["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_0"]]
+    assert min(uv["min"]) >= 0 and max(uv["max"]) <= 1, uv
+    validator = os.path.join(args.node_tools or "", "node_modules", "gltf-validator")
+    if args.validator and os.path.isdir(validator) and shutil.which("node"):
+        glb = os.path.join(root, "0_0_0.glb")
+        with open(glb, "wb") as f:
+            f.write(data)
+        out = subprocess.run(["node", args.validator, args.node_tools, glb], check=True,
+                             capture_output=True, text=True).stdout
+        report = json.loads(out.splitlines()[0])
+        assert report["errors"] == 0, report
+        print("texture: textured GLB valid (gltf-validator %s)" % report["validator"])
+    shutil.rmtree(root, ignore_errors=True)
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--vsm", required=True)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--work", required=True)
+    parser.add_argument("--vsmd")
+    parser.add_argument("--node-tools")
+    parser.add_argument("--validator")
+    args = parser.parse_args()
+
+    dem_path = os.path.join(args.data, "jacksboro_fault_dem.tif")
+    image_path = os.path.join(args.data, "conus_visible_earth.tif")
+    opc = os.path.join(args.work, "jacksboro-textured")
+    shutil.rmtree(args.work, ignore_errors=True)
+    os.makedirs(args.work)
+    subprocess.run([args.vsm, "import", dem_path, opc, "--texture", image_path,
+                    "--patch-size", "65"], check=True)
+    assert sorted(os.listdir(args.work)) == ["jacksboro-textured"], os.listdir(args.work)
+
+    dem = gdal.Open(dem_path)
+    dem_gt = dem.GetGeoTransform()
+    img = gdal.Open(image_path)
+    img_gt = img.GetGeoTransform()
+    inv = gdal.InvGeoTransform(img_gt)
+    image = img.ReadAsArray()  # (bands, rows, cols)
+    n = 65
+    tile_size = n - 1
+
+    hierarchy = ET.parse(os.path.join(opc, "Patches", "patchhierarchy.xml")).getroot()
+    children = {}
+    for item in hierarchy.find("PatchHierarchy/SubPatchMap"):
+        val = item.find("val")
+        children[item.find("key").text] = {q.tag: q.text for q in val}
+    folders = [hierarchy.find("PatchHierarchy/RootPatch").text]
+    folders += [c for kids in children.values() for c in kids.values()]
+
+    tiles = {}
+    leaf_checks = 0
+    worst = 0.0
+    for folder in folders:
+        patch = ET.parse(os.path.join(opc, "Patches", folder, "Patch.xml")).getroot().find("Patch")
+        coords_name = patch.find("Coordinates/DiffuseColor1Coordinates").text
+        texture_name = patch.find("Textures/DiffuseColor1Texture").text
+        assert coords_name == "Coordinates.aara", coords_name
+        assert texture_name == "Diffuse\\%s.tif" % folder, texture_name
+        texture_file = os.path.join(opc, "Images", "Diffuse", folder + ".tif")
+        assert os.path.isfile(texture_file), texture_file
+
+        _, psizes, _ = read_aara(os.path.join(opc, "Patches", folder, "Positions.aara"))
+        ctype, csizes, uv = read_aara(os.path.join(opc, "Patches", folder, coords_name))
+        assert ctype == "V2f", (folder, ctype)
+        assert csizes == psizes, (folder, csizes, psizes)
+        assert np.all(uv >= 0) and np.all(uv <= 1), folder
+        ox, oy = [int(float(v)) for v in
+                  patch.find("Vsm/Offset").text.strip("[]").split(",")]
+        cols = np.arange(csizes[0]) + ox
+        rows = np.arange(csizes[1]) + oy
+        assert np.allclose(uv[:, :, 0], cols[None, :] / (n - 1), atol=1e-6), folder
+        assert np.allclose(uv[:, :, 1], rows[:, None] / (n - 1), atol=1e-6), folder
+
+        ds = gdal.Open(texture_file)
+        assert (ds.RasterXSize, ds.RasterYSize) == (tile_size, tile_size), folder
+        assert ds.RasterCount in (3, 4), ds.RasterCount
+        assert all(ds.GetRasterBand(b + 1).DataType == gdal.GDT_Byte
+                   for b in range(ds.RasterCount))
+        tiles[folder] = ds.ReadAsArray().astype(float)
+
+        depth, kx, ky = [int(v) for v in folder.split("_")]
+        if folder not in children:  # a leaf: texels against the source image
+            span = tile_size  # leaves are the bottom level: one texel per DEM quad
+            for (i, j) in [(0, 0), (5, 7), (31, 32), (63, 0), (17, 63), (40, 22)]:
+                sx = kx * span + i + 0.5  # quad centre in DEM sample coordinates
+                sy = ky * span + j + 0.5
+                if sx > dem.RasterXSize - 1 or sy > dem.RasterYSize - 1:
+                    continue  # beyond the DEM's last sample
+                lon = dem_gt[0] + (sx + 0.5) * dem_gt[1]
+                lat = dem_gt[3] + (sy + 0.5) * dem_gt[5]
+                ix = inv[0] + lon * inv[1] + lat * inv[2]
+                iy = inv[3] + lon * inv[4] + lat * inv[5]
+                expected = bilinear(image, ix, iy)[:3]
+                got = tiles[folder][:3, j, i]
+                worst = max(worst, float(np.max(np.abs(got - expected))))
+                assert np.all(np.abs(got - expected) <= 1.5), (folder, i, j, got, expected)
+                leaf_checks += 1
+
+    # Parents: each texel the mean of the 2 x 2 child texels it covers (quadrants nw ne sw se).
+    parent_checks = 0
+    for parent, kids in children.items():
+        for q, child in kids.items():
+            qx = 1 if q in ("ne", "se") else 0
+            qy = 1 if q in ("sw", "se") else 0
+            c = tiles[child]
+            mean = (c[:, 0::2, 0::2] + c[:, 0::2, 1::2] + c[:, 1::2, 0::2] + c[:, 1::2, 1::2]) / 4
+            half = tile_size // 2
+            got = tiles[parent][:, qy * half:(qy + 1) * half, qx * half:(qx + 1) * half]
+            assert np.all(np.abs(got - mean) <= 0.5 + 1e-9), (parent, child)
+            parent_checks += 1
+
+    assert leaf_checks >= 20, leaf_checks
+    subprocess.run([args.vsm, "validate", opc], check=True, stdout=subprocess.DEVNULL)
+    if args.vsmd:
+        check_glb(args, opc)
+    print("texture: %d patches, %d leaf texels within %.2f of the image, %d parent quadrants "
+          "exact" % (len(folders), leaf_checks, worst, parent_checks))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
