@@ -15,10 +15,15 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/io/gdal_support.hpp"
 #include "core/io/grid_source.hpp"
 
 namespace vsm::core {
 namespace {
+
+using detail::GdalMessagesToLog;
+using detail::lastGdalMessage;
+using detail::registerGdal;
 
 // WGS 84 ellipsoid (NIMA TR8350.2).
 constexpr double kSemiMajor = 6378137.0;
@@ -26,33 +31,6 @@ constexpr double kFlattening = 1.0 / 298.257223563;
 constexpr double kEccentricity2 = kFlattening * (2.0 - kFlattening);
 constexpr double kDegree = std::numbers::pi / 180.0;
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-
-void registerGdal() {
-  static std::once_flag once;
-  std::call_once(once, [] { GDALAllRegister(); });
-}
-
-// GDAL reports through a per-thread handler stack. Its default handler prints to stderr, which
-// would add lines to the one-line errors the CLI promises; we turn failures into Error ourselves
-// and keep GDAL's own words for the debug log.
-void CPL_STDCALL logGdalMessage(CPLErr level, CPLErrorNum /*number*/, const char* message) {
-  if (level != CE_Debug) {
-    log::debug(std::string("gdal: ") + (message != nullptr ? message : ""));
-  }
-}
-
-class GdalMessagesToLog {
- public:
-  GdalMessagesToLog() { CPLPushErrorHandler(logGdalMessage); }
-  ~GdalMessagesToLog() { CPLPopErrorHandler(); }
-  GdalMessagesToLog(const GdalMessagesToLog&) = delete;
-  GdalMessagesToLog& operator=(const GdalMessagesToLog&) = delete;
-};
-
-std::string lastGdalMessage() {
-  const char* message = CPLGetLastErrorMsg();
-  return message != nullptr && *message != '\0' ? message : "unknown GDAL error";
-}
 
 std::string quoted(const std::filesystem::path& path) {
   return "'" + path.string() + "'";

@@ -16,29 +16,14 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/io/gdal_support.hpp"
 
 namespace vsm::core {
 namespace {
 
-void CPL_STDCALL logGdalMessage(CPLErr level, CPLErrorNum /*number*/, const char* message) {
-  if (level != CE_Debug) {
-    log::debug(std::string("gdal: ") + (message != nullptr ? message : ""));
-  }
-}
-
-/// GDAL's messages to our debug log instead of stderr while alive (per thread).
-class GdalMessagesToLog {
- public:
-  GdalMessagesToLog() { CPLPushErrorHandler(logGdalMessage); }
-  ~GdalMessagesToLog() { CPLPopErrorHandler(); }
-  GdalMessagesToLog(const GdalMessagesToLog&) = delete;
-  GdalMessagesToLog& operator=(const GdalMessagesToLog&) = delete;
-};
-
-std::string lastGdalMessage() {
-  const char* message = CPLGetLastErrorMsg();
-  return message != nullptr && *message != '\0' ? message : "unknown GDAL error";
-}
+using detail::GdalMessagesToLog;
+using detail::lastGdalMessage;
+using detail::registerGdal;
 
 struct TransformDeleter {
   void operator()(OGRCoordinateTransformation* ct) const {
@@ -108,8 +93,7 @@ struct TextureSource::Impl {
 TextureSource::TextureSource(const std::filesystem::path& image, int gridWidth, int gridHeight,
                              const std::optional<Georeference>& grid)
     : impl_(std::make_unique<Impl>()) {
-  static std::once_flag once;
-  std::call_once(once, [] { GDALAllRegister(); });
+  registerGdal();
   Impl& m = *impl_;
   m.path = image;
   m.gridWidth = gridWidth;
