@@ -1,6 +1,7 @@
 #include "core/grid/texture_tile.hpp"
 
 #include <algorithm>
+#include <cmath>
 #include <string>
 
 #include "core/common/error.hpp"
@@ -68,6 +69,37 @@ TextureTile downsampleQuadrants(const std::array<const TextureTile*, 4>& childre
     }
   }
   return parent;
+}
+
+std::array<std::uint8_t, 4> sampleBilinear(const TextureTile& tile, double x, double y) {
+  const int last = tile.size() - 1;
+  x = std::clamp(x, 0.0, static_cast<double>(last));
+  y = std::clamp(y, 0.0, static_cast<double>(last));
+  const int x0 = std::min(static_cast<int>(x), last - 1);
+  const int y0 = std::min(static_cast<int>(y), last - 1);
+  const double fx = x - x0;
+  const double fy = y - y0;
+  const double weights[4] = {(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy};
+  const std::uint8_t* texels[4] = {tile.at(x0, y0), tile.at(x0 + 1, y0), tile.at(x0, y0 + 1),
+                                   tile.at(x0 + 1, y0 + 1)};
+  double sum[3] = {0, 0, 0};
+  double total = 0;
+  for (int k = 0; k < 4; ++k) {
+    if (texels[k][3] != 0 && weights[k] > 0) {
+      for (int c = 0; c < 3; ++c) {
+        sum[c] += weights[k] * texels[k][c];
+      }
+      total += weights[k];
+    }
+  }
+  if (total == 0) {
+    return {0, 0, 0, 0};
+  }
+  std::array<std::uint8_t, 4> out{0, 0, 0, 255};
+  for (int c = 0; c < 3; ++c) {
+    out[c] = static_cast<std::uint8_t>(std::clamp(std::lround(sum[c] / total), 0L, 255L));
+  }
+  return out;
 }
 
 }  // namespace vsm::core

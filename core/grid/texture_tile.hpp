@@ -66,4 +66,11 @@ std::vector<float> textureCoordinates(int gridSize, int x0, int y0, int width, i
 /// channel, alpha included). Precondition: the present children have size `size`.
 TextureTile downsampleQuadrants(const std::array<const TextureTile*, 4>& children, int size);
 
+/// The colour of `tile` at (x, y) in texel-centre coordinates (texel (i, j) is centred at (i, j);
+/// in a patch's grid, vertex coordinates minus 0.5), bilinearly filtered over the up to four
+/// nearest texels that are not transparent, their weights re-normalised; positions outside the
+/// tile take the border texels. Returns RGBA with alpha 255, or alpha 0 (all channels 0) when none
+/// of those texels is opaque.
+std::array<std::uint8_t, 4> sampleBilinear(const TextureTile& tile, double x, double y);
+
 }  // namespace vsm::core

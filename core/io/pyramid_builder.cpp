@@ -240,7 +240,10 @@ class PyramidBuilder {
         boxes_.erase(it);  // a box is needed once, by the parent
       }
     }
-    writer_.writePatch(info, grid, children, texture);
+    if (texture != nullptr) {
+      writer_.writeTexture(info, *texture);
+    }
+    writer_.writePatch(info, grid, children);
     boxes_.emplace(key, info.globalBox);
     written_.push_back(std::move(info));
   }

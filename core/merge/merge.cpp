@@ -52,6 +52,78 @@ int levelsFor(double ratio) {
   return k;
 }
 
+/// A's texture tile of a patch when it is in vsm's layout (one texel per grid quad); null
+/// otherwise (none, or a foreign tile of another size, which the merge cannot place).
+std::shared_ptr<const TextureTile> textureOf(PatchSource& source, const PatchKey& key) {
+  std::shared_ptr<const TextureTile> tile = source.texture(key);
+  if (tile && tile->size() != textureTileSize(source.model().gridSize())) {
+    log::warn("merge: texture of patch " + key.toString() + " is " + std::to_string(tile->size()) +
+              " texels wide, not one per grid quad; it is not carried");
+    return nullptr;
+  }
+  return tile;
+}
+
+/// The texture of new patch (i, j) of `level` below a's leaf: per texel, B's texture where a
+/// textured part of B lies under the texel's centre (level k only, `detail` given), else a's tile
+/// upsampled (`aTile`, may be null), else transparent. Null when nothing of either falls on it.
+std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, int level,
+                                                std::uint32_t i, std::uint32_t j,
+                                                const TextureTile* aTile,
+                                                const SurfaceSampler* detail,
+                                                const std::vector<const TextureTile*>& bTiles) {
+  const int size = textureTileSize(subdivider.size());
+  auto tile = std::make_shared<TextureTile>(size);
+  const double scale = std::ldexp(1.0, level);
+  const bool fromDetail =
+      detail != nullptr && level == subdivider.k() &&
+      std::any_of(bTiles.begin(), bTiles.end(), [](const TextureTile* t) { return t != nullptr; });
+  if (aTile == nullptr && !fromDetail) {
+    return nullptr;
+  }
+  // Texel (p, q) covers the quad between union vertices (u, v) and (u + 1, v + 1) of level k.
+  const std::int64_t u0 = std::int64_t{i} * size;
+  const std::int64_t v0 = std::int64_t{j} * size;
+  std::vector<Vec3d> top(static_cast<std::size_t>(size) + 1), bottom(top.size());
+  auto row = [&](std::int64_t v, std::vector<Vec3d>& out) {
+    for (int p = 0; p <= size; ++p) {
+      out[p] = subdivider.interpolate(u0 + p, v);
+    }
+  };
+  if (fromDetail) {
+    row(v0, bottom);
+  }
+  bool any = false;
+  for (int q = 0; q < size; ++q) {
+    if (fromDetail) {
+      std::swap(top, bottom);
+      row(v0 + q + 1, bottom);
+    }
+    for (int p = 0; p < size; ++p) {
+      std::array<std::uint8_t, 4> colour{0, 0, 0, 0};
+      if (fromDetail) {
+        // The centre of the texel's quad on a's surface (the quad lies in one cell of a, so the
+        // mean of its corners is its bilinear centre), located on B by its projection.
+        const Vec3d centre = (top[p] + top[p + 1] + bottom[p] + bottom[p + 1]) * 0.25;
+        if (const std::optional<SurfacePoint> hit = detail->locate(centre)) {
+          if (const TextureTile* b = bTiles[hit->grid]) {
+            colour = sampleBilinear(*b, hit->x - 0.5, hit->y - 0.5);
+          }
+        }
+      }
+      if (colour[3] == 0 && aTile != nullptr) {
+        colour = sampleBilinear(*aTile, (static_cast<double>(u0 + p) + 0.5) / scale - 0.5,
+                                (static_cast<double>(v0 + q) + 0.5) / scale - 0.5);
+      }
+      if (colour[3] != 0) {
+        std::copy(colour.begin(), colour.end(), tile->at(p, q));
+        any = true;
+      }
+    }
+  }
+  return any ? tile : nullptr;
+}
+
 struct Match {
   PatchKey target;
   /// Indices of the B leaves (in bLeaves) whose footprint meets the target leaf's.
@@ -209,6 +281,9 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
     // last one is kept for the next patch when it needs the same leaves (neighbours mostly do).
     std::vector<PatchKey> samplerKeys;
     std::optional<SurfaceSampler> sampler;
+    // Their texture tiles (null where a leaf has none), indexed as the sampler's grids.
+    std::vector<std::shared_ptr<const TextureTile>> samplerTextures;
+    std::vector<const TextureTile*> samplerTiles;
     auto samplerFor = [&](const Rect2d& rect) -> const SurfaceSampler* {
       std::vector<PatchKey> keys = detailUnder(rect);
       if (keys.empty()) {
@@ -216,16 +291,21 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       }
       if (!sampler || keys != samplerKeys) {
         sampler.reset();
+        samplerTextures.clear();
+        samplerTiles.clear();
         std::vector<std::shared_ptr<const PatchGrid>> grids;
         grids.reserve(keys.size());
         for (const PatchKey& key : keys) {
           grids.push_back(detail.positions(key));
+          samplerTextures.push_back(textureOf(detail, key));
+          samplerTiles.push_back(samplerTextures.back().get());
         }
         sampler.emplace(grids, up, options.transform);
         samplerKeys = std::move(keys);
       }
       return &*sampler;
     };
+    const std::shared_ptr<const TextureTile> aTexture = textureOf(target, match.target);
 
     // Adaptive refinement: a new patch is refined further only where B may have surface;
     // elsewhere it stays a leaf holding a's surface interpolated to its level (the actual surface
@@ -236,7 +316,8 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
     std::size_t done = 0;  // level-1 quarters finished, for progress
     // Refined patches waiting to be inserted: a parent goes in just before its first child.
     std::vector<std::pair<PatchKey, PatchGrid>> pending;
-    auto insert = [&](const PatchKey& key, std::vector<Vec3d>& positions) {
+    auto insert = [&](const PatchKey& key, std::vector<Vec3d>& positions,
+                      std::shared_ptr<const TextureTile> texture) {
       for (auto& [parentKey, placeholder] : pending) {
         if (target.model().find(parentKey) != nullptr) {
           continue;
@@ -248,11 +329,12 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
                                           [](const Vec3d& p) { return p.finite(); });
           placeholder.setGlobal(0, 0, *first);
         }
-        target.setPositions(parentKey, std::make_shared<const PatchGrid>(placeholder));
+        target.setPositions(parentKey, std::make_shared<const PatchGrid>(placeholder), nullptr);
         ++added;
       }
       target.setPositions(
-          key, std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions)));
+          key, std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions)),
+          std::move(texture));
       ++added;
     };
     std::function<void(int, std::uint32_t, std::uint32_t)> place = [&](int level, std::uint32_t i,
@@ -263,11 +345,13 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       const bool refine = level < k && !detailUnder(foot).empty();
       if (!refine) {
         std::size_t taken = 0;
-        std::vector<Vec3d> positions =
-            subdivider->positions(level, i, j, level == k ? samplerFor(foot) : nullptr, &taken);
+        const SurfaceSampler* surface = level == k ? samplerFor(foot) : nullptr;
+        std::vector<Vec3d> positions = subdivider->positions(level, i, j, surface, &taken);
         if (std::any_of(positions.begin(), positions.end(),
                         [](const Vec3d& p) { return p.finite(); })) {
-          insert(key, positions);  // an empty patch is omitted
+          // An empty patch is omitted.
+          insert(key, positions,
+                 placeTexture(*subdivider, level, i, j, aTexture.get(), surface, samplerTiles));
           result.verticesFromDetail += taken;
         }
         return;

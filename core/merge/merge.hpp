@@ -7,6 +7,7 @@
 
 #include "core/common/progress.hpp"
 #include "core/grid/geometry.hpp"
+#include "core/grid/texture_tile.hpp"
 #include "core/pyramid/model.hpp"
 
 namespace vsm::core {
@@ -22,14 +23,19 @@ class PatchSource {
   /// The vertex data of an existing patch; the data stays available (e.g. pinned in the cache) for
   /// as long as the returned pointer lives. Throws as the store does.
   virtual std::shared_ptr<const PatchGrid> positions(const PatchKey& key) = 0;
+  /// The texture tile of an existing patch (kept available as positions()); null when it has
+  /// none.
+  virtual std::shared_ptr<const TextureTile> texture(const PatchKey& key) = 0;
 };
 
 /// A model being changed by a merge (ModelEdit adapts to it).
 class MergeTarget : public PatchSource {
  public:
-  /// Adds a patch (its parent exists) or replaces a patch's data; marks every ancestor stale.
-  virtual void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) = 0;
-  /// Recomputes every stale overview bottom-up by reduction.
+  /// Adds a patch (its parent exists) or replaces a patch's data, with its texture tile or none
+  /// (null); marks every ancestor stale.
+  virtual void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid,
+                            std::shared_ptr<const TextureTile> texture) = 0;
+  /// Recomputes every stale overview bottom-up by reduction, textures by downsampling.
   virtual void refreshStale(const CancelToken* cancel) = 0;
 };
 
@@ -78,6 +84,14 @@ struct MergeResult {
 ///    before their children as placeholders;
 /// 3. reducing: every stale overview, from the new levels up to the root, is recomputed by
 ///    reduction. Patches outside the matched leaves' subtrees and their ancestors are not touched.
+///
+/// Textures (vsm's layout: one texel per grid quad, textureTileSize) are carried when either model
+/// has them: a texel of a new level-k patch takes B's texture where B has a textured surface under
+/// the texel's centre (located as the vertices are, and sampled bilinearly in B's tile at that
+/// point of B's grid), else a's texture bilinearly upsampled (a's texel-to-quad mapping holds on
+/// every level of the subdivision); a new patch above level k that stays a leaf takes a's
+/// texture upsampled; every recomputed overview gets its children's tiles downsampled
+/// (downsampleQuadrants). Where neither has a texture, texels stay transparent.
 ///
 /// The target is not published: the caller publishes the edit (or discards it on error).
 ///

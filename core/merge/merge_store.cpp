@@ -11,10 +11,14 @@ namespace {
 
 /// The pin rides along with the grid pointer, so the data stays pinned exactly as long as it is
 /// used.
-std::shared_ptr<const PatchGrid> pinned(PatchCache::Pin pin) {
+template <typename T>
+std::shared_ptr<const T> pinned(PatchCache::Pin pin) {
+  if (!pin) {
+    return nullptr;
+  }
   auto holder = std::make_shared<PatchCache::Pin>(std::move(pin));
-  const PatchGrid* grid = holder->get<PatchGrid>().get();
-  return std::shared_ptr<const PatchGrid>(std::move(holder), grid);
+  const T* object = holder->get<T>().get();
+  return std::shared_ptr<const T>(std::move(holder), object);
 }
 
 class EditTarget final : public MergeTarget {
@@ -22,10 +26,14 @@ class EditTarget final : public MergeTarget {
   explicit EditTarget(ModelEdit& edit) : edit_(edit) {}
   const Model& model() const override { return edit_.model(); }
   std::shared_ptr<const PatchGrid> positions(const PatchKey& key) override {
-    return pinned(edit_.positions(key));
+    return pinned<PatchGrid>(edit_.positions(key));
   }
-  void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) override {
-    edit_.setPositions(key, std::move(grid));
+  std::shared_ptr<const TextureTile> texture(const PatchKey& key) override {
+    return pinned<TextureTile>(edit_.texture(key));
+  }
+  void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid,
+                    std::shared_ptr<const TextureTile> texture) override {
+    edit_.setPositions(key, std::move(grid), std::move(texture));
   }
   void refreshStale(const CancelToken* cancel) override { edit_.refreshStale(cancel); }
 
@@ -38,7 +46,10 @@ class LiveSource final : public PatchSource {
   explicit LiveSource(LiveModel& live) : live_(live), snapshot_(live.snapshot()) {}
   const Model& model() const override { return *snapshot_->model; }
   std::shared_ptr<const PatchGrid> positions(const PatchKey& key) override {
-    return pinned(live_.positions(*snapshot_, key));
+    return pinned<PatchGrid>(live_.positions(*snapshot_, key));
+  }
+  std::shared_ptr<const TextureTile> texture(const PatchKey& key) override {
+    return pinned<TextureTile>(live_.texture(*snapshot_, key));
   }
 
  private:

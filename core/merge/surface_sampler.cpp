@@ -135,7 +135,8 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
 
   constexpr std::uint32_t kNone = kNoVertex;
   std::vector<std::uint32_t> index;  // grid vertex -> vertices_ index, per grid
-  for (const auto& grid : grids) {
+  for (std::size_t gridIndex = 0; gridIndex < grids.size(); ++gridIndex) {
+    const auto& grid = grids[gridIndex];
     if (!grid) {
       continue;
     }
@@ -153,6 +154,8 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
         index[static_cast<std::size_t>(y) * s + x] = static_cast<std::uint32_t>(vertices_.size());
         vertices_.push_back(g);
         projected_.push_back(frame_.project(g));
+        origins_.push_back({static_cast<std::uint32_t>(gridIndex), static_cast<std::uint16_t>(x),
+                            static_cast<std::uint16_t>(y)});
       }
     }
     auto area2 = [&](std::uint32_t a, std::uint32_t b, std::uint32_t c) {
@@ -267,7 +270,8 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   }
 }
 
-std::optional<Vec3d> SurfaceSampler::onTriangle(const std::uint32_t* t, const Vec2d& q) const {
+std::optional<SurfaceSampler::Weights> SurfaceSampler::onTriangle(const std::uint32_t* t,
+                                                                  const Vec2d& q) const {
   auto l = barycentric(projected_[t[0]], projected_[t[1]], projected_[t[2]], q);
   if (!inside(l)) {
     return std::nullopt;
@@ -276,10 +280,11 @@ std::optional<Vec3d> SurfaceSampler::onTriangle(const std::uint32_t* t, const Ve
     w = std::max(w, 0.0);
   }
   const double sum = l[0] + l[1] + l[2];
-  return (vertices_[t[0]] * l[0] + vertices_[t[1]] * l[1] + vertices_[t[2]] * l[2]) * (1.0 / sum);
+  return Weights{l[0] / sum, l[1] / sum, l[2] / sum, 0};
 }
 
-std::optional<Vec3d> SurfaceSampler::onQuad(const std::uint32_t* c, const Vec2d& q) const {
+std::optional<SurfaceSampler::Weights> SurfaceSampler::onQuad(const std::uint32_t* c,
+                                                              const Vec2d& q) const {
   // c = (0,0), (1,0), (1,1), (0,1). The quad is located by its two triangles; their barycentric
   // coordinates give the exact (s, t) of a parallelogram and a close start for Newton otherwise.
   const Vec2d p00 = projected_[c[0]], p10 = projected_[c[1]], p11 = projected_[c[2]],
@@ -320,19 +325,21 @@ std::optional<Vec3d> SurfaceSampler::onQuad(const std::uint32_t* c, const Vec2d&
       t > 1 + kBarycentricSlack) {
     // A strongly distorted (non-convex) cell: fall back to its triangles.
     const std::uint32_t first[3] = {c[0], c[1], c[2]};
-    const std::uint32_t second[3] = {c[0], c[2], c[3]};
-    if (auto r = onTriangle(first, q)) {
-      return r;
+    if (auto w = onTriangle(first, q)) {
+      return Weights{(*w)[0], (*w)[1], (*w)[2], 0};
     }
-    return onTriangle(second, q);
+    const std::uint32_t second[3] = {c[0], c[2], c[3]};
+    if (auto w = onTriangle(second, q)) {
+      return Weights{(*w)[0], 0, (*w)[1], (*w)[2]};
+    }
+    return std::nullopt;
   }
   s = std::clamp(s, 0.0, 1.0);
   t = std::clamp(t, 0.0, 1.0);
-  return vertices_[c[0]] * ((1 - s) * (1 - t)) + vertices_[c[1]] * (s * (1 - t)) +
-         vertices_[c[2]] * (s * t) + vertices_[c[3]] * ((1 - s) * t);
+  return Weights{(1 - s) * (1 - t), s * (1 - t), s * t, (1 - s) * t};
 }
 
-std::optional<Vec3d> SurfaceSampler::sample(const Vec3d& p) const {
+std::optional<SurfacePoint> SurfaceSampler::locate(const Vec3d& p) const {
   if (!p.finite() || bucketsU_ == 0) {
     return std::nullopt;
   }
@@ -348,22 +355,37 @@ std::optional<Vec3d> SurfaceSampler::sample(const Vec3d& p) const {
                             bucketsV_ - 1);
   const std::size_t b = static_cast<std::size_t>(bv) * bucketsU_ + bu;
 
-  std::optional<Vec3d> best;
+  std::optional<SurfacePoint> best;
   double bestDistance = std::numeric_limits<double>::infinity();
   const double ph = frame_.height(p);
   for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
     const std::uint32_t* c = &cells_[4 * static_cast<std::size_t>(bucketItems_[i])];
-    std::optional<Vec3d> r = c[3] == kNoVertex ? onTriangle(c, q) : onQuad(c, q);
-    if (!r) {
+    const std::optional<Weights> w = c[3] == kNoVertex ? onTriangle(c, q) : onQuad(c, q);
+    if (!w) {
       continue;
     }
-    const double distance = std::fabs(frame_.height(*r) - ph);
+    SurfacePoint hit{{0, 0, 0}, origins_[c[0]].grid, 0, 0};
+    for (int k = 0; k < 4; ++k) {
+      if ((*w)[k] != 0) {
+        hit.position = hit.position + vertices_[c[k]] * (*w)[k];
+        hit.x += origins_[c[k]].x * (*w)[k];
+        hit.y += origins_[c[k]].y * (*w)[k];
+      }
+    }
+    const double distance = std::fabs(frame_.height(hit.position) - ph);
     if (distance < bestDistance) {
       bestDistance = distance;
-      best = r;
+      best = hit;
     }
   }
   return best;
+}
+
+std::optional<Vec3d> SurfaceSampler::sample(const Vec3d& p) const {
+  if (std::optional<SurfacePoint> hit = locate(p)) {
+    return hit->position;
+  }
+  return std::nullopt;
 }
 
 bool SurfaceSampler::covers(const Rect2d& rect) const {
@@ -399,6 +421,7 @@ bool SurfaceSampler::covers(const Rect2d& rect) const {
 
 std::size_t SurfaceSampler::bytes() const {
   return vertices_.capacity() * sizeof(Vec3d) + projected_.capacity() * sizeof(Vec2d) +
+         origins_.capacity() * sizeof(VertexOrigin) +
          (cells_.capacity() + bucketStart_.capacity() + bucketItems_.capacity()) *
              sizeof(std::uint32_t);
 }

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <memory>
@@ -48,6 +49,16 @@ struct UpFrame {
   Rect2d footprint(const Box3d& box) const;
 };
 
+/// A point of B's surface found by SurfaceSampler::locate.
+struct SurfacePoint {
+  Vec3d position;
+  /// The grid (index into the sampler's `grids`) whose cell holds the point, and the point's
+  /// coordinates in that grid's vertex space (vertex (x, y) at (x, y)): where a texture tile of
+  /// that grid is to be sampled.
+  std::uint32_t grid = 0;
+  double x = 0, y = 0;
+};
+
 /// The up direction vsm uses for a model with bounding box `box`: for earth-centred (ECEF)
 /// coordinates (box centre farther than 100 km from the origin) the normalised centre, i.e. the
 /// local vertical; otherwise +z (a local Cartesian frame).
@@ -92,6 +103,9 @@ class SurfaceSampler {
   /// same point (an overhang) the one nearest to `p` is returned.
   std::optional<Vec3d> sample(const Vec3d& p) const;
 
+  /// sample(p) with where on B it lies.
+  std::optional<SurfacePoint> locate(const Vec3d& p) const;
+
   /// True when some indexed cell's projected bounding rectangle meets `rect` (in frame()):
   /// a conservative "may B have surface there".
   bool covers(const Rect2d& rect) const;
@@ -107,12 +121,21 @@ class SurfaceSampler {
   std::size_t bytes() const;
 
  private:
-  std::optional<Vec3d> onTriangle(const std::uint32_t* corners, const Vec2d& q) const;
-  std::optional<Vec3d> onQuad(const std::uint32_t* corners, const Vec2d& q) const;
+  /// Weights of a cell's corners (in cells_ order; 0 for a triangle's missing fourth) at q.
+  using Weights = std::array<double, 4>;
+  std::optional<Weights> onTriangle(const std::uint32_t* corners, const Vec2d& q) const;
+  std::optional<Weights> onQuad(const std::uint32_t* corners, const Vec2d& q) const;
+
+  /// Where a vertex came from: its grid and its index there.
+  struct VertexOrigin {
+    std::uint32_t grid;
+    std::uint16_t x, y;
+  };
 
   UpFrame frame_;
   std::vector<Vec3d> vertices_;   // global (transformed) positions of defined vertices
   std::vector<Vec2d> projected_;  // their projections into frame_
+  std::vector<VertexOrigin> origins_;
   // 4 vertex indices per cell: (0,0), (1,0), (1,1), (0,1) of a full quad, or a triangle's three
   // corners and kNoVertex.
   std::vector<std::uint32_t> cells_;

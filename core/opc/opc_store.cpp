@@ -700,19 +700,42 @@ OpcWriter::OpcWriter(fs::path dir, Durability durability)
   }
 }
 
-void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox,
-                           const TextureTile* texture) {
-  // By value: callers may pass info.globalBox, which is overwritten below.
-  if (!grid.anyDefined()) {
-    throw Error(ErrorCode::InvalidArgument,
-                "patch " + info.key.toString() + " has no defined vertex to write");
-  }
+namespace {
+
+/// Gives a patch written without a folder name its standard one, and checks the names.
+void nameFolder(PatchInfo& info) {
   if (info.folder.empty()) {
     info.folder = info.key.toString();
   }
   if (!detail::isSafeName(info.folder) || !detail::isSafeName(info.positionsFile)) {
     throw Error(ErrorCode::InvalidArgument,
                 "patch folder '" + info.folder + "' is not a plain name");
+  }
+}
+
+}  // namespace
+
+std::string textureEntryFor(std::string_view folder) {
+  return std::string(kTextureLayer) + "\\" + std::string(folder) + ".tif";
+}
+
+void OpcWriter::writeTexture(PatchInfo& info, const TextureTile& tile) {
+  nameFolder(info);
+  writeFile(imagesLayerDir() / (info.folder + ".tif"), encodeTextureTiff(tile));
+  info.textureFile = textureEntryFor(info.folder);
+}
+
+void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox) {
+  // By value: callers may pass info.globalBox, which is overwritten below.
+  if (!grid.anyDefined()) {
+    throw Error(ErrorCode::InvalidArgument,
+                "patch " + info.key.toString() + " has no defined vertex to write");
+  }
+  nameFolder(info);
+  if (!info.textureFile.empty() && info.textureFile != textureEntryFor(info.folder)) {
+    throw Error(ErrorCode::InvalidArgument, "patch " + info.folder + " names texture '" +
+                                                info.textureFile +
+                                                "', which this writer does not write");
   }
   const bool durable = durability_ == Durability::EachFile;
   const fs::path folderDir = dir_ / info.folder;
@@ -764,9 +787,8 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
   writeFile(positionsFile, encodeAara(positions));
 
   info.coordinatesFile.clear();
-  info.textureFile.clear();
-  if (texture != nullptr) {
-    // Texture coordinates of the stored vertices and the tile, before the Patch.xml naming them.
+  if (!info.textureFile.empty()) {
+    // Texture coordinates of the stored vertices, before the Patch.xml naming them.
     AaraArray coordinates;
     coordinates.type = AaraType::V2f;
     coordinates.sizes = {r.width(), r.height()};
@@ -776,8 +798,6 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
     std::memcpy(coordinates.data.data(), uvs.data(), coordinates.data.size());
     info.coordinatesFile = "Coordinates.aara";
     writeFile(folderDir / info.coordinatesFile, encodeAara(coordinates));
-    writeFile(imagesLayerDir() / (info.folder + ".tif"), encodeTextureTiff(*texture));
-    info.textureFile = std::string(kTextureLayer) + "\\" + info.folder + ".tif";
   }
 
   pugi::xml_document doc;

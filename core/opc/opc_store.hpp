@@ -5,6 +5,7 @@
 #include <mutex>
 #include <span>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "core/common/progress.hpp"
@@ -58,12 +59,16 @@ class OpcWriter {
   /// vertices and `childrenBox`, the union of the children's global boxes (empty for a leaf).
   /// An empty info.folder becomes info.key.toString(). Precondition: grid.anyDefined().
   ///
-  /// With a `texture`, also writes Coordinates.aara (V2f per stored vertex, see
-  /// textureCoordinates) in the folder and the tile as Images/Diffuse/<folder>.tif (RGBA 8-bit
-  /// TIFF), and names both in Patch.xml's <Coordinates> and <Textures> (OPC.md); info's
-  /// coordinatesFile and textureFile say what was written (empty without a texture).
-  void writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox,
-                  const TextureTile* texture = nullptr);
+  /// A textured patch (info.textureFile names the tile writeTexture() wrote for this folder, before
+  /// or after this call) also gets Coordinates.aara (V2f per stored vertex, see
+  /// textureCoordinates) in its folder, and Patch.xml names both in <Coordinates> and <Textures>
+  /// (OPC.md); info.coordinatesFile says so. Throws Error(InvalidArgument) when info.textureFile
+  /// names any other file (a texture this writer did not write).
+  void writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox);
+
+  /// Writes the texture tile of a patch as Images/Diffuse/<folder>.tif (RGBA 8-bit TIFF) and sets
+  /// info.textureFile to name it (an empty info.folder becomes info.key.toString()).
+  void writeTexture(PatchInfo& info, const TextureTile& tile);
 
   /// Removes every file writePatch wrote for `info` (its folder and its texture tile), ignoring
   /// errors: for a builder discarding a subtree of its own staging directory.
@@ -89,6 +94,10 @@ class OpcWriter {
   std::mutex imagesMutex_;             // guards imagesCreated_ (writePatch runs concurrently)
   bool imagesCreated_ = false;
 };
+
+/// The Patch.xml texture entry (relative to Images/) of the tile OpcWriter::writeTexture writes
+/// for a patch folder: "Diffuse\\<folder>.tif".
+std::string textureEntryFor(std::string_view folder);
 
 /// Makes every file written so far on the file system holding `dir` durable: one syncfs (a single
 /// journal commit, where fsyncing thousands of files costs one each). Throws Error(Io).

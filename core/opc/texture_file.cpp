@@ -98,6 +98,18 @@ TextureTile readTextureTile(const fs::path& file) {
   return tile;
 }
 
+TextureTile readPatchTextureTile(const fs::path& dir, const PatchInfo& info) {
+  const auto file =
+      info.textureFile.empty() ? std::nullopt : detail::findTextureFile(dir, info.textureFile);
+  if (!file) {
+    throw Error(ErrorCode::NotFound,
+                "patch " + info.folder + " has no texture tile" +
+                    (info.textureFile.empty() ? std::string()
+                                              : " ('" + info.textureFile + "' is missing)"));
+  }
+  return readTextureTile(*file);
+}
+
 std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& model,
                                              const PatchInfo& info) {
   if (info.textureFile.empty()) {

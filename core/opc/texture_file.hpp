@@ -23,6 +23,11 @@ std::vector<std::byte> encodeTextureTiff(const TextureTile& tile);
 /// or is not a square tile of even size. 1, 2 and 3 channel images get alpha 255.
 TextureTile readTextureTile(const std::filesystem::path& file);
 
+/// The texture tile a patch of the OPC at `dir` names (info.textureFile). Throws
+/// Error(NotFound) when the patch names none or the file is missing, Error(Corrupt) as
+/// readTextureTile.
+TextureTile readPatchTextureTile(const std::filesystem::path& dir, const PatchInfo& info);
+
 /// The texture of one patch, ready for a GLB.
 struct PatchTexture {
   /// The tile as a PNG file.

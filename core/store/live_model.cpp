@@ -10,6 +10,7 @@
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "core/opc/opc_store.hpp"
+#include "core/opc/texture_file.hpp"
 #include "core/pyramid/reduce.hpp"
 
 namespace fs = std::filesystem;
@@ -38,6 +39,17 @@ std::string draftFolder(const PatchKey& key, std::uint64_t version) {
 bool isOurFolderName(const std::string& name) {
   static const std::regex pattern("[0-9]+_[0-9]+_[0-9]+(-v[0-9]+)?");
   return std::regex_match(name, pattern);
+}
+
+/// Texture tiles vsm names: "d_x_y.tif" and "d_x_y-vN.tif" in Images/Diffuse/.
+bool isOurTileName(const std::string& name) {
+  static const std::regex pattern("[0-9]+_[0-9]+_[0-9]+(-v[0-9]+)?\\.tif");
+  return std::regex_match(name, pattern);
+}
+
+/// The file of a tile OpcWriter::writeTexture wrote for `folder` under the model at `dir`.
+fs::path ourTileFile(const fs::path& dir, const std::string& folder) {
+  return dir / "Images" / std::string(kTextureLayer) / (folder + ".tif");
 }
 
 /// The temporary files of an interrupted atomic write (".Patch.xml.tmp-<pid>-<n>").
@@ -79,12 +91,19 @@ class LiveModel::Store final : public PatchStore {
     versions_.erase({key, version});
   }
 
-  std::size_t expectedBytes(const ObjectId&) const override {
-    return static_cast<std::size_t>(shape_.gridSize()) * shape_.gridSize() * 3 * sizeof(float);
+  std::size_t expectedBytes(const ObjectId& id) const override {
+    const auto n = static_cast<std::size_t>(shape_.gridSize());
+    return id.category == MemoryCategory::Textures ? (n - 1) * (n - 1) * TextureTile::kChannels
+                                                   : n * n * 3 * sizeof(float);
   }
 
   CacheValue load(const ObjectId& id) override {
     const PatchInfo info = lookup(id);
+    if (id.category == MemoryCategory::Textures) {
+      auto tile = std::make_shared<const TextureTile>(readPatchTextureTile(dir_, info));
+      const std::size_t bytes = tile->bytes();
+      return {std::move(tile), bytes};
+    }
     auto grid = std::make_shared<const PatchGrid>(readPatchGrid(dir_, shape_, info));
     const std::size_t bytes = grid->bytes();
     return {std::move(grid), bytes};
@@ -95,7 +114,12 @@ class LiveModel::Store final : public PatchStore {
     // Only drafts are ever dirty: their folders are invisible until publish() makes them durable
     // (one syncfs) before the hierarchy names them, so no fsync or temp file per file here.
     OpcWriter writer(dir_, OpcWriter::Durability::Deferred);
-    // The edit described the patch after its children: its box already holds theirs.
+    if (id.category == MemoryCategory::Textures) {
+      writer.writeTexture(info, *static_cast<const TextureTile*>(value.object.get()));
+      return;
+    }
+    // The edit described the patch after its children: its box already holds theirs. A textured
+    // draft names its tile, written by its own entry's write-back.
     writer.writePatch(info, *static_cast<const PatchGrid*>(value.object.get()), info.globalBox);
   }
 
@@ -128,8 +152,12 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
   // name (unpublished drafts, or the old version's folders when the crash came between the
   // hierarchy's rename and their removal), and temporary files of interrupted writes.
   std::set<std::string> named;
+  std::set<std::string> namedTiles;
   for (const auto& [key, info] : model->patches()) {
     named.insert(info.folder);
+    if (!info.textureFile.empty()) {
+      namedTiles.insert(info.textureFile);
+    }
   }
   const fs::path patches = patchesDirOf(dir);
   std::vector<fs::path> orphans;
@@ -138,6 +166,18 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
     if ((entry.is_directory() && isOurFolderName(folder) && named.count(folder) == 0) ||
         (entry.is_regular_file() && isTempFileName(folder))) {
       orphans.push_back(entry.path());
+    }
+  }
+  const fs::path tiles = dir / "Images" / std::string(kTextureLayer);
+  if (fs::is_directory(tiles)) {
+    for (const auto& entry : fs::directory_iterator(tiles)) {
+      const std::string file = entry.path().filename().string();
+      if (entry.is_regular_file() &&
+          ((isOurTileName(file) &&
+            namedTiles.count(textureEntryFor(file.substr(0, file.size() - 4))) == 0) ||
+           isTempFileName(file))) {
+        orphans.push_back(entry.path());
+      }
     }
   }
   for (const fs::path& orphan : orphans) {
@@ -174,6 +214,14 @@ PatchCache::Pin LiveModel::positions(const ModelSnapshot& snapshot, const PatchK
   return store_->cache().get(store_->id(), {key, info.version, MemoryCategory::Positions});
 }
 
+PatchCache::Pin LiveModel::texture(const ModelSnapshot& snapshot, const PatchKey& key) {
+  const PatchInfo& info = snapshot.model->at(key);
+  if (info.textureFile.empty()) {
+    return {};
+  }
+  return store_->cache().get(store_->id(), {key, info.version, MemoryCategory::Textures});
+}
+
 std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
   bool expected = false;
   if (!editing_.compare_exchange_strong(expected, true)) {
@@ -195,7 +243,10 @@ ModelEdit::~ModelEdit() {
       const ObjectId id = draftId(key);
       try {
         store.cache().drop(store.id(), id);
-        fs::remove_all(patchesDirOf(live_.dir_) / draftFolder(key, id.version));
+        store.cache().drop(store.id(), {key, id.version, MemoryCategory::Textures});
+        const std::string folder = draftFolder(key, id.version);
+        fs::remove_all(patchesDirOf(live_.dir_) / folder);
+        fs::remove(ourTileFile(live_.dir_, folder));
       } catch (const std::exception& e) {
         log::warn("model=" + live_.name_ + " discarding " + key.toString() + ": " + e.what());
       }
@@ -216,11 +267,27 @@ PatchCache::Pin ModelEdit::positions(const PatchKey& key) {
                                    {key, info.version, MemoryCategory::Positions});
 }
 
-void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) {
+PatchCache::Pin ModelEdit::texture(const PatchKey& key) {
+  const PatchInfo& info = model_->at(key);
+  if (info.textureFile.empty()) {
+    return {};
+  }
+  return live_.store_->cache().get(live_.store_->id(),
+                                   {key, info.version, MemoryCategory::Textures});
+}
+
+void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid,
+                             std::shared_ptr<const TextureTile> texture) {
   if (grid->size() != model_->gridSize()) {
     throw Error(ErrorCode::InvalidArgument, "patch " + key.toString() + " has a grid of " +
                                                 std::to_string(grid->size()) + " instead of " +
                                                 std::to_string(model_->gridSize()));
+  }
+  if (texture && texture->size() != textureTileSize(model_->gridSize())) {
+    throw Error(ErrorCode::InvalidArgument,
+                "patch " + key.toString() + " has a texture tile of " +
+                    std::to_string(texture->size()) + " texels instead of " +
+                    std::to_string(textureTileSize(model_->gridSize())));
   }
   if (model_->find(key) == nullptr) {
     PatchInfo info;
@@ -228,20 +295,30 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
     model_->insert(std::move(info));
   }
   const ObjectId id = draftId(key);
+  const ObjectId textureId{key, id.version, MemoryCategory::Textures};
   PatchInfo& info = model_->at(key);
+  LiveModel::Store& store = *live_.store_;
+  if (!texture && changed_.count(key) != 0 && !info.textureFile.empty()) {
+    // This edit's earlier texture of the patch is obsolete (and may have been written already).
+    store.cache().drop(store.id(), textureId);
+    fs::remove(ourTileFile(live_.dir_, info.folder));
+  }
   info.version = id.version;
   info.folder = draftFolder(key, id.version);
   info.positionsFile = "Positions.aara";
-  // New data is written without a texture (merges do not carry textures yet).
   info.coordinatesFile.clear();
-  info.textureFile.clear();
+  info.textureFile = texture ? textureEntryFor(info.folder) : std::string();
   model_->describe(key, *grid);
   model_->markChanged(key);
   info.dirty = false;  // the cache tracks dirtiness; the model only needs `changed_`
   changed_.insert(key);
-  live_.store_->add(info);
+  store.add(info);
   const std::size_t bytes = grid->bytes();
-  live_.store_->cache().put(live_.store_->id(), id, {std::move(grid), bytes}, true);
+  store.cache().put(store.id(), id, {std::move(grid), bytes}, true);
+  if (texture) {
+    const std::size_t textureBytes = texture->bytes();
+    store.cache().put(store.id(), textureId, {std::move(texture), textureBytes}, true);
+  }
 }
 
 void ModelEdit::refreshStale(const CancelToken* cancel) {
@@ -258,21 +335,44 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
     if (cancel != nullptr) {
       cancel->throwIfCancelled();
     }
-    std::array<PatchCache::Pin, 4> pins;
-    std::array<const PatchGrid*, 4> children{};
-    for (const Quadrant q : kQuadrants) {
-      const PatchKey child = key.child(q);
-      if (model_->find(child) != nullptr) {
-        auto& pin = pins[static_cast<int>(q)];
-        pin = positions(child);
-        children[static_cast<int>(q)] = pin.get<PatchGrid>().get();
+    std::shared_ptr<const PatchGrid> parent;
+    std::shared_ptr<const TextureTile> parentTexture;
+    {
+      std::array<PatchCache::Pin, 4> pins;
+      std::array<const PatchGrid*, 4> children{};
+      for (const Quadrant q : kQuadrants) {
+        const PatchKey child = key.child(q);
+        if (model_->find(child) != nullptr) {
+          auto& pin = pins[static_cast<int>(q)];
+          pin = positions(child);
+          children[static_cast<int>(q)] = pin.get<PatchGrid>().get();
+        }
+      }
+      parent = std::make_shared<const PatchGrid>(reduce(children));
+    }
+    {
+      // The parent's tile from its children's, one at a time as the grids (a texture of another
+      // size, from a foreign OPC, counts as none).
+      const int size = textureTileSize(model_->gridSize());
+      std::array<PatchCache::Pin, 4> pins;
+      std::array<const TextureTile*, 4> children{};
+      bool any = false;
+      for (const Quadrant q : kQuadrants) {
+        const PatchKey child = key.child(q);
+        if (model_->find(child) != nullptr) {
+          auto& pin = pins[static_cast<int>(q)];
+          pin = texture(child);
+          if (pin && pin.get<TextureTile>()->size() == size) {
+            children[static_cast<int>(q)] = pin.get<TextureTile>().get();
+            any = true;
+          }
+        }
+      }
+      if (any) {
+        parentTexture = std::make_shared<const TextureTile>(downsampleQuadrants(children, size));
       }
     }
-    auto parent = std::make_shared<const PatchGrid>(reduce(children));
-    for (auto& pin : pins) {
-      pin = PatchCache::Pin();
-    }
-    setPositions(key, std::move(parent));
+    setPositions(key, std::move(parent), std::move(parentTexture));
     model_->at(key).stale = false;
   }
 }
@@ -311,8 +411,13 @@ void ModelEdit::publish(const CancelToken* cancel) {
     live_.snapshot_->onRelease = [keep, patches, obsolete = std::move(obsolete)] {
       for (const auto& [key, info] : obsolete) {
         keep->cache().invalidate(keep->id(), {key, info.version, MemoryCategory::Positions});
+        keep->cache().invalidate(keep->id(), {key, info.version, MemoryCategory::Textures});
         keep->forget(key, info.version);
         fs::remove_all(patches / info.folder);
+        // Only a tile vsm named for the folder is the folder's own (foreign OPCs may share one).
+        if (info.textureFile == textureEntryFor(info.folder)) {
+          fs::remove(ourTileFile(keep->dir(), info.folder));
+        }
       }
     };
     live_.snapshot_ = std::move(snapshot);

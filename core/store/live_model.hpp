@@ -11,6 +11,7 @@
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/progress.hpp"
+#include "core/grid/texture_tile.hpp"
 #include "core/pyramid/model.hpp"
 
 namespace vsm::core {
@@ -63,6 +64,11 @@ class LiveModel {
   /// when the budget is full of pinned data, Error(Corrupt / Io) from the files.
   PatchCache::Pin positions(const ModelSnapshot& snapshot, const PatchKey& key);
 
+  /// The texture tile (TextureTile) of `key` as published in `snapshot`, through the cache; an
+  /// empty Pin when the patch has none. Throws as positions(), and Error(Corrupt) for a tile that
+  /// does not decode.
+  PatchCache::Pin texture(const ModelSnapshot& snapshot, const PatchKey& key);
+
   /// Starts the one edit of this model. Throws Error(Conflict) while another edit is open.
   std::unique_ptr<ModelEdit> beginEdit();
 
@@ -102,14 +108,19 @@ class ModelEdit {
   /// Current data of a patch in this edit: its new data if changed, else the published data.
   /// Throws Error(NotFound) for a key not in the model.
   PatchCache::Pin positions(const PatchKey& key);
+  /// Current texture tile of a patch (as positions()); an empty Pin when it has none.
+  PatchCache::Pin texture(const PatchKey& key);
 
-  /// Adds a patch (its parent must exist already) or replaces a patch's data. Marks the patch
-  /// changed and every ancestor stale. Throws Error(InvalidArgument) for a wrong grid size or a
-  /// missing parent, Error(ResourceExhausted) when the budget is full of pinned data.
-  void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid);
+  /// Adds a patch (its parent must exist already) or replaces a patch's data, with its texture
+  /// tile or without one (null). Marks the patch changed and every ancestor stale. Throws
+  /// Error(InvalidArgument) for a wrong grid or tile size or a missing parent,
+  /// Error(ResourceExhausted) when the budget is full of pinned data.
+  void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid,
+                    std::shared_ptr<const TextureTile> texture = nullptr);
 
   /// Recomputes every stale overview bottom-up by reduction, holding one parent's children at a
-  /// time.
+  /// time; its texture tile is downsampled from the children's (downsampleQuadrants) when any of
+  /// them has one.
   void refreshStale(const CancelToken* cancel = nullptr);
 
   /// Refreshes stale overviews, writes every changed patch (fsynced), then the hierarchy

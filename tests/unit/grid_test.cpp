@@ -211,3 +211,24 @@ TEST(TextureTile, UniformChildrenGiveTheSameUniformParent) {
     EXPECT_EQ(parent.texels()[k], child.texels()[k]);
   }
 }
+
+TEST(TextureTile, SampleBilinearIsExactAtCentresAndSkipsTransparentTexels) {
+  vsm::core::TextureTile tile(4);
+  for (int j = 0; j < 4; ++j) {
+    for (int i = 0; i < 4; ++i) {
+      std::uint8_t* t = tile.at(i, j);
+      t[0] = static_cast<std::uint8_t>(10 * i), t[1] = static_cast<std::uint8_t>(20 * j), t[2] = 7;
+      t[3] = 255;
+    }
+  }
+  tile.at(3, 3)[3] = 0;  // one transparent texel
+  using Rgba = std::array<std::uint8_t, 4>;
+  EXPECT_EQ(vsm::core::sampleBilinear(tile, 1, 2), (Rgba{10, 40, 7, 255}));
+  // Halfway between texel centres: the mean (exact for this linear ramp).
+  EXPECT_EQ(vsm::core::sampleBilinear(tile, 1.5, 0.5), (Rgba{15, 10, 7, 255}));
+  // Outside the tile: the border texels.
+  EXPECT_EQ(vsm::core::sampleBilinear(tile, -3, -1), (Rgba{0, 0, 7, 255}));
+  // Next to the transparent texel its weight goes to the opaque ones.
+  EXPECT_EQ(vsm::core::sampleBilinear(tile, 2.5, 2.5), (Rgba{23, 47, 7, 255}));
+  EXPECT_EQ(vsm::core::sampleBilinear(tile, 3, 3), (Rgba{0, 0, 0, 0}));
+}

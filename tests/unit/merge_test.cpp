@@ -111,7 +111,9 @@ class ModelAccess final : public MergeTarget {
   std::shared_ptr<const PatchGrid> positions(const PatchKey& key) override {
     return model_.at(key).grid;
   }
-  void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) override {
+  std::shared_ptr<const TextureTile> texture(const PatchKey&) override { return nullptr; }
+  void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid,
+                    std::shared_ptr<const TextureTile>) override {
     if (model_.find(key) == nullptr) {
       PatchInfo info;
       info.key = key;
@@ -183,6 +185,35 @@ TEST(SurfaceSampler, FollowsTheBilinearSurfaceOfDistortedCells) {
       ASSERT_TRUE(r.has_value()) << s << " " << t;
       EXPECT_LE((*r - p).norm(), 1e-6) << s << " " << t;
     }
+  }
+}
+
+TEST(SurfaceSampler, LocatesPointsInTheirGridsVertexSpace) {
+  // 2 x 2 grids of 17 x 17 on a rotated lattice; grid g = 2 y + x starts at lattice (16 x, 16 y).
+  // A point at lattice (i, j) lies at vertex (i - 16 x, j - 16 y) of the grid holding it (on a
+  // shared border either neighbour is right).
+  const Lattice b{0, 0, 0.7, std::numbers::pi / 6};
+  std::vector<std::shared_ptr<const PatchGrid>> grids;
+  for (int y = 0; y < 2; ++y) {
+    for (int x = 0; x < 2; ++x) {
+      grids.push_back(latticeGrid(b, 17, x * 16, y * 16));
+    }
+  }
+  const SurfaceSampler sampler(grids, {0, 0, 1});
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<double> along(0.01, 31.99);
+  for (int n = 0; n < 2000; ++n) {
+    const double i = along(rng), j = along(rng);
+    const Vec3d p = b.at(i, j);
+    const auto hit = sampler.locate({p.x, p.y, 100});
+    ASSERT_TRUE(hit.has_value()) << i << " " << j;
+    ASSERT_LT(hit->grid, 4u);
+    const double x0 = 16.0 * (hit->grid % 2), y0 = 16.0 * (hit->grid / 2);
+    EXPECT_NEAR(hit->x + x0, i, 1e-6) << i << " " << j;
+    EXPECT_NEAR(hit->y + y0, j, 1e-6) << i << " " << j;
+    const auto sampled = sampler.sample({p.x, p.y, 100});
+    ASSERT_TRUE(sampled.has_value());
+    EXPECT_EQ((hit->position - *sampled).norm(), 0.0);
   }
 }
 

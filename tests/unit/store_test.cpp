@@ -3,6 +3,7 @@
 #include <cmath>
 #include <fstream>
 #include <map>
+#include <set>
 #include <sstream>
 
 #include "core/common/error.hpp"
@@ -45,8 +46,26 @@ PatchInfo infoFor(const PatchKey& key) {
   return info;
 }
 
-/// Writes a full three-level model (16 leaves, 4 + 1 overviews) to `dir`.
-void writeModel(const fs::path& dir) {
+/// A texture tile of one colour.
+std::shared_ptr<TextureTile> uniformTile(std::uint8_t r, std::uint8_t g, std::uint8_t b) {
+  auto tile = std::make_shared<TextureTile>(textureTileSize(kSize));
+  for (int j = 0; j < tile->size(); ++j) {
+    for (int i = 0; i < tile->size(); ++i) {
+      std::uint8_t* t = tile->at(i, j);
+      t[0] = r, t[1] = g, t[2] = b, t[3] = 255;
+    }
+  }
+  return tile;
+}
+
+/// The colour of leaf (x, y) in the textured model writeModel writes.
+std::array<std::uint8_t, 3> leafColour(std::uint32_t x, std::uint32_t y) {
+  return {static_cast<std::uint8_t>(40 * x), static_cast<std::uint8_t>(40 * y), 100};
+}
+
+/// Writes a full three-level model (16 leaves, 4 + 1 overviews) to `dir`; when `textured`, leaf
+/// (x, y) is coloured leafColour(x, y) and the overviews downsampled.
+void writeModel(const fs::path& dir, bool textured = false) {
   Model model(kSize);
   std::map<PatchKey, std::shared_ptr<const PatchGrid>> grids;
   model.insert(infoFor(PatchKey::root()));
@@ -63,10 +82,27 @@ void writeModel(const fs::path& dir) {
   }
   model.refreshStale([](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return nullptr; });
   OpcWriter writer(dir, OpcWriter::Durability::EachFile);
-  for (const auto& [key, info] : model.patches()) {
-    PatchInfo& mutableInfo = model.at(key);
-    mutableInfo.folder = key.toString();
-    writer.writePatch(mutableInfo, *info.grid, model.childrenBox(key));
+  std::map<PatchKey, std::shared_ptr<TextureTile>> tiles;
+  // Deepest first, so each overview's tile comes from its children's.
+  for (auto it = model.patches().rbegin(); it != model.patches().rend(); ++it) {
+    const PatchKey& key = it->first;
+    PatchInfo& info = model.at(key);
+    info.folder = key.toString();
+    if (textured) {
+      if (key.depth == 2) {
+        const auto c = leafColour(key.x, key.y);
+        tiles[key] = uniformTile(c[0], c[1], c[2]);
+      } else {
+        std::array<const TextureTile*, 4> children{};
+        for (const Quadrant q : kQuadrants) {
+          children[static_cast<int>(q)] = tiles.at(key.child(q)).get();
+        }
+        tiles[key] =
+            std::make_shared<TextureTile>(downsampleQuadrants(children, textureTileSize(kSize)));
+      }
+      writer.writeTexture(info, *tiles[key]);
+    }
+    writer.writePatch(info, *info.grid, model.childrenBox(key));
   }
   writer.writeHierarchy(model);
 }
@@ -247,6 +283,130 @@ TEST_F(StoreTest, OpeningRemovesFoldersOfAnInterruptedEdit) {
   EXPECT_FALSE(fs::exists(dir_ / "Patches" / ".patchhierarchy.xml.tmp-123-4"));
   EXPECT_TRUE(fs::exists(dir_ / "Patches" / "notes"));
   EXPECT_TRUE(fs::exists(dir_ / "Patches" / "2_0_0"));
+}
+
+// ---- textures --------------------------------------------------------------------------------
+
+std::set<std::string> tileFiles(const fs::path& dir) {
+  std::set<std::string> names;
+  for (const auto& entry : fs::directory_iterator(dir / "Images" / "Diffuse")) {
+    names.insert(entry.path().filename().string());
+  }
+  return names;
+}
+
+std::set<std::string> namedTiles(const Model& model) {
+  std::set<std::string> names;
+  for (const auto& [key, info] : model.patches()) {
+    EXPECT_EQ(info.textureFile, "Diffuse\\" + info.folder + ".tif") << key.toString();
+    names.insert(info.folder + ".tif");
+  }
+  return names;
+}
+
+std::array<std::uint8_t, 4> texel(const PatchCache::Pin& pin, int i, int j) {
+  const std::uint8_t* t = pin.get<TextureTile>()->at(i, j);
+  return {t[0], t[1], t[2], t[3]};
+}
+
+class TexturedStoreTest : public StoreTest {
+ protected:
+  void SetUp() override {
+    StoreTest::SetUp();
+    fs::remove_all(dir_);
+    writeModel(dir_, true);
+  }
+};
+
+TEST_F(TexturedStoreTest, EditCarriesTexturesIntoNewTilesAndOverviewsAndDropsTheOldTiles) {
+  // A budget of a few patches: drafts and their tiles are written back before publish.
+  PatchCache cache(5 * 4096);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const PatchKey leaf{2, 3, 1};
+  {
+    auto before = live->snapshot();
+    const auto c = leafColour(3, 1);
+    EXPECT_EQ(texel(live->texture(*before, leaf), 5, 5),
+              (std::array<std::uint8_t, 4>{c[0], c[1], c[2], 255}));
+    auto edit = live->beginEdit();
+    edit->setPositions(leaf, leafGrid(3, 1, 2.0), uniformTile(250, 0, 0));
+    for (std::uint32_t x = 0; x < 4; ++x) {  // enough drafts to overflow the budget
+      edit->setPositions({2, x, 3}, leafGrid(x, 3, 1.0), uniformTile(0, 0, 250));
+    }
+    EXPECT_GT(cache.stats().evictions, 0u);
+    edit->publish();
+  }
+  const auto after = live->snapshot();
+  EXPECT_EQ(texel(live->texture(*after, leaf), 0, 15),
+            (std::array<std::uint8_t, 4>{250, 0, 0, 255}));
+  // Leaf (3, 1) is the south-east child of (1, 1): that quadrant of (1, 1) is now red, the
+  // others keep their leaves' colours; the root's south half is blue.
+  const PatchCache::Pin parent = live->texture(*after, {1, 1, 0});
+  EXPECT_EQ(texel(parent, 12, 12), (std::array<std::uint8_t, 4>{250, 0, 0, 255}));
+  const auto nw = leafColour(2, 0);
+  EXPECT_EQ(texel(parent, 3, 3), (std::array<std::uint8_t, 4>{nw[0], nw[1], nw[2], 255}));
+  EXPECT_EQ(texel(live->texture(*after, PatchKey::root()), 3, 15),
+            (std::array<std::uint8_t, 4>{0, 0, 250, 255}));
+  // Every tile on disk is named by the published version (the replaced ones are gone), and a
+  // fresh open reads the same texels from the files.
+  EXPECT_EQ(tileFiles(dir_), namedTiles(*after->model));
+  PatchCache fresh(64 << 20);
+  auto reopened = LiveModel::open(dir_, "m2", fresh);
+  EXPECT_EQ(texel(reopened->texture(*reopened->snapshot(), {1, 1, 0}), 12, 12),
+            (std::array<std::uint8_t, 4>{250, 0, 0, 255}));
+}
+
+TEST_F(TexturedStoreTest, DiscardedEditAndWrongTileSizeLeaveTheTilesAsTheyWere) {
+  const auto before = filesUnder(dir_);
+  PatchCache cache(6 * 4096);
+  auto live = LiveModel::open(dir_, "m", cache);
+  {
+    auto edit = live->beginEdit();
+    for (std::uint32_t x = 0; x < 4; ++x) {
+      edit->setPositions({2, x, 0}, leafGrid(x, 0, 1.0), uniformTile(9, 9, 9));
+    }
+    edit->refreshStale();
+    EXPECT_EQ(codeOf([&] {
+                edit->setPositions({2, 0, 0}, leafGrid(0, 0), std::make_shared<TextureTile>(8));
+              }),
+              ErrorCode::InvalidArgument);
+  }  // discarded
+  EXPECT_EQ(filesUnder(dir_), before);
+}
+
+TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  {
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 0, 0}, leafGrid(0, 0, 1.0), uniformTile(1, 2, 3));
+    edit->setPositions({2, 0, 0}, leafGrid(0, 0, 1.0));  // replaced, untextured
+    edit->publish();
+  }
+  const auto after = live->snapshot();
+  EXPECT_TRUE(after->model->at({2, 0, 0}).textureFile.empty());
+  EXPECT_FALSE(live->texture(*after, {2, 0, 0}));
+  // Its parent's north-west quadrant has no texture left to show: transparent.
+  EXPECT_EQ(texel(live->texture(*after, {1, 0, 0}), 2, 2)[3], 0);
+  std::set<std::string> named = tileFiles(dir_);
+  for (const auto& [key, info] : after->model->patches()) {
+    if (!info.textureFile.empty()) {
+      EXPECT_EQ(named.erase(info.folder + ".tif"), 1u) << key.toString();
+    }
+  }
+  EXPECT_TRUE(named.empty()) << *named.begin();
+}
+
+TEST_F(TexturedStoreTest, OpenRemovesTilesOfInterruptedEdits) {
+  const auto before = filesUnder(dir_);
+  std::ofstream(dir_ / "Images" / "Diffuse" / "2_0_0-v2.tif") << "draft";
+  std::ofstream(dir_ / "Images" / "Diffuse" / "foreign.tif") << "not ours";
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  EXPECT_FALSE(fs::exists(dir_ / "Images" / "Diffuse" / "2_0_0-v2.tif"));
+  EXPECT_TRUE(fs::exists(dir_ / "Images" / "Diffuse" / "foreign.tif"));
+  fs::remove(dir_ / "Images" / "Diffuse" / "foreign.tif");
+  EXPECT_EQ(filesUnder(dir_), before);
 }
 
 }  // namespace

@@ -1,0 +1,231 @@
+#!/usr/bin/python3
+"""A merge carries textures (issue 6), checked with none of vsm's code:
+
+A = PRISMelevation.tif imported with the real NASA image (conus_visible_earth.tif, georeferenced)
+draped over it; B = jacksboro_fault_dem.tif imported with a synthetic gradient image stretched
+over its extent (red = column, green = row, blue = 200: the colour says where a texel came from);
+both with 65 x 65 patches. `vsm merge A B --out M`, `vsm validate M`, then with our own OPC and
+.aara readers (check_import.py, written from OPC.md), our own ECEF -> geodetic conversion and GDAL:
+
+(a) files: every patch of M names Coordinates.aara and Diffuse\\<folder>.tif, the tiles in
+    Images/Diffuse are exactly the ones named (the replaced patches' old tiles are gone);
+(b) every patch M shares with A (same folder) has the same tile bytes as in A;
+(c) in M's deepest patches, every sampled texel whose quad centre (mean of its four corner
+    vertices, converted to lon/lat) lies inside B's raster is the gradient image at that lon/lat
+    (bilinear between pixel centres) within GRADIENT_TOLERANCE, and far from A's image there for
+    many of them (so (c) fails if the merge kept A's texture);
+(d) texels of the new patches outside B match the NASA image at their lon/lat within
+    IMAGE_TOLERANCE (A's texture upsampled);
+(e) every parent texel is the mean of the 2 x 2 child texels it covers (within rounding).
+
+Run by ctest:  texture_merge_test.py --vsm build/server/cli/vsm --data ../shared/data --work <dir>
+"""
+
+import argparse
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+from osgeo import gdal
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from check_import import QUADRANTS, Failures, ecef_to_geodetic  # noqa: E402
+from merge_check import load  # noqa: E402
+from texture_test import bilinear  # noqa: E402
+
+gdal.UseExceptions()
+
+N = 65                     # vertices per patch side
+TILE = N - 1               # texels per tile side
+GRADIENT_SIZE = (512, 384)  # columns, rows of B's image
+GRADIENT_TOLERANCE = 2.0   # 8-bit units: three roundings of a linear ramp (image, B's tile, merge)
+IMAGE_TOLERANCE = 3.0      # A's tile (the image at A's quad centres) upsampled vs. the image
+MARGIN = 2                 # B raster pixels kept clear of B's border in (c), A's pixels in (d)
+
+
+def gradient_image(path):
+    cols, rows = GRADIENT_SIZE
+    x = np.arange(cols)[None, :].repeat(rows, 0)
+    y = np.arange(rows)[:, None].repeat(cols, 1)
+    bands = [np.round(255 * x / (cols - 1)), np.round(255 * y / (rows - 1)),
+             np.full((rows, cols), 200.0)]
+    mem = gdal.GetDriverByName("MEM").Create("", cols, rows, 3, gdal.GDT_Byte)
+    for b, band in enumerate(bands):
+        mem.GetRasterBand(b + 1).WriteArray(band.astype(np.uint8))
+    gdal.GetDriverByName("PNG").CreateCopy(path, mem)
+    return np.stack(bands)
+
+
+def read_tile(opc, folder):
+    ds = gdal.Open(os.path.join(opc, "Images", "Diffuse", folder + ".tif"))
+    assert (ds.RasterXSize, ds.RasterYSize) == (TILE, TILE), folder
+    return ds.ReadAsArray().astype(float)
+
+
+def digest(path):
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+def texel_lonlat(patch, i, j):
+    """lon, lat of the centre of texel (i, j): the mean of its quad's four corners."""
+    corners = patch.grid[j:j + 2, i:i + 2].reshape(4, 3)
+    if np.isnan(corners).any():
+        return None
+    c = corners.mean(axis=0)
+    lon, lat, _ = ecef_to_geodetic(c[0], c[1], c[2])
+    return float(lon), float(lat)
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--vsm", required=True)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--work", required=True)
+    args = parser.parse_args()
+
+    shutil.rmtree(args.work, ignore_errors=True)
+    os.makedirs(args.work)
+    target, detail, merged = (os.path.join(args.work, name) for name in ("a", "b", "merged"))
+    gradient_path = os.path.join(args.work, "gradient.png")
+    gradient = gradient_image(gradient_path)
+    nasa_path = os.path.join(args.data, "conus_visible_earth.tif")
+    dem_b_path = os.path.join(args.data, "jacksboro_fault_dem.tif")
+    subprocess.run([args.vsm, "import", os.path.join(args.data, "PRISMelevation.tif"), target,
+                    "--texture", nasa_path, "--patch-size", str(N)], check=True,
+                   stdout=subprocess.DEVNULL)
+    subprocess.run([args.vsm, "import", dem_b_path, detail, "--texture", gradient_path,
+                    "--patch-size", str(N)], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([args.vsm, "merge", target, detail, "--out", merged], check=True,
+                   stdout=subprocess.DEVNULL)
+    subprocess.run([args.vsm, "validate", merged], check=True, stdout=subprocess.DEVNULL)
+
+    failures = Failures()
+    _, a_patches, _, _ = load(target, N, failures)
+    _, m_patches, m_children, _ = load(merged, N, failures)
+
+    # (a) every patch textured; the tiles on disk exactly the named ones.
+    named = set()
+    for key, patch in m_patches.items():
+        xml = open(os.path.join(merged, "Patches", patch.folder, "Patch.xml")).read()
+        entry = "Diffuse\\%s.tif" % patch.folder
+        if entry not in xml or "Coordinates.aara" not in xml:
+            failures.add("%s: Patch.xml does not name %s and Coordinates.aara" % (patch.folder, entry))
+        named.add(patch.folder + ".tif")
+    on_disk = set(os.listdir(os.path.join(merged, "Images", "Diffuse")))
+    if on_disk != named:
+        failures.add("Images/Diffuse holds %d tiles no patch names (%s) and misses %d named ones" %
+                     (len(on_disk - named), sorted(on_disk - named)[:5], len(named - on_disk)))
+
+    # (b) shared patches keep their tiles byte for byte.
+    a_folders = {p.folder for p in a_patches.values()}
+    shared = [p.folder for p in m_patches.values() if p.folder in a_folders]
+    for folder in shared:
+        before = digest(os.path.join(target, "Images", "Diffuse", folder + ".tif"))
+        after = digest(os.path.join(merged, "Images", "Diffuse", folder + ".tif"))
+        if before != after:
+            failures.add("%s: tile changed although the patch was not rewritten" % folder)
+    new_keys = [k for k, p in m_patches.items() if p.folder not in a_folders]
+
+    # (c) and (d): texels of the new leaves against the two images at their own lon/lat.
+    dem_b = gdal.Open(dem_b_path)
+    b_gt = dem_b.GetGeoTransform()
+    b_west, b_north = b_gt[0], b_gt[3]
+    b_east = b_west + dem_b.RasterXSize * b_gt[1]
+    b_south = b_north + dem_b.RasterYSize * b_gt[5]
+    nasa = gdal.Open(nasa_path)
+    nasa_inv = gdal.InvGeoTransform(nasa.GetGeoTransform())
+    nasa_image = nasa.ReadAsArray().astype(float)
+
+    def nasa_at(lon, lat):
+        ix = nasa_inv[0] + lon * nasa_inv[1] + lat * nasa_inv[2]
+        iy = nasa_inv[3] + lon * nasa_inv[4] + lat * nasa_inv[5]
+        return bilinear(nasa_image, ix, iy)[:3]
+
+    max_depth = max(k[0] for k in m_patches)
+    inside = outside = differs = 0
+    worst_inside = worst_outside = 0.0
+    for key in new_keys:
+        if m_children[key]:
+            continue
+        patch = m_patches[key]
+        tile = read_tile(merged, patch.folder)
+        for j in range(0, TILE, 7):
+            for i in range(0, TILE, 7):
+                at = texel_lonlat(patch, i, j)
+                if at is None:
+                    continue
+                lon, lat = at
+                got = tile[:3, j, i]
+                margin_lon, margin_lat = MARGIN * b_gt[1], -MARGIN * b_gt[5]
+                if (key[0] == max_depth and b_west + margin_lon < lon < b_east - margin_lon and
+                        b_south + margin_lat < lat < b_north - margin_lat):
+                    # The gradient is stretched over B's raster, pixel edge to pixel edge.
+                    gx = (lon - b_west) / (b_east - b_west) * GRADIENT_SIZE[0]
+                    gy = (b_north - lat) / (b_north - b_south) * GRADIENT_SIZE[1]
+                    expected = bilinear(gradient, gx, gy)
+                    error = float(np.max(np.abs(got - expected)))
+                    worst_inside = max(worst_inside, error)
+                    if error > GRADIENT_TOLERANCE:
+                        failures.add("%s texel (%d, %d) at %.5f, %.5f: %s, B's image %s" %
+                                     (patch.folder, i, j, lon, lat, got, expected))
+                    if float(np.max(np.abs(got - nasa_at(lon, lat)))) > 30:
+                        differs += 1
+                    inside += 1
+                elif not (b_west - 4 * margin_lon < lon < b_east + 4 * margin_lon and
+                          b_south - 4 * margin_lat < lat < b_north + 4 * margin_lat):
+                    expected = nasa_at(lon, lat)
+                    error = float(np.max(np.abs(got - expected)))
+                    worst_outside = max(worst_outside, error)
+                    if error > IMAGE_TOLERANCE:
+                        failures.add("%s texel (%d, %d) at %.5f, %.5f: %s, A's image %s" %
+                                     (patch.folder, i, j, lon, lat, got, expected))
+                    outside += 1
+    if inside < 500 or differs < inside // 2:
+        failures.add("only %d texels checked inside B (%d of them unlike A's image)" %
+                     (inside, differs))
+    if outside < 100:
+        failures.add("only %d texels checked outside B" % outside)
+
+    # (e) parents: each texel the mean of the 2 x 2 child texels it covers.
+    parents = 0
+    tiles = {}
+
+    def tile_of(key):
+        if key not in tiles:
+            tiles[key] = read_tile(merged, m_patches[key].folder)
+        return tiles[key]
+
+    half = TILE // 2
+    for key, children in m_children.items():
+        if not children or m_patches[key].folder in a_folders:
+            continue
+        parent = tile_of(key)
+        for q, child_key in children.items():
+            qx, qy = QUADRANTS[q]
+            c = tile_of(child_key)
+            mean = (c[:, 0::2, 0::2] + c[:, 0::2, 1::2] + c[:, 1::2, 0::2] + c[:, 1::2, 1::2]) / 4
+            got = parent[:, qy * half:(qy + 1) * half, qx * half:(qx + 1) * half]
+            if not np.all(np.abs(got - mean) <= 0.5 + 1e-9):
+                failures.add("%s: quadrant %s is not the mean of %s" %
+                             (m_patches[key].folder, q, m_patches[child_key].folder))
+            parents += 1
+
+    summary = (
+        "texture merge: %d patches (%d new, %d shared byte-identical), %d texels inside B within "
+        "%.2f of B's image (%d unlike A's), %d outside within %.2f of A's image, %d parent "
+        "quadrants exact" % (len(m_patches), len(new_keys), len(shared), inside, worst_inside,
+                             differs, outside, worst_outside, parents))
+    if failures.count:
+        print("\n".join(failures.items), file=sys.stderr)
+        print("texture merge: %d failures" % failures.count, file=sys.stderr)
+        return 1
+    print(summary)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
