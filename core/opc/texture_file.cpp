@@ -98,7 +98,10 @@ TextureTile readTextureTile(const fs::path& file) {
   return tile;
 }
 
-TextureTile readPatchTextureTile(const fs::path& dir, const PatchInfo& info) {
+namespace {
+
+/// The texture tile file a patch names; throws Error(NotFound) as readPatchTextureTile.
+fs::path textureFileOf(const fs::path& dir, const PatchInfo& info) {
   const auto file =
       info.textureFile.empty() ? std::nullopt : detail::findTextureFile(dir, info.textureFile);
   if (!file) {
@@ -107,7 +110,41 @@ TextureTile readPatchTextureTile(const fs::path& dir, const PatchInfo& info) {
                     (info.textureFile.empty() ? std::string()
                                               : " ('" + info.textureFile + "' is missing)"));
   }
-  return readTextureTile(*file);
+  return *file;
+}
+
+}  // namespace
+
+TextureTile readPatchTextureTile(const fs::path& dir, const PatchInfo& info) {
+  return readTextureTile(textureFileOf(dir, info));
+}
+
+std::vector<std::byte> readPatchTexturePng(const fs::path& dir, const PatchInfo& info) {
+  const fs::path file = textureFileOf(dir, info);
+  int width = 0, height = 0, channels = 0;
+  const std::vector<std::uint8_t> pixels = readImage(file, width, height, channels);
+  if (channels > 4) {
+    throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has more than 4 channels");
+  }
+  // PNG holds 1 to 4 channels of 8 bits: the image as it is.
+  return encodeImage("tile.png", pixels.data(), width, height, channels, nullptr);
+}
+
+fs::path patchCoordinatesFile(const fs::path& dir, const PatchInfo& info) {
+  if (info.coordinatesFile.empty()) {
+    throw Error(ErrorCode::NotFound, "patch " + info.folder + " has no texture coordinates");
+  }
+  const fs::path patchesDir = patchesDirOf(dir);
+  const fs::path folderDir =
+      detail::findEntry(patchesDir, info.folder).value_or(patchesDir / info.folder);
+  const fs::path file =
+      detail::findEntry(folderDir, info.coordinatesFile).value_or(folderDir / info.coordinatesFile);
+  std::error_code ec;
+  if (!fs::is_regular_file(file, ec)) {
+    throw Error(ErrorCode::NotFound, "texture coordinates '" + info.coordinatesFile +
+                                         "' of patch " + info.folder + " do not exist");
+  }
+  return file;
 }
 
 std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& model,
@@ -115,19 +152,8 @@ std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& m
   if (info.textureFile.empty()) {
     return std::nullopt;
   }
-  const auto file = detail::findTextureFile(dir, info.textureFile);
-  if (!file) {
-    throw Error(ErrorCode::NotFound, "texture '" + info.textureFile + "' of patch " + info.folder +
-                                         " does not exist under Images/");
-  }
   PatchTexture texture;
-  int width = 0, height = 0, channels = 0;
-  const std::vector<std::uint8_t> pixels = readImage(*file, width, height, channels);
-  if (channels > 4) {
-    throw Error(ErrorCode::Corrupt, "texture '" + file->string() + "' has more than 4 channels");
-  }
-  // PNG holds 1 to 4 channels of 8 bits: the image as it is.
-  texture.png = encodeImage("tile.png", pixels.data(), width, height, channels, nullptr);
+  texture.png = readPatchTexturePng(dir, info);
 
   const int n = model.gridSize();
   const GridRect& r = info.stored;
@@ -142,11 +168,7 @@ std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& m
     }
     return texture;
   }
-  const fs::path patchesDir = patchesDirOf(dir);
-  const fs::path folderDir =
-      detail::findEntry(patchesDir, info.folder).value_or(patchesDir / info.folder);
-  const fs::path coordinatesPath =
-      detail::findEntry(folderDir, info.coordinatesFile).value_or(folderDir / info.coordinatesFile);
+  const fs::path coordinatesPath = patchCoordinatesFile(dir, info);
   const AaraArray array = readAaraFile(coordinatesPath);
   if ((array.type != AaraType::V2f && array.type != AaraType::V2d) || array.sizes.size() != 2 ||
       array.sizes[0] != r.width() || array.sizes[1] != r.height()) {

@@ -28,6 +28,14 @@ TextureTile readTextureTile(const std::filesystem::path& file);
 /// readTextureTile.
 TextureTile readPatchTextureTile(const std::filesystem::path& dir, const PatchInfo& info);
 
+/// The texture tile a patch names, as a PNG file (the image as stored: 1 to 4 channels of 8 bits).
+/// Throws as readPatchTextureTile.
+std::vector<std::byte> readPatchTexturePng(const std::filesystem::path& dir, const PatchInfo& info);
+
+/// The texture coordinates file (.aara) a patch names. Throws Error(NotFound) when it names none
+/// or the file does not exist.
+std::filesystem::path patchCoordinatesFile(const std::filesystem::path& dir, const PatchInfo& info);
+
 /// The texture of one patch, ready for a GLB.
 struct PatchTexture {
   /// The tile as a PNG file.
