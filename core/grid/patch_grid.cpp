@@ -59,21 +59,6 @@ std::size_t PatchGrid::definedCount() const {
   return n;
 }
 
-GridRect PatchGrid::definedRect() const {
-  GridRect r{size_, size_, 0, 0};
-  for (int y = 0; y < size_; ++y) {
-    for (int x = 0; x < size_; ++x) {
-      if (defined(x, y)) {
-        r.x0 = std::min(r.x0, x);
-        r.y0 = std::min(r.y0, y);
-        r.x1 = std::max(r.x1, x + 1);
-        r.y1 = std::max(r.y1, y + 1);
-      }
-    }
-  }
-  return r.empty() ? GridRect{} : r;
-}
-
 Box3d PatchGrid::localBox() const {
   float lo[3] = {std::numeric_limits<float>::infinity(), std::numeric_limits<float>::infinity(),
                  std::numeric_limits<float>::infinity()};
@@ -115,15 +100,20 @@ Box3d PatchGrid::globalBox() const {
   return box;
 }
 
-double PatchGrid::resolution() const {
+PatchGrid::Summary PatchGrid::summarize() const {
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  float lo[3] = {kInf, kInf, kInf};
+  float hi[3] = {-kInf, -kInf, -kInf};
+  GridRect rect{size_, size_, 0, 0};
   // Distances from local differences: the translation cancels, the linear part (identity for
-  // grids vsm writes) applies to the difference.
+  // grids vsm writes) applies to the difference. Neighbours' coordinates are close, so their
+  // float32 difference is exact (Sterbenz) or nearly so.
   const bool identity = local2global_.isTranslation();
   const auto& m = local2global_.m;
-  auto length = [&](const float* a, const float* b) {
-    const double dx = double{b[0]} - a[0];
-    const double dy = double{b[1]} - a[1];
-    const double dz = double{b[2]} - a[2];
+  auto length = [&](const float* a, const float* b) -> double {
+    const float dx = b[0] - a[0];
+    const float dy = b[1] - a[1];
+    const float dz = b[2] - a[2];
     if (identity) {
       return std::sqrt(dx * dx + dy * dy + dz * dz);
     }
@@ -132,25 +122,48 @@ double PatchGrid::resolution() const {
     const double gz = m[8] * dx + m[9] * dy + m[10] * dz;
     return std::sqrt(gx * gx + gy * gy + gz * gz);
   };
+  auto isDefined = [](const float* p) { return p[0] == p[0] && p[1] == p[1] && p[2] == p[2]; };
   double sum = 0;
   std::size_t count = 0;
+  const std::size_t stride = static_cast<std::size_t>(size_) * 3;
   for (int y = 0; y < size_; ++y) {
+    const float* row = positions_.data() + static_cast<std::size_t>(y) * stride;
+    const float* below = y + 1 < size_ ? row + stride : nullptr;
+    int first = size_, last = -1;
     for (int x = 0; x < size_; ++x) {
-      if (!defined(x, y)) {
+      const float* p = row + 3 * x;
+      if (!isDefined(p)) {
         continue;
       }
-      const float* p = at(x, y);
-      if (x + 1 < size_ && defined(x + 1, y)) {
-        sum += length(p, at(x + 1, y));
+      first = std::min(first, x);
+      last = x;
+      for (int c = 0; c < 3; ++c) {
+        lo[c] = p[c] < lo[c] ? p[c] : lo[c];
+        hi[c] = p[c] > hi[c] ? p[c] : hi[c];
+      }
+      if (x + 1 < size_ && isDefined(p + 3)) {
+        sum += length(p, p + 3);
         ++count;
       }
-      if (y + 1 < size_ && defined(x, y + 1)) {
-        sum += length(p, at(x, y + 1));
+      if (below != nullptr && isDefined(below + 3 * x)) {
+        sum += length(p, below + 3 * x);
         ++count;
       }
     }
+    if (last >= 0) {
+      rect.x0 = std::min(rect.x0, first);
+      rect.x1 = std::max(rect.x1, last + 1);
+      rect.y0 = std::min(rect.y0, y);
+      rect.y1 = y + 1;
+    }
   }
-  return count == 0 ? 0.0 : sum / static_cast<double>(count);
+  Summary summary;
+  if (lo[0] <= hi[0]) {
+    summary.localBox = {{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
+    summary.definedRect = rect;
+  }
+  summary.resolution = count == 0 ? 0.0 : sum / static_cast<double>(count);
+  return summary;
 }
 
 double PatchGrid::maxAbsLocal() const {

@@ -62,14 +62,25 @@ class PatchGrid {
 
   bool anyDefined() const;
   std::size_t definedCount() const;
-  /// The smallest rectangle holding every defined vertex (empty when none is defined).
-  GridRect definedRect() const;
   Box3d localBox() const;
   /// Box of the defined vertices in global coordinates (each vertex transformed in double).
   Box3d globalBox() const;
-  /// Mean global distance between defined horizontal and vertical grid neighbours; 0 when no two
-  /// neighbours are defined.
-  double resolution() const;
+
+  /// What describing or writing a patch needs of its vertices, from one pass over them.
+  struct Summary {
+    /// localBox().
+    Box3d localBox;
+    /// The smallest rectangle holding every defined vertex (empty when none is defined).
+    GridRect definedRect;
+    /// Mean global distance between defined horizontal and vertical grid neighbours (each
+    /// distance in float32 when local2global is a translation, relative error below 1e-6); 0
+    /// when no two neighbours are defined.
+    double resolution = 0;
+  };
+  Summary summarize() const;
+  /// summarize().definedRect and summarize().resolution.
+  GridRect definedRect() const { return summarize().definedRect; }
+  double resolution() const { return summarize().resolution; }
   /// Largest absolute local coordinate of a defined vertex: float32 rounding of stored positions is
   /// at most this times 2^-24.
   double maxAbsLocal() const;

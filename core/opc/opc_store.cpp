@@ -750,15 +750,16 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
     throw Error(ErrorCode::Io, "cannot create '" + folderDir.string() + "': " + ec.message());
   }
 
+  const PatchGrid::Summary summary = grid.summarize();
   info.local2global = grid.local2global();
-  info.localBox = grid.localBox();
+  info.localBox = summary.localBox;
   info.globalBox = grid.local2global().isTranslation()
                        ? transformBox(info.local2global, info.localBox)
                        : grid.globalBox();
   info.globalBox.extend(childrenBox);
   info.localBox.extend(transformBox(grid.local2global().inverse(), childrenBox));
-  info.resolution = grid.resolution();
-  info.stored = grid.definedRect();
+  info.resolution = summary.resolution;
+  info.stored = summary.definedRect;
   const GridRect& r = info.stored;
 
   AaraArray positions;

@@ -104,13 +104,16 @@ void Model::describe(const PatchKey& key, const PatchGrid& grid) {
     throw Error(ErrorCode::InvalidArgument, "grid size differs from the model's patch size");
   }
   const Box3d children = childrenBox(key);
-  info.globalBox = grid.globalBox();
+  const PatchGrid::Summary summary = grid.summarize();
+  info.localBox = summary.localBox;
+  info.globalBox = grid.local2global().isTranslation()
+                       ? transformBox(grid.local2global(), summary.localBox)
+                       : grid.globalBox();
   info.globalBox.extend(children);
-  info.localBox = grid.localBox();
   info.localBox.extend(transformBox(grid.local2global().inverse(), children));
   info.local2global = grid.local2global();
-  info.resolution = grid.resolution();
-  info.stored = grid.definedRect();
+  info.resolution = summary.resolution;
+  info.stored = summary.definedRect;
 }
 
 void Model::setGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) {

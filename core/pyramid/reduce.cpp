@@ -7,7 +7,12 @@ namespace vsm::core {
 
 PatchGrid reduce(const std::array<const PatchGrid*, 4>& children) {
   int size = 0;
+  // The parent's origin: the centre of its children's origins when those are translations (as in
+  // every grid vsm builds: each the centre of its child's box), so its locals stay as small as
+  // theirs without a pass over their vertices; otherwise the centre of their global boxes.
+  Box3d origins;
   Box3d box;
+  bool translations = true;
   for (const PatchGrid* child : children) {
     if (child == nullptr) {
       continue;
@@ -16,7 +21,15 @@ PatchGrid reduce(const std::array<const PatchGrid*, 4>& children) {
       throw Error(ErrorCode::InvalidArgument, "reduce: children differ in grid size");
     }
     size = child->size();
-    box.extend(child->globalBox());
+    if (!child->anyDefined()) {
+      continue;  // its origin (identity) says nothing about where it is
+    }
+    translations = translations && child->local2global().isTranslation();
+    if (translations) {
+      origins.extend(child->local2global().translationPart());
+    } else {
+      box.extend(child->globalBox());
+    }
   }
   if (size == 0) {
     throw Error(ErrorCode::InvalidArgument, "reduce: no children");
@@ -26,7 +39,14 @@ PatchGrid reduce(const std::array<const PatchGrid*, 4>& children) {
     throw Error(ErrorCode::InvalidArgument, "reduce: grid size is not 2^n+1");
   }
 
-  PatchGrid parent(size, originFor(box));
+  if (!translations) {
+    for (const PatchGrid* child : children) {
+      if (child != nullptr) {
+        box.extend(child->globalBox());
+      }
+    }
+  }
+  PatchGrid parent(size, originFor(translations ? origins : box));
   for (int j = 0; j < size; ++j) {
     const int v = 2 * j;  // row in the children's union
     for (int i = 0; i < size; ++i) {

@@ -12,8 +12,9 @@ namespace vsm::core {
 ///
 /// `children` is indexed by Quadrant (NW, NE, SW, SE); null entries are missing children, whose
 /// area becomes undefined. A vertex on a shared border is taken from the first present child (in
-/// quadrant order) that defines it. The parent gets its own origin (originFor its global box); its
-/// float32 locals are the children's global positions rounded once.
+/// quadrant order) that defines it. The parent gets its own origin: the centre of its (defined)
+/// children's origins when all are translations, else originFor the union of their global boxes;
+/// its float32 locals are the children's global positions rounded once.
 ///
 /// Preconditions: at least one child, all children of the same size 2^n+1.
 /// Throws Error(InvalidArgument) when they are not met.
