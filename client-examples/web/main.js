@@ -1,15 +1,20 @@
 // The VSM browser viewer: streams a model's OGC 3D Tiles view from vsmd with three.js and
 // 3d-tiles-renderer.
 //
-//   /viewer/?model=ID[&mode=lod|texture][&error=PIXELS][&tileset=URL]
+//   /viewer/?model=ID[&mode=lod|texture][&view=oblique|top][&error=PIXELS][&tileset=URL]
 //
 // mode=lod (the default) colours every tile by its depth in the pyramid, the depth being the first
 // number of its content URI "depth_x_y.glb", with the palette of `vsm render-lod`
-// (core/tiles/README.md, kDepthPalette); mode=texture shows the GLB's own material. error is the
-// screen-space error target in pixels (default 4; smaller loads deeper levels sooner).
+// (core/tiles/README.md, kDepthPalette); mode=texture shows the GLB's own material: a textured
+// tile unlit (the image's own colours, as imagery is shown), an untextured one lit by a headlight.
+// view=top looks straight down on the model (north up) instead of from above and to the south.
+// error is the screen-space error target in pixels (default 4; smaller loads deeper levels
+// sooner).
 //
-// For tests and scripts, window.vsmViewer holds counters: tiles requested, loaded and failed,
-// pending loads, and `idle` (the root is in and nothing is queued, downloading or parsing).
+// For tests and scripts, window.vsmViewer holds counters: tiles requested, loaded (of them
+// textured) and failed, pending loads, `idle` (the root is in and nothing is queued, downloading
+// or parsing), and `camera`: the matrices of the last frame drawn (column-major, as three.js keeps
+// them) and the canvas size in CSS pixels, so that a script can project a point to the screen.
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -24,12 +29,15 @@ export const DEPTH_PALETTE = [
 const params = new URLSearchParams(window.location.search);
 const modelId = params.get('model');
 let mode = params.get('mode') === 'texture' ? 'texture' : 'lod';
+const view = params.get('view') === 'top' ? 'top' : 'oblique';
 
 const state = {
   model: modelId,
   mode,
+  view,
   requested: 0,
   loaded: 0,
+  textured: 0,
   failed: 0,
   errors: [],
   depths: {},
@@ -37,6 +45,7 @@ const state = {
   pending: 0,
   idle: false,
   frames: 0,
+  camera: null,
 };
 window.vsmViewer = state;
 
@@ -118,7 +127,34 @@ function lodMaterial(depth) {
   return lodMaterials.get(key);
 }
 
+/// The material a mesh shows in texture mode: its own, except that a textured one is drawn unlit
+/// (a MeshBasicMaterial with the same image and colour, made once per mesh and disposed with it).
+function textureMaterial(object) {
+  const own = object.userData.vsmOwnMaterial;
+  if (!own.map) {
+    return own;
+  }
+  if (!object.userData.vsmUnlitMaterial) {
+    object.userData.vsmUnlitMaterial = new THREE.MeshBasicMaterial({
+      map: own.map,
+      color: own.color,
+      side: own.side,
+      transparent: own.transparent,
+      opacity: own.opacity,
+    });
+  }
+  return object.userData.vsmUnlitMaterial;
+}
+
+function materialFor(object) {
+  return mode === 'lod' && object.userData.vsmDepth !== null
+    ? lodMaterial(object.userData.vsmDepth) : textureMaterial(object);
+}
+
+/// Keeps a tile's own material and depth on its meshes and shows it in the current mode; true if
+/// any of its meshes carries a texture.
 function colourTile(tileScene, depth) {
+  let textured = false;
   tileScene.traverse((object) => {
     if (!object.isMesh) {
       return;
@@ -127,9 +163,10 @@ function colourTile(tileScene, depth) {
       object.userData.vsmOwnMaterial = object.material;
       object.userData.vsmDepth = depth;
     }
-    object.material = mode === 'lod' && depth !== null
-      ? lodMaterial(depth) : object.userData.vsmOwnMaterial;
+    textured = textured || Boolean(object.userData.vsmOwnMaterial.map);
+    object.material = materialFor(object);
   });
+  return textured;
 }
 
 function setMode(next) {
@@ -137,8 +174,7 @@ function setMode(next) {
   state.mode = mode;
   tiles.group.traverse((object) => {
     if (object.isMesh && object.userData.vsmOwnMaterial) {
-      object.material = mode === 'lod' && object.userData.vsmDepth !== null
-        ? lodMaterial(object.userData.vsmDepth) : object.userData.vsmOwnMaterial;
+      object.material = materialFor(object);
     }
   });
   const url = new URL(window.location.href);
@@ -157,12 +193,18 @@ tiles.addEventListener('load-model', ({ scene: tileScene, url }) => {
   if (depth !== null) {
     state.depths[depth] = (state.depths[depth] || 0) + 1;
   }
-  colourTile(tileScene, depth);
+  if (colourTile(tileScene, depth)) {
+    state.textured++;
+  }
 });
 tiles.addEventListener('dispose-model', ({ scene: tileScene }) => {
   tileScene.traverse((object) => {
     if (object.isMesh && object.userData.vsmOwnMaterial) {
       object.material = object.userData.vsmOwnMaterial;  // disposed by the renderer, not ours
+      if (object.userData.vsmUnlitMaterial) {
+        object.userData.vsmUnlitMaterial.dispose();  // ours; the image is the renderer's
+        delete object.userData.vsmUnlitMaterial;
+      }
     }
   });
 });
@@ -172,7 +214,8 @@ tiles.addEventListener('load-error', ({ url, error }) => {
 });
 
 let placed = false;
-/// Looks at the tileset's bounding volume from above and to the south, once the root is in.
+/// Looks at the tileset's bounding volume from above and to the south (view=top: straight down,
+/// north up, the bounding sphere filling the view), once the root is in.
 function placeCamera() {
   const sphere = new THREE.Sphere();
   if (!tiles.getBoundingSphere(sphere)) {
@@ -187,10 +230,20 @@ function placeCamera() {
     north.set(0, 1, 0);
   }
   north.normalize();
-  camera.up.copy(up);
-  camera.position.copy(centre)
-    .addScaledVector(up, radius * 1.6)
-    .addScaledVector(north, -radius * 1.2);
+  camera.up.copy(up);  // the orbit's axis
+  if (view === 'top') {
+    // A hair to the south of straight down (0.06 degrees): north is up on the screen, and the
+    // orbit controls keep their axis.
+    const half = THREE.MathUtils.degToRad(camera.fov / 2);
+    const distance = radius / Math.min(Math.tan(half), Math.tan(half) * camera.aspect);
+    camera.position.copy(centre)
+      .addScaledVector(up, distance)
+      .addScaledVector(north, -distance * 1e-3);
+  } else {
+    camera.position.copy(centre)
+      .addScaledVector(up, radius * 1.6)
+      .addScaledVector(north, -radius * 1.2);
+  }
   camera.near = radius / 1000;
   camera.far = radius * 100;
   camera.updateProjectionMatrix();
@@ -217,6 +270,13 @@ function frame() {
   headlight.position.copy(camera.position);
   headlight.target.position.copy(controls.target);
   renderer.render(scene, camera);
+  state.camera = {
+    projection: camera.projectionMatrix.toArray(),
+    view: camera.matrixWorldInverse.toArray(),
+    world: tiles.group.matrixWorld.toArray(),
+    width: canvas.clientWidth,
+    height: canvas.clientHeight,
+  };
 
   const stats = tiles.stats;
   state.rootLoaded = placed;

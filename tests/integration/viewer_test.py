@@ -9,12 +9,28 @@ client-examples/web/build.sh --cesium: the `viewer.site` fixture), in
   false colour: every requested tile loaded, zero failures, the screenshot not blank (many
   distinct colours, and the palette colours of several depths among its pixels);
 - CesiumJS, /viewer/cesium.html?model=merged (no imagery, no terrain, no ion): zero tile
-  failures, tiles loaded, the screenshot not blank.
+  failures, tiles loaded, the screenshot not blank;
+- a textured real model: PRISM imported with the NASA image draped over it (`vsm import
+  PRISMelevation.tif <opc> --texture conus_visible_earth.tif --patch-size 65`, the
+  `viewer.textured.model` fixture), looked at straight down (view=top) in the viewer's texture
+  mode (textured tiles unlit) and in CesiumJS (unlit=1): every tile loaded and textured, zero
+  failures, and the screenshot shows the image where it belongs. With the camera matrices the page
+  reports, some 5600 DEM vertices (lon, lat, height -> WGS 84 ECEF, by our own geodesy) are
+  projected to screen pixels; the colour there (3 x 3 pixel mean) is compared with the image
+  itself at that lon/lat (bilinear, averaged over +-0.1 degrees, about a texel of the levels
+  drawn): per-channel correlation, the median of the largest channel difference, the share of
+  points within a few levels, mean colour and spread (`texture_match`, thresholds TEXTURE_*).
+  The same check must fail for the same view in false colour, for the untextured PRISM model
+  (the `tiles.model` fixture's) in texture mode, and for the textured screenshot against the
+  image moved by half a degree or mirrored north-south.
 
-No request may leave 127.0.0.1. The screenshots stay in --screenshots (CI artefacts).
+No request may leave 127.0.0.1. The screenshots and the numbers of the texture check
+(texture-check.json) stay in --screenshots (CI artefacts).
 
 Run by ctest:
     viewer_test.py --vsmd build/server/vsmd --model build/.../tiles/merged \\
+        --textured-model build/.../prism-textured --untextured-model build/.../tiles/prism \\
+        --dem ../shared/data/PRISMelevation.tif --image ../shared/data/conus_visible_earth.tif \\
         --viewer build/viewer --web-tools build/web-tools --screenshots build/.../screenshots"""
 
 import argparse
@@ -39,8 +55,34 @@ BACKGROUND = (0x10, 0x14, 0x18)
 # The viewer's panel (title, mode switch, the palette as a legend) lies in the top rows; colours
 # of the model are counted below them.
 PANEL_ROWS = 100
-# Per page: every wait in browser_check.js ends by then (the test's whole budget is ~3 minutes).
+# Per page: every wait in browser_check.js ends by then (the test's whole budget is ~5 minutes).
 PAGE_SECONDS = 75
+# The textured real model (PRISM with the NASA image) and the same DEM without a texture.
+TEXTURED = "prism-textured"
+UNTEXTURED = "prism"
+# The texture check: a screenshot matches the image when, over the sampled points, every channel
+# correlates with the image by at least TEXTURE_R, the median of the largest channel difference
+# is at most TEXTURE_MEDIAN levels, at least TEXTURE_SHARE of the points are within TEXTURE_CLOSE
+# levels in every channel, the mean colours differ by at most TEXTURE_MEAN levels per channel and
+# the spreads (standard deviations) by at most TEXTURE_SPREAD of the image's. Seen (swiftshader,
+# both viewers): r >= 0.983 (blue the lowest), median 1.24, 98 % within 24, means within 0.5 and
+# spreads within 2 %; the image moved by half a degree (~3 image pixels) fails three of the five
+# (r 0.88 in blue, median 5.7, 86 % within 24).
+TEXTURE_R = 0.97
+TEXTURE_MEDIAN = 4.0
+TEXTURE_CLOSE = 24
+TEXTURE_SHARE = 0.95
+TEXTURE_MEAN = 8.0
+TEXTURE_SPREAD = 0.15
+# The image is averaged over +-TEXTURE_BOX degrees around each point (about a texel of the levels
+# the view loads, 4 DEM quads of 2.5 arc-minutes), and points lie every SAMPLE_STEP DEM samples,
+# with SAMPLE_CLEAR samples of data all around (no point on the edge of the model).
+TEXTURE_BOX = 0.1
+SAMPLE_STEP = 12
+SAMPLE_CLEAR = 4
+# WGS 84 (the importer puts geographic rasters into WGS 84 ECEF metres).
+WGS84_A = 6378137.0
+WGS84_F = 1 / 298.257223563
 
 
 def read_png(path):
@@ -62,13 +104,131 @@ def colour_counts(pixels):
     return dict(zip(values.tolist(), counts.tolist()))
 
 
+def ecef(lon, lat, height):
+    """WGS 84 geodetic (degrees, metres) -> ECEF metres, (n, 3)."""
+    import numpy
+    lam, phi = numpy.radians(lon), numpy.radians(lat)
+    e2 = WGS84_F * (2 - WGS84_F)
+    n = WGS84_A / numpy.sqrt(1 - e2 * numpy.sin(phi) ** 2)
+    return numpy.stack([(n + height) * numpy.cos(phi) * numpy.cos(lam),
+                        (n + height) * numpy.cos(phi) * numpy.sin(lam),
+                        (n * (1 - e2) + height) * numpy.sin(phi)], axis=-1)
+
+
+class Raster:
+    """A GeoTIFF read with GDAL: bands (bands, rows, cols) as floats and its geotransform."""
+
+    def __init__(self, path):
+        from osgeo import gdal
+        gdal.UseExceptions()
+        dataset = gdal.Open(path)
+        self.bands = dataset.ReadAsArray().astype(float)
+        if self.bands.ndim == 2:
+            self.bands = self.bands[None]
+        self.transform = dataset.GetGeoTransform()
+        assert self.transform[2] == 0 and self.transform[4] == 0, path  # north up
+
+    def at(self, lon, lat):
+        """(n, bands): bilinear between pixel centres (edge pixels extended)."""
+        import numpy
+        t = self.transform
+        x = (lon - t[0]) / t[1] - 0.5
+        y = (lat - t[3]) / t[5] - 0.5
+        x0, y0 = numpy.floor(x).astype(int), numpy.floor(y).astype(int)
+        fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+        rows, cols = self.bands.shape[1:]
+
+        def px(i, j):
+            return self.bands[:, numpy.clip(j, 0, rows - 1), numpy.clip(i, 0, cols - 1)].T
+
+        return ((1 - fy) * ((1 - fx) * px(x0, y0) + fx * px(x0 + 1, y0))
+                + fy * ((1 - fx) * px(x0, y0 + 1) + fx * px(x0 + 1, y0 + 1)))
+
+    def box(self, lon, lat, half):
+        """(n, bands): the mean of 5 x 5 bilinear samples over +-half degrees around each point."""
+        offsets = [half * (k - 2) / 2 for k in range(5)]
+        return sum(self.at(lon + dx, lat + dy) for dx in offsets for dy in offsets) / 25
+
+
+def dem_points(dem):
+    """(lon, lat, height) of DEM vertices every SAMPLE_STEP samples, with data all around."""
+    import numpy
+    heights = dem.bands[0]
+    rows, cols = heights.shape
+    c = SAMPLE_CLEAR
+    jj, ii = numpy.mgrid[c:rows - c:SAMPLE_STEP, c:cols - c:SAMPLE_STEP]
+    jj, ii = jj.ravel(), ii.ravel()
+    clear = numpy.array([numpy.isfinite(heights[j - c:j + c + 1, i - c:i + c + 1]).all()
+                         for j, i in zip(jj, ii)])
+    jj, ii = jj[clear], ii[clear]
+    t = dem.transform
+    # A sample is the vertex at its pixel centre.
+    return t[0] + (ii + 0.5) * t[1], t[3] + (jj + 0.5) * t[5], heights[jj, ii]
+
+
+def project(camera, points, shape):
+    """Screen pixels (x, y) of ECEF points with the page's matrices (three.js/Cesium: column-major
+    4 x 4; `world` the tiles' group, identity when absent), scaled to the screenshot's size."""
+    import numpy
+
+    def matrix(name):
+        return numpy.array(camera[name], dtype=float).reshape(4, 4).T
+
+    m = matrix("projection") @ matrix("view")
+    if "world" in camera:
+        m = m @ matrix("world")
+    clip = numpy.c_[points, numpy.ones(len(points))] @ m.T
+    ndc = clip[:, :3] / clip[:, 3:]
+    x = (ndc[:, 0] + 1) / 2 * shape[1]
+    y = (1 - ndc[:, 1]) / 2 * shape[0]
+    return x, y, clip[:, 3] > 0
+
+
+def texture_match(got, expected):
+    """Numbers comparing screen colours with image colours ((n, 3) each) and whether they match."""
+    import numpy
+    worst = numpy.abs(got - expected).max(axis=1)
+    r = []
+    for c in range(3):
+        spread = got[:, c].std() * expected[:, c].std()
+        r.append(float(numpy.corrcoef(got[:, c], expected[:, c])[0, 1]) if spread > 0 else 0.0)
+    mean_got, mean_expected = got.mean(axis=0), expected.mean(axis=0)
+    spread_got, spread_expected = got.std(axis=0), expected.std(axis=0)
+    numbers = {
+        "points": len(got),
+        "r": [round(v, 4) for v in r],
+        "median": round(float(numpy.median(worst)), 2),
+        "share_close": round(float((worst <= TEXTURE_CLOSE).mean()), 4),
+        "mean": [round(float(v), 1) for v in mean_got],
+        "image_mean": [round(float(v), 1) for v in mean_expected],
+        "spread": [round(float(v), 1) for v in spread_got],
+        "image_spread": [round(float(v), 1) for v in spread_expected],
+    }
+    failed = []
+    if min(r) < TEXTURE_R:
+        failed.append("correlation")
+    if numbers["median"] > TEXTURE_MEDIAN:
+        failed.append("median")
+    if numbers["share_close"] < TEXTURE_SHARE:
+        failed.append("share_close")
+    if numpy.abs(mean_got - mean_expected).max() > TEXTURE_MEAN:
+        failed.append("mean")
+    if (numpy.abs(spread_got - spread_expected) > TEXTURE_SPREAD * spread_expected).any():
+        failed.append("spread")
+    numbers["failed"] = failed
+    return numbers
+
+
 class Browser(unittest.TestCase):
     daemon = None
+    texture_numbers = {}
 
     @classmethod
     def setUpClass(cls):
         def prepare(root):
             shutil.copytree(ARGS.model, os.path.join(root, MODEL))
+            shutil.copytree(ARGS.textured_model, os.path.join(root, TEXTURED))
+            shutil.copytree(ARGS.untextured_model, os.path.join(root, UNTEXTURED))
 
         os.makedirs(ARGS.screenshots, exist_ok=True)
         cls.daemon = Daemon("--set", "threads.cpu=2", "--viewer-dir", ARGS.viewer,
@@ -77,6 +237,9 @@ class Browser(unittest.TestCase):
 
     @classmethod
     def tearDownClass(cls):
+        if cls.texture_numbers:
+            with open(os.path.join(ARGS.screenshots, "texture-check.json"), "w") as f:
+                json.dump(cls.texture_numbers, f, indent=1)
         if cls.daemon is not None:
             code = cls.daemon.stop()
             cls.daemon.cleanup(keep=code != 0)
@@ -156,6 +319,109 @@ class Browser(unittest.TestCase):
         shown = [d for d in range(len(PALETTE)) if counts.get(int(PALETTE[d], 16), 0) >= 200]
         self.assertLessEqual(len(shown), 1, "texture mode shows the LOD palette: %s" % shown)
 
+    # ---- the textured real model -------------------------------------------------------------
+
+    def screen_colours(self, report, pixels, name):
+        """The sampled DEM points seen in a screenshot: (their lon, lat, (n, 3) screen colours)."""
+        import numpy
+        camera = report["state"]["camera"]
+        self.assertIsNotNone(camera, report["state"])
+        lon, lat, height = dem_points(self.dem)
+        x, y, front = project(camera, ecef(lon, lat, height), pixels.shape)
+        rows, cols = pixels.shape[:2]
+        # On the screen, clear of its border, of the viewer's panel (top rows) and of Cesium's
+        # credit (bottom left).
+        inside = (front & (x >= 2) & (x < cols - 2) & (y >= PANEL_ROWS) & (y < rows - 2)
+                  & ~((x < 200) & (y > rows - 50)))
+        xs, ys = numpy.round(x[inside]).astype(int), numpy.round(y[inside]).astype(int)
+        got = numpy.mean([pixels[ys + dy, xs + dx].astype(float)
+                          for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
+        print("%s: %d of %d DEM points on the screen" % (name, len(xs), len(x)), file=sys.stderr)
+        # Most of PRISM in view (a camera that misses it would leave too few points to judge).
+        self.assertGreater(len(xs), 0.8 * len(x), name)
+        self.assertGreater(len(xs), 1000, name)
+        return lon[inside], lat[inside], got
+
+    def check_texture(self, name, report, pixels, expect_match=True, shift=None):
+        """texture_match of a screenshot against the image; `shift(lon, lat)` moves where the image
+        is sampled (a misplaced texture). Records the numbers for texture-check.json."""
+        lon, lat, got = self.screen_colours(report, pixels, name)
+        if shift is not None:
+            lon, lat = shift(lon, lat)
+        numbers = texture_match(got, self.image.box(lon, lat, TEXTURE_BOX)[:, :3])
+        Browser.texture_numbers[name] = numbers
+        print("%s: texture check %s" % (name, json.dumps(numbers)), file=sys.stderr)
+        if expect_match:
+            self.assertEqual(numbers["failed"], [], "%s does not show the image: %s"
+                             % (name, numbers))
+        else:
+            # Clearly not the image: most of the criteria fail, the main two always.
+            self.assertIn("correlation", numbers["failed"], numbers)
+            self.assertIn("share_close", numbers["failed"], numbers)
+        return numbers
+
+    @classmethod
+    def rasters(cls):
+        if not hasattr(cls, "dem"):
+            cls.dem = Raster(ARGS.dem)
+            cls.image = Raster(ARGS.image)
+
+    def load_viewer_top(self, model, mode, name):
+        report, pixels = self.load("/viewer/?model=%s&mode=%s&view=top" % (model, mode),
+                                   "vsmViewer", name)
+        state = report["state"]
+        self.assertEqual(state["failed"], 0, state["errors"])
+        self.assertEqual(report["consoleErrors"], [])
+        self.assertEqual(state["mode"], mode)
+        self.assertEqual(state["view"], "top")
+        self.assertGreater(state["loaded"], 1)
+        self.assertEqual(state["pending"], 0)
+        self.assertEqual(state["loaded"], state["requested"], state)
+        self.assert_not_blank(pixels, name)
+        return report, pixels
+
+    def test_viewer_shows_the_texture_of_a_textured_real_model(self):
+        self.rasters()
+        report, pixels = self.load_viewer_top(TEXTURED, "texture", "viewer-textured")
+        state = report["state"]
+        # Every tile the renderer loaded carried the image (PRISM's whole extent is covered).
+        self.assertEqual(state["textured"], state["loaded"], state)
+        print("viewer-textured: %d tiles, depths %s" % (state["loaded"], state["depths"]),
+              file=sys.stderr)
+        self.check_texture("viewer-textured", report, pixels)
+        # The same screenshot against the image half a degree east (~3 of its pixels, ~45 km)
+        # and mirrored north-south inside PRISM's extent: a misplaced texture fails.
+        self.check_texture("viewer-textured vs image moved 0.5 deg east", report, pixels,
+                           expect_match=False, shift=lambda lon, lat: (lon + 0.5, lat))
+        t = self.dem.transform
+        north, south = t[3], t[3] + self.dem.bands.shape[1] * t[5]
+        self.check_texture("viewer-textured vs image mirrored north-south", report, pixels,
+                           expect_match=False, shift=lambda lon, lat: (lon, north + south - lat))
+
+    def test_viewer_false_colour_of_the_textured_model_is_not_the_image(self):
+        self.rasters()
+        report, pixels = self.load_viewer_top(TEXTURED, "lod", "viewer-textured-lod")
+        self.check_texture("viewer-textured-lod", report, pixels, expect_match=False)
+
+    def test_viewer_texture_mode_of_the_untextured_model_is_not_the_image(self):
+        self.rasters()
+        report, pixels = self.load_viewer_top(UNTEXTURED, "texture", "viewer-untextured")
+        self.assertEqual(report["state"]["textured"], 0, report["state"])
+        self.check_texture("viewer-untextured", report, pixels, expect_match=False)
+
+    def test_cesium_shows_the_texture_of_a_textured_real_model(self):
+        self.rasters()
+        report, pixels = self.load("/viewer/cesium.html?model=%s&view=top&unlit=1&error=4"
+                                   % TEXTURED, "vsmCesium", "cesium-textured")
+        state = report["state"]
+        self.assertIsNone(state["error"], state)
+        self.assertTrue(state["ready"])
+        self.assertEqual(state["failed"], 0, state["errors"])
+        self.assertGreater(state["loaded"], 1)
+        self.assertTrue(state["idle"], state)
+        self.assert_not_blank(pixels, "cesium-textured")
+        self.check_texture("cesium-textured", report, pixels)
+
     def test_the_viewer_files_are_served_safely_with_types_and_etags(self):
         d = self.daemon
         status, headers, body = d.request("GET", "/viewer")
@@ -201,6 +467,11 @@ def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--vsmd", required=True)
     parser.add_argument("--model", required=True, help="the merged OPC (copied into the data root)")
+    parser.add_argument("--textured-model", required=True,
+                        help="PRISM imported with --texture conus_visible_earth.tif")
+    parser.add_argument("--untextured-model", required=True, help="PRISM imported without one")
+    parser.add_argument("--dem", required=True, help="PRISMelevation.tif")
+    parser.add_argument("--image", required=True, help="conus_visible_earth.tif")
     parser.add_argument("--viewer", required=True, help="the built viewer (build.sh --cesium)")
     parser.add_argument("--web-tools", required=True, help="prefix holding playwright-core")
     parser.add_argument("--screenshots", required=True, help="where the screenshots are kept")
