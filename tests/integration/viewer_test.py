@@ -11,8 +11,8 @@ client-examples/web/build.sh --cesium: the `viewer.site` fixture), in
 - CesiumJS, /viewer/cesium.html?model=merged (no imagery, no terrain, no ion): zero tile
   failures, tiles loaded, the screenshot not blank;
 - a textured real model: PRISM imported with the NASA image draped over it (`vsm import
-  PRISMelevation.tif <opc> --texture conus_visible_earth.tif --patch-size 65`, the
-  `viewer.textured.model` fixture), looked at straight down (view=top) in the viewer's texture
+  PRISMelevation.tif <opc> --texture conus_visible_earth.tif --patch-size 65`, by the
+  `tiles.model` fixture), looked at straight down (view=top) in the viewer's texture
   mode (textured tiles unlit) and in CesiumJS (unlit=1): every tile loaded and textured, zero
   failures, and the screenshot shows the image where it belongs. With the camera matrices the page
   reports, some 5600 DEM vertices (lon, lat, height -> WGS 84 ECEF, by our own geodesy) are
@@ -21,15 +21,15 @@ client-examples/web/build.sh --cesium: the `viewer.site` fixture), in
   drawn): per-channel correlation, the median of the largest channel difference, the share of
   points within a few levels, mean colour and spread (`texture_match`, thresholds TEXTURE_*).
   The same check must fail for the same view in false colour, for the untextured PRISM model
-  (the `tiles.model` fixture's) in texture mode, and for the textured screenshot against the
-  image moved by half a degree or mirrored north-south.
+  (the `opc.PRISMelevation-65` fixture's) in texture mode, and for the textured screenshot against
+  the image moved by half a degree or mirrored north-south.
 
 No request may leave 127.0.0.1. The screenshots and the numbers of the texture check
 (texture-check.json) stay in --screenshots (CI artefacts).
 
 Run by ctest:
     viewer_test.py --vsmd build/server/vsmd --model build/.../tiles/merged \\
-        --textured-model build/.../prism-textured --untextured-model build/.../tiles/prism \\
+        --textured-model build/.../tiles/prism --untextured-model build/.../PRISMelevation-65 \\
         --dem ../shared/data/PRISMelevation.tif --image ../shared/data/conus_visible_earth.tif \\
         --viewer build/viewer --web-tools build/web-tools --screenshots build/.../screenshots"""
 
