@@ -8,8 +8,10 @@
 #include <cctype>
 #include <cerrno>
 #include <cmath>
+#include <cstdlib>
 #include <cstring>
 #include <deque>
+#include <new>
 #include <pugixml.hpp>
 #include <set>
 #include <sstream>
@@ -907,16 +909,97 @@ void OpcWriter::writeHierarchy(const Model& model) {
   }
 }
 
+namespace {
+
+/// Direct I/O granularity: file offsets, lengths and buffer addresses in multiples of this (the
+/// largest logical block size of common devices).
+constexpr std::size_t kDirectBlock = 4096;
+/// Files below this size are written through the page cache (XML and small arrays).
+constexpr std::size_t kDirectMinimum = 64 * 1024;
+
+/// A per-thread buffer aligned for direct I/O, grown as needed and reused (allocating one per
+/// file would fault in and zero fresh pages every time).
+std::byte* directBuffer(std::size_t bytes) {
+  struct Buffer {
+    std::byte* data = nullptr;
+    std::size_t capacity = 0;
+    ~Buffer() { std::free(data); }
+  };
+  thread_local Buffer buffer;
+  if (buffer.capacity < bytes) {
+    std::free(buffer.data);
+    buffer.capacity = (bytes + kDirectBlock - 1) / kDirectBlock * kDirectBlock;
+    buffer.data = static_cast<std::byte*>(std::aligned_alloc(kDirectBlock, buffer.capacity));
+    if (buffer.data == nullptr) {
+      buffer.capacity = 0;
+      throw std::bad_alloc();
+    }
+  }
+  return buffer.data;
+}
+
+/// Writes `bytes` to `fd`, opened with O_DIRECT: the whole blocks from an aligned copy, straight
+/// to the device, then (O_DIRECT cleared) the rest through the page cache. 0 or the errno of the
+/// failure; `refused` is set when the file system refuses direct writes (nothing was written).
+int writeDirect(int fd, std::span<const std::byte> bytes, bool& refused) {
+  const std::size_t whole = bytes.size() / kDirectBlock * kDirectBlock;
+  std::byte* aligned = directBuffer(whole);
+  std::memcpy(aligned, bytes.data(), whole);
+  std::size_t done = 0;
+  while (done < whole) {
+    const ssize_t n = ::write(fd, aligned + done, whole - done);
+    if (n < 0) {
+      if (errno == EINTR) {
+        continue;
+      }
+      if (errno == EINVAL && done == 0) {
+        refused = true;
+        break;
+      }
+      return errno;
+    }
+    done += static_cast<std::size_t>(n);
+    if (done % kDirectBlock != 0) {
+      break;  // a short write off the block grid: the rest goes through the page cache
+    }
+  }
+  const int flags = ::fcntl(fd, F_GETFL);
+  if (flags < 0 || ::fcntl(fd, F_SETFL, flags & ~O_DIRECT) != 0) {
+    return errno;
+  }
+  return writeAll(fd, bytes.subspan(done));
+}
+
+}  // namespace
+
 void OpcWriter::writeFile(const fs::path& file, std::span<const std::byte> bytes) {
   if (durability_ == Durability::EachFile) {
     writeAtomically(file, bytes);
     return;
   }
-  const int fd = ::open(file.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  // Deferred files are made durable by one syncfs before anything names them: large ones go to
+  // the device directly, which saves copying them into the page cache and writing them back from
+  // there (an import is mostly such files), and leaves the cache to what others read.
+  const bool direct = bytes.size() >= kDirectMinimum && directWrites_.load();
+  int fd = ::open(file.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | (direct ? O_DIRECT : 0),
+                  0644);
+  if (fd < 0 && direct && errno == EINVAL) {  // no O_DIRECT on this file system (tmpfs)
+    directWrites_ = false;
+    fd = ::open(file.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  }
   if (fd < 0) {
     throwIoError("cannot create", file.string(), errno);
   }
-  const int errnum = writeAll(fd, bytes);
+  int errnum = 0;
+  if (direct && directWrites_.load()) {
+    bool refused = false;
+    errnum = writeDirect(fd, bytes, refused);
+    if (refused) {
+      directWrites_ = false;
+    }
+  } else {
+    errnum = writeAll(fd, bytes);
+  }
   if (::close(fd) != 0 || errnum != 0) {
     throwIoError("cannot write", file.string(), errnum != 0 ? errnum : errno);
   }

@@ -42,7 +42,9 @@ PatchGrid readPatchGrid(const std::filesystem::path& dir, const Model& model,
 /// in its directory, fsynced and renamed into place, and the directory fsynced, so a crash leaves
 /// the old file or the new one. Durability::Deferred, for a private staging directory its owner
 /// publishes as a whole (an import): files are written in place and nothing is fsynced until
-/// sync(), which the owner calls once before it publishes (far fewer creates and disk flushes).
+/// sync(), which the owner calls once before it publishes (far fewer creates and disk flushes);
+/// files of 64 KiB and more go to the device with O_DIRECT (no copy in the page cache) where the
+/// file system allows it.
 ///
 /// writePatch() may run concurrently for different patches; writeHierarchy() and sync() run
 /// after them, from one thread.
@@ -90,8 +92,9 @@ class OpcWriter {
 
   std::filesystem::path dir_;
   Durability durability_;
-  std::atomic<bool> unsynced_{false};  // Deferred: something written since the last sync()
-  std::mutex imagesMutex_;             // guards imagesCreated_ (writePatch runs concurrently)
+  std::atomic<bool> unsynced_{false};     // Deferred: something written since the last sync()
+  std::atomic<bool> directWrites_{true};  // Deferred: large files with O_DIRECT (see writeFile)
+  std::mutex imagesMutex_;                // guards imagesCreated_ (writePatch runs concurrently)
   bool imagesCreated_ = false;
 };
 

@@ -8,9 +8,11 @@
 #
 # With 257 x 257 patches (vsm's default) the pyramid has 8192 / 256 = 32 = 2^5 patches per side
 # at the bottom, so depth 5: five overview levels, the same as `gdaladdo -r average` with factors
-# 2 4 8 16 32 (written as an external .ovr, -ro, on a copy of the file). Both run single-threaded,
-# one after the other, on a warm page cache (the input was just written). vsm also fsyncs its
-# output before publishing it; gdaladdo does not.
+# 2 4 8 16 32 (written as an external .ovr, -ro, on a copy of the file). They run one after the
+# other on a warm page cache (the input was just written); gdaladdo uses one thread, vsm builds the
+# four quarters of the pyramid on up to one thread per core. vsm also makes its output durable
+# (its large files written with O_DIRECT, then one syncfs) before publishing it; gdaladdo does
+# not.
 #
 #   tests/bench/import_bench.sh [path/to/vsm] [work-dir]
 # Defaults: build/server/cli/vsm and a temporary directory (removed afterwards). The time budget
