@@ -227,26 +227,32 @@ AaraArray decodeAara(std::span<const std::byte> bytes, std::string_view what) {
   return array;
 }
 
-std::vector<std::byte> encodeAara(const AaraArray& array) {
-  if (array.sizes.empty() || array.sizes.size() > 4) {
+std::vector<std::byte> encodeAaraHeader(AaraType type, std::span<const std::int32_t> sizes) {
+  if (sizes.empty() || sizes.size() > 4) {
     throw Error(ErrorCode::InvalidArgument,
-                "an .aara array needs 1..4 dimensions, not " + std::to_string(array.sizes.size()));
+                "an .aara array needs 1..4 dimensions, not " + std::to_string(sizes.size()));
   }
-  const std::size_t elementBytes = elementSize(array.type);
-  const auto count = checkedCount(array.sizes, elementBytes);
-  if (!count || *count * elementBytes != array.data.size()) {
-    throw Error(ErrorCode::InvalidArgument, ".aara data size does not match its type and sizes");
+  if (!checkedCount(sizes, elementSize(type))) {
+    throw Error(ErrorCode::InvalidArgument, ".aara sizes are negative or too large");
   }
-  const std::string_view name = toString(array.type);
+  const std::string_view name = toString(type);
   std::vector<std::byte> out;
-  out.reserve(1 + name.size() + 1 + 4 * array.sizes.size() + array.data.size());
   out.push_back(static_cast<std::byte>(name.size()));
   for (const char c : name) {
     out.push_back(static_cast<std::byte>(c));
   }
-  out.push_back(static_cast<std::byte>(array.sizes.size()));
-  for (const std::int32_t size : array.sizes) {
+  out.push_back(static_cast<std::byte>(sizes.size()));
+  for (const std::int32_t size : sizes) {
     appendInt32Le(out, size);
+  }
+  return out;
+}
+
+std::vector<std::byte> encodeAara(const AaraArray& array) {
+  std::vector<std::byte> out = encodeAaraHeader(array.type, array.sizes);
+  const auto count = checkedCount(array.sizes, elementSize(array.type));
+  if (!count || *count * elementSize(array.type) != array.data.size()) {
+    throw Error(ErrorCode::InvalidArgument, ".aara data size does not match its type and sizes");
   }
   out.insert(out.end(), array.data.begin(), array.data.end());
   return out;

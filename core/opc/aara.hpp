@@ -32,6 +32,9 @@ struct AaraArray {
 /// name, a dimension count outside 1..4, a negative size, truncation or trailing bytes.
 AaraArray decodeAara(std::span<const std::byte> bytes, std::string_view what);
 std::vector<std::byte> encodeAara(const AaraArray& array);
+/// The header alone (type name, dimension count, sizes), for writers that append the elements
+/// themselves. Throws Error(InvalidArgument) for 0 or more than 4 sizes or negative ones.
+std::vector<std::byte> encodeAaraHeader(AaraType type, std::span<const std::int32_t> sizes);
 
 /// Reads and decodes a file. Throws Error(NotFound / Io / Corrupt).
 AaraArray readAaraFile(const std::filesystem::path& path);

@@ -764,30 +764,31 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
   info.stored = summary.definedRect;
   const GridRect& r = info.stored;
 
-  AaraArray positions;
-  positions.type = AaraType::V3f;
-  positions.sizes = {r.width(), r.height()};
-  positions.data.resize(static_cast<std::size_t>(r.width()) * r.height() * 12);
+  // The file's bytes built in place: the header, then the stored rows.
+  const std::int32_t sizes[2] = {r.width(), r.height()};
+  std::vector<std::byte> positions = encodeAaraHeader(AaraType::V3f, sizes);
+  const std::size_t header = positions.size();
+  const std::size_t rowBytes = static_cast<std::size_t>(r.width()) * 12;
+  positions.resize(header + rowBytes * static_cast<std::size_t>(r.height()));
   const std::span<const float> all = grid.positions();
-  std::byte* out = positions.data.data();
+  std::byte* out = positions.data() + header;
   for (int y = r.y0; y < r.y1; ++y) {
     const std::size_t first = (static_cast<std::size_t>(y) * grid.size() + r.x0) * 3;
-    const std::size_t bytes = static_cast<std::size_t>(r.width()) * 12;
-    std::memcpy(out, all.data() + first, bytes);
-    out += bytes;
+    std::memcpy(out, all.data() + first, rowBytes);
+    out += rowBytes;
   }
   // Undefined vertices are written as three NaNs whatever NaN payload they hold.
   const float nan = std::numeric_limits<float>::quiet_NaN();
-  for (std::size_t i = 0; i < positions.data.size(); i += 12) {
+  for (std::size_t i = header; i < positions.size(); i += 12) {
     float v[3];
-    std::memcpy(v, positions.data.data() + i, 12);
+    std::memcpy(v, positions.data() + i, 12);
     if (!(v[0] == v[0] && v[1] == v[1] && v[2] == v[2])) {
       v[0] = v[1] = v[2] = nan;
-      std::memcpy(positions.data.data() + i, v, 12);
+      std::memcpy(positions.data() + i, v, 12);
     }
   }
   const fs::path positionsFile = folderDir / info.positionsFile;
-  writeFile(positionsFile, encodeAara(positions));
+  writeFile(positionsFile, positions);
 
   info.coordinatesFile.clear();
   if (!info.textureFile.empty()) {
