@@ -107,10 +107,11 @@ PatchGrid::Summary PatchGrid::summarize() const {
   GridRect rect{size_, size_, 0, 0};
   // Distances from local differences: the translation cancels, the linear part (identity for
   // grids vsm writes) applies to the difference. Neighbours' coordinates are close, so their
-  // float32 difference is exact (Sterbenz) or nearly so.
+  // float32 difference is exact (Sterbenz) or nearly so. An undefined end makes the distance NaN,
+  // which is how pairs with one are left out (no test per vertex).
   const bool identity = local2global_.isTranslation();
   const auto& m = local2global_.m;
-  auto length = [&](const float* a, const float* b) -> double {
+  auto length = [&](const float* a, const float* b) -> float {
     const float dx = b[0] - a[0];
     const float dy = b[1] - a[1];
     const float dz = b[2] - a[2];
@@ -120,19 +121,17 @@ PatchGrid::Summary PatchGrid::summarize() const {
     const double gx = m[0] * dx + m[1] * dy + m[2] * dz;
     const double gy = m[4] * dx + m[5] * dy + m[6] * dz;
     const double gz = m[8] * dx + m[9] * dy + m[10] * dz;
-    return std::sqrt(gx * gx + gy * gy + gz * gz);
+    return static_cast<float>(std::sqrt(gx * gx + gy * gy + gz * gz));
   };
-  auto isDefined = [](const float* p) { return p[0] == p[0] && p[1] == p[1] && p[2] == p[2]; };
   double sum = 0;
   std::size_t count = 0;
   const std::size_t stride = static_cast<std::size_t>(size_) * 3;
   for (int y = 0; y < size_; ++y) {
     const float* row = positions_.data() + static_cast<std::size_t>(y) * stride;
-    const float* below = y + 1 < size_ ? row + stride : nullptr;
     int first = size_, last = -1;
     for (int x = 0; x < size_; ++x) {
       const float* p = row + 3 * x;
-      if (!isDefined(p)) {
+      if (!(p[0] == p[0] && p[1] == p[1] && p[2] == p[2])) {
         continue;
       }
       first = std::min(first, x);
@@ -141,21 +140,35 @@ PatchGrid::Summary PatchGrid::summarize() const {
         lo[c] = p[c] < lo[c] ? p[c] : lo[c];
         hi[c] = p[c] > hi[c] ? p[c] : hi[c];
       }
-      if (x + 1 < size_ && isDefined(p + 3)) {
-        sum += length(p, p + 3);
-        ++count;
-      }
-      if (below != nullptr && isDefined(below + 3 * x)) {
-        sum += length(p, below + 3 * x);
-        ++count;
+    }
+    if (last < 0) {
+      continue;  // no defined vertex: no distance from this row either
+    }
+    rect.x0 = std::min(rect.x0, first);
+    rect.x1 = std::max(rect.x1, last + 1);
+    rect.y0 = std::min(rect.y0, y);
+    rect.y1 = y + 1;
+    double rowSum = 0;
+    int rowCount = 0;
+    for (int x = first; x < last; ++x) {
+      const float d = length(row + 3 * x, row + 3 * x + 3);
+      if (d == d) {
+        rowSum += d;
+        ++rowCount;
       }
     }
-    if (last >= 0) {
-      rect.x0 = std::min(rect.x0, first);
-      rect.x1 = std::max(rect.x1, last + 1);
-      rect.y0 = std::min(rect.y0, y);
-      rect.y1 = y + 1;
+    if (y + 1 < size_) {
+      const float* below = row + stride;
+      for (int x = first; x <= last; ++x) {
+        const float d = length(row + 3 * x, below + 3 * x);
+        if (d == d) {
+          rowSum += d;
+          ++rowCount;
+        }
+      }
     }
+    sum += rowSum;
+    count += static_cast<std::size_t>(rowCount);
   }
   Summary summary;
   if (lo[0] <= hi[0]) {

@@ -8,6 +8,7 @@
 #include <cctype>
 #include <cerrno>
 #include <cmath>
+#include <cstdint>
 #include <cstdlib>
 #include <cstring>
 #include <deque>
@@ -704,6 +705,34 @@ OpcWriter::OpcWriter(fs::path dir, Durability durability)
 
 namespace {
 
+/// Direct I/O granularity: file offsets, lengths and buffer addresses in multiples of this (the
+/// largest logical block size of common devices).
+constexpr std::size_t kDirectBlock = 4096;
+/// Files below this size are written through the page cache (XML and small arrays).
+constexpr std::size_t kDirectMinimum = 64 * 1024;
+
+/// A per-thread buffer aligned for direct I/O, grown as needed and reused (allocating one per
+/// file would fault in and zero fresh pages every time). writePatch builds a positions file in it,
+/// so writeDirect sends it without a copy. It keeps the largest file its thread wrote.
+std::byte* directBuffer(std::size_t bytes) {
+  struct Buffer {
+    std::byte* data = nullptr;
+    std::size_t capacity = 0;
+    ~Buffer() { std::free(data); }
+  };
+  thread_local Buffer buffer;
+  if (buffer.capacity < bytes) {
+    std::free(buffer.data);
+    buffer.capacity = (bytes + kDirectBlock - 1) / kDirectBlock * kDirectBlock;
+    buffer.data = static_cast<std::byte*>(std::aligned_alloc(kDirectBlock, buffer.capacity));
+    if (buffer.data == nullptr) {
+      buffer.capacity = 0;
+      throw std::bad_alloc();
+    }
+  }
+  return buffer.data;
+}
+
 /// Gives a patch written without a folder name its standard one, and checks the names.
 void nameFolder(PatchInfo& info) {
   if (info.folder.empty()) {
@@ -764,14 +793,17 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
   info.stored = summary.definedRect;
   const GridRect& r = info.stored;
 
-  // The file's bytes built in place: the header, then the stored rows.
+  // The file's bytes built in place, in this thread's buffer for direct writes: the header, then
+  // the stored rows.
   const std::int32_t sizes[2] = {r.width(), r.height()};
-  std::vector<std::byte> positions = encodeAaraHeader(AaraType::V3f, sizes);
-  const std::size_t header = positions.size();
+  const std::vector<std::byte> header = encodeAaraHeader(AaraType::V3f, sizes);
   const std::size_t rowBytes = static_cast<std::size_t>(r.width()) * 12;
-  positions.resize(header + rowBytes * static_cast<std::size_t>(r.height()));
+  const std::span<std::byte> positions(
+      directBuffer(header.size() + rowBytes * static_cast<std::size_t>(r.height())),
+      header.size() + rowBytes * static_cast<std::size_t>(r.height()));
+  std::memcpy(positions.data(), header.data(), header.size());
   const std::span<const float> all = grid.positions();
-  std::byte* out = positions.data() + header;
+  std::byte* out = positions.data() + header.size();
   for (int y = r.y0; y < r.y1; ++y) {
     const std::size_t first = (static_cast<std::size_t>(y) * grid.size() + r.x0) * 3;
     std::memcpy(out, all.data() + first, rowBytes);
@@ -779,7 +811,7 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
   }
   // Undefined vertices are written as three NaNs whatever NaN payload they hold.
   const float nan = std::numeric_limits<float>::quiet_NaN();
-  for (std::size_t i = header; i < positions.size(); i += 12) {
+  for (std::size_t i = header.size(); i < positions.size(); i += 12) {
     float v[3];
     std::memcpy(v, positions.data() + i, 12);
     if (!(v[0] == v[0] && v[1] == v[1] && v[2] == v[2])) {
@@ -912,40 +944,17 @@ void OpcWriter::writeHierarchy(const Model& model) {
 
 namespace {
 
-/// Direct I/O granularity: file offsets, lengths and buffer addresses in multiples of this (the
-/// largest logical block size of common devices).
-constexpr std::size_t kDirectBlock = 4096;
-/// Files below this size are written through the page cache (XML and small arrays).
-constexpr std::size_t kDirectMinimum = 64 * 1024;
-
-/// A per-thread buffer aligned for direct I/O, grown as needed and reused (allocating one per
-/// file would fault in and zero fresh pages every time).
-std::byte* directBuffer(std::size_t bytes) {
-  struct Buffer {
-    std::byte* data = nullptr;
-    std::size_t capacity = 0;
-    ~Buffer() { std::free(data); }
-  };
-  thread_local Buffer buffer;
-  if (buffer.capacity < bytes) {
-    std::free(buffer.data);
-    buffer.capacity = (bytes + kDirectBlock - 1) / kDirectBlock * kDirectBlock;
-    buffer.data = static_cast<std::byte*>(std::aligned_alloc(kDirectBlock, buffer.capacity));
-    if (buffer.data == nullptr) {
-      buffer.capacity = 0;
-      throw std::bad_alloc();
-    }
-  }
-  return buffer.data;
-}
-
 /// Writes `bytes` to `fd`, opened with O_DIRECT: the whole blocks from an aligned copy, straight
 /// to the device, then (O_DIRECT cleared) the rest through the page cache. 0 or the errno of the
 /// failure; `refused` is set when the file system refuses direct writes (nothing was written).
 int writeDirect(int fd, std::span<const std::byte> bytes, bool& refused) {
   const std::size_t whole = bytes.size() / kDirectBlock * kDirectBlock;
-  std::byte* aligned = directBuffer(whole);
-  std::memcpy(aligned, bytes.data(), whole);
+  const std::byte* aligned = bytes.data();
+  if (reinterpret_cast<std::uintptr_t>(aligned) % kDirectBlock != 0) {
+    std::byte* copy = directBuffer(whole);
+    std::memcpy(copy, bytes.data(), whole);
+    aligned = copy;
+  }
   std::size_t done = 0;
   while (done < whole) {
     const ssize_t n = ::write(fd, aligned + done, whole - done);
