@@ -37,6 +37,9 @@ class GridSource {
   virtual void read(int x0, int y0, int w, int h, std::span<Vec3d> out) = 0;
   /// The grid's georeference when it has one (rasters); nullopt otherwise (point clouds).
   virtual std::optional<Georeference> georeference() const { return std::nullopt; }
+  /// Another handle of the same source for another thread (reads through it need no lock), or
+  /// null when the source has none to give (then one handle is shared under a lock).
+  virtual std::unique_ptr<GridSource> reopen() const { return nullptr; }
 };
 
 struct ImportOptions {
@@ -44,9 +47,9 @@ struct ImportOptions {
   int patchSize = 257;
   Progress* progress = nullptr;
   const CancelToken* cancel = nullptr;
-  /// When given, the four quarters below the root are built as parallel tasks (the source is
-  /// read under a lock: GDAL datasets are not thread-safe). Progress is reported from them under
-  /// a lock too.
+  /// When given, the subtrees two levels below the root are built as parallel tasks, each reading
+  /// through its own handle of the source (GridSource::reopen; GDAL datasets are not thread-safe),
+  /// or under a lock where the source has none. Progress is reported from them under a lock.
   Executor* executor = nullptr;
   /// An image to drape over the model when not empty: georeferenced (GDAL reads a geotransform
   /// and a CRS) it is placed by each vertex's geographic position, otherwise stretched over the

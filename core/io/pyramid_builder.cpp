@@ -110,8 +110,9 @@ void renameNoReplace(const fs::path& from, const fs::path& to) {
   throwIoError("cannot rename staging directory to", to.string(), error);
 }
 
-/// What the builders of one import share: the source (read under a lock), the writer (whose
-/// writePatch may run concurrently for different patches) and the progress.
+/// What the builders of one import share: the source (read under a lock by builders without a
+/// handle of their own), the writer (whose writePatch may run concurrently for different patches)
+/// and the progress.
 struct BuildShared {
   GridSource& source;
   OpcWriter& writer;
@@ -133,12 +134,13 @@ struct BuiltPatch {
 
 /// The depth-first build of one subtree. Holds at most the finished siblings on the path from its
 /// top to the current patch (at most 4 per level) plus one source window. Builders of disjoint
-/// subtrees may run concurrently.
+/// subtrees may run concurrently; each reads through a handle of its own when the source can
+/// reopen itself (GridSource::reopen), else through the shared one under a lock.
 class PyramidBuilder {
  public:
-  explicit PyramidBuilder(BuildShared& shared)
+  PyramidBuilder(BuildShared& shared, std::unique_ptr<GridSource> own)
       : shared_(shared),
-        source_(shared.source),
+        own_(std::move(own)),
         writer_(shared.writer),
         options_(shared.options),
         size_(shared.options.patchSize),
@@ -165,7 +167,6 @@ class PyramidBuilder {
     if (key.depth == depth_) {
       return readBottom(key);
     }
-    const std::size_t firstWritten = written_.size();
     std::array<BuiltPatch, 4> children;
     for (const Quadrant q : kQuadrants) {
       const PatchKey child = key.child(q);
@@ -173,13 +174,12 @@ class PyramidBuilder {
         children[static_cast<int>(q)] = build(child);
       }
     }
-    return combine(key, children, firstWritten);
+    return combine(key, children);
   }
 
   /// The parent of `children` (built by this builder or adopted from others) by reduction;
   /// writes the children. Null, and the subtree dropped, when nothing of it can be shown.
-  BuiltPatch combine(const PatchKey& key, std::array<BuiltPatch, 4>& children,
-                     std::size_t firstWritten) {
+  BuiltPatch combine(const PatchKey& key, std::array<BuiltPatch, 4>& children) {
     std::array<const PatchGrid*, 4> present{};
     std::array<const TextureTile*, 4> textures{};
     for (int q = 0; q < 4; ++q) {
@@ -195,7 +195,7 @@ class PyramidBuilder {
       // Every defined child vertex sits between the vertices this level keeps (isolated samples
       // in an empty area). A patch needs a defined vertex to be written and must exist for its
       // children to be reachable, so this subtree cannot be stored.
-      dropSubtree(key, firstWritten);
+      dropSubtree(key);
       return {};
     }
     if (shared_.texture != nullptr) {
@@ -212,6 +212,9 @@ class PyramidBuilder {
     }
     return parent;
   }
+
+  /// Closes this builder's own handle of the source (its subtree is built).
+  void releaseSource() { own_.reset(); }
 
   /// Takes over what `other` wrote (a subtree built concurrently).
   void adopt(PyramidBuilder& other) {
@@ -265,9 +268,11 @@ class PyramidBuilder {
     const int w = std::min(size_, width_ - x0);
     const int h = std::min(size_, height_ - y0);
     const std::size_t count = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
-    {
+    if (own_) {
+      own_->read(x0, y0, w, h, std::span<Vec3d>(window_.data(), count));
+    } else {
       std::lock_guard lock(shared_.sourceMutex);
-      source_.read(x0, y0, w, h, std::span<Vec3d>(window_.data(), count));
+      shared_.source.read(x0, y0, w, h, std::span<Vec3d>(window_.data(), count));
     }
     {
       std::lock_guard lock(shared_.progressMutex);
@@ -324,19 +329,25 @@ class PyramidBuilder {
     return built;
   }
 
-  /// Forgets and deletes every patch written below `key` (written_[firstWritten..]).
-  void dropSubtree(const PatchKey& key, std::size_t firstWritten) {
+  /// Forgets and deletes every patch written below `key`.
+  void dropSubtree(const PatchKey& key) {
     log::warn("import: the samples under patch " + key.toString() +
               " are too sparse to appear in its overview; that area is left out of the model");
-    for (std::size_t i = firstWritten; i < written_.size(); ++i) {
-      writer_.removePatchFiles(written_[i]);
-      boxes_.erase(written_[i].key);
+    auto below = [&key](const PatchKey& k) {
+      const int levels = k.depth - key.depth;
+      return levels > 0 && (k.x >> levels) == key.x && (k.y >> levels) == key.y;
+    };
+    for (const PatchInfo& info : written_) {
+      if (below(info.key)) {
+        writer_.removePatchFiles(info);
+        boxes_.erase(info.key);
+      }
     }
-    written_.resize(firstWritten);
+    std::erase_if(written_, [&below](const PatchInfo& info) { return below(info.key); });
   }
 
   BuildShared& shared_;
-  GridSource& source_;
+  std::unique_ptr<GridSource> own_;  // this builder's handle of the source, when it has one
   OpcWriter& writer_;
   const ImportOptions& options_;
   int size_;
@@ -399,27 +410,61 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
                      {},
                      0,
                      PyramidBuilder::leafCount(options.patchSize, source.width(), source.height())};
-  PyramidBuilder builder(shared);
+  PyramidBuilder builder(shared, nullptr);
   BuiltPatch root;
   if (options.executor != nullptr && builder.depth() > 0) {
-    // The four quarters in parallel, each by its own builder; the root from their results.
-    std::array<std::optional<PyramidBuilder>, 4> quarters;
-    std::array<BuiltPatch, 4> grids;
-    std::vector<std::function<void()>> tasks;
-    for (const Quadrant q : kQuadrants) {
-      const int i = static_cast<int>(q);
-      if (builder.inside(PatchKey::root().child(q))) {
-        quarters[i].emplace(shared);
-        tasks.emplace_back([&, i, q] { grids[i] = quarters[i]->build(PatchKey::root().child(q)); });
+    // The subtrees below depth `split` as parallel tasks, each by its own builder reading through
+    // its own handle of the source where it has one; the levels above from their results. 16
+    // subtrees rather than 4 keep the workers busy to the end (the corner subtrees are often
+    // partial).
+    const int split = std::min(2, builder.depth());
+    std::vector<PatchKey> tops;
+    for (std::uint32_t y = 0; y < (1u << split); ++y) {
+      for (std::uint32_t x = 0; x < (1u << split); ++x) {
+        if (builder.inside({split, x, y})) {
+          tops.push_back({split, x, y});
+        }
       }
+    }
+    std::vector<std::optional<PyramidBuilder>> subtrees(tops.size());
+    std::vector<BuiltPatch> results(tops.size());
+    std::vector<std::function<void()>> tasks;
+    for (std::size_t i = 0; i < tops.size(); ++i) {
+      tasks.emplace_back([&, i] {
+        subtrees[i].emplace(shared, source.reopen());
+        results[i] = subtrees[i]->build(tops[i]);
+        subtrees[i]->releaseSource();
+      });
     }
     options.executor->runAll(std::move(tasks));
-    for (auto& quarter : quarters) {
-      if (quarter) {
-        builder.adopt(*quarter);
+    std::map<PatchKey, BuiltPatch> level;
+    for (std::size_t i = 0; i < tops.size(); ++i) {
+      builder.adopt(*subtrees[i]);
+      if (results[i]) {
+        level.emplace(tops[i], std::move(results[i]));
       }
     }
-    root = builder.combine(PatchKey::root(), grids, 0);
+    // Up to the root, one level at a time.
+    for (int depth = split - 1; depth >= 0; --depth) {
+      std::map<PatchKey, BuiltPatch> parents;
+      for (auto& [key, patch] : level) {
+        parents.try_emplace(*key.parent());
+      }
+      for (auto& [parentKey, parent] : parents) {
+        std::array<BuiltPatch, 4> children;
+        for (const Quadrant q : kQuadrants) {
+          if (const auto it = level.find(parentKey.child(q)); it != level.end()) {
+            children[static_cast<int>(q)] = std::move(it->second);
+          }
+        }
+        parent = builder.combine(parentKey, children);
+      }
+      std::erase_if(parents, [](const auto& entry) { return !entry.second; });
+      level = std::move(parents);
+    }
+    if (const auto it = level.find(PatchKey::root()); it != level.end()) {
+      root = std::move(it->second);
+    }
   } else {
     root = builder.build(PatchKey::root());
   }

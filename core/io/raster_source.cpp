@@ -211,6 +211,9 @@ class RasterSource final : public GridSource {
     g.crsWkt = crsWkt_;
     return g;
   }
+  std::unique_ptr<GridSource> reopen() const override {
+    return std::make_unique<RasterSource>(path_);
+  }
 
   void read(int x0, int y0, int w, int h, std::span<Vec3d> out) override {
     const std::size_t count = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
