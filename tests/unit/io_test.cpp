@@ -773,11 +773,20 @@ TEST(PyramidBuilder, SamplesTooSparseForTheirOverviewAreLeftOutWithTheirSubtree)
   // overview keeps only even union positions, so that sample's depth-3 patch would be empty and
   // cannot be written; its subtree is left out rather than written as an empty patch.
   TempDir dir;
-  SyntheticSource source(300, 200, [](int c, int r) { return c < 100 || (c == 271 && r == 133); });
+  auto defined = [](int c, int r) { return c < 100 || (c == 271 && r == 133); };
+  SyntheticSource source(300, 200, defined);
   const Model model = buildOpc(source, dir / "opc", withPatchSize(33));
   EXPECT_EQ(model.find({4, 8, 4}), nullptr);
   EXPECT_EQ(model.find({3, 4, 2}), nullptr);
   expectParentsAreReducedFromChildren(dir / "opc", model);
+  // The same when the subtrees are built concurrently: the same files, nothing of the dropped
+  // subtree left behind.
+  SyntheticSource parallelSource(300, 200, defined);
+  ThreadPerTask executor;
+  ImportOptions options = withPatchSize(33);
+  options.executor = &executor;
+  buildOpc(parallelSource, dir / "parallel", options);
+  EXPECT_EQ(filesUnder(dir / "parallel"), filesUnder(dir / "opc"));
 }
 
 class RecordingProgress final : public Progress {
