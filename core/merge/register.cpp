@@ -9,10 +9,13 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdio>
+#include <functional>
 #include <limits>
 #include <map>
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "core/common/error.hpp"
@@ -180,6 +183,31 @@ Mat4d toMat(const Eigen::Matrix4d& e) {
   return m;
 }
 
+/// Milliseconds per step of a stage, for the debug log: where registration spends its time.
+class StageClock {
+ public:
+  explicit StageClock(bool enabled) : enabled_(enabled) {}
+  /// Appends " <name> <ms since the previous lap>" when enabled.
+  void lap(const char* name) {
+    if (!enabled_) {
+      return;
+    }
+    const auto now = std::chrono::steady_clock::now();
+    char text[64];
+    std::snprintf(text, sizeof text, " %s %.1f", name,
+                  std::chrono::duration<double, std::milli>(now - last_).count());
+    laps_ += text;
+    last_ = now;
+  }
+  /// The laps so far, then starts over.
+  std::string take() { return std::exchange(laps_, std::string()); }
+
+ private:
+  bool enabled_;
+  std::chrono::steady_clock::time_point last_ = std::chrono::steady_clock::now();
+  std::string laps_;
+};
+
 Vec3d applyLocal(const Eigen::Matrix4d& u, const Vec3d& centre, const Vec3d& p) {
   const Vec3d l = p - centre;
   const Eigen::Vector4d r = u * Eigen::Vector4d(l.x, l.y, l.z, 1);
@@ -251,6 +279,8 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     pcl::search::KdTree<pcl::PointNormal>::Ptr tree;  // built once, shared by the stages
   };
   std::map<int, DetailLevel> bLevels;
+  const bool debug = log::level() <= log::Level::Debug;
+  StageClock clock(debug);
   for (std::size_t s = 0; s < stages.size(); ++s) {
     if (options.cancel != nullptr) {
       options.cancel->throwIfCancelled();
@@ -271,6 +301,7 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
       bLevel.points = toPcl(bLevel.cloud, thinned(std::move(all), options.maxPoints * 4), centre);
       bLevel.tree = pcl::make_shared<pcl::search::KdTree<pcl::PointNormal>>();
       bLevel.tree->setInputCloud(bLevel.points);
+      clock.lap("detail-level");
     }
     const SurfaceSampler& bSurface = *bLevel.surface;
 
@@ -279,6 +310,7 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     near.min = {near.min.u - stage.distance, near.min.v - stage.distance};
     near.max = {near.max.u + stage.distance, near.max.v + stage.distance};
     const Cloud aCloud = cloudOf(gridsAt(target, stage.aDepth, frame, near), up);
+    clock.lap("target-cloud");
     std::vector<std::size_t> use;
     // The margin keeps B's border from attracting A's vertices that have no partner on B; it never
     // takes more than a quarter of B's width (a B only a few A cells wide must keep some).
@@ -299,6 +331,7 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     }
     use = thinned(std::move(use), options.maxPoints);
     const auto source = toPcl(aCloud, use, centre);
+    clock.lap("select");
     const auto& targetCloud = bLevel.points;
 
     pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
@@ -309,11 +342,22 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     icp.setMaximumIterations(options.maxIterations);
     icp.setTransformationEpsilon(1e-8);
     icp.setEuclideanFitnessEpsilon(1e-10);
+    int iterations = 0;  // counted in the debug log only (the callback copies indices)
+    using Callback =
+        pcl::Registration<pcl::PointNormal, pcl::PointNormal>::UpdateVisualizerCallbackSignature;
+    std::function<Callback> countIterations = [&](const auto&, const auto&, const auto&,
+                                                  const auto&) { ++iterations; };
+    if (debug) {
+      icp.registerVisualizationCallback(countIterations);
+      iterations = 0;  // registering calls it once
+    }
     pcl::PointCloud<pcl::PointNormal> aligned;
     icp.align(aligned, u.cast<float>());
+    clock.lap("icp");
     u = icp.getFinalTransformation().cast<double>();
     result.converged = icp.hasConverged();
     result.fitness = icp.getFitnessScore(stage.distance);
+    clock.lap("fitness");
     result.stages = static_cast<int>(s + 1);
     // The residual along up: how far A's vertices, moved by u, lie from B's surface.
     double sum = 0;
@@ -327,10 +371,12 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
       }
     }
     result.rms = count > 0 ? std::sqrt(sum / static_cast<double>(count)) : 0;
+    clock.lap("rms");
     log::debug("register: stage " + std::to_string(s) + " A depth " + std::to_string(stage.aDepth) +
                " B depth " + std::to_string(stage.bDepth) + " distance " +
                std::to_string(stage.distance) + " points " + std::to_string(source->size()) + "/" +
-               std::to_string(targetCloud->size()) + " fitness " + std::to_string(result.fitness));
+               std::to_string(targetCloud->size()) + " fitness " + std::to_string(result.fitness) +
+               " iterations " + std::to_string(iterations) + ", ms:" + clock.take());
   }
   if (options.progress != nullptr) {
     options.progress->report("registering", 1);
