@@ -9,6 +9,7 @@
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
 #include <functional>
 #include <limits>
@@ -81,20 +82,46 @@ int closestDepth(const std::vector<double>& resolutions, double resolution) {
   return best;
 }
 
+/// A grid's vertices in global coordinates, each transformed once (a normal needs up to five).
+struct GlobalGrid {
+  int size = 0;
+  std::vector<Vec3d> points;        // row by row; meaningful where defined
+  std::vector<std::uint8_t> valid;  // 1 where defined
+
+  explicit GlobalGrid(const PatchGrid& g)
+      : size(g.size()),
+        points(static_cast<std::size_t>(size) * size),
+        valid(static_cast<std::size_t>(size) * size, 0) {
+    for (int y = 0; y < size; ++y) {
+      for (int x = 0; x < size; ++x) {
+        if (g.defined(x, y)) {
+          points[index(x, y)] = g.global(x, y);
+          valid[index(x, y)] = 1;
+        }
+      }
+    }
+  }
+  std::size_t index(int x, int y) const { return static_cast<std::size_t>(y) * size + x; }
+  bool defined(int x, int y) const {
+    return x >= 0 && y >= 0 && x < size && y < size && valid[index(x, y)] != 0;
+  }
+  const Vec3d& at(int x, int y) const { return points[index(x, y)]; }
+};
+
 /// A grid vertex's normal from its neighbours (central differences, one-sided at borders and
 /// holes), oriented along `up`; nullopt when the neighbourhood is too sparse.
-std::optional<Vec3d> normalAt(const PatchGrid& g, int x, int y, const Vec3d& up) {
+std::optional<Vec3d> normalAt(const GlobalGrid& g, int x, int y, const Vec3d& up) {
   auto diff = [&](int x0, int y0, int x1, int y1) -> std::optional<Vec3d> {
-    const bool d0 = x0 >= 0 && y0 >= 0 && x0 < g.size() && y0 < g.size() && g.defined(x0, y0);
-    const bool d1 = x1 >= 0 && y1 >= 0 && x1 < g.size() && y1 < g.size() && g.defined(x1, y1);
+    const bool d0 = g.defined(x0, y0);
+    const bool d1 = g.defined(x1, y1);
     if (d0 && d1) {
-      return g.global(x1, y1) - g.global(x0, y0);
+      return g.at(x1, y1) - g.at(x0, y0);
     }
     if (d1) {
-      return g.global(x1, y1) - g.global(x, y);
+      return g.at(x1, y1) - g.at(x, y);
     }
     if (d0) {
-      return g.global(x, y) - g.global(x0, y0);
+      return g.at(x, y) - g.at(x0, y0);
     }
     return std::nullopt;
   };
@@ -121,16 +148,19 @@ struct Cloud {
   std::vector<Vec3d> normals;
 };
 
-Cloud cloudOf(const Grids& grids, const Vec3d& up) {
+/// The defined vertices of `grids` that have a normal and pass `keep(position)`, in grid order.
+template <typename Keep>
+Cloud cloudOf(const Grids& grids, const Vec3d& up, const Keep& keep) {
   Cloud cloud;
-  for (const auto& g : grids) {
-    for (int y = 0; y < g->size(); ++y) {
-      for (int x = 0; x < g->size(); ++x) {
-        if (!g->defined(x, y)) {
+  for (const auto& grid : grids) {
+    const GlobalGrid g(*grid);
+    for (int y = 0; y < g.size; ++y) {
+      for (int x = 0; x < g.size; ++x) {
+        if (!g.defined(x, y) || !keep(g.at(x, y))) {
           continue;
         }
-        if (const auto n = normalAt(*g, x, y, up)) {
-          cloud.points.push_back(g->global(x, y));
+        if (const auto n = normalAt(g, x, y, up)) {
+          cloud.points.push_back(g.at(x, y));
           cloud.normals.push_back(*n);
         }
       }
@@ -155,6 +185,15 @@ pcl::PointCloud<pcl::PointNormal>::Ptr toPcl(const Cloud& cloud,
     p.normal_z = static_cast<float>(cloud.normals[i].z);
     p.curvature = 0;
     out->push_back(p);
+  }
+  return out;
+}
+
+/// 0, 1, ..., count - 1.
+std::vector<std::size_t> allIndices(std::size_t count) {
+  std::vector<std::size_t> out(count);
+  for (std::size_t i = 0; i < count; ++i) {
+    out[i] = i;
   }
   return out;
 }
@@ -292,13 +331,11 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     DetailLevel& bLevel = bLevels[stage.bDepth];
     if (!bLevel.surface) {
       const Grids grids = gridsAt(detail, stage.bDepth, frame, bFoot);
-      bLevel.cloud = cloudOf(grids, up);
+      bLevel.cloud = cloudOf(grids, up, [](const Vec3d&) { return true; });
       bLevel.surface = std::make_shared<SurfaceSampler>(grids, up);
-      std::vector<std::size_t> all(bLevel.cloud.points.size());
-      for (std::size_t i = 0; i < all.size(); ++i) {
-        all[i] = i;
-      }
-      bLevel.points = toPcl(bLevel.cloud, thinned(std::move(all), options.maxPoints * 4), centre);
+      bLevel.points =
+          toPcl(bLevel.cloud,
+                thinned(allIndices(bLevel.cloud.points.size()), options.maxPoints * 4), centre);
       bLevel.tree = pcl::make_shared<pcl::search::KdTree<pcl::PointNormal>>();
       bLevel.tree->setInputCloud(bLevel.points);
       clock.lap("detail-level");
@@ -309,29 +346,29 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     Rect2d near = bFoot;
     near.min = {near.min.u - stage.distance, near.min.v - stage.distance};
     near.max = {near.max.u + stage.distance, near.max.v + stage.distance};
-    const Cloud aCloud = cloudOf(gridsAt(target, stage.aDepth, frame, near), up);
-    clock.lap("target-cloud");
-    std::vector<std::size_t> use;
     // The margin keeps B's border from attracting A's vertices that have no partner on B; it never
-    // takes more than a quarter of B's width (a B only a few A cells wide must keep some).
+    // takes more than a quarter of B's width (a B only a few A cells wide must keep some). The
+    // test comes before the normal: most of A's vertices in these patches lie beside B.
     const double m = std::min(
         stage.distance, 0.25 * std::min(bFoot.max.u - bFoot.min.u, bFoot.max.v - bFoot.min.v));
-    for (std::size_t i = 0; i < aCloud.points.size(); ++i) {
-      const Vec3d q = applyLocal(u, centre, aCloud.points[i]);
-      if (bSurface.sample(q) && bSurface.sample(q + frame.e1 * m) &&
-          bSurface.sample(q - frame.e1 * m) && bSurface.sample(q + frame.e2 * m) &&
-          bSurface.sample(q - frame.e2 * m)) {
-        use.push_back(i);
-      }
-    }
-    if (use.size() < kMinPoints) {
+    const Cloud aCloud =
+        cloudOf(gridsAt(target, stage.aDepth, frame, near), up, [&](const Vec3d& p) {
+          const Vec3d q = applyLocal(u, centre, p);
+          return bSurface.sample(q) && bSurface.sample(q + frame.e1 * m) &&
+                 bSurface.sample(q - frame.e1 * m) && bSurface.sample(q + frame.e2 * m) &&
+                 bSurface.sample(q - frame.e2 * m);
+        });
+    if (aCloud.points.size() < kMinPoints) {
       throw Error(ErrorCode::InvalidArgument,
                   "register: the models overlap too little to register (" +
-                      std::to_string(use.size()) + " target vertices over the detail model)");
+                      std::to_string(aCloud.points.size()) +
+                      " target vertices over the detail model)");
     }
-    use = thinned(std::move(use), options.maxPoints);
+    clock.lap("target-over-detail");
+    const std::vector<std::size_t> use =
+        thinned(allIndices(aCloud.points.size()), options.maxPoints);
     const auto source = toPcl(aCloud, use, centre);
-    clock.lap("select");
+    clock.lap("thin");
     const auto& targetCloud = bLevel.points;
 
     pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
