@@ -5,6 +5,10 @@
 #include <pcl/registration/icp.h>
 #include <pcl/search/kdtree.h>
 
+#include <flann/algorithms/dist.h>
+#include <flann/algorithms/kdtree_single_index.h>
+#include <flann/util/result_set.h>
+
 #include <Eigen/Dense>
 #include <algorithm>
 #include <chrono>
@@ -189,6 +193,82 @@ pcl::PointCloud<pcl::PointNormal>::Ptr toPcl(const Cloud& cloud,
   return out;
 }
 
+/// The kd-tree over B's points that ICP and its fitness score search. pcl::search::KdTree asks
+/// FLANN through knnSearch(), which opens an OpenMP parallel region for every single query: with
+/// libgomp that costs two futex system calls per query even with one thread, about half of each
+/// query, and registration makes some 10^5 of them. This is the tree pcl::KdTreeFLANN builds
+/// (FLANN's single kd-tree, leaves of at most 15 points, over x, y, z, exact search) queried
+/// through findNeighbors() directly: the same neighbours, without the parallel region. It derives
+/// from pcl::search::KdTree because that is the type ICP takes; the base's own tree stays empty,
+/// and radius search (which ICP does not use) is not offered.
+class DirectKdTree final : public pcl::search::KdTree<pcl::PointNormal> {
+ public:
+  void setInputCloud(const PointCloudConstPtr& cloud,
+                     const IndicesConstPtr& indices = IndicesConstPtr()) override {
+    input_ = cloud;
+    indices_ = indices;
+    xyz_.clear();
+    ids_.clear();
+    index_.reset();
+    auto add = [&](pcl::index_t i) {
+      const pcl::PointNormal& p = (*cloud)[static_cast<std::size_t>(i)];
+      if (std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z)) {
+        xyz_.insert(xyz_.end(), {p.x, p.y, p.z});
+        ids_.push_back(i);
+      }
+    };
+    if (indices) {
+      for (const pcl::index_t i : *indices) {
+        add(i);
+      }
+    } else {
+      for (std::size_t i = 0; i < cloud->size(); ++i) {
+        add(static_cast<pcl::index_t>(i));
+      }
+    }
+    if (!ids_.empty()) {
+      index_ = std::make_unique<Index>(flann::Matrix<float>(xyz_.data(), ids_.size(), 3),
+                                       flann::KDTreeSingleIndexParams(15));
+      index_->buildIndex();
+    }
+  }
+
+  int nearestKSearch(const pcl::PointNormal& point, int k, pcl::Indices& indices,
+                     std::vector<float>& distances) const override {
+    const std::size_t n = index_ && k > 0 ? std::min(static_cast<std::size_t>(k), ids_.size()) : 0;
+    indices.resize(n);
+    distances.resize(n);
+    if (n == 0) {
+      return 0;
+    }
+    // The result set knnSearch() uses for k <= 250; squared distances, nearest first.
+    flann::KNNSimpleResultSet<float> result(n);
+    const float query[3] = {point.x, point.y, point.z};
+    index_->findNeighbors(result, query, params_);
+    std::size_t one = 0;  // ICP asks for one neighbour: no allocation then
+    std::vector<std::size_t> many(n > 1 ? n : 0);
+    std::size_t* found = n > 1 ? many.data() : &one;
+    result.copy(found, distances.data(), n, true);
+    for (std::size_t i = 0; i < n; ++i) {
+      indices[i] = ids_[found[i]];
+    }
+    return static_cast<int>(n);
+  }
+
+  int radiusSearch(const pcl::PointNormal&, double, pcl::Indices&, std::vector<float>&,
+                   unsigned int) const override {
+    throw Error(ErrorCode::Internal, "register: radius search is not offered");
+  }
+
+ private:
+  using Index = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
+  std::vector<float> xyz_;         // x, y, z per indexed point (FLANN keeps its own copy)
+  std::vector<pcl::index_t> ids_;  // FLANN's point -> index into the input cloud
+  std::unique_ptr<Index> index_;
+  flann::SearchParams params_{-1, 0.0f};    // as pcl::KdTreeFLANN: unlimited checks, exact
+  mutable std::vector<std::size_t> found_;  // scratch: queries come from one thread at a time
+};
+
 /// 0, 1, ..., count - 1.
 std::vector<std::size_t> allIndices(std::size_t count) {
   std::vector<std::size_t> out(count);
@@ -336,7 +416,7 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
       bLevel.points =
           toPcl(bLevel.cloud,
                 thinned(allIndices(bLevel.cloud.points.size()), options.maxPoints * 4), centre);
-      bLevel.tree = pcl::make_shared<pcl::search::KdTree<pcl::PointNormal>>();
+      bLevel.tree = pcl::make_shared<DirectKdTree>();
       bLevel.tree->setInputCloud(bLevel.points);
       clock.lap("detail-level");
     }
