@@ -473,9 +473,14 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     clock.lap("icp");
     u = icp.getFinalTransformation().cast<double>();
     result.converged = icp.hasConverged();
+    result.stages = static_cast<int>(s + 1);
+    // The result reports the last stage's quality; earlier stages measure theirs (another nearest
+    // neighbour search of every point) only for the debug log.
+    if (s + 1 < stages.size() && !debug) {
+      continue;
+    }
     result.fitness = icp.getFitnessScore(stage.distance);
     clock.lap("fitness");
-    result.stages = static_cast<int>(s + 1);
     // The residual along up: how far A's vertices, moved by u, lie from B's surface.
     double sum = 0;
     std::size_t count = 0;
@@ -493,7 +498,8 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
                " B depth " + std::to_string(stage.bDepth) + " distance " +
                std::to_string(stage.distance) + " points " + std::to_string(source->size()) + "/" +
                std::to_string(targetCloud->size()) + " fitness " + std::to_string(result.fitness) +
-               " iterations " + std::to_string(iterations) + ", ms:" + clock.take());
+               " rms " + std::to_string(result.rms) + " iterations " + std::to_string(iterations) +
+               ", ms:" + clock.take());
   }
   if (options.progress != nullptr) {
     options.progress->report("registering", 1);
