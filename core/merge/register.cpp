@@ -92,10 +92,11 @@ struct GlobalGrid {
   std::vector<Vec3d> points;        // row by row; meaningful where defined
   std::vector<std::uint8_t> valid;  // 1 where defined
 
-  explicit GlobalGrid(const PatchGrid& g)
-      : size(g.size()),
-        points(static_cast<std::size_t>(size) * size),
-        valid(static_cast<std::size_t>(size) * size, 0) {
+  /// Takes `g`'s vertices (reusing the buffers: one GlobalGrid serves a model's grids in turn).
+  void assign(const PatchGrid& g) {
+    size = g.size();
+    points.resize(static_cast<std::size_t>(size) * size);
+    valid.assign(static_cast<std::size_t>(size) * size, 0);
     for (int y = 0; y < size; ++y) {
       for (int x = 0; x < size; ++x) {
         if (g.defined(x, y)) {
@@ -156,17 +157,24 @@ struct Cloud {
 template <typename Keep>
 Cloud cloudOf(const Grids& grids, const Vec3d& up, const Keep& keep) {
   Cloud cloud;
+  GlobalGrid g;
+  std::vector<std::size_t> kept;  // per grid, so the cloud grows once per grid
   for (const auto& grid : grids) {
-    const GlobalGrid g(*grid);
-    for (int y = 0; y < g.size; ++y) {
-      for (int x = 0; x < g.size; ++x) {
-        if (!g.defined(x, y) || !keep(g.at(x, y))) {
-          continue;
-        }
-        if (const auto n = normalAt(g, x, y, up)) {
-          cloud.points.push_back(g.at(x, y));
-          cloud.normals.push_back(*n);
-        }
+    g.assign(*grid);
+    kept.clear();
+    for (std::size_t i = 0; i < g.points.size(); ++i) {
+      if (g.valid[i] != 0 && keep(g.points[i])) {
+        kept.push_back(i);
+      }
+    }
+    cloud.points.reserve(cloud.points.size() + kept.size());
+    cloud.normals.reserve(cloud.normals.size() + kept.size());
+    for (const std::size_t i : kept) {
+      const int x = static_cast<int>(i % static_cast<std::size_t>(g.size));
+      const int y = static_cast<int>(i / static_cast<std::size_t>(g.size));
+      if (const auto n = normalAt(g, x, y, up)) {
+        cloud.points.push_back(g.points[i]);
+        cloud.normals.push_back(*n);
       }
     }
   }
