@@ -270,11 +270,10 @@ class DirectKdTree final : public pcl::search::KdTree<pcl::PointNormal> {
 
  private:
   using Index = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
-  std::vector<float> xyz_;         // x, y, z per indexed point (FLANN keeps its own copy)
+  std::vector<float> xyz_;         // x, y, z per indexed point: FLANN's dataset
   std::vector<pcl::index_t> ids_;  // FLANN's point -> index into the input cloud
   std::unique_ptr<Index> index_;
-  flann::SearchParams params_{-1, 0.0f};    // as pcl::KdTreeFLANN: unlimited checks, exact
-  mutable std::vector<std::size_t> found_;  // scratch: queries come from one thread at a time
+  flann::SearchParams params_{-1, 0.0f};  // as pcl::KdTreeFLANN: unlimited checks, exact
 };
 
 /// 0, 1, ..., count - 1.
