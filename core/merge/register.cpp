@@ -5,14 +5,22 @@
 #include <pcl/registration/icp.h>
 #include <pcl/search/kdtree.h>
 
+#include <flann/algorithms/dist.h>
+#include <flann/algorithms/kdtree_single_index.h>
+#include <flann/util/result_set.h>
+
 #include <Eigen/Dense>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <functional>
 #include <limits>
 #include <map>
 #include <memory>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "core/common/error.hpp"
@@ -78,20 +86,47 @@ int closestDepth(const std::vector<double>& resolutions, double resolution) {
   return best;
 }
 
+/// A grid's vertices in global coordinates, each transformed once (a normal needs up to five).
+struct GlobalGrid {
+  int size = 0;
+  std::vector<Vec3d> points;        // row by row; meaningful where defined
+  std::vector<std::uint8_t> valid;  // 1 where defined
+
+  /// Takes `g`'s vertices (reusing the buffers: one GlobalGrid serves a model's grids in turn).
+  void assign(const PatchGrid& g) {
+    size = g.size();
+    points.resize(static_cast<std::size_t>(size) * size);
+    valid.assign(static_cast<std::size_t>(size) * size, 0);
+    for (int y = 0; y < size; ++y) {
+      for (int x = 0; x < size; ++x) {
+        if (g.defined(x, y)) {
+          points[index(x, y)] = g.global(x, y);
+          valid[index(x, y)] = 1;
+        }
+      }
+    }
+  }
+  std::size_t index(int x, int y) const { return static_cast<std::size_t>(y) * size + x; }
+  bool defined(int x, int y) const {
+    return x >= 0 && y >= 0 && x < size && y < size && valid[index(x, y)] != 0;
+  }
+  const Vec3d& at(int x, int y) const { return points[index(x, y)]; }
+};
+
 /// A grid vertex's normal from its neighbours (central differences, one-sided at borders and
 /// holes), oriented along `up`; nullopt when the neighbourhood is too sparse.
-std::optional<Vec3d> normalAt(const PatchGrid& g, int x, int y, const Vec3d& up) {
+std::optional<Vec3d> normalAt(const GlobalGrid& g, int x, int y, const Vec3d& up) {
   auto diff = [&](int x0, int y0, int x1, int y1) -> std::optional<Vec3d> {
-    const bool d0 = x0 >= 0 && y0 >= 0 && x0 < g.size() && y0 < g.size() && g.defined(x0, y0);
-    const bool d1 = x1 >= 0 && y1 >= 0 && x1 < g.size() && y1 < g.size() && g.defined(x1, y1);
+    const bool d0 = g.defined(x0, y0);
+    const bool d1 = g.defined(x1, y1);
     if (d0 && d1) {
-      return g.global(x1, y1) - g.global(x0, y0);
+      return g.at(x1, y1) - g.at(x0, y0);
     }
     if (d1) {
-      return g.global(x1, y1) - g.global(x, y);
+      return g.at(x1, y1) - g.at(x, y);
     }
     if (d0) {
-      return g.global(x, y) - g.global(x0, y0);
+      return g.at(x, y) - g.at(x0, y0);
     }
     return std::nullopt;
   };
@@ -118,18 +153,28 @@ struct Cloud {
   std::vector<Vec3d> normals;
 };
 
-Cloud cloudOf(const Grids& grids, const Vec3d& up) {
+/// The defined vertices of `grids` that have a normal and pass `keep(position)`, in grid order.
+template <typename Keep>
+Cloud cloudOf(const Grids& grids, const Vec3d& up, const Keep& keep) {
   Cloud cloud;
-  for (const auto& g : grids) {
-    for (int y = 0; y < g->size(); ++y) {
-      for (int x = 0; x < g->size(); ++x) {
-        if (!g->defined(x, y)) {
-          continue;
-        }
-        if (const auto n = normalAt(*g, x, y, up)) {
-          cloud.points.push_back(g->global(x, y));
-          cloud.normals.push_back(*n);
-        }
+  GlobalGrid g;
+  std::vector<std::size_t> kept;  // per grid, so the cloud grows once per grid
+  for (const auto& grid : grids) {
+    g.assign(*grid);
+    kept.clear();
+    for (std::size_t i = 0; i < g.points.size(); ++i) {
+      if (g.valid[i] != 0 && keep(g.points[i])) {
+        kept.push_back(i);
+      }
+    }
+    cloud.points.reserve(cloud.points.size() + kept.size());
+    cloud.normals.reserve(cloud.normals.size() + kept.size());
+    for (const std::size_t i : kept) {
+      const int x = static_cast<int>(i % static_cast<std::size_t>(g.size));
+      const int y = static_cast<int>(i / static_cast<std::size_t>(g.size));
+      if (const auto n = normalAt(g, x, y, up)) {
+        cloud.points.push_back(g.points[i]);
+        cloud.normals.push_back(*n);
       }
     }
   }
@@ -152,6 +197,90 @@ pcl::PointCloud<pcl::PointNormal>::Ptr toPcl(const Cloud& cloud,
     p.normal_z = static_cast<float>(cloud.normals[i].z);
     p.curvature = 0;
     out->push_back(p);
+  }
+  return out;
+}
+
+/// The kd-tree over B's points that ICP and its fitness score search. pcl::search::KdTree asks
+/// FLANN through knnSearch(), which opens an OpenMP parallel region for every single query: with
+/// libgomp that costs two futex system calls per query even with one thread, about half of each
+/// query, and registration makes some 10^5 of them. This is the tree pcl::KdTreeFLANN builds
+/// (FLANN's single kd-tree, leaves of at most 15 points, over x, y, z, exact search) queried
+/// through findNeighbors() directly: the same neighbours, without the parallel region. It derives
+/// from pcl::search::KdTree because that is the type ICP takes; the base's own tree stays empty,
+/// and radius search (which ICP does not use) is not offered.
+class DirectKdTree final : public pcl::search::KdTree<pcl::PointNormal> {
+ public:
+  void setInputCloud(const PointCloudConstPtr& cloud,
+                     const IndicesConstPtr& indices = IndicesConstPtr()) override {
+    input_ = cloud;
+    indices_ = indices;
+    xyz_.clear();
+    ids_.clear();
+    index_.reset();
+    auto add = [&](pcl::index_t i) {
+      const pcl::PointNormal& p = (*cloud)[static_cast<std::size_t>(i)];
+      if (std::isfinite(p.x) && std::isfinite(p.y) && std::isfinite(p.z)) {
+        xyz_.insert(xyz_.end(), {p.x, p.y, p.z});
+        ids_.push_back(i);
+      }
+    };
+    if (indices) {
+      for (const pcl::index_t i : *indices) {
+        add(i);
+      }
+    } else {
+      for (std::size_t i = 0; i < cloud->size(); ++i) {
+        add(static_cast<pcl::index_t>(i));
+      }
+    }
+    if (!ids_.empty()) {
+      index_ = std::make_unique<Index>(flann::Matrix<float>(xyz_.data(), ids_.size(), 3),
+                                       flann::KDTreeSingleIndexParams(15));
+      index_->buildIndex();
+    }
+  }
+
+  int nearestKSearch(const pcl::PointNormal& point, int k, pcl::Indices& indices,
+                     std::vector<float>& distances) const override {
+    const std::size_t n = index_ && k > 0 ? std::min(static_cast<std::size_t>(k), ids_.size()) : 0;
+    indices.resize(n);
+    distances.resize(n);
+    if (n == 0) {
+      return 0;
+    }
+    // The result set knnSearch() uses for k <= 250; squared distances, nearest first.
+    flann::KNNSimpleResultSet<float> result(n);
+    const float query[3] = {point.x, point.y, point.z};
+    index_->findNeighbors(result, query, params_);
+    std::size_t one = 0;  // ICP asks for one neighbour: no allocation then
+    std::vector<std::size_t> many(n > 1 ? n : 0);
+    std::size_t* found = n > 1 ? many.data() : &one;
+    result.copy(found, distances.data(), n, true);
+    for (std::size_t i = 0; i < n; ++i) {
+      indices[i] = ids_[found[i]];
+    }
+    return static_cast<int>(n);
+  }
+
+  int radiusSearch(const pcl::PointNormal&, double, pcl::Indices&, std::vector<float>&,
+                   unsigned int) const override {
+    throw Error(ErrorCode::Internal, "register: radius search is not offered");
+  }
+
+ private:
+  using Index = flann::KDTreeSingleIndex<flann::L2_Simple<float>>;
+  std::vector<float> xyz_;         // x, y, z per indexed point: FLANN's dataset
+  std::vector<pcl::index_t> ids_;  // FLANN's point -> index into the input cloud
+  std::unique_ptr<Index> index_;
+  flann::SearchParams params_{-1, 0.0f};  // as pcl::KdTreeFLANN: unlimited checks, exact
+};
+
+/// 0, 1, ..., count - 1.
+std::vector<std::size_t> allIndices(std::size_t count) {
+  std::vector<std::size_t> out(count);
+  for (std::size_t i = 0; i < count; ++i) {
+    out[i] = i;
   }
   return out;
 }
@@ -179,6 +308,31 @@ Mat4d toMat(const Eigen::Matrix4d& e) {
   }
   return m;
 }
+
+/// Milliseconds per step of a stage, for the debug log: where registration spends its time.
+class StageClock {
+ public:
+  explicit StageClock(bool enabled) : enabled_(enabled) {}
+  /// Appends " <name> <ms since the previous lap>" when enabled.
+  void lap(const char* name) {
+    if (!enabled_) {
+      return;
+    }
+    const auto now = std::chrono::steady_clock::now();
+    char text[64];
+    std::snprintf(text, sizeof text, " %s %.1f", name,
+                  std::chrono::duration<double, std::milli>(now - last_).count());
+    laps_ += text;
+    last_ = now;
+  }
+  /// The laps so far, then starts over.
+  std::string take() { return std::exchange(laps_, std::string()); }
+
+ private:
+  bool enabled_;
+  std::chrono::steady_clock::time_point last_ = std::chrono::steady_clock::now();
+  std::string laps_;
+};
 
 Vec3d applyLocal(const Eigen::Matrix4d& u, const Vec3d& centre, const Vec3d& p) {
   const Vec3d l = p - centre;
@@ -251,6 +405,8 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     pcl::search::KdTree<pcl::PointNormal>::Ptr tree;  // built once, shared by the stages
   };
   std::map<int, DetailLevel> bLevels;
+  const bool debug = log::level() <= log::Level::Debug;
+  StageClock clock(debug);
   for (std::size_t s = 0; s < stages.size(); ++s) {
     if (options.cancel != nullptr) {
       options.cancel->throwIfCancelled();
@@ -262,15 +418,14 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     DetailLevel& bLevel = bLevels[stage.bDepth];
     if (!bLevel.surface) {
       const Grids grids = gridsAt(detail, stage.bDepth, frame, bFoot);
-      bLevel.cloud = cloudOf(grids, up);
+      bLevel.cloud = cloudOf(grids, up, [](const Vec3d&) { return true; });
       bLevel.surface = std::make_shared<SurfaceSampler>(grids, up);
-      std::vector<std::size_t> all(bLevel.cloud.points.size());
-      for (std::size_t i = 0; i < all.size(); ++i) {
-        all[i] = i;
-      }
-      bLevel.points = toPcl(bLevel.cloud, thinned(std::move(all), options.maxPoints * 4), centre);
-      bLevel.tree = pcl::make_shared<pcl::search::KdTree<pcl::PointNormal>>();
+      bLevel.points =
+          toPcl(bLevel.cloud,
+                thinned(allIndices(bLevel.cloud.points.size()), options.maxPoints * 4), centre);
+      bLevel.tree = pcl::make_shared<DirectKdTree>();
       bLevel.tree->setInputCloud(bLevel.points);
+      clock.lap("detail-level");
     }
     const SurfaceSampler& bSurface = *bLevel.surface;
 
@@ -278,27 +433,29 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     Rect2d near = bFoot;
     near.min = {near.min.u - stage.distance, near.min.v - stage.distance};
     near.max = {near.max.u + stage.distance, near.max.v + stage.distance};
-    const Cloud aCloud = cloudOf(gridsAt(target, stage.aDepth, frame, near), up);
-    std::vector<std::size_t> use;
     // The margin keeps B's border from attracting A's vertices that have no partner on B; it never
-    // takes more than a quarter of B's width (a B only a few A cells wide must keep some).
+    // takes more than a quarter of B's width (a B only a few A cells wide must keep some). The
+    // test comes before the normal: most of A's vertices in these patches lie beside B.
     const double m = std::min(
         stage.distance, 0.25 * std::min(bFoot.max.u - bFoot.min.u, bFoot.max.v - bFoot.min.v));
-    for (std::size_t i = 0; i < aCloud.points.size(); ++i) {
-      const Vec3d q = applyLocal(u, centre, aCloud.points[i]);
-      if (bSurface.sample(q) && bSurface.sample(q + frame.e1 * m) &&
-          bSurface.sample(q - frame.e1 * m) && bSurface.sample(q + frame.e2 * m) &&
-          bSurface.sample(q - frame.e2 * m)) {
-        use.push_back(i);
-      }
-    }
-    if (use.size() < kMinPoints) {
+    const Cloud aCloud =
+        cloudOf(gridsAt(target, stage.aDepth, frame, near), up, [&](const Vec3d& p) {
+          const Vec3d q = applyLocal(u, centre, p);
+          return bSurface.sample(q) && bSurface.sample(q + frame.e1 * m) &&
+                 bSurface.sample(q - frame.e1 * m) && bSurface.sample(q + frame.e2 * m) &&
+                 bSurface.sample(q - frame.e2 * m);
+        });
+    if (aCloud.points.size() < kMinPoints) {
       throw Error(ErrorCode::InvalidArgument,
                   "register: the models overlap too little to register (" +
-                      std::to_string(use.size()) + " target vertices over the detail model)");
+                      std::to_string(aCloud.points.size()) +
+                      " target vertices over the detail model)");
     }
-    use = thinned(std::move(use), options.maxPoints);
+    clock.lap("target-over-detail");
+    const std::vector<std::size_t> use =
+        thinned(allIndices(aCloud.points.size()), options.maxPoints);
     const auto source = toPcl(aCloud, use, centre);
+    clock.lap("thin");
     const auto& targetCloud = bLevel.points;
 
     pcl::IterativeClosestPointWithNormals<pcl::PointNormal, pcl::PointNormal> icp;
@@ -309,12 +466,28 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     icp.setMaximumIterations(options.maxIterations);
     icp.setTransformationEpsilon(1e-8);
     icp.setEuclideanFitnessEpsilon(1e-10);
+    int iterations = 0;  // counted in the debug log only (the callback copies indices)
+    using Callback =
+        pcl::Registration<pcl::PointNormal, pcl::PointNormal>::UpdateVisualizerCallbackSignature;
+    std::function<Callback> countIterations = [&](const auto&, const auto&, const auto&,
+                                                  const auto&) { ++iterations; };
+    if (debug) {
+      icp.registerVisualizationCallback(countIterations);
+      iterations = 0;  // registering calls it once
+    }
     pcl::PointCloud<pcl::PointNormal> aligned;
     icp.align(aligned, u.cast<float>());
+    clock.lap("icp");
     u = icp.getFinalTransformation().cast<double>();
     result.converged = icp.hasConverged();
-    result.fitness = icp.getFitnessScore(stage.distance);
     result.stages = static_cast<int>(s + 1);
+    // The result reports the last stage's quality; earlier stages measure theirs (another nearest
+    // neighbour search of every point) only for the debug log.
+    if (s + 1 < stages.size() && !debug) {
+      continue;
+    }
+    result.fitness = icp.getFitnessScore(stage.distance);
+    clock.lap("fitness");
     // The residual along up: how far A's vertices, moved by u, lie from B's surface.
     double sum = 0;
     std::size_t count = 0;
@@ -327,10 +500,13 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
       }
     }
     result.rms = count > 0 ? std::sqrt(sum / static_cast<double>(count)) : 0;
+    clock.lap("rms");
     log::debug("register: stage " + std::to_string(s) + " A depth " + std::to_string(stage.aDepth) +
                " B depth " + std::to_string(stage.bDepth) + " distance " +
                std::to_string(stage.distance) + " points " + std::to_string(source->size()) + "/" +
-               std::to_string(targetCloud->size()) + " fitness " + std::to_string(result.fitness));
+               std::to_string(targetCloud->size()) + " fitness " + std::to_string(result.fitness) +
+               " rms " + std::to_string(result.rms) + " iterations " + std::to_string(iterations) +
+               ", ms:" + clock.take());
   }
   if (options.progress != nullptr) {
     options.progress->report("registering", 1);

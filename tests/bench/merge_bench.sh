@@ -19,17 +19,22 @@
 #
 # Every figure is the median of $VSM_BENCH_REPEAT (default 3) in-place merges, each into a fresh
 # copy of the target (the copy is made before the clock starts, then `sync`), wall time of the
-# whole `vsm merge` process (opening, merging, fsynced publish). `--out` would add a copy of the
-# whole target to every figure (it copies A before merging), so it is not used here.
+# whole `vsm merge` process (opening, merging, fsynced publish); in (c) the plain and the
+# --register merges alternate, so that the load of a shared machine falls on both alike (the run
+# times are printed too). `--out` would add a copy of the whole target to every figure (it copies
+# A before merging), so it is not used here.
 #
 #   tests/bench/merge_bench.sh [path/to/vsm] [work-dir]
 # Defaults: build/server/cli/vsm and a temporary directory (removed afterwards; needs ~2 GB).
+# VSM_BENCH_CASES (default "abc") picks the cases, e.g. VSM_BENCH_CASES=c for --register only
+# (its inputs take ~25 MB).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../.." && pwd)
 HERE=$(cd "$(dirname "$0")" && pwd)
 VSM=${1:-$ROOT/build/server/cli/vsm}
 PYTHON=/usr/bin/python3  # Debian's: it has python3-gdal and python3-numpy
 REPEAT=${VSM_BENCH_REPEAT:-3}
+CASES=${VSM_BENCH_CASES:-abc}
 
 if [[ -n "${2:-}" ]]; then
   WORK=$2
@@ -52,33 +57,47 @@ gen() {  # gen <name> <west> <north> <spacing"> <size> [shift options]: raster +
     $(( $(du -sb "$WORK/$name" | cut -f1) / 1000000 ))
 }
 
+has() { [[ $CASES == *$1* ]]; }
+
 echo "synthetic inputs in $WORK (generated and imported once):"
-gen target-small -100.5 36.5 3 1025
-gen target-large -101.3533333333333 37.3533333333333 3 3241
-gen target-200mb -101.5 37.5 3 3585
-gen detail-small -100.1 36.1 0.8 513
-gen detail-60mb  -100.3 36.3 0.8 1921
-gen detail-shift -100.1 36.1 0.8 513 --shift-east 4 --up 1.5
+if has a || has c; then gen target-small -100.5 36.5 3 1025; fi
+if has a; then gen target-large -101.3533333333333 37.3533333333333 3 3241; fi
+if has b; then gen target-200mb -101.5 37.5 3 3585; fi
+if has a; then gen detail-small -100.1 36.1 0.8 513; fi
+if has b; then gen detail-60mb  -100.3 36.3 0.8 1921; fi
+if has c; then gen detail-shift -100.1 36.1 0.8 513 --shift-east 4 --up 1.5; fi
 
 now() { date +%s.%N; }
 
+# merge_once <target> <detail> [options]: wall seconds of one in-place merge into a fresh copy.
+merge_once() {
+  local target=$1 detail=$2 start end
+  shift 2
+  rm -rf "$WORK/copy"
+  cp -a "$WORK/$target" "$WORK/copy"
+  sync
+  start=$(now)
+  /usr/bin/time -f '%e s wall, %U s user, %S s system' -o "$WORK/last.time" \
+    "$VSM" merge "$WORK/copy" "$WORK/$detail" "$@" >"$WORK/last.out" 2>"$WORK/last.err"
+  end=$(now)
+  printf '%.3f\n' "$(echo "$end - $start" | bc -l)"
+}
+
+# The last merge's result must validate.
+check_last() {
+  "$VSM" validate "$WORK/copy" >/dev/null 2>&1 || { echo "merged model does not validate" >&2; exit 1; }
+}
+
+median() { printf '%s\n' "$@" | sort -n | sed -n "$(( ($# + 1) / 2 ))p"; }
+
 # merge_time <target> <detail> [options]: median wall seconds of $REPEAT in-place merges.
 merge_time() {
-  local target=$1 detail=$2
-  shift 2
-  local times=() i start end
+  local times=() i
   for (( i = 0; i < REPEAT; i++ )); do
-    rm -rf "$WORK/copy"
-    cp -a "$WORK/$target" "$WORK/copy"
-    sync
-    start=$(now)
-    /usr/bin/time -f '%e s wall, %U s user, %S s system' -o "$WORK/last.time" \
-      "$VSM" merge "$WORK/copy" "$WORK/$detail" "$@" >"$WORK/last.out" 2>"$WORK/last.err"
-    end=$(now)
-    times+=("$(echo "$end - $start" | bc -l)")
+    times+=("$(merge_once "$@")")
   done
-  "$VSM" validate "$WORK/copy" >/dev/null 2>&1 || { echo "merged model does not validate" >&2; exit 1; }
-  printf '%s\n' "${times[@]}" | sort -n | sed -n "$(( (REPEAT + 1) / 2 ))p"
+  check_last
+  median "${times[@]}"
 }
 
 # The last run's own report and its CPU time.
@@ -87,6 +106,7 @@ summary() {
   sed 's/^/    last run: /' "$WORK/last.time"
 }
 
+if has a; then
 echo
 echo "(a) the same detail model into a target and into one ten times larger"
 small=$(merge_time target-small detail-small)
@@ -95,21 +115,36 @@ large=$(merge_time target-large detail-small)
 summary
 printf '  into target-small %8.3f s\n  into target-large %8.3f s\n' "$small" "$large"
 printf '  ratio             %8.2f   (target: at most 1.2)\n' "$(echo "$large / $small" | bc -l)"
+fi
 
+if has b; then
 echo
 echo "(b) a ~60 MB detail model into a ~200 MB model"
 big=$(merge_time target-200mb detail-60mb)
 summary
 printf '  detail-60mb into target-200mb %8.3f s   (target: under 10 s)\n' "$big"
+fi
 
+has c || exit 0
 echo
 echo "(c) the extra time of --register (detail shifted 4 m east, 1.5 m up)"
-plain=$(merge_time target-small detail-shift)
-summary
-registered=$(merge_time target-small detail-shift --register)
+# Plain and --register merges alternate, so that the load of a shared machine falls on both alike.
+plains=() registereds=()
+for (( i = 0; i < REPEAT; i++ )); do
+  plains+=("$(merge_once target-small detail-shift)")
+  cp "$WORK/last.out" "$WORK/plain.out"
+  cp "$WORK/last.time" "$WORK/plain.time"
+  registereds+=("$(merge_once target-small detail-shift --register)")
+done
+check_last
+plain=$(median "${plains[@]}")
+registered=$(median "${registereds[@]}")
+grep -h '^merged\|^memory' "$WORK/plain.out" | sed 's/^/    /'
+sed 's/^/    last run: /' "$WORK/plain.time"
 summary
 printf '    the transform moves the detail centre by %s (expected: -4 east, 0 north, -1.5 up)\n' \
   "$("$PYTHON" "$HERE/merge_transform.py" "$WORK/last.out" -100.043 36.043)"
-printf '  without --register %8.3f s\n  with --register    %8.3f s\n' "$plain" "$registered"
+printf '  without --register %8.3f s   (runs: %s)\n' "$plain" "${plains[*]}"
+printf '  with --register    %8.3f s   (runs: %s)\n' "$registered" "${registereds[*]}"
 printf '  extra             %8.1f %%  (target: at most 25 %%)\n' \
   "$(echo "($registered - $plain) / $plain * 100" | bc -l)"

@@ -713,6 +713,68 @@ TEST(Registration, RecoversHalfADegreeAndSeveralCellsWithinAQuarterOfTheDetailSp
   EXPECT_GT(merged.verticesFromDetail, 1000u);
 }
 
+/// `model` with holes in every leaf: a block of undefined vertices a sixth of its width inside, one
+/// an eighth of its width at a border, and every 41st vertex (so normals meet one-sided differences
+/// and missing neighbours); overviews reduced again.
+std::unique_ptr<Model> withHoles(const Model& model) {
+  auto out = std::make_unique<Model>(model.gridSize());
+  for (const auto& [key, info] : model.patches()) {
+    PatchInfo copy;
+    copy.key = key;
+    out->insert(copy);
+  }
+  for (const auto& [key, info] : model.patches()) {
+    if (!info.isLeaf()) {
+      continue;
+    }
+    auto grid = std::make_shared<PatchGrid>(*info.grid);
+    const int s = grid->size();
+    for (int y = 0; y < s; ++y) {
+      for (int x = 0; x < s; ++x) {
+        const bool inner = x >= s / 3 && x < s / 3 + s / 6 && y >= s / 2 && y < s / 2 + s / 6;
+        const bool border = x >= s - s / 8 && y >= s / 4 && y < s / 4 + s / 8;
+        if (inner || border || (y * s + x) % 41 == 0) {
+          grid->setUndefined(x, y);
+        }
+      }
+    }
+    out->setGrid(key, grid);
+  }
+  out->refreshStale([](const PatchInfo&) { return std::shared_ptr<const PatchGrid>(); });
+  return out;
+}
+
+TEST(Registration, RecoversTheDisplacementAcrossHolesFromThinnedPoints) {
+  const Lattice aLattice{1000, 2000, 4, 0, ridgedHeight};
+  const Lattice bLattice{1150, 2150, 4.0 / 5.3, std::numbers::pi / 6, ridgedHeight};
+  auto a = withHoles(*latticeModel(aLattice, 17, 3));
+  auto b = latticeModel(bLattice, 33, 2);
+  const Vec3d centre = b->at(PatchKey::root()).globalBox.center();
+  const Mat4d displacement = rigid(0.5, {0.3, 0.2, 1}, centre, {12, -8, 1.5});
+  auto displaced = withHoles(*transformedModel(*b, displacement));
+
+  ModelAccess target(*a), detail(*displaced);
+  RegistrationOptions options;
+  // A has ~300 vertices over B (with the margin), B's fine level ~4000: both are thinned.
+  options.maxPoints = 200;
+  const RegistrationResult r = registerModels(target, detail, options);
+  EXPECT_TRUE(r.converged);
+  EXPECT_LT(r.rms, 0.1);
+  double worst = 0;
+  for (const auto& [key, info] : b->patches()) {
+    if (!info.isLeaf()) {
+      continue;
+    }
+    for (int y = 0; y < 33; ++y) {
+      for (int x = 0; x < 33; ++x) {
+        const Vec3d truth = info.grid->global(x, y);
+        worst = std::max(worst, (r.transform.apply(displacement.apply(truth)) - truth).norm());
+      }
+    }
+  }
+  EXPECT_LE(worst, bLattice.spacing / 4) << "fitness " << r.fitness;
+}
+
 TEST(Registration, FailsClearlyWithoutOverlap) {
   auto a = latticeModel({1000, 2000, 4, 0, ridgedHeight}, 17, 2);
   auto b = latticeModel({9000, 9000, 1, 0, ridgedHeight}, 17, 1);
