@@ -8,6 +8,8 @@
 
 #include <pthread.h>
 #include <sys/sendfile.h>
+#include <sys/socket.h>
+#include <sys/uio.h>
 
 #include <csignal>
 
@@ -478,24 +480,18 @@ class Connection : public std::enable_shared_from_this<Connection> {
     stream_.expires_after(server_.options.writeTimeout);
     const Response& r = slot.handled.response;
     if (r.bodyFd >= 0 && !slot.head && GatherBody::size(slot.message->body()) > 0) {
-      // The header by Beast, the body by sendfile(2): the kernel sends the file's pages without
-      // copying them through user space (as nginx serves static files).
+      // The header by Beast's serializer, the body by sendfile(2): the kernel sends the file's
+      // pages without copying them through user space (as nginx serves static files).
       slot.serializer = std::make_unique<bhttp::serializer<false, GatherBody>>(*slot.message);
-      bhttp::async_write_header(
-          stream_, *slot.serializer, [self = shared_from_this()](error_code ec, std::size_t) {
-            if (ec) {
-              self->onWrite(ec, 0);
-            } else {
-              self->fileTimer_.expires_after(self->server_.options.writeTimeout);
-              self->fileTimer_.async_wait([self](error_code wait) {
-                if (!wait) {
-                  self->server_.timeouts.inc({"write"});
-                  self->closeNow();
-                }
-              });
-              self->sendFile();
-            }
-          });
+      slot.serializer->split(true);
+      fileTimer_.expires_after(server_.options.writeTimeout);
+      fileTimer_.async_wait([self = shared_from_this()](error_code wait) {
+        if (!wait) {
+          self->server_.timeouts.inc({"write"});
+          self->closeNow();
+        }
+      });
+      sendHeader();
       return;
     }
     bhttp::async_write(stream_, *slot.message,
@@ -542,6 +538,50 @@ class Connection : public std::enable_shared_from_this<Connection> {
     return message;
   }
 
+  /// Sends the rest of the front slot's header with MSG_MORE, so that the kernel holds it back
+  /// and sends it in one segment with the start of the body (nginx's tcp_nopush, without the two
+  /// setsockopt calls), then the body file; waits for the socket whenever it is full.
+  void sendHeader() {
+    if (closed_ || queue_.empty()) {
+      return;
+    }
+    auto& serializer = *queue_.front().serializer;
+    const int socket = stream_.socket().native_handle();
+    error_code ec;
+    while (!ec && !serializer.is_header_done()) {
+      std::array<iovec, 64> parts{};
+      std::size_t count = 0;
+      serializer.next(ec, [&](error_code&, const auto& buffers) {
+        for (auto it = net::buffer_sequence_begin(buffers);
+             it != net::buffer_sequence_end(buffers) && count < parts.size(); ++it) {
+          const net::const_buffer part = *it;
+          parts[count++] = {const_cast<void*>(part.data()), part.size()};
+        }
+      });
+      if (ec) {
+        break;
+      }
+      msghdr message{};
+      message.msg_iov = parts.data();
+      message.msg_iovlen = count;
+      const ssize_t sent = ::sendmsg(socket, &message, MSG_MORE | MSG_NOSIGNAL | MSG_DONTWAIT);
+      if (sent >= 0) {
+        serializer.consume(static_cast<std::size_t>(sent));
+      } else if (errno == EAGAIN || errno == EWOULDBLOCK) {
+        waitWritable(&Connection::sendHeader);
+        return;
+      } else if (errno != EINTR) {
+        ec = error_code(errno, boost::system::system_category());
+      }
+    }
+    if (ec) {
+      fileTimer_.cancel();
+      onWrite(ec, 0);
+      return;
+    }
+    sendFile();
+  }
+
   /// Sends the rest of the front slot's body file; waits for the socket whenever it is full.
   void sendFile() {
     if (closed_ || queue_.empty()) {
@@ -552,7 +592,11 @@ class Connection : public std::enable_shared_from_this<Connection> {
     const int fd = slot.handled.response.bodyFd;
     tcp::socket& socket = stream_.socket();
     error_code ec;
-    socket.native_non_blocking(true, ec);
+    if (!nonBlocking_) {
+      // sendfile(2) has no MSG_DONTWAIT: the socket itself must not block (set once).
+      socket.native_non_blocking(true, ec);
+      nonBlocking_ = !ec;
+    }
     while (!ec && slot.fileOffset < size) {
       auto offset = static_cast<off_t>(slot.fileOffset);
       const ssize_t sent = ::sendfile(socket.native_handle(), fd, &offset, size - slot.fileOffset);
@@ -561,14 +605,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
       } else if (sent < 0 && errno == EINTR) {
         continue;
       } else if (sent < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) {
-        socket.async_wait(tcp::socket::wait_write, [self = shared_from_this()](error_code wait) {
-          if (wait) {
-            self->fileTimer_.cancel();
-            self->onWrite(wait, 0);
-          } else {
-            self->sendFile();
-          }
-        });
+        waitWritable(&Connection::sendFile);
         return;
       } else {
         // 0: the file is shorter than it claimed (a bug in the handler); < 0: a socket error.
@@ -578,6 +615,19 @@ class Connection : public std::enable_shared_from_this<Connection> {
     }
     fileTimer_.cancel();
     onWrite(ec, slot.fileOffset);
+  }
+
+  /// Calls `next` once the socket takes more bytes (under the write timeout of fileTimer_).
+  void waitWritable(void (Connection::*next)()) {
+    stream_.socket().async_wait(tcp::socket::wait_write,
+                                [self = shared_from_this(), next](error_code wait) {
+                                  if (wait) {
+                                    self->fileTimer_.cancel();
+                                    self->onWrite(wait, 0);
+                                  } else {
+                                    ((*self).*next)();
+                                  }
+                                });
   }
 
   void onWrite(error_code ec, std::size_t) {
@@ -617,9 +667,15 @@ class Connection : public std::enable_shared_from_this<Connection> {
     server_.requests.inc({method, slot.handled.route, statusText});
     server_.latency.observe({slot.handled.route, statusText}, seconds);
     server_.responseBytes.inc({slot.handled.route}, static_cast<double>(bytes));
+    const core::log::Level level = core::log::level();
     if (slot.quiet && !ec) {
-      core::log::debug("req=" + slot.id + " peer=" + peer_ + " rejected: connection limit");
+      if (level <= core::log::Level::Debug) {
+        core::log::debug("req=" + slot.id + " peer=" + peer_ + " rejected: connection limit");
+      }
       return;
+    }
+    if (level > core::log::Level::Info) {
+      return;  // the line would be dropped: do not build it
     }
     char ms[32];
     std::snprintf(ms, sizeof ms, "%.3f", seconds * 1000.0);
@@ -677,8 +733,9 @@ class Connection : public std::enable_shared_from_this<Connection> {
   std::uint64_t nextSeq_ = 0;
   std::string peer_;
   const bool counted_;
-  bool reading_ = false;   // a read is outstanding
-  bool idleWait_ = false;  // ... and it waits for the first byte of a request
+  bool nonBlocking_ = false;  // the socket is in non-blocking mode (for sendfile)
+  bool reading_ = false;      // a read is outstanding
+  bool idleWait_ = false;     // ... and it waits for the first byte of a request
   bool writing_ = false;
   bool closing_ = false;   // read no more requests; close once the queue is written
   bool shutdown_ = false;  // the server is stopping
