@@ -660,13 +660,24 @@ class Connection : public std::enable_shared_from_this<Connection> {
   void record(const Slot& slot, error_code ec) {
     const double seconds = std::chrono::duration<double>(Clock::now() - slot.start).count();
     const int status = slot.handled.response.status;
-    const std::string statusText = std::to_string(status);
     const std::size_t bytes =
         slot.message && !slot.head ? GatherBody::size(slot.message->body()) : 0;
     const std::string_view method = toString(parseMethod(slot.method));
-    server_.requests.inc({method, slot.handled.route, statusText});
-    server_.latency.observe({slot.handled.route, statusText}, seconds);
-    server_.responseBytes.inc({slot.handled.route}, static_cast<double>(bytes));
+    // A keep-alive connection mostly repeats one kind of request: its metric series are looked up
+    // (under the families' locks) only when the kind changes, then updated lock-free.
+    if (!series_ || series_->status != status || series_->method != method ||
+        series_->route != slot.handled.route) {
+      const std::string statusText = std::to_string(status);
+      series_ = Series{method,
+                       std::string(slot.handled.route),
+                       status,
+                       &server_.requests.series({method, slot.handled.route, statusText}),
+                       &server_.latency.series({slot.handled.route, statusText}),
+                       &server_.responseBytes.series({slot.handled.route})};
+    }
+    series_->requests->inc();
+    series_->latency->observe(seconds);
+    series_->bytes->inc(static_cast<double>(bytes));
     const core::log::Level level = core::log::level();
     if (slot.quiet && !ec) {
       if (level <= core::log::Level::Debug) {
@@ -681,7 +692,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
     std::snprintf(ms, sizeof ms, "%.3f", seconds * 1000.0);
     // The method is a token (the parser checked it), the target is quoted.
     std::string line = "access req=" + slot.id + " method=" + slot.method +
-                       " target=" + quoted(slot.target) + " status=" + statusText +
+                       " target=" + quoted(slot.target) + " status=" + std::to_string(status) +
                        " bytes=" + std::to_string(bytes) + " ms=" + ms + " peer=" + peer_;
     if (ec) {
       line += " error=\"" + ec.message() + "\"";
@@ -724,7 +735,18 @@ class Connection : public std::enable_shared_from_this<Connection> {
     stream_.close();
   }
 
+  /// The metric series of the last response recorded (see record()).
+  struct Series {
+    std::string_view method;  // a literal of toString(Method)
+    std::string route;
+    int status = 0;
+    metrics::Counter::Series* requests = nullptr;
+    metrics::Histogram::Series* latency = nullptr;
+    metrics::Counter::Series* bytes = nullptr;
+  };
+
   Server::Impl& server_;
+  std::optional<Series> series_;
   beast::tcp_stream stream_;
   net::steady_timer fileTimer_;  // the write timeout of a body sent by sendfile()
   beast::flat_buffer buffer_;
