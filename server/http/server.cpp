@@ -231,7 +231,7 @@ struct Server::Impl {
 };
 
 /// One client connection. Every member is touched only on the connection's strand; handlers run
-/// on the CPU pool and post their result back to the strand.
+/// on the CPU pool and post their result back to the strand (inline handlers run on the strand).
 class Connection : public std::enable_shared_from_this<Connection> {
  public:
   Connection(Server::Impl& server, tcp::socket&& socket, bool counted)
@@ -444,6 +444,16 @@ class Connection : public std::enable_shared_from_this<Connection> {
     slot.close = !message.keep_alive();
     closing_ = closing_ || slot.close;
     const std::uint64_t seq = slot.seq;
+    // What needs no blocking is answered here, without a hop to the CPU pool and back: a cached
+    // response body, a 304, the pipeline's own errors.
+    if (std::optional<Handled> handled = server_.pipeline.handleInline(request)) {
+      slot.handled = std::move(*handled);
+      slot.ready = true;
+      queue_.push_back(std::move(slot));
+      maybeWrite();
+      readNext();
+      return;
+    }
     queue_.push_back(std::move(slot));
 
     // The handler runs on the CPU pool; its result comes back to this connection's strand.
