@@ -1,6 +1,9 @@
 #include "server/api/tiles_routes.hpp"
 
+#include <cstddef>
+#include <memory>
 #include <optional>
+#include <vector>
 
 #include <nlohmann/json.hpp>
 
@@ -12,6 +15,7 @@
 #include "core/tiles/glb.hpp"
 #include "core/tiles/tile_tree.hpp"
 #include "server/api/model_routes.hpp"
+#include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
 
 namespace vsm::server::api {
@@ -99,11 +103,21 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
   return withCache(std::move(response), etag);
 }
 
-http::Response getGlb(models::ModelRegistry& models, const http::Request& request) {
+/// An encoded tile, as cached in the model's EncodedCache (MemoryCategory::Tiles).
+struct GlbBody {
+  std::vector<std::byte> bytes;
+};
+
+/// GET /v1/models/{m}/3dtiles/{p}.glb (any query, such as the tileset's "?v=", is ignored). On a
+/// network thread (`onNetworkThread`) it answers only a 304 or a cached GLB, and nullopt
+/// otherwise; on the CPU pool it encodes the GLB from the patch's data (read through the patch
+/// cache) and caches it.
+std::optional<http::Response> glb(models::ModelRegistry& models, const http::Request& request,
+                                  bool onNetworkThread) {
   const std::string& id = request.param("m");
-  const auto live = models.get(id);
+  const models::ModelRegistry::Served served = models.getServed(id);
   const core::PatchKey key = parseGlbKey(request.param("p"));
-  const auto snapshot = live->snapshot();
+  const auto snapshot = served.live->snapshot();
   const core::PatchInfo* info = snapshot->model->find(key);
   if (info == nullptr) {
     throw Error(ErrorCode::NotFound, "model '" + id + "' has no patch " + key.toString() +
@@ -113,24 +127,41 @@ http::Response getGlb(models::ModelRegistry& models, const http::Request& reques
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kTileCacheControl);
   }
-  http::Response response;
-  {
-    // On the CPU pool, like every handler: a cache miss reads the disk here, and the encoding is
-    // CPU work. The pin is released before the snapshot.
-    const core::PatchCache::Pin pin = live->positions(*snapshot, key);
-    // The patch's texture tile (converted to PNG) and coordinates, read from disk per request.
+  const core::ObjectId glbId{key, info->version, core::MemoryCategory::Tiles};
+  std::shared_ptr<const GlbBody> body = served.encoded->find<GlbBody>(glbId);
+  if (body == nullptr) {
+    if (onNetworkThread) {
+      return std::nullopt;
+    }
+    // A cache miss reads the disk here, and the encoding is CPU work. The pin is released before
+    // the snapshot.
+    const core::PatchCache::Pin pin = served.live->positions(*snapshot, key);
+    // The patch's texture tile (converted to PNG) and coordinates, read from disk.
     const std::optional<core::PatchTexture> texture =
-        core::readPatchTexture(live->dir(), *snapshot->model, *info);
+        core::readPatchTexture(served.live->dir(), *snapshot->model, *info);
     core::GlbOptions options;
     if (texture) {
       options.texture = {texture->png, "image/png"};
       options.texcoords = texture->texcoords;
       options.baseColor = {1.0, 1.0, 1.0, 1.0};  // the texture's own colours
     }
-    const std::vector<std::byte> glb =
-        core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(*info), options);
-    response.body.assign(reinterpret_cast<const char*>(glb.data()), glb.size());
+    auto encoded = std::make_shared<GlbBody>();
+    encoded->bytes = core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(*info), options);
+    body = encoded;
+    try {
+      served.encoded->put(glbId, body, body->bytes.size());
+    } catch (const Error& e) {
+      if (e.code() != ErrorCode::ResourceExhausted) {
+        throw;
+      }
+      // No room beside what is pinned: answered uncached (this response holds the bytes).
+    }
   }
+  http::Response response;
+  // Written from the cached bytes without a copy; the response holds them until written.
+  response.sharedBody =
+      std::string_view(reinterpret_cast<const char*>(body->bytes.data()), body->bytes.size());
+  response.bodyOwner = std::move(body);
   response.contentType = std::string(kGlbType);
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   response.set("X-VSM-Patch-Version", std::to_string(info->version));
@@ -159,8 +190,10 @@ std::string glbEtag(const core::PatchInfo& info) {
 void addTilesRoutes(http::Router& router, models::ModelRegistry& models) {
   router.add(http::Method::Get, "/v1/models/{m}/3dtiles/tileset.json",
              [&models](const http::Request& request) { return getTileset(models, request); });
-  router.add(http::Method::Get, "/v1/models/{m}/3dtiles/{p}.glb",
-             [&models](const http::Request& request) { return getGlb(models, request); });
+  router.add(
+      http::Method::Get, "/v1/models/{m}/3dtiles/{p}.glb",
+      [&models](const http::Request& request) { return *glb(models, request, false); },
+      [&models](const http::Request& request) { return glb(models, request, true); });
 }
 
 }  // namespace vsm::server::api

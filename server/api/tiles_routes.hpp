@@ -21,8 +21,9 @@ namespace vsm::server::api {
 
 /// GET /v1/models/{m}/3dtiles/tileset.json and GET /v1/models/{m}/3dtiles/{p}.glb: the OGC 3D
 /// Tiles 1.1 view of every open model (see proto/openapi.yaml). The tileset is built from one
-/// snapshot's metadata; a GLB is encoded on request from the patch's data, read through the cache
-/// on the CPU pool. `models` must outlive the router.
+/// snapshot's metadata; a GLB is encoded from the patch's data, read through the cache on the CPU
+/// pool, and kept in the model's EncodedCache (one budget with the data), from which repeated
+/// requests are answered on the network thread. `models` must outlive the router.
 void addTilesRoutes(http::Router& router, models::ModelRegistry& models);
 
 // ---- wire mapping, public for tests -----------------------------------------------------------

@@ -428,9 +428,9 @@ def metric(text, name, labels=""):
 
 
 class EncodedResponses(unittest.TestCase):
-    """Positions files (sent with sendfile) are cached as encoded responses inside the one memory
-    budget: charged by category, shown in /v1/stats and /metrics, evicted under pressure.
-    A 257 x 257 DEM imported at 65 x 65 (21 patches of 50 KB of positions each, twice
+    """Positions files (sent with sendfile) and GLBs are cached as encoded responses inside the
+    one memory budget: charged by category, shown in /v1/stats and /metrics, evicted under
+    pressure. A 257 x 257 DEM imported at 65 x 65 (21 patches of 50 KB of positions each, twice
     that with their files) into a daemon with a 1 MiB budget."""
 
     BUDGET = 1 * MiB
@@ -496,13 +496,24 @@ class EncodedResponses(unittest.TestCase):
         self.assertLessEqual(metric(text, "vsm_memory_model_resident_bytes", '{model="hills"}'),
                              self.BUDGET)
 
-    def test_positions_files_stay_within_the_budget_and_are_evicted_under_pressure(self):
+    def test_encoded_responses_stay_within_the_budget_and_are_evicted_under_pressure(self):
         first = {key: self.positions(key) for key in self.keys}
+        glbs = {}
+        for key in self.keys:
+            status, headers, body = self.daemon.request(
+                "GET", "/v1/models/hills/3dtiles/%s.glb" % key)
+            self.assertEqual(status, 200, body[:200])
+            self.assertEqual(headers["Content-Type"], "model/gltf-binary")
+            glbs[key] = body
         stats = self.stats()
         self.assertGreater(stats["cache"]["evictions"], 0)
+        self.assertGreater(stats["memory"]["resident_bytes_by_category"]["tiles"], 0)
         # Evicted or not, every answer stays the same.
         for key in reversed(self.keys):
             self.assertEqual(self.positions(key), first[key], key)
+            status, _, body = self.daemon.request("GET", "/v1/models/hills/3dtiles/%s.glb" % key)
+            self.assertEqual(status, 200)
+            self.assertEqual(body, glbs[key], key)
         self.stats()
 
 

@@ -12,7 +12,8 @@ server_test.py for the harness) over a data root holding PRISM with Jacksboro me
   .aara from /positions);
 - every GLB validated by Khronos' glTF validator (npm `gltf-validator`, installed into the build
   directory by install-node-tools.sh): zero errors;
-- ETags (If-None-Match -> 304), CORS, HEAD, and errors for unknown tiles.
+- ETags (If-None-Match -> 304), CORS, HEAD, and errors for unknown tiles;
+- a repeated GLB request answered from the GLB cache (a hit in /v1/stats, the same bytes).
 
 Run by ctest:
     tiles_test.py --vsmd build/server/vsmd --model build/.../tiles/merged \\
@@ -314,9 +315,24 @@ class Tiles(unittest.TestCase):
         self.assertEqual(status, 200)
         self.assertEqual(body, b"")
         self.assertEqual(int(headers["Content-Length"]), len(self.glbs[uri]))
-        # Same bytes on a second request (generated again from the same patch version).
+        # Same bytes on a second request (from the GLB cache).
         status, _, body = self.daemon.request("GET", PREFIX + uri)
         self.assertEqual(body, self.glbs[uri])
+
+    def test_a_repeated_glb_is_a_cache_hit(self):
+        uri = self.tiles[-1][0]["content"]["uri"]
+        status, _, before = self.daemon.get_json("/v1/stats")
+        self.assertEqual(status, 200)
+        status, headers, body = self.daemon.request("GET", PREFIX + uri)
+        self.assertEqual(status, 200)
+        status, _, after = self.daemon.get_json("/v1/stats")
+        self.assertEqual(body, self.glbs[uri])
+        self.assertEqual(headers["ETag"], self.glb_headers[uri]["ETag"])
+        # Encoded once (in setUpClass), answered from the cache since: a hit, no miss.
+        self.assertGreater(after["cache"]["hits"], before["cache"]["hits"])
+        self.assertEqual(after["cache"]["misses"], before["cache"]["misses"])
+        self.assertGreaterEqual(after["memory"]["resident_bytes_by_category"]["tiles"], len(body))
+        self.assertLessEqual(after["memory"]["resident_bytes"], after["memory"]["budget_bytes"])
 
     def test_unknown_tiles_and_models_are_json_errors(self):
         for path, expected in ((PREFIX + "29_0_0.glb", 404), (PREFIX + "abc.glb", 400),
