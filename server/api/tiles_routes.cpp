@@ -50,7 +50,17 @@ json translationJson(const core::Vec3d& t) {
       {1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, t.x, t.y, t.z, 1.0});
 }
 
-json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre) {
+/// "{key}.glb", with "?v={patch version}" when `model` is given.
+std::string contentUri(const core::PatchKey& key, const core::Model* model) {
+  std::string uri = key.toString() + ".glb";
+  if (model != nullptr) {
+    uri += "?v=" + std::to_string(model->at(key).version);
+  }
+  return uri;
+}
+
+json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre,
+              const core::Model* model) {
   const core::Vec3d c = node.box.center() - node.centre;
   const core::Vec3d half = node.box.size() * 0.5;
   json tile = {{"transform", translationJson(node.centre - parentCentre)},
@@ -59,11 +69,11 @@ json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre) {
                                       half.z})}}},
                {"geometricError", node.geometricError},
                {"refine", "REPLACE"},
-               {"content", {{"uri", node.key.toString() + ".glb"}}}};
+               {"content", {{"uri", contentUri(node.key, model)}}}};
   if (!node.children.empty()) {
     json children = json::array();
     for (const core::TileNode& child : node.children) {
-      children.push_back(tileJson(child, node.centre));
+      children.push_back(tileJson(child, node.centre, model));
     }
     tile["children"] = std::move(children);
   }
@@ -97,8 +107,8 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
     return http::notModified(etag, kTileCacheControl);
   }
   const core::TileNode root = core::buildTileTree(*snapshot->model);
-  http::Response response =
-      http::jsonResponse(200, tilesetJson(root, opaque(modelEtag(*snapshot))));
+  http::Response response = http::jsonResponse(
+      200, tilesetJson(root, opaque(modelEtag(*snapshot)), snapshot->model.get()));
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   return withCache(std::move(response), etag);
 }
@@ -170,11 +180,12 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
 
 }  // namespace
 
-json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion) {
+json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
+                 const core::Model* model) {
   return {
       {"asset", {{"version", "1.1"}, {"tilesetVersion", tilesetVersion}, {"generator", "vsmd"}}},
       {"geometricError", core::tilesetGeometricError(root)},
-      {"root", tileJson(root, core::Vec3d{0, 0, 0})}};
+      {"root", tileJson(root, core::Vec3d{0, 0, 0}, model)}};
 }
 
 std::string tilesetEtag(const core::ModelSnapshot& snapshot) {
