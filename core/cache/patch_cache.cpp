@@ -21,6 +21,8 @@ std::string_view toString(MemoryCategory category) {
       return "textures";
     case MemoryCategory::Tiles:
       return "tiles";
+    case MemoryCategory::PositionFiles:
+      return "position_files";
   }
   return "unknown";
 }
@@ -429,6 +431,20 @@ PatchCache::Pin PatchCache::get(ModelId model, const ObjectId& object) {
   e.state = State::Resident;
   impl_->changed.notify_all();
   return Pin(this, &e, e.object);
+}
+
+std::shared_ptr<const void> PatchCache::find(ModelId model, const ObjectId& object) {
+  const std::lock_guard lock(impl_->mutex);
+  const auto it = impl_->entries.find(FullKey{model, object});
+  if (it == impl_->entries.end() || it->second->state == State::Loading) {
+    ++impl_->misses;
+    return nullptr;
+  }
+  Entry& e = *it->second;
+  ++impl_->hits;
+  e.referenced = true;
+  e.dirtyPasses = 0;
+  return e.object;
 }
 
 PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValue value,

@@ -11,9 +11,17 @@
 
 namespace vsm::core {
 
-/// What a cached object is, for accounting against the budget by category.
-enum class MemoryCategory : std::uint8_t { Positions = 0, Coordinates, Textures, Tiles };
-inline constexpr std::size_t kMemoryCategoryCount = 4;
+/// What a cached object is, for accounting against the budget by category. Tiles are encoded
+/// 3D Tiles content (GLB); PositionFiles are positions encoded as .aara files in memory, which the
+/// server sends with sendfile(2).
+enum class MemoryCategory : std::uint8_t {
+  Positions = 0,
+  Coordinates,
+  Textures,
+  Tiles,
+  PositionFiles
+};
+inline constexpr std::size_t kMemoryCategoryCount = 5;
 std::string_view toString(MemoryCategory category);
 
 /// What the cache holds: one version of one kind of data of one patch. Versions of a key are
@@ -129,6 +137,13 @@ class PatchCache {
   /// Returns the object, loading it on a miss. Throws Error(ResourceExhausted) when it cannot fit
   /// even after evicting everything unpinned, or the store's error.
   Pin get(ModelId model, const ObjectId& id);
+
+  /// The object when it is resident; nullptr when it is not (or still loading). Never loads, never
+  /// waits and never pins: for callers that must not block (network threads). The caller keeps
+  /// the object alive by the returned pointer; should the entry be evicted meanwhile, its bytes
+  /// outlive their charge for that long. Counts a hit or a miss, and a hit counts as a use for
+  /// the eviction policy.
+  std::shared_ptr<const void> find(ModelId model, const ObjectId& id);
 
   /// Inserts or replaces an object (new data from a merge or import), resident and pinned. When
   /// `dirty`, it is written back before it is ever evicted. Throws Error(ResourceExhausted).

@@ -6,10 +6,9 @@
 #include <charconv>
 #include <cmath>
 #include <cstring>
-#include <list>
-#include <mutex>
+#include <optional>
 #include <set>
-#include <unordered_map>
+#include <span>
 
 #include <fcntl.h>
 #include <sys/mman.h>
@@ -25,6 +24,7 @@
 #include "core/store/live_model.hpp"
 #include "server/jobs/job_registry.hpp"
 #include "server/jobs/model_jobs.hpp"
+#include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
 
 namespace vsm::server::api {
@@ -36,90 +36,23 @@ using nlohmann::json;
 
 namespace {
 
-/// The .aara bytes of a patch's positions in an anonymous in-memory file (memfd), sealed against
-/// writes, so that the server can send them with sendfile(2) like a static file.
-struct PositionFile {
-  int fd = -1;
-  std::size_t size = 0;
-  PositionFile() = default;
-  PositionFile(const PositionFile&) = delete;
-  PositionFile& operator=(const PositionFile&) = delete;
-  ~PositionFile() {
-    if (fd >= 0) {
-      ::close(fd);
-    }
-  }
-};
-
-/// What a positions response holds until written: the grid (the bytes in memory) and its file.
-struct PositionBody {
-  std::shared_ptr<const core::PatchGrid> grid;
-  std::shared_ptr<const PositionFile> file;
-};
-
-/// The position files of recently served grids, least recently used dropped first, bounded in
-/// bytes (memory outside the patch cache's budget: a quarter of it, at most 256 MiB). Keyed by
-/// the cached grid object, which is immutable and unique to one version of one patch of one
-/// open model; an entry whose grid has gone (evicted, a newer version published, the model
-/// closed) is never served and is replaced on the next use of its address.
-///
-/// Thread-safe: one mutex guards the table, the LRU list and the byte count; it is not held while
-/// a file is made (a copy of the grid: two threads may make one each, the first in wins).
-class PositionFiles {
+/// The .aara bytes of one version of a patch's positions in an anonymous in-memory file (memfd),
+/// sealed against writes and mapped read-only: the server sends it with sendfile(2) like a static
+/// file, and every response is answered from it without the grid it was made from. Cached in the
+/// model's EncodedCache (MemoryCategory::PositionFiles), so it counts against the memory budget.
+class AaraFile {
  public:
-  explicit PositionFiles(std::size_t limit) : limit_(limit) {}
-
-  /// The file of `grid`, made on first use; nullptr when it would not fit or the system has no
-  /// memfd (the caller then writes from memory).
-  std::shared_ptr<const PositionFile> get(const std::shared_ptr<const core::PatchGrid>& grid) {
-    {
-      const std::lock_guard lock(mutex_);
-      const auto it = entries_.find(grid.get());
-      if (it != entries_.end() && it->second.grid.lock() == grid) {
-        lru_.splice(lru_.end(), lru_, it->second.lru);
-        return it->second.file;
-      }
-    }
-    const std::size_t size = 13 + grid->positions().size_bytes();
-    if (size > limit_) {
-      return nullptr;
-    }
-    auto file = make(*grid, size);
-    if (!file) {
-      return nullptr;
-    }
-    const std::lock_guard lock(mutex_);
-    auto it = entries_.find(grid.get());
-    if (it != entries_.end()) {
-      if (it->second.grid.lock() == grid) {
-        return it->second.file;  // another thread was first
-      }
-      erase(it);  // a dead grid's entry at a reused address
-    }
-    while (bytes_ + size > limit_ && !lru_.empty()) {
-      erase(entries_.find(lru_.front()));
-    }
-    lru_.push_back(grid.get());
-    entries_.emplace(grid.get(), Entry{grid, file, std::prev(lru_.end())});
-    bytes_ += size;
-    return file;
-  }
-
- private:
-  struct Entry {
-    std::weak_ptr<const core::PatchGrid> grid;
-    std::shared_ptr<const PositionFile> file;
-    std::list<const void*>::iterator lru;
-  };
-
-  static std::shared_ptr<const PositionFile> make(const core::PatchGrid& grid, std::size_t size) {
-    auto file = std::make_shared<PositionFile>();
-    file->fd = ::memfd_create("vsm-positions", MFD_CLOEXEC | MFD_ALLOW_SEALING);
-    if (file->fd < 0) {
+  /// The file of `grid`; nullptr when the system has no memfd or it cannot be written or mapped
+  /// (the caller then answers from the grid).
+  static std::shared_ptr<const AaraFile> make(const core::PatchGrid& grid) {
+    auto file = std::make_shared<AaraFile>();
+    file->fd_ = ::memfd_create("vsm-positions", MFD_CLOEXEC | MFD_ALLOW_SEALING);
+    if (file->fd_ < 0) {
       return nullptr;
     }
     const std::string header = aaraHeader(grid.size());
     const std::span<const float> floats = grid.positions();
+    const std::size_t size = header.size() + floats.size_bytes();
     const iovec parts[2] = {{const_cast<char*>(header.data()), header.size()},
                             {const_cast<float*>(floats.data()), floats.size_bytes()}};
     std::size_t written = 0;
@@ -136,7 +69,7 @@ class PositionFiles {
         rest[count++] = {static_cast<char*>(part.iov_base) + skip, part.iov_len - skip};
         skip = 0;
       }
-      const ssize_t n = ::writev(file->fd, rest, count);
+      const ssize_t n = ::writev(file->fd_, rest, count);
       if (n < 0 && errno == EINTR) {
         continue;
       }
@@ -146,23 +79,47 @@ class PositionFiles {
       written += static_cast<std::size_t>(n);
     }
     // Sealed: nobody can change the bytes a response is being sent from.
-    ::fcntl(file->fd, F_ADD_SEALS, F_SEAL_SHRINK | F_SEAL_GROW | F_SEAL_WRITE | F_SEAL_SEAL);
-    file->size = size;
+    ::fcntl(file->fd_, F_ADD_SEALS, F_SEAL_SHRINK | F_SEAL_GROW | F_SEAL_WRITE | F_SEAL_SEAL);
+    void* map = ::mmap(nullptr, size, PROT_READ, MAP_SHARED, file->fd_, 0);
+    if (map == MAP_FAILED) {
+      return nullptr;
+    }
+    file->map_ = map;
+    file->size_ = size;
+    file->gridSize_ = std::to_string(grid.size());
+    file->local2global_ = matrixText(grid.local2global());
     return file;
   }
 
-  void erase(std::unordered_map<const void*, Entry>::iterator it) {
-    bytes_ -= it->second.file->size;
-    lru_.erase(it->second.lru);
-    entries_.erase(it);
+  AaraFile() = default;
+  AaraFile(const AaraFile&) = delete;
+  AaraFile& operator=(const AaraFile&) = delete;
+  ~AaraFile() {
+    if (map_ != nullptr) {
+      ::munmap(map_, size_);
+    }
+    if (fd_ >= 0) {
+      ::close(fd_);
+    }
   }
 
-  const std::size_t limit_;
-  std::mutex mutex_;  // guards entries_, lru_ and bytes_
-  std::unordered_map<const void*, Entry> entries_;
-  std::list<const void*> lru_;  // least recently used first
-  std::size_t bytes_ = 0;
+  int fd() const { return fd_; }
+  /// The whole .aara file: header and floats (the mapping shares the file's pages).
+  std::string_view bytes() const { return {static_cast<const char*>(map_), size_}; }
+  /// Values of the X-VSM-Grid-Size and X-VSM-Local2Global headers.
+  const std::string& gridSize() const { return gridSize_; }
+  const std::string& local2global() const { return local2global_; }
+
+ private:
+  int fd_ = -1;
+  void* map_ = nullptr;
+  std::size_t size_ = 0;
+  std::string gridSize_;
+  std::string local2global_;
 };
+
+/// The size of aaraHeader(): what precedes the floats.
+constexpr std::size_t kAaraHeaderBytes = 13;
 
 /// Patch metadata and data: revalidated after a minute. The URL names no version, so a merge
 /// changes what it returns; a minute of staleness in client caches is the trade for fewer
@@ -468,42 +425,73 @@ http::Response getPatch(const ModelContext& c, const http::Request& request) {
                    etag);
 }
 
-http::Response getPositions(const ModelContext& c, PositionFiles& files,
-                            const http::Request& request) {
+/// GET /v1/models/{m}/patches/{p}/positions. On a network thread (`onNetworkThread`) it answers
+/// only what needs no blocking — a 304, or the patch's .aara file when cached — and nullopt
+/// otherwise; on the CPU pool it reads the grid through the patch cache (a miss reads the disk)
+/// and caches its file.
+std::optional<http::Response> positions(const ModelContext& c, const http::Request& request,
+                                        bool onNetworkThread) {
   const std::string& id = request.param("m");
-  const auto live = c.models.get(id);
+  const models::ModelRegistry::Served served = c.models.getServed(id);
   const core::PatchKey key = parseKey(request.param("p"));
-  const auto snapshot = live->snapshot();
+  const auto snapshot = served.live->snapshot();
   const core::PatchInfo& info = findPatch(id, *snapshot, key);
-  const std::string etag = patchEtag(info);
+  std::string etag = patchEtag(info);
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kPatchCacheControl);
   }
+  const core::ObjectId fileId{key, info.version, core::MemoryCategory::PositionFiles};
+  std::shared_ptr<const AaraFile> file = served.encoded->find<AaraFile>(fileId);
   http::Response response;
-  {
-    // This runs on the CPU pool (every handler does): a miss reads the disk here. The pin is
-    // released before the snapshot and the model.
-    const core::PatchCache::Pin pin = live->positions(*snapshot, key);
+  if (file == nullptr) {
+    if (onNetworkThread) {
+      return std::nullopt;
+    }
+    // The pin is released before the snapshot and the model.
+    const core::PatchCache::Pin pin = served.live->positions(*snapshot, key);
     const auto grid = pin.get<core::PatchGrid>();
-    // The .aara payload is the grid's own float array: it is written to the socket from the
-    // cache, not copied (a 257 x 257 patch is 774 KiB; copying it per request halved the rate).
-    // The published grid is immutable; the response holds it until written. Should the cache
-    // evict it meanwhile, its bytes outlive their charge for that long, as a copy would.
-    response.body = aaraHeader(grid->size());
-    const std::span<const float> floats = grid->positions();
-    response.sharedBody =
-        std::string_view(reinterpret_cast<const char*>(floats.data()), floats.size_bytes());
-    // The same bytes as a file for sendfile(2), when one can be had within its bound.
-    auto file = files.get(grid);
-    response.bodyFd = file ? file->fd : -1;
-    response.bodyOwner = std::make_shared<const PositionBody>(PositionBody{grid, std::move(file)});
-    response.set("X-VSM-Local2Global", matrixText(grid->local2global()));
-    response.set("X-VSM-Grid-Size", std::to_string(grid->size()));
+    file = AaraFile::make(*grid);
+    if (file != nullptr) {
+      try {
+        served.encoded->put(fileId, file, file->bytes().size());
+      } catch (const Error& e) {
+        if (e.code() != ErrorCode::ResourceExhausted) {
+          throw;
+        }
+        file = nullptr;  // no room beside what is pinned: answer from the grid, uncached
+      }
+    }
+    if (file == nullptr) {
+      // The .aara payload is the grid's own float array, written to the socket from the cache
+      // without a copy. The published grid is immutable; the response holds it until written.
+      // Should the cache evict it meanwhile, its bytes outlive their charge for that long.
+      response.body = aaraHeader(grid->size());
+      const std::span<const float> floats = grid->positions();
+      response.sharedBody =
+          std::string_view(reinterpret_cast<const char*>(floats.data()), floats.size_bytes());
+      response.bodyOwner = grid;
+      response.set("X-VSM-Local2Global", matrixText(grid->local2global()));
+      response.set("X-VSM-Grid-Size", std::to_string(grid->size()));
+    }
+  }
+  if (file != nullptr) {
+    // Sent with sendfile(2) from the file; the response holds it until written (should the cache
+    // evict it meanwhile, its bytes outlive their charge for that long). As a body in memory: the
+    // 13-byte .aara header, then the floats from the file's mapping.
+    const std::string_view bytes = file->bytes();
+    response.body = bytes.substr(0, kAaraHeaderBytes);
+    response.sharedBody = bytes.substr(kAaraHeaderBytes);
+    response.bodyFd = file->fd();
+    response.set("X-VSM-Local2Global", file->local2global());
+    response.set("X-VSM-Grid-Size", file->gridSize());
+    response.bodyOwner = std::move(file);
   }
   response.contentType = "application/octet-stream";
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   response.set("X-VSM-Patch-Version", std::to_string(info.version));
-  return withCache(std::move(response), kPatchCacheControl, etag);
+  response.set("Cache-Control", std::string(kPatchCacheControl));
+  response.set("ETag", std::move(etag));
+  return response;
 }
 
 http::Response getLod(const ModelContext& c, const http::Request& request) {
@@ -623,7 +611,7 @@ json hierarchyJson(const core::Model& model, const core::PatchKey& root, int lev
 std::string aaraHeader(std::size_t gridSize) {
   static_assert(std::endian::native == std::endian::little, ".aara is little-endian");
   const auto size = static_cast<std::int32_t>(gridSize);
-  std::string out(13, '\0');
+  std::string out(kAaraHeaderBytes, '\0');
   char* p = out.data();
   *p++ = 3;
   std::memcpy(p, "V3f", 3);
@@ -717,12 +705,10 @@ void addModelRoutes(http::Router& router, ModelContext context) {
   router.add(http::Method::Delete, "/v1/models/{m}", bind(deleteModel));
   router.add(http::Method::Get, "/v1/models/{m}/hierarchy", bind(getHierarchy));
   router.add(http::Method::Get, "/v1/models/{m}/patches/{p}", bind(getPatch));
-  const auto files = std::make_shared<PositionFiles>(
-      std::min<std::size_t>(context.models.cache().budgetBytes() / 4, std::size_t{256} << 20));
-  router.add(http::Method::Get, "/v1/models/{m}/patches/{p}/positions",
-             [context, files](const http::Request& request) {
-               return getPositions(context, *files, request);
-             });
+  router.add(
+      http::Method::Get, "/v1/models/{m}/patches/{p}/positions",
+      [context](const http::Request& request) { return *positions(context, request, false); },
+      [context](const http::Request& request) { return positions(context, request, true); });
   router.add(http::Method::Get, "/v1/models/{m}/lod", bind(getLod));
 }
 

@@ -1,5 +1,7 @@
 #include "server/api/system_routes.hpp"
 
+#include <array>
+
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
@@ -15,9 +17,14 @@ http::Response noStore(http::Response response) {
   return response;
 }
 
-constexpr core::MemoryCategory kCategories[] = {
-    core::MemoryCategory::Positions, core::MemoryCategory::Coordinates,
-    core::MemoryCategory::Textures, core::MemoryCategory::Tiles};
+/// Every category, in the order of the enum.
+constexpr auto kCategories = [] {
+  std::array<core::MemoryCategory, core::kMemoryCategoryCount> all{};
+  for (std::size_t i = 0; i < all.size(); ++i) {
+    all[i] = static_cast<core::MemoryCategory>(i);
+  }
+  return all;
+}();
 
 }  // namespace
 
@@ -62,7 +69,7 @@ std::vector<metrics::Snapshot> cacheMetrics(const core::CacheStats& stats) {
   out.push_back(single("vsm_memory_pinned_bytes", "Resident bytes pinned by requests and jobs",
                        Type::Gauge, static_cast<double>(stats.pinnedBytes)));
   Snapshot byCategory{"vsm_memory_resident_bytes",
-                      "Resident patch data by category",
+                      "Resident bytes by category: patch data and responses encoded from it",
                       Type::Gauge,
                       {"category"},
                       {}};
@@ -83,7 +90,9 @@ std::vector<metrics::Snapshot> cacheMetrics(const core::CacheStats& stats) {
   out.push_back(std::move(byModel));
   out.push_back(single("vsm_cache_hits_total", "Cache lookups served from memory", Type::Counter,
                        static_cast<double>(stats.hits)));
-  out.push_back(single("vsm_cache_misses_total", "Cache lookups that loaded from disk",
+  out.push_back(single("vsm_cache_misses_total",
+                       "Cache lookups that found nothing resident (the data is then loaded from "
+                       "disk, or the response encoded)",
                        Type::Counter, static_cast<double>(stats.misses)));
   out.push_back(single("vsm_cache_evictions_total", "Entries evicted to stay within the budget",
                        Type::Counter, static_cast<double>(stats.evictions)));

@@ -1,6 +1,9 @@
 #include "server/api/tiles_routes.hpp"
 
+#include <cstddef>
+#include <memory>
 #include <optional>
+#include <vector>
 
 #include <nlohmann/json.hpp>
 
@@ -12,6 +15,7 @@
 #include "core/tiles/glb.hpp"
 #include "core/tiles/tile_tree.hpp"
 #include "server/api/model_routes.hpp"
+#include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
 
 namespace vsm::server::api {
@@ -46,7 +50,17 @@ json translationJson(const core::Vec3d& t) {
       {1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, t.x, t.y, t.z, 1.0});
 }
 
-json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre) {
+/// "{key}.glb", with "?v={patch version}" when `model` is given.
+std::string contentUri(const core::PatchKey& key, const core::Model* model) {
+  std::string uri = key.toString() + ".glb";
+  if (model != nullptr) {
+    uri += "?v=" + std::to_string(model->at(key).version);
+  }
+  return uri;
+}
+
+json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre,
+              const core::Model* model) {
   const core::Vec3d c = node.box.center() - node.centre;
   const core::Vec3d half = node.box.size() * 0.5;
   json tile = {{"transform", translationJson(node.centre - parentCentre)},
@@ -55,11 +69,11 @@ json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre) {
                                       half.z})}}},
                {"geometricError", node.geometricError},
                {"refine", "REPLACE"},
-               {"content", {{"uri", node.key.toString() + ".glb"}}}};
+               {"content", {{"uri", contentUri(node.key, model)}}}};
   if (!node.children.empty()) {
     json children = json::array();
     for (const core::TileNode& child : node.children) {
-      children.push_back(tileJson(child, node.centre));
+      children.push_back(tileJson(child, node.centre, model));
     }
     tile["children"] = std::move(children);
   }
@@ -93,17 +107,27 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
     return http::notModified(etag, kTileCacheControl);
   }
   const core::TileNode root = core::buildTileTree(*snapshot->model);
-  http::Response response =
-      http::jsonResponse(200, tilesetJson(root, opaque(modelEtag(*snapshot))));
+  http::Response response = http::jsonResponse(
+      200, tilesetJson(root, opaque(modelEtag(*snapshot)), snapshot->model.get()));
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   return withCache(std::move(response), etag);
 }
 
-http::Response getGlb(models::ModelRegistry& models, const http::Request& request) {
+/// An encoded tile, as cached in the model's EncodedCache (MemoryCategory::Tiles).
+struct GlbBody {
+  std::vector<std::byte> bytes;
+};
+
+/// GET /v1/models/{m}/3dtiles/{p}.glb (any query, such as the tileset's "?v=", is ignored). On a
+/// network thread (`onNetworkThread`) it answers only a 304 or a cached GLB, and nullopt
+/// otherwise; on the CPU pool it encodes the GLB from the patch's data (read through the patch
+/// cache) and caches it.
+std::optional<http::Response> glb(models::ModelRegistry& models, const http::Request& request,
+                                  bool onNetworkThread) {
   const std::string& id = request.param("m");
-  const auto live = models.get(id);
+  const models::ModelRegistry::Served served = models.getServed(id);
   const core::PatchKey key = parseGlbKey(request.param("p"));
-  const auto snapshot = live->snapshot();
+  const auto snapshot = served.live->snapshot();
   const core::PatchInfo* info = snapshot->model->find(key);
   if (info == nullptr) {
     throw Error(ErrorCode::NotFound, "model '" + id + "' has no patch " + key.toString() +
@@ -113,24 +137,41 @@ http::Response getGlb(models::ModelRegistry& models, const http::Request& reques
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kTileCacheControl);
   }
-  http::Response response;
-  {
-    // On the CPU pool, like every handler: a cache miss reads the disk here, and the encoding is
-    // CPU work. The pin is released before the snapshot.
-    const core::PatchCache::Pin pin = live->positions(*snapshot, key);
-    // The patch's texture tile (converted to PNG) and coordinates, read from disk per request.
+  const core::ObjectId glbId{key, info->version, core::MemoryCategory::Tiles};
+  std::shared_ptr<const GlbBody> body = served.encoded->find<GlbBody>(glbId);
+  if (body == nullptr) {
+    if (onNetworkThread) {
+      return std::nullopt;
+    }
+    // A cache miss reads the disk here, and the encoding is CPU work. The pin is released before
+    // the snapshot.
+    const core::PatchCache::Pin pin = served.live->positions(*snapshot, key);
+    // The patch's texture tile (converted to PNG) and coordinates, read from disk.
     const std::optional<core::PatchTexture> texture =
-        core::readPatchTexture(live->dir(), *snapshot->model, *info);
+        core::readPatchTexture(served.live->dir(), *snapshot->model, *info);
     core::GlbOptions options;
     if (texture) {
       options.texture = {texture->png, "image/png"};
       options.texcoords = texture->texcoords;
       options.baseColor = {1.0, 1.0, 1.0, 1.0};  // the texture's own colours
     }
-    const std::vector<std::byte> glb =
-        core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(*info), options);
-    response.body.assign(reinterpret_cast<const char*>(glb.data()), glb.size());
+    auto encoded = std::make_shared<GlbBody>();
+    encoded->bytes = core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(*info), options);
+    body = encoded;
+    try {
+      served.encoded->put(glbId, body, body->bytes.size());
+    } catch (const Error& e) {
+      if (e.code() != ErrorCode::ResourceExhausted) {
+        throw;
+      }
+      // No room beside what is pinned: answered uncached (this response holds the bytes).
+    }
   }
+  http::Response response;
+  // Written from the cached bytes without a copy; the response holds them until written.
+  response.sharedBody =
+      std::string_view(reinterpret_cast<const char*>(body->bytes.data()), body->bytes.size());
+  response.bodyOwner = std::move(body);
   response.contentType = std::string(kGlbType);
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   response.set("X-VSM-Patch-Version", std::to_string(info->version));
@@ -139,11 +180,12 @@ http::Response getGlb(models::ModelRegistry& models, const http::Request& reques
 
 }  // namespace
 
-json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion) {
+json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
+                 const core::Model* model) {
   return {
       {"asset", {{"version", "1.1"}, {"tilesetVersion", tilesetVersion}, {"generator", "vsmd"}}},
       {"geometricError", core::tilesetGeometricError(root)},
-      {"root", tileJson(root, core::Vec3d{0, 0, 0})}};
+      {"root", tileJson(root, core::Vec3d{0, 0, 0}, model)}};
 }
 
 std::string tilesetEtag(const core::ModelSnapshot& snapshot) {
@@ -159,8 +201,10 @@ std::string glbEtag(const core::PatchInfo& info) {
 void addTilesRoutes(http::Router& router, models::ModelRegistry& models) {
   router.add(http::Method::Get, "/v1/models/{m}/3dtiles/tileset.json",
              [&models](const http::Request& request) { return getTileset(models, request); });
-  router.add(http::Method::Get, "/v1/models/{m}/3dtiles/{p}.glb",
-             [&models](const http::Request& request) { return getGlb(models, request); });
+  router.add(
+      http::Method::Get, "/v1/models/{m}/3dtiles/{p}.glb",
+      [&models](const http::Request& request) { return *glb(models, request, false); },
+      [&models](const http::Request& request) { return glb(models, request, true); });
 }
 
 }  // namespace vsm::server::api

@@ -8,6 +8,7 @@
 #include "server/http/router.hpp"
 
 namespace vsm::core {
+class Model;
 struct ModelSnapshot;
 struct PatchInfo;
 struct TileNode;
@@ -21,8 +22,9 @@ namespace vsm::server::api {
 
 /// GET /v1/models/{m}/3dtiles/tileset.json and GET /v1/models/{m}/3dtiles/{p}.glb: the OGC 3D
 /// Tiles 1.1 view of every open model (see proto/openapi.yaml). The tileset is built from one
-/// snapshot's metadata; a GLB is encoded on request from the patch's data, read through the cache
-/// on the CPU pool. `models` must outlive the router.
+/// snapshot's metadata; a GLB is encoded from the patch's data, read through the cache on the CPU
+/// pool, and kept in the model's EncodedCache (one budget with the data), from which repeated
+/// requests are answered on the network thread. `models` must outlive the router.
 void addTilesRoutes(http::Router& router, models::ModelRegistry& models);
 
 // ---- wire mapping, public for tests -----------------------------------------------------------
@@ -31,8 +33,11 @@ void addTilesRoutes(http::Router& router, models::ModelRegistry& models);
 /// transform (column-major 4x4 translating by the tile's centre minus its parent's; the root's by
 /// its centre, in ECEF for models imported from georeferenced rasters), boundingVolume.box
 /// relative to the tile's centre, geometricError, refine "REPLACE", content.uri "{key}.glb"
-/// (relative to the tileset's URL) and children.
-nlohmann::json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion);
+/// (relative to the tileset's URL) and children. With `model` (the one the tree was built from),
+/// each URI names the patch's version, "{key}.glb?v={version}", so that browser and CDN caches
+/// never mix a tile of one version of the model with a tileset of another.
+nlohmann::json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
+                           const core::Model* model = nullptr);
 
 /// The entity tags of a model's tileset and of one patch's GLB: derived from the model's and the
 /// patch's tags and the encoder's format version (a change of the encoder changes every tag).

@@ -107,9 +107,17 @@ bool Pipeline::authorized(const Request& request, bool* wrongToken) const {
 }
 
 Handled Pipeline::handle(Request& request) const noexcept {
+  return *dispatch(request, false);
+}
+
+std::optional<Handled> Pipeline::handleInline(Request& request) const noexcept {
+  return dispatch(request, true);
+}
+
+std::optional<Handled> Pipeline::dispatch(Request& request, bool onNetworkThread) const noexcept {
   Handled out{{}, kUnmatched};
   try {
-    const std::string path(request.path());
+    const std::string_view path = request.path();
     if (isWrite(request.method)) {
       bool wrongToken = false;
       if (!authorized(request, &wrongToken)) {
@@ -129,8 +137,8 @@ Handled Pipeline::handle(Request& request) const noexcept {
       out.route = match.route->pattern;
     }
     if (match.kind == RouteMatch::Kind::NotFound) {
-      out.response =
-          errorResponse(404, core::toString(ErrorCode::NotFound), "no resource at " + path);
+      out.response = errorResponse(404, core::toString(ErrorCode::NotFound),
+                                   "no resource at " + std::string(path));
     } else if (request.method == Method::Options) {
       out.route = kOptions;
       // Plain OPTIONS and CORS preflight alike: what the path supports, and what browsers may send.
@@ -144,12 +152,23 @@ Handled Pipeline::handle(Request& request) const noexcept {
       out.response.set("Cache-Control", "no-store");
     } else if (match.kind == RouteMatch::Kind::MethodNotAllowed) {
       out.response = errorResponse(405, "method_not_allowed",
-                                   request.methodName + " is not allowed on " + path +
+                                   request.methodName + " is not allowed on " + std::string(path) +
                                        " (allowed: " + joinMethods(match.allowed) + ")");
       out.response.set("Allow", joinMethods(match.allowed));
     } else {
+      if (onNetworkThread && !match.route->inlineHandler) {
+        return std::nullopt;
+      }
       request.params = std::move(match.params);
-      out.response = match.route->handler(request);
+      if (onNetworkThread) {
+        std::optional<Response> response = match.route->inlineHandler(request);
+        if (!response) {
+          return std::nullopt;
+        }
+        out.response = std::move(*response);
+      } else {
+        out.response = match.route->handler(request);
+      }
     }
   } catch (const core::Error& e) {
     out.response = errorFor(e, request.id);

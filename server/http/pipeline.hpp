@@ -1,5 +1,6 @@
 #pragma once
 
+#include <optional>
 #include <string>
 #include <string_view>
 
@@ -59,6 +60,11 @@ class Pipeline {
   /// Runs the handler on the calling thread. `request.id` must be set.
   Handled handle(Request& request) const noexcept;
 
+  /// handle() for a network thread: what needs no blocking — the answers the pipeline makes
+  /// itself (401, 404, 405, OPTIONS) and those of the route's inline handler. nullopt when the
+  /// route has none or it declined: then handle() must run on the CPU pool. Never throws.
+  std::optional<Handled> handleInline(Request& request) const noexcept;
+
   /// Adds what every response carries: CORS headers, X-Request-Id, and Cache-Control: no-store
   /// unless the handler chose a policy. The server calls it for the responses it makes itself
   /// (400, 413, 431, 503).
@@ -66,6 +72,7 @@ class Pipeline {
 
  private:
   bool authorized(const Request& request, bool* wrongToken) const;
+  std::optional<Handled> dispatch(Request& request, bool onNetworkThread) const noexcept;
 
   const Router& router_;
   std::string token_;

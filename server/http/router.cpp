@@ -31,7 +31,8 @@ bool isNameChar(char c) {
 
 }  // namespace
 
-void Router::add(Method method, std::string_view pattern, Handler handler) {
+void Router::add(Method method, std::string_view pattern, Handler handler,
+                 InlineHandler inlineHandler) {
   const auto bad = [&](std::string_view why) {
     throw Error(ErrorCode::InvalidArgument,
                 "route pattern '" + std::string(pattern) + "': " + std::string(why));
@@ -91,7 +92,7 @@ void Router::add(Method method, std::string_view pattern, Handler handler) {
       bad(std::string(toString(method)) + " is routed already");
     }
   }
-  entry->route = Route{method, std::string(pattern), std::move(handler)};
+  entry->route = Route{method, std::string(pattern), std::move(handler), std::move(inlineHandler)};
   routes_.push_back(std::move(entry));
 }
 

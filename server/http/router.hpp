@@ -3,6 +3,7 @@
 #include <functional>
 #include <map>
 #include <memory>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -15,12 +16,21 @@ namespace vsm::server::http {
 /// Runs on the CPU pool, never on a network thread: it may block on disk.
 using Handler = std::function<Response(const Request&)>;
 
+/// Answers a routed request on the network thread that read it, when that needs no blocking: from
+/// memory that is there already (a cached response body, a 304). Returns nullopt to have the
+/// route's Handler run on the CPU pool instead. Must never block: no disk, no encoding, no wait
+/// for a lock that is held across I/O (short critical sections are fine). May throw core::Error
+/// as a Handler does.
+using InlineHandler = std::function<std::optional<Response>(const Request&)>;
+
 /// One route: a method and a path pattern.
 struct Route {
   Method method;
   /// As registered, e.g. "/v1/models/{m}/patches/{p}"; also the metrics label of the route.
   std::string pattern;
   Handler handler;
+  /// Tried first, on the network thread, when set.
+  InlineHandler inlineHandler;
 };
 
 /// The outcome of matching a method and a path.
@@ -52,7 +62,9 @@ class Router {
   /// Throws core::Error(InvalidArgument) on a malformed pattern (no leading '/', empty segment,
   /// two parameters in a segment, a parameter name not [A-Za-z0-9_]+ or used twice), on Head,
   /// Options or Other (they are implied), or when (method, pattern) is routed already.
-  void add(Method method, std::string_view pattern, Handler handler);
+  /// `inlineHandler`, when given, answers what it can on the network thread (see InlineHandler).
+  void add(Method method, std::string_view pattern, Handler handler,
+           InlineHandler inlineHandler = {});
 
   /// Matches a percent-encoded path (no query).
   RouteMatch match(Method method, std::string_view path) const;

@@ -8,9 +8,12 @@
 
 #include <pthread.h>
 #include <sys/sendfile.h>
+#include <sys/socket.h>
+#include <sys/uio.h>
 
 #include <csignal>
 
+#include <algorithm>
 #include <array>
 #include <atomic>
 #include <cerrno>
@@ -138,7 +141,9 @@ std::string quoted(std::string_view target) {
 
 /// True when a header value or name could split the header (CR, LF, NUL).
 bool unsafeHeaderText(std::string_view text) {
-  return text.find_first_of(std::string_view("\r\n\0", 3)) != std::string_view::npos;
+  // One pass (find_first_of searches the set once per character: a memchr each).
+  return std::any_of(text.begin(), text.end(),
+                     [](char c) { return c == '\r' || c == '\n' || c == '\0'; });
 }
 
 bool isHttpError(const error_code& ec) {
@@ -229,7 +234,7 @@ struct Server::Impl {
 };
 
 /// One client connection. Every member is touched only on the connection's strand; handlers run
-/// on the CPU pool and post their result back to the strand.
+/// on the CPU pool and post their result back to the strand (inline handlers run on the strand).
 class Connection : public std::enable_shared_from_this<Connection> {
  public:
   Connection(Server::Impl& server, tcp::socket&& socket, bool counted)
@@ -434,14 +439,27 @@ class Connection : public std::enable_shared_from_this<Connection> {
     Slot slot;
     slot.seq = nextSeq_++;
     slot.start = Clock::now();
-    slot.method = request.methodName;
-    slot.target = request.target;
-    slot.id = request.id;
     slot.version = message.version();
     slot.head = request.method == Method::Head;
     slot.close = !message.keep_alive();
     closing_ = closing_ || slot.close;
     const std::uint64_t seq = slot.seq;
+    // What needs no blocking is answered here, without a hop to the CPU pool and back: a cached
+    // response body, a 304, the pipeline's own errors.
+    if (std::optional<Handled> handled = server_.pipeline.handleInline(request)) {
+      slot.method = std::move(request.methodName);  // the request is done with
+      slot.target = std::move(request.target);
+      slot.id = std::move(request.id);
+      slot.handled = std::move(*handled);
+      slot.ready = true;
+      queue_.push_back(std::move(slot));
+      maybeWrite();
+      readNext();
+      return;
+    }
+    slot.method = request.methodName;
+    slot.target = request.target;
+    slot.id = request.id;
     queue_.push_back(std::move(slot));
 
     // The handler runs on the CPU pool; its result comes back to this connection's strand.
@@ -478,24 +496,18 @@ class Connection : public std::enable_shared_from_this<Connection> {
     stream_.expires_after(server_.options.writeTimeout);
     const Response& r = slot.handled.response;
     if (r.bodyFd >= 0 && !slot.head && GatherBody::size(slot.message->body()) > 0) {
-      // The header by Beast, the body by sendfile(2): the kernel sends the file's pages without
-      // copying them through user space (as nginx serves static files).
+      // The header by Beast's serializer, the body by sendfile(2): the kernel sends the file's
+      // pages without copying them through user space (as nginx serves static files).
       slot.serializer = std::make_unique<bhttp::serializer<false, GatherBody>>(*slot.message);
-      bhttp::async_write_header(
-          stream_, *slot.serializer, [self = shared_from_this()](error_code ec, std::size_t) {
-            if (ec) {
-              self->onWrite(ec, 0);
-            } else {
-              self->fileTimer_.expires_after(self->server_.options.writeTimeout);
-              self->fileTimer_.async_wait([self](error_code wait) {
-                if (!wait) {
-                  self->server_.timeouts.inc({"write"});
-                  self->closeNow();
-                }
-              });
-              self->sendFile();
-            }
-          });
+      slot.serializer->split(true);
+      fileTimer_.expires_after(server_.options.writeTimeout);
+      fileTimer_.async_wait([self = shared_from_this()](error_code wait) {
+        if (!wait) {
+          self->server_.timeouts.inc({"write"});
+          self->closeNow();
+        }
+      });
+      sendHeader();
       return;
     }
     bhttp::async_write(stream_, *slot.message,
@@ -542,6 +554,50 @@ class Connection : public std::enable_shared_from_this<Connection> {
     return message;
   }
 
+  /// Sends the rest of the front slot's header with MSG_MORE, so that the kernel holds it back
+  /// and sends it in one segment with the start of the body (nginx's tcp_nopush, without the two
+  /// setsockopt calls), then the body file; waits for the socket whenever it is full.
+  void sendHeader() {
+    if (closed_ || queue_.empty()) {
+      return;
+    }
+    auto& serializer = *queue_.front().serializer;
+    const int socket = stream_.socket().native_handle();
+    error_code ec;
+    while (!ec && !serializer.is_header_done()) {
+      std::array<iovec, 64> parts{};
+      std::size_t count = 0;
+      serializer.next(ec, [&](error_code&, const auto& buffers) {
+        for (auto it = net::buffer_sequence_begin(buffers);
+             it != net::buffer_sequence_end(buffers) && count < parts.size(); ++it) {
+          const net::const_buffer part = *it;
+          parts[count++] = {const_cast<void*>(part.data()), part.size()};
+        }
+      });
+      if (ec) {
+        break;
+      }
+      msghdr message{};
+      message.msg_iov = parts.data();
+      message.msg_iovlen = count;
+      const ssize_t sent = ::sendmsg(socket, &message, MSG_MORE | MSG_NOSIGNAL | MSG_DONTWAIT);
+      if (sent >= 0) {
+        serializer.consume(static_cast<std::size_t>(sent));
+      } else if (errno == EAGAIN || errno == EWOULDBLOCK) {
+        waitWritable(&Connection::sendHeader);
+        return;
+      } else if (errno != EINTR) {
+        ec = error_code(errno, boost::system::system_category());
+      }
+    }
+    if (ec) {
+      fileTimer_.cancel();
+      onWrite(ec, 0);
+      return;
+    }
+    sendFile();
+  }
+
   /// Sends the rest of the front slot's body file; waits for the socket whenever it is full.
   void sendFile() {
     if (closed_ || queue_.empty()) {
@@ -552,7 +608,11 @@ class Connection : public std::enable_shared_from_this<Connection> {
     const int fd = slot.handled.response.bodyFd;
     tcp::socket& socket = stream_.socket();
     error_code ec;
-    socket.native_non_blocking(true, ec);
+    if (!nonBlocking_) {
+      // sendfile(2) has no MSG_DONTWAIT: the socket itself must not block (set once).
+      socket.native_non_blocking(true, ec);
+      nonBlocking_ = !ec;
+    }
     while (!ec && slot.fileOffset < size) {
       auto offset = static_cast<off_t>(slot.fileOffset);
       const ssize_t sent = ::sendfile(socket.native_handle(), fd, &offset, size - slot.fileOffset);
@@ -561,14 +621,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
       } else if (sent < 0 && errno == EINTR) {
         continue;
       } else if (sent < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) {
-        socket.async_wait(tcp::socket::wait_write, [self = shared_from_this()](error_code wait) {
-          if (wait) {
-            self->fileTimer_.cancel();
-            self->onWrite(wait, 0);
-          } else {
-            self->sendFile();
-          }
-        });
+        waitWritable(&Connection::sendFile);
         return;
       } else {
         // 0: the file is shorter than it claimed (a bug in the handler); < 0: a socket error.
@@ -578,6 +631,19 @@ class Connection : public std::enable_shared_from_this<Connection> {
     }
     fileTimer_.cancel();
     onWrite(ec, slot.fileOffset);
+  }
+
+  /// Calls `next` once the socket takes more bytes (under the write timeout of fileTimer_).
+  void waitWritable(void (Connection::*next)()) {
+    stream_.socket().async_wait(tcp::socket::wait_write,
+                                [self = shared_from_this(), next](error_code wait) {
+                                  if (wait) {
+                                    self->fileTimer_.cancel();
+                                    self->onWrite(wait, 0);
+                                  } else {
+                                    ((*self).*next)();
+                                  }
+                                });
   }
 
   void onWrite(error_code ec, std::size_t) {
@@ -610,22 +676,39 @@ class Connection : public std::enable_shared_from_this<Connection> {
   void record(const Slot& slot, error_code ec) {
     const double seconds = std::chrono::duration<double>(Clock::now() - slot.start).count();
     const int status = slot.handled.response.status;
-    const std::string statusText = std::to_string(status);
     const std::size_t bytes =
         slot.message && !slot.head ? GatherBody::size(slot.message->body()) : 0;
     const std::string_view method = toString(parseMethod(slot.method));
-    server_.requests.inc({method, slot.handled.route, statusText});
-    server_.latency.observe({slot.handled.route, statusText}, seconds);
-    server_.responseBytes.inc({slot.handled.route}, static_cast<double>(bytes));
+    // A keep-alive connection mostly repeats one kind of request: its metric series are looked up
+    // (under the families' locks) only when the kind changes, then updated lock-free.
+    if (!series_ || series_->status != status || series_->method != method ||
+        series_->route != slot.handled.route) {
+      const std::string statusText = std::to_string(status);
+      series_ = Series{method,
+                       std::string(slot.handled.route),
+                       status,
+                       &server_.requests.series({method, slot.handled.route, statusText}),
+                       &server_.latency.series({slot.handled.route, statusText}),
+                       &server_.responseBytes.series({slot.handled.route})};
+    }
+    series_->requests->inc();
+    series_->latency->observe(seconds);
+    series_->bytes->inc(static_cast<double>(bytes));
+    const core::log::Level level = core::log::level();
     if (slot.quiet && !ec) {
-      core::log::debug("req=" + slot.id + " peer=" + peer_ + " rejected: connection limit");
+      if (level <= core::log::Level::Debug) {
+        core::log::debug("req=" + slot.id + " peer=" + peer_ + " rejected: connection limit");
+      }
       return;
+    }
+    if (level > core::log::Level::Info) {
+      return;  // the line would be dropped: do not build it
     }
     char ms[32];
     std::snprintf(ms, sizeof ms, "%.3f", seconds * 1000.0);
     // The method is a token (the parser checked it), the target is quoted.
     std::string line = "access req=" + slot.id + " method=" + slot.method +
-                       " target=" + quoted(slot.target) + " status=" + statusText +
+                       " target=" + quoted(slot.target) + " status=" + std::to_string(status) +
                        " bytes=" + std::to_string(bytes) + " ms=" + ms + " peer=" + peer_;
     if (ec) {
       line += " error=\"" + ec.message() + "\"";
@@ -668,7 +751,18 @@ class Connection : public std::enable_shared_from_this<Connection> {
     stream_.close();
   }
 
+  /// The metric series of the last response recorded (see record()).
+  struct Series {
+    std::string_view method;  // a literal of toString(Method)
+    std::string route;
+    int status = 0;
+    metrics::Counter::Series* requests = nullptr;
+    metrics::Histogram::Series* latency = nullptr;
+    metrics::Counter::Series* bytes = nullptr;
+  };
+
   Server::Impl& server_;
+  std::optional<Series> series_;
   beast::tcp_stream stream_;
   net::steady_timer fileTimer_;  // the write timeout of a body sent by sendfile()
   beast::flat_buffer buffer_;
@@ -677,8 +771,9 @@ class Connection : public std::enable_shared_from_this<Connection> {
   std::uint64_t nextSeq_ = 0;
   std::string peer_;
   const bool counted_;
-  bool reading_ = false;   // a read is outstanding
-  bool idleWait_ = false;  // ... and it waits for the first byte of a request
+  bool nonBlocking_ = false;  // the socket is in non-blocking mode (for sendfile)
+  bool reading_ = false;      // a read is outstanding
+  bool idleWait_ = false;     // ... and it waits for the first byte of a request
   bool writing_ = false;
   bool closing_ = false;   // read no more requests; close once the queue is written
   bool shutdown_ = false;  // the server is stopping

@@ -35,7 +35,10 @@ struct ServerOptions {
 /// connection, keep-alive and pipelining with at most maxPipelined requests per connection being
 /// handled or waiting to be written (reading pauses at the cap), explicit limits (body, header,
 /// read/idle/write timeouts, connections) and error codes rather than exceptions on the network
-/// path. Requests are handed to `handlers` (the CPU pool), so network threads never run a handler.
+/// path. A request is first offered to Pipeline::handleInline() on the network thread (answers
+/// that need no blocking: the pipeline's own errors, a route's InlineHandler such as a cached
+/// response body); everything else is handed to `handlers` (the CPU pool), so network threads never
+/// run a Handler.
 ///
 /// Protocol errors are answered by the server itself and close the connection: malformed request
 /// 400, body over the limit 413, header over the limit 431, connection over the cap 503 with

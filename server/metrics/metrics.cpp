@@ -122,31 +122,30 @@ std::vector<double> latencyBuckets() {
   return {0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10};
 }
 
-void Counter::inc(std::initializer_list<std::string_view> labelValues, double by) {
+Counter::Series& Counter::series(std::initializer_list<std::string_view> labelValues) {
   auto key = toKey(labelValues, labelCount_);
   const std::lock_guard lock(mutex_);
-  values_[std::move(key)] += by;
+  return values_.try_emplace(std::move(key)).first->second;
 }
 
 double Counter::value(std::initializer_list<std::string_view> labelValues) const {
   const auto key = toKey(labelValues, labelCount_);
   const std::lock_guard lock(mutex_);
   const auto it = values_.find(key);
-  return it == values_.end() ? 0.0 : it->second;
+  return it == values_.end() ? 0.0 : it->second.value();
 }
 
-void Histogram::observe(std::initializer_list<std::string_view> labelValues, double value) {
-  auto key = toKey(labelValues, labelCount_);
+void Histogram::Series::observe(double value) {
   const std::size_t bucket = static_cast<std::size_t>(
       std::lower_bound(bounds_.begin(), bounds_.end(), value) - bounds_.begin());
+  buckets_[bucket].fetch_add(1, std::memory_order_relaxed);
+  sum_.fetch_add(value, std::memory_order_relaxed);
+}
+
+Histogram::Series& Histogram::series(std::initializer_list<std::string_view> labelValues) {
+  auto key = toKey(labelValues, labelCount_);
   const std::lock_guard lock(mutex_);
-  Series& series = series_[std::move(key)];
-  if (series.buckets.empty()) {
-    series.buckets.resize(bounds_.size() + 1);
-  }
-  ++series.buckets[bucket];
-  series.sum += value;
-  ++series.count;
+  return series_.try_emplace(std::move(key), bounds_).first->second;
 }
 
 void Registry::checkNew(const std::string& name, const std::vector<std::string>& labelNames) const {
@@ -219,24 +218,25 @@ std::string Registry::render() const {
       if (family->labelNames.empty() && family->counter->values_.empty()) {
         appendSample(out, family->name, {}, {}, {}, {}, 0.0);  // a counter never hit is 0
       }
-      for (const auto& [labels, value] : family->counter->values_) {
-        appendSample(out, family->name, family->labelNames, labels, {}, {}, value);
+      for (const auto& [labels, series] : family->counter->values_) {
+        appendSample(out, family->name, family->labelNames, labels, {}, {}, series.value());
       }
     } else if (family->histogram) {
       const Histogram& h = *family->histogram;
       const std::lock_guard lock(h.mutex_);
       for (const auto& [labels, series] : h.series_) {
         std::uint64_t cumulative = 0;
-        for (std::size_t i = 0; i < series.buckets.size(); ++i) {
-          cumulative += series.buckets[i];
+        for (std::size_t i = 0; i <= h.bounds_.size(); ++i) {
+          cumulative += series.buckets_[i].load(std::memory_order_relaxed);
           const double bound =
               i < h.bounds_.size() ? h.bounds_[i] : std::numeric_limits<double>::infinity();
           appendSample(out, family->name + "_bucket", family->labelNames, labels, "le",
                        number(bound), static_cast<double>(cumulative));
         }
-        appendSample(out, family->name + "_sum", family->labelNames, labels, {}, {}, series.sum);
+        appendSample(out, family->name + "_sum", family->labelNames, labels, {}, {},
+                     series.sum_.load(std::memory_order_relaxed));
         appendSample(out, family->name + "_count", family->labelNames, labels, {}, {},
-                     static_cast<double>(series.count));
+                     static_cast<double>(cumulative));
       }
     }
   }

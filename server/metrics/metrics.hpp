@@ -1,5 +1,6 @@
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <functional>
 #include <initializer_list>
@@ -18,42 +19,77 @@ enum class Type { Counter, Gauge, Histogram };
 /// Thread-safe.
 class Counter {
  public:
+  /// One series of the family, incremented without the family's lock or a lookup of its labels:
+  /// hot paths may keep a reference (valid as long as the family, i.e. the registry).
+  class Series {
+   public:
+    /// Adds `by` (>= 0). Lock-free.
+    void inc(double by = 1.0) { value_.fetch_add(by, std::memory_order_relaxed); }
+    double value() const { return value_.load(std::memory_order_relaxed); }
+
+   private:
+    std::atomic<double> value_{0.0};
+  };
+
   /// Made by Registry::counter().
   explicit Counter(std::size_t labelCount) : labelCount_(labelCount) {}
-  /// Adds `by` (>= 0) to the series with these label values (one per label name, in order).
+  /// The series with these label values (one per label name, in order), made on first use.
   /// Throws core::Error(Internal) on a wrong number of label values.
-  void inc(std::initializer_list<std::string_view> labelValues, double by = 1.0);
+  Series& series(std::initializer_list<std::string_view> labelValues);
+  /// Adds `by` (>= 0) to the series with these label values. Throws as series().
+  void inc(std::initializer_list<std::string_view> labelValues, double by = 1.0) {
+    series(labelValues).inc(by);
+  }
   /// The current value of a series; 0 when it was never incremented.
   double value(std::initializer_list<std::string_view> labelValues) const;
 
  private:
   friend class Registry;
   std::size_t labelCount_;
-  mutable std::mutex mutex_;  // guards values_
-  std::map<std::vector<std::string>, double> values_;
+  mutable std::mutex mutex_;  // guards values_ (the map, not the values: they are atomic)
+  std::map<std::vector<std::string>, Series> values_;  // nodes never move: Series& stay valid
 };
 
 /// A histogram family: per combination of label values, counts of observations per bucket
 /// (cumulative when rendered), their sum and count. Thread-safe.
 class Histogram {
  public:
+  /// One series of the family, observed without the family's lock or a lookup of its labels:
+  /// hot paths may keep a reference (valid as long as the family, i.e. the registry).
+  class Series {
+   public:
+    explicit Series(const std::vector<double>& bounds)
+        : bounds_(bounds),
+          buckets_(std::make_unique<std::atomic<std::uint64_t>[]>(bounds.size() + 1)) {}
+    /// Records one observation. Lock-free.
+    void observe(double value);
+
+   private:
+    friend class Registry;
+    const std::vector<double>& bounds_;  // the family's
+    // Non-cumulative; one per upper bound, then +Inf. The count is their total (so a scrape
+    // never sees a count that disagrees with the +Inf bucket).
+    std::unique_ptr<std::atomic<std::uint64_t>[]> buckets_;
+    std::atomic<double> sum_{0.0};
+  };
+
   /// Made by Registry::histogram().
   Histogram(std::size_t labelCount, std::vector<double> bounds)
       : labelCount_(labelCount), bounds_(std::move(bounds)) {}
-  /// Records one observation. Throws core::Error(Internal) on a wrong number of label values.
-  void observe(std::initializer_list<std::string_view> labelValues, double value);
+  /// The series with these label values, made on first use. Throws core::Error(Internal) on a
+  /// wrong number of label values.
+  Series& series(std::initializer_list<std::string_view> labelValues);
+  /// Records one observation. Throws as series().
+  void observe(std::initializer_list<std::string_view> labelValues, double value) {
+    series(labelValues).observe(value);
+  }
 
  private:
   friend class Registry;
-  struct Series {
-    std::vector<std::uint64_t> buckets;  // non-cumulative; one per upper bound, then +Inf
-    double sum = 0;
-    std::uint64_t count = 0;
-  };
   std::size_t labelCount_;
   std::vector<double> bounds_;  // ascending upper bounds, without +Inf
-  mutable std::mutex mutex_;    // guards series_
-  std::map<std::vector<std::string>, Series> series_;
+  mutable std::mutex mutex_;    // guards series_ (the map, not the series: they are atomic)
+  std::map<std::vector<std::string>, Series> series_;  // nodes never move: Series& stay valid
 };
 
 /// One value of a family computed at scrape time.

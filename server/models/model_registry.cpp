@@ -8,6 +8,7 @@
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "core/store/live_model.hpp"
+#include "server/models/encoded_cache.hpp"
 
 namespace vsm::server::models {
 
@@ -121,7 +122,7 @@ ModelRegistry::ModelRegistry(const fs::path& dataRoot, core::PatchCache& cache)
     : root_(fs::canonical(dataRoot)), cache_(cache) {}
 
 ModelRegistry::~ModelRegistry() {
-  std::map<std::string, std::shared_ptr<core::LiveModel>, std::less<>> models;
+  std::map<std::string, Served, std::less<>> models;
   {
     const std::lock_guard lock(mutex_);
     models.swap(models_);
@@ -200,15 +201,17 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
       throw Error(ErrorCode::Conflict, "model '" + id + "' is being imported");
     }
     for (const auto& [other, model] : models_) {
-      if (model->dir() == canonical) {
+      if (model.live->dir() == canonical) {
         throw Error(ErrorCode::Conflict, "that directory is open already as model '" + other + "'");
       }
     }
     opening_.insert(id);
   }
   std::shared_ptr<core::LiveModel> model;
+  std::shared_ptr<EncodedCache> encoded;
   try {
     model = core::LiveModel::open(canonical, id, cache_);
+    encoded = std::make_shared<EncodedCache>(cache_, id);
   } catch (...) {
     const std::lock_guard lock(mutex_);
     opening_.erase(id);
@@ -218,7 +221,7 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
     const std::lock_guard lock(mutex_);
     opening_.erase(id);
     reserved_.erase(id);
-    models_.emplace(id, model);
+    models_.emplace(id, Served{model, std::move(encoded)});
   }
   const auto snapshot = model->snapshot();
   log::info("model=" + id + " opened " + canonical.string() + ": " +
@@ -227,20 +230,39 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
   return model;
 }
 
+namespace {
+
+[[noreturn]] void throwNotOpen(std::string_view id) {
+  throw Error(ErrorCode::NotFound, isValidModelId(id)
+                                       ? "no open model '" + std::string(id) + "'"
+                                       : std::string("no such model (not a valid model id)"));
+}
+
+}  // namespace
+
 std::shared_ptr<core::LiveModel> ModelRegistry::find(std::string_view id) const {
   const std::lock_guard lock(mutex_);
   const auto it = models_.find(id);
-  return it == models_.end() ? nullptr : it->second;
+  return it == models_.end() ? nullptr : it->second.live;
 }
 
 std::shared_ptr<core::LiveModel> ModelRegistry::get(std::string_view id) const {
   auto model = find(id);
   if (model == nullptr) {
-    throw Error(ErrorCode::NotFound, isValidModelId(id)
-                                         ? "no open model '" + std::string(id) + "'"
-                                         : std::string("no such model (not a valid model id)"));
+    throwNotOpen(id);
   }
   return model;
+}
+
+ModelRegistry::Served ModelRegistry::getServed(std::string_view id) const {
+  {
+    const std::lock_guard lock(mutex_);
+    const auto it = models_.find(id);
+    if (it != models_.end()) {
+      return it->second;
+    }
+  }
+  throwNotOpen(id);
 }
 
 std::vector<std::shared_ptr<core::LiveModel>> ModelRegistry::list() const {
@@ -248,7 +270,7 @@ std::vector<std::shared_ptr<core::LiveModel>> ModelRegistry::list() const {
   const std::lock_guard lock(mutex_);
   out.reserve(models_.size());
   for (const auto& [id, model] : models_) {
-    out.push_back(model);
+    out.push_back(model.live);
   }
   return out;
 }
@@ -259,14 +281,12 @@ std::size_t ModelRegistry::size() const {
 }
 
 void ModelRegistry::close(std::string_view id) {
-  std::shared_ptr<core::LiveModel> closed;
+  Served closed;
   {
     const std::lock_guard lock(mutex_);
     const auto it = models_.find(id);
     if (it == models_.end()) {
-      throw Error(ErrorCode::NotFound, isValidModelId(id)
-                                           ? "no open model '" + std::string(id) + "'"
-                                           : std::string("no such model (not a valid model id)"));
+      throwNotOpen(id);
     }
     if (const auto lease = leases_.find(id); lease != leases_.end() && lease->second > 0) {
       throw Error(ErrorCode::Conflict,
@@ -282,9 +302,7 @@ void ModelRegistry::close(std::string_view id) {
 ModelRegistry::Lease ModelRegistry::lease(std::string_view id) {
   const std::lock_guard lock(mutex_);
   if (!models_.contains(id)) {
-    throw Error(ErrorCode::NotFound, isValidModelId(id)
-                                         ? "no open model '" + std::string(id) + "'"
-                                         : std::string("no such model (not a valid model id)"));
+    throwNotOpen(id);
   }
   ++leases_[std::string(id)];
   return Lease(this, std::string(id));

@@ -17,6 +17,8 @@ class PatchCache;
 
 namespace vsm::server::models {
 
+class EncodedCache;
+
 /// True for a valid model id: 1 to 64 of [A-Za-z0-9_-]. Ids name directories under the data root
 /// and appear in URLs, so nothing else (no '.', no '/', no '%') is allowed.
 bool isValidModelId(std::string_view id);
@@ -71,6 +73,15 @@ class ModelRegistry {
   std::shared_ptr<core::LiveModel> find(std::string_view id) const;
   /// The open model `id`. Throws core::Error(NotFound).
   std::shared_ptr<core::LiveModel> get(std::string_view id) const;
+
+  /// An open model with the cache of response bodies encoded from its data.
+  struct Served {
+    std::shared_ptr<core::LiveModel> live;
+    std::shared_ptr<EncodedCache> encoded;
+  };
+  /// The open model `id` and its EncodedCache, taken together (so both belong to the same opening
+  /// of the model). Throws core::Error(NotFound). Never blocks on I/O.
+  Served getServed(std::string_view id) const;
   /// Every open model, ordered by id.
   std::vector<std::shared_ptr<core::LiveModel>> list() const;
   std::size_t size() const;
@@ -113,7 +124,7 @@ class ModelRegistry {
   std::filesystem::path root_;
   core::PatchCache& cache_;
   mutable std::mutex mutex_;  // guards models_, leases_, reserved_, opening_
-  std::map<std::string, std::shared_ptr<core::LiveModel>, std::less<>> models_;
+  std::map<std::string, Served, std::less<>> models_;
   /// Id -> number of leases (on open models and reservations alike).
   std::map<std::string, int, std::less<>> leases_;
   /// Ids reserved for imports.

@@ -10,6 +10,7 @@ wait is bounded. Run by ctest:
 import argparse
 import http.client
 import json
+import math
 import os
 import re
 import shutil
@@ -383,6 +384,137 @@ class MainDaemon(unittest.TestCase):
         self.assertNotIn(TOKEN, log)
         self.assertRegex(log, r'access req=log-check method=GET target="/healthz" status=200 '
                               r'bytes=15 ms=[0-9.]+ peer=127\.0\.0\.1:\d+')
+
+
+def write_dem(path, size, cell=0.0005, west=10.0, south=45.0):
+    """A synthetic DEM of size x size samples (smooth hills, metres) as an ESRI ASCII grid with a
+    WGS 84 .prj beside it: a raster GDAL reads, written with the standard library only."""
+    with open(path, "w") as f:
+        f.write("ncols %d\nnrows %d\nxllcorner %r\nyllcorner %r\ncellsize %r\n"
+                % (size, size, west, south, cell))
+        for row in range(size):
+            f.write(" ".join("%.2f" % (500 + 40 * math.sin(col / 9.0) * math.cos(row / 13.0)
+                                       + 0.5 * row) for col in range(size)))
+            f.write("\n")
+    with open(os.path.splitext(path)[0] + ".prj", "w") as f:
+        f.write('GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
+                'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]]')
+
+
+def import_model(daemon, model_id, raster, patch_size, timeout=300):
+    """Imports `raster` (in the data root) as `model_id` through the jobs API and waits for it."""
+    status, _, body = daemon.request(
+        "POST", "/v1/models",
+        body=json.dumps({"id": model_id, "source": {"import": raster, "patch_size": patch_size}}),
+        headers={"Authorization": "Bearer " + TOKEN, "Content-Type": "application/json"})
+    assert status == 202, body
+    job_id = json.loads(body)["id"]
+    deadline = time.monotonic() + timeout
+    while True:
+        status, _, job = daemon.get_json("/v1/jobs/" + job_id)
+        assert status == 200, job
+        if job["state"] not in ("queued", "running"):
+            assert job["state"] == "succeeded", job
+            return
+        assert time.monotonic() < deadline, job
+        time.sleep(0.05)
+
+
+def metric(text, name, labels=""):
+    """The value of one sample of the Prometheus text, e.g. metric(t, "x", '{a="b"}')."""
+    match = re.search(r"(?m)^%s%s (\S+)$" % (re.escape(name), re.escape(labels)), text)
+    assert match, "no sample %s%s" % (name, labels)
+    return float(match.group(1))
+
+
+class EncodedResponses(unittest.TestCase):
+    """Positions files (sent with sendfile) and GLBs are cached as encoded responses inside the
+    one memory budget: charged by category, shown in /v1/stats and /metrics, evicted under
+    pressure. A 257 x 257 DEM imported at 65 x 65 (21 patches of 50 KB of positions each, twice
+    that with their files) into a daemon with a 1 MiB budget."""
+
+    BUDGET = 1 * MiB
+    daemon = None
+
+    @classmethod
+    def setUpClass(cls):
+        cls.daemon = Daemon("--memory-budget", "1MiB", "--token", TOKEN,
+                            prepare=lambda root: write_dem(os.path.join(root, "hills.asc"), 257))
+        import_model(cls.daemon, "hills", "hills.asc", 65)
+        status, _, hierarchy = cls.daemon.get_json("/v1/models/hills/hierarchy")
+        assert status == 200, hierarchy
+
+        def walk(node):
+            yield node
+            for child in node.get("children", []):
+                yield from walk(child)
+        cls.keys = [node["key"] for node in walk(hierarchy["root"])]
+        assert len(cls.keys) == 21, cls.keys
+
+    @classmethod
+    def tearDownClass(cls):
+        if cls.daemon is not None:
+            code = cls.daemon.stop()
+            cls.daemon.cleanup(keep=code != 0)
+            if code != 0:
+                raise AssertionError("vsmd exited %d after SIGTERM" % code)
+
+    def stats(self):
+        status, _, stats = self.daemon.get_json("/v1/stats")
+        self.assertEqual(status, 200)
+        self.assertEqual(shape(stats), shape(example("stats.json")))
+        memory = stats["memory"]
+        self.assertLessEqual(memory["resident_bytes"], memory["budget_bytes"])
+        self.assertEqual(sum(memory["resident_bytes_by_category"].values()),
+                         memory["resident_bytes"])
+        return stats
+
+    def positions(self, key):
+        status, headers, body = self.daemon.request(
+            "GET", "/v1/models/hills/patches/%s/positions" % key)
+        self.assertEqual(status, 200, body[:200])
+        self.assertEqual(int(headers["Content-Length"]), len(body))
+        return body
+
+    def test_a_served_positions_file_is_charged_and_shown_in_stats_and_metrics(self):
+        body = self.positions("0_0_0")
+        self.assertEqual(len(body), 13 + 65 * 65 * 12)
+        stats = self.stats()
+        files = stats["memory"]["resident_bytes_by_category"]["position_files"]
+        self.assertGreaterEqual(files, len(body))  # this patch's file, and maybe others
+        self.assertEqual(files % len(body), 0)
+        self.assertGreaterEqual(stats["memory"]["resident_bytes_by_model"]["hills"], files)
+        # A second request is answered from the cached file: a hit, the same bytes.
+        hits = stats["cache"]["hits"]
+        self.assertEqual(self.positions("0_0_0"), body)
+        self.assertGreater(self.stats()["cache"]["hits"], hits)
+        status, _, text = self.daemon.request("GET", "/metrics")
+        self.assertEqual(status, 200)
+        text = text.decode()
+        self.assertEqual(metric(text, "vsm_memory_resident_bytes", '{category="position_files"}'),
+                         files)
+        self.assertLessEqual(metric(text, "vsm_memory_model_resident_bytes", '{model="hills"}'),
+                             self.BUDGET)
+
+    def test_encoded_responses_stay_within_the_budget_and_are_evicted_under_pressure(self):
+        first = {key: self.positions(key) for key in self.keys}
+        glbs = {}
+        for key in self.keys:
+            status, headers, body = self.daemon.request(
+                "GET", "/v1/models/hills/3dtiles/%s.glb" % key)
+            self.assertEqual(status, 200, body[:200])
+            self.assertEqual(headers["Content-Type"], "model/gltf-binary")
+            glbs[key] = body
+        stats = self.stats()
+        self.assertGreater(stats["cache"]["evictions"], 0)
+        self.assertGreater(stats["memory"]["resident_bytes_by_category"]["tiles"], 0)
+        # Evicted or not, every answer stays the same.
+        for key in reversed(self.keys):
+            self.assertEqual(self.positions(key), first[key], key)
+            status, _, body = self.daemon.request("GET", "/v1/models/hills/3dtiles/%s.glb" % key)
+            self.assertEqual(status, 200)
+            self.assertEqual(body, glbs[key], key)
+        self.stats()
 
 
 class ConnectionCap(unittest.TestCase):

@@ -5,14 +5,16 @@ server_test.py for the harness) over a data root holding PRISM with Jacksboro me
 
 - tileset.json fetched and checked against the 3D Tiles 1.1 rules with our own reader: asset
   version, geometricError strictly decreasing from parent to child (0 at leaves), children's
-  bounding volumes inside their parent's, every content URI resolving (200, model/gltf-binary);
+  bounding volumes inside their parent's, every content URI resolving (200, model/gltf-binary)
+  and naming its patch's version ("{key}.glb?v={version}", the version of the hierarchy route);
 - every GLB decoded independently (struct, json): header and chunks, accessor min/max equal to the
   data, positions (through the tile transforms and glTF's y-up -> z-up rotation) inside the tile's
   bounding volume, and one triangle pair per complete quad of the patch's own grid (fetched as
   .aara from /positions);
 - every GLB validated by Khronos' glTF validator (npm `gltf-validator`, installed into the build
   directory by install-node-tools.sh): zero errors;
-- ETags (If-None-Match -> 304), CORS, HEAD, and errors for unknown tiles.
+- ETags (If-None-Match -> 304), CORS, HEAD, and errors for unknown tiles;
+- a repeated GLB request answered from the GLB cache (a hit in /v1/stats, the same bytes).
 
 Run by ctest:
     tiles_test.py --vsmd build/server/vsmd --model build/.../tiles/merged \\
@@ -126,6 +128,20 @@ def walk(tile, parent=IDENTITY, parent_tile=None):
         yield from walk(child, world, tile)
 
 
+def key_of(uri):
+    """The patch key of a content URI: "2_1_3.glb?v=4" -> "2_1_3"."""
+    path = uri.partition("?")[0]
+    assert path.endswith(".glb"), uri
+    return path[:-4]
+
+
+def version_of(uri):
+    """The version a content URI names: "2_1_3.glb?v=4" -> 4 (None without one)."""
+    query = uri.partition("?")[2]
+    params = dict(p.partition("=")[::2] for p in query.split("&") if p)
+    return int(params["v"]) if "v" in params else None
+
+
 def decode_aara(data):
     n = data[0]
     name = data[1:1 + n].decode("ascii")
@@ -192,7 +208,7 @@ class Tiles(unittest.TestCase):
         status, _, model = self.daemon.get_json("/v1/models/" + MODEL)
         self.assertEqual(status, 200)
         self.assertEqual(len(self.tiles), model["patches"])
-        keys = {tile["content"]["uri"][:-4] for tile, _, _ in self.tiles}
+        keys = {key_of(tile["content"]["uri"]) for tile, _, _ in self.tiles}
         self.assertEqual(len(keys), len(self.tiles))
         # The content sits on the earth in ECEF: the root's vertices, through its transform, lie
         # 6350..6390 km from the earth's centre.
@@ -242,7 +258,7 @@ class Tiles(unittest.TestCase):
             corners = box_corners(tile["boundingVolume"]["box"], world)
             lo, hi = aabb(corners)
             status, _, aara = self.daemon.request("GET", "/v1/models/%s/patches/%s/positions"
-                                                  % (MODEL, uri[:-4]))
+                                                  % (MODEL, key_of(uri)))
             self.assertEqual(status, 200)
             quads = complete_quads(aara)
             if "meshes" not in gltf:
@@ -275,7 +291,7 @@ class Tiles(unittest.TestCase):
     def test_every_glb_passes_the_khronos_validator(self):
         paths = []
         for uri, body in self.glbs.items():
-            path = os.path.join(self.glb_dir, uri)
+            path = os.path.join(self.glb_dir, key_of(uri) + ".glb")
             with open(path, "wb") as f:
                 f.write(body)
             paths.append(path)
@@ -314,9 +330,47 @@ class Tiles(unittest.TestCase):
         self.assertEqual(status, 200)
         self.assertEqual(body, b"")
         self.assertEqual(int(headers["Content-Length"]), len(self.glbs[uri]))
-        # Same bytes on a second request (generated again from the same patch version).
+        # Same bytes on a second request (from the GLB cache).
         status, _, body = self.daemon.request("GET", PREFIX + uri)
         self.assertEqual(body, self.glbs[uri])
+
+    def test_content_uris_name_the_version_of_their_patch(self):
+        status, _, hierarchy = self.daemon.get_json("/v1/models/%s/hierarchy" % MODEL)
+        self.assertEqual(status, 200)
+        versions = {}
+        nodes = [hierarchy["root"]]
+        while nodes:
+            node = nodes.pop()
+            versions[node["key"]] = node["version"]
+            nodes.extend(node.get("children", []))
+        # The merge (vsm merge, before the daemon started) rewrote some patches: not all are at 1.
+        self.assertGreater(max(versions.values()), 1)
+        for tile, _, _ in self.tiles:
+            uri = tile["content"]["uri"]
+            self.assertEqual(version_of(uri), versions[key_of(uri)], uri)
+            self.assertEqual(self.glb_headers[uri]["X-VSM-Patch-Version"],
+                             str(versions[key_of(uri)]), uri)
+        # The query is only for caches: the route answers the same bytes with any version, or none.
+        uri = self.tiles[0][0]["content"]["uri"]
+        for other in (key_of(uri) + ".glb", key_of(uri) + ".glb?v=12345"):
+            status, _, body = self.daemon.request("GET", PREFIX + other)
+            self.assertEqual(status, 200, other)
+            self.assertEqual(body, self.glbs[uri], other)
+
+    def test_a_repeated_glb_is_a_cache_hit(self):
+        uri = self.tiles[-1][0]["content"]["uri"]
+        status, _, before = self.daemon.get_json("/v1/stats")
+        self.assertEqual(status, 200)
+        status, headers, body = self.daemon.request("GET", PREFIX + uri)
+        self.assertEqual(status, 200)
+        status, _, after = self.daemon.get_json("/v1/stats")
+        self.assertEqual(body, self.glbs[uri])
+        self.assertEqual(headers["ETag"], self.glb_headers[uri]["ETag"])
+        # Encoded once (in setUpClass), answered from the cache since: a hit, no miss.
+        self.assertGreater(after["cache"]["hits"], before["cache"]["hits"])
+        self.assertEqual(after["cache"]["misses"], before["cache"]["misses"])
+        self.assertGreaterEqual(after["memory"]["resident_bytes_by_category"]["tiles"], len(body))
+        self.assertLessEqual(after["memory"]["resident_bytes"], after["memory"]["budget_bytes"])
 
     def test_unknown_tiles_and_models_are_json_errors(self):
         for path, expected in ((PREFIX + "29_0_0.glb", 404), (PREFIX + "abc.glb", 400),

@@ -622,7 +622,7 @@ TEST(SystemRoutes, StatsReportTheBudgetAndEveryCategory) {
   const json stats = api::statsJson(cache.stats(), cache.policy());
   EXPECT_EQ(stats.at("memory").at("budget_bytes"), 64 * kMiB);
   EXPECT_EQ(stats.at("memory").at("resident_bytes"), 0);
-  EXPECT_EQ(stats.at("memory").at("resident_bytes_by_category").size(), 4u);
+  EXPECT_EQ(stats.at("memory").at("resident_bytes_by_category").size(), core::kMemoryCategoryCount);
   EXPECT_TRUE(stats.at("memory").at("resident_bytes_by_model").is_object());
   for (const char* key : {"hits", "misses", "evictions", "write_backs", "exhausted"}) {
     EXPECT_EQ(stats.at("cache").at(key), 0) << key;
