@@ -81,6 +81,20 @@ read -r STATUS SIZE < <(curl -sS -o /dev/null -w '%{http_code} %{size_download}\
 echo "conditional GET: $STATUS, $SIZE body bytes"
 [[ $STATUS == 304 ]] || exit 1
 
+LAYER=$(curl -sS --fail-with-body "$URL/v1/models/$MODEL/patches/$LEAF" |
+  jq -r '.texture.layer // empty')
+if [[ -n $LAYER ]]; then
+  step "its texture ($LAYER layer) as PNG, and its texture coordinates as .aara (V2f per vertex)"
+  show "curl -sS -o texture.png $URL/v1/models/$MODEL/patches/$LEAF/texture"
+  curl -sS --fail-with-body -o "$WORK/texture.png" "$URL/v1/models/$MODEL/patches/$LEAF/texture"
+  curl -sS --fail-with-body -o "$WORK/coordinates.aara" \
+    "$URL/v1/models/$MODEL/patches/$LEAF/coordinates"
+  echo "texture: $(stat -c %s "$WORK/texture.png") bytes of PNG;" \
+    "coordinates: $(dd if="$WORK/coordinates.aara" bs=1 skip=1 count=3 status=none)"
+else
+  echo "(the model has no texture; 'vsm import <dem> <out> --texture <image>' drapes one)"
+fi
+
 step "level of detail: the cut of the tree over the whole model at 4x the finest resolution"
 BOX=$(jq -r '.bounds | (.min + .max) | map(tostring) | join(",")' "$WORK/summary.json")
 RES=$(jq -r '.resolution.finest * 4' "$WORK/summary.json")

@@ -130,7 +130,7 @@ std::vector<std::byte> readPatchTexturePng(const fs::path& dir, const PatchInfo&
   return encodeImage("tile.png", pixels.data(), width, height, channels, nullptr);
 }
 
-fs::path patchCoordinatesFile(const fs::path& dir, const PatchInfo& info) {
+std::vector<std::byte> readPatchCoordinates(const fs::path& dir, const PatchInfo& info) {
   if (info.coordinatesFile.empty()) {
     throw Error(ErrorCode::NotFound, "patch " + info.folder + " has no texture coordinates");
   }
@@ -139,12 +139,18 @@ fs::path patchCoordinatesFile(const fs::path& dir, const PatchInfo& info) {
       detail::findEntry(patchesDir, info.folder).value_or(patchesDir / info.folder);
   const fs::path file =
       detail::findEntry(folderDir, info.coordinatesFile).value_or(folderDir / info.coordinatesFile);
-  std::error_code ec;
-  if (!fs::is_regular_file(file, ec)) {
-    throw Error(ErrorCode::NotFound, "texture coordinates '" + info.coordinatesFile +
-                                         "' of patch " + info.folder + " do not exist");
+  std::vector<std::byte> bytes = detail::readFile(file);
+  const AaraArray array = decodeAara(bytes, file.string());
+  const GridRect& r = info.stored;
+  if ((array.type != AaraType::V2f && array.type != AaraType::V2d) || array.sizes.size() != 2 ||
+      array.sizes[0] != r.width() || array.sizes[1] != r.height()) {
+    throw Error(ErrorCode::Corrupt, file.string() +
+                                        ": texture coordinates must be V2f or V2d of the stored "
+                                        "positions' size " +
+                                        std::to_string(r.width()) + " x " +
+                                        std::to_string(r.height()));
   }
-  return file;
+  return bytes;
 }
 
 std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& model,
@@ -168,16 +174,7 @@ std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& m
     }
     return texture;
   }
-  const fs::path coordinatesPath = patchCoordinatesFile(dir, info);
-  const AaraArray array = readAaraFile(coordinatesPath);
-  if ((array.type != AaraType::V2f && array.type != AaraType::V2d) || array.sizes.size() != 2 ||
-      array.sizes[0] != r.width() || array.sizes[1] != r.height()) {
-    throw Error(ErrorCode::Corrupt, coordinatesPath.string() +
-                                        ": texture coordinates must be V2f or V2d of the stored "
-                                        "positions' size " +
-                                        std::to_string(r.width()) + " x " +
-                                        std::to_string(r.height()));
-  }
+  const AaraArray array = decodeAara(readPatchCoordinates(dir, info), info.coordinatesFile);
   const std::size_t count = static_cast<std::size_t>(r.width()) * r.height();
   for (std::size_t i = 0; i < count; ++i) {
     float uv[2];

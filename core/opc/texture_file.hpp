@@ -32,9 +32,11 @@ TextureTile readPatchTextureTile(const std::filesystem::path& dir, const PatchIn
 /// Throws as readPatchTextureTile.
 std::vector<std::byte> readPatchTexturePng(const std::filesystem::path& dir, const PatchInfo& info);
 
-/// The texture coordinates file (.aara) a patch names. Throws Error(NotFound) when it names none
-/// or the file does not exist.
-std::filesystem::path patchCoordinatesFile(const std::filesystem::path& dir, const PatchInfo& info);
+/// The bytes of the texture coordinates file (.aara) a patch names, as stored, once checked: V2f or
+/// V2d of the stored positions' size. Throws Error(NotFound) when it names none or the file does
+/// not exist, Error(Corrupt) when it does not decode so.
+std::vector<std::byte> readPatchCoordinates(const std::filesystem::path& dir,
+                                            const PatchInfo& info);
 
 /// The texture of one patch, ready for a GLB.
 struct PatchTexture {

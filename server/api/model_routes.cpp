@@ -20,6 +20,7 @@
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
+#include "core/opc/texture_file.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
 #include "server/jobs/job_registry.hpp"
@@ -494,6 +495,78 @@ std::optional<http::Response> positions(const ModelContext& c, const http::Reque
   return response;
 }
 
+/// The layer a patch's texture entry names ("Diffuse" of "Diffuse\\3_0_1.tif"); empty when the
+/// entry has no folder.
+std::string_view textureLayer(std::string_view entry) {
+  const std::size_t slash = entry.find_first_of("\\/");
+  return slash == std::string_view::npos ? std::string_view() : entry.substr(0, slash);
+}
+
+/// The patch of a texture or coordinates request, 404 unless it has a texture (of the requested
+/// layer, when the route names one).
+const core::PatchInfo& texturedPatch(std::string_view id, const core::ModelSnapshot& snapshot,
+                                     const http::Request& request) {
+  const core::PatchInfo& info = findPatch(id, snapshot, parseKey(request.param("p")));
+  if (info.textureFile.empty()) {
+    throw Error(ErrorCode::NotFound, "patch " + info.key.toString() + " of model '" +
+                                         std::string(id) + "' has no texture");
+  }
+  if (const auto it = request.params.find("layer"); it != request.params.end()) {
+    const std::string_view own = textureLayer(info.textureFile);
+    const std::string* layer = &it->second;
+    const bool same = own.size() == layer->size() &&
+                      std::equal(own.begin(), own.end(), layer->begin(), [](char a, char b) {
+                        return std::tolower(static_cast<unsigned char>(a)) ==
+                               std::tolower(static_cast<unsigned char>(b));
+                      });
+    if (!same) {
+      throw Error(ErrorCode::NotFound, "patch " + info.key.toString() + " has no texture layer '" +
+                                           std::string(layer->substr(0, 64)) + "' (it has '" +
+                                           std::string(own) + "')");
+    }
+  }
+  return info;
+}
+
+/// GET /v1/models/{m}/patches/{p}/coordinates: the texture coordinates file (.aara) as stored.
+http::Response getCoordinates(const ModelContext& c, const http::Request& request) {
+  const std::string& id = request.param("m");
+  const auto live = c.models.get(id);
+  const auto snapshot = live->snapshot();
+  const core::PatchInfo& info = texturedPatch(id, *snapshot, request);
+  const std::string etag = http::strongEtag(std::string(http::opaqueOf(patchEtag(info))) + "-uv");
+  if (http::ifNoneMatch(request, etag)) {
+    return http::notModified(etag, kPatchCacheControl);
+  }
+  const std::vector<std::byte> bytes = core::readPatchCoordinates(live->dir(), info);
+  http::Response response;
+  response.body.assign(reinterpret_cast<const char*>(bytes.data()), bytes.size());
+  response.contentType = "application/octet-stream";
+  response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
+  response.set("X-VSM-Patch-Version", std::to_string(info.version));
+  return withCache(std::move(response), kPatchCacheControl, etag);
+}
+
+/// GET /v1/models/{m}/patches/{p}/texture[/{layer}]: the texture tile as PNG.
+http::Response getTexture(const ModelContext& c, const http::Request& request) {
+  const std::string& id = request.param("m");
+  const auto live = c.models.get(id);
+  const auto snapshot = live->snapshot();
+  const core::PatchInfo& info = texturedPatch(id, *snapshot, request);
+  const std::string etag = http::strongEtag(std::string(http::opaqueOf(patchEtag(info))) + "-png");
+  if (http::ifNoneMatch(request, etag)) {
+    return http::notModified(etag, kPatchCacheControl);
+  }
+  const std::vector<std::byte> png = core::readPatchTexturePng(live->dir(), info);
+  http::Response response;
+  response.body.assign(reinterpret_cast<const char*>(png.data()), png.size());
+  response.contentType = "image/png";
+  response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
+  response.set("X-VSM-Patch-Version", std::to_string(info.version));
+  response.set("X-VSM-Texture-Layer", std::string(textureLayer(info.textureFile)));
+  return withCache(std::move(response), kPatchCacheControl, etag);
+}
+
 http::Response getLod(const ModelContext& c, const http::Request& request) {
   const std::string& id = request.param("m");
   const auto live = c.models.get(id);
@@ -585,23 +658,27 @@ json patchJson(std::string_view id, const core::ModelSnapshot& snapshot,
     }
   }
   const auto parent = info.key.parent();
-  return {{"model", id},
-          {"model_version", snapshot.version},
-          {"key", info.key.toString()},
-          {"depth", info.key.depth},
-          {"x", info.key.x},
-          {"y", info.key.y},
-          {"folder", info.folder},
-          {"version", info.version},
-          {"grid_size", snapshot.model->gridSize()},
-          {"box", boxJson(info.globalBox)},
-          {"local_box", boxJson(info.localBox)},
-          {"local2global", json(info.local2global.m)},
-          {"resolution", number(info.resolution)},
-          {"stored", rectJson(info.stored)},
-          {"parent", parent ? json(parent->toString()) : json(nullptr)},
-          {"children", std::move(children)},
-          {"leaf", info.isLeaf()}};
+  return {
+      {"model", id},
+      {"model_version", snapshot.version},
+      {"key", info.key.toString()},
+      {"depth", info.key.depth},
+      {"x", info.key.x},
+      {"y", info.key.y},
+      {"folder", info.folder},
+      {"version", info.version},
+      {"grid_size", snapshot.model->gridSize()},
+      {"box", boxJson(info.globalBox)},
+      {"local_box", boxJson(info.localBox)},
+      {"local2global", json(info.local2global.m)},
+      {"resolution", number(info.resolution)},
+      {"stored", rectJson(info.stored)},
+      {"parent", parent ? json(parent->toString()) : json(nullptr)},
+      {"children", std::move(children)},
+      {"leaf", info.isLeaf()},
+      {"texture", info.textureFile.empty() ? json(nullptr)
+                                           : json{{"layer", textureLayer(info.textureFile)},
+                                                  {"coordinates", !info.coordinatesFile.empty()}}}};
 }
 
 json hierarchyJson(const core::Model& model, const core::PatchKey& root, int levels) {
@@ -709,6 +786,9 @@ void addModelRoutes(http::Router& router, ModelContext context) {
       http::Method::Get, "/v1/models/{m}/patches/{p}/positions",
       [context](const http::Request& request) { return *positions(context, request, false); },
       [context](const http::Request& request) { return positions(context, request, true); });
+  router.add(http::Method::Get, "/v1/models/{m}/patches/{p}/coordinates", bind(getCoordinates));
+  router.add(http::Method::Get, "/v1/models/{m}/patches/{p}/texture", bind(getTexture));
+  router.add(http::Method::Get, "/v1/models/{m}/patches/{p}/texture/{layer}", bind(getTexture));
   router.add(http::Method::Get, "/v1/models/{m}/lod", bind(getLod));
 }
 

@@ -35,15 +35,6 @@ constexpr std::string_view kTileCacheControl = "public, max-age=60";
 
 constexpr std::string_view kGlbType = "model/gltf-binary";
 
-/// The opaque part of a strong entity tag ("abc" -> abc).
-std::string_view opaque(std::string_view etag) {
-  if (etag.size() >= 2 && etag.front() == '"' && etag.back() == '"') {
-    etag.remove_prefix(1);
-    etag.remove_suffix(1);
-  }
-  return etag;
-}
-
 /// A column-major 4x4 translation, as 3D Tiles' tile.transform.
 json translationJson(const core::Vec3d& t) {
   return json::array(
@@ -108,7 +99,7 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
   }
   const core::TileNode root = core::buildTileTree(*snapshot->model);
   http::Response response = http::jsonResponse(
-      200, tilesetJson(root, opaque(modelEtag(*snapshot)), snapshot->model.get()));
+      200, tilesetJson(root, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get()));
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   return withCache(std::move(response), etag);
 }
@@ -189,12 +180,12 @@ json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
 }
 
 std::string tilesetEtag(const core::ModelSnapshot& snapshot) {
-  return http::strongEtag("tileset-" + std::string(opaque(modelEtag(snapshot))) + "-" +
+  return http::strongEtag("tileset-" + std::string(http::opaqueOf(modelEtag(snapshot))) + "-" +
                           std::string(kTilesFormat));
 }
 
 std::string glbEtag(const core::PatchInfo& info) {
-  return http::strongEtag(std::string(opaque(patchEtag(info))) + "-glb-" +
+  return http::strongEtag(std::string(http::opaqueOf(patchEtag(info))) + "-glb-" +
                           std::string(kTilesFormat));
 }
 

@@ -52,18 +52,6 @@ int hexValue(char c) {
   return -1;
 }
 
-/// The opaque part of an entity tag, without W/ and quotes; "" for junk.
-std::string_view opaqueOf(std::string_view tag) {
-  tag = trim(tag);
-  if (tag.starts_with("W/")) {
-    tag.remove_prefix(2);
-  }
-  if (tag.size() < 2 || tag.front() != '"' || tag.back() != '"') {
-    return {};
-  }
-  return tag.substr(1, tag.size() - 2);
-}
-
 }  // namespace
 
 std::string_view toString(Method method) {
@@ -212,6 +200,17 @@ nlohmann::json jsonBody(const Request& request) {
   } catch (const nlohmann::json::parse_error& e) {
     throw Error(ErrorCode::InvalidArgument, std::string("request body is not JSON: ") + e.what());
   }
+}
+
+std::string_view opaqueOf(std::string_view tag) {
+  tag = trim(tag);
+  if (tag.starts_with("W/")) {
+    tag.remove_prefix(2);
+  }
+  if (tag.size() < 2 || tag.front() != '"' || tag.back() != '"') {
+    return {};
+  }
+  return tag.substr(1, tag.size() - 2);
 }
 
 std::string strongEtag(std::string_view opaque) {

@@ -98,6 +98,8 @@ inline constexpr std::string_view kImmutable = "public, max-age=31536000, immuta
 
 /// A strong entity tag: `opaque` in double quotes (opaque must not contain '"').
 std::string strongEtag(std::string_view opaque);
+/// The opaque part of an entity tag, without W/ and quotes; "" for junk.
+std::string_view opaqueOf(std::string_view tag);
 /// True when the request's If-None-Match lists `etag` (weak comparison, RFC 9110 13.1.2) or is
 /// "*": the client's copy is current and a GET may be answered 304.
 bool ifNoneMatch(const Request& request, std::string_view etag);

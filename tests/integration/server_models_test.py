@@ -525,6 +525,109 @@ class Models(unittest.TestCase):
             restarted.cleanup(keep=True)
 
 
+class TexturedModel(unittest.TestCase):
+    """The texture routes on Jacksboro imported with the NASA image draped over it, checked
+    against the files `vsm import` wrote (read with GDAL and our own .aara decoder)."""
+
+    daemon = None
+
+    @classmethod
+    def setUpClass(cls):
+        if not ARGS.vsm or not ARGS.data:
+            raise unittest.SkipTest("--vsm and --data are needed")
+
+        def prepare(root):
+            subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
+                            os.path.join(root, "textured"), "--patch-size", str(PATCH),
+                            "--texture", os.path.join(ARGS.data, "conus_visible_earth.tif")],
+                           check=True, capture_output=True, timeout=300)
+            import_opc("jacksboro_fault_dem.tif", os.path.join(root, "plain"))
+
+        cls.daemon = Daemon("--token", TOKEN, prepare=prepare)
+        cls.root = cls.daemon.dir
+
+    @classmethod
+    def tearDownClass(cls):
+        if cls.daemon is not None:
+            code = cls.daemon.stop()
+            cls.daemon.cleanup()
+            if code != 0:
+                raise AssertionError("vsmd exited %d" % code)
+
+    def keys(self):
+        _, _, tree = self.daemon.get_json("/v1/models/textured/hierarchy")
+        return [n["key"] for n in walk(tree["root"])]
+
+    def test_patch_metadata_names_the_texture(self):
+        status, _, meta = self.daemon.get_json("/v1/models/textured/patches/0_0_0")
+        self.assertEqual(status, 200)
+        self.assertEqual(meta["texture"], {"layer": "Diffuse", "coordinates": True})
+        status, _, plain = self.daemon.get_json("/v1/models/plain/patches/0_0_0")
+        self.assertEqual(status, 200)
+        self.assertIsNone(plain["texture"])
+
+    def test_coordinates_are_the_stored_file_u_v_per_stored_vertex(self):
+        for key in self.keys():
+            _, _, meta = self.daemon.get_json("/v1/models/textured/patches/" + key)
+            status, headers, data = self.daemon.request(
+                "GET", "/v1/models/textured/patches/%s/coordinates" % key)
+            self.assertEqual(status, 200, data)
+            self.assertEqual(headers["Content-Type"], "application/octet-stream")
+            with open(os.path.join(self.root, "textured", "Patches", meta["folder"],
+                                   "Coordinates.aara"), "rb") as f:
+                self.assertEqual(data, f.read(), key)
+            name, sizes, payload = decode_aara(data)
+            stored = meta["stored"]
+            self.assertEqual(name, "V2f")
+            self.assertEqual(list(sizes), [stored["x1"] - stored["x0"], stored["y1"] - stored["y0"]])
+            uv = struct.unpack("<%df" % (2 * sizes[0] * sizes[1]), payload)
+            # Vertex (x, y) of the full grid sits at (x, y) / (grid size - 1) of the tile.
+            for i in (0, sizes[0] * sizes[1] // 2, sizes[0] * sizes[1] - 1):
+                x = stored["x0"] + i % sizes[0]
+                y = stored["y0"] + i // sizes[0]
+                self.assertAlmostEqual(uv[2 * i], x / (PATCH - 1), places=6)
+                self.assertAlmostEqual(uv[2 * i + 1], y / (PATCH - 1), places=6)
+
+    def test_texture_is_the_tile_as_png_with_etag_and_layer(self):
+        from osgeo import gdal
+        gdal.UseExceptions()
+        key = self.keys()[-1]
+        _, _, meta = self.daemon.get_json("/v1/models/textured/patches/" + key)
+        status, headers, png = self.daemon.request(
+            "GET", "/v1/models/textured/patches/%s/texture" % key)
+        self.assertEqual(status, 200, png)
+        self.assertEqual(headers["Content-Type"], "image/png")
+        self.assertEqual(png[:8], b"\x89PNG\r\n\x1a\n")
+        self.assertEqual(headers["X-VSM-Texture-Layer"], "Diffuse")
+        gdal.FileFromMemBuffer("/vsimem/served.png", png)
+        served = gdal.Open("/vsimem/served.png").ReadAsArray()
+        gdal.Unlink("/vsimem/served.png")
+        tile = gdal.Open(os.path.join(self.root, "textured", "Images", "Diffuse",
+                                      meta["folder"] + ".tif")).ReadAsArray()
+        self.assertEqual(served.shape, tile.shape)
+        self.assertTrue((served == tile).all())
+        # Conditional GET, and the layer named in any letter case.
+        status, _, data = self.daemon.request(
+            "GET", "/v1/models/textured/patches/%s/texture" % key,
+            headers={"If-None-Match": headers["ETag"]})
+        self.assertEqual((status, data), (304, b""))
+        status, _, data = self.daemon.request(
+            "GET", "/v1/models/textured/patches/%s/texture/diffuse" % key)
+        self.assertEqual((status, data), (200, png))
+
+    def test_missing_textures_and_layers_are_not_found(self):
+        for path in ("/v1/models/plain/patches/0_0_0/texture",
+                     "/v1/models/plain/patches/0_0_0/coordinates",
+                     "/v1/models/textured/patches/0_0_0/texture/Normal",
+                     "/v1/models/textured/patches/0_0_0/texture/..%2F..%2Fetc",
+                     "/v1/models/textured/patches/9_9_9/texture"):
+            status, _, body = self.daemon.request("GET", path)
+            self.assertEqual(status, 404, path)
+            self.assertEqual(json.loads(body)["error"]["code"], "not_found", path)
+        status, _, body = self.daemon.request("GET", "/v1/models/textured/patches/x/texture")
+        self.assertEqual(status, 400, body)
+
+
 def main():
     global ARGS
     parser = argparse.ArgumentParser()
