@@ -433,11 +433,14 @@ PatchCache::Pin PatchCache::get(ModelId model, const ObjectId& object) {
   return Pin(this, &e, e.object);
 }
 
-std::shared_ptr<const void> PatchCache::find(ModelId model, const ObjectId& object) {
+std::shared_ptr<const void> PatchCache::find(ModelId model, const ObjectId& object,
+                                             bool countMiss) {
   const std::lock_guard lock(impl_->mutex);
   const auto it = impl_->entries.find(FullKey{model, object});
   if (it == impl_->entries.end() || it->second->state == State::Loading) {
-    ++impl_->misses;
+    if (countMiss) {
+      ++impl_->misses;
+    }
     return nullptr;
   }
   Entry& e = *it->second;

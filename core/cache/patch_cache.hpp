@@ -141,9 +141,10 @@ class PatchCache {
   /// The object when it is resident; nullptr when it is not (or still loading). Never loads, never
   /// waits and never pins: for callers that must not block (network threads). The caller keeps
   /// the object alive by the returned pointer; should the entry be evicted meanwhile, its bytes
-  /// outlive their charge for that long. Counts a hit or a miss, and a hit counts as a use for
+  /// outlive their charge for that long. Counts a hit, and a miss unless `countMiss` is false (a
+  /// second look for the same request, whose first look counted it); a hit counts as a use for
   /// the eviction policy.
-  std::shared_ptr<const void> find(ModelId model, const ObjectId& id);
+  std::shared_ptr<const void> find(ModelId model, const ObjectId& id, bool countMiss = true);
 
   /// Inserts or replaces an object (new data from a merge or import), resident and pinned. When
   /// `dirty`, it is written back before it is ever evicted. Throws Error(ResourceExhausted).

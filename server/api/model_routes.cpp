@@ -442,7 +442,8 @@ std::optional<http::Response> positions(const ModelContext& c, const http::Reque
     return http::notModified(etag, kPatchCacheControl);
   }
   const core::ObjectId fileId{key, info.version, core::MemoryCategory::PositionFiles};
-  std::shared_ptr<const AaraFile> file = served.encoded->find<AaraFile>(fileId);
+  // The handler pool runs this after the network thread's look missed: count that miss once.
+  std::shared_ptr<const AaraFile> file = served.encoded->find<AaraFile>(fileId, onNetworkThread);
   http::Response response;
   if (file == nullptr) {
     if (onNetworkThread) {

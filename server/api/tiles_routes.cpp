@@ -129,7 +129,8 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
     return http::notModified(etag, kTileCacheControl);
   }
   const core::ObjectId glbId{key, info->version, core::MemoryCategory::Tiles};
-  std::shared_ptr<const GlbBody> body = served.encoded->find<GlbBody>(glbId);
+  // The handler pool runs this after the network thread's look missed: count that miss once.
+  std::shared_ptr<const GlbBody> body = served.encoded->find<GlbBody>(glbId, onNetworkThread);
   if (body == nullptr) {
     if (onNetworkThread) {
       return std::nullopt;

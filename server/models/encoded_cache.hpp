@@ -28,10 +28,11 @@ class EncodedCache {
   EncodedCache& operator=(const EncodedCache&) = delete;
 
   /// The object cached as `id` (of type T, as put), or nullptr. Never blocks (PatchCache::find):
-  /// network threads may call it.
+  /// network threads may call it. `countMiss`: false for the handler pool's second look after a
+  /// network thread's first one missed (one miss per request in the statistics).
   template <typename T>
-  std::shared_ptr<const T> find(const core::ObjectId& id) const {
-    return std::static_pointer_cast<const T>(cache_.find(model_, id));
+  std::shared_ptr<const T> find(const core::ObjectId& id, bool countMiss) const {
+    return std::static_pointer_cast<const T>(cache_.find(model_, id, countMiss));
   }
 
   /// Caches `object`, occupying `bytes`, as `id` (replacing what is there), evicting others to

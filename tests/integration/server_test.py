@@ -496,6 +496,21 @@ class EncodedResponses(unittest.TestCase):
         self.assertLessEqual(metric(text, "vsm_memory_model_resident_bytes", '{model="hills"}'),
                              self.BUDGET)
 
+    def test_a_first_request_counts_each_miss_once_and_a_repeat_one_hit(self):
+        # A patch no other test has asked for: the network thread's look for its file misses,
+        # the pool loads the grid (a second miss, of the positions) and caches the file; the
+        # pool's own look for the file is the same request's and not counted again. The repeat is
+        # one hit on the network thread.
+        key = self.keys[-1]
+        before = self.stats()["cache"]
+        self.positions(key)
+        after = self.stats()["cache"]
+        self.assertEqual(after["misses"] - before["misses"], 2)
+        self.positions(key)
+        again = self.stats()["cache"]
+        self.assertEqual(again["misses"], after["misses"])
+        self.assertEqual(again["hits"] - after["hits"], 1)
+
     def test_encoded_responses_stay_within_the_budget_and_are_evicted_under_pressure(self):
         first = {key: self.positions(key) for key in self.keys}
         glbs = {}
