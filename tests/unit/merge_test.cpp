@@ -646,8 +646,9 @@ Mat4d rigid(double degrees, Vec3d axis, const Vec3d& centre, const Vec3d& offset
   return m;
 }
 
-/// `model` with every leaf vertex moved by `transform`, overviews reduced again.
-std::unique_ptr<Model> transformedModel(const Model& model, const Mat4d& transform) {
+/// `model`'s tree with every leaf grid replaced by `leaf(grid)`, overviews reduced again.
+std::unique_ptr<Model> withLeaves(
+    const Model& model, const std::function<std::shared_ptr<PatchGrid>(const PatchGrid&)>& leaf) {
   auto out = std::make_unique<Model>(model.gridSize());
   for (const auto& [key, info] : model.patches()) {
     PatchInfo copy;
@@ -655,10 +656,17 @@ std::unique_ptr<Model> transformedModel(const Model& model, const Mat4d& transfo
     out->insert(copy);
   }
   for (const auto& [key, info] : model.patches()) {
-    if (!info.isLeaf()) {
-      continue;
+    if (info.isLeaf()) {
+      out->setGrid(key, leaf(*info.grid));
     }
-    const PatchGrid& g = *info.grid;
+  }
+  out->refreshStale([](const PatchInfo&) { return std::shared_ptr<const PatchGrid>(); });
+  return out;
+}
+
+/// `model` with every leaf vertex moved by `transform`, overviews reduced again.
+std::unique_ptr<Model> transformedModel(const Model& model, const Mat4d& transform) {
+  return withLeaves(model, [&transform](const PatchGrid& g) {
     auto moved = std::make_shared<PatchGrid>(
         g.size(), Mat4d::translation(transform.apply(g.globalBox().center())));
     for (int y = 0; y < g.size(); ++y) {
@@ -668,10 +676,8 @@ std::unique_ptr<Model> transformedModel(const Model& model, const Mat4d& transfo
         }
       }
     }
-    out->setGrid(key, moved);
-  }
-  out->refreshStale([](const PatchInfo&) { return std::shared_ptr<const PatchGrid>(); });
-  return out;
+    return moved;
+  });
 }
 
 TEST(Registration, RecoversHalfADegreeAndSeveralCellsWithinAQuarterOfTheDetailSpacing) {
@@ -717,17 +723,8 @@ TEST(Registration, RecoversHalfADegreeAndSeveralCellsWithinAQuarterOfTheDetailSp
 /// an eighth of its width at a border, and every 41st vertex (so normals meet one-sided differences
 /// and missing neighbours); overviews reduced again.
 std::unique_ptr<Model> withHoles(const Model& model) {
-  auto out = std::make_unique<Model>(model.gridSize());
-  for (const auto& [key, info] : model.patches()) {
-    PatchInfo copy;
-    copy.key = key;
-    out->insert(copy);
-  }
-  for (const auto& [key, info] : model.patches()) {
-    if (!info.isLeaf()) {
-      continue;
-    }
-    auto grid = std::make_shared<PatchGrid>(*info.grid);
+  return withLeaves(model, [](const PatchGrid& g) {
+    auto grid = std::make_shared<PatchGrid>(g);
     const int s = grid->size();
     for (int y = 0; y < s; ++y) {
       for (int x = 0; x < s; ++x) {
@@ -738,10 +735,8 @@ std::unique_ptr<Model> withHoles(const Model& model) {
         }
       }
     }
-    out->setGrid(key, grid);
-  }
-  out->refreshStale([](const PatchInfo&) { return std::shared_ptr<const PatchGrid>(); });
-  return out;
+    return grid;
+  });
 }
 
 TEST(Registration, RecoversTheDisplacementAcrossHolesFromThinnedPoints) {
