@@ -47,6 +47,15 @@ bool isOurTileName(const std::string& name) {
   return std::regex_match(name, pattern);
 }
 
+/// A texture entry as readers resolve it: either slash, any letter case ("Diffuse/2_0_1.TIF" and
+/// "diffuse\\2_0_1.tif" name the same file).
+std::string normalisedEntry(std::string entry) {
+  for (char& c : entry) {
+    c = c == '/' ? '\\' : static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  }
+  return entry;
+}
+
 /// The file of a tile OpcWriter::writeTexture wrote for `folder` under the model at `dir`.
 fs::path ourTileFile(const fs::path& dir, const std::string& folder) {
   return dir / "Images" / std::string(kTextureLayer) / (folder + ".tif");
@@ -156,7 +165,7 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
   for (const auto& [key, info] : model->patches()) {
     named.insert(info.folder);
     if (!info.textureFile.empty()) {
-      namedTiles.insert(info.textureFile);
+      namedTiles.insert(normalisedEntry(info.textureFile));
     }
   }
   const fs::path patches = patchesDirOf(dir);
@@ -173,8 +182,8 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
     for (const auto& entry : fs::directory_iterator(tiles)) {
       const std::string file = entry.path().filename().string();
       if (entry.is_regular_file() &&
-          ((isOurTileName(file) &&
-            namedTiles.count(textureEntryFor(file.substr(0, file.size() - 4))) == 0) ||
+          ((isOurTileName(file) && namedTiles.count(normalisedEntry(
+                                       textureEntryFor(file.substr(0, file.size() - 4)))) == 0) ||
            isTempFileName(file))) {
         orphans.push_back(entry.path());
       }

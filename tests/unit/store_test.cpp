@@ -397,6 +397,23 @@ TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
   EXPECT_TRUE(named.empty()) << *named.begin();
 }
 
+TEST_F(TexturedStoreTest, OpenKeepsTilesNamedWithTheOtherSlashOrLetterCase) {
+  // Another writer's Patch.xml may name our tile as "diffuse/2_0_0.tif": still named, kept.
+  const fs::path xml = dir_ / "Patches" / "2_0_0" / "Patch.xml";
+  std::stringstream text;
+  text << std::ifstream(xml).rdbuf();
+  std::string patch = text.str();
+  const std::string entry = "Diffuse\\2_0_0.tif";
+  ASSERT_NE(patch.find(entry), std::string::npos);
+  patch.replace(patch.find(entry), entry.size(), "diffuse/2_0_0.tif");
+  std::ofstream(xml, std::ios::trunc) << patch;
+  const auto before = filesUnder(dir_);
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  EXPECT_EQ(filesUnder(dir_), before);
+  EXPECT_TRUE(live->texture(*live->snapshot(), {2, 0, 0}));
+}
+
 TEST_F(TexturedStoreTest, OpenRemovesTilesOfInterruptedEdits) {
   const auto before = filesUnder(dir_);
   std::ofstream(dir_ / "Images" / "Diffuse" / "2_0_0-v2.tif") << "draft";
