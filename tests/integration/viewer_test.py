@@ -285,7 +285,7 @@ class Browser(unittest.TestCase):
         report, pixels = self.load("/viewer/?model=%s&mode=lod" % MODEL, "vsmViewer", "viewer-lod")
         state = report["state"]
         self.assertIsNotNone(state, report)
-        self.assertEqual(state["failed"], 0, state["errors"])
+        self.assertEqual(state["failed"], 0, self.why(state["errors"]))
         self.assertEqual(report["consoleErrors"], [])
         self.assertTrue(state["rootLoaded"])
         self.assertGreater(state["loaded"], 0)
@@ -311,7 +311,7 @@ class Browser(unittest.TestCase):
         report, pixels = self.load("/viewer/?model=%s&mode=texture" % MODEL, "vsmViewer",
                                    "viewer-texture")
         state = report["state"]
-        self.assertEqual(state["failed"], 0, state["errors"])
+        self.assertEqual(state["failed"], 0, self.why(state["errors"]))
         self.assertEqual(state["mode"], "texture")
         self.assertEqual(state["loaded"], state["requested"], state)
         self.assert_not_blank(pixels, "viewer-texture")
@@ -360,6 +360,17 @@ class Browser(unittest.TestCase):
             self.assertIn("share_close", numbers["failed"], numbers)
         return numbers
 
+    def why(self, errors):
+        """The tile errors the page reported, with what the daemon answers for the first failed
+        URL now and the daemon log's last lines: enough to tell a flaky load from a server error."""
+        if not errors:
+            return errors
+        url = errors[0].split(": ")[0]
+        path = url[url.index("/v1/"):] if "/v1/" in url else url
+        status, _, body = self.daemon.request("GET", path)
+        return "%s\nGET %s now: %d %s\nvsmd log:\n%s" % (
+            errors[:3], path, status, body[:300], "\n".join(self.daemon.log().splitlines()[-20:]))
+
     @classmethod
     def rasters(cls):
         if not hasattr(cls, "dem"):
@@ -370,7 +381,7 @@ class Browser(unittest.TestCase):
         report, pixels = self.load("/viewer/?model=%s&mode=%s&view=top" % (model, mode),
                                    "vsmViewer", name)
         state = report["state"]
-        self.assertEqual(state["failed"], 0, state["errors"])
+        self.assertEqual(state["failed"], 0, self.why(state["errors"]))
         self.assertEqual(report["consoleErrors"], [])
         self.assertEqual(state["mode"], mode)
         self.assertEqual(state["view"], "top")
@@ -416,7 +427,7 @@ class Browser(unittest.TestCase):
         state = report["state"]
         self.assertIsNone(state["error"], state)
         self.assertTrue(state["ready"])
-        self.assertEqual(state["failed"], 0, state["errors"])
+        self.assertEqual(state["failed"], 0, self.why(state["errors"]))
         self.assertGreater(state["loaded"], 1)
         self.assertTrue(state["idle"], state)
         self.assert_not_blank(pixels, "cesium-textured")
@@ -456,7 +467,7 @@ class Browser(unittest.TestCase):
         self.assertIsNotNone(state, report)
         self.assertIsNone(state["error"], state)
         self.assertTrue(state["ready"])
-        self.assertEqual(state["failed"], 0, state["errors"])
+        self.assertEqual(state["failed"], 0, self.why(state["errors"]))
         self.assertGreater(state["loaded"], 0)
         self.assertTrue(state["idle"], state)
         self.assert_not_blank(pixels, "cesium")
