@@ -1,6 +1,4 @@
 // Builds a whole pyramid from a GridSource, depth first, and publishes it as a new OPC directory.
-#include <fcntl.h>
-#include <stdio.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -19,9 +17,11 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/durable/durable_io.hpp"
+#include "core/durable/writer_lock.hpp"
 #include "core/io/grid_source.hpp"
 #include "core/io/texture_source.hpp"
-#include "core/opc/opc_store.hpp"
+#include "core/opc/opc_writer.hpp"
 #include "core/pyramid/reduce.hpp"
 
 namespace vsm::core {
@@ -73,42 +73,6 @@ class StagingDirectory {
   fs::path path_;
   bool published_ = false;
 };
-
-void fsyncDirectory(const fs::path& dir) {
-  const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (fd < 0) {
-    throwIoError("cannot open directory", dir.string(), errno);
-  }
-  const int result = ::fsync(fd);
-  const int error = errno;
-  ::close(fd);
-  if (result != 0) {
-    throwIoError("cannot fsync directory", dir.string(), error);
-  }
-}
-
-/// Renames `from` to `to` unless `to` exists (also when another process creates it between our
-/// check and the rename: plain rename() would silently replace an empty directory).
-void renameNoReplace(const fs::path& from, const fs::path& to) {
-  if (::renameat2(AT_FDCWD, from.c_str(), AT_FDCWD, to.c_str(), RENAME_NOREPLACE) == 0) {
-    return;
-  }
-  int error = errno;
-  if (error == EINVAL || error == ENOSYS) {  // file system without RENAME_NOREPLACE
-    std::error_code ec;
-    if (fs::exists(fs::symlink_status(to, ec))) {
-      error = EEXIST;
-    } else if (::rename(from.c_str(), to.c_str()) == 0) {
-      return;
-    } else {
-      error = errno;
-    }
-  }
-  if (error == EEXIST || error == ENOTEMPTY) {
-    throw Error(ErrorCode::Conflict, "output directory " + quoted(to) + " exists");
-  }
-  throwIoError("cannot rename staging directory to", to.string(), error);
-}
 
 /// What the builders of one import share: the source (read under a lock by builders without a
 /// handle of their own), the writer (whose writePatch may run concurrently for different patches)
@@ -395,6 +359,11 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
                                          " is running or was interrupted");
   }
 
+  // Held from before the first write: the one syncfs at the end reports every write-back error of
+  // the import. The lock moves with the directory to the target when it is published.
+  durable::FileSystemSync sync(staging.path());
+  const std::unique_ptr<durable::WriterLock> lock = durable::WriterLock::acquire(staging.path());
+
   std::unique_ptr<TextureSource> texture;
   if (!options.texture.empty()) {
     texture = std::make_unique<TextureSource>(options.texture, source.width(), source.height(),
@@ -482,14 +451,19 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
     model.insert(std::move(info));  // parents first: the key order is by depth
   }
   writer.writeHierarchy(model);
-  writer.sync();
+  sync.sync();
   if (options.cancel != nullptr) {
     options.cancel->throwIfCancelled();
   }
 
-  renameNoReplace(staging.path(), target);
+  // The commit point: the complete model appears at the target, or nothing does.
+  durable::renameNoReplace(staging.path(), target);
   staging.published();
-  fsyncDirectory(parent);
+  try {
+    durable::syncDirectory(parent);
+  } catch (const Error& e) {
+    throw Error(ErrorCode::Io, "the model is imported at " + quoted(target) + ", but " + e.what());
+  }
   if (options.progress != nullptr) {
     options.progress->report("import", 1.0);
   }

@@ -1,7 +1,8 @@
 #pragma once
 
 // Internal to core/opc: shared by aara.cpp, opc_store.cpp and validate.cpp. Not part of the
-// module's interface; other modules include aara.hpp and opc_store.hpp only.
+// module's interface; other modules include aara.hpp, opc_reader.hpp, opc_writer.hpp and
+// validate.hpp only.
 
 #include <cstddef>
 #include <cstdint>
@@ -38,6 +39,9 @@ AaraHeader readAaraHeader(const std::filesystem::path& path);
 /// Error(Io) on any other failure.
 std::vector<std::byte> readFile(const std::filesystem::path& path,
                                 std::size_t maxBytes = std::numeric_limits<std::size_t>::max());
+
+/// ASCII case-insensitive equality (file and element names).
+bool equalsIgnoreCase(std::string_view a, std::string_view b);
 
 /// The entry of `dir` called `name` in any letter case; the exact spelling wins when several
 /// match. nullopt when there is none (or `dir` cannot be listed).

@@ -10,7 +10,9 @@
 #include "core/common/error.hpp"
 #include "core/opc/aara.hpp"
 #include "core/opc/opc_detail.hpp"
-#include "core/opc/opc_store.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/opc_writer.hpp"
+#include "core/opc/validate.hpp"
 
 namespace vsm::core {
 namespace fs = std::filesystem;

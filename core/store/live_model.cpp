@@ -9,7 +9,8 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
-#include "core/opc/opc_store.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/opc_writer.hpp"
 #include "core/opc/texture_file.hpp"
 #include "core/pyramid/reduce.hpp"
 
@@ -59,12 +60,6 @@ std::string normalisedEntry(std::string entry) {
 /// The file of a tile OpcWriter::writeTexture wrote for `folder` under the model at `dir`.
 fs::path ourTileFile(const fs::path& dir, const std::string& folder) {
   return dir / "Images" / std::string(kTextureLayer) / (folder + ".tif");
-}
-
-/// The temporary files of an interrupted atomic write (".Patch.xml.tmp-<pid>-<n>").
-bool isTempFileName(const std::string& name) {
-  static const std::regex pattern("\\..+\\.tmp-[0-9]+-[0-9]+");
-  return std::regex_match(name, pattern);
 }
 
 }  // namespace
@@ -121,7 +116,8 @@ class LiveModel::Store final : public PatchStore {
   void writeBack(const ObjectId& id, const CacheValue& value) override {
     PatchInfo info = lookup(id);
     // Only drafts are ever dirty: their folders are invisible until publish() makes them durable
-    // (one syncfs) before the hierarchy names them, so no fsync or temp file per file here.
+    // (the edit's FileSystemSync) before the hierarchy names them, so no fsync or temp file per
+    // file here.
     OpcWriter writer(dir_, OpcWriter::Durability::Deferred);
     if (id.category == MemoryCategory::Textures) {
       writer.writeTexture(info, *static_cast<const TextureTile*>(value.object.get()));
@@ -154,44 +150,73 @@ class LiveModel::Store final : public PatchStore {
 
 // ---- LiveModel -------------------------------------------------------------------------------
 
-std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name,
-                                           PatchCache& cache) {
+std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name, PatchCache& cache,
+                                           Access access) {
+  if (access == Access::Read) {
+    return load(dir, std::move(name), cache, nullptr, false, 1);
+  }
+  patchesDirOf(dir);  // NotFound for a directory without an OPC, before anything is created
+  std::shared_ptr<const durable::WriterLock> lock = durable::WriterLock::acquire(dir);
+  return load(dir, std::move(name), cache, std::move(lock), true, 1);
+}
+
+std::unique_ptr<LiveModel> LiveModel::reopen() const {
+  // A version number of its own, so that nothing cached for this opening's versions is taken for
+  // the new one's.
+  return load(dir_, name_, store_->cache(), lock_, false, snapshot()->version + 1);
+}
+
+std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name, PatchCache& cache,
+                                           std::shared_ptr<const durable::WriterLock> lock,
+                                           bool sweep, std::uint64_t version) {
   auto model = std::make_shared<Model>(readOpcModel(dir));
-  // Leftovers of edits interrupted by a crash: folders named like ours that the hierarchy does not
-  // name (unpublished drafts, or the old version's folders when the crash came between the
-  // hierarchy's rename and their removal), and temporary files of interrupted writes.
-  std::set<std::string> named;
-  std::set<std::string> namedTiles;
-  for (const auto& [key, info] : model->patches()) {
-    named.insert(info.folder);
-    if (!info.textureFile.empty()) {
-      namedTiles.insert(normalisedEntry(info.textureFile));
-    }
+  if (lock != nullptr) {
+    // A publish interrupted after its commit point left these undone; they are idempotent.
+    finishHierarchy(dir);
   }
-  const fs::path patches = patchesDirOf(dir);
-  std::vector<fs::path> orphans;
-  for (const auto& entry : fs::directory_iterator(patches)) {
-    const std::string folder = entry.path().filename().string();
-    if ((entry.is_directory() && isOurFolderName(folder) && named.count(folder) == 0) ||
-        (entry.is_regular_file() && isTempFileName(folder))) {
-      orphans.push_back(entry.path());
+  if (sweep) {
+    // Leftovers of edits interrupted by a crash or a failure: folders named like ours that the
+    // hierarchy does not name (unpublished drafts, or the old version's folders when the crash came
+    // between the hierarchy's rename and their removal), and temporary files of interrupted
+    // writes. Only the lock holder may do this: another writer's drafts look the same.
+    std::set<std::string> named;
+    std::set<std::string> namedTiles;
+    for (const auto& [key, info] : model->patches()) {
+      named.insert(info.folder);
+      if (!info.textureFile.empty()) {
+        namedTiles.insert(normalisedEntry(info.textureFile));
+      }
     }
-  }
-  const fs::path tiles = dir / "Images" / std::string(kTextureLayer);
-  if (fs::is_directory(tiles)) {
-    for (const auto& entry : fs::directory_iterator(tiles)) {
-      const std::string file = entry.path().filename().string();
-      if (entry.is_regular_file() &&
-          ((isOurTileName(file) && namedTiles.count(normalisedEntry(
-                                       textureEntryFor(file.substr(0, file.size() - 4)))) == 0) ||
-           isTempFileName(file))) {
+    const fs::path patches = patchesDirOf(dir);
+    std::vector<fs::path> orphans;
+    for (const auto& entry : fs::directory_iterator(patches)) {
+      const std::string folder = entry.path().filename().string();
+      if ((entry.is_directory() && isOurFolderName(folder) && named.count(folder) == 0) ||
+          (entry.is_regular_file() && durable::isTempFileName(folder))) {
         orphans.push_back(entry.path());
       }
     }
-  }
-  for (const fs::path& orphan : orphans) {
-    log::info("model=" + name + " removing leftover " + orphan.filename().string());
-    fs::remove_all(orphan);
+    const fs::path tiles = dir / "Images" / std::string(kTextureLayer);
+    if (fs::is_directory(tiles)) {
+      for (const auto& entry : fs::directory_iterator(tiles)) {
+        const std::string file = entry.path().filename().string();
+        if (entry.is_regular_file() &&
+            ((isOurTileName(file) && namedTiles.count(normalisedEntry(
+                                         textureEntryFor(file.substr(0, file.size() - 4)))) == 0) ||
+             durable::isTempFileName(file))) {
+          orphans.push_back(entry.path());
+        }
+      }
+    }
+    for (const fs::path& orphan : orphans) {
+      log::info("model=" + name + " removing leftover " + orphan.filename().string());
+      std::error_code ec;
+      fs::remove_all(orphan, ec);
+      if (ec) {
+        log::warn("model=" + name + " cannot remove leftover " + orphan.string() + ": " +
+                  ec.message() + " (retried at the next open)");
+      }
+    }
   }
 
   auto store = std::make_shared<Store>(dir, cache, name, model->gridSize());
@@ -200,16 +225,19 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
   }
   auto snapshot = std::make_shared<ModelSnapshot>();
   snapshot->model = std::move(model);
+  snapshot->version = version;
   return std::unique_ptr<LiveModel>(
-      new LiveModel(dir, std::move(name), std::move(store), std::move(snapshot)));
+      new LiveModel(dir, std::move(name), std::move(store), std::move(snapshot), std::move(lock)));
 }
 
 LiveModel::LiveModel(fs::path dir, std::string name, std::shared_ptr<Store> store,
-                     std::shared_ptr<ModelSnapshot> snapshot)
+                     std::shared_ptr<ModelSnapshot> snapshot,
+                     std::shared_ptr<const durable::WriterLock> lock)
     : dir_(std::move(dir)),
       name_(std::move(name)),
       store_(std::move(store)),
-      snapshot_(std::move(snapshot)) {}
+      snapshot_(std::move(snapshot)),
+      lock_(std::move(lock)) {}
 
 LiveModel::~LiveModel() = default;
 
@@ -232,17 +260,28 @@ PatchCache::Pin LiveModel::texture(const ModelSnapshot& snapshot, const PatchKey
 }
 
 std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
+  if (lock_ == nullptr) {
+    throw Error(ErrorCode::Conflict, "model '" + name_ + "' is open for reading only");
+  }
   bool expected = false;
   if (!editing_.compare_exchange_strong(expected, true)) {
     throw Error(ErrorCode::Conflict, "model '" + name_ + "' is being changed by another job");
   }
-  return std::unique_ptr<ModelEdit>(new ModelEdit(*this, snapshot()));
+  try {
+    return std::unique_ptr<ModelEdit>(new ModelEdit(*this, snapshot()));
+  } catch (...) {
+    editing_ = false;
+    throw;
+  }
 }
 
 // ---- ModelEdit -------------------------------------------------------------------------------
 
 ModelEdit::ModelEdit(LiveModel& live, std::shared_ptr<const ModelSnapshot> base)
-    : live_(live), base_(std::move(base)), model_(std::make_unique<Model>(*base_->model)) {}
+    : live_(live),
+      sync_(live.dir_),
+      base_(std::move(base)),
+      model_(std::make_unique<Model>(*base_->model)) {}
 
 ModelEdit::~ModelEdit() {
   if (!published_) {
@@ -395,18 +434,22 @@ void ModelEdit::publish(const CancelToken* cancel) {
     cancel->throwIfCancelled();
   }
   LiveModel::Store& store = *live_.store_;
-  // 1. Every changed patch into its new folder (evicted ones were written already).
+  // 1. Every changed patch into its new folder (evicted ones were written already), durable.
   store.cache().flush(store.id());
-  syncFileSystem(live_.dir_);
-  // 2. The hierarchy naming them, atomically: this is the moment the new version exists.
+  sync_.sync();
+  if (cancel != nullptr) {
+    cancel->throwIfCancelled();
+  }
+  // 2. The hierarchy naming them, fsynced under a temporary name, and everything the switch to
+  // the new version needs, prepared so that nothing after the commit point can fail but its
+  // durability.
   auto next = std::make_shared<Model>(*model_);
-  OpcWriter(live_.dir_, OpcWriter::Durability::EachFile).writeHierarchy(*next);
-
+  const std::unique_ptr<durable::PendingFile> hierarchy = stageHierarchy(live_.dir_, *next);
   auto snapshot = std::make_shared<ModelSnapshot>();
   snapshot->model = std::move(next);
   snapshot->version = base_->version + 1;
-
-  // 3. The folders only the old version used go when its last reader does.
+  // The folders only the old version used go when its last reader does; a removal that fails
+  // leaves an orphan the next open removes.
   std::vector<std::pair<PatchKey, PatchInfo>> obsolete;
   for (const PatchKey& key : changed_) {
     if (const PatchInfo* old = base_->model->find(key)) {
@@ -415,23 +458,41 @@ void ModelEdit::publish(const CancelToken* cancel) {
   }
   std::shared_ptr<LiveModel::Store> keep = live_.store_;
   const fs::path patches = patchesDirOf(live_.dir_);
+  std::function<void()> release = [keep, patches, obsolete = std::move(obsolete)] {
+    for (const auto& [key, info] : obsolete) {
+      keep->cache().invalidate(keep->id(), {key, info.version, MemoryCategory::Positions});
+      keep->cache().invalidate(keep->id(), {key, info.version, MemoryCategory::Textures});
+      keep->forget(key, info.version);
+      std::error_code ec;
+      fs::remove_all(patches / info.folder, ec);
+      // Only a tile vsm named for the folder is the folder's own (foreign OPCs may share one).
+      if (!ec && info.textureFile == textureEntryFor(info.folder)) {
+        fs::remove(ourTileFile(keep->dir(), info.folder), ec);
+      }
+      if (ec) {
+        log::warn("cannot remove " + info.folder + " of a replaced version: " + ec.message() +
+                  " (the next open removes it)");
+      }
+    }
+  };
+
+  // 3. The commit point: from the rename on, the new version is the model's.
+  hierarchy->commit();
+  published_ = true;
   {
     std::lock_guard lock(live_.mutex_);
-    live_.snapshot_->onRelease = [keep, patches, obsolete = std::move(obsolete)] {
-      for (const auto& [key, info] : obsolete) {
-        keep->cache().invalidate(keep->id(), {key, info.version, MemoryCategory::Positions});
-        keep->cache().invalidate(keep->id(), {key, info.version, MemoryCategory::Textures});
-        keep->forget(key, info.version);
-        fs::remove_all(patches / info.folder);
-        // Only a tile vsm named for the folder is the folder's own (foreign OPCs may share one).
-        if (info.textureFile == textureEntryFor(info.folder)) {
-          fs::remove(ourTileFile(keep->dir(), info.folder));
-        }
-      }
-    };
+    live_.snapshot_->onRelease = std::move(release);
     live_.snapshot_ = std::move(snapshot);
   }
-  published_ = true;
+
+  // 4. Reported, never undone; the next open retries it.
+  try {
+    finishHierarchy(live_.dir_);
+  } catch (const Error& e) {
+    throw Error(ErrorCode::Io, "version " + std::to_string(base_->version + 1) + " of model '" +
+                                   live_.name_ + "' is published, but " + e.what() +
+                                   " (retried at the next open)");
+  }
 }
 
 }  // namespace vsm::core

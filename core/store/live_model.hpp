@@ -11,6 +11,8 @@
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/progress.hpp"
+#include "core/durable/durable_io.hpp"
+#include "core/durable/writer_lock.hpp"
 #include "core/grid/texture_tile.hpp"
 #include "core/pyramid/model.hpp"
 
@@ -39,15 +41,31 @@ class ModelEdit;
 /// (changed patches go to new folders) and publishes it by replacing the hierarchy atomically, so
 /// a crash at any moment leaves the directory opening as exactly the old or the new version.
 ///
+/// Opened for writing, a LiveModel holds the directory's durable::WriterLock for its whole life:
+/// one writer per model across processes. Opened for reading, it takes no lock and cannot be
+/// edited.
+///
 /// Thread-safe: any number of readers, one edit.
 class LiveModel {
  public:
-  /// Opens `dir` (metadata only) and registers it with `cache` under `name`. Removes what
-  /// interrupted edits of vsm left behind: folders named like vsm's ("d_x_y", "d_x_y-vN") that the
-  /// hierarchy does not name, and temporary files of interrupted writes. One process edits a
-  /// directory at a time. Throws as readOpcModel.
+  enum class Access { Read, Write };
+
+  /// Opens `dir` (metadata only) and registers it with `cache` under `name`.
+  ///
+  /// Access::Write takes the writer lock first (Error(Conflict) naming the holder when another
+  /// writer has it), then, under it, completes what an interrupted publish left after its commit
+  /// point (OpcWriter::finishHierarchy) and removes what interrupted edits of vsm left behind:
+  /// folders named like vsm's ("d_x_y", "d_x_y-vN") that the hierarchy does not name, their
+  /// texture tiles, and temporary files of interrupted writes (a removal that fails is logged and
+  /// retried at the next open). Throws as readOpcModel, and Error(Io).
   static std::unique_ptr<LiveModel> open(const std::filesystem::path& dir, std::string name,
-                                         PatchCache& cache);
+                                         PatchCache& cache, Access access = Access::Write);
+
+  /// A new opening of the same directory, read again from disk, with this one's writer lock
+  /// passed on (both share it): after a failed write nothing this opening holds in memory is
+  /// trusted. It does not remove leftovers (readers of this opening may still read the old
+  /// version's folders); the next open() does. Throws as open().
+  std::unique_ptr<LiveModel> reopen() const;
   /// Precondition: no edit open.
   ~LiveModel();
   LiveModel(const LiveModel&) = delete;
@@ -69,7 +87,9 @@ class LiveModel {
   /// does not decode.
   PatchCache::Pin texture(const ModelSnapshot& snapshot, const PatchKey& key);
 
-  /// Starts the one edit of this model. Throws Error(Conflict) while another edit is open.
+  /// Starts the one edit of this model. Throws Error(Conflict) while another edit is open or when
+  /// the model was opened for reading only; Error(Io) when the file system cannot be opened for
+  /// syncing.
   std::unique_ptr<ModelEdit> beginEdit();
 
   class Store;  // the PatchStore over the directory; defined in the .cpp
@@ -77,7 +97,12 @@ class LiveModel {
  private:
   friend class ModelEdit;
   LiveModel(std::filesystem::path dir, std::string name, std::shared_ptr<Store> store,
-            std::shared_ptr<ModelSnapshot> snapshot);
+            std::shared_ptr<ModelSnapshot> snapshot,
+            std::shared_ptr<const durable::WriterLock> lock);
+  static std::unique_ptr<LiveModel> load(const std::filesystem::path& dir, std::string name,
+                                         PatchCache& cache,
+                                         std::shared_ptr<const durable::WriterLock> lock,
+                                         bool sweep, std::uint64_t version);
 
   std::filesystem::path dir_;
   std::string name_;
@@ -85,6 +110,8 @@ class LiveModel {
   mutable std::mutex mutex_;  // guards snapshot_ (the pointer, not the snapshot)
   std::shared_ptr<ModelSnapshot> snapshot_;
   std::atomic<bool> editing_{false};
+  /// Null when opened for reading.
+  std::shared_ptr<const durable::WriterLock> lock_;
 };
 
 /// The next version of a LiveModel, invisible to readers until publish(). A changed patch gets
@@ -123,11 +150,25 @@ class ModelEdit {
   /// them has one.
   void refreshStale(const CancelToken* cancel = nullptr);
 
-  /// Refreshes stale overviews, writes every changed patch (fsynced), then the hierarchy
-  /// atomically: from its return on, snapshot() is the new version. Folders only the old version
-  /// used are removed once no reader holds it. Throws Error(Io) when a write fails (the model
-  /// stays at the old version; the edit can be retried or discarded).
+  /// Publishes the edit as the model's next version:
+  ///
+  /// 1. refreshes stale overviews, writes every changed patch that is still in the cache, and
+  ///    makes all draft files durable with the edit's FileSystemSync (its descriptor was opened
+  ///    when the edit began, so no write-back error since is missed);
+  /// 2. writes the new hierarchy under a temporary name and fsyncs it;
+  /// 3. **the commit point**: renames it over Patches/patchhierarchy.xml. snapshot() is the new
+  ///    version from here on;
+  /// 4. syncs Patches/ and removes a stale hierarchy.cache (OpcWriter::finishHierarchy).
+  ///
+  /// A failure before 3 throws and leaves the old version: the edit is then only fit to be
+  /// discarded (its drafts are removed; a failed sync is never retried on the same pages).
+  /// Cancellation is honoured up to 3. A failure in 4 throws Error(Io) saying the version is
+  /// published: it is not undone, and the next open() retries step 4. Folders only the old version
+  /// used are removed once no reader holds it; a removal that fails leaves them to the next open.
   void publish(const CancelToken* cancel = nullptr);
+
+  /// True from the commit point of publish() on.
+  bool published() const { return published_; }
 
   /// Keys changed in this edit.
   const std::set<PatchKey>& changed() const { return changed_; }
@@ -138,6 +179,8 @@ class ModelEdit {
   ObjectId draftId(const PatchKey& key) const;
 
   LiveModel& live_;
+  /// Opened when the edit begins: syncfs on it reports every write-back error since.
+  durable::FileSystemSync sync_;
   std::shared_ptr<const ModelSnapshot> base_;
   std::unique_ptr<Model> model_;
   std::set<PatchKey> changed_;

@@ -11,6 +11,7 @@
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/durable/durable_io.hpp"
 #include "server/api/model_routes.hpp"
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
@@ -36,25 +37,10 @@ namespace log = core::log;
 
 namespace {
 
-/// Writes "<port>\n" to `path` atomically: a temporary file in the same directory, renamed.
+/// Writes "<port>\n" to `path` atomically (readers wait for the file to appear whole).
 void writePortFile(const fs::path& path, std::uint16_t port) {
-  const fs::path temporary = path.string() + ".tmp-" + std::to_string(getpid());
-  const int fd = ::open(temporary.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
-  if (fd < 0) {
-    core::throwIoError("cannot create port file", temporary.string(), errno);
-  }
   const std::string text = std::to_string(port) + "\n";
-  const bool written = ::write(fd, text.data(), text.size()) == static_cast<ssize_t>(text.size());
-  const int writeErrno = errno;
-  if (::close(fd) != 0 || !written) {
-    ::unlink(temporary.c_str());
-    core::throwIoError("cannot write port file", temporary.string(), written ? errno : writeErrno);
-  }
-  if (::rename(temporary.c_str(), path.c_str()) != 0) {
-    const int renameErrno = errno;
-    ::unlink(temporary.c_str());
-    core::throwIoError("cannot rename port file into place", path.string(), renameErrno);
-  }
+  core::durable::writeFileAtomically(path, std::as_bytes(std::span(text.data(), text.size())));
 }
 
 bool isLoopback(const std::string& host) {

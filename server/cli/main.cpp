@@ -1,6 +1,7 @@
 // vsm: the offline command. Parses arguments and runs one command; everything else is in core.
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <charconv>
 #include <chrono>
@@ -12,6 +13,7 @@
 #include <iostream>
 #include <mutex>
 #include <optional>
+#include <span>
 #include <string>
 #include <string_view>
 #include <thread>
@@ -22,10 +24,13 @@
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
+#include "core/durable/durable_io.hpp"
 #include "core/io/grid_source.hpp"
 #include "core/merge/merge.hpp"
 #include "core/merge/register.hpp"
-#include "core/opc/opc_store.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/opc_writer.hpp"
+#include "core/opc/validate.hpp"
 #include "core/store/live_model.hpp"
 #include "core/tiles/lod_render.hpp"
 #include "server/config/config.hpp"
@@ -258,13 +263,15 @@ int runValidate(const std::vector<std::string_view>& args) {
   return 1;
 }
 
-/// A directory removed on destruction unless kept: the copy a merge with --out works on until it
-/// is complete and renamed into place.
+/// The copy a merge with --out works on: `<out>.partial-<pid>` beside the output, removed on
+/// destruction unless published. Its write-back errors are captured from before the copy on.
 class StagingCopy {
  public:
   StagingCopy(const fs::path& from, const fs::path& to)
-      : path_(to.parent_path() /
-              (to.filename().string() + ".partial-" + std::to_string(::getpid()))) {
+      : to_(to),
+        path_(to.parent_path() /
+              (to.filename().string() + ".partial-" + std::to_string(::getpid()))),
+        sync_(to.parent_path().empty() ? fs::path(".") : to.parent_path()) {
     std::error_code ec;
     if (fs::exists(fs::symlink_status(to, ec))) {
       throw Error(ErrorCode::Conflict, "output directory '" + to.string() + "' exists");
@@ -272,21 +279,32 @@ class StagingCopy {
     fs::copy(from, path_, fs::copy_options::recursive);
   }
   ~StagingCopy() {
-    std::error_code ec;
-    fs::remove_all(path_, ec);
+    if (!path_.empty()) {
+      std::error_code ec;
+      fs::remove_all(path_, ec);
+    }
   }
   StagingCopy(const StagingCopy&) = delete;
   StagingCopy& operator=(const StagingCopy&) = delete;
 
   const fs::path& path() const { return path_; }
-  /// Renames the finished copy to `to`.
-  void publish(const fs::path& to) {
-    fs::rename(path_, to);
+  /// Makes the finished copy durable and renames it to the output: the commit point of a merge
+  /// with --out.
+  void publish() {
+    sync_.sync();
+    durable::renameNoReplace(path_, to_);
     path_.clear();
+    try {
+      durable::syncDirectory(to_.parent_path().empty() ? fs::path(".") : to_.parent_path());
+    } catch (const Error& e) {
+      throw Error(ErrorCode::Io, "the merged model is at '" + to_.string() + "', but " + e.what());
+    }
   }
 
  private:
+  fs::path to_;
   fs::path path_;
+  durable::FileSystemSync sync_;
 };
 
 int runMerge(const std::vector<std::string_view>& args) {
@@ -323,11 +341,14 @@ int runMerge(const std::vector<std::string_view>& args) {
   const fs::path detailDir(positional[1]);
   const auto start = std::chrono::steady_clock::now();
   PatchCache cache(budget);
-  // Open both before copying anything: a corrupt model fails here and nothing is written.
-  auto detail = LiveModel::open(detailDir, "detail", cache);
-  readOpcModel(target);
+  // The detail model is only read (no lock). Both are read before anything is copied: a corrupt
+  // model fails here and nothing is written. In place, the target's writer lock is taken before
+  // anything of it is read for writing: a model another writer (vsmd, another vsm merge) holds
+  // fails here, naming the holder.
+  auto detail = LiveModel::open(detailDir, "detail", cache, LiveModel::Access::Read);
   std::optional<StagingCopy> copy;
   if (out) {
+    readOpcModel(target);
     copy.emplace(target, *out);
   }
   auto live = LiveModel::open(copy ? copy->path() : target, "target", cache);
@@ -355,7 +376,7 @@ int runMerge(const std::vector<std::string_view>& args) {
   edit.reset();
   live.reset();
   if (copy) {
-    copy->publish(*out);
+    copy->publish();
   }
   const double seconds =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
@@ -425,15 +446,17 @@ int runRenderLod(const std::vector<std::string_view>& args) {
     fs::remove(temporary, ignored);
     throw Error(ErrorCode::Io, "cannot write '" + out.string() + "': " + message);
   }
-  fs::rename(temporary, out);
+  durable::syncFile(temporary);
+  durable::replaceFile(temporary, out);
   // World file: pixel sizes, rotations, then the centre of the upper-left pixel.
   fs::path world = out;
   world.replace_extension(".pgw");
-  if (FILE* f = std::fopen(world.c_str(), "w")) {
-    std::fprintf(f, "%.17g\n0\n0\n%.17g\n%.17g\n%.17g\n", image.dx, -image.dy,
-                 image.x0 + 0.5 * image.dx, image.y0 - 0.5 * image.dy);
-    std::fclose(f);
-  }
+  char text[256];
+  const int length =
+      std::snprintf(text, sizeof text, "%.17g\n0\n0\n%.17g\n%.17g\n%.17g\n", image.dx, -image.dy,
+                    image.x0 + 0.5 * image.dx, image.y0 - 0.5 * image.dy);
+  durable::writeFileAtomically(
+      world, std::as_bytes(std::span(text, static_cast<std::size_t>(std::max(length, 0)))));
 
   std::printf("%s: %d x %d pixels, %s x %.10g .. %.10g, y %.10g .. %.10g\n", out.string().c_str(),
               image.width, image.height, image.geographic ? "lon/lat (degrees)" : "global x/y,",

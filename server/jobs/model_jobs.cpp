@@ -86,42 +86,53 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
               {{"matching", 0.05}, {"placing", 0.55}, {"reducing", 0.15}, {"publishing", 0.05}});
   return jobs.submit(
       "merge", std::move(params), std::move(plan),
-      [targetLease, sourceLease, targetModel, sourceModel, registerFirst](JobContext& context) {
+      [&models, target, targetLease, sourceLease, targetModel, sourceModel,
+       registerFirst](JobContext& context) {
         json result = json::object();
         // The one edit of the target; another job editing it makes this one fail (Conflict).
         std::unique_ptr<core::ModelEdit> edit = targetModel->beginEdit();
-        result["base_version"] = edit->base().version;
-        core::MergeOptions options;
-        options.progress = &context;
-        options.cancel = &context.cancelToken();
-        if (registerFirst) {
-          core::RegistrationOptions registration;
-          registration.progress = &context;
-          registration.cancel = &context.cancelToken();
-          const core::RegistrationResult registered =
-              core::registerModels(*targetModel, *sourceModel, registration);
-          options.transform = registered.transform;
-          result["registration"] = {{"transform", matrixJson(registered.transform)},
-                                    {"fitness", registered.fitness},
-                                    {"converged", registered.converged},
-                                    {"stages", registered.stages},
-                                    {"seconds", registered.seconds}};
+        try {
+          result["base_version"] = edit->base().version;
+          core::MergeOptions options;
+          options.progress = &context;
+          options.cancel = &context.cancelToken();
+          if (registerFirst) {
+            core::RegistrationOptions registration;
+            registration.progress = &context;
+            registration.cancel = &context.cancelToken();
+            const core::RegistrationResult registered =
+                core::registerModels(*targetModel, *sourceModel, registration);
+            options.transform = registered.transform;
+            result["registration"] = {{"transform", matrixJson(registered.transform)},
+                                      {"fitness", registered.fitness},
+                                      {"converged", registered.converged},
+                                      {"stages", registered.stages},
+                                      {"seconds", registered.seconds}};
+          }
+          const core::MergeResult merged = core::mergeModels(*edit, *sourceModel, options);
+          context.report("publishing", 0);
+          // Cancellation is honoured up to the commit point; after it the new version is the
+          // model's and the job has succeeded.
+          edit->publish(&context.cancelToken());
+          result["version"] = targetModel->snapshot()->version;
+          edit.reset();
+          context.report("publishing", 1);
+          result["matched_leaves"] = merged.matchedLeaves;
+          result["detail_leaves"] = merged.detailLeaves;
+          result["new_patches"] = merged.newPatches;
+          result["vertices_from_detail"] = merged.verticesFromDetail;
+          result["max_levels"] = merged.maxLevels;
+          result["merge_seconds"] = merged.seconds;
+          return result;
+        } catch (const Error& e) {
+          if (e.code() == ErrorCode::Io) {
+            // A failed write or sync: the drafts go, and the model is read again from disk (as
+            // the old version, or the new one when only a step after the commit point failed).
+            edit.reset();
+            models.reopen(target);
+          }
+          throw;
         }
-        const core::MergeResult merged = core::mergeModels(*edit, *sourceModel, options);
-        context.report("publishing", 0);
-        // Cancellation is still honoured up to the hierarchy's rename; after it the new version
-        // is the model's and the job has succeeded.
-        edit->publish(&context.cancelToken());
-        result["version"] = targetModel->snapshot()->version;
-        edit.reset();
-        context.report("publishing", 1);
-        result["matched_leaves"] = merged.matchedLeaves;
-        result["detail_leaves"] = merged.detailLeaves;
-        result["new_patches"] = merged.newPatches;
-        result["vertices_from_detail"] = merged.verticesFromDetail;
-        result["max_levels"] = merged.maxLevels;
-        result["merge_seconds"] = merged.seconds;
-        return result;
       });
 }
 

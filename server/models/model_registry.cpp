@@ -230,6 +230,29 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
   return model;
 }
 
+void ModelRegistry::reopen(std::string_view id) {
+  const std::shared_ptr<core::LiveModel> old = get(id);
+  Served fresh;
+  try {
+    fresh.live = old->reopen();
+    fresh.encoded = std::make_shared<EncodedCache>(cache_, std::string(id));
+  } catch (const std::exception& e) {
+    log::error("model=" + std::string(id) + " cannot be read again from disk: " + e.what());
+    return;
+  }
+  Served replaced;
+  {
+    const std::lock_guard lock(mutex_);
+    const auto it = models_.find(id);
+    if (it == models_.end() || it->second.live != old) {
+      return;  // closed or replaced meanwhile
+    }
+    replaced = std::exchange(it->second, std::move(fresh));
+  }
+  log::warn("model=" + std::string(id) + " read again from disk after a failed write: version " +
+            std::to_string(get(id)->snapshot()->version));
+}
+
 namespace {
 
 [[noreturn]] void throwNotOpen(std::string_view id) {

@@ -69,6 +69,12 @@ class ModelRegistry {
   /// OPC, Corrupt, Io).
   std::shared_ptr<core::LiveModel> open(const std::string& id, const std::filesystem::path& dir);
 
+  /// Replaces the open model `id` by a new opening of its directory, read again from disk
+  /// (LiveModel::reopen), with a new cache of encoded responses: after a failed write nothing the
+  /// old opening holds in memory is trusted. Requests and jobs holding the old opening finish on
+  /// it. Failures are logged (the old opening stays); NotFound when `id` is not open.
+  void reopen(std::string_view id);
+
   /// The open model `id`, or nullptr.
   std::shared_ptr<core::LiveModel> find(std::string_view id) const;
   /// The open model `id`. Throws core::Error(NotFound).

@@ -18,7 +18,9 @@
 #include <vector>
 
 #include "core/common/error.hpp"
-#include "core/opc/opc_store.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/opc_writer.hpp"
+#include "core/opc/validate.hpp"
 #include "core/store/live_model.hpp"
 
 using namespace vsm::core;

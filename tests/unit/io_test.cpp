@@ -30,8 +30,10 @@
 #include "core/io/grid_source.hpp"
 #include "core/io/texture_source.hpp"
 #include "core/opc/aara.hpp"
-#include "core/opc/opc_store.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/opc_writer.hpp"
 #include "core/opc/texture_file.hpp"
+#include "core/opc/validate.hpp"
 #include "tests/unit/test_support.hpp"
 
 namespace fs = std::filesystem;

@@ -18,7 +18,9 @@
 #include "core/merge/register.hpp"
 #include "core/merge/subdivider.hpp"
 #include "core/merge/surface_sampler.hpp"
-#include "core/opc/opc_store.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/opc_writer.hpp"
+#include "core/opc/validate.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/pyramid/reduce.hpp"
 #include "core/store/live_model.hpp"
@@ -790,7 +792,6 @@ void writeOpc(Model& model, const fs::path& dir) {
     writer.writePatch(mutableInfo, *info.grid, model.childrenBox(key));
   }
   writer.writeHierarchy(model);
-  writer.sync();
 }
 
 class MergeStoreTest : public ::testing::Test {

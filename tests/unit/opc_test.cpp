@@ -9,7 +9,9 @@
 
 #include "core/common/error.hpp"
 #include "core/opc/aara.hpp"
-#include "core/opc/opc_store.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/opc_writer.hpp"
+#include "core/opc/validate.hpp"
 #include "tests/unit/test_support.hpp"
 
 namespace fs = std::filesystem;
@@ -166,7 +168,6 @@ void writeModel(Model& model, const fs::path& dir) {
     writer.writePatch(info, *info.grid, model.childrenBox(*it));
   }
   writer.writeHierarchy(model);
-  writer.sync();
 }
 
 std::string readText(const fs::path& file) {

@@ -7,7 +7,9 @@
 #include <sstream>
 
 #include "core/common/error.hpp"
-#include "core/opc/opc_store.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/opc_writer.hpp"
+#include "core/opc/validate.hpp"
 #include "core/pyramid/reduce.hpp"
 #include "core/store/live_model.hpp"
 #include "tests/unit/test_support.hpp"
@@ -123,6 +125,40 @@ class StoreTest : public ::testing::Test {
 
 double leafZ(LiveModel& live, const ModelSnapshot& snapshot, const PatchKey& key) {
   return live.positions(snapshot, key).get<PatchGrid>()->global(3, 3).z;
+}
+
+TEST_F(StoreTest, ASecondWriterIsRefusedAndAReaderNeedsNoLockButCannotEdit) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const auto before = filesUnder(dir_);
+  const std::string message = messageOf([&] { LiveModel::open(dir_, "again", cache); });
+  EXPECT_NE(message.find("is being written by store_test (pid " + std::to_string(::getpid())),
+            std::string::npos)
+      << message;
+  auto reader = LiveModel::open(dir_, "reader", cache, LiveModel::Access::Read);
+  EXPECT_EQ(reader->snapshot()->model->patchCount(), live->snapshot()->model->patchCount());
+  EXPECT_EQ(codeOf([&] { reader->beginEdit(); }), ErrorCode::Conflict);
+  EXPECT_EQ(filesUnder(dir_), before);
+  // A reopening shares the lock; the writer's lock is free once every opening is gone.
+  auto reopened = live->reopen();
+  EXPECT_GT(reopened->snapshot()->version, live->snapshot()->version);
+  live.reset();
+  EXPECT_EQ(codeOf([&] { LiveModel::open(dir_, "again", cache); }), ErrorCode::Conflict);
+  reopened.reset();
+  EXPECT_NE(LiveModel::open(dir_, "again", cache), nullptr);
+}
+
+TEST_F(StoreTest, OpenFinishesAPublishInterruptedAfterItsCommitPoint) {
+  // What a publish leaves when it fails after renaming the hierarchy: another reader's stale
+  // cache beside it (and an unsynced directory, which cannot be observed here).
+  std::ofstream(dir_ / "Patches" / "hierarchy.cache") << "stale";
+  std::ofstream(dir_ / "Patches" / ".patchhierarchy.xml.tmp-1-0") << "half";
+  PatchCache cache(64 << 20);
+  auto reader = LiveModel::open(dir_, "reader", cache, LiveModel::Access::Read);
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / "hierarchy.cache"));  // readers change nothing
+  auto live = LiveModel::open(dir_, "m", cache);
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / "hierarchy.cache"));
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / ".patchhierarchy.xml.tmp-1-0"));
 }
 
 TEST_F(StoreTest, ReadersSeeTheOldVersionUntilPublishAndTheNewOneAfter) {
@@ -348,10 +384,10 @@ TEST_F(TexturedStoreTest, EditCarriesTexturesIntoNewTilesAndOverviewsAndDropsThe
   EXPECT_EQ(texel(live->texture(*after, PatchKey::root()), 3, 15),
             (std::array<std::uint8_t, 4>{0, 0, 250, 255}));
   // Every tile on disk is named by the published version (the replaced ones are gone), and a
-  // fresh open reads the same texels from the files.
+  // fresh open (a reader: the writer `live` still holds the lock) reads the same texels.
   EXPECT_EQ(tileFiles(dir_), namedTiles(*after->model));
   PatchCache fresh(64 << 20);
-  auto reopened = LiveModel::open(dir_, "m2", fresh);
+  auto reopened = LiveModel::open(dir_, "m2", fresh, LiveModel::Access::Read);
   EXPECT_EQ(texel(reopened->texture(*reopened->snapshot(), {1, 1, 0}), 12, 12),
             (std::array<std::uint8_t, 4>{250, 0, 0, 255}));
 }

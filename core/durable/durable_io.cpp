@@ -1,0 +1,303 @@
+#include "core/durable/durable_io.hpp"
+
+#include <fcntl.h>
+#include <stdio.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstdint>
+#include <cstdlib>
+#include <cstring>
+#include <new>
+#include <regex>
+#include <string>
+#include <utility>
+
+#include "core/common/error.hpp"
+
+namespace vsm::core::durable {
+namespace fs = std::filesystem;
+
+namespace {
+
+/// Direct I/O granularity: file offsets, lengths and buffer addresses in multiples of this (the
+/// largest logical block size of common devices).
+constexpr std::size_t kDirectBlock = 4096;
+/// Files below this size are written through the page cache (XML and small arrays).
+constexpr std::size_t kDirectMinimum = 64 * 1024;
+
+/// Closes a descriptor on every path out of a scope; close() errors of a descriptor that was only
+/// read or synced carry no information.
+class Descriptor {
+ public:
+  explicit Descriptor(int fd) : fd_(fd) {}
+  ~Descriptor() {
+    if (fd_ >= 0) {
+      ::close(fd_);
+    }
+  }
+  Descriptor(const Descriptor&) = delete;
+  Descriptor& operator=(const Descriptor&) = delete;
+  int get() const { return fd_; }
+  void reset(int fd) {
+    if (fd_ >= 0) {
+      ::close(fd_);
+    }
+    fd_ = fd;
+  }
+  /// Closes now, reporting the error (a written file's close may report a write error).
+  int close() { return ::close(std::exchange(fd_, -1)) == 0 ? 0 : errno; }
+
+ private:
+  int fd_;
+};
+
+/// Writes all of `bytes` to `fd`; 0 or the errno of the failure.
+int writeAll(int fd, std::span<const std::byte> bytes) {
+  std::size_t done = 0;
+  while (done < bytes.size()) {
+    const ssize_t n = ::write(fd, bytes.data() + done, bytes.size() - done);
+    if (n < 0) {
+      if (errno == EINTR) {
+        continue;
+      }
+      return errno;
+    }
+    done += static_cast<std::size_t>(n);
+  }
+  return 0;
+}
+
+/// Writes `bytes` to `fd`, opened with O_DIRECT: the whole blocks from an aligned copy, straight
+/// to the device, then (O_DIRECT cleared) the rest through the page cache. 0 or the errno of the
+/// failure; `refused` is set when the file system refuses direct writes (nothing was written).
+int writeDirect(int fd, std::span<const std::byte> bytes, bool& refused) {
+  const std::size_t whole = bytes.size() / kDirectBlock * kDirectBlock;
+  const std::byte* aligned = bytes.data();
+  if (reinterpret_cast<std::uintptr_t>(aligned) % kDirectBlock != 0) {
+    const std::span<std::byte> copy = DraftWriter::threadBuffer(whole);
+    std::memcpy(copy.data(), bytes.data(), whole);
+    aligned = copy.data();
+  }
+  std::size_t done = 0;
+  while (done < whole) {
+    const ssize_t n = ::write(fd, aligned + done, whole - done);
+    if (n < 0) {
+      if (errno == EINTR) {
+        continue;
+      }
+      if (errno == EINVAL && done == 0) {
+        refused = true;
+        break;
+      }
+      return errno;
+    }
+    done += static_cast<std::size_t>(n);
+    if (done % kDirectBlock != 0) {
+      break;  // a short write off the block grid: the rest goes through the page cache
+    }
+  }
+  const int flags = ::fcntl(fd, F_GETFL);
+  if (flags < 0 || ::fcntl(fd, F_SETFL, flags & ~O_DIRECT) != 0) {
+    return errno;
+  }
+  return writeAll(fd, bytes.subspan(done));
+}
+
+void syncPath(const fs::path& path, bool directory) {
+  Descriptor fd(::open(path.c_str(), (directory ? O_RDONLY | O_DIRECTORY : O_RDONLY) | O_CLOEXEC));
+  if (fd.get() < 0) {
+    throwIoError("cannot open for fsync", path.string(), errno);
+  }
+  if (::fsync(fd.get()) != 0) {
+    throwIoError("cannot fsync", path.string(), errno);
+  }
+}
+
+}  // namespace
+
+bool isTempFileName(std::string_view name) {
+  static const std::regex pattern("\\..+\\.tmp-[0-9]+-[0-9]+");
+  return std::regex_match(name.begin(), name.end(), pattern);
+}
+
+void syncDirectory(const fs::path& dir) {
+  syncPath(dir, true);
+}
+
+void syncFile(const fs::path& file) {
+  syncPath(file, false);
+}
+
+bool createDirectory(const fs::path& dir, bool sync) {
+  if (::mkdir(dir.c_str(), 0755) != 0) {
+    const int errnum = errno;
+    std::error_code ec;
+    if (errnum == EEXIST && fs::is_directory(dir, ec)) {
+      return false;
+    }
+    throwIoError("cannot create directory", dir.string(), errnum);
+  }
+  if (sync) {
+    syncDirectory(dir.parent_path());
+  }
+  return true;
+}
+
+// ---- PendingFile -----------------------------------------------------------------------------
+
+PendingFile::PendingFile(fs::path target, std::span<const std::byte> bytes)
+    : target_(std::move(target)) {
+  static std::atomic<unsigned> counter{0};
+  temp_ = target_.parent_path() / ("." + target_.filename().string() + ".tmp-" +
+                                   std::to_string(::getpid()) + "-" + std::to_string(counter++));
+  Descriptor fd(::open(temp_.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644));
+  if (fd.get() < 0) {
+    throwIoError("cannot create", temp_.string(), errno);
+  }
+  auto fail = [&](std::string_view what, int errnum) {
+    ::unlink(temp_.c_str());
+    throwIoError(what, temp_.string(), errnum);
+  };
+  if (const int errnum = writeAll(fd.get(), bytes); errnum != 0) {
+    fail("cannot write", errnum);
+  }
+  if (::fsync(fd.get()) != 0) {
+    fail("cannot fsync", errno);
+  }
+  if (const int errnum = fd.close(); errnum != 0) {
+    fail("cannot close", errnum);
+  }
+}
+
+PendingFile::~PendingFile() {
+  if (!committed_) {
+    ::unlink(temp_.c_str());
+  }
+}
+
+void PendingFile::commit() {
+  if (::rename(temp_.c_str(), target_.c_str()) != 0) {
+    const int errnum = errno;
+    ::unlink(temp_.c_str());
+    committed_ = true;  // nothing left to remove
+    throwIoError("cannot rename into", target_.string(), errnum);
+  }
+  committed_ = true;
+}
+
+void writeFileAtomically(const fs::path& target, std::span<const std::byte> bytes) {
+  PendingFile(target, bytes).commit();
+  syncDirectory(target.parent_path());
+}
+
+void replaceFile(const fs::path& from, const fs::path& to) {
+  if (::rename(from.c_str(), to.c_str()) != 0) {
+    throwIoError("cannot rename into", to.string(), errno);
+  }
+  syncDirectory(to.parent_path());
+}
+
+// ---- DraftWriter -----------------------------------------------------------------------------
+
+std::span<std::byte> DraftWriter::threadBuffer(std::size_t bytes) {
+  // Allocating one buffer per file would fault in and zero fresh pages every time; a thread keeps
+  // the largest file it wrote.
+  struct Buffer {
+    std::byte* data = nullptr;
+    std::size_t capacity = 0;
+    ~Buffer() { std::free(data); }
+  };
+  thread_local Buffer buffer;
+  if (buffer.capacity < bytes) {
+    std::free(buffer.data);
+    buffer.capacity = (bytes + kDirectBlock - 1) / kDirectBlock * kDirectBlock;
+    buffer.data = static_cast<std::byte*>(std::aligned_alloc(kDirectBlock, buffer.capacity));
+    if (buffer.data == nullptr) {
+      buffer.capacity = 0;
+      throw std::bad_alloc();
+    }
+  }
+  return {buffer.data, bytes};
+}
+
+void DraftWriter::write(const fs::path& file, std::span<const std::byte> bytes) {
+  // Large files go to the device directly: that saves copying them into the page cache and
+  // writing them back from there, and leaves the cache to what others read.
+  const bool direct = bytes.size() >= kDirectMinimum && direct_.load();
+  Descriptor fd(::open(file.c_str(),
+                       O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | (direct ? O_DIRECT : 0), 0644));
+  if (fd.get() < 0 && direct && errno == EINVAL) {  // no O_DIRECT on this file system (tmpfs)
+    direct_ = false;
+    fd.reset(::open(file.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644));
+  }
+  if (fd.get() < 0) {
+    throwIoError("cannot create", file.string(), errno);
+  }
+  int errnum = 0;
+  if (direct && direct_.load()) {
+    bool refused = false;
+    errnum = writeDirect(fd.get(), bytes, refused);
+    if (refused) {
+      direct_ = false;  // writeDirect wrote it all through the page cache
+    }
+  } else {
+    errnum = writeAll(fd.get(), bytes);
+  }
+  if (errnum == 0) {
+    errnum = fd.close();
+  }
+  if (errnum != 0) {
+    throwIoError("cannot write", file.string(), errnum);
+  }
+}
+
+// ---- FileSystemSync --------------------------------------------------------------------------
+
+FileSystemSync::FileSystemSync(const fs::path& dir) : dir_(dir) {
+  fd_ = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (fd_ < 0) {
+    throwIoError("cannot open for syncfs", dir.string(), errno);
+  }
+}
+
+FileSystemSync::~FileSystemSync() {
+  ::close(fd_);
+}
+
+void FileSystemSync::sync() {
+  if (const int earlier = failed_.load(); earlier != 0) {
+    throwIoError("an earlier syncfs failed; not retrying on", dir_.string(), earlier);
+  }
+  if (::syncfs(fd_) != 0) {
+    const int errnum = errno;
+    failed_ = errnum;
+    throwIoError("cannot syncfs", dir_.string(), errnum);
+  }
+}
+
+// ---- directories -----------------------------------------------------------------------------
+
+void renameNoReplace(const fs::path& from, const fs::path& to) {
+  if (::renameat2(AT_FDCWD, from.c_str(), AT_FDCWD, to.c_str(), RENAME_NOREPLACE) == 0) {
+    return;
+  }
+  int errnum = errno;
+  if (errnum == EINVAL || errnum == ENOSYS) {  // file system without RENAME_NOREPLACE
+    std::error_code ec;
+    if (fs::exists(fs::symlink_status(to, ec))) {
+      errnum = EEXIST;
+    } else if (::rename(from.c_str(), to.c_str()) == 0) {
+      return;
+    } else {
+      errnum = errno;
+    }
+  }
+  if (errnum == EEXIST || errnum == ENOTEMPTY) {
+    throw Error(ErrorCode::Conflict, "output directory '" + to.string() + "' exists");
+  }
+  throwIoError("cannot rename '" + from.string() + "' to", to.string(), errnum);
+}
+
+}  // namespace vsm::core::durable

@@ -1,0 +1,304 @@
+// Writing OPC directories: patches, texture tiles and the hierarchy, through the durable-I/O
+// module.
+#include "core/opc/opc_writer.hpp"
+
+#include <unistd.h>
+
+#include <cerrno>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <pugixml.hpp>
+#include <sstream>
+#include <vector>
+
+#include "core/common/error.hpp"
+#include "core/common/numbers.hpp"
+#include "core/durable/durable_io.hpp"
+#include "core/opc/aara.hpp"
+#include "core/opc/opc_detail.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/texture_file.hpp"
+
+namespace vsm::core {
+namespace fs = std::filesystem;
+
+namespace {
+
+std::string formatBox(const Box3d& box) {
+  return "[[" + formatDouble(box.min.x) + ", " + formatDouble(box.min.y) + ", " +
+         formatDouble(box.min.z) + "], [" + formatDouble(box.max.x) + ", " +
+         formatDouble(box.max.y) + ", " + formatDouble(box.max.z) + "]]";
+}
+
+std::string formatMatrix(const Mat4d& m) {
+  std::string out = "[";
+  for (int row = 0; row < 4; ++row) {
+    out += row == 0 ? "[" : ", [";
+    for (int col = 0; col < 4; ++col) {
+      out += (col == 0 ? "" : ", ") + formatDouble(m.m[row * 4 + col]);
+    }
+    out += "]";
+  }
+  return out + "]";
+}
+
+std::span<const std::byte> bytesOf(const std::string& text) {
+  return {reinterpret_cast<const std::byte*>(text.data()), text.size()};
+}
+
+std::string xmlText(const pugi::xml_document& doc) {
+  std::ostringstream out;
+  doc.save(out, "  ", pugi::format_indent, pugi::encoding_utf8);
+  return out.str();
+}
+
+void addText(pugi::xml_node parent, const char* name, const std::string& text) {
+  parent.append_child(name).text().set(text.c_str());
+}
+
+}  // namespace
+
+OpcWriter::OpcWriter(fs::path dir, Durability durability)
+    : dir_(std::move(dir)), durability_(durability) {
+  const bool sync = durability_ == Durability::EachFile;
+  std::vector<fs::path> missing;  // dir_ and its missing ancestors, innermost first
+  std::error_code ec;
+  for (fs::path d = dir_; !d.empty() && !fs::exists(d, ec); d = d.parent_path()) {
+    missing.push_back(d);
+    if (d == d.parent_path()) {
+      break;
+    }
+  }
+  for (auto it = missing.rbegin(); it != missing.rend(); ++it) {
+    durable::createDirectory(*it, sync);
+  }
+  if (const auto existing = detail::findEntry(dir_, "Patches")) {
+    dir_ = *existing;
+  } else {
+    dir_ /= "Patches";
+    durable::createDirectory(dir_, sync);
+  }
+}
+
+namespace {
+
+/// Gives a patch written without a folder name its standard one, and checks the names.
+void nameFolder(PatchInfo& info) {
+  if (info.folder.empty()) {
+    info.folder = info.key.toString();
+  }
+  if (!detail::isSafeName(info.folder) || !detail::isSafeName(info.positionsFile)) {
+    throw Error(ErrorCode::InvalidArgument,
+                "patch folder '" + info.folder + "' is not a plain name");
+  }
+}
+
+}  // namespace
+
+std::string textureEntryFor(std::string_view folder) {
+  return std::string(kTextureLayer) + "\\" + std::string(folder) + ".tif";
+}
+
+void OpcWriter::writeTexture(PatchInfo& info, const TextureTile& tile) {
+  nameFolder(info);
+  writeFile(imagesLayerDir() / (info.folder + ".tif"), encodeTextureTiff(tile));
+  info.textureFile = textureEntryFor(info.folder);
+}
+
+void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox) {
+  // By value: callers may pass info.globalBox, which is overwritten below.
+  if (!grid.anyDefined()) {
+    throw Error(ErrorCode::InvalidArgument,
+                "patch " + info.key.toString() + " has no defined vertex to write");
+  }
+  nameFolder(info);
+  if (!info.textureFile.empty() && info.textureFile != textureEntryFor(info.folder)) {
+    throw Error(ErrorCode::InvalidArgument, "patch " + info.folder + " names texture '" +
+                                                info.textureFile +
+                                                "', which this writer does not write");
+  }
+  const fs::path folderDir = dir_ / info.folder;
+  durable::createDirectory(folderDir, durability_ == Durability::EachFile);
+
+  const PatchGrid::Summary summary = grid.summarize();
+  info.local2global = grid.local2global();
+  info.localBox = summary.localBox;
+  info.globalBox = grid.local2global().isTranslation()
+                       ? transformBox(info.local2global, info.localBox)
+                       : grid.globalBox();
+  info.globalBox.extend(childrenBox);
+  info.localBox.extend(transformBox(grid.local2global().inverse(), childrenBox));
+  info.resolution = summary.resolution;
+  info.stored = summary.definedRect;
+  const GridRect& r = info.stored;
+
+  // The file's bytes built in place, in this thread's buffer for direct writes: the header, then
+  // the stored rows.
+  const std::int32_t sizes[2] = {r.width(), r.height()};
+  const std::vector<std::byte> header = encodeAaraHeader(AaraType::V3f, sizes);
+  const std::size_t rowBytes = static_cast<std::size_t>(r.width()) * 12;
+  const std::span<std::byte> positions = durable::DraftWriter::threadBuffer(
+      header.size() + rowBytes * static_cast<std::size_t>(r.height()));
+  std::memcpy(positions.data(), header.data(), header.size());
+  const std::span<const float> all = grid.positions();
+  std::byte* out = positions.data() + header.size();
+  for (int y = r.y0; y < r.y1; ++y) {
+    const std::size_t first = (static_cast<std::size_t>(y) * grid.size() + r.x0) * 3;
+    std::memcpy(out, all.data() + first, rowBytes);
+    out += rowBytes;
+  }
+  // Undefined vertices are written as three NaNs whatever NaN payload they hold.
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  for (std::size_t i = header.size(); i < positions.size(); i += 12) {
+    float v[3];
+    std::memcpy(v, positions.data() + i, 12);
+    if (!(v[0] == v[0] && v[1] == v[1] && v[2] == v[2])) {
+      v[0] = v[1] = v[2] = nan;
+      std::memcpy(positions.data() + i, v, 12);
+    }
+  }
+  const fs::path positionsFile = folderDir / info.positionsFile;
+  writeFile(positionsFile, positions);
+
+  info.coordinatesFile.clear();
+  if (!info.textureFile.empty()) {
+    // Texture coordinates of the stored vertices, before the Patch.xml naming them.
+    AaraArray coordinates;
+    coordinates.type = AaraType::V2f;
+    coordinates.sizes = {r.width(), r.height()};
+    const std::vector<float> uvs =
+        textureCoordinates(grid.size(), r.x0, r.y0, r.width(), r.height());
+    coordinates.data.resize(uvs.size() * sizeof(float));
+    std::memcpy(coordinates.data.data(), uvs.data(), coordinates.data.size());
+    info.coordinatesFile = "Coordinates.aara";
+    writeFile(folderDir / info.coordinatesFile, encodeAara(coordinates));
+  }
+
+  pugi::xml_document doc;
+  pugi::xml_node decl = doc.append_child(pugi::node_declaration);
+  decl.append_attribute("version") = "1.0";
+  decl.append_attribute("encoding") = "utf-8";
+  pugi::xml_node patch = doc.append_child("Aardvark").append_child("Patch");
+  patch.append_child("TagList");
+  addText(patch, "QuadVertexSortOrder", "RowMajor");
+  addText(patch, "GeometryType", "QuadList");
+  addText(patch, "Local2Global", formatMatrix(info.local2global));
+  addText(patch, "LocalBoundingBox", formatBox(info.localBox));
+  addText(patch, "GlobalBoundingBox", formatBox(info.globalBox));
+  addText(patch, "Positions", info.positionsFile);
+  if (!info.textureFile.empty()) {
+    addText(patch.append_child("Coordinates"), "DiffuseColor1Coordinates", info.coordinatesFile);
+    addText(patch.append_child("Textures"), "DiffuseColor1Texture", info.textureFile);
+  } else {
+    patch.append_child("Textures");
+  }
+  pugi::xml_node vsm = patch.append_child("Vsm");
+  addText(vsm, "Key", info.key.toString());
+  addText(vsm, "GridSize", std::to_string(grid.size()));
+  addText(vsm, "Offset", "[" + std::to_string(r.x0) + ", " + std::to_string(r.y0) + "]");
+  addText(vsm, "Resolution", formatDouble(info.resolution));
+  addText(vsm, "Version", std::to_string(info.version));
+  const fs::path xmlFile = folderDir / "Patch.xml";
+  writeFile(xmlFile, bytesOf(xmlText(doc)));
+}
+
+fs::path OpcWriter::imagesLayerDir() {
+  const fs::path layer = dir_.parent_path() / "Images" / std::string(kTextureLayer);
+  std::lock_guard lock(imagesMutex_);
+  if (!imagesCreated_) {
+    for (const fs::path& d : {layer.parent_path(), layer}) {
+      durable::createDirectory(d, durability_ == Durability::EachFile);
+    }
+    imagesCreated_ = true;
+  }
+  return layer;
+}
+
+void OpcWriter::removePatchFiles(const PatchInfo& info) {
+  std::error_code ec;
+  fs::remove_all(dir_ / info.folder, ec);
+  if (!info.textureFile.empty()) {
+    fs::remove(dir_.parent_path() / "Images" / std::string(kTextureLayer) / (info.folder + ".tif"),
+               ec);
+  }
+}
+
+namespace {
+
+std::string hierarchyXml(const Model& model) {
+  if (model.empty()) {
+    throw Error(ErrorCode::InvalidArgument, "cannot write the hierarchy of an empty model");
+  }
+  pugi::xml_document doc;
+  pugi::xml_node decl = doc.append_child(pugi::node_declaration);
+  decl.append_attribute("version") = "1.0";
+  decl.append_attribute("encoding") = "utf-8";
+  pugi::xml_node hierarchy = doc.append_child("Aardvark").append_child("PatchHierarchy");
+  hierarchy.append_child("TagList");
+  std::string sizes = "[";
+  for (const double size : model.avgGeometrySizes()) {
+    sizes += (sizes.size() > 1 ? ", " : "") + formatDouble(size);
+  }
+  addText(hierarchy, "AvgGeometrySizes", sizes + "]");
+  const PatchInfo& root = model.at(PatchKey::root());
+  addText(hierarchy, "RootPatch", root.folder.empty() ? root.key.toString() : root.folder);
+  pugi::xml_node map = hierarchy.append_child("SubPatchMap");
+  for (const auto& [key, info] : model.patches()) {
+    if (info.isLeaf()) {
+      continue;
+    }
+    pugi::xml_node item = map.append_child("item");
+    addText(item, "key", info.folder.empty() ? key.toString() : info.folder);
+    pugi::xml_node val = item.append_child("val");
+    for (const Quadrant q : kQuadrants) {
+      if (info.hasChild(q)) {
+        const PatchInfo& child = model.at(key.child(q));
+        addText(val, std::string(toString(q)).c_str(),
+                child.folder.empty() ? child.key.toString() : child.folder);
+      }
+    }
+  }
+  pugi::xml_node vsm = hierarchy.append_child("Vsm");
+  addText(vsm, "GridSize", std::to_string(model.gridSize()));
+  addText(vsm, "FormatVersion", "1");
+  return xmlText(doc);
+}
+
+}  // namespace
+
+std::unique_ptr<durable::PendingFile> stageHierarchy(const fs::path& dir, const Model& model) {
+  const std::string xml = hierarchyXml(model);
+  return std::make_unique<durable::PendingFile>(patchesDirOf(dir) / "patchhierarchy.xml",
+                                                bytesOf(xml));
+}
+
+void finishHierarchy(const fs::path& dir) {
+  const fs::path patches = patchesDirOf(dir);
+  durable::syncDirectory(patches);
+  // Another reader's cache of the old hierarchy would hide this one from it.
+  while (const auto cache = detail::findEntry(patches, "hierarchy.cache")) {
+    if (::unlink(cache->c_str()) != 0) {
+      throwIoError("cannot remove stale", cache->string(), errno);
+    }
+  }
+}
+
+void OpcWriter::writeHierarchy(const Model& model) {
+  if (durability_ == Durability::EachFile) {
+    stageHierarchy(dir_.parent_path(), model)->commit();
+    finishHierarchy(dir_.parent_path());
+  } else {
+    writeFile(dir_ / "patchhierarchy.xml", bytesOf(hierarchyXml(model)));
+  }
+}
+
+void OpcWriter::writeFile(const fs::path& file, std::span<const std::byte> bytes) {
+  if (durability_ == Durability::EachFile) {
+    durable::writeFileAtomically(file, bytes);
+  } else {
+    drafts_.write(file, bytes);
+  }
+}
+
+}  // namespace vsm::core

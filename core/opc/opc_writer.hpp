@@ -1,0 +1,89 @@
+#pragma once
+
+#include <filesystem>
+#include <memory>
+#include <mutex>
+#include <span>
+#include <string>
+#include <string_view>
+
+#include "core/durable/durable_io.hpp"
+#include "core/grid/texture_tile.hpp"
+#include "core/pyramid/model.hpp"
+
+namespace vsm::core {
+
+/// Writes patches and the hierarchy of one OPC directory in the standard layout (`Patches/`,
+/// `Patch.xml`, `Positions.aara`, `patchhierarchy.xml`) plus vsm's extension elements.
+///
+/// All file writes go through core/durable. Durability::EachFile, for a directory others read:
+/// every file is replaced atomically and durably (durable::writeFileAtomically), directories
+/// created are synced. Durability::Deferred, for files nobody reads until their owner publishes
+/// them (an import's staging directory, an edit's draft folders): files are written in place
+/// (durable::DraftWriter) and made durable by the owner's durable::FileSystemSync, which the owner
+/// creates before the first write and syncs once before anything names the files.
+///
+/// writePatch() may run concurrently for different patches; the hierarchy is written after them,
+/// from one thread.
+class OpcWriter {
+ public:
+  enum class Durability { EachFile, Deferred };
+
+  /// Creates `dir`/Patches when missing.
+  OpcWriter(std::filesystem::path dir, Durability durability);
+
+  /// Writes all files of one patch (never one alone) into Patches/<info.folder>/, cropping
+  /// undefined border rows and columns, and updates `info` from `grid` (boxes, Local2Global,
+  /// resolution, stored rectangle) as Model::describe does: the boxes hold the grid's defined
+  /// vertices and `childrenBox`, the union of the children's global boxes (empty for a leaf).
+  /// An empty info.folder becomes info.key.toString(). Precondition: grid.anyDefined().
+  ///
+  /// A textured patch (info.textureFile names the tile writeTexture() wrote for this folder, before
+  /// or after this call) also gets Coordinates.aara (V2f per stored vertex, see
+  /// textureCoordinates) in its folder, and Patch.xml names both in <Coordinates> and <Textures>
+  /// (OPC.md); info.coordinatesFile says so. Throws Error(InvalidArgument) when info.textureFile
+  /// names any other file (a texture this writer did not write).
+  void writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox);
+
+  /// Writes the texture tile of a patch as Images/Diffuse/<folder>.tif (RGBA 8-bit TIFF) and sets
+  /// info.textureFile to name it (an empty info.folder becomes info.key.toString()).
+  void writeTexture(PatchInfo& info, const TextureTile& tile);
+
+  /// Removes every file writePatch wrote for `info` (its folder and its texture tile), ignoring
+  /// errors: for a builder discarding a subtree of its own staging directory.
+  void removePatchFiles(const PatchInfo& info);
+
+  /// Writes Patches/patchhierarchy.xml; call after every patch it names is written (and, with
+  /// Deferred durability, made durable). EachFile: stageHierarchy, commit, finishHierarchy.
+  /// Deferred: in place, for a directory published as a whole afterwards.
+  void writeHierarchy(const Model& model);
+
+ private:
+  /// Writes one file as the durability says.
+  void writeFile(const std::filesystem::path& file, std::span<const std::byte> bytes);
+  /// Images/<layer>/, created (once, under imagesMutex_) on first use.
+  std::filesystem::path imagesLayerDir();
+
+  std::filesystem::path dir_;
+  Durability durability_;
+  durable::DraftWriter drafts_;  // Deferred durability
+  std::mutex imagesMutex_;       // guards imagesCreated_ (writePatch runs concurrently)
+  bool imagesCreated_ = false;
+};
+
+/// The hierarchy of the OPC at `dir` written and fsynced under a temporary name beside
+/// Patches/patchhierarchy.xml; its commit() (a rename) is the commit point of a new model version.
+/// Throws Error(InvalidArgument) for an empty model, Error(NotFound) without Patches/, Error(Io).
+std::unique_ptr<durable::PendingFile> stageHierarchy(const std::filesystem::path& dir,
+                                                     const Model& model);
+
+/// What follows a committed hierarchy: syncs Patches/ (making the rename durable) and removes a
+/// stale `hierarchy.cache` of other readers. Idempotent: the next open retries it after a
+/// failure. Throws Error(Io).
+void finishHierarchy(const std::filesystem::path& dir);
+
+/// The Patch.xml texture entry (relative to Images/) of the tile OpcWriter::writeTexture writes
+/// for a patch folder: "Diffuse\\<folder>.tif".
+std::string textureEntryFor(std::string_view folder);
+
+}  // namespace vsm::core

@@ -1,0 +1,171 @@
+#include <fcntl.h>
+#include <gtest/gtest.h>
+#include <sys/file.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <sstream>
+#include <string>
+
+#include "core/common/error.hpp"
+#include "core/durable/durable_io.hpp"
+#include "core/durable/writer_lock.hpp"
+#include "tests/unit/test_support.hpp"
+
+namespace vsm::core::durable {
+namespace {
+
+namespace fs = std::filesystem;
+using test::codeOf;
+using test::messageOf;
+
+class DurableTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("vsm-durable-test-" + std::to_string(::getpid()) + "-" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+    fs::create_directories(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  fs::path dir_;
+};
+
+std::string read(const fs::path& file) {
+  std::ifstream in(file, std::ios::binary);
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
+std::span<const std::byte> bytes(const std::string& text) {
+  return std::as_bytes(std::span(text.data(), text.size()));
+}
+
+std::size_t entries(const fs::path& dir) {
+  return static_cast<std::size_t>(
+      std::distance(fs::directory_iterator(dir), fs::directory_iterator()));
+}
+
+TEST_F(DurableTest, APendingFileChangesNothingUntilCommittedAndLeavesNothingWhenDropped) {
+  writeFileAtomically(dir_ / "a.xml", bytes("old"));
+  {
+    PendingFile pending(dir_ / "a.xml", bytes("new"));
+    EXPECT_EQ(read(dir_ / "a.xml"), "old");
+    EXPECT_EQ(entries(dir_), 2u);  // the target and the temporary file
+  }
+  EXPECT_EQ(read(dir_ / "a.xml"), "old");
+  EXPECT_EQ(entries(dir_), 1u);
+  {
+    PendingFile pending(dir_ / "a.xml", bytes("new"));
+    pending.commit();
+  }
+  EXPECT_EQ(read(dir_ / "a.xml"), "new");
+  EXPECT_EQ(entries(dir_), 1u);
+}
+
+TEST_F(DurableTest, TemporaryFilesAreRecognisedByName) {
+  EXPECT_TRUE(isTempFileName(".patchhierarchy.xml.tmp-123-4"));
+  EXPECT_TRUE(isTempFileName(".2_0_1.tif.tmp-9-0"));
+  EXPECT_FALSE(isTempFileName("patchhierarchy.xml"));
+  EXPECT_FALSE(isTempFileName(".patchhierarchy.xml.tmp-x-4"));
+  EXPECT_FALSE(isTempFileName(".vsm-writer.lock"));
+}
+
+TEST_F(DurableTest, AFailedWriteLeavesTheOldFileAndNoTemporaryFile) {
+  writeFileAtomically(dir_ / "a.xml", bytes("old"));
+  // The temporary file cannot be created in a directory that does not exist: Io, nothing changed.
+  EXPECT_EQ(codeOf([&] { writeFileAtomically(dir_ / "missing" / "a.xml", bytes("new")); }),
+            ErrorCode::Io);
+  EXPECT_EQ(read(dir_ / "a.xml"), "old");
+  EXPECT_EQ(entries(dir_), 1u);
+}
+
+TEST_F(DurableTest, RenameNoReplaceNeverReplacesAnExistingDirectory) {
+  fs::create_directory(dir_ / "staging");
+  fs::create_directory(dir_ / "target");  // empty: a plain rename() would replace it
+  EXPECT_EQ(codeOf([&] { renameNoReplace(dir_ / "staging", dir_ / "target"); }),
+            ErrorCode::Conflict);
+  EXPECT_TRUE(fs::exists(dir_ / "staging"));
+  fs::remove(dir_ / "target");
+  renameNoReplace(dir_ / "staging", dir_ / "target");
+  EXPECT_FALSE(fs::exists(dir_ / "staging"));
+  EXPECT_TRUE(fs::is_directory(dir_ / "target"));
+}
+
+TEST_F(DurableTest, CreateDirectoryTellsWhetherItCreatedOne) {
+  EXPECT_TRUE(createDirectory(dir_ / "d", true));
+  EXPECT_FALSE(createDirectory(dir_ / "d", true));
+  std::ofstream(dir_ / "file") << "x";
+  EXPECT_EQ(codeOf([&] { createDirectory(dir_ / "file", false); }), ErrorCode::Io);
+}
+
+TEST_F(DurableTest, DraftsAreWrittenWholeSmallAndLargeAndSyncSucceeds) {
+  FileSystemSync sync(dir_);
+  DraftWriter drafts;
+  std::string large(300 * 1024 + 17, '\0');  // direct I/O for the whole blocks, the tail cached
+  for (std::size_t i = 0; i < large.size(); ++i) {
+    large[i] = static_cast<char>(i * 7 + 3);
+  }
+  drafts.write(dir_ / "small", bytes("small"));
+  drafts.write(dir_ / "large", bytes(large));
+  sync.sync();
+  EXPECT_EQ(read(dir_ / "small"), "small");
+  EXPECT_EQ(read(dir_ / "large"), large);
+}
+
+TEST_F(DurableTest, ASecondWriterIsRefusedWithTheHoldersNameAndPid) {
+  const auto lock = WriterLock::acquire(dir_);
+  // Another open of the lock file, even in this process, is another writer.
+  const std::string message = messageOf([&] { WriterLock::acquire(dir_); });
+  EXPECT_NE(
+      message.find("is being written by durable_test (pid " + std::to_string(::getpid()) + ")"),
+      std::string::npos)
+      << message;
+  EXPECT_EQ(codeOf([&] { WriterLock::acquire(dir_); }), ErrorCode::Conflict);
+}
+
+TEST_F(DurableTest, TheLockIsFreeWhenItsHolderExitsHoweverItExits) {
+  int ready[2];
+  ASSERT_EQ(::pipe(ready), 0);
+  const pid_t child = ::fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    const auto lock = WriterLock::acquire(dir_);
+    (void)!::write(ready[1], "x", 1);
+    ::pause();  // killed below, holding the lock
+    ::_exit(0);
+  }
+  char byte = 0;
+  ASSERT_EQ(::read(ready[0], &byte, 1), 1);
+  const std::string message = messageOf([&] { WriterLock::acquire(dir_); });
+  EXPECT_NE(message.find("(pid " + std::to_string(child) + ")"), std::string::npos) << message;
+  ::kill(child, SIGKILL);
+  int status = 0;
+  ::waitpid(child, &status, 0);
+  ::close(ready[0]);
+  ::close(ready[1]);
+  EXPECT_NE(WriterLock::acquire(dir_), nullptr);
+}
+
+TEST_F(DurableTest, AHolderThatNamesItselfOddlyIsNotEchoed) {
+  // Another program holding the lock with its own content (control characters, no pid).
+  const fs::path file = dir_ / ".vsm-writer.lock";
+  std::ofstream(file) << "\x1b[31mevil pid 12x\n";
+  const int fd = ::open(file.c_str(), O_RDWR | O_CLOEXEC);
+  ASSERT_GE(fd, 0);
+  ASSERT_EQ(::flock(fd, LOCK_EX | LOCK_NB), 0);
+  const std::string message = messageOf([&] { WriterLock::acquire(dir_); });
+  ::close(fd);
+  EXPECT_NE(message.find("is being written by another process"), std::string::npos) << message;
+  EXPECT_EQ(message.find("evil"), std::string::npos) << message;
+  EXPECT_NE(WriterLock::acquire(dir_), nullptr);  // released with its descriptor
+}
+
+}  // namespace
+}  // namespace vsm::core::durable
