@@ -341,17 +341,21 @@ int runMerge(const std::vector<std::string_view>& args) {
   const fs::path detailDir(positional[1]);
   const auto start = std::chrono::steady_clock::now();
   PatchCache cache(budget);
-  // The detail model is only read (no lock). Both are read before anything is copied: a corrupt
-  // model fails here and nothing is written. In place, the target's writer lock is taken before
-  // anything of it is read for writing: a model another writer (vsmd, another vsm merge) holds
-  // fails here, naming the holder.
+  // In place, the target's writer lock comes first: a model another writer (vsmd, another vsm
+  // merge) holds fails at once, naming the holder. The detail model is only read (no lock). With
+  // --out both are read before anything is copied: a corrupt model fails there and nothing is
+  // written.
+  std::unique_ptr<LiveModel> live;
+  if (!out) {
+    live = LiveModel::open(target, "target", cache);
+  }
   auto detail = LiveModel::open(detailDir, "detail", cache, LiveModel::Access::Read);
   std::optional<StagingCopy> copy;
   if (out) {
     readOpcModel(target);
     copy.emplace(target, *out);
+    live = LiveModel::open(copy->path(), "target", cache);
   }
-  auto live = LiveModel::open(copy ? copy->path() : target, "target", cache);
   ConsoleProgress progress;
   MergeOptions options;
   options.progress = &progress;

@@ -1,0 +1,346 @@
+// An LD_PRELOAD library that fails one chosen file-system call of a process, for the fault sweep
+// (tests/integration/fault_sweep_test.py). Only calls on paths below VSM_FAULT_PREFIX count (for
+// calls on a descriptor: the path the descriptor was opened with, read from /proc/self/fd), so the
+// process's sockets, logs and libraries are never touched.
+//
+// Calls are counted per class:
+//   write   write, pwrite, pwrite64, writev, pwritev
+//   sync    fsync, fdatasync, syncfs
+//   rename  rename, renameat, renameat2
+//   mkdir   mkdir, mkdirat
+//   create  open, open64, openat, openat64, creat with O_CREAT
+//   unlink  unlink, unlinkat, rmdir, remove
+//
+// Environment:
+//   VSM_FAULT_PREFIX  absolute directory; nothing happens without it
+//   VSM_FAULT_TRACE   file: every counted call is appended as "<seq> <class> <n> <path>", where
+//                     <seq> counts all classes and <n> this class, both from 1
+//   VSM_FAULT_CLASS   the class whose VSM_FAULT_N-th call fails (once) with VSM_FAULT_ERRNO
+//                     ("EIO" or "ENOSPC"; default EIO); the call is not made
+//   VSM_FAULT_REPORT  file: the injected fault is appended as "<class> <n> <errno> <path>"
+//
+// Written in C with raw syscalls for its own output, so it never recurses into itself.
+#define _GNU_SOURCE
+#include <dlfcn.h>
+#include <errno.h>
+#include <fcntl.h>
+#include <limits.h>
+#include <pthread.h>
+#include <stdarg.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <sys/stat.h>
+#include <sys/syscall.h>
+#include <sys/uio.h>
+#include <unistd.h>
+
+enum { kWrite, kSync, kRename, kMkdir, kCreate, kUnlink, kClasses };
+static const char* const kClassNames[kClasses] = {"write", "sync",   "rename",
+                                                  "mkdir", "create", "unlink"};
+
+static char prefix[PATH_MAX];
+static size_t prefixLength;
+static char tracePath[PATH_MAX];
+static char reportPath[PATH_MAX];
+static int faultClass = -1;
+static long faultN;
+static int faultErrno = EIO;
+static unsigned long counts[kClasses];
+static unsigned long sequence;
+static pthread_mutex_t mutex = PTHREAD_MUTEX_INITIALIZER;  // guards counts, sequence, output
+
+__attribute__((constructor)) static void setup(void) {
+  const char* p = getenv("VSM_FAULT_PREFIX");
+  if (p == NULL || p[0] != '/' || strlen(p) >= sizeof prefix) {
+    return;
+  }
+  strcpy(prefix, p);
+  prefixLength = strlen(prefix);
+  while (prefixLength > 1 && prefix[prefixLength - 1] == '/') {
+    prefix[--prefixLength] = '\0';
+  }
+  const char* t = getenv("VSM_FAULT_TRACE");
+  if (t != NULL && strlen(t) < sizeof tracePath) {
+    strcpy(tracePath, t);
+  }
+  const char* r = getenv("VSM_FAULT_REPORT");
+  if (r != NULL && strlen(r) < sizeof reportPath) {
+    strcpy(reportPath, r);
+  }
+  const char* c = getenv("VSM_FAULT_CLASS");
+  const char* n = getenv("VSM_FAULT_N");
+  if (c != NULL && n != NULL) {
+    for (int i = 0; i < kClasses; ++i) {
+      if (strcmp(c, kClassNames[i]) == 0) {
+        faultClass = i;
+      }
+    }
+    faultN = strtol(n, NULL, 10);
+  }
+  const char* e = getenv("VSM_FAULT_ERRNO");
+  if (e != NULL && strcmp(e, "ENOSPC") == 0) {
+    faultErrno = ENOSPC;
+  }
+}
+
+static void appendLine(const char* file, const char* line) {
+  const int fd =
+      (int)syscall(SYS_openat, AT_FDCWD, file, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, 0644);
+  if (fd >= 0) {
+    syscall(SYS_write, fd, line, strlen(line));
+    syscall(SYS_close, fd);
+  }
+}
+
+static int below(const char* path) {
+  return strncmp(path, prefix, prefixLength) == 0 &&
+         (path[prefixLength] == '/' || path[prefixLength] == '\0');
+}
+
+/// The absolute form of `path` relative to `dirfd` (lexically; enough for our prefixes).
+static void absolute(int dirfd, const char* path, char* out, size_t size) {
+  if (path[0] == '/') {
+    snprintf(out, size, "%s", path);
+    return;
+  }
+  char base[PATH_MAX];
+  if (dirfd == AT_FDCWD) {
+    if (syscall(SYS_getcwd, base, sizeof base) < 0) {
+      base[0] = '\0';
+    }
+  } else {
+    char link[64];
+    snprintf(link, sizeof link, "/proc/self/fd/%d", dirfd);
+    const ssize_t n = readlink(link, base, sizeof base - 1);
+    base[n > 0 ? n : 0] = '\0';
+  }
+  snprintf(out, size, "%s/%s", base, path);
+}
+
+static void pathOfFd(int fd, char* out, size_t size) {
+  char link[64];
+  snprintf(link, sizeof link, "/proc/self/fd/%d", fd);
+  const ssize_t n = readlink(link, out, size - 1);
+  out[n > 0 ? n : 0] = '\0';
+}
+
+/// Counts a call on `path` of class `c`; true when this call is the one to fail (errno is set).
+static int fault(int c, const char* path) {
+  if (prefixLength == 0 || !below(path)) {
+    return 0;
+  }
+  pthread_mutex_lock(&mutex);
+  const unsigned long n = ++counts[c];
+  const unsigned long seq = ++sequence;
+  const int inject = c == faultClass && (long)n == faultN;
+  char line[PATH_MAX + 96];
+  if (tracePath[0] != '\0') {
+    snprintf(line, sizeof line, "%lu %s %lu %s\n", seq, kClassNames[c], n, path);
+    appendLine(tracePath, line);
+  }
+  if (inject && reportPath[0] != '\0') {
+    snprintf(line, sizeof line, "%s %lu %s %s\n", kClassNames[c], n,
+             faultErrno == ENOSPC ? "ENOSPC" : "EIO", path);
+    appendLine(reportPath, line);
+  }
+  pthread_mutex_unlock(&mutex);
+  if (inject) {
+    errno = faultErrno;
+  }
+  return inject;
+}
+
+static int faultAt(int c, int dirfd, const char* path) {
+  if (prefixLength == 0 || path == NULL) {
+    return 0;
+  }
+  char full[PATH_MAX];
+  absolute(dirfd, path, full, sizeof full);
+  return fault(c, full);
+}
+
+static int faultFd(int c, int fd) {
+  if (prefixLength == 0) {
+    return 0;
+  }
+  char path[PATH_MAX];
+  pathOfFd(fd, path, sizeof path);
+  return fault(c, path);
+}
+
+#define NEXT(name) ((__typeof__(&name))dlsym(RTLD_NEXT, #name))
+
+ssize_t write(int fd, const void* buf, size_t count) {
+  if (faultFd(kWrite, fd)) {
+    return -1;
+  }
+  return NEXT(write)(fd, buf, count);
+}
+
+ssize_t pwrite(int fd, const void* buf, size_t count, off_t offset) {
+  if (faultFd(kWrite, fd)) {
+    return -1;
+  }
+  return NEXT(pwrite)(fd, buf, count, offset);
+}
+
+ssize_t pwrite64(int fd, const void* buf, size_t count, off64_t offset) {
+  if (faultFd(kWrite, fd)) {
+    return -1;
+  }
+  return NEXT(pwrite64)(fd, buf, count, offset);
+}
+
+ssize_t writev(int fd, const struct iovec* iov, int iovcnt) {
+  if (faultFd(kWrite, fd)) {
+    return -1;
+  }
+  return NEXT(writev)(fd, iov, iovcnt);
+}
+
+ssize_t pwritev(int fd, const struct iovec* iov, int iovcnt, off_t offset) {
+  if (faultFd(kWrite, fd)) {
+    return -1;
+  }
+  return NEXT(pwritev)(fd, iov, iovcnt, offset);
+}
+
+int fsync(int fd) {
+  if (faultFd(kSync, fd)) {
+    return -1;
+  }
+  return NEXT(fsync)(fd);
+}
+
+int fdatasync(int fd) {
+  if (faultFd(kSync, fd)) {
+    return -1;
+  }
+  return NEXT(fdatasync)(fd);
+}
+
+int syncfs(int fd) {
+  if (faultFd(kSync, fd)) {
+    return -1;
+  }
+  return NEXT(syncfs)(fd);
+}
+
+int rename(const char* from, const char* to) {
+  if (faultAt(kRename, AT_FDCWD, to)) {
+    return -1;
+  }
+  return NEXT(rename)(from, to);
+}
+
+int renameat(int fromDir, const char* from, int toDir, const char* to) {
+  if (faultAt(kRename, toDir, to)) {
+    return -1;
+  }
+  return NEXT(renameat)(fromDir, from, toDir, to);
+}
+
+int renameat2(int fromDir, const char* from, int toDir, const char* to, unsigned int flags) {
+  if (faultAt(kRename, toDir, to)) {
+    return -1;
+  }
+  return NEXT(renameat2)(fromDir, from, toDir, to, flags);
+}
+
+int mkdir(const char* path, mode_t mode) {
+  if (faultAt(kMkdir, AT_FDCWD, path)) {
+    return -1;
+  }
+  return NEXT(mkdir)(path, mode);
+}
+
+int mkdirat(int dirfd, const char* path, mode_t mode) {
+  if (faultAt(kMkdir, dirfd, path)) {
+    return -1;
+  }
+  return NEXT(mkdirat)(dirfd, path, mode);
+}
+
+static mode_t modeOf(int flags, va_list args) {
+  return (flags & (O_CREAT | __O_TMPFILE)) != 0 ? (mode_t)va_arg(args, int) : 0;
+}
+
+int open(const char* path, int flags, ...) {
+  va_list args;
+  va_start(args, flags);
+  const mode_t mode = modeOf(flags, args);
+  va_end(args);
+  if ((flags & O_CREAT) != 0 && faultAt(kCreate, AT_FDCWD, path)) {
+    return -1;
+  }
+  return NEXT(open)(path, flags, mode);
+}
+
+int open64(const char* path, int flags, ...) {
+  va_list args;
+  va_start(args, flags);
+  const mode_t mode = modeOf(flags, args);
+  va_end(args);
+  if ((flags & O_CREAT) != 0 && faultAt(kCreate, AT_FDCWD, path)) {
+    return -1;
+  }
+  return NEXT(open64)(path, flags, mode);
+}
+
+int openat(int dirfd, const char* path, int flags, ...) {
+  va_list args;
+  va_start(args, flags);
+  const mode_t mode = modeOf(flags, args);
+  va_end(args);
+  if ((flags & O_CREAT) != 0 && faultAt(kCreate, dirfd, path)) {
+    return -1;
+  }
+  return NEXT(openat)(dirfd, path, flags, mode);
+}
+
+int openat64(int dirfd, const char* path, int flags, ...) {
+  va_list args;
+  va_start(args, flags);
+  const mode_t mode = modeOf(flags, args);
+  va_end(args);
+  if ((flags & O_CREAT) != 0 && faultAt(kCreate, dirfd, path)) {
+    return -1;
+  }
+  return NEXT(openat64)(dirfd, path, flags, mode);
+}
+
+int creat(const char* path, mode_t mode) {
+  if (faultAt(kCreate, AT_FDCWD, path)) {
+    return -1;
+  }
+  return NEXT(creat)(path, mode);
+}
+
+int unlink(const char* path) {
+  if (faultAt(kUnlink, AT_FDCWD, path)) {
+    return -1;
+  }
+  return NEXT(unlink)(path);
+}
+
+int unlinkat(int dirfd, const char* path, int flags) {
+  if (faultAt(kUnlink, dirfd, path)) {
+    return -1;
+  }
+  return NEXT(unlinkat)(dirfd, path, flags);
+}
+
+int rmdir(const char* path) {
+  if (faultAt(kUnlink, AT_FDCWD, path)) {
+    return -1;
+  }
+  return NEXT(rmdir)(path);
+}
+
+int remove(const char* path) {
+  if (faultAt(kUnlink, AT_FDCWD, path)) {
+    return -1;
+  }
+  return NEXT(remove)(path);
+}

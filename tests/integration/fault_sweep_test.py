@@ -1,0 +1,471 @@
+#!/usr/bin/python3
+"""Fault sweep: every writer of vsm run with one file-system call failed (EIO or ENOSPC) by the
+LD_PRELOAD library tests/fault/fault_inject.c, over the calls of the whole run.
+
+    /usr/bin/python3 fault_sweep_test.py --vsm <vsm> --vsmd <vsmd> --lib <libvsm_fault_inject.so>
+                                         --data <shared/data> --work <dir> [--scenarios ...]
+
+Scenarios, on small crops of the real DEMs (PRISM around Jacksboro as the target, a corner of the
+Jacksboro DEM as the detail, 17 x 17 patches):
+- import: `vsm import` of the detail crop;
+- merge: `vsm merge` in place;
+- textured: `vsm merge` in place of models imported with the NASA image;
+- vsmd: a merge job submitted to the real vsmd over HTTP, the library preloaded into vsmd.
+
+For each: one run without a fault records every counted call (class, index, path) and the commit
+point (the rename of the new hierarchy, or of the import's staging directory). Then a run per
+chosen N for each class (write, sync, rename, mkdir, create, unlink): every N within
+--window calls (in the order of all classes) of the commit point, and --samples evenly spread
+over the rest, alternating EIO and ENOSPC. Each run must:
+- end with a clear error (exit 1 with one "vsm: error:" line, or the job failed with a message)
+  or succeed with the fault reported as a warning; never a crash or a hang. A fault neither
+  reported nor hit is counted apart ("missed": the call did not happen in that run);
+- leave the model opening as exactly the old or the new version (same hierarchy bytes, same
+  bytes in every folder the hierarchy reaches) and passing `vsm validate`;
+- leave no orphan after the next open (vsm merge of a model outside the target opens it for
+  writing and fails): no folder, tile or temporary file that the hierarchy does not name, no
+  staging directory.
+The vsmd runs also check that the daemon keeps serving the model after a failed job, reads it
+again from disk after an I/O error, and exits 0 on SIGTERM.
+
+Exit 0 printing the counts; exit 1 listing the failures.
+"""
+
+import argparse
+import hashlib
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+
+import numpy as np
+from osgeo import gdal
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from check_import import find_ci, read_hierarchy  # noqa: E402
+from merge_check import folder_digest  # noqa: E402
+from merge_kill_test import make_outside_model  # noqa: E402
+
+gdal.UseExceptions()
+
+CLASSES = ["write", "sync", "rename", "mkdir", "create", "unlink"]
+PATCH = 17
+TIMEOUT = 120
+TEMP = re.compile(r"\..+\.tmp-[0-9]+-[0-9]+")
+LOCK = ".vsm-writer.lock"
+
+
+# ---- inputs ----------------------------------------------------------------------------------
+
+def crop(source, out, lon0, lat0, lon1, lat1):
+    gdal.Translate(out, source, projWin=[lon0, lat0, lon1, lat1])
+    return out
+
+
+def digest_tree(root):
+    """{relative path: sha256} of every file under root but the writer lock."""
+    files = {}
+    for directory, _, names in os.walk(root):
+        for name in names:
+            if name == LOCK:
+                continue
+            path = os.path.join(directory, name)
+            with open(path, "rb") as f:
+                files[os.path.relpath(path, root)] = hashlib.sha256(f.read()).hexdigest()
+    return files
+
+
+def version_of(opc):
+    """(hierarchy bytes, {reachable folder: digest}, orphans): orphans are entries of Patches/
+    the hierarchy does not reach, tiles of Images/Diffuse it does not name, temporary files."""
+    patches_dir, root, children = read_hierarchy(opc)
+    with open(find_ci(patches_dir, "patchhierarchy.xml"), "rb") as f:
+        hierarchy = f.read()
+    reachable = set()
+    stack = [root]
+    while stack:
+        folder = stack.pop()
+        if folder in reachable:
+            continue
+        reachable.add(folder)
+        stack.extend(children.get(folder, {}).values())
+    folders = {folder: folder_digest(os.path.join(patches_dir, folder)) for folder in reachable}
+    orphans = sorted(e for e in os.listdir(patches_dir)
+                     if e not in reachable and e.lower() != "patchhierarchy.xml")
+    tiles = os.path.join(opc, "Images", "Diffuse")
+    if os.path.isdir(tiles):
+        orphans += ["Images/Diffuse/" + t for t in sorted(os.listdir(tiles))
+                    if t[:-4] not in reachable]
+    orphans += [e for e in os.listdir(opc) if TEMP.fullmatch(e)]
+    return hierarchy, folders, orphans
+
+
+def which(version, old, new):
+    if old is not None and version[:2] == old[:2]:
+        return "old"
+    if version[:2] == new[:2]:
+        return "new"
+    return None
+
+
+# ---- running with a fault --------------------------------------------------------------------
+
+def fault_env(prefix, trace=None, fault=None, report=None):
+    env = dict(os.environ)
+    env["LD_PRELOAD"] = ARGS.lib
+    env["VSM_FAULT_PREFIX"] = prefix
+    env["ASAN_OPTIONS"] = (env.get("ASAN_OPTIONS", "") + ":verify_asan_link_order=0").lstrip(":")
+    if trace:
+        env["VSM_FAULT_TRACE"] = trace
+    if fault:
+        env["VSM_FAULT_CLASS"], n, env["VSM_FAULT_ERRNO"] = fault
+        env["VSM_FAULT_N"] = str(n)
+        env["VSM_FAULT_REPORT"] = report
+    return env
+
+
+def read_trace(path):
+    calls = []
+    if os.path.exists(path):
+        with open(path) as f:
+            for line in f:
+                seq, cls, n, target = line.rstrip("\n").split(" ", 3)
+                calls.append((int(seq), cls, int(n), target))
+    return calls
+
+
+def choose(calls, commit, first, window, samples):
+    """[(class, n)]: per class every n within `window` of the commit's sequence number, and
+    `samples` evenly spread over the others from `first[class]` on, and the last."""
+    chosen = []
+    for cls in CLASSES:
+        mine = [(seq, n) for seq, c, n, _ in calls if c == cls and n > first.get(cls, 0)]
+        if not mine:
+            continue
+        near = {n for seq, n in mine if abs(seq - commit) <= window}
+        rest = [n for seq, n in mine if n not in near]
+        if rest:
+            picks = {rest[int(i * (len(rest) - 1) / max(samples - 1, 1))]
+                     for i in range(min(samples, len(rest)))}
+            picks.add(rest[-1])
+        else:
+            picks = set()
+        chosen += [(cls, n) for n in sorted(near | picks)]
+    return chosen
+
+
+def injected(report):
+    if not os.path.exists(report):
+        return None
+    with open(report) as f:
+        return f.read().strip() or None
+
+
+# ---- scenarios -------------------------------------------------------------------------------
+
+class Scenario:
+    """A writer run under the library, its old and new states, and the checks after each run."""
+
+    def __init__(self, name, work):
+        self.name = name
+        self.work = os.path.join(work, name)
+        self.run_dir = os.path.join(self.work, "run")
+
+    def reset(self):
+        if os.path.exists(self.run_dir):
+            shutil.rmtree(self.run_dir)
+        os.makedirs(self.run_dir)
+
+
+class CliMerge(Scenario):
+    def __init__(self, name, work, target, detail, outside):
+        super().__init__(name, work)
+        self.target, self.detail, self.outside = target, detail, outside
+        self.copy = os.path.join(self.run_dir, "target")
+        self.old = version_of(target)
+
+    def reset(self):
+        super().reset()
+        shutil.copytree(self.target, self.copy)
+
+    def command(self):
+        return [ARGS.vsm, "merge", self.copy, self.detail]
+
+    def commit_of(self, calls):
+        return next(seq for seq, cls, _, path in calls
+                    if cls == "rename" and path.endswith("/Patches/patchhierarchy.xml"))
+
+    def state(self):
+        return self.copy
+
+    def run(self, env):
+        proc = subprocess.run(self.command(), env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, timeout=TIMEOUT)
+        return proc.returncode, proc.stderr
+
+
+class CliImport(CliMerge):
+    def __init__(self, name, work, raster, outside):
+        Scenario.__init__(self, name, work)
+        self.raster, self.outside = raster, outside
+        self.copy = os.path.join(self.run_dir, "out")
+        self.old = None
+
+    def reset(self):
+        Scenario.reset(self)
+
+    def command(self):
+        return [ARGS.vsm, "import", self.raster, self.copy, "--patch-size", str(PATCH)]
+
+    def commit_of(self, calls):
+        return next(seq for seq, cls, _, path in calls
+                    if cls == "rename" and path == self.copy)
+
+
+class DaemonMerge(CliMerge):
+    def __init__(self, name, work, target, detail, outside):
+        super().__init__(name, work, target, detail, outside)
+        self.root = self.run_dir
+        self.log = os.path.join(self.work, "vsmd.log")
+
+    def reset(self):
+        super().reset()
+        shutil.copytree(self.detail, os.path.join(self.root, "detail"))
+
+    def run(self, env, on_ready=None):
+        port_file = os.path.join(self.work, "port")
+        if os.path.exists(port_file):
+            os.remove(port_file)
+        with open(self.log, "w") as log:
+            proc = subprocess.Popen(
+                [ARGS.vsmd, "--listen", "127.0.0.1:0", "--data-root", self.root, "--port-file",
+                 port_file, "--token", "sweep", "--log-level", "info"],
+                env=env, stdout=log, stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + 30
+            while not os.path.exists(port_file):
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    return 99, "vsmd did not start: " + open(self.log).read()[-500:]
+                time.sleep(0.01)
+            base = "http://127.0.0.1:%s" % open(port_file).read().strip()
+            if on_ready:
+                on_ready()
+            status, body = http(base + "/v1/jobs", {"type": "merge", "target": "target",
+                                                    "source": "detail"})
+            if status != 202:
+                return 1, "job refused: %d %s" % (status, body)
+            job = json.loads(body)["id"]
+            deadline = time.monotonic() + TIMEOUT
+            while True:
+                status, body = http(base + "/v1/jobs/" + job)
+                state = json.loads(body)
+                if state["state"] in ("succeeded", "failed", "cancelled"):
+                    break
+                if time.monotonic() > deadline:
+                    return 98, "job hangs: %s" % body
+                time.sleep(0.02)
+            problems = []
+            status, body = http(base + "/v1/models/target")
+            if status != 200:
+                problems.append("the model is not served after the job: %d %s" % (status, body))
+            proc.send_signal(signal.SIGTERM)
+            try:
+                rc = proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                return 97, "vsmd hangs on SIGTERM"
+            log = open(self.log).read()
+            if rc != 0:
+                problems.append("vsmd exited %d on SIGTERM" % rc)
+            if state["state"] == "failed":
+                message = (state.get("error") or {}).get("message", "")
+                if not message:
+                    problems.append("the failed job has no message: %s" % body)
+                if ("Input/output error" in message or "No space left" in message) and \
+                        "read again from disk" not in log:
+                    problems.append("the model was not read again from disk after: " + message)
+                out = "vsm: error: " + message
+                return (1 if not problems else 96), out + "".join("\n" + p for p in problems)
+            if state["state"] != "succeeded":
+                return 95, body
+            warn = "\n".join(line for line in log.splitlines() if " WARN " in line)
+            return (0 if not problems else 96), warn + "".join("\n" + p for p in problems)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+
+
+def http(url, body=None):
+    data = None if body is None else json.dumps(body).encode()
+    request = urllib.request.Request(url, data=data, method="GET" if body is None else "POST")
+    if body is not None:
+        request.add_header("Content-Type", "application/json")
+        request.add_header("Authorization", "Bearer sweep")
+    try:
+        with urllib.request.urlopen(request, timeout=30) as response:
+            return response.status, response.read().decode()
+    except urllib.error.HTTPError as e:
+        return e.code, e.read().decode()
+
+
+# ---- the sweep -------------------------------------------------------------------------------
+
+def sweep(scenario, failures, totals):
+    started = time.monotonic()
+    trace = os.path.join(scenario.work, "trace")
+    # The reference run: no fault, every call traced.
+    scenario.reset()
+    if os.path.exists(trace):
+        os.remove(trace)
+    first = {}
+
+    def startup_counts():
+        for _, cls, n, _ in read_trace(trace):
+            first[cls] = max(first.get(cls, 0), n)
+
+    kwargs = {"on_ready": startup_counts} if isinstance(scenario, DaemonMerge) else {}
+    rc, err = scenario.run(fault_env(scenario.run_dir, trace=trace), **kwargs)
+    if rc != 0:
+        failures.append("%s: the run without a fault exits %d: %s" % (scenario.name, rc, err))
+        return
+    calls = read_trace(trace)
+    new = version_of(scenario.state())
+    if new[2]:
+        failures.append("%s: a complete run leaves orphans: %s" % (scenario.name, new[2][:5]))
+    commit = scenario.commit_of(calls)
+    chosen = choose(calls, commit, first, ARGS.window, ARGS.samples)
+    per_class = {cls: sum(1 for c in calls if c[1] == cls and c[2] > first.get(cls, 0))
+                 for cls in CLASSES}
+    counts = {"runs": 0, "injected": 0, "missed": 0, "error": 0, "warned": 0, "old": 0, "new": 0}
+    report = os.path.join(scenario.work, "report")
+    for index, (cls, n) in enumerate(chosen):
+        code = "EIO" if index % 2 == 0 else "ENOSPC"
+        label = "%s: %s #%d %s" % (scenario.name, cls, n, code)
+        scenario.reset()
+        if os.path.exists(report):
+            os.remove(report)
+        try:
+            rc, err = scenario.run(fault_env(scenario.run_dir, fault=(cls, n, code),
+                                             report=report))
+        except subprocess.TimeoutExpired:
+            failures.append("%s: hangs" % label)
+            continue
+        counts["runs"] += 1
+        hit = injected(report)
+        if hit:
+            counts["injected"] += 1
+        lines = [line for line in err.splitlines() if line.strip()]
+        errors = [line for line in lines if line.startswith("vsm: error:")]
+        warned = [line for line in lines if " WARN " in line]
+        if rc == 1 and len(errors) == 1 and hit:
+            counts["error"] += 1
+            outcome = errors[0]
+        elif rc == 0 and not hit:
+            counts["missed"] += 1
+            outcome = "not hit"
+        elif rc == 0 and hit and warned:
+            counts["warned"] += 1
+            outcome = warned[0]
+        else:
+            failures.append("%s (fault %s): exit %d without a clear outcome: %s" %
+                            (label, hit or "not hit", rc, err.strip()[-600:]))
+            continue
+        where = scenario.state()
+        if isinstance(scenario, CliImport) and not os.path.exists(where):
+            state = "old"
+            version = None
+        else:
+            version = version_of(where)
+            state = which(version, scenario.old, new)
+        if state is None:
+            failures.append("%s: neither the old nor the new version" % label)
+            continue
+        counts[state] += 1
+        print("%s -> %s version; %s" % (label, state, outcome[-160:]), flush=True)
+        if version is not None:
+            validate = subprocess.run([ARGS.vsm, "validate", where], stdout=subprocess.PIPE,
+                                      stderr=subprocess.STDOUT, text=True)
+            if validate.returncode != 0:
+                failures.append("%s: vsm validate: %s" % (label, validate.stdout[-400:]))
+            # The next open (for writing) removes every orphan.
+            reopen = subprocess.run([ARGS.vsm, "merge", where, scenario.outside],
+                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            if reopen.returncode != 1 or "outside" not in reopen.stderr:
+                failures.append("%s: reopening: exit %d %s" % (label, reopen.returncode,
+                                                               reopen.stderr[-300:]))
+            after = version_of(where)
+            if which(after, scenario.old, new) != state:
+                failures.append("%s: reopening changed the version" % label)
+            if after[2]:
+                failures.append("%s: orphans after reopening: %s" % (label, after[2][:5]))
+        staging = [e for e in os.listdir(scenario.run_dir) if ".partial-" in e]
+        if staging:
+            failures.append("%s: staging directories left: %s" % (label, staging))
+    totals.append((scenario.name, len(calls), per_class, counts, time.monotonic() - started))
+
+
+def main():
+    global ARGS
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("--vsm", required=True)
+    parser.add_argument("--vsmd", required=True)
+    parser.add_argument("--lib", required=True)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--work", required=True)
+    parser.add_argument("--scenarios", default="import,merge,textured,vsmd")
+    parser.add_argument("--window", type=int, default=6)
+    parser.add_argument("--samples", type=int, default=5)
+    ARGS = parser.parse_args()
+    work = os.path.abspath(ARGS.work)
+    if os.path.exists(work):
+        shutil.rmtree(work)
+    inputs = os.path.join(work, "inputs")
+    os.makedirs(inputs)
+    prism = os.path.join(ARGS.data, "PRISMelevation.tif")
+    jack = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
+    image = os.path.join(ARGS.data, "conus_visible_earth.tif")
+    target_tif = crop(prism, os.path.join(inputs, "target.tif"), -84.8, 36.8, -83.8, 35.8)
+    detail_tif = crop(jack, os.path.join(inputs, "detail.tif"), -84.40, 36.44, -84.36, 36.40)
+
+    def imported(tif, name, texture=False):
+        out = os.path.join(inputs, name)
+        extra = ["--texture", image] if texture else []
+        subprocess.run([ARGS.vsm, "import", tif, out, "--patch-size", str(PATCH)] + extra,
+                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        return out
+
+    target, detail = imported(target_tif, "target"), imported(detail_tif, "detail")
+    ttarget, tdetail = imported(target_tif, "ttarget", True), imported(detail_tif, "tdetail", True)
+    outside = make_outside_model(ARGS.vsm, inputs, PATCH)
+    scenarios = {
+        "import": lambda: CliImport("import", work, detail_tif, outside),
+        "merge": lambda: CliMerge("merge", work, target, detail, outside),
+        "textured": lambda: CliMerge("textured", work, ttarget, tdetail, outside),
+        "vsmd": lambda: DaemonMerge("vsmd", work, target, detail, outside),
+    }
+    failures, totals = [], []
+    for name in ARGS.scenarios.split(","):
+        sweep(scenarios[name](), failures, totals)
+    for name, calls, per_class, counts, seconds in totals:
+        print("%s: %d counted calls (%s); %d runs, %d faults injected, %d missed; outcomes: "
+              "%d errors, %d warnings; %d old, %d new; %.1f s" %
+              (name, calls, ", ".join("%s %d" % kv for kv in per_class.items()), counts["runs"],
+               counts["injected"], counts["missed"], counts["error"], counts["warned"],
+               counts["old"], counts["new"], seconds))
+    if failures:
+        for message in failures[:60]:
+            print("FAIL " + message)
+        print("%d failures" % len(failures))
+        return 1
+    print("OK")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,148 @@
+#!/usr/bin/python3
+"""One writer per model, across processes, as a user meets it: the real vsmd and the real vsm.
+
+    /usr/bin/python3 writer_lock_test.py --vsm <vsm> --vsmd <vsmd> --data <shared/data>
+                                         --work <dir>
+
+1. vsmd serves a model; `vsm merge` into it exits 1 at once with one line naming vsmd and its
+   pid, and the model's files keep their bytes. A merge into a copy, and `vsm merge --out` from
+   the served model (a reader), both work meanwhile.
+2. A `vsm merge` in progress (stopped with SIGSTOP while it holds the lock) makes vsmd's
+   POST /v1/models of that directory answer 409 naming vsm and its pid; once the merge is done
+   the same request opens the model, now the merged version.
+"""
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from fault_sweep_test import crop, digest_tree  # noqa: E402
+
+TOKEN = "lock-test"
+
+
+def request(base, path, body=None):
+    data = None if body is None else json.dumps(body).encode()
+    req = urllib.request.Request(base + path, data=data, method="GET" if body is None else "POST")
+    req.add_header("Authorization", "Bearer " + TOKEN)
+    req.add_header("Content-Type", "application/json")
+    try:
+        with urllib.request.urlopen(req, timeout=30) as response:
+            return response.status, json.loads(response.read() or b"null")
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read() or b"null")
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("--vsm", required=True)
+    parser.add_argument("--vsmd", required=True)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--work", required=True)
+    args = parser.parse_args()
+    work = os.path.abspath(args.work)
+    shutil.rmtree(work, ignore_errors=True)
+    root = os.path.join(work, "root")
+    os.makedirs(root)
+    failures = []
+
+    def check(condition, message):
+        print(("ok   " if condition else "FAIL ") + message)
+        if not condition:
+            failures.append(message)
+
+    def vsm(*arguments):
+        return subprocess.run([args.vsm] + list(arguments), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True, timeout=300)
+
+    target_tif = crop(os.path.join(args.data, "PRISMelevation.tif"),
+                      os.path.join(work, "target.tif"), -84.8, 36.8, -83.8, 35.8)
+    detail = os.path.join(work, "detail")
+    served = os.path.join(root, "served")
+    for tif, out in ((target_tif, served),
+                     (os.path.join(args.data, "jacksboro_fault_dem.tif"), detail)):
+        result = vsm("import", tif, out, "--patch-size", "17")
+        if result.returncode != 0:
+            print("FAIL import: " + result.stderr)
+            return 1
+    spare = os.path.join(work, "spare")
+    shutil.copytree(served, spare)
+
+    port_file = os.path.join(work, "port")
+    log = open(os.path.join(work, "vsmd.log"), "w")
+    daemon = subprocess.Popen([args.vsmd, "--listen", "127.0.0.1:0", "--data-root", root,
+                               "--port-file", port_file, "--token", TOKEN],
+                              stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 30
+        while not os.path.exists(port_file) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        base = "http://127.0.0.1:%s" % open(port_file).read().strip()
+        status, _ = request(base, "/v1/models/served")
+        check(status == 200, "vsmd serves the model")
+
+        # 1. A second writer fails at once, naming the holder, and changes nothing.
+        before = digest_tree(served)
+        started = time.monotonic()
+        result = vsm("merge", served, detail)
+        seconds = time.monotonic() - started
+        lines = [line for line in result.stderr.splitlines() if line.strip()]
+        print("     vsm merge into the served model: exit %d in %.2f s: %s" %
+              (result.returncode, seconds, " / ".join(lines)))
+        check(result.returncode == 1, "vsm merge into a model vsmd serves exits 1")
+        check(len(lines) == 1 and lines[0] == "vsm: error: '%s' is being written by vsmd "
+              "(pid %d); one writer per model at a time" % (served, daemon.pid),
+              "its one line names vsmd and its pid")
+        check(digest_tree(served) == before, "the served model keeps every byte")
+        out = os.path.join(work, "merged-out")
+        result = vsm("merge", served, detail, "--out", out)
+        check(result.returncode == 0, "vsm merge --out from the served model works (a reader)" +
+              ("" if result.returncode == 0 else ": " + result.stderr[-300:]))
+        check(digest_tree(served) == before, "... and leaves the served model as it was")
+        result = vsm("merge", spare, detail)
+        check(result.returncode == 0, "a merge into another directory works meanwhile")
+
+        # 2. vsmd cannot open a model a vsm merge is writing: 409 naming it.
+        busy = os.path.join(root, "busy")
+        shutil.copytree(served, busy)  # its copied lock file is no lock
+        merge = subprocess.Popen([args.vsm, "merge", busy, detail], stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.PIPE, text=True)
+        # Its first progress line comes after the lock is taken.
+        first = merge.stderr.readline()
+        merge.send_signal(signal.SIGSTOP)
+        status, body = request(base, "/v1/models", {"id": "busy", "source": {"path": "busy"}})
+        message = (body or {}).get("error", {}).get("message", "")
+        print("     POST /v1/models during the merge (%s): %d %s" % (first.strip(), status, body))
+        check(status == 409 and "is being written by vsm (pid %d)" % merge.pid in message,
+              "vsmd answers 409 naming the vsm merge that holds the lock")
+        merge.send_signal(signal.SIGCONT)
+        merge.stderr.read()
+        check(merge.wait(timeout=300) == 0, "the merge completes")
+        status, body = request(base, "/v1/models", {"id": "busy", "source": {"path": "busy"}})
+        check(status in (200, 201), "after it, vsmd opens the model: %d" % status)
+        status, merged = request(base, "/v1/models/busy")
+        status_served, original = request(base, "/v1/models/served")
+        check(status == 200 and merged.get("depth", 0) > original.get("depth", 0),
+              "... as the merged version (depth %s, the unmerged one %s)" %
+              (merged.get("depth"), original.get("depth")))
+    finally:
+        daemon.send_signal(signal.SIGTERM)
+        check(daemon.wait(timeout=60) == 0, "vsmd exits 0 on SIGTERM")
+        log.close()
+    if failures:
+        print("%d failures" % len(failures))
+        return 1
+    print("OK")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
