@@ -408,10 +408,9 @@ std::optional<SurfacePoint> SurfaceSampler::locate(const Vec3d& p) const {
             hit.y += origins_[c[k]].y * h->weights[k];
           }
         }
-        if (h->outside > 0) {
-          // The border's height, at p's own projection (as inside: only p's height changes).
-          hit.position = p + frame_.up * (frame_.height(hit.position) - ph);
-        }
+        // The height there, at p's own projection: only p's height changes, also where the
+        // parameter was clamped onto the cell (a point on or just outside its border).
+        hit.position = p + frame_.up * (frame_.height(hit.position) - ph);
         const double distance = std::fabs(frame_.height(hit.position) - ph);
         if (h->outside < bestOutside || distance < bestDistance) {
           bestOutside = h->outside;
