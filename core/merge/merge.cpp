@@ -169,11 +169,18 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
                 "target's)");
   }
 
-  // B's leaves with their footprints (metadata only).
+  // B's leaves with their footprints (metadata only), grown by how far outside its cells B's
+  // surface still reaches (SurfaceSampler::kBorderTolerance of a cell; a cell's projection is no
+  // longer than the leaf's footprint's diagonal): a new patch whose border vertex lies just
+  // outside B takes B there as its neighbour across that border does.
   std::vector<std::pair<PatchKey, Rect2d>> bLeaves;
   for (const PatchKey& key : b.leaves()) {
-    const Rect2d foot = frame.footprint(transformed(b.at(key).globalBox, options.transform));
+    Rect2d foot = frame.footprint(transformed(b.at(key).globalBox, options.transform));
     if (!foot.empty()) {
+      const double margin = SurfaceSampler::kBorderTolerance *
+                            std::hypot(foot.max.u - foot.min.u, foot.max.v - foot.min.v);
+      foot.min = {foot.min.u - margin, foot.min.v - margin};
+      foot.max = {foot.max.u + margin, foot.max.v + margin};
       bLeaves.emplace_back(key, foot);
     }
   }

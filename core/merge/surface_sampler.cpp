@@ -191,15 +191,6 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
 
   // Bucket size: the mean projected extent of a cell, so a query scans a handful of them.
   const std::size_t count = cellCount();
-  auto cellRect = [&](std::size_t t) {
-    Rect2d r;
-    for (int c = 0; c < 4; ++c) {
-      if (cells_[4 * t + c] != kNoVertex) {
-        r.extend(projected_[cells_[4 * t + c]]);
-      }
-    }
-    return r;
-  };
   double extentSum = 0;
   for (std::size_t t = 0; t < count; ++t) {
     const Rect2d r = cellRect(t);
@@ -270,35 +261,61 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   }
 }
 
-std::optional<SurfaceSampler::Weights> SurfaceSampler::onTriangle(const std::uint32_t* t,
-                                                                  const Vec2d& q) const {
-  auto l = barycentric(projected_[t[0]], projected_[t[1]], projected_[t[2]], q);
-  if (!inside(l)) {
-    return std::nullopt;
+Rect2d SurfaceSampler::cellRect(std::size_t cell) const {
+  Rect2d r;
+  for (int c = 0; c < 4; ++c) {
+    if (cells_[4 * cell + c] != kNoVertex) {
+      r.extend(projected_[cells_[4 * cell + c]]);
+    }
   }
-  for (double& w : l) {
-    w = std::max(w, 0.0);
-  }
-  const double sum = l[0] + l[1] + l[2];
-  return Weights{l[0] / sum, l[1] / sum, l[2] / sum, 0};
+  return r;
 }
 
-std::optional<SurfaceSampler::Weights> SurfaceSampler::onQuad(const std::uint32_t* c,
+std::optional<SurfaceSampler::CellHit> SurfaceSampler::onTriangle(const std::uint32_t* t,
+                                                                  const Vec2d& q) const {
+  const auto l = barycentric(projected_[t[0]], projected_[t[1]], projected_[t[2]], q);
+  if (!std::isfinite(l[0]) || !std::isfinite(l[1]) || !std::isfinite(l[2])) {
+    return std::nullopt;
+  }
+  // The projection of a triangle is affine, so the barycentric coordinates map q into the grid's
+  // parameter space exactly; clamping them (then re-normalising) moves an outside q onto the
+  // triangle, and the distance it moved there is how far outside it lies, in grid units.
+  std::array<double, 3> clamped{};
+  for (int c = 0; c < 3; ++c) {
+    clamped[c] = std::max(l[c], 0.0);
+  }
+  const double sum = clamped[0] + clamped[1] + clamped[2];
+  CellHit hit{{clamped[0] / sum, clamped[1] / sum, clamped[2] / sum, 0}, 0};
+  if (!inside(l)) {
+    double du = 0, dv = 0;
+    for (int c = 0; c < 3; ++c) {
+      du += (l[c] - hit.weights[c]) * origins_[t[c]].x;
+      dv += (l[c] - hit.weights[c]) * origins_[t[c]].y;
+    }
+    hit.outside = std::hypot(du, dv);
+    if (!(hit.outside <= kBorderTolerance)) {
+      return std::nullopt;
+    }
+  }
+  return hit;
+}
+
+std::optional<SurfaceSampler::CellHit> SurfaceSampler::onQuad(const std::uint32_t* c,
                                                               const Vec2d& q) const {
-  // c = (0,0), (1,0), (1,1), (0,1). The quad is located by its two triangles; their barycentric
-  // coordinates give the exact (s, t) of a parallelogram and a close start for Newton otherwise.
+  // c = (0,0), (1,0), (1,1), (0,1): (s, t) is the point's parameter in the cell, i.e. its grid
+  // coordinates relative to the (0,0) corner. The triangles' barycentric coordinates give the
+  // exact (s, t) of a parallelogram and a close start for Newton otherwise, also just outside.
   const Vec2d p00 = projected_[c[0]], p10 = projected_[c[1]], p11 = projected_[c[2]],
               p01 = projected_[c[3]];
-  double s = 0, t = 0;
   const auto l1 = barycentric(p00, p10, p11, q);
-  if (inside(l1)) {
+  const auto l2 = barycentric(p00, p11, p01, q);
+  const double min1 = std::min({l1[0], l1[1], l1[2]});
+  const double min2 = std::min({l2[0], l2[1], l2[2]});
+  double s = 0, t = 0;
+  if (min1 >= min2) {
     s = l1[1] + l1[2];
     t = l1[2];
   } else {
-    const auto l2 = barycentric(p00, p11, p01, q);
-    if (!inside(l2)) {
-      return std::nullopt;
-    }
     s = l2[1];
     t = l2[1] + l2[2];
   }
@@ -321,22 +338,26 @@ std::optional<SurfaceSampler::Weights> SurfaceSampler::onQuad(const std::uint32_
     t -= stepT;
     converged = std::fabs(stepS) + std::fabs(stepT) < 1e-13;
   }
-  if (!converged || s < -kBarycentricSlack || t < -kBarycentricSlack || s > 1 + kBarycentricSlack ||
-      t > 1 + kBarycentricSlack) {
-    // A strongly distorted (non-convex) cell: fall back to its triangles.
+  const double cs = std::clamp(s, 0.0, 1.0);
+  const double ct = std::clamp(t, 0.0, 1.0);
+  const double outside = std::hypot(s - cs, t - ct);
+  if (!converged || !(outside <= kBorderTolerance)) {
+    // A strongly distorted (non-convex) cell, or a point outside it: fall back to its triangles,
+    // the nearer one.
     const std::uint32_t first[3] = {c[0], c[1], c[2]};
-    if (auto w = onTriangle(first, q)) {
-      return Weights{(*w)[0], (*w)[1], (*w)[2], 0};
-    }
     const std::uint32_t second[3] = {c[0], c[2], c[3]};
-    if (auto w = onTriangle(second, q)) {
-      return Weights{(*w)[0], 0, (*w)[1], (*w)[2]};
+    std::optional<CellHit> a = onTriangle(first, q);
+    std::optional<CellHit> b = onTriangle(second, q);
+    if (a && (!b || a->outside <= b->outside)) {
+      return CellHit{{a->weights[0], a->weights[1], a->weights[2], 0}, a->outside};
+    }
+    if (b) {
+      return CellHit{{b->weights[0], 0, b->weights[1], b->weights[2]}, b->outside};
     }
     return std::nullopt;
   }
-  s = std::clamp(s, 0.0, 1.0);
-  t = std::clamp(t, 0.0, 1.0);
-  return Weights{(1 - s) * (1 - t), s * (1 - t), s * t, (1 - s) * t};
+  return CellHit{{(1 - cs) * (1 - ct), cs * (1 - ct), cs * ct, (1 - cs) * ct},
+                 outside <= kBarycentricSlack ? 0.0 : outside};
 }
 
 std::optional<SurfacePoint> SurfaceSampler::locate(const Vec3d& p) const {
@@ -344,38 +365,59 @@ std::optional<SurfacePoint> SurfaceSampler::locate(const Vec3d& p) const {
     return std::nullopt;
   }
   const Vec2d q = frame_.project(p);
-  const double slack = bucketSize_ * 1e-9;
-  if (q.u < bounds_.min.u - slack || q.u > bounds_.max.u + slack || q.v < bounds_.min.v - slack ||
-      q.v > bounds_.max.v + slack) {
+  // Cells within kBorderTolerance of q (in grid units) lie within this much of it projected.
+  const double margin = kBorderTolerance * maxEdge_ + bucketSize_ * 1e-9;
+  if (q.u < bounds_.min.u - margin || q.u > bounds_.max.u + margin ||
+      q.v < bounds_.min.v - margin || q.v > bounds_.max.v + margin) {
     return std::nullopt;
   }
-  const int bu = std::clamp(static_cast<int>(std::floor((q.u - bounds_.min.u) / bucketSize_)), 0,
-                            bucketsU_ - 1);
-  const int bv = std::clamp(static_cast<int>(std::floor((q.v - bounds_.min.v) / bucketSize_)), 0,
-                            bucketsV_ - 1);
-  const std::size_t b = static_cast<std::size_t>(bv) * bucketsU_ + bu;
+  auto bucket = [&](double value, double origin, int count) {
+    return std::clamp(static_cast<int>(std::floor((value - origin) / bucketSize_)), 0, count - 1);
+  };
+  const int u0 = bucket(q.u - margin, bounds_.min.u, bucketsU_);
+  const int u1 = bucket(q.u + margin, bounds_.min.u, bucketsU_);
+  const int v0 = bucket(q.v - margin, bounds_.min.v, bucketsV_);
+  const int v1 = bucket(q.v + margin, bounds_.min.v, bucketsV_);
 
+  // The best hit: inside a cell before within tolerance of one (the nearer cell first), then,
+  // among cells holding q alike (an overhang, or a seam of B's grids), the layer nearest to p.
   std::optional<SurfacePoint> best;
+  double bestOutside = std::numeric_limits<double>::infinity();
   double bestDistance = std::numeric_limits<double>::infinity();
   const double ph = frame_.height(p);
-  for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
-    const std::uint32_t* c = &cells_[4 * static_cast<std::size_t>(bucketItems_[i])];
-    const std::optional<Weights> w = c[3] == kNoVertex ? onTriangle(c, q) : onQuad(c, q);
-    if (!w) {
-      continue;
-    }
-    SurfacePoint hit{{0, 0, 0}, origins_[c[0]].grid, 0, 0};
-    for (int k = 0; k < 4; ++k) {
-      if ((*w)[k] != 0) {
-        hit.position = hit.position + vertices_[c[k]] * (*w)[k];
-        hit.x += origins_[c[k]].x * (*w)[k];
-        hit.y += origins_[c[k]].y * (*w)[k];
+  for (int v = v0; v <= v1; ++v) {
+    for (int u = u0; u <= u1; ++u) {
+      const std::size_t b = static_cast<std::size_t>(v) * bucketsU_ + u;
+      for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
+        const std::size_t cell = bucketItems_[i];
+        const Rect2d rect = cellRect(cell);
+        if (q.u < rect.min.u - margin || q.u > rect.max.u + margin || q.v < rect.min.v - margin ||
+            q.v > rect.max.v + margin) {
+          continue;
+        }
+        const std::uint32_t* c = &cells_[4 * cell];
+        const std::optional<CellHit> h = c[3] == kNoVertex ? onTriangle(c, q) : onQuad(c, q);
+        if (!h || h->outside > bestOutside) {
+          continue;
+        }
+        SurfacePoint hit{{0, 0, 0}, origins_[c[0]].grid, 0, 0};
+        for (int k = 0; k < 4; ++k) {
+          if (h->weights[k] != 0) {
+            hit.position = hit.position + vertices_[c[k]] * h->weights[k];
+            hit.x += origins_[c[k]].x * h->weights[k];
+            hit.y += origins_[c[k]].y * h->weights[k];
+          }
+        }
+        // The height there, at p's own projection: only p's height changes, also where the
+        // parameter was clamped onto the cell (a point on or just outside its border).
+        hit.position = p + frame_.up * (frame_.height(hit.position) - ph);
+        const double distance = std::fabs(frame_.height(hit.position) - ph);
+        if (h->outside < bestOutside || distance < bestDistance) {
+          bestOutside = h->outside;
+          bestDistance = distance;
+          best = hit;
+        }
       }
-    }
-    const double distance = std::fabs(frame_.height(hit.position) - ph);
-    if (distance < bestDistance) {
-      bestDistance = distance;
-      best = hit;
     }
   }
   return best;
@@ -388,8 +430,14 @@ std::optional<Vec3d> SurfaceSampler::sample(const Vec3d& p) const {
   return std::nullopt;
 }
 
-bool SurfaceSampler::covers(const Rect2d& rect) const {
-  if (bucketsU_ == 0 || !rect.intersects(bounds_)) {
+bool SurfaceSampler::covers(const Rect2d& query) const {
+  if (bucketsU_ == 0 || query.empty()) {
+    return false;
+  }
+  const double margin = kBorderTolerance * maxEdge_;
+  const Rect2d rect{{query.min.u - margin, query.min.v - margin},
+                    {query.max.u + margin, query.max.v + margin}};
+  if (!rect.intersects(bounds_)) {
     return false;
   }
   auto bucket = [&](double value, double origin, int count) {
@@ -403,14 +451,7 @@ bool SurfaceSampler::covers(const Rect2d& rect) const {
     for (int u = u0; u <= u1; ++u) {
       const std::size_t b = static_cast<std::size_t>(v) * bucketsU_ + u;
       for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
-        const std::uint32_t* c = &cells_[4 * static_cast<std::size_t>(bucketItems_[i])];
-        Rect2d r;
-        for (int k = 0; k < 4; ++k) {
-          if (c[k] != kNoVertex) {
-            r.extend(projected_[c[k]]);
-          }
-        }
-        if (r.intersects(rect)) {
+        if (cellRect(bucketItems_[i]).intersects(rect)) {
           return true;
         }
       }

@@ -89,9 +89,26 @@ Vec3d defaultUp(const Box3d& box);
 /// triangle with longest edge h. Add float32 rounding of B's stored vertices (maxAbsLocal * 2^-24
 /// per coordinate).
 ///
+/// B's border. Inside/outside is decided per cell in B's own parameter space (the cell's (s, t)
+/// in [0, 1]^2, or the triangle's grid coordinates), not by projected coordinates, and a point
+/// whose parameter lies within kBorderTolerance grid units of a cell (Euclidean, measured to the
+/// nearest point of the cell, or along the clamping for a triangle) belongs to that cell: it takes
+/// the height of the cell's nearest point (the parameter clamped onto the cell) and keeps its own
+/// projection. So samples of B that a query hits up to rounding (float32 storage of either model,
+/// projection along one up direction of points at different heights) are kept on every border:
+/// B's outer border, around holes (undefined samples) and at the seams between B's own grids,
+/// where the rounded grids may leave slivers of gap or overlap. A point inside some cell is
+/// preferred to one only within tolerance of another.
+///
 /// Thread-safe for concurrent const calls after construction.
 class SurfaceSampler {
  public:
+  /// How far outside a cell of B (in B's grid units, i.e. sample spacings) a point still takes
+  /// B's surface: far above float32 rounding (about 1e-5 of a cell for 257 x 257 grids) and the
+  /// projection offsets of ECEF merges (about 5e-3 of a cell for the real merge of issue 18), far
+  /// below half a cell, so a lattice half a sample off B's border is decided by its geometry.
+  static constexpr double kBorderTolerance = 1.0 / 32;
+
   /// `grids`: B's bottom grids (their vertex data is copied, in double, after `transform` when
   /// given). `up`: the projection direction (normalised here); throws Error(InvalidArgument) when
   /// it is zero or not finite.
@@ -99,15 +116,15 @@ class SurfaceSampler {
                  const std::optional<Mat4d>& transform = std::nullopt);
 
   /// The point of B's surface on the line through `p` along up; nullopt where B has no surface
-  /// (outside B, in B's holes, or for an undefined `p`). Where several layers of B lie over the
-  /// same point (an overhang) the one nearest to `p` is returned.
+  /// (outside B by more than kBorderTolerance, in B's holes, or for an undefined `p`). Where
+  /// several layers of B lie over the same point (an overhang) the one nearest to `p` is returned.
   std::optional<Vec3d> sample(const Vec3d& p) const;
 
   /// sample(p) with where on B it lies.
   std::optional<SurfacePoint> locate(const Vec3d& p) const;
 
-  /// True when some indexed cell's projected bounding rectangle meets `rect` (in frame()):
-  /// a conservative "may B have surface there".
+  /// True when some indexed cell's projected bounding rectangle, grown by kBorderTolerance times
+  /// maxEdge(), meets `rect` (in frame()): a conservative "may B have surface there".
   bool covers(const Rect2d& rect) const;
 
   const UpFrame& frame() const { return frame_; }
@@ -121,10 +138,18 @@ class SurfaceSampler {
   std::size_t bytes() const;
 
  private:
-  /// Weights of a cell's corners (in cells_ order; 0 for a triangle's missing fourth) at q.
+  /// Weights of a cell's corners (in cells_ order; 0 for a triangle's missing fourth) at the
+  /// point of the cell nearest to q, and how far q lies outside the cell in grid units (0 inside).
   using Weights = std::array<double, 4>;
-  std::optional<Weights> onTriangle(const std::uint32_t* corners, const Vec2d& q) const;
-  std::optional<Weights> onQuad(const std::uint32_t* corners, const Vec2d& q) const;
+  struct CellHit {
+    Weights weights;
+    double outside = 0;
+  };
+  /// The hit when q lies within kBorderTolerance grid units of the cell.
+  std::optional<CellHit> onTriangle(const std::uint32_t* corners, const Vec2d& q) const;
+  std::optional<CellHit> onQuad(const std::uint32_t* corners, const Vec2d& q) const;
+  /// A cell's projected bounding rectangle.
+  Rect2d cellRect(std::size_t cell) const;
 
   /// Where a vertex came from: its grid and its index there.
   struct VertexOrigin {

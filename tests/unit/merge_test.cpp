@@ -230,6 +230,66 @@ TEST(SurfaceSampler, OutsideTheDetailSurfaceThereIsNothing) {
   EXPECT_FALSE(sampler.sample({nan, nan, nan}).has_value());
 }
 
+TEST(SurfaceSampler, PointsWithinTheToleranceOfABorderTakeItsHeight) {
+  // B: 2 x 2 grids of 17 x 17 on a rotated lattice (seams at lattice 16), a hole at (8, 24).
+  const Lattice b{500, -300, 0.9, 0.3};
+  std::vector<std::shared_ptr<const PatchGrid>> grids;
+  for (int y = 0; y < 2; ++y) {
+    for (int x = 0; x < 2; ++x) {
+      auto grid = latticeGrid(b, 17, x * 16, y * 16);
+      if (x == 0 && y == 1) {
+        grid->setUndefined(8, 8);
+      }
+      grids.push_back(grid);
+    }
+  }
+  const SurfaceSampler sampler(grids, {0, 0, 1});
+  const double tolerance = SurfaceSampler::kBorderTolerance;
+  // A border sample (i, j) of B approached from outside along (di, dj) by `offset` lattice units:
+  // the height is the sample's own (the lattice generator's), at the query's plane position.
+  auto check = [&](int i, int j, int di, int dj, double offset) {
+    const Vec3d sample = b.at(i, j);
+    const Vec3d query = b.at(i + di * offset, j + dj * offset);
+    const auto s = sampler.sample({query.x, query.y, sample.z + (i % 2 ? 80.0 : -80.0)});
+    if (offset > tolerance * 1.01) {
+      EXPECT_FALSE(s.has_value()) << i << " " << j << " offset " << offset;
+      return;
+    }
+    ASSERT_TRUE(s.has_value()) << i << " " << j << " offset " << offset;
+    EXPECT_NEAR(s->x, query.x, 1e-9);
+    EXPECT_NEAR(s->y, query.y, 1e-9);
+    // float32 rounding of B's locals, and within the tolerance the surface's slope (below 1.2)
+    // over the distance to the border point that the query takes.
+    EXPECT_NEAR(s->z, sample.z, 1e-4 + 1.2 * std::fabs(offset) * b.spacing)
+        << i << " " << j << " offset " << offset;
+  };
+  for (const double offset : {0.0, 1e-9, -1e-9, 1e-6, 0.02, 0.5}) {
+    for (int k = 0; k <= 32; ++k) {
+      check(k, 0, 0, -1, offset);  // south border
+      check(k, 32, 0, 1, offset);  // north border
+      check(0, k, -1, 0, offset);  // west border
+      check(32, k, 1, 0, offset);  // east border
+      if (offset <= tolerance) {
+        check(16, k, 1, 0, offset);  // the seam between the grids, from either side
+        check(16, k, -1, 0, offset);
+        check(k, 16, 0, 1, offset);
+      }
+    }
+    // The hole's neighbours, approached from the hole.
+    check(7, 24, 1, 0, offset);
+    check(9, 24, -1, 0, offset);
+    check(8, 23, 0, 1, offset);
+    check(8, 25, 0, -1, offset);
+  }
+  // On the seam half a cell to either side is inside B, not on its border.
+  EXPECT_TRUE(sampler.sample(b.at(16.5, 7)).has_value());
+  EXPECT_TRUE(sampler.sample(b.at(15.5, 7)).has_value());
+  // In the hole, half a cell from its neighbours (the centre of the missing diamond's edge
+  // region) there is nothing.
+  EXPECT_FALSE(sampler.sample(b.at(8, 24)).has_value());
+  EXPECT_FALSE(sampler.sample(b.at(8.4, 24)).has_value());
+}
+
 TEST(SurfaceSampler, CellWithOneUndefinedCornerKeepsItsOtherTriangle) {
   const Lattice b{0, 0, 1, 0};
   auto grid = latticeGrid(b, 5, 0, 0);
