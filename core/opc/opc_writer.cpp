@@ -57,6 +57,17 @@ void addText(pugi::xml_node parent, const char* name, const std::string& text) {
   parent.append_child(name).text().set(text.c_str());
 }
 
+/// Starts `doc` as every OPC XML file starts (declaration, <Aardvark>, `element`, <TagList/>) and
+/// returns `element`.
+pugi::xml_node startAardvark(pugi::xml_document& doc, const char* element) {
+  pugi::xml_node decl = doc.append_child(pugi::node_declaration);
+  decl.append_attribute("version") = "1.0";
+  decl.append_attribute("encoding") = "utf-8";
+  pugi::xml_node node = doc.append_child("Aardvark").append_child(element);
+  node.append_child("TagList");
+  return node;
+}
+
 }  // namespace
 
 OpcWriter::OpcWriter(fs::path dir, Durability durability)
@@ -176,11 +187,7 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
   }
 
   pugi::xml_document doc;
-  pugi::xml_node decl = doc.append_child(pugi::node_declaration);
-  decl.append_attribute("version") = "1.0";
-  decl.append_attribute("encoding") = "utf-8";
-  pugi::xml_node patch = doc.append_child("Aardvark").append_child("Patch");
-  patch.append_child("TagList");
+  pugi::xml_node patch = startAardvark(doc, "Patch");
   addText(patch, "QuadVertexSortOrder", "RowMajor");
   addText(patch, "GeometryType", "QuadList");
   addText(patch, "Local2Global", formatMatrix(info.local2global));
@@ -231,11 +238,7 @@ std::string hierarchyXml(const Model& model) {
     throw Error(ErrorCode::InvalidArgument, "cannot write the hierarchy of an empty model");
   }
   pugi::xml_document doc;
-  pugi::xml_node decl = doc.append_child(pugi::node_declaration);
-  decl.append_attribute("version") = "1.0";
-  decl.append_attribute("encoding") = "utf-8";
-  pugi::xml_node hierarchy = doc.append_child("Aardvark").append_child("PatchHierarchy");
-  hierarchy.append_child("TagList");
+  pugi::xml_node hierarchy = startAardvark(doc, "PatchHierarchy");
   std::string sizes = "[";
   for (const double size : model.avgGeometrySizes()) {
     sizes += (sizes.size() > 1 ? ", " : "") + formatDouble(size);

@@ -1,5 +1,7 @@
 #include "server/models/model_registry.hpp"
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <system_error>
 #include <utility>
@@ -210,7 +212,16 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
   std::shared_ptr<core::LiveModel> model;
   std::shared_ptr<EncodedCache> encoded;
   try {
-    model = core::LiveModel::open(canonical, id, cache_);
+    try {
+      model = core::LiveModel::open(canonical, id, cache_);
+    } catch (const Error& e) {
+      // A model on a read-only mount is still served; it only cannot be written.
+      if (e.code() != ErrorCode::Io || ::access(canonical.c_str(), W_OK) == 0) {
+        throw;
+      }
+      log::warn("model=" + id + " opened for reading only: " + e.what());
+      model = core::LiveModel::open(canonical, id, cache_, core::LiveModel::Access::Read);
+    }
     encoded = std::make_shared<EncodedCache>(cache_, id);
   } catch (...) {
     const std::lock_guard lock(mutex_);

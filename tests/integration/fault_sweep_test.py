@@ -32,10 +32,8 @@ Exit 0 printing the counts; exit 1 listing the failures.
 """
 
 import argparse
-import hashlib
 import json
 import os
-import re
 import shutil
 import signal
 import subprocess
@@ -44,74 +42,14 @@ import time
 import urllib.error
 import urllib.request
 
-import numpy as np
-from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from check_import import find_ci, read_hierarchy  # noqa: E402
-from merge_check import folder_digest  # noqa: E402
-from merge_kill_test import make_outside_model  # noqa: E402
+from model_states import crop, make_outside_model, version_of, which  # noqa: E402
 
-gdal.UseExceptions()
 
 CLASSES = ["write", "sync", "rename", "mkdir", "create", "unlink"]
 PATCH = 17
 TIMEOUT = 120
-TEMP = re.compile(r"\..+\.tmp-[0-9]+-[0-9]+")
-LOCK = ".vsm-writer.lock"
-
-
-# ---- inputs ----------------------------------------------------------------------------------
-
-def crop(source, out, lon0, lat0, lon1, lat1):
-    gdal.Translate(out, source, projWin=[lon0, lat0, lon1, lat1])
-    return out
-
-
-def digest_tree(root):
-    """{relative path: sha256} of every file under root but the writer lock."""
-    files = {}
-    for directory, _, names in os.walk(root):
-        for name in names:
-            if name == LOCK:
-                continue
-            path = os.path.join(directory, name)
-            with open(path, "rb") as f:
-                files[os.path.relpath(path, root)] = hashlib.sha256(f.read()).hexdigest()
-    return files
-
-
-def version_of(opc):
-    """(hierarchy bytes, {reachable folder: digest}, orphans): orphans are entries of Patches/
-    the hierarchy does not reach, tiles of Images/Diffuse it does not name, temporary files."""
-    patches_dir, root, children = read_hierarchy(opc)
-    with open(find_ci(patches_dir, "patchhierarchy.xml"), "rb") as f:
-        hierarchy = f.read()
-    reachable = set()
-    stack = [root]
-    while stack:
-        folder = stack.pop()
-        if folder in reachable:
-            continue
-        reachable.add(folder)
-        stack.extend(children.get(folder, {}).values())
-    folders = {folder: folder_digest(os.path.join(patches_dir, folder)) for folder in reachable}
-    orphans = sorted(e for e in os.listdir(patches_dir)
-                     if e not in reachable and e.lower() != "patchhierarchy.xml")
-    tiles = os.path.join(opc, "Images", "Diffuse")
-    if os.path.isdir(tiles):
-        orphans += ["Images/Diffuse/" + t for t in sorted(os.listdir(tiles))
-                    if t[:-4] not in reachable]
-    orphans += [e for e in os.listdir(opc) if TEMP.fullmatch(e)]
-    return hierarchy, folders, orphans
-
-
-def which(version, old, new):
-    if old is not None and version[:2] == old[:2]:
-        return "old"
-    if version[:2] == new[:2]:
-        return "new"
-    return None
 
 
 # ---- running with a fault --------------------------------------------------------------------

@@ -10,6 +10,9 @@
 2. A `vsm merge` in progress (stopped with SIGSTOP while it holds the lock) makes vsmd's
    POST /v1/models of that directory answer 409 naming vsm and its pid; once the merge is done
    the same request opens the model, now the merged version.
+3. A model on a read-only mount (a read-only bind mount, as root) is served for reading; a merge
+   job into it fails with a message saying so. Skipped, with a line saying why, where mounting is
+   not allowed.
 """
 
 import argparse
@@ -24,7 +27,7 @@ import urllib.error
 import urllib.request
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from fault_sweep_test import crop, digest_tree  # noqa: E402
+from model_states import crop, digest_tree  # noqa: E402
 
 TOKEN = "lock-test"
 
@@ -75,6 +78,19 @@ def main():
             return 1
     spare = os.path.join(work, "spare")
     shutil.copytree(served, spare)
+
+    # 3. A read-only copy: a read-only bind mount of a model directory inside the data root.
+    readonly = os.path.join(root, "readonly")
+    shutil.copytree(spare, readonly)
+    mounted = subprocess.run(["mount", "--bind", "-o", "ro", readonly, readonly],
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                             text=True).returncode == 0 and \
+        subprocess.run(["mount", "-o", "remount,bind,ro", readonly],
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL).returncode == 0
+    if not mounted:
+        subprocess.run(["umount", readonly], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        shutil.rmtree(readonly)
+        print("skip a read-only mount: mounting is not allowed here")
 
     port_file = os.path.join(work, "port")
     log = open(os.path.join(work, "vsmd.log"), "w")
@@ -133,10 +149,29 @@ def main():
         check(status == 200 and merged.get("depth", 0) > original.get("depth", 0),
               "... as the merged version (depth %s, the unmerged one %s)" %
               (merged.get("depth"), original.get("depth")))
+
+        if mounted:
+            status, _ = request(base, "/v1/models/readonly")
+            check(status == 200, "a model on a read-only mount is served")
+            status, body = request(base, "/v1/jobs", {"type": "merge", "target": "readonly",
+                                                     "source": "served"})
+            job = body.get("id") if status == 202 else None
+            deadline = time.monotonic() + 60
+            while job and time.monotonic() < deadline:
+                status, body = request(base, "/v1/jobs/" + job)
+                if body["state"] in ("succeeded", "failed", "cancelled"):
+                    break
+                time.sleep(0.05)
+            message = (body.get("error") or {}).get("message", "")
+            check((body.get("state") == "failed" or status == 409) and
+                  "for reading only" in message,
+                  "a merge job into it fails saying it is open for reading only: %s" % message)
     finally:
         daemon.send_signal(signal.SIGTERM)
         check(daemon.wait(timeout=60) == 0, "vsmd exits 0 on SIGTERM")
         log.close()
+        if mounted:
+            subprocess.run(["umount", readonly])
     if failures:
         print("%d failures" % len(failures))
         return 1

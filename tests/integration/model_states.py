@@ -1,0 +1,85 @@
+"""Shared by the crash and fault tests: small real models, and what version of a model a
+directory holds (for "exactly the old or the new version, and no orphans")."""
+
+import hashlib
+import os
+import re
+import subprocess
+
+import numpy as np
+from osgeo import gdal, osr
+
+from check_import import find_ci, read_hierarchy
+from merge_check import folder_digest
+
+gdal.UseExceptions()
+
+TEMP = re.compile(r"\..+\.tmp-[0-9]+-[0-9]+")
+LOCK = ".vsm-writer.lock"
+
+
+def crop(source, out, lon0, lat0, lon1, lat1):
+    gdal.Translate(out, source, projWin=[lon0, lat0, lon1, lat1])
+    return out
+
+
+def digest_tree(root):
+    """{relative path: sha256} of every file under root but the writer lock."""
+    files = {}
+    for directory, _, names in os.walk(root):
+        for name in names:
+            if name == LOCK:
+                continue
+            path = os.path.join(directory, name)
+            with open(path, "rb") as f:
+                files[os.path.relpath(path, root)] = hashlib.sha256(f.read()).hexdigest()
+    return files
+
+
+def version_of(opc):
+    """(hierarchy bytes, {reachable folder: digest}, orphans): orphans are entries of Patches/
+    the hierarchy does not reach, tiles of Images/Diffuse it does not name, temporary files."""
+    patches_dir, root, children = read_hierarchy(opc)
+    with open(find_ci(patches_dir, "patchhierarchy.xml"), "rb") as f:
+        hierarchy = f.read()
+    reachable = set()
+    stack = [root]
+    while stack:
+        folder = stack.pop()
+        if folder in reachable:
+            continue
+        reachable.add(folder)
+        stack.extend(children.get(folder, {}).values())
+    folders = {folder: folder_digest(os.path.join(patches_dir, folder)) for folder in reachable}
+    orphans = sorted(e for e in os.listdir(patches_dir)
+                     if e not in reachable and e.lower() != "patchhierarchy.xml")
+    tiles = os.path.join(opc, "Images", "Diffuse")
+    if os.path.isdir(tiles):
+        orphans += ["Images/Diffuse/" + t for t in sorted(os.listdir(tiles))
+                    if t[:-4] not in reachable]
+    orphans += [e for e in os.listdir(opc) if TEMP.fullmatch(e)]
+    return hierarchy, folders, orphans
+
+
+def which(version, old, new):
+    if old is not None and version[:2] == old[:2]:
+        return "old"
+    if version[:2] == new[:2]:
+        return "new"
+    return None
+
+
+def make_outside_model(vsm, directory, patch_size):
+    """A one-patch model in the Alps (10 E, 47 N), far outside any CONUS target."""
+    tif = os.path.join(directory, "outside.tif")
+    ds = gdal.GetDriverByName("GTiff").Create(tif, patch_size, patch_size, 1, gdal.GDT_Float32)
+    ds.SetGeoTransform((10.0, 1.0 / 3600, 0.0, 47.0, 0.0, -1.0 / 3600))
+    srs = osr.SpatialReference()
+    srs.ImportFromEPSG(4326)
+    ds.SetProjection(srs.ExportToWkt())
+    ds.GetRasterBand(1).WriteArray(np.full((patch_size, patch_size), 1000.0, np.float32))
+    ds = None
+    out = os.path.join(directory, "outside")
+    subprocess.run([vsm, "import", tif, out, "--patch-size", str(patch_size)], check=True,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return out
