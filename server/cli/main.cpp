@@ -276,7 +276,18 @@ class StagingCopy {
     if (fs::exists(fs::symlink_status(to, ec))) {
       throw Error(ErrorCode::Conflict, "output directory '" + to.string() + "' exists");
     }
-    fs::copy(from, path_, fs::copy_options::recursive);
+    // A throwing constructor runs no destructor: a partial copy (the file system full, a read
+    // error) is removed here.
+    try {
+      fs::copy(from, path_, fs::copy_options::recursive);
+    } catch (const fs::filesystem_error& e) {
+      fs::remove_all(path_, ec);
+      throw Error(ErrorCode::Io, "cannot copy '" + from.string() + "' to '" + path_.string() +
+                                     "': " + e.code().message());
+    } catch (...) {
+      fs::remove_all(path_, ec);
+      throw;
+    }
   }
   ~StagingCopy() {
     if (!path_.empty()) {
