@@ -43,9 +43,8 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import fault_sweep_test  # noqa: E402
-from fault_sweep_test import (PATCH, CliMerge, DaemonMerge, Scenario, crop,  # noqa: E402
-                              digest_tree, version_of, which)
-from merge_kill_test import make_outside_model  # noqa: E402
+from fault_sweep_test import PATCH, CliMerge, DaemonMerge, Scenario  # noqa: E402
+from model_states import crop, digest_tree, make_outside_model, version_of, which  # noqa: E402
 
 SKIP = 77
 TIMEOUT = 60
