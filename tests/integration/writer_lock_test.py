@@ -52,6 +52,9 @@ def main():
     parser.add_argument("--work", required=True)
     args = parser.parse_args()
     work = os.path.abspath(args.work)
+    leftover = os.path.join(work, "root", "readonly")
+    if os.path.ismount(leftover):  # an interrupted earlier run's read-only mount
+        subprocess.run(["umount", "-l", leftover])
     shutil.rmtree(work, ignore_errors=True)
     root = os.path.join(work, "root")
     os.makedirs(root)
