@@ -231,6 +231,11 @@ PatchCache::Pin LiveModel::texture(const ModelSnapshot& snapshot, const PatchKey
   return store_->cache().get(store_->id(), {key, info.version, MemoryCategory::Textures});
 }
 
+void LiveModel::onPublish(std::function<void(const ReplacedVersions&)> observer) {
+  std::lock_guard lock(mutex_);
+  onPublish_ = std::move(observer);
+}
+
 std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
   bool expected = false;
   if (!editing_.compare_exchange_strong(expected, true)) {
@@ -432,6 +437,22 @@ void ModelEdit::publish(const CancelToken* cancel) {
     live_.snapshot_ = std::move(snapshot);
   }
   published_ = true;
+
+  // 4. What others derived from the replaced versions goes now (see LiveModel::onPublish).
+  LiveModel::ReplacedVersions replaced;
+  std::function<void(const LiveModel::ReplacedVersions&)> observer;
+  {
+    std::lock_guard lock(live_.mutex_);
+    observer = live_.onPublish_;
+  }
+  if (observer) {
+    for (const PatchKey& key : changed_) {
+      if (const PatchInfo* old = base_->model->find(key)) {
+        replaced.emplace_back(key, old->version);
+      }
+    }
+    observer(replaced);
+  }
 }
 
 }  // namespace vsm::core

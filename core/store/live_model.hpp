@@ -8,6 +8,8 @@
 #include <mutex>
 #include <set>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/progress.hpp"
@@ -72,6 +74,13 @@ class LiveModel {
   /// Starts the one edit of this model. Throws Error(Conflict) while another edit is open.
   std::unique_ptr<ModelEdit> beginEdit();
 
+  /// Patch versions a publish replaced (or removed): (key, old version).
+  using ReplacedVersions = std::vector<std::pair<PatchKey, std::uint64_t>>;
+  /// Sets the one function called after every publish with the versions it replaced, on the
+  /// publishing thread with no lock held: for caches of data derived from patches (encoded
+  /// responses) to drop what readers of the new version never ask for. Thread-safe.
+  void onPublish(std::function<void(const ReplacedVersions&)> observer);
+
   class Store;  // the PatchStore over the directory; defined in the .cpp
 
  private:
@@ -85,6 +94,7 @@ class LiveModel {
   mutable std::mutex mutex_;  // guards snapshot_ (the pointer, not the snapshot)
   std::shared_ptr<ModelSnapshot> snapshot_;
   std::atomic<bool> editing_{false};
+  std::function<void(const ReplacedVersions&)> onPublish_;  // guarded by mutex_
 };
 
 /// The next version of a LiveModel, invisible to readers until publish(). A changed patch gets

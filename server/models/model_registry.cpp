@@ -211,7 +211,7 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
   std::shared_ptr<EncodedCache> encoded;
   try {
     model = core::LiveModel::open(canonical, id, cache_);
-    encoded = std::make_shared<EncodedCache>(cache_, id);
+    encoded = EncodedCache::create(cache_, *model);
   } catch (...) {
     const std::lock_guard lock(mutex_);
     opening_.erase(id);

@@ -460,7 +460,10 @@ TEST_F(ModelRoutes, PatchMetadataAndPositionsComeFromOneVersion) {
   EXPECT_EQ(*data.header("ETag"), *meta.header("ETag"));
   EXPECT_EQ(*data.header("X-VSM-Local2Global"), "1,0,0,24,0,1,0,40,0,0,1,0,0,0,0,1");
   EXPECT_EQ(data.bodySize(), 13u + kSize * kSize * 12u);
-  EXPECT_EQ(data.body.size(), 13u);  // the header; the floats go from the cache without a copy
+  // Stored uncropped as V3f: the stored file itself is the body, sent with sendfile(2).
+  EXPECT_GE(data.file.fd, 0);
+  EXPECT_EQ(data.file.size, data.bodySize());
+  EXPECT_TRUE(data.body.empty());
   const std::string bytes = data.bodyText();
   const core::AaraArray array =
       core::decodeAara(std::as_bytes(std::span(bytes.data(), bytes.size())), "response");

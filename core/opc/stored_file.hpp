@@ -1,0 +1,48 @@
+#pragma once
+
+#include <cstddef>
+#include <filesystem>
+#include <memory>
+
+#include "core/pyramid/model.hpp"
+
+namespace vsm::core {
+
+/// A stored patch file open for reading (a read-only, close-on-exec descriptor) and its size, for
+/// callers that send it as it is (sendfile(2)) rather than decode it. Closes the descriptor when
+/// destroyed. The file is never written while open: published patch files are immutable (an edit
+/// writes a new version into a new folder).
+class StoredFile {
+ public:
+  StoredFile(int fd, std::size_t size) : fd_(fd), size_(size) {}
+  ~StoredFile();
+  StoredFile(const StoredFile&) = delete;
+  StoredFile& operator=(const StoredFile&) = delete;
+
+  int fd() const { return fd_; }
+  std::size_t size() const { return size_; }
+
+ private:
+  int fd_;
+  std::size_t size_;
+};
+
+/// The positions file of `info` (a patch of a model of gridSize x gridSize vertices stored at
+/// `dir`), opened, when its bytes are exactly the full grid as `.aara`: the header of
+/// encodeAaraHeader(V3f, {gridSize, gridSize}) followed by gridSize^2 float triples (nothing
+/// cropped, float32). Only the header and the file's size are checked; undefined vertices are
+/// NaN in the file as in a decoded grid (their payload bits may differ from a re-encoding's).
+/// nullptr when the stored layout differs (a cropped rectangle, V3d): decode and re-encode then.
+/// Throws Error(NotFound) for a missing file, Error(Unavailable) when the process is out of
+/// descriptors, Error(Io) otherwise.
+std::unique_ptr<StoredFile> openFullGridPositions(const std::filesystem::path& dir, int gridSize,
+                                                  const PatchInfo& info);
+
+/// The texture coordinates file of `info`, opened, after checking its header (V2f or V2d of the
+/// stored rectangle's size) and its size. Throws Error(NotFound) when the patch has none or the
+/// file is missing, Error(Corrupt) when it is not what the patch says, Error(Unavailable) when
+/// the process is out of descriptors, Error(Io) otherwise.
+std::unique_ptr<StoredFile> openCoordinatesFile(const std::filesystem::path& dir,
+                                                const PatchInfo& info);
+
+}  // namespace vsm::core
