@@ -34,6 +34,10 @@ AaraHeader decodeAaraHeader(std::span<const std::byte> bytes, std::string_view w
 /// Reads only the header of an `.aara` file. Throws Error(NotFound / Io / Corrupt).
 AaraHeader readAaraHeader(const std::filesystem::path& path);
 
+/// Opens a file read-only (close-on-exec). Throws Error(NotFound) when it does not exist,
+/// Error(Unavailable) when the process is out of descriptors, Error(Io) otherwise.
+int openForReading(const std::filesystem::path& path);
+
 /// Reads a whole file, or its first `maxBytes`. Throws Error(NotFound) when it does not exist,
 /// Error(Io) on any other failure.
 std::vector<std::byte> readFile(const std::filesystem::path& path,

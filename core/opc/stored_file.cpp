@@ -30,14 +30,7 @@ fs::path patchFile(const fs::path& dir, const PatchInfo& info, const std::string
 }
 
 std::unique_ptr<StoredFile> openFile(const fs::path& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
-  if (fd < 0) {
-    const int errnum = errno;
-    if (errnum == ENOENT || errnum == ENOTDIR) {
-      throw Error(ErrorCode::NotFound, "no file '" + path.string() + "'");
-    }
-    throwIoError("cannot open", path.string(), errnum);
-  }
+  const int fd = detail::openForReading(path);
   struct stat st {};
   if (::fstat(fd, &st) != 0) {
     const int errnum = errno;
@@ -48,7 +41,7 @@ std::unique_ptr<StoredFile> openFile(const fs::path& path) {
 }
 
 /// Up to `count` bytes from the start of the file (fewer when it is shorter).
-std::vector<std::byte> readStart(const StoredFile& file, std::size_t count, const fs::path& path) {
+std::vector<std::byte> readStart(const StoredFile& file, std::size_t count, std::string_view what) {
   std::vector<std::byte> bytes(std::min(count, file.size()));
   std::size_t done = 0;
   while (done < bytes.size()) {
@@ -58,7 +51,7 @@ std::vector<std::byte> readStart(const StoredFile& file, std::size_t count, cons
       continue;
     }
     if (n < 0) {
-      throwIoError("cannot read", path.string(), errno);
+      throwIoError("cannot read", what, errno);
     }
     if (n == 0) {
       break;
@@ -75,6 +68,14 @@ StoredFile::~StoredFile() {
   ::close(fd_);
 }
 
+std::vector<std::byte> readStoredFile(const StoredFile& file, std::string_view what) {
+  std::vector<std::byte> bytes = readStart(file, file.size(), what);
+  if (bytes.size() != file.size()) {
+    throw Error(ErrorCode::Io, std::string(what) + ": shorter than its size");
+  }
+  return bytes;
+}
+
 std::unique_ptr<StoredFile> openFullGridPositions(const fs::path& dir, int gridSize,
                                                   const PatchInfo& info) {
   if (info.stored != GridRect{0, 0, gridSize, gridSize}) {
@@ -86,7 +87,7 @@ std::unique_ptr<StoredFile> openFullGridPositions(const fs::path& dir, int gridS
   const fs::path path = patchFile(dir, info, info.positionsFile);
   std::unique_ptr<StoredFile> file = openFile(path);
   if (file->size() != header.size() + n * n * elementSize(AaraType::V3f) ||
-      readStart(*file, header.size(), path) != header) {
+      readStart(*file, header.size(), path.string()) != header) {
     return nullptr;  // V3d, or another header
   }
   return file;
@@ -101,7 +102,7 @@ std::unique_ptr<StoredFile> openCoordinatesFile(const fs::path& dir, const Patch
   // The longest header of a 2-D array: a length byte, a type name of at most 6 letters, the
   // dimension count, two sizes.
   constexpr std::size_t kLongestHeader = 1 + 6 + 1 + 2 * 4;
-  const std::vector<std::byte> start = readStart(*file, kLongestHeader, path);
+  const std::vector<std::byte> start = readStart(*file, kLongestHeader, path.string());
   const detail::AaraHeader header = detail::decodeAaraHeader(start, path.string());
   const GridRect& r = info.stored;
   if ((header.type != AaraType::V2f && header.type != AaraType::V2d) || header.sizes.size() != 2 ||

@@ -3,6 +3,8 @@
 #include <cstddef>
 #include <filesystem>
 #include <memory>
+#include <string_view>
+#include <vector>
 
 #include "core/pyramid/model.hpp"
 
@@ -37,6 +39,14 @@ class StoredFile {
 /// descriptors, Error(Io) otherwise.
 std::unique_ptr<StoredFile> openFullGridPositions(const std::filesystem::path& dir, int gridSize,
                                                   const PatchInfo& info);
+
+/// The whole of an open file (`what` names it in errors). Throws Error(Io) when it cannot be read
+/// or is shorter than its size said.
+std::vector<std::byte> readStoredFile(const StoredFile& file, std::string_view what);
+
+/// The whole of an open file (`what` names it in errors). Throws Error(Io) when it cannot be read
+/// or is shorter than its size said.
+std::vector<std::byte> readStoredFile(const StoredFile& file, std::string_view what);
 
 /// The texture coordinates file of `info`, opened, after checking its header (V2f or V2d of the
 /// stored rectangle's size) and its size. Throws Error(NotFound) when the patch has none or the
