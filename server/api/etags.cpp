@@ -95,6 +95,15 @@ std::string tilesetEtag(const core::ModelSnapshot& snapshot) {
                           std::string(kTilesFormat));
 }
 
+std::string staticFileEtag(std::uint64_t size, std::uint64_t mtimeNs, std::uint64_t inode) {
+  const auto hex = [](std::uint64_t value) {
+    char text[17];
+    std::snprintf(text, sizeof text, "%llx", static_cast<unsigned long long>(value));
+    return std::string(text);
+  };
+  return http::strongEtag("s-" + hex(size) + "-" + hex(mtimeNs) + "-" + hex(inode));
+}
+
 std::string glbEtag(const core::PatchInfo& info) {
   return patchDataEtag(info, "glb-" + std::string(kTilesFormat));
 }

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <cstdint>
 #include <string>
 #include <string_view>
 
@@ -32,5 +33,7 @@ std::string patchDataEtag(const core::PatchInfo& info, std::string_view suffix);
 /// A model's tileset and one patch's GLB: the model's and the patch's tags with kTilesFormat.
 std::string tilesetEtag(const core::ModelSnapshot& snapshot);
 std::string glbEtag(const core::PatchInfo& info);
+/// A static file (the viewer's): its size, modification time (ns) and inode.
+std::string staticFileEtag(std::uint64_t size, std::uint64_t mtimeNs, std::uint64_t inode);
 
 }  // namespace vsm::server::api
