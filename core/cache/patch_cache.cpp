@@ -1,6 +1,7 @@
 #include "core/cache/patch_cache.hpp"
 
 #include <algorithm>
+#include <chrono>
 #include <condition_variable>
 #include <limits>
 #include <list>
@@ -221,7 +222,8 @@ struct PatchCache::Impl {
   }
 
   void makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed, std::size_t budget,
-                EvictionPolicy policy, std::size_t neededHandles = 0);
+                EvictionPolicy policy, std::size_t neededHandles = 0,
+                std::chrono::steady_clock::time_point waitUntil = {});
 };
 
 PatchCache::PatchCache(std::size_t budgetBytes, EvictionPolicy policy)
@@ -273,8 +275,12 @@ std::size_t PatchCache::Pin::bytes() const {
 void PatchCache::unpin(void* entry) {
   std::lock_guard lock(impl_->mutex);
   Entry& e = *static_cast<Entry*>(entry);
-  if (--e.pins == 0 && e.detached) {
-    impl_->remove(e);
+  if (--e.pins == 0) {
+    if (e.detached) {
+      impl_->remove(e);  // notifies
+    } else {
+      impl_->changed.notify_all();  // a put() may wait for room (PatchCache::put's `wait`)
+    }
   }
 }
 
@@ -321,11 +327,13 @@ void PatchCache::removeModel(ModelId model) {
 // ---- room ------------------------------------------------------------------------------------
 
 /// Makes room for `needed` more bytes and `neededHandles` more descriptors. Called and returns
-/// with `lock` held; releases it while a dirty victim is written back. Throws
-/// Error(ResourceExhausted) when everything left is pinned.
+/// with `lock` held; releases it while a dirty victim is written back, and while it waits for a
+/// pin to go until `waitUntil` (a time in the past: no waiting). Throws Error(ResourceExhausted)
+/// when everything left is pinned (still, after the wait).
 void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed,
                                 std::size_t budget, EvictionPolicy policy,
-                                std::size_t neededHandles) {
+                                std::size_t neededHandles,
+                                std::chrono::steady_clock::time_point waitUntil) {
   Impl& impl = *this;
   if (needed > budget || neededHandles > impl.handleBudget) {
     ++impl.exhausted;
@@ -345,6 +353,10 @@ void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t 
     if (victim == nullptr) {
       if (impl.anyEvictionInTransit()) {
         impl.changed.wait(lock);
+        continue;
+      }
+      if (std::chrono::steady_clock::now() < waitUntil) {
+        impl.changed.wait_until(lock, waitUntil);  // an unpin, or the deadline
         continue;
       }
       ++impl.exhausted;
@@ -476,9 +488,11 @@ PatchCache::Pin PatchCache::find(ModelId model, const ObjectId& object, bool cou
   return Pin(this, &e, e.object);
 }
 
-PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValue value,
-                                bool dirty) {
+PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValue value, bool dirty,
+                                std::chrono::milliseconds wait) {
   const FullKey id{model, object};
+  const auto waitUntil = wait.count() > 0 ? std::chrono::steady_clock::now() + wait
+                                          : std::chrono::steady_clock::time_point{};
   std::unique_lock lock(impl_->mutex);
   impl_->slot(model);
   for (;;) {
@@ -496,7 +510,7 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
     if (value.bytes > e.bytes || value.handles > e.handles) {
       try {
         impl_->makeRoom(lock, value.bytes > e.bytes ? value.bytes - e.bytes : 0, budget_, policy_,
-                        value.handles > e.handles ? value.handles - e.handles : 0);
+                        value.handles > e.handles ? value.handles - e.handles : 0, waitUntil);
       } catch (...) {
         --e.pins;
         throw;
@@ -515,10 +529,10 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
     e.dirtyPasses = 0;
     return Pin(this, &e, e.object);
   }
-  impl_->makeRoom(lock, value.bytes, budget_, policy_, value.handles);
+  impl_->makeRoom(lock, value.bytes, budget_, policy_, value.handles, waitUntil);
   if (impl_->entries.count(id) != 0) {
     lock.unlock();
-    return put(model, object, std::move(value), dirty);
+    return put(model, object, std::move(value), dirty, wait);
   }
   auto owned = std::make_unique<Entry>();
   Entry& e = *owned;
