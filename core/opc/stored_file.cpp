@@ -4,9 +4,11 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
 #include <cerrno>
 #include <cstring>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -91,6 +93,53 @@ std::unique_ptr<StoredFile> openFullGridPositions(const fs::path& dir, int gridS
     return nullptr;  // V3d, or another header
   }
   return file;
+}
+
+std::optional<std::vector<std::byte>> readFullGridPositions(const fs::path& dir, int gridSize,
+                                                            const PatchInfo& info) {
+  const fs::path path = patchFile(dir, info, info.positionsFile);
+  const std::unique_ptr<StoredFile> file = openFile(path);
+  const GridRect& r = info.stored;
+  const std::array<std::int32_t, 2> storedSizes{r.width(), r.height()};
+  const std::vector<std::byte> storedHeader = encodeAaraHeader(AaraType::V3f, storedSizes);
+  const std::size_t rowBytes = static_cast<std::size_t>(r.width()) * 12;
+  const std::vector<std::byte> bytes = readStoredFile(*file, path.string());
+  if (bytes.size() < storedHeader.size() ||
+      !std::equal(storedHeader.begin(), storedHeader.end(), bytes.begin())) {
+    if (detail::decodeAaraHeader(bytes, path.string()).type == AaraType::V3d) {
+      return std::nullopt;
+    }
+    throw Error(ErrorCode::Corrupt, path.string() + ": positions are not V3f of the stored " +
+                                        std::to_string(r.width()) + " x " +
+                                        std::to_string(r.height()));
+  }
+  if (bytes.size() != storedHeader.size() + rowBytes * static_cast<std::size_t>(r.height()) ||
+      r.x0 < 0 || r.y0 < 0 || r.x1 > gridSize || r.y1 > gridSize) {
+    throw Error(ErrorCode::Corrupt, path.string() + ": positions do not fit the stored rectangle");
+  }
+  const auto n = static_cast<std::size_t>(gridSize);
+  const std::array<std::int32_t, 2> fullSizes{gridSize, gridSize};
+  std::vector<std::byte> out = encodeAaraHeader(AaraType::V3f, fullSizes);
+  const std::size_t header = out.size();
+  // Every vertex undefined (three quiet NaNs), then the stored ones copied in. The floats follow
+  // a 13-byte header, so they are written with memcpy (unaligned).
+  out.resize(header + n * n * 12);
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  for (std::size_t i = 0; i < n * n * 3; ++i) {
+    std::memcpy(out.data() + header + i * 4, &nan, 4);
+  }
+  for (int row = 0; row < r.height(); ++row) {
+    const std::byte* from = bytes.data() + storedHeader.size() + rowBytes * row;
+    std::byte* to = out.data() + header + (static_cast<std::size_t>(r.y0 + row) * n + r.x0) * 12;
+    for (int x = 0; x < r.width(); ++x) {
+      float v[3];
+      std::memcpy(v, from + x * 12, 12);
+      if (v[0] == v[0] && v[1] == v[1] && v[2] == v[2]) {
+        std::memcpy(to + x * 12, v, 12);
+      }
+    }
+  }
+  return out;
 }
 
 std::unique_ptr<StoredFile> openCoordinatesFile(const fs::path& dir, const PatchInfo& info) {

@@ -3,6 +3,7 @@
 #include <cstddef>
 #include <filesystem>
 #include <memory>
+#include <optional>
 #include <string_view>
 #include <vector>
 
@@ -40,9 +41,15 @@ class StoredFile {
 std::unique_ptr<StoredFile> openFullGridPositions(const std::filesystem::path& dir, int gridSize,
                                                   const PatchInfo& info);
 
-/// The whole of an open file (`what` names it in errors). Throws Error(Io) when it cannot be read
-/// or is shorter than its size said.
-std::vector<std::byte> readStoredFile(const StoredFile& file, std::string_view what);
+/// The full-grid `.aara` of a patch stored cropped as V3f (what openFullGridPositions() does not
+/// open): the header of encodeAaraHeader(V3f, {gridSize, gridSize}), then the grid's floats with
+/// the stored rectangle's rows copied into place and every other vertex undefined; a vertex with
+/// any NaN component becomes three quiet NaNs (as a decoded PatchGrid has them), so the bytes
+/// equal those of the decoded grid's encoding, made without decoding. Its Local2Global is the
+/// patch's. nullopt for a V3d file (decode and re-base it). Throws as openFullGridPositions(),
+/// and Error(Corrupt) when the file does not hold the stored rectangle.
+std::optional<std::vector<std::byte>> readFullGridPositions(const std::filesystem::path& dir,
+                                                            int gridSize, const PatchInfo& info);
 
 /// The whole of an open file (`what` names it in errors). Throws Error(Io) when it cannot be read
 /// or is shorter than its size said.

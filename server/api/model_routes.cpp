@@ -286,11 +286,17 @@ void sendBody(http::Response& response, std::shared_ptr<const models::EncodedCac
   response.bodyOwner = std::move(body);
 }
 
-/// The full-grid .aara of a patch decoded from its stored file, with the grid's Local2Global as
-/// the encoding's note (a V3d file is re-based on decoding).
+/// The full-grid .aara of a patch whose stored file is laid out otherwise, cached with its
+/// Local2Global as the encoding's note: a cropped V3f file's rows are copied into place (no
+/// decoding); a V3d file is decoded and re-based.
 std::shared_ptr<const models::EncodedCache::Body> encodePositions(
     models::EncodedCache& encoded, const core::LiveModel& live, const core::ModelSnapshot& snapshot,
     const core::PatchInfo& info) {
+  if (std::optional<std::vector<std::byte>> bytes =
+          core::readFullGridPositions(live.dir(), snapshot.model->gridSize(), info)) {
+    return encoded.put(info.key, info.version, models::Encoding::PositionsAara, std::move(*bytes),
+                       matrixText(info.local2global));
+  }
   const core::PatchGrid grid = core::readPatchGrid(live.dir(), *snapshot.model, info);
   const std::span<const float> floats = grid.positions();
   const std::int32_t n = grid.size();
