@@ -32,12 +32,13 @@
 # their file on the handler pool. A third, with a 4 MiB budget, serves the patches stored cropped
 # only (their full grid is decoded and encoded on a miss, then cached in the budget; nginx serves
 # the same full grids as files): the measurement behind encoding them once rather than extending
-# the route with the stored layout. On this 2-core machine that case ran at 0.36x to 0.51x nginx
-# (about 55% of its reads missing), while the model's 17 cropped patches of 336 (5%) fit in the
-# miss case's budget and are answered from it; so the route stays as it is for today, and serving
-# the stored layout with its offsets is the step to take for models with many cropped patches
-# under a small budget. Installs wrk and nginx-light with apt when missing (for this benchmark
-# only).
+# the route with the stored layout. On this 2-core machine (load average 5 to 6 from other work)
+# that case ran at 0.36x to 0.72x nginx when the grid was decoded and re-encoded, and at 0.66x to
+# 0.87x (median 0.72x, about 55% of its reads missing) since the stored rows are copied into
+# place without decoding; the model's 17 cropped patches of 336 (5%) fit in the miss case's
+# budget and are answered from it. So the route stays as it is for today; serving the stored
+# layout with its offsets is the step to take for models with many cropped patches under a small
+# budget. Installs wrk and nginx-light with apt when missing (for this benchmark only).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../.." && pwd)
 BUILD=$(cd "${1:-$ROOT/build}" && pwd)
