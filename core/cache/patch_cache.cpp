@@ -1,7 +1,6 @@
 #include "core/cache/patch_cache.hpp"
 
 #include <algorithm>
-#include <chrono>
 #include <condition_variable>
 #include <limits>
 #include <list>
@@ -222,8 +221,7 @@ struct PatchCache::Impl {
   }
 
   void makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed, std::size_t budget,
-                EvictionPolicy policy, std::size_t neededHandles = 0,
-                std::chrono::steady_clock::time_point waitUntil = {});
+                EvictionPolicy policy, std::size_t neededHandles = 0);
 };
 
 PatchCache::PatchCache(std::size_t budgetBytes, EvictionPolicy policy)
@@ -275,12 +273,8 @@ std::size_t PatchCache::Pin::bytes() const {
 void PatchCache::unpin(void* entry) {
   std::lock_guard lock(impl_->mutex);
   Entry& e = *static_cast<Entry*>(entry);
-  if (--e.pins == 0) {
-    if (e.detached) {
-      impl_->remove(e);  // notifies
-    } else {
-      impl_->changed.notify_all();  // a put() may wait for room (PatchCache::put's `wait`)
-    }
+  if (--e.pins == 0 && e.detached) {
+    impl_->remove(e);
   }
 }
 
@@ -327,13 +321,11 @@ void PatchCache::removeModel(ModelId model) {
 // ---- room ------------------------------------------------------------------------------------
 
 /// Makes room for `needed` more bytes and `neededHandles` more descriptors. Called and returns
-/// with `lock` held; releases it while a dirty victim is written back, and while it waits for a
-/// pin to go until `waitUntil` (a time in the past: no waiting). Throws Error(ResourceExhausted)
-/// when everything left is pinned (still, after the wait).
+/// with `lock` held; releases it while a dirty victim is written back. Throws
+/// Error(ResourceExhausted) when everything left is pinned.
 void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed,
                                 std::size_t budget, EvictionPolicy policy,
-                                std::size_t neededHandles,
-                                std::chrono::steady_clock::time_point waitUntil) {
+                                std::size_t neededHandles) {
   Impl& impl = *this;
   if (needed > budget || neededHandles > impl.handleBudget) {
     ++impl.exhausted;
@@ -353,10 +345,6 @@ void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t 
     if (victim == nullptr) {
       if (impl.anyEvictionInTransit()) {
         impl.changed.wait(lock);
-        continue;
-      }
-      if (std::chrono::steady_clock::now() < waitUntil) {
-        impl.changed.wait_until(lock, waitUntil);  // an unpin, or the deadline
         continue;
       }
       ++impl.exhausted;
@@ -488,11 +476,9 @@ PatchCache::Pin PatchCache::find(ModelId model, const ObjectId& object, bool cou
   return Pin(this, &e, e.object);
 }
 
-PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValue value, bool dirty,
-                                std::chrono::milliseconds wait) {
+PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValue value,
+                                bool dirty) {
   const FullKey id{model, object};
-  const auto waitUntil = wait.count() > 0 ? std::chrono::steady_clock::now() + wait
-                                          : std::chrono::steady_clock::time_point{};
   std::unique_lock lock(impl_->mutex);
   impl_->slot(model);
   for (;;) {
@@ -510,7 +496,7 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
     if (value.bytes > e.bytes || value.handles > e.handles) {
       try {
         impl_->makeRoom(lock, value.bytes > e.bytes ? value.bytes - e.bytes : 0, budget_, policy_,
-                        value.handles > e.handles ? value.handles - e.handles : 0, waitUntil);
+                        value.handles > e.handles ? value.handles - e.handles : 0);
       } catch (...) {
         --e.pins;
         throw;
@@ -529,10 +515,10 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
     e.dirtyPasses = 0;
     return Pin(this, &e, e.object);
   }
-  impl_->makeRoom(lock, value.bytes, budget_, policy_, value.handles, waitUntil);
+  impl_->makeRoom(lock, value.bytes, budget_, policy_, value.handles);
   if (impl_->entries.count(id) != 0) {
     lock.unlock();
-    return put(model, object, std::move(value), dirty, wait);
+    return put(model, object, std::move(value), dirty);
   }
   auto owned = std::make_unique<Entry>();
   Entry& e = *owned;

@@ -1,7 +1,6 @@
 #pragma once
 
 #include <array>
-#include <chrono>
 #include <cstddef>
 #include <cstdint>
 #include <map>
@@ -160,12 +159,9 @@ class PatchCache {
   Pin find(ModelId model, const ObjectId& id, bool countMiss = true);
 
   /// Inserts or replaces an object (new data from a merge or import, an encoding, an open file),
-  /// resident and pinned. When `dirty`, it is written back before it is ever evicted. When its
-  /// bytes or its handles do not fit beside what is pinned, waits up to `wait` for pins to go
-  /// (only for callers that hold no pin that could be the one waited for), then throws
-  /// Error(ResourceExhausted).
-  Pin put(ModelId model, const ObjectId& id, CacheValue value, bool dirty,
-          std::chrono::milliseconds wait = std::chrono::milliseconds(0));
+  /// resident and pinned. When `dirty`, it is written back before it is ever evicted. Throws
+  /// Error(ResourceExhausted) when its bytes or its handles do not fit beside what is pinned.
+  Pin put(ModelId model, const ObjectId& id, CacheValue value, bool dirty);
 
   /// Writes back every dirty entry of the model (they stay resident, now clean).
   void flush(ModelId model);

@@ -15,10 +15,6 @@ using core::ErrorCode;
 
 namespace {
 
-/// How long a put() waits for responses in flight to release their pins when the budget (or the
-/// handle budget) is full of them: the read is queued that long rather than refused at once.
-constexpr std::chrono::milliseconds kRoomWait{5000};
-
 /// Bookkeeping bytes charged for an open file: the entry and the file object (its pages live in
 /// the kernel's page cache, outside the budget).
 constexpr std::size_t kOpenFileBytes = 256;
@@ -105,8 +101,7 @@ std::shared_ptr<const EncodedCache::Body> EncodedCache::put(const core::PatchKey
   auto object =
       std::make_shared<const EncodedBytes>(EncodedBytes{std::move(bytes), std::move(note)});
   return hold<Body>(cache_.put(model_, bodyId(key, version, encoding),
-                               core::CacheValue{std::move(object), size, 0}, /*dirty=*/false,
-                               kRoomWait));
+                               core::CacheValue{std::move(object), size, 0}, /*dirty=*/false));
 }
 
 std::shared_ptr<const EncodedCache::File> EncodedCache::findFile(const core::PatchKey& key,
@@ -122,7 +117,7 @@ std::shared_ptr<const EncodedCache::File> EncodedCache::putFile(
   std::shared_ptr<const core::StoredFile> object = std::move(file);
   return hold<File>(cache_.put(model_, fileId(key, version, kind),
                                core::CacheValue{std::move(object), kOpenFileBytes, 1},
-                               /*dirty=*/false, kRoomWait));
+                               /*dirty=*/false));
 }
 
 void EncodedCache::dropVersion(const core::PatchKey& key, std::uint64_t version) {

@@ -64,9 +64,8 @@ class EncodedCache : public std::enable_shared_from_this<EncodedCache> {
   std::shared_ptr<const Body> find(const core::PatchKey& key, std::uint64_t version,
                                    Encoding encoding, bool countMiss) const;
   /// Caches `bytes` as the body, with `note` (a short text the encoder keeps beside them, such as
-  /// a response header's value), evicting others to make room, and returns it held. When the
-  /// budget is full of pinned data (responses in flight), waits up to 5 s for room, then throws
-  /// core::Error(ResourceExhausted). The caller must hold nothing of this cache.
+  /// a response header's value), evicting others to make room, and returns it held. Throws
+  /// core::Error(ResourceExhausted) when the budget is full of pinned data.
   std::shared_ptr<const Body> put(const core::PatchKey& key, std::uint64_t version,
                                   Encoding encoding, std::vector<std::byte> bytes,
                                   std::string note = {});
@@ -75,8 +74,8 @@ class EncodedCache : public std::enable_shared_from_this<EncodedCache> {
   std::shared_ptr<const File> findFile(const core::PatchKey& key, std::uint64_t version,
                                        StoredKind kind, bool countMiss) const;
   /// Caches the open file, closing the least recently used unpinned ones beyond the handle
-  /// budget, and returns it held. When every file the budget allows is being sent, waits up to
-  /// 5 s for one to finish, then throws core::Error(ResourceExhausted) (`file` is closed then).
+  /// budget, and returns it held. Throws core::Error(ResourceExhausted) when every file the
+  /// budget allows is being sent (`file` is closed then).
   std::shared_ptr<const File> putFile(const core::PatchKey& key, std::uint64_t version,
                                       StoredKind kind, std::unique_ptr<core::StoredFile> file);
 
