@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <condition_variable>
+#include <limits>
 #include <list>
 #include <mutex>
 #include <unordered_map>
@@ -19,10 +20,10 @@ std::string_view toString(MemoryCategory category) {
       return "coordinates";
     case MemoryCategory::Textures:
       return "textures";
-    case MemoryCategory::Tiles:
-      return "tiles";
-    case MemoryCategory::PositionFiles:
-      return "position_files";
+    case MemoryCategory::Encoded:
+      return "encoded";
+    case MemoryCategory::OpenFiles:
+      return "open_files";
   }
   return "unknown";
 }
@@ -48,7 +49,7 @@ struct FullKey {
 struct FullKeyHash {
   std::size_t operator()(const FullKey& k) const noexcept {
     return PatchKeyHash{}(k.object.key) * 131 + k.object.version * 1000003 + k.model * 7 +
-           static_cast<std::size_t>(k.object.category);
+           static_cast<std::size_t>(k.object.category) + (std::size_t{k.object.format} << 3);
   }
 };
 
@@ -59,6 +60,8 @@ struct Entry {
   std::shared_ptr<const void> object;
   /// Bytes charged to the budget: the object's size, or the reservation while loading.
   std::size_t bytes = 0;
+  /// Descriptors the object holds (charged to the handle budget).
+  std::size_t handles = 0;
   int pins = 0;
   bool dirty = false;
   State state = State::Loading;
@@ -95,8 +98,15 @@ struct PatchCache::Impl {
   ModelId nextModel = 1;
   std::size_t used = 0;
   std::size_t peak = 0;
+  std::size_t usedHandles = 0;
+  std::size_t handleBudget = std::numeric_limits<std::size_t>::max();
   std::array<std::size_t, kMemoryCategoryCount> usedByCategory{};
   std::uint64_t hits = 0, misses = 0, evictions = 0, writeBacks = 0, exhausted = 0;
+
+  void chargeHandles(Entry& e, std::size_t handles) {
+    usedHandles = usedHandles - e.handles + handles;
+    e.handles = handles;
+  }
 
   void charge(Entry& e, std::ptrdiff_t delta) {
     used += delta;
@@ -111,6 +121,7 @@ struct PatchCache::Impl {
 
   void remove(Entry& e) {
     charge(e, -static_cast<std::ptrdiff_t>(e.bytes));
+    chargeHandles(e, 0);
     if (clockHand == e.ringPos) {
       ++clockHand;
     }
@@ -134,8 +145,12 @@ struct PatchCache::Impl {
 
   bool evictable(const Entry& e) const { return e.pins == 0 && e.state == State::Resident; }
 
-  /// Picks the next victim by `policy`; nullptr when every entry is pinned or in transit.
-  Entry* chooseVictim(EvictionPolicy policy) {
+  /// Picks the next victim by `policy` (among entries holding descriptors only, when
+  /// `forHandles`); nullptr when every such entry is pinned or in transit.
+  Entry* chooseVictim(EvictionPolicy policy, bool forHandles) {
+    const auto candidate = [&](const Entry& e) {
+      return evictable(e) && (!forHandles || e.handles > 0);
+    };
     if (ring.empty()) {
       return nullptr;
     }
@@ -148,7 +163,7 @@ struct PatchCache::Impl {
         bool moved = false;
         for (; it != ring.end(); ++it) {
           Entry& e = **it;
-          if (!evictable(e)) {
+          if (!candidate(e)) {
             continue;
           }
           if (e.dirty && !e.secondChanceSpent) {
@@ -171,7 +186,7 @@ struct PatchCache::Impl {
       }
       Entry& e = **clockHand;
       ++clockHand;
-      if (!evictable(e)) {
+      if (!candidate(e)) {
         continue;
       }
       if (e.referenced) {
@@ -206,7 +221,7 @@ struct PatchCache::Impl {
   }
 
   void makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed, std::size_t budget,
-                EvictionPolicy policy);
+                EvictionPolicy policy, std::size_t neededHandles = 0);
 };
 
 PatchCache::PatchCache(std::size_t budgetBytes, EvictionPolicy policy)
@@ -305,19 +320,28 @@ void PatchCache::removeModel(ModelId model) {
 
 // ---- room ------------------------------------------------------------------------------------
 
-/// Makes room for `needed` more bytes. Called and returns with `lock` held; releases it while a
-/// dirty victim is written back. Throws Error(ResourceExhausted) when everything left is pinned.
+/// Makes room for `needed` more bytes and `neededHandles` more descriptors. Called and returns
+/// with `lock` held; releases it while a dirty victim is written back. Throws
+/// Error(ResourceExhausted) when everything left is pinned.
 void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed,
-                                std::size_t budget, EvictionPolicy policy) {
+                                std::size_t budget, EvictionPolicy policy,
+                                std::size_t neededHandles) {
   Impl& impl = *this;
-  if (needed > budget) {
+  if (needed > budget || neededHandles > impl.handleBudget) {
     ++impl.exhausted;
-    throw Error(ErrorCode::ResourceExhausted, "object of " + std::to_string(needed) +
-                                                  " bytes exceeds the memory budget of " +
-                                                  std::to_string(budget) + " bytes");
+    throw Error(ErrorCode::ResourceExhausted,
+                needed > budget
+                    ? "object of " + std::to_string(needed) +
+                          " bytes exceeds the memory budget of " + std::to_string(budget) + " bytes"
+                    : "object holds more descriptors than the cache may");
   }
-  while (impl.used + needed > budget) {
-    Entry* victim = impl.chooseVictim(policy);
+  for (;;) {
+    const bool bytesShort = impl.used + needed > budget;
+    const bool handlesShort = impl.usedHandles + neededHandles > impl.handleBudget;
+    if (!bytesShort && !handlesShort) {
+      break;
+    }
+    Entry* victim = impl.chooseVictim(policy, !bytesShort);
     if (victim == nullptr) {
       if (impl.anyEvictionInTransit()) {
         impl.changed.wait(lock);
@@ -325,8 +349,10 @@ void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t 
       }
       ++impl.exhausted;
       throw Error(ErrorCode::ResourceExhausted,
-                  "memory budget of " + std::to_string(budget) +
-                      " bytes is exhausted: every resident patch is in use");
+                  bytesShort ? "memory budget of " + std::to_string(budget) +
+                                   " bytes is exhausted: every resident patch is in use"
+                             : "every one of the " + std::to_string(impl.handleBudget) +
+                                   " open files the cache may hold is in use");
     }
     if (!victim->dirty) {
       ++impl.evictions;
@@ -433,21 +459,21 @@ PatchCache::Pin PatchCache::get(ModelId model, const ObjectId& object) {
   return Pin(this, &e, e.object);
 }
 
-std::shared_ptr<const void> PatchCache::find(ModelId model, const ObjectId& object,
-                                             bool countMiss) {
+PatchCache::Pin PatchCache::find(ModelId model, const ObjectId& object, bool countMiss) {
   const std::lock_guard lock(impl_->mutex);
   const auto it = impl_->entries.find(FullKey{model, object});
   if (it == impl_->entries.end() || it->second->state == State::Loading) {
     if (countMiss) {
       ++impl_->misses;
     }
-    return nullptr;
+    return {};
   }
   Entry& e = *it->second;
   ++impl_->hits;
+  ++e.pins;
   e.referenced = true;
   e.dirtyPasses = 0;
-  return e.object;
+  return Pin(this, &e, e.object);
 }
 
 PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValue value,
@@ -467,9 +493,10 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
     }
     // Replace in place: pin first so making room cannot evict it.
     ++e.pins;
-    if (value.bytes > e.bytes) {
+    if (value.bytes > e.bytes || value.handles > e.handles) {
       try {
-        impl_->makeRoom(lock, value.bytes - e.bytes, budget_, policy_);
+        impl_->makeRoom(lock, value.bytes > e.bytes ? value.bytes - e.bytes : 0, budget_, policy_,
+                        value.handles > e.handles ? value.handles - e.handles : 0);
       } catch (...) {
         --e.pins;
         throw;
@@ -477,6 +504,7 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
     }
     impl_->charge(e,
                   static_cast<std::ptrdiff_t>(value.bytes) - static_cast<std::ptrdiff_t>(e.bytes));
+    impl_->chargeHandles(e, value.handles);
     e.bytes = value.bytes;
     e.object = std::move(value.object);
     if (dirty && !e.dirty) {
@@ -487,7 +515,7 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
     e.dirtyPasses = 0;
     return Pin(this, &e, e.object);
   }
-  impl_->makeRoom(lock, value.bytes, budget_, policy_);
+  impl_->makeRoom(lock, value.bytes, budget_, policy_, value.handles);
   if (impl_->entries.count(id) != 0) {
     lock.unlock();
     return put(model, object, std::move(value), dirty);
@@ -504,6 +532,7 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
   impl_->entries.emplace(id, std::move(owned));
   impl_->addToRing(e);
   impl_->charge(e, static_cast<std::ptrdiff_t>(e.bytes));
+  impl_->chargeHandles(e, value.handles);
   return Pin(this, &e, e.object);
 }
 
@@ -600,6 +629,11 @@ void PatchCache::invalidate(ModelId model, const ObjectId& object) {
   }
 }
 
+void PatchCache::setHandleBudget(std::size_t handles) {
+  const std::lock_guard lock(impl_->mutex);
+  impl_->handleBudget = handles;
+}
+
 bool PatchCache::resident(ModelId model, const ObjectId& object) const {
   std::lock_guard lock(impl_->mutex);
   const auto it = impl_->entries.find(FullKey{model, object});
@@ -621,6 +655,8 @@ CacheStats PatchCache::stats() const {
       s.pinnedBytes += e->bytes;
     }
   }
+  s.handles = impl_->usedHandles;
+  s.handleBudget = impl_->handleBudget;
   s.hits = impl_->hits;
   s.misses = impl_->misses;
   s.evictions = impl_->evictions;

@@ -11,15 +11,17 @@
 
 namespace vsm::core {
 
-/// What a cached object is, for accounting against the budget by category. Tiles are encoded
-/// 3D Tiles content (GLB); PositionFiles are positions encoded as .aara files in memory, which the
-/// server sends with sendfile(2).
+/// What a cached object is, for accounting against the budget by category: patch data as the
+/// store loads it (Positions, Coordinates, Textures); Encoded, data the cache's user derived from
+/// patch data (a file format, a compressed image), its kind told by ObjectId::format; OpenFiles,
+/// stored files the user holds open (their bookkeeping bytes; each holds descriptors, counted
+/// against the handle budget).
 enum class MemoryCategory : std::uint8_t {
   Positions = 0,
   Coordinates,
   Textures,
-  Tiles,
-  PositionFiles
+  Encoded,
+  OpenFiles
 };
 inline constexpr std::size_t kMemoryCategoryCount = 5;
 std::string_view toString(MemoryCategory category);
@@ -31,13 +33,17 @@ struct ObjectId {
   PatchKey key;
   std::uint64_t version = 1;
   MemoryCategory category = MemoryCategory::Positions;
+  /// Which encoding or file, for Encoded and OpenFiles entries: chosen by the cache's user, opaque
+  /// to the cache (0 for patch data).
+  std::uint8_t format = 0;
   friend bool operator==(const ObjectId&, const ObjectId&) = default;
 };
 
-/// A loaded object and the bytes it occupies.
+/// A loaded object, the bytes it occupies and the descriptors (open files) it holds.
 struct CacheValue {
   std::shared_ptr<const void> object;
   std::size_t bytes = 0;
+  std::size_t handles = 0;
 };
 
 /// The backing store of one model: where the cache loads from and writes dirty data back to.
@@ -72,6 +78,9 @@ struct CacheStats {
   /// The most ever resident at once.
   std::size_t peakResidentBytes = 0;
   std::size_t pinnedBytes = 0;
+  /// Descriptors held by entries (CacheValue::handles), and their bound (setHandleBudget()).
+  std::size_t handles = 0;
+  std::size_t handleBudget = 0;
   std::array<std::size_t, kMemoryCategoryCount> residentByCategory{};
   /// Model name -> resident bytes.
   std::map<std::string, std::size_t> residentByModel;
@@ -79,14 +88,17 @@ struct CacheStats {
   std::uint64_t misses = 0;
   std::uint64_t evictions = 0;
   std::uint64_t writeBacks = 0;
-  /// Loads refused because everything resident was pinned.
+  /// Loads and puts refused because everything resident (or every entry holding descriptors) was
+  /// pinned.
   std::uint64_t exhausted = 0;
 };
 
 /// One memory budget over every open model. Only objects loaded through the cache count: model
 /// metadata stays outside it. Resident bytes never exceed the budget: room is made *before* a load
 /// by evicting unpinned entries (clean ones dropped, dirty ones written back first); when that is
-/// not enough the caller gets Error(ResourceExhausted), never an allocation failure.
+/// not enough the caller gets Error(ResourceExhausted), never an allocation failure. A second,
+/// smaller budget bounds the descriptors entries hold (open files put by the user), so that the
+/// process never runs out of them: beyond it the least recently used unpinned file is closed.
 ///
 /// Thread-safe. One mutex guards the table, the policy state and the counters; it is never held
 /// across a PatchStore call (load or write-back) — entries being loaded or written back are marked
@@ -138,16 +150,17 @@ class PatchCache {
   /// even after evicting everything unpinned, or the store's error.
   Pin get(ModelId model, const ObjectId& id);
 
-  /// The object when it is resident; nullptr when it is not (or still loading). Never loads, never
-  /// waits and never pins: for callers that must not block (network threads). The caller keeps
-  /// the object alive by the returned pointer; should the entry be evicted meanwhile, its bytes
-  /// outlive their charge for that long. Counts a hit, and a miss unless `countMiss` is false (a
-  /// second look for the same request, whose first look counted it); a hit counts as a use for
-  /// the eviction policy.
-  std::shared_ptr<const void> find(ModelId model, const ObjectId& id, bool countMiss = true);
+  /// The object, pinned, when it is resident; an empty Pin when it is not (or still loading).
+  /// Never loads and never waits (the lock is held for a table look-up only): for callers that
+  /// must not block (network threads). The pin keeps the entry charged and unevictable while, say,
+  /// a response is written from it. Counts a hit, and a miss unless `countMiss` is false (a second
+  /// look for the same request, whose first look counted it); a hit counts as a use for the
+  /// eviction policy.
+  Pin find(ModelId model, const ObjectId& id, bool countMiss = true);
 
-  /// Inserts or replaces an object (new data from a merge or import), resident and pinned. When
-  /// `dirty`, it is written back before it is ever evicted. Throws Error(ResourceExhausted).
+  /// Inserts or replaces an object (new data from a merge or import, an encoding, an open file),
+  /// resident and pinned. When `dirty`, it is written back before it is ever evicted. Throws
+  /// Error(ResourceExhausted) when its bytes or its handles do not fit beside what is pinned.
   Pin put(ModelId model, const ObjectId& id, CacheValue value, bool dirty);
 
   /// Writes back every dirty entry of the model (they stay resident, now clean).
@@ -158,6 +171,10 @@ class PatchCache {
   /// the next get() loads afresh. Holders of pins keep their (old) object; its bytes stay charged
   /// until the last pin goes. Never writes back.
   void invalidate(ModelId model, const ObjectId& id);
+
+  /// Bounds the descriptors held by entries (CacheValue::handles); default: no bound. Entries
+  /// beyond a lowered bound go as room is next made. Thread-safe.
+  void setHandleBudget(std::size_t handles);
 
   bool resident(ModelId model, const ObjectId& id) const;
   CacheStats stats() const;

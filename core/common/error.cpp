@@ -1,5 +1,6 @@
 #include "core/common/error.hpp"
 
+#include <cerrno>
 #include <cstring>
 
 namespace vsm::core {
@@ -29,8 +30,11 @@ std::string_view toString(ErrorCode code) {
 }
 
 void throwIoError(std::string_view what, std::string_view path, int errnum) {
-  throw Error(ErrorCode::Io,
-              std::string(what) + " '" + std::string(path) + "': " + std::strerror(errnum));
+  // Out of descriptors (the process's or the system's): transient, not a broken store, so callers
+  // answer "retry shortly" (503) rather than a server error.
+  const ErrorCode code =
+      errnum == EMFILE || errnum == ENFILE ? ErrorCode::Unavailable : ErrorCode::Io;
+  throw Error(code, std::string(what) + " '" + std::string(path) + "': " + std::strerror(errnum));
 }
 
 }  // namespace vsm::core

@@ -31,7 +31,8 @@ class Error : public std::runtime_error {
   ErrorCode code_;
 };
 
-/// Throws Error(Io) with `what`, the path and strerror(errno).
+/// Throws Error(Io) with `what`, the path and strerror(errno); Error(Unavailable) for EMFILE and
+/// ENFILE (out of descriptors: transient).
 [[noreturn]] void throwIoError(std::string_view what, std::string_view path, int errnum);
 
 }  // namespace vsm::core

@@ -116,7 +116,7 @@ std::size_t AaraArray::elementCount() const {
 
 namespace detail {
 
-std::vector<std::byte> readFile(const std::filesystem::path& path, std::size_t maxBytes) {
+int openForReading(const std::filesystem::path& path) {
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
   if (fd < 0) {
     const int errnum = errno;
@@ -125,6 +125,11 @@ std::vector<std::byte> readFile(const std::filesystem::path& path, std::size_t m
     }
     throwIoError("cannot open", path.string(), errnum);
   }
+  return fd;
+}
+
+std::vector<std::byte> readFile(const std::filesystem::path& path, std::size_t maxBytes) {
+  const int fd = openForReading(path);
   struct stat st {};
   const std::size_t expected =
       ::fstat(fd, &st) == 0 && st.st_size > 0 ? static_cast<std::size_t>(st.st_size) : 0;

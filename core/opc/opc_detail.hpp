@@ -1,6 +1,6 @@
 #pragma once
 
-// Internal to core/opc: shared by aara.cpp, opc_store.cpp and validate.cpp. Not part of the
+// Internal to core/opc: shared by aara.cpp, opc_files.cpp, opc_reader.cpp, opc_writer.cpp, stored_file.cpp, texture_file.cpp and validate.cpp. Not part of the
 // module's interface; other modules include aara.hpp, opc_reader.hpp, opc_writer.hpp and
 // validate.hpp only.
 
@@ -34,6 +34,10 @@ struct AaraHeader {
 AaraHeader decodeAaraHeader(std::span<const std::byte> bytes, std::string_view what);
 /// Reads only the header of an `.aara` file. Throws Error(NotFound / Io / Corrupt).
 AaraHeader readAaraHeader(const std::filesystem::path& path);
+
+/// Opens a file read-only (close-on-exec). Throws Error(NotFound) when it does not exist,
+/// Error(Unavailable) when the process is out of descriptors, Error(Io) otherwise.
+int openForReading(const std::filesystem::path& path);
 
 /// Reads a whole file, or its first `maxBytes`. Throws Error(NotFound) when it does not exist,
 /// Error(Io) on any other failure.

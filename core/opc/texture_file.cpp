@@ -15,6 +15,7 @@
 #include "core/opc/opc_detail.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
+#include "core/opc/stored_file.hpp"
 #include "core/opc/validate.hpp"
 
 namespace vsm::core {
@@ -133,26 +134,7 @@ std::vector<std::byte> readPatchTexturePng(const fs::path& dir, const PatchInfo&
 }
 
 std::vector<std::byte> readPatchCoordinates(const fs::path& dir, const PatchInfo& info) {
-  if (info.coordinatesFile.empty()) {
-    throw Error(ErrorCode::NotFound, "patch " + info.folder + " has no texture coordinates");
-  }
-  const fs::path patchesDir = patchesDirOf(dir);
-  const fs::path folderDir =
-      detail::findEntry(patchesDir, info.folder).value_or(patchesDir / info.folder);
-  const fs::path file =
-      detail::findEntry(folderDir, info.coordinatesFile).value_or(folderDir / info.coordinatesFile);
-  std::vector<std::byte> bytes = detail::readFile(file);
-  const AaraArray array = decodeAara(bytes, file.string());
-  const GridRect& r = info.stored;
-  if ((array.type != AaraType::V2f && array.type != AaraType::V2d) || array.sizes.size() != 2 ||
-      array.sizes[0] != r.width() || array.sizes[1] != r.height()) {
-    throw Error(ErrorCode::Corrupt, file.string() +
-                                        ": texture coordinates must be V2f or V2d of the stored "
-                                        "positions' size " +
-                                        std::to_string(r.width()) + " x " +
-                                        std::to_string(r.height()));
-  }
-  return bytes;
+  return readStoredFile(*openCoordinatesFile(dir, info), info.coordinatesFile);
 }
 
 std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& model,

@@ -259,6 +259,11 @@ PatchCache::Pin LiveModel::texture(const ModelSnapshot& snapshot, const PatchKey
   return store_->cache().get(store_->id(), {key, info.version, MemoryCategory::Textures});
 }
 
+void LiveModel::onPublish(std::function<void(const ReplacedVersions&)> observer) {
+  std::lock_guard lock(mutex_);
+  onPublish_ = std::move(observer);
+}
+
 std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
   if (lock_ == nullptr) {
     throw Error(ErrorCode::Conflict, "model '" + name_ + "' is open for reading only");
@@ -483,6 +488,21 @@ void ModelEdit::publish(const CancelToken* cancel) {
     std::lock_guard lock(live_.mutex_);
     live_.snapshot_->onRelease = std::move(release);
     live_.snapshot_ = std::move(snapshot);
+  }
+  // What others derived from the replaced versions goes now (see LiveModel::onPublish).
+  LiveModel::ReplacedVersions replaced;
+  std::function<void(const LiveModel::ReplacedVersions&)> observer;
+  {
+    std::lock_guard lock(live_.mutex_);
+    observer = live_.onPublish_;
+  }
+  if (observer) {
+    for (const PatchKey& key : changed_) {
+      if (const PatchInfo* old = base_->model->find(key)) {
+        replaced.emplace_back(key, old->version);
+      }
+    }
+    observer(replaced);
   }
 
   // 4. Reported, never undone; the next open retries it.

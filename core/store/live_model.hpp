@@ -8,6 +8,8 @@
 #include <mutex>
 #include <set>
 #include <string>
+#include <utility>
+#include <vector>
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/progress.hpp"
@@ -92,6 +94,13 @@ class LiveModel {
   /// syncing.
   std::unique_ptr<ModelEdit> beginEdit();
 
+  /// Patch versions a publish replaced (or removed): (key, old version).
+  using ReplacedVersions = std::vector<std::pair<PatchKey, std::uint64_t>>;
+  /// Sets the one function called after every publish with the versions it replaced, on the
+  /// publishing thread with no lock held: for caches of data derived from patches (encoded
+  /// responses) to drop what readers of the new version never ask for. Thread-safe.
+  void onPublish(std::function<void(const ReplacedVersions&)> observer);
+
   class Store;  // the PatchStore over the directory; defined in the .cpp
 
  private:
@@ -112,6 +121,7 @@ class LiveModel {
   std::atomic<bool> editing_{false};
   /// Null when opened for reading.
   std::shared_ptr<const durable::WriterLock> lock_;
+  std::function<void(const ReplacedVersions&)> onPublish_;  // guarded by mutex_
 };
 
 /// The next version of a LiveModel, invisible to readers until publish(). A changed patch gets

@@ -10,19 +10,18 @@
 #include <set>
 #include <span>
 
-#include <fcntl.h>
-#include <sys/mman.h>
-#include <sys/uio.h>
-#include <unistd.h>
-
 #include <nlohmann/json.hpp>
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
+#include "core/opc/aara.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/stored_file.hpp"
 #include "core/opc/texture_file.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
+#include "core/tiles/lod_cut.hpp"
 #include "server/jobs/job_registry.hpp"
 #include "server/jobs/model_jobs.hpp"
 #include "server/models/encoded_cache.hpp"
@@ -37,157 +36,10 @@ using nlohmann::json;
 
 namespace {
 
-/// The .aara bytes of one version of a patch's positions in an anonymous in-memory file (memfd),
-/// sealed against writes and mapped read-only: the server sends it with sendfile(2) like a static
-/// file, and every response is answered from it without the grid it was made from. Cached in the
-/// model's EncodedCache (MemoryCategory::PositionFiles), so it counts against the memory budget.
-class AaraFile {
- public:
-  /// The file of `grid`; nullptr when the system has no memfd or it cannot be written or mapped
-  /// (the caller then answers from the grid).
-  static std::shared_ptr<const AaraFile> make(const core::PatchGrid& grid) {
-    auto file = std::make_shared<AaraFile>();
-    file->fd_ = ::memfd_create("vsm-positions", MFD_CLOEXEC | MFD_ALLOW_SEALING);
-    if (file->fd_ < 0) {
-      return nullptr;
-    }
-    const std::string header = aaraHeader(grid.size());
-    const std::span<const float> floats = grid.positions();
-    const std::size_t size = header.size() + floats.size_bytes();
-    const iovec parts[2] = {{const_cast<char*>(header.data()), header.size()},
-                            {const_cast<float*>(floats.data()), floats.size_bytes()}};
-    std::size_t written = 0;
-    while (written < size) {
-      // One writev for the common case; a short write continues from where it stopped.
-      iovec rest[2];
-      int count = 0;
-      std::size_t skip = written;
-      for (const iovec& part : parts) {
-        if (skip >= part.iov_len) {
-          skip -= part.iov_len;
-          continue;
-        }
-        rest[count++] = {static_cast<char*>(part.iov_base) + skip, part.iov_len - skip};
-        skip = 0;
-      }
-      const ssize_t n = ::writev(file->fd_, rest, count);
-      if (n < 0 && errno == EINTR) {
-        continue;
-      }
-      if (n <= 0) {
-        return nullptr;
-      }
-      written += static_cast<std::size_t>(n);
-    }
-    // Sealed: nobody can change the bytes a response is being sent from.
-    ::fcntl(file->fd_, F_ADD_SEALS, F_SEAL_SHRINK | F_SEAL_GROW | F_SEAL_WRITE | F_SEAL_SEAL);
-    void* map = ::mmap(nullptr, size, PROT_READ, MAP_SHARED, file->fd_, 0);
-    if (map == MAP_FAILED) {
-      return nullptr;
-    }
-    file->map_ = map;
-    file->size_ = size;
-    file->gridSize_ = std::to_string(grid.size());
-    file->local2global_ = matrixText(grid.local2global());
-    return file;
-  }
-
-  AaraFile() = default;
-  AaraFile(const AaraFile&) = delete;
-  AaraFile& operator=(const AaraFile&) = delete;
-  ~AaraFile() {
-    if (map_ != nullptr) {
-      ::munmap(map_, size_);
-    }
-    if (fd_ >= 0) {
-      ::close(fd_);
-    }
-  }
-
-  int fd() const { return fd_; }
-  /// The whole .aara file: header and floats (the mapping shares the file's pages).
-  std::string_view bytes() const { return {static_cast<const char*>(map_), size_}; }
-  /// Values of the X-VSM-Grid-Size and X-VSM-Local2Global headers.
-  const std::string& gridSize() const { return gridSize_; }
-  const std::string& local2global() const { return local2global_; }
-
- private:
-  int fd_ = -1;
-  void* map_ = nullptr;
-  std::size_t size_ = 0;
-  std::string gridSize_;
-  std::string local2global_;
-};
-
-/// The size of aaraHeader(): what precedes the floats.
-constexpr std::size_t kAaraHeaderBytes = 13;
-
 /// Patch metadata and data: revalidated after a minute. The URL names no version, so a merge
 /// changes what it returns; a minute of staleness in client caches is the trade for fewer
 /// round trips (the ETag makes the revalidation cheap).
 constexpr std::string_view kPatchCacheControl = "public, max-age=60";
-
-/// FNV-1a, 64 bits: a digest for entity tags (not a security boundary: the server makes them).
-class Digest {
- public:
-  void add(const void* data, std::size_t size) {
-    const auto* bytes = static_cast<const unsigned char*>(data);
-    for (std::size_t i = 0; i < size; ++i) {
-      hash_ = (hash_ ^ bytes[i]) * 1099511628211ull;
-    }
-  }
-  template <typename T>
-  void add(const T& value) {
-    static_assert(std::is_trivially_copyable_v<T>);
-    add(&value, sizeof value);
-  }
-  void add(std::string_view text) {
-    add(text.size());
-    add(text.data(), text.size());
-  }
-  void add(const core::Box3d& box) {
-    for (const double v : {box.min.x, box.min.y, box.min.z, box.max.x, box.max.y, box.max.z}) {
-      add(v);
-    }
-  }
-  std::string hex() const {
-    char text[17];
-    std::snprintf(text, sizeof text, "%016llx", static_cast<unsigned long long>(hash_));
-    return text;
-  }
-
- private:
-  std::uint64_t hash_ = 14695981039346656037ull;
-};
-
-void addPatch(Digest& digest, const core::PatchInfo& info) {
-  digest.add(info.key.depth);
-  digest.add(info.key.x);
-  digest.add(info.key.y);
-  digest.add(info.version);
-  digest.add(std::string_view(info.folder));
-  digest.add(info.childMask);
-  digest.add(info.globalBox);
-  digest.add(info.local2global.m);
-}
-
-Digest modelDigest(const core::ModelSnapshot& snapshot) {
-  Digest digest;
-  digest.add(snapshot.model->gridSize());
-  for (const auto& [key, info] : snapshot.model->patches()) {
-    addPatch(digest, info);
-  }
-  return digest;
-}
-
-/// The entity tag of a view of the model chosen by the query (hierarchy, LOD cut).
-std::string viewEtag(const core::ModelSnapshot& snapshot, std::string_view view,
-                     std::string_view query) {
-  Digest digest = modelDigest(snapshot);
-  digest.add(view);
-  digest.add(query);
-  return http::strongEtag(std::string(view) + digest.hex());
-}
 
 json vecJson(const core::Vec3d& v) {
   return json::array({v.x, v.y, v.z});
@@ -277,23 +129,6 @@ double parseNumber(std::string_view text, std::string_view what) {
                                                 std::string(text.substr(0, 32)) + "'");
   }
   return value;
-}
-
-void descend(const core::Model& model, const core::PatchKey& key, const core::Box3d& box,
-             double resolution, std::vector<core::PatchKey>& out) {
-  const core::PatchInfo& info = model.at(key);
-  if (!info.globalBox.intersects(box)) {
-    return;
-  }
-  if (info.isLeaf() || info.resolution <= resolution) {
-    out.push_back(key);
-    return;
-  }
-  for (const core::Quadrant q : core::kQuadrants) {
-    if (info.hasChild(q)) {
-      descend(model, key.child(q), box, resolution, out);
-    }
-  }
 }
 
 json nodeJson(const core::Model& model, const core::PatchInfo& info, int levels) {
@@ -426,10 +261,61 @@ http::Response getPatch(const ModelContext& c, const http::Request& request) {
                    etag);
 }
 
-/// GET /v1/models/{m}/patches/{p}/positions. On a network thread (`onNetworkThread`) it answers
-/// only what needs no blocking — a 304, or the patch's .aara file when cached — and nullopt
-/// otherwise; on the CPU pool it reads the grid through the patch cache (a miss reads the disk)
-/// and caches its file.
+/// The positions response of a patch: the .aara bytes and what describes them.
+http::Response positionsResponse(const core::ModelSnapshot& snapshot, const core::PatchInfo& info,
+                                 std::string etag) {
+  http::Response response;
+  response.contentType = "application/octet-stream";
+  response.set("X-VSM-Grid-Size", std::to_string(snapshot.model->gridSize()));
+  response.set("X-VSM-Model-Version", std::to_string(snapshot.version));
+  response.set("X-VSM-Patch-Version", std::to_string(info.version));
+  return withCache(std::move(response), kPatchCacheControl, etag);
+}
+
+/// A body sent with sendfile(2) from a held open file, which the response keeps open (and its
+/// cache entry pinned) until written.
+void sendFile(http::Response& response, std::shared_ptr<const models::EncodedCache::File> file) {
+  response.file = {file->fd(), 0, file->size()};
+  response.bodyOwner = std::move(file);
+}
+
+/// A body written from held encoded bytes, without a copy; the response keeps them (and their
+/// cache entry pinned, so in-flight bytes stay counted) until written.
+void sendBody(http::Response& response, std::shared_ptr<const models::EncodedCache::Body> body) {
+  response.sharedBody = body->text();
+  response.bodyOwner = std::move(body);
+}
+
+/// The full-grid .aara of a patch whose stored file is laid out otherwise, cached with its
+/// Local2Global as the encoding's note: a cropped V3f file's rows are copied into place (no
+/// decoding); a V3d file is decoded and re-based.
+std::shared_ptr<const models::EncodedCache::Body> encodePositions(
+    models::EncodedCache& encoded, const core::LiveModel& live, const core::ModelSnapshot& snapshot,
+    const core::PatchInfo& info) {
+  if (std::optional<std::vector<std::byte>> bytes =
+          core::readFullGridPositions(live.dir(), snapshot.model->gridSize(), info)) {
+    return encoded.put(info.key, info.version, models::Encoding::PositionsAara, std::move(*bytes),
+                       matrixText(info.local2global));
+  }
+  const core::PatchGrid grid = core::readPatchGrid(live.dir(), *snapshot.model, info);
+  const std::span<const float> floats = grid.positions();
+  const std::int32_t n = grid.size();
+  const std::array<std::int32_t, 2> sizes{n, n};
+  std::vector<std::byte> bytes = core::encodeAaraHeader(core::AaraType::V3f, sizes);
+  const std::size_t header = bytes.size();
+  bytes.resize(header + floats.size_bytes());
+  std::memcpy(bytes.data() + header, floats.data(), floats.size_bytes());
+  return encoded.put(info.key, info.version, models::Encoding::PositionsAara, std::move(bytes),
+                     matrixText(grid.local2global()));
+}
+
+/// GET /v1/models/{m}/patches/{p}/positions. A patch whose stored file holds exactly the bytes
+/// served (the full grid as V3f) is sent from that file with sendfile(2) like a static file: no
+/// decoding, no copy, the page cache holds the bytes, the budget only the open file's entry.
+/// Other patches (cropped borders, V3d) are decoded and encoded once, and that encoding is cached
+/// in the budget. On a network thread (`onNetworkThread`) it answers only what needs no blocking
+/// — a 304, a held open file, a cached encoding — and nullopt otherwise; on the CPU pool it opens
+/// or encodes.
 std::optional<http::Response> positions(const ModelContext& c, const http::Request& request,
                                         bool onNetworkThread) {
   const std::string& id = request.param("m");
@@ -441,58 +327,49 @@ std::optional<http::Response> positions(const ModelContext& c, const http::Reque
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kPatchCacheControl);
   }
-  const core::ObjectId fileId{key, info.version, core::MemoryCategory::PositionFiles};
+  const int n = snapshot->model->gridSize();
+  const bool asStored = info.stored == core::GridRect{0, 0, n, n};
+  http::Response response = positionsResponse(*snapshot, info, std::move(etag));
   // The handler pool runs this after the network thread's look missed: count that miss once.
-  std::shared_ptr<const AaraFile> file = served.encoded->find<AaraFile>(fileId, onNetworkThread);
-  http::Response response;
+  std::shared_ptr<const models::EncodedCache::File> file;
+  if (asStored) {
+    file =
+        served.encoded->findFile(key, info.version, models::StoredKind::Positions, onNetworkThread);
+  }
+  std::shared_ptr<const models::EncodedCache::Body> body;
   if (file == nullptr) {
+    body = served.encoded->find(key, info.version, models::Encoding::PositionsAara,
+                                onNetworkThread && !asStored);
+  }
+  if (file == nullptr && body == nullptr) {
     if (onNetworkThread) {
       return std::nullopt;
     }
-    // The pin is released before the snapshot and the model.
-    const core::PatchCache::Pin pin = served.live->positions(*snapshot, key);
-    const auto grid = pin.get<core::PatchGrid>();
-    file = AaraFile::make(*grid);
-    if (file != nullptr) {
-      try {
-        served.encoded->put(fileId, file, file->bytes().size());
-      } catch (const Error& e) {
-        if (e.code() != ErrorCode::ResourceExhausted) {
-          throw;
+    if (asStored) {
+      if (std::unique_ptr<core::StoredFile> stored =
+              core::openFullGridPositions(served.live->dir(), n, info)) {
+        try {
+          file = served.encoded->putFile(key, info.version, models::StoredKind::Positions,
+                                         std::move(stored));
+        } catch (const Error& e) {
+          if (e.code() != ErrorCode::ResourceExhausted) {
+            throw;
+          }
+          // Every descriptor the cache may hold is being sent: encode this one in the budget.
         }
-        file = nullptr;  // no room beside what is pinned: answer from the grid, uncached
       }
     }
     if (file == nullptr) {
-      // The .aara payload is the grid's own float array, written to the socket from the cache
-      // without a copy. The published grid is immutable; the response holds it until written.
-      // Should the cache evict it meanwhile, its bytes outlive their charge for that long.
-      response.body = aaraHeader(grid->size());
-      const std::span<const float> floats = grid->positions();
-      response.sharedBody =
-          std::string_view(reinterpret_cast<const char*>(floats.data()), floats.size_bytes());
-      response.bodyOwner = grid;
-      response.set("X-VSM-Local2Global", matrixText(grid->local2global()));
-      response.set("X-VSM-Grid-Size", std::to_string(grid->size()));
+      body = encodePositions(*served.encoded, *served.live, *snapshot, info);
     }
   }
   if (file != nullptr) {
-    // Sent with sendfile(2) from the file; the response holds it until written (should the cache
-    // evict it meanwhile, its bytes outlive their charge for that long). As a body in memory: the
-    // 13-byte .aara header, then the floats from the file's mapping.
-    const std::string_view bytes = file->bytes();
-    response.body = bytes.substr(0, kAaraHeaderBytes);
-    response.sharedBody = bytes.substr(kAaraHeaderBytes);
-    response.bodyFd = file->fd();
-    response.set("X-VSM-Local2Global", file->local2global());
-    response.set("X-VSM-Grid-Size", file->gridSize());
-    response.bodyOwner = std::move(file);
+    response.set("X-VSM-Local2Global", matrixText(info.local2global));
+    sendFile(response, std::move(file));
+  } else {
+    response.set("X-VSM-Local2Global", std::string(body->note()));
+    sendBody(response, std::move(body));
   }
-  response.contentType = "application/octet-stream";
-  response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
-  response.set("X-VSM-Patch-Version", std::to_string(info.version));
-  response.set("Cache-Control", std::string(kPatchCacheControl));
-  response.set("ETag", std::move(etag));
   return response;
 }
 
@@ -529,43 +406,69 @@ const core::PatchInfo& texturedPatch(std::string_view id, const core::ModelSnaps
   return info;
 }
 
-/// GET /v1/models/{m}/patches/{p}/coordinates: the texture coordinates file (.aara) as stored.
-http::Response getCoordinates(const ModelContext& c, const http::Request& request) {
-  const std::string& id = request.param("m");
-  const auto live = c.models.get(id);
-  const auto snapshot = live->snapshot();
-  const core::PatchInfo& info = texturedPatch(id, *snapshot, request);
-  const std::string etag = http::strongEtag(std::string(http::opaqueOf(patchEtag(info))) + "-uv");
-  if (http::ifNoneMatch(request, etag)) {
-    return http::notModified(etag, kPatchCacheControl);
-  }
-  const std::vector<std::byte> bytes = core::readPatchCoordinates(live->dir(), info);
+/// The response headers every texture-data answer carries.
+http::Response textureResponse(const core::ModelSnapshot& snapshot, const core::PatchInfo& info,
+                               std::string_view contentType, const std::string& etag) {
   http::Response response;
-  response.body.assign(reinterpret_cast<const char*>(bytes.data()), bytes.size());
-  response.contentType = "application/octet-stream";
-  response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
+  response.contentType = std::string(contentType);
+  response.set("X-VSM-Model-Version", std::to_string(snapshot.version));
   response.set("X-VSM-Patch-Version", std::to_string(info.version));
   return withCache(std::move(response), kPatchCacheControl, etag);
 }
 
-/// GET /v1/models/{m}/patches/{p}/texture[/{layer}]: the texture tile as PNG.
-http::Response getTexture(const ModelContext& c, const http::Request& request) {
+/// GET /v1/models/{m}/patches/{p}/coordinates: the texture coordinates file (.aara) as stored,
+/// sent with sendfile(2) from the file held open (as positions). On a network thread only a 304
+/// or a held file is answered.
+std::optional<http::Response> coordinates(const ModelContext& c, const http::Request& request,
+                                          bool onNetworkThread) {
   const std::string& id = request.param("m");
-  const auto live = c.models.get(id);
-  const auto snapshot = live->snapshot();
+  const models::ModelRegistry::Served served = c.models.getServed(id);
+  const auto snapshot = served.live->snapshot();
   const core::PatchInfo& info = texturedPatch(id, *snapshot, request);
-  const std::string etag = http::strongEtag(std::string(http::opaqueOf(patchEtag(info))) + "-png");
+  const std::string etag = patchDataEtag(info, "uv");
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kPatchCacheControl);
   }
-  const std::vector<std::byte> png = core::readPatchTexturePng(live->dir(), info);
-  http::Response response;
-  response.body.assign(reinterpret_cast<const char*>(png.data()), png.size());
-  response.contentType = "image/png";
-  response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
-  response.set("X-VSM-Patch-Version", std::to_string(info.version));
+  auto file = served.encoded->findFile(info.key, info.version, models::StoredKind::Coordinates,
+                                       onNetworkThread);
+  if (file == nullptr) {
+    if (onNetworkThread) {
+      return std::nullopt;
+    }
+    // Throws ResourceExhausted (503, retry) while every file the cache may hold is being sent.
+    file = served.encoded->putFile(info.key, info.version, models::StoredKind::Coordinates,
+                                   core::openCoordinatesFile(served.live->dir(), info));
+  }
+  http::Response response = textureResponse(*snapshot, info, "application/octet-stream", etag);
+  sendFile(response, std::move(file));
+  return response;
+}
+
+/// GET /v1/models/{m}/patches/{p}/texture[/{layer}]: the texture tile as PNG, encoded once and
+/// cached in the budget. On a network thread only a 304 or a cached PNG is answered.
+std::optional<http::Response> texture(const ModelContext& c, const http::Request& request,
+                                      bool onNetworkThread) {
+  const std::string& id = request.param("m");
+  const models::ModelRegistry::Served served = c.models.getServed(id);
+  const auto snapshot = served.live->snapshot();
+  const core::PatchInfo& info = texturedPatch(id, *snapshot, request);
+  const std::string etag = patchDataEtag(info, "png");
+  if (http::ifNoneMatch(request, etag)) {
+    return http::notModified(etag, kPatchCacheControl);
+  }
+  auto body =
+      served.encoded->find(info.key, info.version, models::Encoding::TexturePng, onNetworkThread);
+  if (body == nullptr) {
+    if (onNetworkThread) {
+      return std::nullopt;
+    }
+    body = served.encoded->put(info.key, info.version, models::Encoding::TexturePng,
+                               core::readPatchTexturePng(served.live->dir(), info));
+  }
+  http::Response response = textureResponse(*snapshot, info, "image/png", etag);
   response.set("X-VSM-Texture-Layer", std::string(textureLayer(info.textureFile)));
-  return withCache(std::move(response), kPatchCacheControl, etag);
+  sendBody(response, std::move(body));
+  return response;
 }
 
 http::Response getLod(const ModelContext& c, const http::Request& request) {
@@ -585,7 +488,7 @@ http::Response getLod(const ModelContext& c, const http::Request& request) {
   }
   json patches = json::array();
   if (!snapshot->model->empty()) {
-    for (const core::PatchKey& key : lodCut(*snapshot->model, query.box, query.resolution)) {
+    for (const core::PatchKey& key : core::lodCut(*snapshot->model, query.box, query.resolution)) {
       const core::PatchInfo& info = snapshot->model->at(key);
       patches.push_back({{"key", key.toString()},
                          {"box", boxJson(info.globalBox)},
@@ -686,27 +589,6 @@ json hierarchyJson(const core::Model& model, const core::PatchKey& root, int lev
   return nodeJson(model, model.at(root), levels);
 }
 
-std::string aaraHeader(std::size_t gridSize) {
-  static_assert(std::endian::native == std::endian::little, ".aara is little-endian");
-  const auto size = static_cast<std::int32_t>(gridSize);
-  std::string out(kAaraHeaderBytes, '\0');
-  char* p = out.data();
-  *p++ = 3;
-  std::memcpy(p, "V3f", 3);
-  p += 3;
-  *p++ = 2;
-  std::memcpy(p, &size, 4);
-  std::memcpy(p + 4, &size, 4);
-  return out;
-}
-
-std::string positionsAara(const core::PatchGrid& grid) {
-  const std::span<const float> floats = grid.positions();
-  std::string out = aaraHeader(grid.size());
-  out.append(reinterpret_cast<const char*>(floats.data()), floats.size_bytes());
-  return out;
-}
-
 std::string matrixText(const core::Mat4d& m) {
   std::string out;
   char text[32];
@@ -716,17 +598,6 @@ std::string matrixText(const core::Mat4d& m) {
     out.append(text, ec == std::errc() ? end : text);
   }
   return out;
-}
-
-std::string modelEtag(const core::ModelSnapshot& snapshot) {
-  return http::strongEtag("m" + modelDigest(snapshot).hex());
-}
-
-std::string patchEtag(const core::PatchInfo& info) {
-  Digest digest;
-  addPatch(digest, info);
-  return http::strongEtag(info.key.toString() + "-v" + std::to_string(info.version) + "-" +
-                          digest.hex().substr(0, 8));
 }
 
 LodQuery parseLodQuery(std::string_view box, std::string_view resolution) {
@@ -760,16 +631,6 @@ LodQuery parseLodQuery(std::string_view box, std::string_view resolution) {
   return out;
 }
 
-std::vector<core::PatchKey> lodCut(const core::Model& model, const core::Box3d& box,
-                                   double resolution) {
-  std::vector<core::PatchKey> out;
-  if (model.find(core::PatchKey::root()) != nullptr) {
-    descend(model, core::PatchKey::root(), box, resolution, out);
-  }
-  std::sort(out.begin(), out.end());
-  return out;
-}
-
 // ---- routes ----------------------------------------------------------------------------------
 
 void addModelRoutes(http::Router& router, ModelContext context) {
@@ -783,14 +644,23 @@ void addModelRoutes(http::Router& router, ModelContext context) {
   router.add(http::Method::Delete, "/v1/models/{m}", bind(deleteModel));
   router.add(http::Method::Get, "/v1/models/{m}/hierarchy", bind(getHierarchy));
   router.add(http::Method::Get, "/v1/models/{m}/patches/{p}", bind(getPatch));
-  router.add(
-      http::Method::Get, "/v1/models/{m}/patches/{p}/positions",
-      [context](const http::Request& request) { return *positions(context, request, false); },
-      [context](const http::Request& request) { return positions(context, request, true); });
-  router.add(http::Method::Get, "/v1/models/{m}/patches/{p}/coordinates", bind(getCoordinates));
-  router.add(http::Method::Get, "/v1/models/{m}/patches/{p}/texture", bind(getTexture));
-  router.add(http::Method::Get, "/v1/models/{m}/patches/{p}/texture/{layer}", bind(getTexture));
+  // Routes with an inline handler: answered on the network thread when cached.
+  using Inline = std::optional<http::Response> (*)(const ModelContext&, const http::Request&, bool);
+  const auto addCached = [&](const char* pattern, Inline handler) {
+    router.add(
+        http::Method::Get, pattern,
+        [context, handler](const http::Request& request) {
+          return *handler(context, request, false);
+        },
+        [context, handler](const http::Request& request) {
+          return handler(context, request, true);
+        });
+  };
+  addCached("/v1/models/{m}/patches/{p}/coordinates", coordinates);
+  addCached("/v1/models/{m}/patches/{p}/texture", texture);
+  addCached("/v1/models/{m}/patches/{p}/texture/{layer}", texture);
   router.add(http::Method::Get, "/v1/models/{m}/lod", bind(getLod));
+  addCached("/v1/models/{m}/patches/{p}/positions", positions);
 }
 
 }  // namespace vsm::server::api

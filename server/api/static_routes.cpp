@@ -1,5 +1,7 @@
 #include "server/api/static_routes.hpp"
 
+#include "server/api/etags.hpp"
+
 #include <fcntl.h>
 #include <sys/stat.h>
 #include <unistd.h>
@@ -47,12 +49,6 @@ struct Fd {
   }
 };
 
-std::string hex(unsigned long long value) {
-  char text[17];
-  std::snprintf(text, sizeof text, "%llx", value);
-  return text;
-}
-
 [[noreturn]] void noSuchFile(std::string_view prefix, std::string_view relative) {
   throw Error(ErrorCode::NotFound,
               "no file " + std::string(prefix) + "/" + std::string(relative.substr(0, 200)));
@@ -83,10 +79,10 @@ http::Response serve(const std::string& prefix, const fs::path& root,
     noSuchFile(prefix, relative);
   }
   const std::string etag =
-      http::strongEtag("s-" + hex(static_cast<unsigned long long>(st.st_size)) + "-" +
-                       hex(static_cast<unsigned long long>(st.st_mtim.tv_sec) * 1'000'000'000ULL +
-                           static_cast<unsigned long long>(st.st_mtim.tv_nsec)) +
-                       "-" + hex(static_cast<unsigned long long>(st.st_ino)));
+      staticFileEtag(static_cast<std::uint64_t>(st.st_size),
+                     static_cast<std::uint64_t>(st.st_mtim.tv_sec) * 1'000'000'000ULL +
+                         static_cast<std::uint64_t>(st.st_mtim.tv_nsec),
+                     static_cast<std::uint64_t>(st.st_ino));
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, http::cache_control::kRevalidate);
   }

@@ -44,7 +44,9 @@ json statsJson(const core::CacheStats& stats, core::EvictionPolicy policy) {
         {"resident_bytes", stats.residentBytes},
         {"pinned_bytes", stats.pinnedBytes},
         {"resident_bytes_by_category", std::move(byCategory)},
-        {"resident_bytes_by_model", std::move(byModel)}}},
+        {"resident_bytes_by_model", std::move(byModel)},
+        {"open_files", stats.handles},
+        {"open_files_limit", stats.handleBudget}}},
       {"cache",
        {{"policy", core::toString(policy)},
         {"hits", stats.hits},
@@ -88,6 +90,12 @@ std::vector<metrics::Snapshot> cacheMetrics(const core::CacheStats& stats) {
     byModel.samples.push_back({{model}, static_cast<double>(bytes)});
   }
   out.push_back(std::move(byModel));
+  out.push_back(single("vsm_cache_open_files",
+                       "Stored patch files held open by the cache (sent with sendfile)",
+                       Type::Gauge, static_cast<double>(stats.handles)));
+  out.push_back(single("vsm_cache_open_files_limit",
+                       "The most stored files the cache may hold open (from RLIMIT_NOFILE)",
+                       Type::Gauge, static_cast<double>(stats.handleBudget)));
   out.push_back(single("vsm_cache_hits_total", "Cache lookups served from memory", Type::Counter,
                        static_cast<double>(stats.hits)));
   out.push_back(single("vsm_cache_misses_total",

@@ -26,10 +26,6 @@ using nlohmann::json;
 
 namespace {
 
-/// Bumped whenever encodeGlb() or tilesetJson() change what they produce for the same model, so
-/// clients holding the old bytes under an ETag revalidate to the new ones.
-constexpr std::string_view kTilesFormat = "t2";  // t2: textures embedded
-
 /// As patch data (model_routes.cpp): the URL names no version, so revalidate after a minute.
 constexpr std::string_view kTileCacheControl = "public, max-age=60";
 
@@ -104,11 +100,6 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
   return withCache(std::move(response), etag);
 }
 
-/// An encoded tile, as cached in the model's EncodedCache (MemoryCategory::Tiles).
-struct GlbBody {
-  std::vector<std::byte> bytes;
-};
-
 /// GET /v1/models/{m}/3dtiles/{p}.glb (any query, such as the tileset's "?v=", is ignored). On a
 /// network thread (`onNetworkThread`) it answers only a 304 or a cached GLB, and nullopt
 /// otherwise; on the CPU pool it encodes the GLB from the patch's data (read through the patch
@@ -128,9 +119,8 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kTileCacheControl);
   }
-  const core::ObjectId glbId{key, info->version, core::MemoryCategory::Tiles};
   // The handler pool runs this after the network thread's look missed: count that miss once.
-  std::shared_ptr<const GlbBody> body = served.encoded->find<GlbBody>(glbId, onNetworkThread);
+  auto body = served.encoded->find(key, info->version, models::Encoding::Glb, onNetworkThread);
   if (body == nullptr) {
     if (onNetworkThread) {
       return std::nullopt;
@@ -147,22 +137,15 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
       options.texcoords = texture->texcoords;
       options.baseColor = {1.0, 1.0, 1.0, 1.0};  // the texture's own colours
     }
-    auto encoded = std::make_shared<GlbBody>();
-    encoded->bytes = core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(*info), options);
-    body = encoded;
-    try {
-      served.encoded->put(glbId, body, body->bytes.size());
-    } catch (const Error& e) {
-      if (e.code() != ErrorCode::ResourceExhausted) {
-        throw;
-      }
-      // No room beside what is pinned: answered uncached (this response holds the bytes).
-    }
+    // Throws ResourceExhausted (503, retry) when the budget is full of pinned data.
+    body = served.encoded->put(
+        key, info->version, models::Encoding::Glb,
+        core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(*info), options));
   }
   http::Response response;
-  // Written from the cached bytes without a copy; the response holds them until written.
-  response.sharedBody =
-      std::string_view(reinterpret_cast<const char*>(body->bytes.data()), body->bytes.size());
+  // Written from the cached bytes without a copy; the response holds them (pinned, so they stay
+  // counted in the budget) until written.
+  response.sharedBody = body->text();
   response.bodyOwner = std::move(body);
   response.contentType = std::string(kGlbType);
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
@@ -178,16 +161,6 @@ json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
       {"asset", {{"version", "1.1"}, {"tilesetVersion", tilesetVersion}, {"generator", "vsmd"}}},
       {"geometricError", core::tilesetGeometricError(root)},
       {"root", tileJson(root, core::Vec3d{0, 0, 0}, model)}};
-}
-
-std::string tilesetEtag(const core::ModelSnapshot& snapshot) {
-  return http::strongEtag("tileset-" + std::string(http::opaqueOf(modelEtag(snapshot))) + "-" +
-                          std::string(kTilesFormat));
-}
-
-std::string glbEtag(const core::PatchInfo& info) {
-  return http::strongEtag(std::string(http::opaqueOf(patchEtag(info))) + "-glb-" +
-                          std::string(kTilesFormat));
 }
 
 void addTilesRoutes(http::Router& router, models::ModelRegistry& models) {

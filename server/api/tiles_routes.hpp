@@ -5,6 +5,7 @@
 
 #include <nlohmann/json_fwd.hpp>
 
+#include "server/api/etags.hpp"
 #include "server/http/router.hpp"
 
 namespace vsm::core {
@@ -38,10 +39,5 @@ void addTilesRoutes(http::Router& router, models::ModelRegistry& models);
 /// never mix a tile of one version of the model with a tileset of another.
 nlohmann::json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
                            const core::Model* model = nullptr);
-
-/// The entity tags of a model's tileset and of one patch's GLB: derived from the model's and the
-/// patch's tags and the encoder's format version (a change of the encoder changes every tag).
-std::string tilesetEtag(const core::ModelSnapshot& snapshot);
-std::string glbEtag(const core::PatchInfo& info);
 
 }  // namespace vsm::server::api

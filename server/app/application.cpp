@@ -1,10 +1,13 @@
 #include "server/app/application.hpp"
 
 #include <fcntl.h>
+#include <sys/resource.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <chrono>
+#include <cstring>
 #include <filesystem>
 #include <thread>
 
@@ -43,6 +46,61 @@ void writePortFile(const fs::path& path, std::uint16_t port) {
   core::durable::writeFileAtomically(path, std::as_bytes(std::span(text.data(), text.size())));
 }
 
+/// Raises the soft RLIMIT_NOFILE to the hard limit (a service gets 1024 by default, far below
+/// what thousands of connections and open patch files need) and logs both. Returns the soft limit
+/// in force.
+std::size_t raiseDescriptorLimit() {
+  rlimit limit{};
+  if (::getrlimit(RLIMIT_NOFILE, &limit) != 0) {
+    log::warn(std::string("descriptors: cannot read RLIMIT_NOFILE: ") + std::strerror(errno));
+    return 1024;
+  }
+  const rlim_t before = limit.rlim_cur;
+  if (limit.rlim_cur != limit.rlim_max) {
+    limit.rlim_cur = limit.rlim_max;
+    if (::setrlimit(RLIMIT_NOFILE, &limit) != 0) {
+      log::warn(std::string("descriptors: cannot raise the soft limit: ") + std::strerror(errno));
+      limit.rlim_cur = before;
+    }
+  }
+  const auto text = [](rlim_t v) {
+    return v == RLIM_INFINITY ? std::string("unlimited") : std::to_string(v);
+  };
+  log::info("descriptors: soft limit " + text(limit.rlim_cur) + " (was " + text(before) +
+            "), hard limit " + text(limit.rlim_max));
+  return limit.rlim_cur == RLIM_INFINITY ? std::size_t{1} << 20
+                                         : static_cast<std::size_t>(limit.rlim_cur);
+}
+
+/// How the descriptors of the process are shared out.
+struct DescriptorPlan {
+  std::size_t connections = 0;
+  /// Open files the caches may hold (in flight included).
+  std::size_t cachedFiles = 0;
+};
+
+/// Keeps kReserved descriptors (and two per thread) for the process itself — the listener, the
+/// event loop, logs, the files merges, imports and cache misses open for a moment — and one per
+/// connection (plus the 64 being answered 503 at once); cached files get the rest, at most
+/// kMaxCachedFiles. When that leaves fewer than kMinCachedFiles, connections are cut to fit.
+DescriptorPlan planDescriptors(std::size_t limit, std::size_t connections, std::size_t threads) {
+  constexpr std::size_t kReserved = 64;
+  constexpr std::size_t kRejecting = 64;
+  constexpr std::size_t kMinCachedFiles = 64;
+  constexpr std::size_t kMaxCachedFiles = 65536;
+  const std::size_t reserved = kReserved + 2 * threads + kRejecting;
+  DescriptorPlan plan;
+  plan.connections = connections;
+  const std::size_t available = limit > reserved ? limit - reserved : 0;
+  if (available < connections + kMinCachedFiles) {
+    plan.connections = available > 2 * kMinCachedFiles ? available - kMinCachedFiles
+                                                       : std::max<std::size_t>(available / 2, 8);
+  }
+  plan.cachedFiles = available > plan.connections ? available - plan.connections : 8;
+  plan.cachedFiles = std::clamp<std::size_t>(plan.cachedFiles, 8, kMaxCachedFiles);
+  return plan;
+}
+
 bool isLoopback(const std::string& host) {
   return host == "localhost" || host == "::1" || host.starts_with("127.");
 }
@@ -75,6 +133,18 @@ Application::Application(Config config) : config_(std::move(config)) {
   const std::size_t cpuThreads =
       config_.threads.cpu != 0 ? config_.threads.cpu
                                : std::max<std::size_t>(1, std::thread::hardware_concurrency());
+  const DescriptorPlan descriptors =
+      planDescriptors(raiseDescriptorLimit(), config_.limits.connections,
+                      cpuThreads + config_.threads.jobs + config_.threads.io);
+  cache_->setHandleBudget(descriptors.cachedFiles);
+  if (descriptors.connections < config_.limits.connections) {
+    log::warn("descriptors: the limit leaves room for " + std::to_string(descriptors.connections) +
+              " connections, not limits.connections=" + std::to_string(config_.limits.connections) +
+              " (raise the hard RLIMIT_NOFILE)");
+  }
+  log::info("descriptors: up to " + std::to_string(descriptors.connections) +
+            " connections, up to " + std::to_string(descriptors.cachedFiles) +
+            " open patch files held by the cache");
   cpuPool_ = std::make_unique<exec::WorkPool>("cpu", cpuThreads);
   // Merges and imports run here, a pool of its own so that they can never take the threads
   // request handlers need.
@@ -107,7 +177,7 @@ Application::Application(Config config) : config_(std::move(config)) {
   options.readTimeout = config_.limits.readTimeout;
   options.idleTimeout = config_.limits.idleTimeout;
   options.writeTimeout = config_.limits.writeTimeout;
-  options.maxConnections = config_.limits.connections;
+  options.maxConnections = descriptors.connections;
   options.maxPipelined = config_.limits.pipelinedResponses;
   server_ = std::make_unique<http::Server>(options, *pipeline_, *cpuPool_, *metrics_);
 

@@ -1,7 +1,10 @@
 #include "server/http/message.hpp"
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <atomic>
+#include <cerrno>
 #include <cstdio>
 #include <random>
 
@@ -142,6 +145,23 @@ std::optional<std::string> Request::queryParam(std::string_view name) const {
 
 std::string Response::bodyText() const {
   std::string out;
+  if (file.fd >= 0) {
+    out.resize(file.size);
+    std::size_t done = 0;
+    while (done < file.size) {
+      const ssize_t n = ::pread(file.fd, out.data() + done, file.size - done,
+                                static_cast<off_t>(file.offset + done));
+      if (n < 0 && errno == EINTR) {
+        continue;
+      }
+      if (n <= 0) {
+        core::throwIoError("cannot read a response body", "fd " + std::to_string(file.fd),
+                           n < 0 ? errno : EIO);
+      }
+      done += static_cast<std::size_t>(n);
+    }
+    return out;
+  }
   out.reserve(bodySize());
   out.append(body);
   out.append(sharedBody);

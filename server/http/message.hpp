@@ -59,16 +59,26 @@ struct Response {
   /// floats in the patch cache. `bodyOwner` keeps them alive until the response is written. Empty
   /// unless a handler serves shared, immutable data this way.
   std::string_view sharedBody;
+  /// Keeps `sharedBody` or `file` valid until the response is written (or dropped).
   std::shared_ptr<const void> bodyOwner;
-  /// When >= 0: a file whose first bodySize() bytes are the whole body (`body` then
-  /// `sharedBody`), kept open by `bodyOwner` and never written again. The server may send it with
-  /// sendfile(2), which hands the file's pages to the socket without a copy.
-  int bodyFd = -1;
+  /// A body that is a range of an open file (a patch file as stored): when `fd` >= 0, the body is
+  /// `size` bytes of it from `offset` on, and `body` and `sharedBody` are empty. The file is kept
+  /// open by `bodyOwner` and never written while open. The server sends it with sendfile(2),
+  /// which hands the file's pages to the socket without a copy (as nginx serves static files).
+  struct FileRange {
+    int fd = -1;
+    std::size_t offset = 0;
+    std::size_t size = 0;
+  };
+  FileRange file;
   std::vector<std::pair<std::string, std::string>> headers;
 
-  /// body.size() + sharedBody.size(): what Content-Length says.
-  std::size_t bodySize() const { return body.size() + sharedBody.size(); }
-  /// The whole body in one string (a copy; for tests and small bodies).
+  /// What Content-Length says: file.size for a file body, else body.size() + sharedBody.size().
+  std::size_t bodySize() const {
+    return file.fd >= 0 ? file.size : body.size() + sharedBody.size();
+  }
+  /// The whole body in one string (a copy, read from the file for a file body; for tests and
+  /// small bodies). Throws core::Error(Io) when the file cannot be read.
   std::string bodyText() const;
 
   /// Replaces every field `name` (any case) by one with `value`.

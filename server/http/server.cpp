@@ -110,6 +110,8 @@ constexpr std::chrono::milliseconds kLinger{1000};
 constexpr std::size_t kReadChunk = 16 * 1024;
 /// Pause before accepting again after the process ran out of descriptors.
 constexpr std::chrono::milliseconds kAcceptBackoff{100};
+/// Rejected connections being answered 503 at once, at most (see ServerOptions::maxConnections).
+constexpr std::size_t kMaxRejecting = 64;
 /// Longest request target written to the access log.
 constexpr std::size_t kLoggedTargetMax = 256;
 
@@ -305,10 +307,12 @@ class Connection : public std::enable_shared_from_this<Connection> {
     bool ready = false;
     Handled handled;
     std::unique_ptr<BeastResponse> message;  // the serialised form, while being written
-    // A body sent from a file (Response::bodyFd): the header goes through this serializer, the
-    // body by sendfile(2) from `fileOffset` on.
+    // A body sent from a file (Response::file): the header goes through this serializer, the
+    // body by sendfile(2); `fileSent` bytes of it are out.
     std::unique_ptr<bhttp::serializer<false, GatherBody>> serializer;
-    std::size_t fileOffset = 0;
+    std::size_t fileSent = 0;
+    /// Body bytes of the response (what Content-Length says; 0 for HEAD and bodiless statuses).
+    std::size_t bodyBytes = 0;
   };
 
   void readNext() {
@@ -494,19 +498,22 @@ class Connection : public std::enable_shared_from_this<Connection> {
     slot.message = toBeast(slot);
     writing_ = true;
     stream_.expires_after(server_.options.writeTimeout);
-    const Response& r = slot.handled.response;
-    if (r.bodyFd >= 0 && !slot.head && GatherBody::size(slot.message->body()) > 0) {
+    if (slot.handled.response.file.fd >= 0 && slot.bodyBytes > 0) {
       // The header by Beast's serializer, the body by sendfile(2): the kernel sends the file's
       // pages without copying them through user space (as nginx serves static files).
       slot.serializer = std::make_unique<bhttp::serializer<false, GatherBody>>(*slot.message);
       slot.serializer->split(true);
+      // The timer's handler may already be queued when the write completes (cancel() cannot
+      // recall it): it acts only for the write it was started for (see fileWrite_).
+      const std::uint64_t write = ++fileWrite_;
       fileTimer_.expires_after(server_.options.writeTimeout);
-      fileTimer_.async_wait([self = shared_from_this()](error_code wait) {
-        if (!wait) {
+      fileTimer_.async_wait([self = shared_from_this(), write](error_code wait) {
+        if (!wait && self->fileWriting_ && self->fileWrite_ == write) {
           self->server_.timeouts.inc({"write"});
           self->closeNow();
         }
       });
+      fileWriting_ = true;
       sendHeader();
       return;
     }
@@ -545,11 +552,17 @@ class Connection : public std::enable_shared_from_this<Connection> {
       // No body and no Content-Length (RFC 9110 8.6).
     } else if (slot.head) {
       message->content_length(r.bodySize());  // what GET would send; the body itself is not
+    } else if (r.file.fd >= 0) {
+      // The body goes by sendfile() after the header (maybeWrite); the message carries its length.
+      message->content_length(r.file.size);
+      message->body().owner = r.bodyOwner;  // the file stays open while the message lives
+      slot.bodyBytes = r.file.size;
     } else {
       message->body().owned = std::move(r.body);
       message->body().shared = r.sharedBody;
       message->body().owner = std::move(r.bodyOwner);
       message->prepare_payload();
+      slot.bodyBytes = GatherBody::size(message->body());
     }
     return message;
   }
@@ -591,7 +604,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
       }
     }
     if (ec) {
-      fileTimer_.cancel();
+      endFileWrite();
       onWrite(ec, 0);
       return;
     }
@@ -604,8 +617,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
       return;
     }
     Slot& slot = queue_.front();
-    const std::size_t size = GatherBody::size(slot.message->body());
-    const int fd = slot.handled.response.bodyFd;
+    const Response::FileRange& file = slot.handled.response.file;
     tcp::socket& socket = stream_.socket();
     error_code ec;
     if (!nonBlocking_) {
@@ -613,11 +625,12 @@ class Connection : public std::enable_shared_from_this<Connection> {
       socket.native_non_blocking(true, ec);
       nonBlocking_ = !ec;
     }
-    while (!ec && slot.fileOffset < size) {
-      auto offset = static_cast<off_t>(slot.fileOffset);
-      const ssize_t sent = ::sendfile(socket.native_handle(), fd, &offset, size - slot.fileOffset);
+    while (!ec && slot.fileSent < file.size) {
+      auto offset = static_cast<off_t>(file.offset + slot.fileSent);
+      const ssize_t sent =
+          ::sendfile(socket.native_handle(), file.fd, &offset, file.size - slot.fileSent);
       if (sent > 0) {
-        slot.fileOffset = static_cast<std::size_t>(offset);
+        slot.fileSent += static_cast<std::size_t>(sent);
       } else if (sent < 0 && errno == EINTR) {
         continue;
       } else if (sent < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) {
@@ -629,8 +642,14 @@ class Connection : public std::enable_shared_from_this<Connection> {
                        : error_code(errno, boost::system::system_category());
       }
     }
+    endFileWrite();
+    onWrite(ec, slot.fileSent);
+  }
+
+  /// The body file of the front slot is sent (or failed): its write timer is done with.
+  void endFileWrite() {
+    fileWriting_ = false;
     fileTimer_.cancel();
-    onWrite(ec, slot.fileOffset);
   }
 
   /// Calls `next` once the socket takes more bytes (under the write timeout of fileTimer_).
@@ -638,7 +657,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
     stream_.socket().async_wait(tcp::socket::wait_write,
                                 [self = shared_from_this(), next](error_code wait) {
                                   if (wait) {
-                                    self->fileTimer_.cancel();
+                                    self->endFileWrite();
                                     self->onWrite(wait, 0);
                                   } else {
                                     ((*self).*next)();
@@ -676,8 +695,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
   void record(const Slot& slot, error_code ec) {
     const double seconds = std::chrono::duration<double>(Clock::now() - slot.start).count();
     const int status = slot.handled.response.status;
-    const std::size_t bytes =
-        slot.message && !slot.head ? GatherBody::size(slot.message->body()) : 0;
+    const std::size_t bytes = slot.message ? slot.bodyBytes : 0;
     const std::string_view method = toString(parseMethod(slot.method));
     // A keep-alive connection mostly repeats one kind of request: its metric series are looked up
     // (under the families' locks) only when the kind changes, then updated lock-free.
@@ -745,7 +763,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
       return;
     }
     closed_ = true;
-    fileTimer_.cancel();
+    endFileWrite();
     error_code ignored;
     stream_.socket().shutdown(tcp::socket::shutdown_both, ignored);
     stream_.close();
@@ -765,6 +783,8 @@ class Connection : public std::enable_shared_from_this<Connection> {
   std::optional<Series> series_;
   beast::tcp_stream stream_;
   net::steady_timer fileTimer_;  // the write timeout of a body sent by sendfile()
+  std::uint64_t fileWrite_ = 0;  // counts file bodies started; a timer acts for its own only
+  bool fileWriting_ = false;     // a file body is being sent (fileTimer_ is armed for it)
   beast::flat_buffer buffer_;
   std::optional<bhttp::request_parser<bhttp::string_body>> parser_;
   std::deque<Slot> queue_;
@@ -889,8 +909,8 @@ void Server::Impl::onAccept(error_code ec, tcp::socket socket) {
   } else {
     rejected.inc({});
     warnFull();
-    // Answering is bounded too: beyond as many rejections in flight as connections, just close.
-    if (rejecting.fetch_add(1) < options.maxConnections) {
+    // Answering is bounded too (each holds a descriptor): beyond kMaxRejecting in flight, close.
+    if (rejecting.fetch_add(1) < std::min(options.maxConnections, kMaxRejecting)) {
       std::make_shared<Connection>(*this, std::move(socket), false)->reject();
     } else {
       rejecting.fetch_sub(1);

@@ -27,6 +27,8 @@ struct ServerOptions {
   std::chrono::milliseconds readTimeout{30'000};
   std::chrono::milliseconds idleTimeout{60'000};
   std::chrono::milliseconds writeTimeout{60'000};
+  /// Connections served at once; beyond it up to 64 more are answered 503 and closed. The process
+  /// holds a descriptor for each.
   std::size_t maxConnections = 512;
   std::size_t maxPipelined = 8;
 };

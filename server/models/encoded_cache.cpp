@@ -1,17 +1,36 @@
 #include "server/models/encoded_cache.hpp"
 
 #include <exception>
+#include <type_traits>
+#include <utility>
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/store/live_model.hpp"
 
 namespace vsm::server::models {
 
 using core::Error;
 using core::ErrorCode;
 
-/// Encoded responses are made by the routes and put() into the cache, never loaded by it; they
-/// are clean, so they are never written back either.
+namespace {
+
+/// Bookkeeping bytes charged for an open file: the entry and the file object (its pages live in
+/// the kernel's page cache, outside the budget).
+constexpr std::size_t kOpenFileBytes = 256;
+
+core::ObjectId bodyId(const core::PatchKey& key, std::uint64_t version, Encoding encoding) {
+  return {key, version, core::MemoryCategory::Encoded, static_cast<std::uint8_t>(encoding)};
+}
+
+core::ObjectId fileId(const core::PatchKey& key, std::uint64_t version, StoredKind kind) {
+  return {key, version, core::MemoryCategory::OpenFiles, static_cast<std::uint8_t>(kind)};
+}
+
+}  // namespace
+
+/// Encoded responses and open files are put() into the cache, never loaded by it; they are clean,
+/// so they are never written back either.
 class EncodedCache::Store final : public core::PatchStore {
  public:
   std::size_t expectedBytes(const core::ObjectId&) const override { return 0; }
@@ -25,10 +44,22 @@ class EncodedCache::Store final : public core::PatchStore {
   }
 };
 
-EncodedCache::EncodedCache(core::PatchCache& cache, const std::string& modelName)
-    : cache_(cache), store_(std::make_unique<Store>()) {
-  model_ = cache_.addModel(modelName, *store_);
+std::shared_ptr<EncodedCache> EncodedCache::create(core::PatchCache& cache, core::LiveModel& live) {
+  std::shared_ptr<EncodedCache> encoded(new EncodedCache(cache));
+  encoded->model_ = cache.addModel(live.name(), *encoded->store_);
+  live.onPublish([weak = std::weak_ptr<EncodedCache>(encoded)](
+                     const core::LiveModel::ReplacedVersions& replaced) {
+    if (const auto self = weak.lock()) {
+      for (const auto& [key, version] : replaced) {
+        self->dropVersion(key, version);
+      }
+    }
+  });
+  return encoded;
 }
+
+EncodedCache::EncodedCache(core::PatchCache& cache)
+    : cache_(cache), store_(std::make_unique<Store>()) {}
 
 EncodedCache::~EncodedCache() {
   try {
@@ -38,10 +69,64 @@ EncodedCache::~EncodedCache() {
   }
 }
 
-void EncodedCache::put(const core::ObjectId& id, std::shared_ptr<const void> object,
-                       std::size_t bytes) {
-  // put() pins the entry for its caller; nobody needs it pinned, so the pin goes at once.
-  cache_.put(model_, id, core::CacheValue{std::move(object), bytes}, /*dirty=*/false);
+template <typename Held>
+std::shared_ptr<const Held> EncodedCache::hold(core::PatchCache::Pin pin) const {
+  if (!pin) {
+    return nullptr;
+  }
+  auto held = std::make_shared<Held>();
+  held->owner_ = shared_from_this();
+  if constexpr (std::is_same_v<Held, Body>) {
+    held->encoded_ = pin.get<EncodedBytes>().get();
+  } else {
+    held->file_ = pin.get<core::StoredFile>().get();
+  }
+  held->pin_ = std::move(pin);
+  return held;
+}
+
+std::shared_ptr<const EncodedCache::Body> EncodedCache::find(const core::PatchKey& key,
+                                                             std::uint64_t version,
+                                                             Encoding encoding,
+                                                             bool countMiss) const {
+  return hold<Body>(cache_.find(model_, bodyId(key, version, encoding), countMiss));
+}
+
+std::shared_ptr<const EncodedCache::Body> EncodedCache::put(const core::PatchKey& key,
+                                                            std::uint64_t version,
+                                                            Encoding encoding,
+                                                            std::vector<std::byte> bytes,
+                                                            std::string note) {
+  const std::size_t size = bytes.size() + note.size();
+  auto object =
+      std::make_shared<const EncodedBytes>(EncodedBytes{std::move(bytes), std::move(note)});
+  return hold<Body>(cache_.put(model_, bodyId(key, version, encoding),
+                               core::CacheValue{std::move(object), size, 0}, /*dirty=*/false));
+}
+
+std::shared_ptr<const EncodedCache::File> EncodedCache::findFile(const core::PatchKey& key,
+                                                                 std::uint64_t version,
+                                                                 StoredKind kind,
+                                                                 bool countMiss) const {
+  return hold<File>(cache_.find(model_, fileId(key, version, kind), countMiss));
+}
+
+std::shared_ptr<const EncodedCache::File> EncodedCache::putFile(
+    const core::PatchKey& key, std::uint64_t version, StoredKind kind,
+    std::unique_ptr<core::StoredFile> file) {
+  std::shared_ptr<const core::StoredFile> object = std::move(file);
+  return hold<File>(cache_.put(model_, fileId(key, version, kind),
+                               core::CacheValue{std::move(object), kOpenFileBytes, 1},
+                               /*dirty=*/false));
+}
+
+void EncodedCache::dropVersion(const core::PatchKey& key, std::uint64_t version) {
+  for (const Encoding encoding : {Encoding::PositionsAara, Encoding::Glb, Encoding::TexturePng}) {
+    cache_.invalidate(model_, bodyId(key, version, encoding));
+  }
+  for (const StoredKind kind : {StoredKind::Positions, StoredKind::Coordinates}) {
+    cache_.invalidate(model_, fileId(key, version, kind));
+  }
 }
 
 }  // namespace vsm::server::models

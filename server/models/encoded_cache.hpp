@@ -1,49 +1,129 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <memory>
+#include <span>
 #include <string>
+#include <string_view>
+#include <vector>
 
 #include "core/cache/patch_cache.hpp"
+#include "core/opc/stored_file.hpp"
+
+namespace vsm::core {
+class LiveModel;
+}
 
 namespace vsm::server::models {
 
-/// Response bodies encoded from one open model's published patch data — positions as .aara files
-/// in memory (sent with sendfile(2)), binary glTF tiles — kept in the shared PatchCache beside the
-/// data they come from, under the model's name: charged to the one memory budget, counted in the
-/// statistics by category (MemoryCategory::PositionFiles, MemoryCategory::Tiles) and evicted by
-/// the same policy. Entries are clean: evicting one just drops its bytes (a response being written
-/// holds its own reference until done). An entry is keyed by patch key, patch version and category
-/// (the format); entries of superseded versions are never asked for again and age out.
+/// The encodings of patch data the server caches as response bodies.
+enum class Encoding : std::uint8_t {
+  /// Positions as the full-grid .aara of a patch whose stored file is laid out otherwise (cropped,
+  /// V3d), or whose file could not be held open.
+  PositionsAara = 1,
+  /// A 3D Tiles tile: binary glTF.
+  Glb = 2,
+  /// A texture tile as PNG.
+  TexturePng = 3,
+};
+
+/// The stored files of a patch the server sends as they are (sendfile(2)).
+enum class StoredKind : std::uint8_t { Positions = 1, Coordinates = 2 };
+
+/// Response material derived from one open model's published patches, kept in the shared
+/// PatchCache under the model's name and charged to the one budget: encoded bodies
+/// (MemoryCategory::Encoded, their bytes) and stored files held open for sendfile(2)
+/// (MemoryCategory::OpenFiles: a few bytes each, and one descriptor against the cache's handle
+/// budget, so that cached files never take the descriptors connections need). Entries are keyed
+/// by patch key, patch version and kind, are clean (evicting one drops it) and go when a publish
+/// replaces their version (the LiveModel's publish observer) or the model closes.
 ///
-/// Thread-safe (the cache is). The ModelRegistry makes one per opening of a model; its entries go
-/// with it.
-class EncodedCache {
+/// What find() and put() return holds the entry for the length of a response: pinned (charged,
+/// never evicted) until the last copy goes, so the bytes of responses in flight count against the
+/// budget. It also holds this cache (and so the model's cache registration) alive.
+///
+/// Thread-safe (the PatchCache is); find() never blocks, so network threads may call it.
+class EncodedCache : public std::enable_shared_from_this<EncodedCache> {
  public:
-  /// Registers with `cache` (which must outlive this) under `modelName`.
-  EncodedCache(core::PatchCache& cache, const std::string& modelName);
-  /// Drops every entry.
+  /// An encoded body held for a response.
+  class Body;
+  /// A stored file held open for a response.
+  class File;
+
+  /// A cache for `live`'s patches in `cache` (which must outlive it), dropping the entries of
+  /// versions `live` publishes replacements for.
+  static std::shared_ptr<EncodedCache> create(core::PatchCache& cache, core::LiveModel& live);
+  /// Drops every entry. Precondition: nothing returned by find()/put() is alive (they hold this).
   ~EncodedCache();
   EncodedCache(const EncodedCache&) = delete;
   EncodedCache& operator=(const EncodedCache&) = delete;
 
-  /// The object cached as `id` (of type T, as put), or nullptr. Never blocks (PatchCache::find):
-  /// network threads may call it. `countMiss`: false for the handler pool's second look after a
+  /// The cached body, or nullptr. `countMiss`: false for the handler pool's second look after a
   /// network thread's first one missed (one miss per request in the statistics).
-  template <typename T>
-  std::shared_ptr<const T> find(const core::ObjectId& id, bool countMiss) const {
-    return std::static_pointer_cast<const T>(cache_.find(model_, id, countMiss));
-  }
+  std::shared_ptr<const Body> find(const core::PatchKey& key, std::uint64_t version,
+                                   Encoding encoding, bool countMiss) const;
+  /// Caches `bytes` as the body, with `note` (a short text the encoder keeps beside them, such as
+  /// a response header's value), evicting others to make room, and returns it held. Throws
+  /// core::Error(ResourceExhausted) when the budget is full of pinned data.
+  std::shared_ptr<const Body> put(const core::PatchKey& key, std::uint64_t version,
+                                  Encoding encoding, std::vector<std::byte> bytes,
+                                  std::string note = {});
 
-  /// Caches `object`, occupying `bytes`, as `id` (replacing what is there), evicting others to
-  /// make room. Throws core::Error(ResourceExhausted) when the budget is full of pinned data.
-  void put(const core::ObjectId& id, std::shared_ptr<const void> object, std::size_t bytes);
+  /// The cached open file, or nullptr (as find()).
+  std::shared_ptr<const File> findFile(const core::PatchKey& key, std::uint64_t version,
+                                       StoredKind kind, bool countMiss) const;
+  /// Caches the open file, closing the least recently used unpinned ones beyond the handle
+  /// budget, and returns it held. Throws core::Error(ResourceExhausted) when every file the
+  /// budget allows is being sent (`file` is closed then).
+  std::shared_ptr<const File> putFile(const core::PatchKey& key, std::uint64_t version,
+                                      StoredKind kind, std::unique_ptr<core::StoredFile> file);
+
+  /// Drops every entry of `key` at `version` (entries in use go when their last holder does).
+  void dropVersion(const core::PatchKey& key, std::uint64_t version);
 
  private:
+  explicit EncodedCache(core::PatchCache& cache);
   class Store;  // the PatchStore the cache needs; it never loads and never writes
+  template <typename Held>
+  std::shared_ptr<const Held> hold(core::PatchCache::Pin pin) const;
+
   core::PatchCache& cache_;
   std::unique_ptr<Store> store_;
   core::PatchCache::ModelId model_ = 0;
+};
+
+/// What an Encoded entry holds.
+struct EncodedBytes {
+  std::vector<std::byte> bytes;
+  std::string note;
+};
+
+class EncodedCache::Body {
+ public:
+  std::span<const std::byte> bytes() const { return encoded_->bytes; }
+  std::string_view text() const {
+    return {reinterpret_cast<const char*>(encoded_->bytes.data()), encoded_->bytes.size()};
+  }
+  const std::string& note() const { return encoded_->note; }
+
+ private:
+  friend class EncodedCache;
+  std::shared_ptr<const EncodedCache> owner_;  // outlives pin_
+  core::PatchCache::Pin pin_;
+  const EncodedBytes* encoded_ = nullptr;
+};
+
+class EncodedCache::File {
+ public:
+  int fd() const { return file_->fd(); }
+  std::size_t size() const { return file_->size(); }
+
+ private:
+  friend class EncodedCache;
+  std::shared_ptr<const EncodedCache> owner_;  // outlives pin_
+  core::PatchCache::Pin pin_;
+  const core::StoredFile* file_ = nullptr;
 };
 
 }  // namespace vsm::server::models

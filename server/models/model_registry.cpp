@@ -222,7 +222,7 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
       log::warn("model=" + id + " opened for reading only: " + e.what());
       model = core::LiveModel::open(canonical, id, cache_, core::LiveModel::Access::Read);
     }
-    encoded = std::make_shared<EncodedCache>(cache_, id);
+    encoded = EncodedCache::create(cache_, *model);
   } catch (...) {
     const std::lock_guard lock(mutex_);
     opening_.erase(id);
@@ -246,7 +246,7 @@ void ModelRegistry::reopen(std::string_view id) {
   Served fresh;
   try {
     fresh.live = old->reopen();
-    fresh.encoded = std::make_shared<EncodedCache>(cache_, std::string(id));
+    fresh.encoded = EncodedCache::create(cache_, *fresh.live);
   } catch (const std::exception& e) {
     log::error("model=" + std::string(id) + " cannot be read again from disk: " + e.what());
     return;

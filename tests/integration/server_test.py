@@ -428,18 +428,20 @@ def metric(text, name, labels=""):
 
 
 class EncodedResponses(unittest.TestCase):
-    """Positions files (sent with sendfile) and GLBs are cached as encoded responses inside the
-    one memory budget: charged by category, shown in /v1/stats and /metrics, evicted under
-    pressure. A 257 x 257 DEM imported at 65 x 65 (21 patches of 50 KB of positions each, twice
-    that with their files) into a daemon with a 1 MiB budget."""
+    """Stored positions files held open (sent with sendfile), encodings of cropped patches and
+    GLBs are cached inside the one memory budget: charged by category, shown in /v1/stats and
+    /metrics, evicted under pressure. A 241 x 241 DEM imported at 65 x 65 (21 patches of 50 KB of
+    positions each) into a daemon with a 1 MiB budget."""
 
     BUDGET = 1 * MiB
     daemon = None
 
     @classmethod
     def setUpClass(cls):
+        # 241 samples across: the patches at the east and north edges are padded, so stored
+        # cropped; the others are stored whole.
         cls.daemon = Daemon("--memory-budget", "1MiB", "--token", TOKEN,
-                            prepare=lambda root: write_dem(os.path.join(root, "hills.asc"), 257))
+                            prepare=lambda root: write_dem(os.path.join(root, "hills.asc"), 241))
         import_model(cls.daemon, "hills", "hills.asc", 65)
         status, _, hierarchy = cls.daemon.get_json("/v1/models/hills/hierarchy")
         assert status == 200, hierarchy
@@ -476,36 +478,60 @@ class EncodedResponses(unittest.TestCase):
         self.assertEqual(int(headers["Content-Length"]), len(body))
         return body
 
-    def test_a_served_positions_file_is_charged_and_shown_in_stats_and_metrics(self):
-        body = self.positions("0_0_0")
+    def patch_stored_whole(self, key):
+        status, _, patch = self.daemon.get_json("/v1/models/hills/patches/%s" % key)
+        self.assertEqual(status, 200)
+        stored = patch["stored"]
+        return stored == {"x0": 0, "y0": 0, "x1": 65, "y1": 65}
+
+    def test_a_patch_stored_whole_is_sent_from_its_file_and_a_cropped_one_encoded_in_budget(self):
+        whole = [key for key in self.keys if self.patch_stored_whole(key)]
+        cropped = [key for key in self.keys if key not in whole]
+        # The padded edges leave some patches cropped; the others are whole.
+        self.assertTrue(whole and cropped, (whole, cropped))
+        before = self.stats()["memory"]
+        body = self.positions(whole[0])
         self.assertEqual(len(body), 13 + 65 * 65 * 12)
+        with open(os.path.join(self.daemon.dir, "hills", "Patches", whole[0],
+                               "Positions.aara"), "rb") as stored:
+            self.assertEqual(body, stored.read())  # the stored file, byte for byte
         stats = self.stats()
-        files = stats["memory"]["resident_bytes_by_category"]["position_files"]
-        self.assertGreaterEqual(files, len(body))  # this patch's file, and maybe others
-        self.assertEqual(files % len(body), 0)
-        self.assertGreaterEqual(stats["memory"]["resident_bytes_by_model"]["hills"], files)
-        # A second request is answered from the cached file: a hit, the same bytes.
+        memory = stats["memory"]
+        # An open file is charged its bookkeeping, not its bytes (those are the page cache's).
+        self.assertGreaterEqual(memory["open_files"], 1)
+        self.assertLessEqual(memory["open_files"], memory["open_files_limit"])
+        self.assertGreater(memory["resident_bytes_by_category"]["open_files"], 0)
+        self.assertLess(memory["resident_bytes_by_category"]["open_files"], 4096 * memory["open_files"])
+        self.assertEqual(memory["resident_bytes_by_category"]["positions"],
+                         before["resident_bytes_by_category"]["positions"])
+        # A cropped patch is encoded once, as the full grid, and that encoding is charged.
+        body = self.positions(cropped[0])
+        self.assertEqual(len(body), 13 + 65 * 65 * 12)
+        encoded = self.stats()["memory"]["resident_bytes_by_category"]["encoded"]
+        self.assertGreaterEqual(encoded, len(body))
+        self.assertGreaterEqual(self.stats()["memory"]["resident_bytes_by_model"]["hills"], encoded)
+        # A second request is answered from the cache: a hit, the same bytes.
         hits = stats["cache"]["hits"]
-        self.assertEqual(self.positions("0_0_0"), body)
+        self.assertEqual(self.positions(cropped[0]), body)
         self.assertGreater(self.stats()["cache"]["hits"], hits)
         status, _, text = self.daemon.request("GET", "/metrics")
         self.assertEqual(status, 200)
         text = text.decode()
-        self.assertEqual(metric(text, "vsm_memory_resident_bytes", '{category="position_files"}'),
-                         files)
+        self.assertGreaterEqual(metric(text, "vsm_memory_resident_bytes", '{category="encoded"}'),
+                                len(body))
+        self.assertGreaterEqual(metric(text, "vsm_cache_open_files"), 1)
         self.assertLessEqual(metric(text, "vsm_memory_model_resident_bytes", '{model="hills"}'),
                              self.BUDGET)
 
-    def test_a_first_request_counts_each_miss_once_and_a_repeat_one_hit(self):
-        # A patch no other test has asked for: the network thread's look for its file misses,
-        # the pool loads the grid (a second miss, of the positions) and caches the file; the
-        # pool's own look for the file is the same request's and not counted again. The repeat is
-        # one hit on the network thread.
+    def test_a_first_request_counts_one_miss_and_a_repeat_one_hit(self):
+        # A patch no other test has asked for: the network thread's look misses, the pool opens
+        # its file (or encodes it) and caches that; the pool's own look is the same request's and
+        # not counted again. The repeat is one hit on the network thread.
         key = self.keys[-1]
         before = self.stats()["cache"]
         self.positions(key)
         after = self.stats()["cache"]
-        self.assertEqual(after["misses"] - before["misses"], 2)
+        self.assertEqual(after["misses"] - before["misses"], 1)
         self.positions(key)
         again = self.stats()["cache"]
         self.assertEqual(again["misses"], after["misses"])
@@ -522,7 +548,7 @@ class EncodedResponses(unittest.TestCase):
             glbs[key] = body
         stats = self.stats()
         self.assertGreater(stats["cache"]["evictions"], 0)
-        self.assertGreater(stats["memory"]["resident_bytes_by_category"]["tiles"], 0)
+        self.assertGreater(stats["memory"]["resident_bytes_by_category"]["encoded"], 0)
         # Evicted or not, every answer stays the same.
         for key in reversed(self.keys):
             self.assertEqual(self.positions(key), first[key], key)

@@ -281,6 +281,92 @@ TEST(PatchCache, InvalidateServesNewDataWhileOldPinsKeepTheirs) {
   cache.removeModel(model);
 }
 
+TEST(PatchCache, FindNeverLoadsAndPinsWhatItFinds) {
+  FakeStore store(8, kMiB);
+  PatchCache cache(2 * kMiB);
+  const auto model = cache.addModel("m", store);
+  // A miss: nothing loaded, one miss counted (none with countMiss false: a second look).
+  EXPECT_FALSE(cache.find(model, FakeStore::id(0)));
+  EXPECT_FALSE(cache.find(model, FakeStore::id(0), /*countMiss=*/false));
+  EXPECT_EQ(store.loads(), 0);
+  EXPECT_EQ(cache.stats().misses, 1u);
+  EXPECT_FALSE(cache.resident(model, FakeStore::id(0)));
+
+  cache.get(model, FakeStore::id(0));  // loads (a second miss), then unpinned
+  const auto hitsBefore = cache.stats().hits;
+  {
+    const PatchCache::Pin found = cache.find(model, FakeStore::id(0));
+    ASSERT_TRUE(found);
+    EXPECT_EQ(versionOf(found), 1u);
+    EXPECT_EQ(cache.stats().hits, hitsBefore + 1);
+    EXPECT_EQ(cache.stats().pinnedBytes, kMiB);
+    // Pinned by find(): loading two more into a two-patch budget evicts the other one only.
+    cache.get(model, FakeStore::id(1));
+    cache.get(model, FakeStore::id(2));
+    EXPECT_TRUE(cache.resident(model, FakeStore::id(0)));
+    EXPECT_FALSE(cache.resident(model, FakeStore::id(1)));
+    EXPECT_LE(cache.stats().residentBytes, 2 * kMiB);
+  }
+  EXPECT_EQ(cache.stats().pinnedBytes, 0u);
+  EXPECT_EQ(store.loads(), 3);
+  EXPECT_EQ(cache.stats().misses, 4u);
+  cache.removeModel(model);
+}
+
+TEST(PatchCache, FindCountsAsAUseSoTheClockKeepsWhatIsFound) {
+  FakeStore store(8, kMiB);
+  PatchCache cache(3 * kMiB, EvictionPolicy::CostAwareClock);
+  const auto model = cache.addModel("m", store);
+  for (int i = 0; i < 3; ++i) {
+    cache.get(model, FakeStore::id(i));
+  }
+  // 0 and 2 are found again (referenced); 1 is not: it is the one the next load evicts.
+  cache.find(model, FakeStore::id(0));
+  cache.find(model, FakeStore::id(2));
+  cache.get(model, FakeStore::id(3));
+  EXPECT_TRUE(cache.resident(model, FakeStore::id(0)));
+  EXPECT_FALSE(cache.resident(model, FakeStore::id(1)));
+  EXPECT_TRUE(cache.resident(model, FakeStore::id(2)));
+  cache.removeModel(model);
+}
+
+TEST(PatchCache, TheHandleBudgetClosesUnpinnedFilesOnlyAndRefusesWhenAllAreInUse) {
+  FakeStore store(8, kMiB);
+  PatchCache cache(64 * kMiB);
+  cache.setHandleBudget(2);
+  const auto model = cache.addModel("m", store);
+  const auto file = [](int i) {
+    return ObjectId{FakeStore::key(i), 1, MemoryCategory::OpenFiles, 1};
+  };
+  const auto value = [] { return CacheValue{makeBlob(64, 1), 64, 1}; };
+  cache.get(model, FakeStore::id(0));  // patch data: holds no descriptor, never a victim here
+  PatchCache::Pin held = cache.put(model, file(0), value(), false);
+  cache.put(model, file(1), value(), false);  // unpinned at once
+  EXPECT_EQ(cache.stats().handles, 2u);
+  // A third file: the unpinned one goes, not the held one nor the patch data.
+  PatchCache::Pin third = cache.put(model, file(2), value(), false);
+  EXPECT_EQ(cache.stats().handles, 2u);
+  EXPECT_TRUE(cache.resident(model, file(0)));
+  EXPECT_FALSE(cache.resident(model, file(1)));
+  EXPECT_TRUE(cache.resident(model, FakeStore::id(0)));
+  // Both files in use: a fourth is refused, and nothing else is evicted for it.
+  try {
+    cache.put(model, file(3), value(), false);
+    ADD_FAILURE() << "no ResourceExhausted";
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), ErrorCode::ResourceExhausted);
+  }
+  EXPECT_TRUE(cache.resident(model, FakeStore::id(0)));
+  EXPECT_EQ(cache.stats().exhausted, 1u);
+  const CacheStats stats = cache.stats();
+  EXPECT_EQ(stats.handleBudget, 2u);
+  EXPECT_EQ(stats.residentByCategory[static_cast<std::size_t>(MemoryCategory::OpenFiles)], 128u);
+  held = {};
+  third = {};
+  cache.removeModel(model);
+  EXPECT_EQ(cache.stats().handles, 0u);
+}
+
 TEST(PatchCache, StatisticsCountByModelAndCategory) {
   FakeStore a(2, kMiB);
   FakeStore b(2, kMiB);

@@ -1,6 +1,7 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <array>
 #include <cmath>
 #include <cstring>
 #include <fstream>
@@ -11,6 +12,7 @@
 #include "core/opc/aara.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
+#include "core/opc/stored_file.hpp"
 #include "core/opc/validate.hpp"
 #include "tests/unit/test_support.hpp"
 
@@ -241,6 +243,30 @@ TEST_F(OpcStoreTest, UndefinedBordersAreCroppedAndTheCropRecorded) {
   EXPECT_EQ(model_->at(PatchKey::root()).stored, (GridRect{0, 0, kSize, kSize}));
   EXPECT_NE(readText(patches() / "1_0_0" / "Patch.xml").find("<Offset>[0, 1]</Offset>"),
             std::string::npos);
+}
+
+/// The full-grid .aara of a decoded grid, as the positions route sends it.
+std::vector<std::byte> fullGridAara(const PatchGrid& grid) {
+  const std::array<std::int32_t, 2> sizes{grid.size(), grid.size()};
+  std::vector<std::byte> out = encodeAaraHeader(AaraType::V3f, sizes);
+  const auto floats = std::as_bytes(grid.positions());
+  out.insert(out.end(), floats.begin(), floats.end());
+  return out;
+}
+
+TEST_F(OpcStoreTest, StoredFilesServeTheFullGridAsIsOrWithTheirRowsCopiedIntoPlace) {
+  const Model read = readOpcModel(opc());
+  // The root is stored whole: its file is the full grid's .aara, byte for byte.
+  const PatchInfo& root = read.at(PatchKey::root());
+  const auto whole = openFullGridPositions(opc(), kSize, root);
+  ASSERT_NE(whole, nullptr);
+  EXPECT_EQ(readStoredFile(*whole, "root"), fullGridAara(readPatchGrid(opc(), read, root)));
+  // The cropped leaf is not; its rows copied into place give the decoded grid's bytes.
+  const PatchInfo& nw = read.at(PatchKey::root().child(Quadrant::NW));
+  EXPECT_EQ(openFullGridPositions(opc(), kSize, nw), nullptr);
+  const auto full = readFullGridPositions(opc(), kSize, nw);
+  ASSERT_TRUE(full.has_value());
+  EXPECT_EQ(*full, fullGridAara(readPatchGrid(opc(), read, nw)));
 }
 
 TEST_F(OpcStoreTest, WritesTheStandardElementsInOrderAndTheRootLast) {

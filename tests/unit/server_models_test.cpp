@@ -23,6 +23,7 @@
 #include "core/opc/aara.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
+#include "core/opc/stored_file.hpp"
 #include "core/opc/validate.hpp"
 #include "core/store/live_model.hpp"
 #include "server/api/model_routes.hpp"
@@ -30,6 +31,7 @@
 #include "server/http/pipeline.hpp"
 #include "server/http/router.hpp"
 #include "server/jobs/job_registry.hpp"
+#include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
 
 namespace fs = std::filesystem;
@@ -230,6 +232,129 @@ TEST(ModelRegistry, AReservedIdOpensOnlyForItsHolder) {
   }
   registry.close("m");
   const auto reservation = registry.reserve("m");  // free again
+}
+
+// ---- encoded responses -------------------------------------------------------------------------
+
+std::vector<std::byte> bytesOf(std::string_view text) {
+  const auto span = std::as_bytes(std::span(text.data(), text.size()));
+  return {span.begin(), span.end()};
+}
+
+TEST(EncodedCache, BodiesAreTypedChargedAndPinnedWhileHeld) {
+  const DataRoot root;
+  writeModel(root.path() / "m");
+  core::PatchCache cache(64 * kMiB);
+  const auto live = core::LiveModel::open(root.path() / "m", "m", cache);
+  const auto encoded = models::EncodedCache::create(cache, *live);
+  const core::PatchKey key = core::PatchKey::root();
+  EXPECT_EQ(encoded->find(key, 1, models::Encoding::Glb, true), nullptr);
+  auto body = encoded->put(key, 1, models::Encoding::Glb, bytesOf("glTF..."), "note");
+  EXPECT_EQ(body->text(), "glTF...");
+  EXPECT_EQ(body->note(), "note");
+  // One entry per encoding and version: a PNG of the same patch is another.
+  EXPECT_EQ(encoded->find(key, 1, models::Encoding::TexturePng, true), nullptr);
+  EXPECT_EQ(encoded->find(key, 2, models::Encoding::Glb, true), nullptr);
+  auto again = encoded->find(key, 1, models::Encoding::Glb, true);
+  ASSERT_NE(again, nullptr);
+  EXPECT_EQ(again->text(), "glTF...");
+  core::CacheStats stats = cache.stats();
+  const auto encodedBytes =
+      stats.residentByCategory[static_cast<std::size_t>(core::MemoryCategory::Encoded)];
+  EXPECT_EQ(encodedBytes, 7u + 4u);  // the bytes and the note
+  EXPECT_EQ(stats.residentByModel.at("m"), encodedBytes);
+  EXPECT_EQ(stats.pinnedBytes, encodedBytes);  // held by `body` and `again`: a response in flight
+  body.reset();
+  EXPECT_EQ(cache.stats().pinnedBytes, encodedBytes);
+  again.reset();
+  EXPECT_EQ(cache.stats().pinnedBytes, 0u);
+  EXPECT_EQ(cache.stats().residentBytes, encodedBytes);  // cached, no longer pinned
+}
+
+TEST(EncodedCache, AHeldBodyOutlivesPressureAndItsCacheStaysAliveWithIt) {
+  const DataRoot root;
+  writeModel(root.path() / "m");
+  core::PatchCache cache(2 * kMiB);
+  const auto live = core::LiveModel::open(root.path() / "m", "m", cache);
+  auto encoded = models::EncodedCache::create(cache, *live);
+  const std::vector<std::byte> big(900 * 1024, std::byte{7});
+  const auto held = encoded->put({1, 0, 0}, 1, models::Encoding::PositionsAara, big);
+  encoded->put({1, 1, 0}, 1, models::Encoding::PositionsAara, big);
+  encoded->put({1, 0, 1}, 1, models::Encoding::PositionsAara, big);  // evicts (1, 1, 0) only
+  EXPECT_NE(encoded->find({1, 0, 0}, 1, models::Encoding::PositionsAara, true), nullptr);
+  EXPECT_EQ(encoded->find({1, 1, 0}, 1, models::Encoding::PositionsAara, true), nullptr);
+  EXPECT_LE(cache.stats().residentBytes, 2 * kMiB);
+  // Everything held: no room, and the answer is "retry", never an allocation beyond the budget.
+  const auto second = encoded->find({1, 0, 1}, 1, models::Encoding::PositionsAara, true);
+  EXPECT_EQ(codeOf([&] {
+              encoded->put({1, 1, 1}, 1, models::Encoding::PositionsAara, big);
+            }),
+            ErrorCode::ResourceExhausted);
+  // The registry lets go of the cache (the model closes) while a response still holds a body.
+  encoded.reset();
+  EXPECT_EQ(held->bytes().size(), big.size());
+}
+
+TEST(EncodedCache, OpenFilesAreBoundedByTheHandleBudget) {
+  const DataRoot root;
+  writeModel(root.path() / "m");
+  core::PatchCache cache(64 * kMiB);
+  cache.setHandleBudget(2);
+  const auto live = core::LiveModel::open(root.path() / "m", "m", cache);
+  const auto encoded = models::EncodedCache::create(cache, *live);
+  const auto snapshot = live->snapshot();
+  const auto open = [&](const core::PatchKey& key) {
+    auto file = core::openFullGridPositions(live->dir(), kSize, snapshot->model->at(key));
+    EXPECT_NE(file, nullptr) << key.toString();  // written whole
+    return file;
+  };
+  auto first = encoded->putFile({2, 0, 0}, 1, models::StoredKind::Positions, open({2, 0, 0}));
+  EXPECT_EQ(first->size(), 13u + kSize * kSize * 12u);
+  char header[5] = {};
+  ASSERT_EQ(::pread(first->fd(), header, 4, 0), 4);
+  EXPECT_STREQ(header, "\x03V3f");
+  encoded->putFile({2, 1, 0}, 1, models::StoredKind::Positions, open({2, 1, 0}));
+  encoded->putFile({2, 2, 0}, 1, models::StoredKind::Positions, open({2, 2, 0}));
+  EXPECT_EQ(cache.stats().handles, 2u);
+  EXPECT_NE(encoded->findFile({2, 0, 0}, 1, models::StoredKind::Positions, true), nullptr);
+  EXPECT_EQ(encoded->findFile({2, 1, 0}, 1, models::StoredKind::Positions, true), nullptr);
+  // Both held (one by `first`, one by `third`): a further file is refused, so it is encoded.
+  const auto third = encoded->findFile({2, 2, 0}, 1, models::StoredKind::Positions, true);
+  EXPECT_EQ(codeOf([&] {
+              encoded->putFile({2, 3, 0}, 1, models::StoredKind::Positions, open({2, 3, 0}));
+            }),
+            ErrorCode::ResourceExhausted);
+}
+
+TEST(EncodedCache, APublishDropsTheEntriesOfTheVersionsItReplaced) {
+  const DataRoot root;
+  writeModel(root.path() / "m");
+  core::PatchCache cache(64 * kMiB);
+  const auto live = core::LiveModel::open(root.path() / "m", "m", cache);
+  const auto encoded = models::EncodedCache::create(cache, *live);
+  const auto before = live->snapshot();
+  const core::PatchKey leaf{2, 1, 2};
+  const core::PatchKey other{2, 0, 0};
+  for (const core::PatchKey& key : {core::PatchKey::root(), leaf, other}) {
+    encoded->put(key, before->model->at(key).version, models::Encoding::Glb, bytesOf("x"));
+  }
+  {
+    auto edit = live->beginEdit();
+    edit->setPositions(leaf, leafGrid(1, 2));
+    edit->publish();
+  }
+  // The leaf and its ancestors have new versions: their old entries are gone at once, while a
+  // reader of the old snapshot still holds it; the untouched patch keeps its entry.
+  EXPECT_EQ(encoded->find(leaf, before->model->at(leaf).version, models::Encoding::Glb, true),
+            nullptr);
+  EXPECT_EQ(encoded->find(core::PatchKey::root(), before->model->at(core::PatchKey::root()).version,
+                          models::Encoding::Glb, true),
+            nullptr);
+  EXPECT_NE(encoded->find(other, before->model->at(other).version, models::Encoding::Glb, true),
+            nullptr);
+  EXPECT_EQ(
+      cache.stats().residentByCategory[static_cast<std::size_t>(core::MemoryCategory::Encoded)],
+      1u);
 }
 
 // ---- jobs ------------------------------------------------------------------------------------
@@ -462,7 +587,10 @@ TEST_F(ModelRoutes, PatchMetadataAndPositionsComeFromOneVersion) {
   EXPECT_EQ(*data.header("ETag"), *meta.header("ETag"));
   EXPECT_EQ(*data.header("X-VSM-Local2Global"), "1,0,0,24,0,1,0,40,0,0,1,0,0,0,0,1");
   EXPECT_EQ(data.bodySize(), 13u + kSize * kSize * 12u);
-  EXPECT_EQ(data.body.size(), 13u);  // the header; the floats go from the cache without a copy
+  // Stored uncropped as V3f: the stored file itself is the body, sent with sendfile(2).
+  EXPECT_GE(data.file.fd, 0);
+  EXPECT_EQ(data.file.size, data.bodySize());
+  EXPECT_TRUE(data.body.empty());
   const std::string bytes = data.bodyText();
   const core::AaraArray array =
       core::decodeAara(std::as_bytes(std::span(bytes.data(), bytes.size())), "response");

@@ -1,5 +1,9 @@
 #include <gtest/gtest.h>
 
+#include <arpa/inet.h>
+#include <fcntl.h>
+#include <netinet/in.h>
+#include <sys/socket.h>
 #include <unistd.h>
 
 #include <filesystem>
@@ -14,9 +18,11 @@
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/config/config.hpp"
+#include "server/exec/work_pool.hpp"
 #include "server/http/message.hpp"
 #include "server/http/pipeline.hpp"
 #include "server/http/router.hpp"
+#include "server/http/server.hpp"
 #include "server/metrics/metrics.hpp"
 
 namespace vsm::server {
@@ -768,6 +774,102 @@ TEST(StaticContentType, FollowsTheExtension) {
   EXPECT_EQ(api::staticContentType("a.json"), "application/json");
   EXPECT_EQ(api::staticContentType("draco.wasm"), "application/wasm");
   EXPECT_EQ(api::staticContentType("LICENSE"), "application/octet-stream");
+}
+
+// --- the HTTP server on a real socket -------------------------------------------------------
+
+/// A descriptor closed on destruction (what keeps a response's body file open).
+struct OpenFd {
+  int fd = -1;
+  ~OpenFd() { ::close(fd); }
+};
+
+/// A blocking client of one keep-alive connection to 127.0.0.1:port.
+class RawClient {
+ public:
+  explicit RawClient(std::uint16_t port) : fd_(::socket(AF_INET, SOCK_STREAM, 0)) {
+    sockaddr_in address{};
+    address.sin_family = AF_INET;
+    address.sin_port = htons(port);
+    address.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    timeval timeout{5, 0};
+    ::setsockopt(fd_, SOL_SOCKET, SO_RCVTIMEO, &timeout, sizeof timeout);
+    connected_ = ::connect(fd_, reinterpret_cast<sockaddr*>(&address), sizeof address) == 0;
+  }
+  ~RawClient() { ::close(fd_); }
+  bool connected() const { return connected_; }
+
+  /// Sends a GET and returns the response's body; "" when the connection ended first.
+  std::string get(const std::string& path) {
+    const std::string request = "GET " + path + " HTTP/1.1\r\nHost: test\r\n\r\n";
+    if (::send(fd_, request.data(), request.size(), MSG_NOSIGNAL) !=
+        static_cast<ssize_t>(request.size())) {
+      return "";
+    }
+    std::size_t headerEnd = std::string::npos;
+    while ((headerEnd = buffer_.find("\r\n\r\n")) == std::string::npos) {
+      if (!readMore()) {
+        return "";
+      }
+    }
+    const std::size_t at = buffer_.find("Content-Length: ");
+    const std::size_t length = std::stoul(buffer_.substr(at + 16));
+    while (buffer_.size() < headerEnd + 4 + length) {
+      if (!readMore()) {
+        return "";
+      }
+    }
+    std::string body = buffer_.substr(headerEnd + 4, length);
+    buffer_.erase(0, headerEnd + 4 + length);
+    return body;
+  }
+
+ private:
+  bool readMore() {
+    char chunk[4096];
+    const ssize_t n = ::recv(fd_, chunk, sizeof chunk, 0);
+    if (n <= 0) {
+      return false;
+    }
+    buffer_.append(chunk, static_cast<std::size_t>(n));
+    return true;
+  }
+
+  int fd_;
+  bool connected_ = false;
+  std::string buffer_;
+};
+
+TEST(HttpServer, AFileBodysWriteTimerNeverClosesTheConnectionAfterTheWriteCompleted) {
+  // A body file sent by sendfile(2) whose write timer expires (at once: a write timeout of 0) just
+  // as the write completes: its handler is queued already and cannot be cancelled any more. It
+  // must not close the connection the next request then uses.
+  const TempFile body("file body sent by sendfile");
+  http::Router router;
+  router.add(http::Method::Get, "/file", [&body](const http::Request&) {
+    auto owner = std::make_shared<OpenFd>();
+    owner->fd = ::open(body.path().c_str(), O_RDONLY | O_CLOEXEC);
+    http::Response response;
+    response.contentType = "text/plain";
+    response.file = {owner->fd, 5, 4};  // "body"
+    response.bodyOwner = std::move(owner);
+    return response;
+  });
+  const http::Pipeline pipeline(router, "");
+  exec::WorkPool pool("cpu", 2);
+  metrics::Registry registry;
+  http::ServerOptions options;
+  options.ioThreads = 2;
+  options.writeTimeout = 0ms;
+  http::Server server(options, pipeline, pool, registry);
+  server.start();
+  RawClient client(server.port());
+  ASSERT_TRUE(client.connected());
+  for (int i = 0; i < 300; ++i) {
+    ASSERT_EQ(client.get("/file"), "body") << "request " << i << " on one connection";
+  }
+  server.stop(1s);
+  pool.join();
 }
 
 }  // namespace

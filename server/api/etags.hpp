@@ -1,0 +1,39 @@
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <string_view>
+
+namespace vsm::core {
+struct ModelSnapshot;
+struct PatchInfo;
+}  // namespace vsm::core
+
+namespace vsm::server::api {
+
+/// Every entity tag of the model routes, in one place: what a tag is derived from decides when
+/// clients revalidate, so the derivations are kept side by side.
+
+/// Bumped whenever the GLB encoder or tilesetJson() change what they produce for the same model,
+/// so clients holding the old bytes under an ETag revalidate to the new ones.
+inline constexpr std::string_view kTilesFormat = "t2";  // t2: textures embedded
+
+/// A model's published metadata (summary, hierarchy, LOD cuts): a digest of every patch's key,
+/// version, folder, children and box. Derived from content rather than from the snapshot's
+/// version, which restarts at 1 whenever the model is opened.
+std::string modelEtag(const core::ModelSnapshot& snapshot);
+/// A view of the model chosen by a query (`view` "h": hierarchy, "l": LOD cut).
+std::string viewEtag(const core::ModelSnapshot& snapshot, std::string_view view,
+                     std::string_view query);
+/// One patch (metadata and positions): key, patch version (persisted in the OPC) and a digest of
+/// its metadata.
+std::string patchEtag(const core::PatchInfo& info);
+/// Other data of one patch: its tag with `suffix` ("uv": coordinates, "png": texture).
+std::string patchDataEtag(const core::PatchInfo& info, std::string_view suffix);
+/// A model's tileset and one patch's GLB: the model's and the patch's tags with kTilesFormat.
+std::string tilesetEtag(const core::ModelSnapshot& snapshot);
+std::string glbEtag(const core::PatchInfo& info);
+/// A static file (the viewer's): its size, modification time (ns) and inode.
+std::string staticFileEtag(std::uint64_t size, std::uint64_t mtimeNs, std::uint64_t inode);
+
+}  // namespace vsm::server::api
