@@ -32,8 +32,8 @@
 # under `ulimit -n 512`, which leaves it 64 open files for 336 patches, so that most reads open
 # their file on the handler pool. A third, with an 8 MiB budget, serves the patches stored cropped
 # only (their full grid is encoded on a miss, the stored rows copied in, and cached in the
-# budget; nginx serves the same full grids as files): the measurement behind encoding them once rather than extending
-# the route with the stored layout. On this 2-core machine (load average 5 to 6 from other work)
+# budget; nginx serves the same full grids as files): the measurement behind encoding them once
+# rather than extending the route with the stored layout. On this 2-core machine (load average 5 to 6 from other work)
 # that case ran at 0.36x to 0.72x nginx when the grid was decoded and re-encoded (4 MiB, 32
 # connections, some answers 503 then), and at 0.90x to 1.81x (4 connections, 8 MiB, more than
 # half the reads missing, all 200) since the stored rows are copied into place without decoding;
