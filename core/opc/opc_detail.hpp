@@ -1,8 +1,8 @@
 #pragma once
 
-// Internal to core/opc: shared by aara.cpp, opc_files.cpp, opc_reader.cpp, opc_writer.cpp, stored_file.cpp, texture_file.cpp and validate.cpp. Not part of the
-// module's interface; other modules include aara.hpp, opc_reader.hpp, opc_writer.hpp and
-// validate.hpp only.
+// Internal to core/opc: shared by aara.cpp, opc_files.cpp, opc_reader.cpp, opc_writer.cpp,
+// stored_file.cpp, texture_file.cpp and validate.cpp. Not part of the module's interface; other
+// modules include aara.hpp, opc_reader.hpp, opc_writer.hpp and validate.hpp only.
 
 #include <cstddef>
 #include <cstdint>
