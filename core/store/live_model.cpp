@@ -1,5 +1,7 @@
 #include "core/store/live_model.hpp"
 
+#include <unistd.h>
+
 #include <algorithm>
 #include <cctype>
 #include <map>
@@ -156,7 +158,18 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
     return load(dir, std::move(name), cache, nullptr, false, 1);
   }
   patchesDirOf(dir);  // NotFound for a directory without an OPC, before anything is created
-  std::shared_ptr<const durable::WriterLock> lock = durable::WriterLock::acquire(dir);
+  std::shared_ptr<const durable::WriterLock> lock;
+  try {
+    lock = durable::WriterLock::acquire(dir);
+  } catch (const Error& e) {
+    const bool unwritable = e.code() == ErrorCode::Io && ::access(dir.c_str(), W_OK) != 0;
+    if (access != Access::WriteIfPossible || (e.code() != ErrorCode::Conflict && !unwritable)) {
+      throw;
+    }
+    auto model = load(dir, std::move(name), cache, nullptr, false, 1);
+    model->readOnlyReason_ = e.what();
+    return model;
+  }
   return load(dir, std::move(name), cache, std::move(lock), true, 1);
 }
 
@@ -266,7 +279,9 @@ void LiveModel::onPublish(std::function<void(const ReplacedVersions&)> observer)
 
 std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
   if (lock_ == nullptr) {
-    throw Error(ErrorCode::Conflict, "model '" + name_ + "' is open for reading only");
+    throw Error(ErrorCode::Conflict,
+                "model '" + name_ + "' is open for reading only" +
+                    (readOnlyReason_.empty() ? std::string() : ": " + readOnlyReason_));
   }
   bool expected = false;
   if (!editing_.compare_exchange_strong(expected, true)) {

@@ -50,7 +50,10 @@ class ModelEdit;
 /// Thread-safe: any number of readers, one edit.
 class LiveModel {
  public:
-  enum class Access { Read, Write };
+  /// Write: fail when the writer lock cannot be taken. WriteIfPossible: then open for reading
+  /// only, keeping why (another writer holds the lock, or the directory is not writable: a
+  /// read-only mount), as a server serving every model of a data root wants.
+  enum class Access { Read, Write, WriteIfPossible };
 
   /// Opens `dir` (metadata only) and registers it with `cache` under `name`.
   ///
@@ -74,6 +77,9 @@ class LiveModel {
   LiveModel& operator=(const LiveModel&) = delete;
 
   const std::string& name() const { return name_; }
+  /// False when opened for reading only; readOnlyReason() then says why (empty for Access::Read).
+  bool writable() const { return lock_ != nullptr; }
+  const std::string& readOnlyReason() const { return readOnlyReason_; }
   const std::filesystem::path& dir() const { return dir_; }
 
   /// The current published version.
@@ -121,6 +127,7 @@ class LiveModel {
   std::atomic<bool> editing_{false};
   /// Null when opened for reading.
   std::shared_ptr<const durable::WriterLock> lock_;
+  std::string readOnlyReason_;
   std::function<void(const ReplacedVersions&)> onPublish_;  // guarded by mutex_
 };
 

@@ -77,6 +77,11 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
   auto sourceLease = std::make_shared<models::ModelRegistry::Lease>(models.lease(source));
   std::shared_ptr<core::LiveModel> targetModel = models.get(target);
   std::shared_ptr<core::LiveModel> sourceModel = models.get(source);
+  if (!targetModel->writable()) {
+    // A second writer over HTTP: 409 at once, naming the holder.
+    throw Error(ErrorCode::Conflict, "model '" + target + "' is open for reading only: " +
+                                         targetModel->readOnlyReason());
+  }
   json params = {{"target", target}, {"source", source}, {"register", registerFirst}};
   JobContext::Plan plan;
   if (registerFirst) {

@@ -1,7 +1,5 @@
 #include "server/models/model_registry.hpp"
 
-#include <unistd.h>
-
 #include <algorithm>
 #include <system_error>
 #include <utility>
@@ -212,15 +210,9 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
   std::shared_ptr<core::LiveModel> model;
   std::shared_ptr<EncodedCache> encoded;
   try {
-    try {
-      model = core::LiveModel::open(canonical, id, cache_);
-    } catch (const Error& e) {
-      // A model on a read-only mount is still served; it only cannot be written.
-      if (e.code() != ErrorCode::Io || ::access(canonical.c_str(), W_OK) == 0) {
-        throw;
-      }
-      log::warn("model=" + id + " opened for reading only: " + e.what());
-      model = core::LiveModel::open(canonical, id, cache_, core::LiveModel::Access::Read);
+    model = core::LiveModel::open(canonical, id, cache_, core::LiveModel::Access::WriteIfPossible);
+    if (!model->writable()) {
+      log::warn("model=" + id + " opened for reading only: " + model->readOnlyReason());
     }
     encoded = EncodedCache::create(cache_, *model);
   } catch (...) {

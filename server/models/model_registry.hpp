@@ -64,10 +64,10 @@ class ModelRegistry {
   std::size_t openAll();
 
   /// Opens the OPC directory `dir` (inside the data root) as `id`, for writing (holding its
-  /// writer lock), or for reading only when the directory is not writable (a read-only mount).
-  /// Throws core::Error(Conflict) when the id is open or reserved, or the directory is open under
-  /// another id; InvalidArgument for a bad id; the errors of LiveModel::open (NotFound when `dir`
-  /// holds no OPC, Corrupt, Io).
+  /// writer lock), or for reading only when another writer holds the lock or the directory is not
+  /// writable (a read-only mount): LiveModel::Access::WriteIfPossible. Throws core::Error(Conflict)
+  /// when the id is open or reserved, or the directory is open under another id; InvalidArgument
+  /// for a bad id; the errors of LiveModel::open (NotFound when `dir` holds no OPC, Corrupt, Io).
   std::shared_ptr<core::LiveModel> open(const std::string& id, const std::filesystem::path& dir);
 
   /// Replaces the open model `id` by a new opening of its directory, read again from disk

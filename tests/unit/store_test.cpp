@@ -135,6 +135,11 @@ TEST_F(StoreTest, ASecondWriterIsRefusedAndAReaderNeedsNoLockButCannotEdit) {
   EXPECT_NE(message.find("is being written by store_test (pid " + std::to_string(::getpid())),
             std::string::npos)
       << message;
+  // A server serving every model takes what it can: reading only, and says why.
+  auto served = LiveModel::open(dir_, "served", cache, LiveModel::Access::WriteIfPossible);
+  EXPECT_FALSE(served->writable());
+  EXPECT_NE(served->readOnlyReason().find("is being written by store_test"), std::string::npos);
+  EXPECT_NE(messageOf([&] { served->beginEdit(); }).find("is being written by"), std::string::npos);
   auto reader = LiveModel::open(dir_, "reader", cache, LiveModel::Access::Read);
   EXPECT_EQ(reader->snapshot()->model->patchCount(), live->snapshot()->model->patchCount());
   EXPECT_EQ(codeOf([&] { reader->beginEdit(); }), ErrorCode::Conflict);
