@@ -243,6 +243,7 @@ void ModelRegistry::reopen(std::string_view id) {
     log::error("model=" + std::string(id) + " cannot be read again from disk: " + e.what());
     return;
   }
+  const std::uint64_t version = fresh.live->snapshot()->version;
   Served replaced;
   {
     const std::lock_guard lock(mutex_);
@@ -253,7 +254,7 @@ void ModelRegistry::reopen(std::string_view id) {
     replaced = std::exchange(it->second, std::move(fresh));
   }
   log::warn("model=" + std::string(id) + " read again from disk after a failed write: version " +
-            std::to_string(get(id)->snapshot()->version));
+            std::to_string(version));
 }
 
 namespace {

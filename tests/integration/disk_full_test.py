@@ -44,7 +44,8 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import fault_sweep_test  # noqa: E402
 from fault_sweep_test import PATCH, CliMerge, DaemonMerge, Scenario  # noqa: E402
-from model_states import crop, digest_tree, make_outside_model, version_of, which  # noqa: E402
+from model_states import (crop, digest_tree, exit_status, make_outside_model,  # noqa: E402
+                          version_of, which)
 
 SKIP = 77
 TIMEOUT = 60
@@ -426,13 +427,7 @@ def main():
               (name, counts["runs"], counts["ENOSPC"], counts["fit"], counts["old"],
                counts["new"], " (old: nothing at <out>)" if name in ("import", "merge-out") else "",
                counts["seconds"]))
-    if failures:
-        for message in failures[:60]:
-            print("FAIL " + message)
-        print("%d failures" % len(failures))
-        return 1
-    print("OK")
-    return 0
+    return exit_status(failures)
 
 
 if __name__ == "__main__":

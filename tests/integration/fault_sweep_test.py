@@ -44,7 +44,8 @@ import urllib.request
 
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from model_states import crop, make_outside_model, version_of, which  # noqa: E402
+from model_states import (crop, exit_status, make_outside_model, version_of,  # noqa: E402
+                          which)
 
 
 CLASSES = ["write", "sync", "rename", "mkdir", "create", "unlink"]
@@ -396,13 +397,7 @@ def main():
               (name, calls, ", ".join("%s %d" % kv for kv in per_class.items()), counts["runs"],
                counts["injected"], counts["missed"], counts["error"], counts["warned"],
                counts["old"], counts["new"], seconds))
-    if failures:
-        for message in failures[:60]:
-            print("FAIL " + message)
-        print("%d failures" % len(failures))
-        return 1
-    print("OK")
-    return 0
+    return exit_status(failures)
 
 
 if __name__ == "__main__":

@@ -83,3 +83,14 @@ def make_outside_model(vsm, directory, patch_size):
     subprocess.run([vsm, "import", tif, out, "--patch-size", str(patch_size)], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return out
+
+
+def exit_status(failures):
+    """Lists the failures (the first 60) and their count: 1; or prints OK: 0."""
+    if failures:
+        for message in failures[:60]:
+            print("FAIL " + message)
+        print("%d failures" % len(failures))
+        return 1
+    print("OK")
+    return 0
