@@ -42,10 +42,11 @@ void checkCancelled(const MergeOptions& options) {
   }
 }
 
-/// The smallest k >= 1 with 2^k >= ratio.
+/// The smallest k >= 0 with 2^k >= ratio.
 int levelsFor(double ratio) {
-  int k = 1;
-  // A ratio that is a power of two up to rounding (e.g. 4.0000000001) needs no extra level.
+  int k = 0;
+  // A ratio that is a power of two up to rounding (e.g. 4.0000000001) needs no extra level; a
+  // leaf already as fine as B (ratio <= 1, e.g. where B was merged before) needs none at all.
   while (k <= kMaxNewLevels && std::ldexp(1.0, k) < ratio * (1 - 1e-9)) {
     ++k;
   }
@@ -124,6 +125,34 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
   return any ? tile : nullptr;
 }
 
+/// Mean distance between defined horizontal and vertical grid neighbours, measured in the plane
+/// of `frame` (0 when no two neighbours are defined): the spacing at which a patch samples the
+/// surface as the merge places it, along `up`. Unlike PatchGrid::resolution (3D distances) it does
+/// not grow with the slope, so a steep detail over a flat target still counts as finer.
+double planeResolution(const PatchGrid& grid, const UpFrame& frame) {
+  double sum = 0;
+  std::size_t count = 0;
+  auto add = [&](int x0, int y0, int x1, int y1) {
+    if (grid.defined(x0, y0) && grid.defined(x1, y1)) {
+      const Vec2d a = frame.project(grid.global(x0, y0));
+      const Vec2d b = frame.project(grid.global(x1, y1));
+      sum += std::hypot(b.u - a.u, b.v - a.v);
+      ++count;
+    }
+  };
+  for (int y = 0; y < grid.size(); ++y) {
+    for (int x = 0; x < grid.size(); ++x) {
+      if (x + 1 < grid.size()) {
+        add(x, y, x + 1, y);
+      }
+      if (y + 1 < grid.size()) {
+        add(x, y, x, y + 1);
+      }
+    }
+  }
+  return count == 0 ? 0 : sum / static_cast<double>(count);
+}
+
 struct Match {
   PatchKey target;
   /// Indices of the B leaves (in bLeaves) whose footprint meets the target leaf's.
@@ -190,6 +219,8 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
   std::vector<Match> matches;
   std::vector<PatchKey> pending{PatchKey::root()};
   std::vector<bool> bUsed(bLeaves.size(), false);
+  // planeResolution of each B leaf, computed when a target leaf first meets it (-1 before).
+  std::vector<double> bResolution(bLeaves.size(), -1);
   while (!pending.empty()) {
     const PatchKey key = pending.back();
     pending.pop_back();
@@ -211,9 +242,11 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       if (bLeaves[i].second.intersects(foot)) {
         match.detail.push_back(i);
         bUsed[i] = true;
-        const double r = b.at(bLeaves[i].first).resolution;
-        if (r > 0) {
-          resolutionSum += r;
+        if (bResolution[i] < 0) {
+          bResolution[i] = planeResolution(*detail.positions(bLeaves[i].first), frame);
+        }
+        if (bResolution[i] > 0) {
+          resolutionSum += bResolution[i];
           ++resolutionCount;
         }
       }
@@ -221,14 +254,16 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
     if (match.detail.empty()) {
       continue;
     }
-    if (resolutionCount > 0 && info.resolution > 0) {
-      match.levels = levelsFor(info.resolution / (resolutionSum / resolutionCount));
-    }
+    const double aResolution = planeResolution(*target.positions(key), frame);
+    const double ratio = resolutionCount > 0 && aResolution > 0
+                             ? aResolution / (resolutionSum / resolutionCount)
+                             : 2.0;  // unknown: one level
+    match.levels = levelsFor(ratio);
     if (match.levels > kMaxNewLevels || key.depth + match.levels > PatchKey::kMaxDepth) {
       throw Error(ErrorCode::InvalidArgument,
                   "merge: patch " + key.toString() + " would need more than " +
                       std::to_string(kMaxNewLevels) + " new levels (resolution ratio " +
-                      std::to_string(info.resolution / (resolutionSum / resolutionCount)) + ")");
+                      std::to_string(ratio) + ")");
     }
     matches.push_back(std::move(match));
   }
@@ -370,17 +405,25 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       }
       pending.pop_back();
     };
-    for (const Quadrant q : kQuadrants) {
-      const auto qi = static_cast<std::uint32_t>(q);
-      place(1, qi & 1, qi >> 1);
-      ++done;
-      report(options, "placing",
-             (static_cast<double>(m) + static_cast<double>(done) / 4) /
-                 static_cast<double>(matches.size()));
+    if (k == 0) {
+      place(0, 0, 0);  // resampled in place
+    } else {
+      for (const Quadrant q : kQuadrants) {
+        const auto qi = static_cast<std::uint32_t>(q);
+        place(1, qi & 1, qi >> 1);
+        ++done;
+        report(options, "placing",
+               (static_cast<double>(m) + static_cast<double>(done) / 4) /
+                   static_cast<double>(matches.size()));
+      }
     }
     if (added > 0) {
       ++result.matchedLeaves;
-      result.newPatches += added;
+      if (k == 0) {
+        ++result.resampledLeaves;
+      } else {
+        result.newPatches += added;
+      }
       result.levels[top] = k;
       result.maxLevels = std::max(result.maxLevels, k);
     }
@@ -394,11 +437,11 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
   report(options, "reducing", 1);
 
   result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  log::info("merge: " + std::to_string(result.matchedLeaves) + " target leaves, " +
-            std::to_string(result.detailLeaves) + " detail leaves, " +
-            std::to_string(result.newPatches) + " new patches, up to " +
-            std::to_string(result.maxLevels) + " new levels, " + std::to_string(result.seconds) +
-            " s");
+  log::info(
+      "merge: " + std::to_string(result.matchedLeaves) + " target leaves, " +
+      std::to_string(result.detailLeaves) + " detail leaves, " + std::to_string(result.newPatches) +
+      " new patches, " + std::to_string(result.resampledLeaves) + " resampled in place, up to " +
+      std::to_string(result.maxLevels) + " new levels, " + std::to_string(result.seconds) + " s");
   return result;
 }
 

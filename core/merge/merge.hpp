@@ -55,15 +55,18 @@ struct MergeOptions {
 };
 
 struct MergeResult {
-  /// Bottom patches of the target that received new levels.
+  /// Bottom patches of the target placed on the detail (given new levels, or resampled in place).
   std::size_t matchedLeaves = 0;
   /// Bottom patches of the detail model that meet at least one matched target patch.
   std::size_t detailLeaves = 0;
   /// Patches added to the target (all new levels).
   std::size_t newPatches = 0;
+  /// Matched leaves already as fine as the detail, placed on it in place (no new level).
+  std::size_t resampledLeaves = 0;
   /// New vertices placed on the detail surface (the rest interpolate the target's old data).
   std::size_t verticesFromDetail = 0;
-  /// Levels added below each matched target leaf (its deepest new level), and their maximum.
+  /// Levels added below each matched target leaf (its deepest new level; 0 where it was
+  /// resampled in place), and their maximum.
   std::map<PatchKey, int> levels;
   int maxLevels = 0;
   double seconds = 0;
@@ -76,12 +79,16 @@ struct MergeResult {
 ///    footprint meets it. Footprints are boxes projected onto the plane perpendicular to `up`, so
 ///    a B whose heights differ from A's (the reason to merge it) still matches;
 /// 2. placing: under each matched leaf a, k new levels with 2^k >= res(a) / res(B's matched
-///    leaves), k >= 1. A new patch is a's surface subdivided to its level (Subdivider); it is
-///    refined further only where B may have surface (SurfaceSampler::covers), down to level k,
-///    whose vertices are placed per vertex on B's surface (SurfaceSampler). Elsewhere it stays a
-///    leaf with a's surface interpolated (the thesis fills the whole new bottom level; this keeps
-///    the cost proportional to B's area instead of a's area times 4^k). Refined patches are added
-///    before their children as placeholders;
+///    leaves), resolutions measured in the plane perpendicular to `up` (the mean projected
+///    distance between grid neighbours, so a steep B over a flat A still counts as finer), k >= 0:
+///    a leaf already as fine as B (where B or a scan of its resolution was merged before) keeps its
+///    place in the tree and is placed on B's surface itself, so merging a scan again replaces its
+///    area instead of deepening the tree. A new patch is a's surface subdivided to its level
+///    (Subdivider); it is refined further only where B may have surface (SurfaceSampler::covers),
+///    down to level k, whose vertices are placed per vertex on B's surface (SurfaceSampler).
+///    Elsewhere it stays a leaf with a's surface interpolated (the thesis fills the whole new
+///    bottom level; this keeps the cost proportional to B's area instead of a's area times 4^k).
+///    Refined patches are added before their children as placeholders;
 /// 3. reducing: every stale overview, from the new levels up to the root, is recomputed by
 ///    reduction. Patches outside the matched leaves' subtrees and their ancestors are not touched.
 ///

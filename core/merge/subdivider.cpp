@@ -19,9 +19,9 @@ Subdivider::Subdivider(const PatchGrid& a, int k) : k_(k), size_(a.size()) {
   if ((cells & (cells - 1)) != 0) {
     throw Error(ErrorCode::InvalidArgument, "subdivide: grid size is not 2^n+1");
   }
-  if (k < 1 || k > 16) {
+  if (k < 0 || k > 16) {
     throw Error(ErrorCode::InvalidArgument,
-                "subdivide: " + std::to_string(k) + " new levels is outside 1..16");
+                "subdivide: " + std::to_string(k) + " new levels is outside 0..16");
   }
   global_.resize(static_cast<std::size_t>(size_) * size_);
   for (int y = 0; y < size_; ++y) {
@@ -61,7 +61,7 @@ Vec3d Subdivider::interpolate(std::int64_t u, std::int64_t v) const {
 std::vector<Vec3d> Subdivider::positions(int level, std::uint32_t i, std::uint32_t j,
                                          const SurfaceSampler* detail,
                                          std::size_t* fromDetail) const {
-  if (level < 1 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
+  if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
     throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
   }
   const std::int64_t stride = std::int64_t{1} << (k_ - level);
@@ -90,7 +90,7 @@ std::vector<Vec3d> Subdivider::positions(int level, std::uint32_t i, std::uint32
 
 Rect2d Subdivider::footprint(int level, std::uint32_t i, std::uint32_t j,
                              const UpFrame& frame) const {
-  if (level < 1 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
+  if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
     throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
   }
   // The patch spans union vertices [i (s-1), (i+1) (s-1)] * 2^(k-level) at level k; a's cells

@@ -12,7 +12,7 @@ class SurfaceSampler;
 struct Rect2d;
 struct UpFrame;
 
-/// Refines one bottom patch `a` (size s = 2^n+1) by k levels: level j (1 <= j <= k) below `a` is
+/// Refines one bottom patch `a` (size s = 2^n+1) by k levels: level j (0 <= j <= k) below `a` is
 /// 2^j x 2^j patches whose union is 2^j (s-1) + 1 vertices per side, neighbours sharing their
 /// border lines. Every new vertex is interpolated bilinearly, in global double coordinates, from
 /// the cell of `a` it falls in; when some of the cell's corners are undefined the weights are
@@ -31,8 +31,9 @@ struct UpFrame;
 /// Thread-safe for concurrent const calls.
 class Subdivider {
  public:
-  /// Copies `a`'s global positions. Throws Error(InvalidArgument) unless 1 <= k <= 16 and
-  /// a.size() is 2^n+1.
+  /// Copies `a`'s global positions. Throws Error(InvalidArgument) unless 0 <= k <= 16 and
+  /// a.size() is 2^n+1. With k = 0, level 0 is `a` itself (to place it on a detail surface in
+  /// place).
   Subdivider(const PatchGrid& a, int k);
 
   int k() const { return k_; }
@@ -43,7 +44,7 @@ class Subdivider {
   Vec3d interpolate(std::int64_t u, std::int64_t v) const;
 
   /// Global positions (row-major, size x size, NaN = undefined) of patch (i, j) of level `level`
-  /// (1..k; 0 <= i, j < 2^level), placed on `detail` where it has surface (detail may be null).
+  /// (0..k; 0 <= i, j < 2^level), placed on `detail` where it has surface (detail may be null).
   /// `fromDetail`, when given, receives how many vertices were taken from `detail`.
   std::vector<Vec3d> positions(int level, std::uint32_t i, std::uint32_t j,
                                const SurfaceSampler* detail,

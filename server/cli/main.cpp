@@ -397,10 +397,10 @@ int runMerge(const std::vector<std::string_view>& args) {
       std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   const CacheStats stats = cache.stats();
   std::printf(
-      "merged %s into %s: %zu target leaves matched, %zu detail leaves, %zu new patches, up to %d "
-      "new levels, %.2f s\n",
+      "merged %s into %s: %zu target leaves matched, %zu detail leaves, %zu new patches, %zu "
+      "leaves resampled in place, up to %d new levels, %.2f s\n",
       detailDir.string().c_str(), out.value_or(target).string().c_str(), result.matchedLeaves,
-      result.detailLeaves, result.newPatches, result.maxLevels, seconds);
+      result.detailLeaves, result.newPatches, result.resampledLeaves, result.maxLevels, seconds);
   std::printf("memory: budget %s, peak resident %s, %llu evictions, %llu write-backs\n",
               formatBytes(stats.budgetBytes).c_str(), formatBytes(stats.peakResidentBytes).c_str(),
               static_cast<unsigned long long>(stats.evictions),

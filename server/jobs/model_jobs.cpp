@@ -125,6 +125,7 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
           result["matched_leaves"] = merged.matchedLeaves;
           result["detail_leaves"] = merged.detailLeaves;
           result["new_patches"] = merged.newPatches;
+          result["resampled_leaves"] = merged.resampledLeaves;
           result["vertices_from_detail"] = merged.verticesFromDetail;
           result["max_levels"] = merged.maxLevels;
           result["merge_seconds"] = merged.seconds;

@@ -432,7 +432,8 @@ TEST(Subdivider, LatticePositionsReproduceTheCoarsePatchAndReduceBackToIt) {
 
 TEST(Subdivider, RejectsBadArguments) {
   PatchGrid grid(17, Mat4d::identity());
-  EXPECT_THROW(Subdivider(grid, 0), Error);
+  EXPECT_THROW(Subdivider(grid, -1), Error);
+  EXPECT_THROW(Subdivider(grid, 17), Error);
   EXPECT_THROW(Subdivider(PatchGrid(6, Mat4d::identity()), 1), Error);
   const Subdivider sub(grid, 1);
   EXPECT_THROW(sub.positions(1, 2, 0, nullptr), Error);
@@ -568,6 +569,60 @@ TEST(Merge, PlacesDetailWithinTheBoundAndKeepsTheModelConsistent) {
     }
   }
   EXPECT_GT(untouched, 0u);
+}
+
+// A scan merged again lands where the first merge already reached its resolution: its leaves are
+// placed on it in place, the tree does not deepen, and the surface stays where the first merge
+// put it (before, each merge added a level under every such leaf: 486, 806, then 1886 patches for
+// the same Jacksboro scan merged into PRISM three times).
+TEST(Merge, MergingTheSameDetailAgainResamplesInPlace) {
+  SyntheticMerge data;
+  ModelAccess target(*data.a), detail(*data.b);
+  const MergeResult first = mergeModels(target, detail);
+  ASSERT_EQ(first.maxLevels, 3);
+  ASSERT_EQ(first.resampledLeaves, 0u);
+  std::map<PatchKey, std::shared_ptr<const PatchGrid>> once;
+  for (const auto& [key, info] : data.a->patches()) {
+    once[key] = info.grid;
+  }
+
+  const MergeResult second = mergeModels(target, detail);
+  EXPECT_EQ(second.maxLevels, 0);
+  EXPECT_EQ(second.newPatches, 0u);
+  EXPECT_GT(second.resampledLeaves, 0u);
+  EXPECT_EQ(second.resampledLeaves, second.matchedLeaves);
+  for (const auto& [key, k] : second.levels) {
+    EXPECT_EQ(k, 0) << key.toString();
+    EXPECT_EQ(key.depth, 5) << key.toString();
+  }
+  EXPECT_EQ(data.a->maxDepth(), 5);
+  ASSERT_EQ(data.a->patches().size(), once.size());
+
+  const double bound = samplerBound(data.bLattice.spacing);
+  std::size_t onB = 0;
+  for (const auto& [key, info] : data.a->patches()) {
+    ASSERT_TRUE(once.count(key)) << key.toString();
+    EXPECT_FALSE(info.stale) << key.toString();
+    const PatchGrid& now = *info.grid;
+    const PatchGrid& then = *once.at(key);
+    for (int y = 0; y < now.size(); ++y) {
+      for (int x = 0; x < now.size(); ++x) {
+        ASSERT_EQ(now.defined(x, y), then.defined(x, y)) << key.toString();
+        if (!now.defined(x, y)) {
+          continue;
+        }
+        // The second placement moves a vertex only along `up` (+z here), by the sampler's error.
+        const Vec3d p = now.global(x, y), q = then.global(x, y);
+        EXPECT_LE(std::hypot(p.x - q.x, p.y - q.y), 1e-4) << key.toString();
+        EXPECT_LE(std::fabs(p.z - q.z), 2 * bound) << key.toString();
+        if (key.depth == 5 && data.insideB(p, 0.01)) {
+          EXPECT_NEAR(p.z, surfaceHeight(p.x, p.y), bound) << key.toString();
+          ++onB;
+        }
+      }
+    }
+  }
+  EXPECT_GT(onB, 5000u);
 }
 
 TEST(Merge, DetailOutsideTheTargetIsAnErrorAndChangesNothing) {
