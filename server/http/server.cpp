@@ -427,16 +427,6 @@ class Connection : public std::enable_shared_from_this<Connection> {
     }
     request.id = requestIdFor(request);
     const bool body = !parser_->is_done();
-    if (header.version() / 10 != 1) {
-      reading_ = false;
-      closing_ = true;
-      pushError(errorResponse(505, "http_version_not_supported",
-                              "HTTP/" + std::to_string(header.version() / 10) + "." +
-                                  std::to_string(header.version() % 10) +
-                                  " is not supported; vsmd speaks HTTP/1.1 (and 1.0)"),
-                false);
-      return;
-    }
     if (std::optional<Handled> refused = server_.pipeline.authorize(request)) {
       // Its body is never read: a connection with one still to come is closed after the 401
       // (lingerClose() discards what is in flight, for kLinger at most).
@@ -444,11 +434,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
       Slot slot = slotFor(request, header.version());
       slot.close = body || !header.keep_alive();
       closing_ = closing_ || slot.close;
-      slot.handled = std::move(*refused);
-      slot.ready = true;
-      queue_.push_back(std::move(slot));
-      maybeWrite();
-      readNext();
+      pushReady(std::move(slot), std::move(*refused));
       return;
     }
     if (const auto length = parser_->content_length();
@@ -531,6 +517,16 @@ class Connection : public std::enable_shared_from_this<Connection> {
     return slot;
   }
 
+  /// Queues `slot` answered by `handled` (made on this strand), writes it when its turn comes and
+  /// reads on.
+  void pushReady(Slot slot, Handled handled) {
+    slot.handled = std::move(handled);
+    slot.ready = true;
+    queue_.push_back(std::move(slot));
+    maybeWrite();
+    readNext();
+  }
+
   /// Where a read failed: waiting for a request, in its header, in its body.
   enum class Phase { Idle, Header, Body };
 
@@ -559,8 +555,13 @@ class Connection : public std::enable_shared_from_this<Connection> {
       return;
     }
     Response response;
+    std::optional<std::string> version;
     if (ec == bhttp::error::body_limit) {
       response = bodyTooLarge();
+    } else if (ec == bhttp::error::bad_version && (version = otherVersion()).has_value()) {
+      response =
+          errorResponse(505, "http_version_not_supported",
+                        "HTTP/" + *version + " is not supported; vsmd speaks HTTP/1.1 (and 1.0)");
     } else if (ec == bhttp::error::header_limit) {
       response = errorResponse(431, "headers_too_large",
                                "request line and header larger than " +
@@ -572,6 +573,24 @@ class Connection : public std::enable_shared_from_this<Connection> {
     // The stream position is unknown after a protocol error: answer, then close.
     closing_ = true;
     pushError(std::move(response), false);
+  }
+
+  /// "9.9" when the request line in the buffer is well formed but for its HTTP version (Beast
+  /// refuses all but 1.0 and 1.1 as bad_version, like garbage where the version should be).
+  std::optional<std::string> otherVersion() const {
+    const auto data = buffer_.cdata();
+    const std::string_view text(static_cast<const char*>(data.data()), data.size());
+    const std::string_view line = text.substr(0, text.find("\r\n"));
+    if (line.size() == text.size() || line.size() < 9) {
+      return std::nullopt;
+    }
+    const std::string_view tail = line.substr(line.size() - 9);  // " HTTP/d.d"
+    const auto digit = [](char c) { return c >= '0' && c <= '9'; };
+    if (!tail.starts_with(" HTTP/") || !digit(tail[6]) || tail[7] != '.' || !digit(tail[8]) ||
+        line.find(' ') == line.size() - 9) {  // method, target and version: two spaces at least
+      return std::nullopt;
+    }
+    return std::string(tail.substr(6));
   }
 
   /// Queues a response the server made itself, ready to be written; the connection closes after.
@@ -613,11 +632,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
       slot.method = std::move(request.methodName);  // the request is done with
       slot.target = std::move(request.target);
       slot.id = std::move(request.id);
-      slot.handled = std::move(*handled);
-      slot.ready = true;
-      queue_.push_back(std::move(slot));
-      maybeWrite();
-      readNext();
+      pushReady(std::move(slot), std::move(*handled));
       return;
     }
     slot.method = request.methodName;
