@@ -50,7 +50,7 @@ struct Limits {
   std::size_t connections = 512;
   /// Open connections from one source address (loopback included); one more is answered 503
   /// with Retry-After and closed while other addresses are still served.
-  std::size_t connectionsPerClient = 128;
+  std::size_t connectionsPerClient = 256;
   /// Pipelined requests of one connection being handled or waiting to be written; the server
   /// stops reading the connection while it has this many.
   std::size_t pipelinedResponses = 8;

@@ -33,7 +33,7 @@ struct ServerOptions {
   std::size_t maxConnections = 512;
   /// Connections of one source address served at once; beyond it answered 503 and closed like
   /// those over maxConnections.
-  std::size_t maxPerClient = 128;
+  std::size_t maxPerClient = 256;
   std::size_t maxPipelined = 8;
 };
 
