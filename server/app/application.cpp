@@ -125,7 +125,7 @@ Application::Application(Config config) : config_(std::move(config)) {
   }
   if (config_.token.empty() && !isLoopback(config_.listen.host)) {
     log::warn("no token configured: anyone who can reach " + config_.listen.toString() +
-              " may write (set token or --token)");
+              " may write (set token_file or --token-file)");
   }
 
   metrics_ = std::make_unique<metrics::Registry>();
@@ -174,10 +174,12 @@ Application::Application(Config config) : config_(std::move(config)) {
   options.ioThreads = config_.threads.io;
   options.bodyLimit = config_.limits.bodyBytes;
   options.headerLimit = config_.limits.headerBytes;
+  options.headerTimeout = config_.limits.headerTimeout;
   options.readTimeout = config_.limits.readTimeout;
   options.idleTimeout = config_.limits.idleTimeout;
   options.writeTimeout = config_.limits.writeTimeout;
   options.maxConnections = descriptors.connections;
+  options.maxPerClient = config_.limits.connectionsPerClient;
   options.maxPipelined = config_.limits.pipelinedResponses;
   server_ = std::make_unique<http::Server>(options, *pipeline_, *cpuPool_, *metrics_);
 

@@ -25,6 +25,8 @@ namespace {
 constexpr std::size_t kKiB = 1024;
 constexpr std::size_t kMiB = kKiB * 1024;
 constexpr std::size_t kGiB = kMiB * 1024;
+/// Longest token (the server compares tokens up to this length in constant time).
+constexpr std::size_t kMaxTokenBytes = 1024;
 
 std::string_view trim(std::string_view s) {
   while (!s.empty() && (s.front() == ' ' || s.front() == '\t')) {
@@ -189,7 +191,16 @@ const Key kKeys[] = {
      [](const Config& c) { return std::string(core::toString(c.cachePolicy)); }},
     {"token",
      [](Config& c, std::string_view k, const json& v) { c.token = textOf(k, v, "a string"); },
-     [](const Config& c) { return std::string(c.token.empty() ? "(none)" : "(redacted)"); }},
+     [](const Config& c) {
+       return std::string(c.token.empty()       ? "(none)"
+                          : c.tokenFile.empty() ? "(redacted)"
+                                                : "(from token_file)");
+     }},
+    {"token_file",
+     [](Config& c, std::string_view k, const json& v) { c.tokenFile = textOf(k, v, "a path"); },
+     [](const Config& c) {
+       return c.tokenFile.empty() ? std::string("(none)") : c.tokenFile.string();
+     }},
     {"port_file",
      [](Config& c, std::string_view k, const json& v) { c.portFile = textOf(k, v, "a path"); },
      [](const Config& c) {
@@ -221,6 +232,11 @@ const Key kKeys[] = {
     {"limits.header_bytes",
      [](Config& c, std::string_view k, const json& v) { c.limits.headerBytes = sizeOf(k, v); },
      [](const Config& c) { return formatSize(c.limits.headerBytes); }},
+    {"limits.header_timeout",
+     [](Config& c, std::string_view k, const json& v) {
+       c.limits.headerTimeout = durationOf(k, v);
+     },
+     [](const Config& c) { return formatDuration(c.limits.headerTimeout); }},
     {"limits.read_timeout",
      [](Config& c, std::string_view k, const json& v) { c.limits.readTimeout = durationOf(k, v); },
      [](const Config& c) { return formatDuration(c.limits.readTimeout); }},
@@ -233,6 +249,11 @@ const Key kKeys[] = {
     {"limits.connections",
      [](Config& c, std::string_view k, const json& v) { c.limits.connections = countOf(k, v); },
      [](const Config& c) { return std::to_string(c.limits.connections); }},
+    {"limits.connections_per_client",
+     [](Config& c, std::string_view k, const json& v) {
+       c.limits.connectionsPerClient = countOf(k, v);
+     },
+     [](const Config& c) { return std::to_string(c.limits.connectionsPerClient); }},
     {"limits.pipelined_responses",
      [](Config& c, std::string_view k, const json& v) {
        c.limits.pipelinedResponses = countOf(k, v);
@@ -424,14 +445,17 @@ void Config::validate() const {
         outOfRange("token", "letters, digits and -._~+/= only", "another character");
       }
     }
+    checkCount("token (its length)", token.size(), 1, kMaxTokenBytes);
   }
   checkSize("limits.body_bytes", limits.bodyBytes, 1, kGiB);
   checkSize("limits.header_bytes", limits.headerBytes, kKiB, kMiB);
+  checkDuration("limits.header_timeout", limits.headerTimeout, 10ms, 1h);
   checkDuration("limits.read_timeout", limits.readTimeout, 10ms, 1h);
   checkDuration("limits.idle_timeout", limits.idleTimeout, 10ms, 1h);
   checkDuration("limits.write_timeout", limits.writeTimeout, 10ms, 1h);
   checkDuration("limits.shutdown_grace", limits.shutdownGrace, 0ms, 1h);
   checkCount("limits.connections", limits.connections, 1, 100'000);
+  checkCount("limits.connections_per_client", limits.connectionsPerClient, 1, 100'000);
   checkCount("limits.pipelined_responses", limits.pipelinedResponses, 1, 256);
   checkCount("threads.io", threads.io, 1, 256);
   checkCount("threads.cpu", threads.cpu, 0, 1024);
@@ -451,6 +475,38 @@ void from_json(const json& json, Config& config) {
     throw Error(ErrorCode::InvalidArgument, "configuration must be a JSON object");
   }
   flatten(json, "", config);
+}
+
+void loadTokenFile(Config& config) {
+  if (config.tokenFile.empty()) {
+    return;
+  }
+  const std::string name = "token file '" + config.tokenFile.string() + "'";
+  if (!config.token.empty()) {
+    throw Error(ErrorCode::InvalidArgument,
+                "set token or token_file (--token or --token-file), not both");
+  }
+  std::ifstream in(config.tokenFile, std::ios::binary);
+  if (!in) {
+    if (errno == ENOENT) {
+      throw Error(ErrorCode::NotFound, name + " not found");
+    }
+    core::throwIoError("cannot read token file", config.tokenFile.string(), errno);
+  }
+  std::string line;
+  std::getline(in, line);
+  while (!line.empty() && (line.back() == '\r' || line.back() == ' ' || line.back() == '\t')) {
+    line.pop_back();
+  }
+  if (line.empty()) {
+    throw Error(ErrorCode::InvalidArgument, name + " is empty (its first line is the token)");
+  }
+  std::error_code ec;
+  const auto perms = std::filesystem::status(config.tokenFile, ec).permissions();
+  if (!ec && (perms & std::filesystem::perms::others_read) != std::filesystem::perms::none) {
+    core::log::warn(name + " can be read by every user (chmod o-r it)");
+  }
+  config.token = std::move(line);
 }
 
 void loadConfigFile(const std::filesystem::path& file, Config& config) {
@@ -487,7 +543,9 @@ std::string_view commandLineUsage() {
          "  --listen HOST:PORT     address to listen on (default 127.0.0.1:8080; port 0 = any)\n"
          "  --data-root DIR        where model directories live (default /var/lib/vsm)\n"
          "  --memory-budget SIZE   patch data budget of all models, e.g. 4GiB (default 1GiB)\n"
-         "  --token TOKEN          bearer token required for POST/PUT/PATCH/DELETE\n"
+         "  --token TOKEN          bearer token required for POST/PUT/PATCH/DELETE (visible in\n"
+         "                         ps: prefer --token-file)\n"
+         "  --token-file PATH      read the token from the first line of PATH\n"
          "  --port-file PATH       write the bound port there once listening\n"
          "  --log-level LEVEL      debug, info, warn, error or off (default info)\n"
          "  --viewer-dir DIR       serve the browser viewer's files from DIR at /viewer/\n"
@@ -496,9 +554,10 @@ std::string_view commandLineUsage() {
          "\n"
          "configuration keys (file or --set):\n"
          "  listen, data_root, memory_budget, cache_policy (cost-aware-clock |\n"
-         "  fifo-second-chance), token, port_file, viewer_dir, log_level,\n"
-         "  limits.body_bytes, limits.header_bytes, limits.read_timeout, limits.idle_timeout,\n"
-         "  limits.write_timeout, limits.connections, limits.pipelined_responses,\n"
+         "  fifo-second-chance), token, token_file, port_file, viewer_dir, log_level,\n"
+         "  limits.body_bytes, limits.header_bytes, limits.header_timeout, limits.read_timeout,\n"
+         "  limits.idle_timeout, limits.write_timeout, limits.connections,\n"
+         "  limits.connections_per_client, limits.pipelined_responses,\n"
          "  limits.shutdown_grace, threads.io, threads.cpu (0 = one per core), threads.jobs\n"
          "sizes: bytes or 512KiB, 64MiB, 4GiB, 1GB ...; durations: seconds or 250ms, 30s, 5m\n";
 }
@@ -509,6 +568,7 @@ CommandLine parseCommandLine(const std::vector<std::string>& args) {
       {"--data-root", "data_root"},
       {"--memory-budget", "memory_budget"},
       {"--token", "token"},
+      {"--token-file", "token_file"},
       {"--port-file", "port_file"},
       {"--log-level", "log_level"},
       {"--viewer-dir", "viewer_dir"},
@@ -567,6 +627,7 @@ CommandLine parseCommandLine(const std::vector<std::string>& args) {
   for (const auto& [key, value] : settings) {
     out.config.set(key, json(value));
   }
+  loadTokenFile(out.config);
   out.config.validate();
   return out;
 }

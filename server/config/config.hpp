@@ -36,7 +36,11 @@ struct Limits {
   std::size_t bodyBytes = 1024 * 1024;
   /// Largest request line plus header fields; larger ones are answered 431.
   std::size_t headerBytes = 16 * 1024;
-  /// Time from a request's first byte to its last.
+  /// Time from a request's first byte to the end of its header (for a new connection: from
+  /// accepting it). Shorter than readTimeout: a header is small, and slow headers hold a
+  /// connection without the server being able to tell who is asking for what.
+  std::chrono::milliseconds headerTimeout{10'000};
+  /// Time from the end of a request's header to the end of its body.
   std::chrono::milliseconds readTimeout{30'000};
   /// Time a connection may wait for its next request (keep-alive) or its first one.
   std::chrono::milliseconds idleTimeout{60'000};
@@ -44,6 +48,9 @@ struct Limits {
   std::chrono::milliseconds writeTimeout{60'000};
   /// Open connections; one more is answered 503 with Retry-After and closed.
   std::size_t connections = 512;
+  /// Open connections from one source address (loopback included); one more is answered 503
+  /// with Retry-After and closed while other addresses are still served.
+  std::size_t connectionsPerClient = 256;
   /// Pipelined requests of one connection being handled or waiting to be written; the server
   /// stops reading the connection while it has this many.
   std::size_t pipelinedResponses = 8;
@@ -77,6 +84,9 @@ struct Config {
   core::EvictionPolicy cachePolicy = core::EvictionPolicy::CostAwareClock;
   /// Bearer token required for writes (POST, PUT, PATCH, DELETE); empty = writes are open.
   std::string token;
+  /// A file holding the token (its first line), so that it stays out of `ps`; read by
+  /// parseCommandLine() (see loadTokenFile). Not both this and `token`.
+  std::filesystem::path tokenFile;
   /// When set, the bound port is written there (atomically) once listening; for tests and
   /// supervisors that start the daemon on port 0.
   std::filesystem::path portFile;
@@ -128,6 +138,12 @@ std::string_view commandLineUsage();
 /// an unknown flag, a missing value or an invalid configuration; core::Error(NotFound / Io /
 /// InvalidArgument) when the file cannot be read or is not a JSON object.
 CommandLine parseCommandLine(const std::vector<std::string>& args);
+
+/// Sets config.token from config.tokenFile when that is set: the file's first line, trailing
+/// whitespace removed. Throws core::Error(InvalidArgument) when both token and token_file are set
+/// or the file is empty, core::Error(NotFound / Io) when it cannot be read. Logs a warning when
+/// the file can be read by every user. No-op without a token file.
+void loadTokenFile(Config& config);
 
 /// Reads a JSON configuration file onto `config`. Throws as parseCommandLine.
 void loadConfigFile(const std::filesystem::path& file, Config& config);

@@ -56,6 +56,16 @@ class Pipeline {
   /// `router` must outlive the pipeline. `token`: the bearer token writes need; empty = none.
   Pipeline(const Router& router, std::string token);
 
+  /// The decision a request's header alone allows, made before its body is read: a write
+  /// without a valid bearer token gets its 401 (finished, route "unauthorized"); nullopt = go on
+  /// (read the body, then handle()). `request` needs method, headers and id; its body is not
+  /// looked at. The token comparison takes the same time whatever the token and the credentials
+  /// presented (up to kSecretBytes; longer ones are refused at once). Never throws.
+  std::optional<Handled> authorize(const Request& request) const noexcept;
+
+  /// Tokens up to this length are compared in constant time (Config::validate caps tokens).
+  static constexpr std::size_t kSecretBytes = 1024;
+
   /// Never throws (an exception escaping a handler becomes a 500 with the request id logged).
   /// Runs the handler on the calling thread. `request.id` must be set.
   Handled handle(Request& request) const noexcept;
@@ -72,10 +82,13 @@ class Pipeline {
 
  private:
   bool authorized(const Request& request, bool* wrongToken) const;
+  bool sameSecret(std::string_view presented) const;
   std::optional<Handled> dispatch(Request& request, bool onNetworkThread) const noexcept;
 
   const Router& router_;
   std::string token_;
+  /// token_ zero-padded to kSecretBytes (or to its own length when longer).
+  std::string paddedToken_;
 };
 
 }  // namespace vsm::server::http

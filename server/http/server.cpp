@@ -19,6 +19,7 @@
 #include <cerrno>
 #include <condition_variable>
 #include <deque>
+#include <limits>
 #include <mutex>
 #include <optional>
 #include <thread>
@@ -32,7 +33,9 @@
 #include <boost/asio/post.hpp>
 #include <boost/asio/steady_timer.hpp>
 #include <boost/asio/strand.hpp>
+#include <boost/asio/write.hpp>
 #include <boost/beast/core/flat_buffer.hpp>
+#include <boost/beast/core/string.hpp>
 #include <boost/beast/core/tcp_stream.hpp>
 #include <boost/beast/http/message.hpp>
 #include <boost/beast/http/parser.hpp>
@@ -108,12 +111,32 @@ using BeastResponse = bhttp::response<GatherBody>;
 constexpr std::chrono::milliseconds kLinger{1000};
 /// Bytes asked for per raw read (waiting for a request's first bytes, lingering).
 constexpr std::size_t kReadChunk = 16 * 1024;
+/// What a connection's read buffer may hold beyond a header of the largest size: Beast reads in
+/// pieces of up to 64 KiB. Bounds what a client can make the server buffer (pipelined requests
+/// read ahead, a chunk header or chunk extension without an end: 400 when it overflows).
+constexpr std::size_t kReadAhead = 64 * 1024;
+/// The interim response to "Expect: 100-continue", sent once the header has been accepted.
+constexpr std::string_view kContinue = "HTTP/1.1 100 Continue\r\n\r\n";
 /// Pause before accepting again after the process ran out of descriptors.
 constexpr std::chrono::milliseconds kAcceptBackoff{100};
 /// Rejected connections being answered 503 at once, at most (see ServerOptions::maxConnections).
 constexpr std::size_t kMaxRejecting = 64;
 /// Longest request target written to the access log.
 constexpr std::size_t kLoggedTargetMax = 256;
+
+/// The source address a connection is counted under (limits.connections_per_client): an
+/// IPv4-mapped IPv6 address counts as the IPv4 one.
+std::string clientOf(const tcp::socket& socket) {
+  error_code ec;
+  auto address = socket.remote_endpoint(ec).address();
+  if (ec) {
+    return "-";
+  }
+  if (address.is_v6() && address.to_v6().is_v4_mapped()) {
+    address = net::ip::make_address_v4(net::ip::v4_mapped, address.to_v6());
+  }
+  return address.to_string();
+}
 
 std::string endpointText(const tcp::endpoint& endpoint) {
   const auto address = endpoint.address();
@@ -176,7 +199,7 @@ struct Server::Impl {
             m.counter("vsm_http_timeouts_total", "Connections closed by a timeout", {"phase"})),
         acceptor(net::make_strand(ioc)),
         acceptRetry(acceptor.get_executor()) {
-    for (const std::string_view phase : {"idle", "read", "write"}) {
+    for (const std::string_view phase : {"idle", "header", "read", "write"}) {
       timeouts.inc({phase}, 0);  // every series present from the start
     }
     // The registry may outlive the server: the collector holds the counter, not the server.
@@ -192,13 +215,14 @@ struct Server::Impl {
   void accept();
   void onAccept(error_code ec, tcp::socket socket);
   void stop(std::chrono::milliseconds grace);
-  void forget(const Connection* connection);
+  void forget(const Connection* connection, const std::string& client);
   std::size_t openConnections() const {
     const std::lock_guard lock(mutex);
     return connections.size();
   }
   std::vector<std::shared_ptr<Connection>> liveConnections() const;
   void warnFull();
+  void warnClientFull(const std::string& client);
 
   const ServerOptions options;
   const Pipeline& pipeline;
@@ -210,9 +234,11 @@ struct Server::Impl {
   metrics::Counter& rejected;
   metrics::Counter& timeouts;
 
-  mutable std::mutex mutex;  // guards connections, stopping, deadline, cutShort
+  mutable std::mutex mutex;  // guards connections, perClient, stopping, deadline, cutShort
   std::condition_variable drained;
   std::unordered_map<const Connection*, std::weak_ptr<Connection>> connections;
+  /// Open (counted) connections per source address; addresses with none are not kept.
+  std::unordered_map<std::string, std::size_t> perClient;
   std::shared_ptr<std::atomic<std::size_t>> openCount =
       std::make_shared<std::atomic<std::size_t>>(0);  // connections.size(), for the collector
   bool stopping = false;
@@ -221,6 +247,7 @@ struct Server::Impl {
 
   std::atomic<std::size_t> rejecting{0};  // rejected connections still being answered
   std::atomic<Clock::rep> lastFullWarning{0};
+  std::atomic<Clock::rep> lastClientWarning{0};
   std::string boundAddress;
   std::uint16_t boundPort = 0;
   bool started = false;
@@ -239,18 +266,22 @@ struct Server::Impl {
 /// on the CPU pool and post their result back to the strand (inline handlers run on the strand).
 class Connection : public std::enable_shared_from_this<Connection> {
  public:
-  Connection(Server::Impl& server, tcp::socket&& socket, bool counted)
+  /// `client`: the source address it is counted under (when `counted`).
+  Connection(Server::Impl& server, tcp::socket&& socket, std::string client, bool counted)
       : server_(server),
         stream_(std::move(socket)),
         fileTimer_(stream_.get_executor()),
-        counted_(counted) {
+        buffer_(server.options.headerLimit + kReadAhead),
+        client_(std::move(client)),
+        counted_(counted),
+        headerDeadline_(Clock::now() + server.options.headerTimeout) {
     error_code ec;
     const auto remote = stream_.socket().remote_endpoint(ec);
     peer_ = ec ? std::string("-") : endpointText(remote);
   }
   ~Connection() {
     if (counted_) {
-      server_.forget(this);
+      server_.forget(this, client_);
     } else {
       server_.rejecting.fetch_sub(1);
     }
@@ -262,17 +293,16 @@ class Connection : public std::enable_shared_from_this<Connection> {
     net::dispatch(stream_.get_executor(), [self = shared_from_this()] { self->readNext(); });
   }
 
-  /// Answers 503 without reading a request, then closes.
-  void reject() {
-    net::dispatch(stream_.get_executor(), [self = shared_from_this()] {
-      Response response =
-          errorResponse(503, core::toString(core::ErrorCode::Unavailable),
-                        "the server has " + std::to_string(self->server_.options.maxConnections) +
-                            " connections open, its limit; retry shortly");
-      response.set("Retry-After", "1");
-      self->closing_ = true;
-      self->pushError(std::move(response), /*quiet=*/true);
-    });
+  /// Answers 503 with `message` without reading a request, then closes.
+  void reject(std::string message) {
+    net::dispatch(stream_.get_executor(),
+                  [self = shared_from_this(), message = std::move(message)]() mutable {
+                    Response response = errorResponse(
+                        503, core::toString(core::ErrorCode::Unavailable), std::move(message));
+                    response.set("Retry-After", "1");
+                    self->closing_ = true;
+                    self->pushError(std::move(response), /*quiet=*/true);
+                  });
   }
 
   /// Graceful shutdown: no new requests; idle connections close now, busy ones after their last
@@ -326,44 +356,181 @@ class Connection : public std::enable_shared_from_this<Connection> {
       return;
     }
     parser_.emplace();
-    parser_->body_limit(server_.options.bodyLimit);
+    // No body limit while the header is read: Beast would answer a Content-Length over it with
+    // 413 before the request is authorized. onHeader() checks it and sets it for the body. (Not
+    // boost::none: Beast 1.74 compares the length with the optional, and none is less than all.)
+    parser_->body_limit(std::numeric_limits<std::uint64_t>::max());
     parser_->header_limit(static_cast<std::uint32_t>(server_.options.headerLimit));
     reading_ = true;
+    const bool first = nextSeq_ == 0;  // a new connection's deadline runs from the accept
     if (buffer_.size() > 0) {
-      readRest();
+      if (!first) {
+        headerDeadline_ = Clock::now() + server_.options.headerTimeout;
+      }
+      readHeader();
       return;
     }
-    // Idle: wait for the first byte of the next request under the idle timeout.
+    // Idle: wait for the first byte of the next request under the idle timeout (a connection's
+    // first request under the header timeout).
     idleWait_ = true;
-    stream_.expires_after(server_.options.idleTimeout);
-    stream_.async_read_some(buffer_.prepare(kReadChunk),
-                            [self = shared_from_this()](error_code ec, std::size_t bytes) {
-                              self->buffer_.commit(bytes);
-                              self->idleWait_ = false;
-                              if (ec) {
-                                self->reading_ = false;
-                                self->onReadError(ec, true);
-                              } else {
-                                self->readRest();
-                              }
-                            });
+    if (first) {
+      stream_.expires_at(headerDeadline_);
+    } else {
+      stream_.expires_after(server_.options.idleTimeout);
+    }
+    stream_.async_read_some(buffer_.prepare(kReadChunk), [self = shared_from_this(), first](
+                                                             error_code ec, std::size_t bytes) {
+      self->buffer_.commit(bytes);
+      self->idleWait_ = false;
+      if (ec) {
+        self->reading_ = false;
+        self->onReadError(ec, first ? Phase::Header : Phase::Idle);
+        return;
+      }
+      if (!first) {
+        self->headerDeadline_ = Clock::now() + self->server_.options.headerTimeout;
+      }
+      self->readHeader();
+    });
   }
 
-  /// The rest of a request whose first bytes are here, under the read timeout.
-  void readRest() {
+  /// The header of a request whose first bytes are here, by headerDeadline_.
+  void readHeader() {
+    stream_.expires_at(headerDeadline_);
+    bhttp::async_read_header(stream_, buffer_, *parser_,
+                             [self = shared_from_this()](error_code ec, std::size_t) {
+                               if (ec) {
+                                 self->reading_ = false;
+                                 self->onReadError(ec, Phase::Header);
+                               } else {
+                                 self->onHeader();
+                               }
+                             });
+  }
+
+  /// Decides on the header alone, before any of the body is read: 505 for another HTTP major
+  /// version, 401 for a write without the token, 413 for a Content-Length over the limit. Then
+  /// answers "Expect: 100-continue" and reads the body.
+  void onHeader() {
+    const auto& header = parser_->get();
+    Request request;
+    request.methodName = std::string(header.method_string());
+    request.method = parseMethod(request.methodName);
+    request.target = std::string(header.target());
+    request.headers.reserve(16);
+    for (const auto& field : header) {
+      std::string name(field.name_string());
+      for (char& c : name) {
+        c = (c >= 'A' && c <= 'Z') ? static_cast<char>(c + 32) : c;
+      }
+      request.headers.emplace_back(std::move(name), std::string(field.value()));
+    }
+    request.id = requestIdFor(request);
+    const bool body = !parser_->is_done();
+    if (std::optional<Handled> refused = server_.pipeline.authorize(request)) {
+      // Its body is never read: a connection with one still to come is closed after the 401
+      // (lingerClose() discards what is in flight, for kLinger at most).
+      reading_ = false;
+      Slot slot = slotFor(request, header.version());
+      slot.close = body || !header.keep_alive();
+      closing_ = closing_ || slot.close;
+      pushReady(std::move(slot), std::move(*refused));
+      return;
+    }
+    if (const auto length = parser_->content_length();
+        length && *length > server_.options.bodyLimit) {
+      reading_ = false;
+      closing_ = true;
+      pushError(bodyTooLarge(), false);
+      return;
+    }
+    parser_->body_limit(server_.options.bodyLimit);  // a chunked body is counted as it comes
+    request_ = std::move(request);
+    const std::string* expect = request_->header("expect");
+    if (body && expect != nullptr && header.version() >= 11 &&
+        beast::iequals(*expect, "100-continue")) {
+      continuePending_ = true;
+      maybeContinue();
+      return;
+    }
+    readBody();
+  }
+
+  /// Sends "100 Continue" for the request whose header was accepted, once the responses before
+  /// it are written (they must not be interleaved), then reads its body.
+  void maybeContinue() {
+    if (!continuePending_ || writing_ || closed_ || !queue_.empty()) {
+      return;
+    }
+    continuePending_ = false;
+    writing_ = true;
+    stream_.expires_after(server_.options.writeTimeout);
+    net::async_write(stream_, net::buffer(kContinue.data(), kContinue.size()),
+                     [self = shared_from_this()](error_code ec, std::size_t) {
+                       self->writing_ = false;
+                       if (ec) {
+                         if (ec == beast::error::timeout) {
+                           self->server_.timeouts.inc({"write"});
+                         }
+                         self->closeNow();
+                         return;
+                       }
+                       self->readBody();
+                     });
+  }
+
+  /// The body of the request whose header was accepted (request_), under the read timeout.
+  void readBody() {
+    if (parser_->is_done()) {
+      reading_ = false;
+      onRequest();
+      return;
+    }
     stream_.expires_after(server_.options.readTimeout);
     bhttp::async_read(stream_, buffer_, *parser_,
                       [self = shared_from_this()](error_code ec, std::size_t) {
                         self->reading_ = false;
                         if (ec) {
-                          self->onReadError(ec, false);
+                          self->onReadError(ec, Phase::Body);
                         } else {
                           self->onRequest();
                         }
                       });
   }
 
-  void onReadError(error_code ec, bool idle) {
+  Response bodyTooLarge() const {
+    return errorResponse(
+        413, "payload_too_large",
+        "request body larger than " + std::to_string(server_.options.bodyLimit) + " bytes");
+  }
+
+  /// A slot for `request` (whose header is read), in request order.
+  Slot slotFor(const Request& request, unsigned version) {
+    Slot slot;
+    slot.seq = nextSeq_++;
+    slot.start = Clock::now();
+    slot.version = version;
+    slot.head = request.method == Method::Head;
+    slot.method = request.methodName;
+    slot.target = request.target;
+    slot.id = request.id;
+    return slot;
+  }
+
+  /// Queues `slot` answered by `handled` (made on this strand), writes it when its turn comes and
+  /// reads on.
+  void pushReady(Slot slot, Handled handled) {
+    slot.handled = std::move(handled);
+    slot.ready = true;
+    queue_.push_back(std::move(slot));
+    maybeWrite();
+    readNext();
+  }
+
+  /// Where a read failed: waiting for a request, in its header, in its body.
+  enum class Phase { Idle, Header, Body };
+
+  void onReadError(error_code ec, Phase phase) {
     if (ec == bhttp::error::end_of_stream || ec == net::error::eof) {
       // The client is done with this connection; answer what it already asked.
       closing_ = true;
@@ -373,8 +540,9 @@ class Connection : public std::enable_shared_from_this<Connection> {
       return;
     }
     if (ec == beast::error::timeout) {
-      server_.timeouts.inc({idle ? "idle" : "read"});
-      core::log::debug("peer=" + peer_ + (idle ? " idle" : " read") + " timeout: closed");
+      const char* name = phase == Phase::Idle ? "idle" : phase == Phase::Header ? "header" : "read";
+      server_.timeouts.inc({name});
+      core::log::debug("peer=" + peer_ + " " + name + " timeout: closed");
       closeNow();  // the stream closed the socket already
       return;
     }
@@ -387,10 +555,13 @@ class Connection : public std::enable_shared_from_this<Connection> {
       return;
     }
     Response response;
+    std::optional<std::string> version;
     if (ec == bhttp::error::body_limit) {
-      response = errorResponse(
-          413, "payload_too_large",
-          "request body larger than " + std::to_string(server_.options.bodyLimit) + " bytes");
+      response = bodyTooLarge();
+    } else if (ec == bhttp::error::bad_version && (version = otherVersion()).has_value()) {
+      response =
+          errorResponse(505, "http_version_not_supported",
+                        "HTTP/" + *version + " is not supported; vsmd speaks HTTP/1.1 (and 1.0)");
     } else if (ec == bhttp::error::header_limit) {
       response = errorResponse(431, "headers_too_large",
                                "request line and header larger than " +
@@ -402,6 +573,24 @@ class Connection : public std::enable_shared_from_this<Connection> {
     // The stream position is unknown after a protocol error: answer, then close.
     closing_ = true;
     pushError(std::move(response), false);
+  }
+
+  /// "9.9" when the request line in the buffer is well formed but for its HTTP version (Beast
+  /// refuses all but 1.0 and 1.1 as bad_version, like garbage where the version should be).
+  std::optional<std::string> otherVersion() const {
+    const auto data = buffer_.cdata();
+    const std::string_view text(static_cast<const char*>(data.data()), data.size());
+    const std::string_view line = text.substr(0, text.find("\r\n"));
+    if (line.size() == text.size() || line.size() < 9) {
+      return std::nullopt;
+    }
+    const std::string_view tail = line.substr(line.size() - 9);  // " HTTP/d.d"
+    const auto digit = [](char c) { return c >= '0' && c <= '9'; };
+    if (!tail.starts_with(" HTTP/") || !digit(tail[6]) || tail[7] != '.' || !digit(tail[8]) ||
+        line.find(' ') == line.size() - 9) {  // method, target and version: two spaces at least
+      return std::nullopt;
+    }
+    return std::string(tail.substr(6));
   }
 
   /// Queues a response the server made itself, ready to be written; the connection closes after.
@@ -425,20 +614,9 @@ class Connection : public std::enable_shared_from_this<Connection> {
 
   void onRequest() {
     BeastRequest message = parser_->release();
-    Request request;
-    request.methodName = std::string(message.method_string());
-    request.method = parseMethod(request.methodName);
-    request.target = std::string(message.target());
-    request.headers.reserve(16);
-    for (const auto& field : message) {
-      std::string name(field.name_string());
-      for (char& c : name) {
-        c = (c >= 'A' && c <= 'Z') ? static_cast<char>(c + 32) : c;
-      }
-      request.headers.emplace_back(std::move(name), std::string(field.value()));
-    }
+    Request request = std::move(*request_);
+    request_.reset();
     request.body = std::move(message.body());
-    request.id = requestIdFor(request);
 
     Slot slot;
     slot.seq = nextSeq_++;
@@ -454,11 +632,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
       slot.method = std::move(request.methodName);  // the request is done with
       slot.target = std::move(request.target);
       slot.id = std::move(request.id);
-      slot.handled = std::move(*handled);
-      slot.ready = true;
-      queue_.push_back(std::move(slot));
-      maybeWrite();
-      readNext();
+      pushReady(std::move(slot), std::move(*handled));
       return;
     }
     slot.method = request.methodName;
@@ -686,6 +860,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
     }
     maybeWrite();
     readNext();
+    maybeContinue();
     if (queue_.empty() && !reading_ && (closing_ || shutdown_)) {
       lingerClose();
     }
@@ -787,13 +962,19 @@ class Connection : public std::enable_shared_from_this<Connection> {
   bool fileWriting_ = false;     // a file body is being sent (fileTimer_ is armed for it)
   beast::flat_buffer buffer_;
   std::optional<bhttp::request_parser<bhttp::string_body>> parser_;
+  /// The request whose header was accepted and whose body is being read.
+  std::optional<Request> request_;
   std::deque<Slot> queue_;
   std::uint64_t nextSeq_ = 0;
   std::string peer_;
+  const std::string client_;
   const bool counted_;
-  bool nonBlocking_ = false;  // the socket is in non-blocking mode (for sendfile)
-  bool reading_ = false;      // a read is outstanding
-  bool idleWait_ = false;     // ... and it waits for the first byte of a request
+  /// When the header being read (or the first one of the connection) must be complete.
+  Clock::time_point headerDeadline_;
+  bool continuePending_ = false;  // "100 Continue" is due once the queue is written
+  bool nonBlocking_ = false;      // the socket is in non-blocking mode (for sendfile)
+  bool reading_ = false;          // a read is outstanding
+  bool idleWait_ = false;         // ... and it waits for the first byte of a request
   bool writing_ = false;
   bool closing_ = false;   // read no more requests; close once the queue is written
   bool shutdown_ = false;  // the server is stopping
@@ -886,19 +1067,27 @@ void Server::Impl::onAccept(error_code ec, tcp::socket socket) {
   }
   error_code ignored;
   socket.set_option(tcp::no_delay(true), ignored);
+  std::string client = clientOf(socket);
   bool admit = false;
+  bool clientFull = false;
   {
-    // Only this strand adds connections, so the count can only fall before the insert below.
+    // Only this strand adds connections, so the counts can only fall before the insert below.
     const std::lock_guard lock(mutex);
     admit = !stopping && connections.size() < options.maxConnections;
+    if (admit) {
+      const auto it = perClient.find(client);
+      clientFull = it != perClient.end() && it->second >= options.maxPerClient;
+      admit = !clientFull;
+    }
   }
   if (admit) {
-    auto connection = std::make_shared<Connection>(*this, std::move(socket), true);
+    auto connection = std::make_shared<Connection>(*this, std::move(socket), client, true);
     {
       const std::lock_guard lock(mutex);
       admit = !stopping;
       if (admit) {
         connections.emplace(connection.get(), connection);
+        ++perClient[client];
         openCount->store(connections.size());
       }
     }
@@ -908,10 +1097,20 @@ void Server::Impl::onAccept(error_code ec, tcp::socket socket) {
     }
   } else {
     rejected.inc({});
-    warnFull();
+    std::string message;
+    if (clientFull) {
+      warnClientFull(client);
+      message = "this client address has " + std::to_string(options.maxPerClient) +
+                " connections open, its limit; retry shortly";
+    } else {
+      warnFull();
+      message = "the server has " + std::to_string(options.maxConnections) +
+                " connections open, its limit; retry shortly";
+    }
     // Answering is bounded too (each holds a descriptor): beyond kMaxRejecting in flight, close.
     if (rejecting.fetch_add(1) < std::min(options.maxConnections, kMaxRejecting)) {
-      std::make_shared<Connection>(*this, std::move(socket), false)->reject();
+      std::make_shared<Connection>(*this, std::move(socket), std::string(), false)
+          ->reject(std::move(message));
     } else {
       rejecting.fetch_sub(1);
     }
@@ -929,6 +1128,18 @@ void Server::Impl::warnFull() {
   }
 }
 
+void Server::Impl::warnClientFull(const std::string& client) {
+  const auto now = Clock::now().time_since_epoch().count();
+  auto last = lastClientWarning.load();
+  const auto interval = std::chrono::duration_cast<Clock::duration>(std::chrono::seconds(10));
+  if (now - last >= interval.count() && lastClientWarning.compare_exchange_strong(last, now)) {
+    core::log::warn("client " + client + " reached the limit of " +
+                    std::to_string(options.maxPerClient) +
+                    " connections per address: its new connections are answered 503 "
+                    "(limits.connections_per_client)");
+  }
+}
+
 std::vector<std::shared_ptr<Connection>> Server::Impl::liveConnections() const {
   std::vector<std::shared_ptr<Connection>> out;
   const std::lock_guard lock(mutex);
@@ -940,9 +1151,13 @@ std::vector<std::shared_ptr<Connection>> Server::Impl::liveConnections() const {
   return out;
 }
 
-void Server::Impl::forget(const Connection* connection) {
+void Server::Impl::forget(const Connection* connection, const std::string& client) {
   const std::lock_guard lock(mutex);
-  connections.erase(connection);
+  if (connections.erase(connection) != 0) {
+    if (const auto it = perClient.find(client); it != perClient.end() && --it->second == 0) {
+      perClient.erase(it);
+    }
+  }
   openCount->store(connections.size());
   if (connections.empty()) {
     drained.notify_all();

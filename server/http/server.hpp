@@ -24,12 +24,16 @@ struct ServerOptions {
   std::size_t ioThreads = 1;
   std::size_t bodyLimit = 1024 * 1024;
   std::size_t headerLimit = 16 * 1024;
+  std::chrono::milliseconds headerTimeout{10'000};
   std::chrono::milliseconds readTimeout{30'000};
   std::chrono::milliseconds idleTimeout{60'000};
   std::chrono::milliseconds writeTimeout{60'000};
   /// Connections served at once; beyond it up to 64 more are answered 503 and closed. The process
   /// holds a descriptor for each.
   std::size_t maxConnections = 512;
+  /// Connections of one source address served at once; beyond it answered 503 and closed like
+  /// those over maxConnections.
+  std::size_t maxPerClient = 256;
   std::size_t maxPipelined = 8;
 };
 
@@ -42,8 +46,15 @@ struct ServerOptions {
 /// response body); everything else is handed to `handlers` (the CPU pool), so network threads never
 /// run a Handler.
 ///
+/// A request's header is read first (by headerTimeout, counted from the accept for a
+/// connection's first request) and decided on alone: a write without a valid token gets
+/// Pipeline::authorize()'s 401 before any of its body is read (the connection then closes when a
+/// body was announced), "Expect: 100-continue" is answered only after that; then the body is
+/// read under readTimeout.
+///
 /// Protocol errors are answered by the server itself and close the connection: malformed request
-/// 400, body over the limit 413, header over the limit 431, connection over the cap 503 with
+/// 400, body over the limit 413, header over the limit 431, an HTTP major version other than 1
+/// 505, connection over the cap (or over maxPerClient for its source address) 503 with
 /// Retry-After. Every request gets one access-log line and is counted in `metrics`
 /// (vsm_http_requests_total, vsm_http_request_duration_seconds, ...).
 ///

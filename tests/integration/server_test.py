@@ -27,6 +27,7 @@ TOKEN = "test-token-0123456789"
 MiB = 1024 * 1024
 BODY_LIMIT = 1024  # the main daemon's limits.body_bytes
 IDLE_TIMEOUT = 1.0  # the main daemon's limits.idle_timeout, seconds
+HEADER_TIMEOUT = 1.5  # the main daemon's limits.header_timeout, seconds
 
 
 class Daemon:
@@ -171,7 +172,8 @@ class MainDaemon(unittest.TestCase):
     @classmethod
     def setUpClass(cls):
         config = {"memory_budget": "1GiB",
-                  "limits": {"body_bytes": BODY_LIMIT, "idle_timeout": "%gs" % IDLE_TIMEOUT},
+                  "limits": {"body_bytes": BODY_LIMIT, "idle_timeout": "%gs" % IDLE_TIMEOUT,
+                             "header_timeout": "%gs" % HEADER_TIMEOUT},
                   "threads": {"cpu": 2, "io": 2}}
         cls.daemon = Daemon("--memory-budget", "64MiB", "--token", TOKEN, config=config)
 
@@ -299,7 +301,31 @@ class MainDaemon(unittest.TestCase):
         status, _, body = self.daemon.request("POST", "/v1/models", body=b"{}",
                                               headers={"Authorization": "Bearer " + TOKEN,
                                                        "Content-Type": "application/json"})
-        self.assertNotEqual(status, 401, body)
+        # Authorized, so the handler saw the body: {} has no "id".
+        self.assertEqual(status, 400, body)
+        self.assert_error(body, "invalid_argument")
+        # Neither a token of another length nor a longer one with the right prefix.
+        for credentials in (TOKEN[:-1], TOKEN + "x", "x" * 5000, ""):
+            status, _, _ = self.daemon.request("POST", "/v1/models", body=b"{}",
+                                               headers={"Authorization": "Bearer " + credentials})
+            self.assertEqual(status, 401, credentials[:20])
+
+    def test_an_unauthorized_write_is_answered_on_its_header_alone(self):
+        with self.daemon.socket() as sock:
+            # The body is announced but never sent: the 401 must not wait for it.
+            sock.sendall(b"POST /v1/models HTTP/1.1\r\nHost: x\r\nContent-Length: 1000\r\n"
+                         b"Expect: 100-continue\r\n\r\n")
+            status, head, body = read_response(sock)
+            self.assertEqual(status, 401, head)
+            self.assert_error(body, "unauthorized")
+            self.assertRegex(head, r"(?im)^connection: close")
+            self.assertEqual(read_until_closed(sock), b"")  # and no 100 Continue before it
+        # Without a body the connection stays usable.
+        with self.daemon.socket() as sock:
+            sock.sendall(b"DELETE /v1/models/x HTTP/1.1\r\nHost: x\r\n\r\n"
+                         b"GET /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+            data = read_until_closed(sock).decode()
+        self.assertEqual(re.findall(r"HTTP/1.1 (\d{3})", data), ["401", "200"])
 
     def test_an_oversize_body_is_413_and_the_server_goes_on(self):
         status, headers, body = self.daemon.request(
@@ -344,16 +370,22 @@ class MainDaemon(unittest.TestCase):
         self.assertEqual(re.findall(r"HTTP/1.1 (\d{3})", data), ["200", "404", "200"])
         self.assertEqual(re.findall(r"(?i)X-Request-Id: (\S+)", data), ["one", "two", "three"])
 
-    def test_a_malformed_request_gets_400_or_a_close_and_the_server_goes_on(self):
-        for junk in (b"THIS IS NOT HTTP\r\n\r\n", b"GET / HTTP/9.9\r\n\r\n",
-                     b"\x00\x01\x02\xff\r\n\r\n", b"GET /healthz HTTP/1.1\r\nBad Header\r\n\r\n"):
+    def test_a_malformed_request_gets_400_and_a_close_and_the_server_goes_on(self):
+        # Another HTTP major version parses (Beast reads any digit.digit) but is not HTTP/1:
+        # 505 (RFC 9110 15.6.6), then the connection closes like after every protocol error.
+        for junk, status, code in (
+                (b"THIS IS NOT HTTP\r\n\r\n", 400, "invalid_argument"),
+                (b"GET / HTTP/9.9\r\n\r\n", 505, "http_version_not_supported"),
+                (b"GET /healthz HTTP/2.0\r\nHost: x\r\n\r\n", 505, "http_version_not_supported"),
+                (b"\x00\x01\x02\xff\r\n\r\n", 400, "invalid_argument"),
+                (b"GET /healthz HTTP/1.1\r\nBad Header\r\n\r\n", 400, "invalid_argument")):
             with self.daemon.socket() as sock:
                 sock.sendall(junk)
-                data = read_until_closed(sock)
-            if data:
-                self.assertTrue(data.startswith(b"HTTP/1.1 400 "), data)
-                body = data.partition(b"\r\n\r\n")[2]
-                self.assert_error(body, "invalid_argument")
+                data = read_until_closed(sock)  # the server closes: a timeout here fails
+            head, _, body = data.partition(b"\r\n\r\n")
+            self.assertTrue(head.startswith(b"HTTP/1.1 %d " % status), data)
+            self.assertRegex(head.decode(), r"(?im)^connection: close")
+            self.assert_error(body, code)
             self.assertEqual(self.daemon.request("GET", "/healthz")[0], 200, junk)
 
     def test_an_idle_connection_is_closed_after_the_idle_timeout(self):
@@ -366,10 +398,35 @@ class MainDaemon(unittest.TestCase):
             elapsed = time.monotonic() - start
         self.assertGreater(elapsed, IDLE_TIMEOUT * 0.8)
         self.assertLess(elapsed, IDLE_TIMEOUT + 3)
-        # A connection that never sends anything goes the same way.
+        # A new connection that never sends anything is closed after the header timeout (its
+        # first request's header deadline counts from the accept).
         with self.daemon.socket() as sock:
-            sock.settimeout(IDLE_TIMEOUT + 5)
+            start = time.monotonic()
+            sock.settimeout(HEADER_TIMEOUT + 5)
             self.assertEqual(sock.recv(1), b"")
+            elapsed = time.monotonic() - start
+        self.assertGreater(elapsed, HEADER_TIMEOUT * 0.8)
+        self.assertLess(elapsed, HEADER_TIMEOUT + 3)
+
+    def test_a_header_trickling_in_is_cut_off_by_the_header_timeout(self):
+        with self.daemon.socket() as sock:
+            sock.sendall(b"GET /healthz HTTP/1.1\r\n")
+            start = time.monotonic()
+            sock.settimeout(0.2)
+            closed = False
+            while not closed and time.monotonic() - start < HEADER_TIMEOUT + 3:
+                try:
+                    closed = sock.recv(1) == b""
+                except socket.timeout:
+                    try:
+                        sock.sendall(b"X")  # a byte of a header field every 0.2 s
+                    except OSError:
+                        closed = True
+                except ConnectionResetError:
+                    closed = True
+            elapsed = time.monotonic() - start
+        self.assertTrue(closed)
+        self.assertLess(elapsed, HEADER_TIMEOUT + 1)
 
     def test_the_log_names_the_port_redacts_the_token_and_logs_each_request(self):
         self.daemon.request("GET", "/healthz", headers={"X-Request-Id": "log-check"})
@@ -591,22 +648,63 @@ class ConnectionCap(unittest.TestCase):
             daemon.cleanup()
 
 
+class TokenFile(unittest.TestCase):
+    def test_the_token_comes_from_a_file_and_a_world_readable_one_is_warned_about(self):
+        root = tempfile.mkdtemp(prefix="vsmd-token-")
+        token = "file-token-0123456789"
+        path = os.path.join(root, "token")
+        with open(path, "w") as f:
+            f.write(token + "\n")
+        os.chmod(path, 0o644)
+        daemon = Daemon("--token-file", path)
+        try:
+            headers = {"Content-Type": "application/json"}
+            status, _, _ = daemon.request("POST", "/v1/models", body=b"{}", headers=headers)
+            self.assertEqual(status, 401)
+            headers["Authorization"] = "Bearer " + token
+            status, _, body = daemon.request("POST", "/v1/models", body=b"{}", headers=headers)
+            self.assertEqual(status, 400, body)  # authorized: the handler says what is missing
+            self.assertEqual(daemon.stop(), 0)
+            log = daemon.log()
+            self.assertIn("can be read by every user", log)
+            self.assertIn("config token=(from token_file)", log)
+            self.assertIn("config token_file=" + path, log)
+            self.assertNotIn(token, log)
+        finally:
+            daemon.cleanup()
+            shutil.rmtree(root, ignore_errors=True)
+
+
 class Shutdown(unittest.TestCase):
     def test_sigterm_finishes_the_request_in_flight_and_exits_0(self):
         daemon = Daemon("--set", "limits.shutdown_grace=10s")
         try:
             idle = daemon.socket()  # an idle keep-alive connection is closed at once
             with daemon.socket() as sock:
-                # A request whose body is still arriving when SIGTERM comes.
-                sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nContent-Length: 10\r\n\r\n12345")
-                time.sleep(0.3)
+                # A request whose body is still arriving when SIGTERM comes. "100 Continue" says
+                # the server has read its header and waits for the body.
+                sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\nContent-Length: 10\r\n"
+                             b"Expect: 100-continue\r\n\r\n12345")
+                interim = b""
+                while not interim.endswith(b"\r\n\r\n"):
+                    chunk = sock.recv(1)
+                    self.assertTrue(chunk, "closed before 100 Continue")
+                    interim += chunk
+                self.assertEqual(interim, b"HTTP/1.1 100 Continue\r\n\r\n")
                 daemon.proc.send_signal(signal.SIGTERM)
                 idle.settimeout(5)
-                self.assertEqual(idle.recv(1), b"")
-                time.sleep(0.3)
+                self.assertEqual(idle.recv(1), b"")  # the server is stopping
+                deadline = time.monotonic() + 5
+                refused = False
+                while not refused and time.monotonic() < deadline:  # the acceptor closes soon
+                    try:
+                        socket.create_connection(("127.0.0.1", daemon.port), timeout=2).close()
+                    except OSError:
+                        refused = True
+                    else:
+                        time.sleep(0.01)  # the poll interval
+                self.assertTrue(refused, "new connections still accepted while stopping")
                 self.assertIsNone(daemon.proc.poll(), "vsmd exited with a request in flight")
-                with self.assertRaises(OSError):  # no new connections
-                    socket.create_connection(("127.0.0.1", daemon.port), timeout=2).close()
                 sock.sendall(b"67890")
                 status, head, body = read_response(sock)
             self.assertEqual(status, 200)
@@ -634,6 +732,34 @@ class CommandLine(unittest.TestCase):
         result = self.run_vsmd("--listen", "127.0.0.1:0", "--data-root", "/nonexistent/vsm")
         self.assertEqual(result.returncode, 1)
         self.assertIn("data root", result.stderr)
+
+    def test_a_bad_token_file_is_a_clear_error_at_start(self):
+        root = tempfile.mkdtemp(prefix="vsmd-token-")
+        try:
+            missing = os.path.join(root, "missing")
+            result = self.run_vsmd("--token-file", missing)
+            self.assertEqual(result.returncode, 2)
+            self.assertIn("token file '%s' not found" % missing, result.stderr)
+            empty = os.path.join(root, "empty")
+            with open(empty, "w") as f:
+                f.write("\n")
+            result = self.run_vsmd("--token-file", empty)
+            self.assertEqual(result.returncode, 2)
+            self.assertIn("is empty", result.stderr)
+            good = os.path.join(root, "token")
+            with open(good, "w") as f:
+                f.write("abc\n")
+            result = self.run_vsmd("--token-file", good, "--token", "abc")
+            self.assertEqual(result.returncode, 2)
+            self.assertIn("not both", result.stderr)
+            with open(good, "w") as f:
+                f.write("not a token\n")
+            result = self.run_vsmd("--token-file", good)
+            self.assertEqual(result.returncode, 2)
+            self.assertIn("token", result.stderr)
+            self.assertNotIn("not a token", result.stderr)
+        finally:
+            shutil.rmtree(root, ignore_errors=True)
 
     def test_help_and_version(self):
         result = self.run_vsmd("--help")

@@ -81,9 +81,8 @@ def check_glb(args, opc):
         deadline = time.monotonic() + 15
         while not os.path.exists(port_file):
             assert daemon.poll() is None and time.monotonic() < deadline, "vsmd did not start"
-            time.sleep(0.05)
-        time.sleep(0.05)
-        with open(port_file) as f:
+            time.sleep(0.05)  # the poll interval
+        with open(port_file) as f:  # written atomically (renamed into place) once listening
             port = int(f.read())
         url = "http://127.0.0.1:%d/v1/models/jack/3dtiles/0_0_0.glb" % port
         with urllib.request.urlopen(url, timeout=60) as response:

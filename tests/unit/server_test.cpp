@@ -153,7 +153,8 @@ TEST(Config, FileTakesNumbersStringsDurationsAndComments) {
     "log_level": "debug",
     "cache_policy": "fifo-second-chance",
     "limits": {"read_timeout": 5, "idle_timeout": "750ms", "connections": 7,
-               "header_bytes": 8192, "shutdown_grace": "1m"}
+               "header_bytes": 8192, "shutdown_grace": "1m", "header_timeout": "2s",
+               "connections_per_client": 3}
   })");
   const Config config = parseCommandLine({"--config", file.path()}).config;
   EXPECT_EQ(config.dataRoot, "/srv/vsm");
@@ -165,6 +166,44 @@ TEST(Config, FileTakesNumbersStringsDurationsAndComments) {
   EXPECT_EQ(config.limits.connections, 7u);
   EXPECT_EQ(config.limits.headerBytes, 8 * kKiB);
   EXPECT_EQ(config.limits.shutdownGrace, 60s);
+  EXPECT_EQ(config.limits.headerTimeout, 2s);
+  EXPECT_EQ(config.limits.connectionsPerClient, 3u);
+}
+
+TEST(Config, TheTokenComesFromTheFirstLineOfATokenFile) {
+  const TempFile file("tok-en_1\nsecond line is ignored\n");
+  const Config config = parseCommandLine({"--token-file", file.path()}).config;
+  EXPECT_EQ(config.token, "tok-en_1");
+  EXPECT_EQ(config.tokenFile, file.path());
+  const TempFile inConfig("{\"token_file\": \"" + file.path() + "\"}");
+  EXPECT_EQ(parseCommandLine({"--config", inConfig.path()}).config.token, "tok-en_1");
+  const TempFile crlf("tok-en_2 \r\n");
+  EXPECT_EQ(parseCommandLine({"--token-file", crlf.path()}).config.token, "tok-en_2");
+}
+
+TEST(Config, ABadTokenFileIsAClearError) {
+  auto [code, message] = errorOf([] { parseCommandLine({"--token-file", "/nonexistent/tok"}); });
+  EXPECT_EQ(code, ErrorCode::NotFound);
+  EXPECT_NE(message.find("token file '/nonexistent/tok' not found"), std::string::npos) << message;
+  const TempFile empty("\n");
+  std::tie(code, message) = errorOf([&] { parseCommandLine({"--token-file", empty.path()}); });
+  EXPECT_EQ(code, ErrorCode::InvalidArgument);
+  EXPECT_NE(message.find("is empty"), std::string::npos) << message;
+  const TempFile good("abc");
+  std::tie(code, message) = errorOf([&] {
+    parseCommandLine({"--token-file", good.path(), "--token", "abc"});
+  });
+  EXPECT_EQ(code, ErrorCode::InvalidArgument);
+  EXPECT_NE(message.find("not both"), std::string::npos) << message;
+  const TempFile bad("sec ret");
+  std::tie(code, message) = errorOf([&] { parseCommandLine({"--token-file", bad.path()}); });
+  EXPECT_EQ(code, ErrorCode::InvalidArgument);
+  EXPECT_EQ(message.find("sec ret"), std::string::npos) << message;
+  const TempFile huge(std::string(2000, 'a'));
+  EXPECT_EQ(errorOf([&] {
+              parseCommandLine({"--token-file", huge.path()});
+            }).first,
+            ErrorCode::InvalidArgument);
 }
 
 TEST(Config, SetReachesEveryKeyFromTheCommandLine) {
@@ -212,10 +251,16 @@ TEST(Config, UnknownKeysAndBadValuesNameTheKey) {
 
 TEST(Config, ValidationRejectsOutOfRangeValues) {
   const std::vector<std::vector<std::string>> cases = {
-      {"--set", "limits.connections=0"},   {"--set", "limits.body_bytes=0"},
-      {"--set", "limits.header_bytes=10"}, {"--set", "limits.idle_timeout=0"},
-      {"--set", "threads.io=0"},           {"--set", "limits.pipelined_responses=1000"},
-      {"--memory-budget", "1000"},         {"--data-root", ""},
+      {"--set", "limits.connections=0"},
+      {"--set", "limits.body_bytes=0"},
+      {"--set", "limits.header_bytes=10"},
+      {"--set", "limits.idle_timeout=0"},
+      {"--set", "threads.io=0"},
+      {"--set", "limits.pipelined_responses=1000"},
+      {"--memory-budget", "1000"},
+      {"--data-root", ""},
+      {"--set", "limits.header_timeout=0"},
+      {"--set", "limits.connections_per_client=0"},
   };
   for (const auto& args : cases) {
     const auto [code, message] = errorOf([&] { parseCommandLine(args); });
@@ -258,7 +303,7 @@ TEST(Config, DescribeListsEveryKeyAndRedactsTheToken) {
   // describe() prints what set() reads back.
   Config copy;
   for (const auto& [key, value] : pairs) {
-    if (key != "token" && key != "port_file" && key != "viewer_dir") {
+    if (key != "token" && key != "token_file" && key != "port_file" && key != "viewer_dir") {
       copy.set(key, json(value));
     }
   }
@@ -478,6 +523,33 @@ TEST(Pipeline, WritesNeedTheBearerTokenReadsDoNot) {
 
   auto get = request(http::Method::Get, "/x");
   EXPECT_EQ(pipeline.handle(get).response.status, 200);
+}
+
+TEST(Pipeline, AuthorizeDecidesOnTheHeaderAlone) {
+  ThrowingRoute route;
+  route.thrown = [] {};
+  const http::Pipeline pipeline(route.router, "s3cret");
+  auto post = request(http::Method::Post, "/x");
+  post.body = "never looked at";
+  const auto refused = pipeline.authorize(post);
+  ASSERT_TRUE(refused);
+  EXPECT_EQ(refused->response.status, 401);
+  EXPECT_EQ(refused->route, "unauthorized");
+  EXPECT_NE(refused->response.header("X-Request-Id"), nullptr);  // finished like any response
+  // Prefixes, extensions, other lengths and overlong credentials are all refused.
+  for (const std::string& credentials : std::vector<std::string>{
+           "s3cre", "s3cret2", "s3cretx", std::string(5000, 's'), std::string("s3cret\0", 7), ""}) {
+    post.headers = {{"authorization", "Bearer " + credentials}};
+    EXPECT_TRUE(pipeline.authorize(post)) << credentials.substr(0, 10);
+  }
+  post.headers = {{"authorization", "bearer s3cret"}};
+  EXPECT_FALSE(pipeline.authorize(post));
+  post.headers = {{"authorization", "Basic s3cret"}};
+  EXPECT_TRUE(pipeline.authorize(post));
+  auto get = request(http::Method::Get, "/x");
+  EXPECT_FALSE(pipeline.authorize(get));  // reads are public
+  const http::Pipeline open(route.router, "");
+  EXPECT_FALSE(open.authorize(post));  // no token: writes are open
 }
 
 TEST(Pipeline, AnswersNotFoundMethodNotAllowedAndPreflight) {
