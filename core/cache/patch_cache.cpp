@@ -57,7 +57,7 @@ enum class State { Loading, Resident, WritingBack };
 
 struct Entry {
   FullKey id;
-  std::shared_ptr<const void> object;
+  CachedObject object;
   /// Bytes charged to the budget: the object's size, or the reservation while loading.
   std::size_t bytes = 0;
   /// Descriptors the object holds (charged to the handle budget).
@@ -253,13 +253,18 @@ PatchCache::Pin::~Pin() {
   release();
 }
 
+void CachedObject::throwTypeMismatch(const std::type_info& wanted) const {
+  throw Error(ErrorCode::Internal, std::string("cache: an object of type ") + type_->name() +
+                                       " was asked for as " + wanted.name());
+}
+
 void PatchCache::Pin::release() {
   if (cache_ != nullptr && entry_ != nullptr) {
     cache_->unpin(entry_);
   }
   cache_ = nullptr;
   entry_ = nullptr;
-  object_.reset();
+  object_ = {};
 }
 
 std::size_t PatchCache::Pin::bytes() const {

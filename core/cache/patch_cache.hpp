@@ -6,6 +6,7 @@
 #include <map>
 #include <memory>
 #include <string>
+#include <typeinfo>
 
 #include "core/pyramid/patch_key.hpp"
 
@@ -39,9 +40,43 @@ struct ObjectId {
   friend bool operator==(const ObjectId&, const ObjectId&) = default;
 };
 
+/// An immutable object of any type, shared, that remembers its type: as<T>() hands it out only as
+/// the type it was made from (a mismatch is a bug, reported as Error(Internal)), so the cache can
+/// hold grids, tiles, encodings and open files side by side without unchecked casts.
+class CachedObject {
+ public:
+  CachedObject() = default;
+  template <typename T>
+  CachedObject(std::shared_ptr<T> object)  // NOLINT(google-explicit-constructor): a conversion
+      : object_(std::move(object)), type_(&typeid(std::remove_const_t<T>)) {}
+
+  /// The object as a T; null when empty. Throws Error(Internal) when it was made from another type.
+  template <typename T>
+  std::shared_ptr<const T> as() const {
+    if (object_ == nullptr) {
+      return nullptr;
+    }
+    if (*type_ != typeid(T)) {
+      throwTypeMismatch(typeid(T));
+    }
+    return std::static_pointer_cast<const T>(object_);
+  }
+  explicit operator bool() const { return object_ != nullptr; }
+  /// The same object (not merely equal contents).
+  friend bool operator==(const CachedObject& a, const CachedObject& b) {
+    return a.object_ == b.object_;
+  }
+
+ private:
+  [[noreturn]] void throwTypeMismatch(const std::type_info& wanted) const;
+
+  std::shared_ptr<const void> object_;
+  const std::type_info* type_ = nullptr;
+};
+
 /// A loaded object, the bytes it occupies and the descriptors (open files) it holds.
 struct CacheValue {
-  std::shared_ptr<const void> object;
+  CachedObject object;
   std::size_t bytes = 0;
   std::size_t handles = 0;
 };
@@ -123,21 +158,22 @@ class PatchCache {
     ~Pin();
 
     explicit operator bool() const { return entry_ != nullptr; }
+    /// The object as the type it was put or loaded as (Error(Internal) for another type).
     template <typename T>
     std::shared_ptr<const T> get() const {
-      return std::static_pointer_cast<const T>(object_);
+      return object_.as<T>();
     }
     std::size_t bytes() const;
 
    private:
     friend class PatchCache;
-    Pin(PatchCache* cache, void* entry, std::shared_ptr<const void> object)
+    Pin(PatchCache* cache, void* entry, CachedObject object)
         : cache_(cache), entry_(entry), object_(std::move(object)) {}
     void release();
 
     PatchCache* cache_ = nullptr;
     void* entry_ = nullptr;
-    std::shared_ptr<const void> object_;
+    CachedObject object_;
   };
 
   /// Registers a model; `store` must outlive removeModel(). `name` is for statistics.

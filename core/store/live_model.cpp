@@ -122,12 +122,12 @@ class LiveModel::Store final : public PatchStore {
     // file here.
     OpcWriter writer(dir_, OpcWriter::Durability::Deferred);
     if (id.category == MemoryCategory::Textures) {
-      writer.writeTexture(info, *static_cast<const TextureTile*>(value.object.get()));
+      writer.writeTexture(info, *value.object.as<TextureTile>());
       return;
     }
     // The edit described the patch after its children: its box already holds theirs. A textured
     // draft names its tile, written by its own entry's write-back.
-    writer.writePatch(info, *static_cast<const PatchGrid*>(value.object.get()), info.globalBox);
+    writer.writePatch(info, *value.object.as<PatchGrid>(), info.globalBox);
   }
 
  private:

@@ -66,7 +66,7 @@ class FakeStore final : public PatchStore {
       throw Error(ErrorCode::Io, "disk full");
     }
     std::lock_guard lock(mutex_);
-    disk_[k] = static_cast<const Blob*>(value.object.get())->front();
+    disk_[k] = value.object.as<Blob>()->front();
     ++writes_;
   }
 
@@ -365,6 +365,23 @@ TEST(PatchCache, TheHandleBudgetClosesUnpinnedFilesOnlyAndRefusesWhenAllAreInUse
   third = {};
   cache.removeModel(model);
   EXPECT_EQ(cache.stats().handles, 0u);
+}
+
+TEST(PatchCache, APinHandsTheObjectOutOnlyAsTheTypeItWasPutAs) {
+  FakeStore store(0, 64);
+  PatchCache cache(kMiB);
+  const auto model = cache.addModel("m", store);
+  const ObjectId id{FakeStore::key(0), 1, MemoryCategory::Encoded, 3};
+  const std::shared_ptr<const Blob> blob = makeBlob(64, 7);
+  const PatchCache::Pin pin = cache.put(model, id, CacheValue{blob, 64, 0}, false);
+  EXPECT_EQ(pin.get<Blob>(), blob);
+  try {
+    (void)pin.get<std::string>();
+    ADD_FAILURE() << "a Blob was handed out as a string";
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), ErrorCode::Internal);
+  }
+  EXPECT_EQ(PatchCache::Pin().get<Blob>(), nullptr);
 }
 
 TEST(PatchCache, StatisticsCountByModelAndCategory) {
