@@ -176,8 +176,12 @@ class Shutdown(unittest.TestCase):
             requests = b"".join(b"GET /v1/models/prism/patches/%s/positions HTTP/1.1\r\nHost: x\r\n"
                                 b"\r\n" % k.encode() for k in keys)
             sock.sendall(requests[:-2])
-            time.sleep(0.3)
+            # The first answer has begun: vsmd is reading the pipeline (peeked, so it is read below).
+            deadline = time.monotonic() + 10
+            while not sock.recv(16, socket.MSG_PEEK).startswith(b"HTTP/1.1 200"):
+                self.assertLess(time.monotonic(), deadline, "no answer to the pipelined requests")
             daemon.proc.send_signal(signal.SIGTERM)
+            # A negative check needs a window: vsmd must still be running with a request unfinished.
             time.sleep(0.3)
             self.assertIsNone(daemon.proc.poll(), "vsmd exited with requests in flight")
             sock.sendall(requests[-2:])
