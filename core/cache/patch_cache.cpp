@@ -101,6 +101,7 @@ struct PatchCache::Impl {
   std::size_t usedHandles = 0;
   std::size_t handleBudget = std::numeric_limits<std::size_t>::max();
   std::array<std::size_t, kMemoryCategoryCount> usedByCategory{};
+  std::array<std::size_t, 256> encodedByFormat{};
   std::uint64_t hits = 0, misses = 0, evictions = 0, writeBacks = 0, exhausted = 0;
 
   void chargeHandles(Entry& e, std::size_t handles) {
@@ -112,6 +113,9 @@ struct PatchCache::Impl {
     used += delta;
     peak = std::max(peak, used);
     usedByCategory[static_cast<std::size_t>(e.id.object.category)] += delta;
+    if (e.id.object.category == MemoryCategory::Encoded) {
+      encodedByFormat[e.id.object.format] += delta;
+    }
     models.at(e.id.model).residentBytes += delta;
   }
 
@@ -652,6 +656,11 @@ CacheStats PatchCache::stats() const {
   s.residentBytes = impl_->used;
   s.peakResidentBytes = impl_->peak;
   s.residentByCategory = impl_->usedByCategory;
+  for (std::size_t format = 0; format < impl_->encodedByFormat.size(); ++format) {
+    if (impl_->encodedByFormat[format] != 0) {
+      s.encodedByFormat[static_cast<std::uint8_t>(format)] = impl_->encodedByFormat[format];
+    }
+  }
   for (const auto& [id, slot] : impl_->models) {
     s.residentByModel[slot.name] += slot.residentBytes;
   }

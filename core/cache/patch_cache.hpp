@@ -117,6 +117,8 @@ struct CacheStats {
   std::size_t handles = 0;
   std::size_t handleBudget = 0;
   std::array<std::size_t, kMemoryCategoryCount> residentByCategory{};
+  /// Resident bytes of Encoded entries by ObjectId::format (formats with none left out).
+  std::map<std::uint8_t, std::size_t> encodedByFormat;
   /// Model name -> resident bytes.
   std::map<std::string, std::size_t> residentByModel;
   std::uint64_t hits = 0;

@@ -5,6 +5,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
+#include "server/models/encoded_cache.hpp"
 
 namespace vsm::server::api {
 
@@ -26,6 +27,16 @@ constexpr auto kCategories = [] {
   return all;
 }();
 
+/// Resident bytes of cached responses, by encoding (every encoding, 0 where none is cached).
+std::vector<std::pair<models::Encoding, std::size_t>> encodedBytes(const core::CacheStats& stats) {
+  std::vector<std::pair<models::Encoding, std::size_t>> out;
+  for (const models::Encoding encoding : models::kEncodings) {
+    const auto it = stats.encodedByFormat.find(static_cast<std::uint8_t>(encoding));
+    out.emplace_back(encoding, it == stats.encodedByFormat.end() ? 0 : it->second);
+  }
+  return out;
+}
+
 }  // namespace
 
 json statsJson(const core::CacheStats& stats, core::EvictionPolicy policy) {
@@ -33,6 +44,10 @@ json statsJson(const core::CacheStats& stats, core::EvictionPolicy policy) {
   for (const auto category : kCategories) {
     byCategory[std::string(core::toString(category))] =
         stats.residentByCategory[static_cast<std::size_t>(category)];
+  }
+  json byEncoding = json::object();
+  for (const auto& [encoding, bytes] : encodedBytes(stats)) {
+    byEncoding[std::string(models::toString(encoding))] = bytes;
   }
   json byModel = json::object();
   for (const auto& [model, bytes] : stats.residentByModel) {
@@ -44,6 +59,7 @@ json statsJson(const core::CacheStats& stats, core::EvictionPolicy policy) {
         {"resident_bytes", stats.residentBytes},
         {"pinned_bytes", stats.pinnedBytes},
         {"resident_bytes_by_category", std::move(byCategory)},
+        {"encoded_bytes_by_encoding", std::move(byEncoding)},
         {"resident_bytes_by_model", std::move(byModel)},
         {"open_files", stats.handles},
         {"open_files_limit", stats.handleBudget}}},
@@ -81,6 +97,16 @@ std::vector<metrics::Snapshot> cacheMetrics(const core::CacheStats& stats) {
          static_cast<double>(stats.residentByCategory[static_cast<std::size_t>(category)])});
   }
   out.push_back(std::move(byCategory));
+  Snapshot byEncoding{"vsm_memory_encoded_bytes",
+                      "Resident bytes of cached responses by encoding (part of category encoded)",
+                      Type::Gauge,
+                      {"encoding"},
+                      {}};
+  for (const auto& [encoding, bytes] : encodedBytes(stats)) {
+    byEncoding.samples.push_back(
+        {{std::string(models::toString(encoding))}, static_cast<double>(bytes)});
+  }
+  out.push_back(std::move(byEncoding));
   Snapshot byModel{"vsm_memory_model_resident_bytes",
                    "Resident patch data by model",
                    Type::Gauge,

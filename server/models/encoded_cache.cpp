@@ -19,6 +19,22 @@ namespace {
 /// the kernel's page cache, outside the budget).
 constexpr std::size_t kOpenFileBytes = 256;
 
+}  // namespace
+
+std::string_view toString(Encoding encoding) {
+  switch (encoding) {
+    case Encoding::PositionsAara:
+      return "aara";
+    case Encoding::Glb:
+      return "glb";
+    case Encoding::TexturePng:
+      return "png";
+  }
+  return "unknown";
+}
+
+namespace {
+
 core::ObjectId bodyId(const core::PatchKey& key, std::uint64_t version, Encoding encoding) {
   return {key, version, core::MemoryCategory::Encoded, static_cast<std::uint8_t>(encoding)};
 }

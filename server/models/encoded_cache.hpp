@@ -1,5 +1,6 @@
 #pragma once
 
+#include <array>
 #include <cstddef>
 #include <cstdint>
 #include <memory>
@@ -27,6 +28,11 @@ enum class Encoding : std::uint8_t {
   /// A texture tile as PNG.
   TexturePng = 3,
 };
+
+inline constexpr std::array<Encoding, 3> kEncodings{Encoding::PositionsAara, Encoding::Glb,
+                                                    Encoding::TexturePng};
+/// The name /v1/stats and the metrics give an encoding: "aara", "glb", "png".
+std::string_view toString(Encoding encoding);
 
 /// The stored files of a patch the server sends as they are (sendfile(2)).
 enum class StoredKind : std::uint8_t { Positions = 1, Coordinates = 2 };

@@ -369,7 +369,7 @@ class Tiles(unittest.TestCase):
         # Encoded once (in setUpClass), answered from the cache since: a hit, no miss.
         self.assertGreater(after["cache"]["hits"], before["cache"]["hits"])
         self.assertEqual(after["cache"]["misses"], before["cache"]["misses"])
-        self.assertGreaterEqual(after["memory"]["resident_bytes_by_category"]["encoded"], len(body))
+        self.assertGreaterEqual(after["memory"]["encoded_bytes_by_encoding"]["glb"], len(body))
         self.assertLessEqual(after["memory"]["resident_bytes"], after["memory"]["budget_bytes"])
 
     def test_unknown_tiles_and_models_are_json_errors(self):
