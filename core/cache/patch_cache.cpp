@@ -468,6 +468,11 @@ PatchCache::Pin PatchCache::get(ModelId model, const ObjectId& object) {
   return Pin(this, &e, e.object);
 }
 
+void PatchCache::countMiss() {
+  const std::lock_guard lock(impl_->mutex);
+  ++impl_->misses;
+}
+
 PatchCache::Pin PatchCache::find(ModelId model, const ObjectId& object, bool countMiss) {
   const std::lock_guard lock(impl_->mutex);
   const auto it = impl_->entries.find(FullKey{model, object});

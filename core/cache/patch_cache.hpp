@@ -195,6 +195,9 @@ class PatchCache {
   /// look for the same request, whose first look counted it); a hit counts as a use for the
   /// eviction policy.
   Pin find(ModelId model, const ObjectId& id, bool countMiss = true);
+  /// Counts one miss: for a caller that looked for one thing in several forms with find(...,
+  /// false) and found none of them.
+  void countMiss();
 
   /// Inserts or replaces an object (new data from a merge or import, an encoding, an open file),
   /// resident and pinned. When `dirty`, it is written back before it is ever evicted. Throws

@@ -330,19 +330,20 @@ std::optional<http::Response> positions(const ModelContext& c, const http::Reque
   const int n = snapshot->model->gridSize();
   const bool asStored = info.stored == core::GridRect{0, 0, n, n};
   http::Response response = positionsResponse(*snapshot, info, std::move(etag));
-  // The handler pool runs this after the network thread's look missed: count that miss once.
+  // A patch stored whole is cached as its open file, or as a body when the file cannot be sent as
+  // it is (V3d): one look for either, one miss counted when neither is there. The handler pool
+  // runs this after the network thread's look missed, and counts nothing again.
   std::shared_ptr<const models::EncodedCache::File> file;
   if (asStored) {
-    file =
-        served.encoded->findFile(key, info.version, models::StoredKind::Positions, onNetworkThread);
+    file = served.encoded->findFile(key, info.version, models::StoredKind::Positions, false);
   }
   std::shared_ptr<const models::EncodedCache::Body> body;
   if (file == nullptr) {
-    body = served.encoded->find(key, info.version, models::Encoding::PositionsAara,
-                                onNetworkThread && !asStored);
+    body = served.encoded->find(key, info.version, models::Encoding::PositionsAara, false);
   }
   if (file == nullptr && body == nullptr) {
     if (onNetworkThread) {
+      served.encoded->countMiss();
       return std::nullopt;
     }
     if (asStored) {

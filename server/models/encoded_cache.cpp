@@ -120,6 +120,10 @@ std::shared_ptr<const EncodedCache::Body> EncodedCache::put(const core::PatchKey
                                core::CacheValue{std::move(object), size, 0}, /*dirty=*/false));
 }
 
+void EncodedCache::countMiss() const {
+  cache_.countMiss();
+}
+
 std::shared_ptr<const EncodedCache::File> EncodedCache::findFile(const core::PatchKey& key,
                                                                  std::uint64_t version,
                                                                  StoredKind kind,

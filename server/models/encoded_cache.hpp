@@ -76,6 +76,9 @@ class EncodedCache : public std::enable_shared_from_this<EncodedCache> {
                                   Encoding encoding, std::vector<std::byte> bytes,
                                   std::string note = {});
 
+  /// Counts one miss in the statistics (see core::PatchCache::countMiss).
+  void countMiss() const;
+
   /// The cached open file, or nullptr (as find()).
   std::shared_ptr<const File> findFile(const core::PatchKey& key, std::uint64_t version,
                                        StoredKind kind, bool countMiss) const;
