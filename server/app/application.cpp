@@ -72,17 +72,12 @@ std::size_t raiseDescriptorLimit() {
                                          : static_cast<std::size_t>(limit.rlim_cur);
 }
 
-/// How the descriptors of the process are shared out.
-struct DescriptorPlan {
-  std::size_t connections = 0;
-  /// Open files the caches may hold (in flight included).
-  std::size_t cachedFiles = 0;
-};
+bool isLoopback(const std::string& host) {
+  return host == "localhost" || host == "::1" || host.starts_with("127.");
+}
 
-/// Keeps kReserved descriptors (and two per thread) for the process itself — the listener, the
-/// event loop, logs, the files merges, imports and cache misses open for a moment — and one per
-/// connection (plus the 64 being answered 503 at once); cached files get the rest, at most
-/// kMaxCachedFiles. When that leaves fewer than kMinCachedFiles, connections are cut to fit.
+}  // namespace
+
 DescriptorPlan planDescriptors(std::size_t limit, std::size_t connections, std::size_t threads) {
   constexpr std::size_t kReserved = 64;
   constexpr std::size_t kRejecting = 64;
@@ -100,12 +95,6 @@ DescriptorPlan planDescriptors(std::size_t limit, std::size_t connections, std::
   plan.cachedFiles = std::clamp<std::size_t>(plan.cachedFiles, 8, kMaxCachedFiles);
   return plan;
 }
-
-bool isLoopback(const std::string& host) {
-  return host == "localhost" || host == "::1" || host.starts_with("127.");
-}
-
-}  // namespace
 
 std::string_view version() {
   return VSM_VERSION;

@@ -1,6 +1,7 @@
 #pragma once
 
 #include <condition_variable>
+#include <cstddef>
 #include <cstdint>
 #include <memory>
 #include <mutex>
@@ -32,6 +33,19 @@ class ModelRegistry;
 namespace jobs {
 class JobRegistry;
 }
+
+/// How the descriptors of the process are shared out.
+struct DescriptorPlan {
+  std::size_t connections = 0;
+  /// Open files the caches may hold (in flight included).
+  std::size_t cachedFiles = 0;
+};
+
+/// Keeps 64 descriptors (and two per thread) for the process itself — the listener, the event
+/// loop, logs, the files merges, imports and cache misses open for a moment — and one per
+/// connection (plus the 64 being answered 503 at once); cached files get the rest, at most 65536.
+/// When that leaves fewer than 64, connections are cut to fit. `limit` is RLIMIT_NOFILE.
+DescriptorPlan planDescriptors(std::size_t limit, std::size_t connections, std::size_t threads);
 
 /// The daemon's version ("0.1.0").
 std::string_view version();
