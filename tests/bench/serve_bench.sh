@@ -224,6 +224,10 @@ for round in $(seq "$ROUNDS"); do
   touch "$WORK/stop-merging"
   wait "$MERGER_PID" || { echo "the merge loop failed" >&2; exit 1; }
   MERGER_PID=""
+  if (($(cat "$WORK/merges") == 0)); then
+    echo "round $round: no merge finished during the run; its 'while merging' figure measures nothing" >&2
+    exit 1
+  fi
   MERGES=$((MERGES + $(cat "$WORK/merges")))
   MERGE_RATIOS+=("$(ratio "$MERGE_RPS" "$VSMD_RPS")")
   if ((ROUNDS > 1)); then
