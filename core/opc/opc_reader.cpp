@@ -1,6 +1,8 @@
 // Reading OPC directories: the hierarchy, every Patch.xml and the patches' vertex data.
 #include "core/opc/opc_reader.hpp"
 
+#include <sys/stat.h>
+
 #include <algorithm>
 #include <cctype>
 #include <cmath>
@@ -476,6 +478,19 @@ fs::path patchesDirOf(const fs::path& dir) {
     throw Error(ErrorCode::NotFound, "no OPC at '" + dir.string() + "' (no Patches directory)");
   }
   return *found;
+}
+
+std::optional<HierarchyStamp> hierarchyStamp(const fs::path& dir) {
+  const auto patches = detail::findEntry(dir, "Patches");
+  const auto file = patches ? detail::findEntry(*patches, "patchhierarchy.xml") : std::nullopt;
+  struct stat st {};
+  if (!file || ::stat(file->c_str(), &st) != 0) {
+    return std::nullopt;
+  }
+  return HierarchyStamp{static_cast<std::uint64_t>(st.st_dev),
+                        static_cast<std::uint64_t>(st.st_ino),
+                        static_cast<std::uint64_t>(st.st_size),
+                        std::int64_t{st.st_mtim.tv_sec} * 1'000'000'000 + st.st_mtim.tv_nsec};
 }
 
 Model readOpcModel(const fs::path& dir) {

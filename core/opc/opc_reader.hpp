@@ -1,6 +1,8 @@
 #pragma once
 
+#include <cstdint>
 #include <filesystem>
+#include <optional>
 
 #include "core/pyramid/model.hpp"
 
@@ -19,6 +21,16 @@ Model readOpcModel(const std::filesystem::path& dir);
 
 /// `dir`/Patches in whatever letter case it exists. Throws Error(NotFound) when there is none.
 std::filesystem::path patchesDirOf(const std::filesystem::path& dir);
+
+/// Which version of the hierarchy file `dir` holds now: its inode, size and modification time. A
+/// publish replaces the file by a rename, so a new version has another stamp. Empty when there is
+/// no hierarchy file (or it cannot be read).
+struct HierarchyStamp {
+  std::uint64_t device = 0, inode = 0, size = 0;
+  std::int64_t modifiedNs = 0;
+  friend bool operator==(const HierarchyStamp&, const HierarchyStamp&) = default;
+};
+std::optional<HierarchyStamp> hierarchyStamp(const std::filesystem::path& dir);
 
 /// Reads one patch's vertex data into a full gridSize x gridSize grid (cropped borders restored as
 /// undefined). V3d files are re-based on their own centre so float32 keeps precision; the returned

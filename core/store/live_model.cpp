@@ -182,6 +182,8 @@ std::unique_ptr<LiveModel> LiveModel::reopen() const {
 std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name, PatchCache& cache,
                                            std::shared_ptr<const durable::WriterLock> lock,
                                            bool sweep, std::uint64_t version) {
+  // Stamped before reading: a publish during the read leaves a stamp that differs from the file's.
+  const std::optional<HierarchyStamp> stamp = hierarchyStamp(dir);
   auto model = std::make_shared<Model>(readOpcModel(dir));
   if (lock != nullptr) {
     // A publish interrupted after its commit point left these undone; they are idempotent.
@@ -239,8 +241,10 @@ std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name
   auto snapshot = std::make_shared<ModelSnapshot>();
   snapshot->model = std::move(model);
   snapshot->version = version;
-  return std::unique_ptr<LiveModel>(
+  auto live = std::unique_ptr<LiveModel>(
       new LiveModel(dir, std::move(name), std::move(store), std::move(snapshot), std::move(lock)));
+  live->readStamp_ = stamp;
+  return live;
 }
 
 LiveModel::LiveModel(fs::path dir, std::string name, std::shared_ptr<Store> store,
@@ -253,6 +257,10 @@ LiveModel::LiveModel(fs::path dir, std::string name, std::shared_ptr<Store> stor
       lock_(std::move(lock)) {}
 
 LiveModel::~LiveModel() = default;
+
+bool LiveModel::changedOnDisk() const {
+  return hierarchyStamp(dir_) != readStamp_;
+}
 
 std::shared_ptr<const ModelSnapshot> LiveModel::snapshot() const {
   std::lock_guard lock(mutex_);

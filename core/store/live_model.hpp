@@ -6,6 +6,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <string>
 #include <utility>
@@ -16,6 +17,7 @@
 #include "core/durable/durable_io.hpp"
 #include "core/durable/writer_lock.hpp"
 #include "core/grid/texture_tile.hpp"
+#include "core/opc/opc_reader.hpp"
 #include "core/pyramid/model.hpp"
 
 namespace vsm::core {
@@ -80,6 +82,10 @@ class LiveModel {
   /// False when opened for reading only; readOnlyReason() then says why (empty for Access::Read).
   bool writable() const { return lock_ != nullptr; }
   const std::string& readOnlyReason() const { return readOnlyReason_; }
+  /// True when the directory's hierarchy file is no longer the one this opening read: another
+  /// writer published a new version (or removed the model). For an opening for reading only,
+  /// which follows such publishes by reopen(); an opening that writes publishes itself.
+  bool changedOnDisk() const;
   const std::filesystem::path& dir() const { return dir_; }
 
   /// The current published version.
@@ -128,6 +134,8 @@ class LiveModel {
   /// Null when opened for reading.
   std::shared_ptr<const durable::WriterLock> lock_;
   std::string readOnlyReason_;
+  /// The hierarchy file as it was just before this opening read it.
+  std::optional<HierarchyStamp> readStamp_;
   std::function<void(const ReplacedVersions&)> onPublish_;  // guarded by mutex_
 };
 

@@ -252,9 +252,17 @@ void Application::start() {
 
 void Application::run() {
   start();
-  {
-    std::unique_lock lock(mutex_);
-    stopRequested_.wait(lock, [this] { return stopCalls_ > 0; });
+  // The main thread follows other writers' publishes of models open for reading only (a vsm
+  // merge, another vsmd holding the writer lock) until asked to stop.
+  constexpr auto kFollowEvery = std::chrono::milliseconds(500);
+  for (;;) {
+    {
+      std::unique_lock lock(mutex_);
+      if (stopRequested_.wait_for(lock, kFollowEvery, [this] { return stopCalls_ > 0; })) {
+        break;
+      }
+    }
+    models_->follow();
   }
   shutdown();
 }

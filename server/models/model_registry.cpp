@@ -234,14 +234,22 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
 }
 
 void ModelRegistry::reopen(std::string_view id) {
-  const std::shared_ptr<core::LiveModel> old = get(id);
+  if (const auto version = replace(get(id), id, "after a failed write")) {
+    log::warn("model=" + std::string(id) + " read again from disk after a failed write: version " +
+              std::to_string(*version));
+  }
+}
+
+std::optional<std::uint64_t> ModelRegistry::replace(const std::shared_ptr<core::LiveModel>& old,
+                                                    std::string_view id, std::string_view why) {
   Served fresh;
   try {
     fresh.live = old->reopen();
     fresh.encoded = EncodedCache::create(cache_, *fresh.live);
   } catch (const std::exception& e) {
-    log::error("model=" + std::string(id) + " cannot be read again from disk: " + e.what());
-    return;
+    log::error("model=" + std::string(id) + " cannot be read again from disk " + std::string(why) +
+               ": " + e.what());
+    return std::nullopt;
   }
   const std::uint64_t version = fresh.live->snapshot()->version;
   Served replaced;
@@ -249,12 +257,42 @@ void ModelRegistry::reopen(std::string_view id) {
     const std::lock_guard lock(mutex_);
     const auto it = models_.find(id);
     if (it == models_.end() || it->second.live != old) {
-      return;  // closed or replaced meanwhile
+      return std::nullopt;  // closed or replaced meanwhile
     }
     replaced = std::exchange(it->second, std::move(fresh));
   }
-  log::warn("model=" + std::string(id) + " read again from disk after a failed write: version " +
-            std::to_string(version));
+  return version;
+}
+
+std::size_t ModelRegistry::follow() {
+  std::vector<std::pair<std::string, std::shared_ptr<core::LiveModel>>> readOnly;
+  {
+    const std::lock_guard lock(mutex_);
+    for (const auto& [id, served] : models_) {
+      if (!served.live->writable()) {
+        readOnly.emplace_back(id, served.live);
+      }
+    }
+  }
+  const auto now = std::chrono::steady_clock::now();
+  std::size_t followed = 0;
+  for (const auto& [id, live] : readOnly) {
+    if (const auto it = followRetry_.find(id); it != followRetry_.end() && now < it->second) {
+      continue;  // its last reading failed: retried a little later, not at every look
+    }
+    if (!live->changedOnDisk()) {
+      continue;
+    }
+    if (const auto version = replace(live, id, "after another writer published")) {
+      log::info("model=" + id + " read again from disk after another writer published: version " +
+                std::to_string(*version));
+      ++followed;
+      followRetry_.erase(id);
+    } else {
+      followRetry_[id] = now + kFollowRetry;
+    }
+  }
+  return followed;
 }
 
 namespace {

@@ -1,10 +1,13 @@
 #pragma once
 
+#include <chrono>
 #include <cstddef>
+#include <cstdint>
 #include <filesystem>
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <set>
 #include <string>
 #include <string_view>
@@ -76,6 +79,14 @@ class ModelRegistry {
   /// it. Failures are logged (the old opening stays); NotFound when `id` is not open.
   void reopen(std::string_view id);
 
+  /// Follows other writers: every model open for reading only whose directory holds a version
+  /// another process published since it was read (LiveModel::changedOnDisk) is read again, as by
+  /// reopen(); requests holding the old opening finish on it, new ones see the new version whole.
+  /// A reading that fails is logged and tried again after kFollowRetry. Returns how many models
+  /// were read again. For one caller at a time (the daemon calls it twice a second).
+  std::size_t follow();
+  static constexpr std::chrono::seconds kFollowRetry{5};
+
   /// The open model `id`, or nullptr.
   std::shared_ptr<core::LiveModel> find(std::string_view id) const;
   /// The open model `id`. Throws core::Error(NotFound).
@@ -127,6 +138,10 @@ class ModelRegistry {
   std::shared_ptr<core::LiveModel> openChecked(const std::string& id,
                                                const std::filesystem::path& dir, bool reserved);
   void unlease(const std::string& id);
+  /// Replaces the opening `old` of `id` by old->reopen() and returns the new opening's version;
+  /// nullopt when reading failed (logged with `why`) or `id` was closed or replaced meanwhile.
+  std::optional<std::uint64_t> replace(const std::shared_ptr<core::LiveModel>& old,
+                                       std::string_view id, std::string_view why);
 
   std::filesystem::path root_;
   core::PatchCache& cache_;
@@ -138,6 +153,8 @@ class ModelRegistry {
   std::set<std::string, std::less<>> reserved_;
   /// Ids being opened right now (open() reads the disk without the lock).
   std::set<std::string, std::less<>> opening_;
+  /// follow()'s own state: when a model whose reading failed is tried again.
+  std::map<std::string, std::chrono::steady_clock::time_point, std::less<>> followRetry_;
 };
 
 }  // namespace vsm::server::models

@@ -9,7 +9,9 @@
    the served model (a reader), both work meanwhile.
 2. A `vsm merge` in progress (stopped with SIGSTOP while it holds the lock): vsmd opens that
    directory for reading only, and a merge job into it answers 409 naming vsm and its pid; once
-   the merge is done, closed and opened again, the model is the merged version.
+   the merge is done, vsmd follows it (the read-only opening is read again when the hierarchy file
+   is replaced) and serves the merged version, the new patches included; closed and opened again,
+   the model is the merged version too.
 3. A model on a read-only mount (a read-only bind mount, as root) is served for reading; a merge
    job into it fails with a message saying so. Skipped, with a line saying why, where mounting is
    not allowed.
@@ -28,6 +30,12 @@ import urllib.request
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from model_states import crop, digest_tree  # noqa: E402
+
+
+def walk_keys(node):
+    yield node["key"]
+    for child in node.get("children", []):
+        yield from walk_keys(child)
 
 TOKEN = "lock-test"
 
@@ -156,9 +164,28 @@ def main():
         print("     POST /v1/jobs merge into it: %d %s" % (status, message))
         check(status == 409 and "is being written by vsm (pid %d)" % merge.pid in message,
               "a merge job into it answers 409 naming the vsm merge that holds the lock")
+        status, unmerged = request(base, "/v1/models/busy")
         merge.send_signal(signal.SIGCONT)
         merge.stderr.read()
         check(merge.wait(timeout=300) == 0, "the merge completes")
+        finished = time.monotonic()
+        followed = None
+        while time.monotonic() < finished + 20:
+            status, now = request(base, "/v1/models/busy")
+            if status == 200 and now.get("depth", 0) > unmerged.get("depth", 0):
+                followed = time.monotonic() - finished
+                break
+            time.sleep(0.05)
+        print("     vsmd serves the merged version %s" %
+              ("%.2f s after the merge exited" % followed if followed is not None else "never"))
+        check(followed is not None, "vsmd follows the publish of the other writer (depth %s, "
+              "before %s)" % (now.get("depth"), unmerged.get("depth")))
+        status, tree = request(base, "/v1/models/busy/hierarchy")
+        deepest = max(walk_keys(tree["root"]), key=lambda k: int(k.split("_")[0]))
+        with urllib.request.urlopen(base + "/v1/models/busy/patches/%s/positions" % deepest,
+                                    timeout=30) as response:
+            check(response.status == 200 and len(response.read()) > 13,
+                  "... and serves its new patches (%s)" % deepest)
         status, _ = request_method(base, "/v1/models/busy", "DELETE")
         check(status in (200, 204), "closing the read-only model: %d" % status)
         status, body = request(base, "/v1/models", {"id": "busy", "source": {"path": "busy"}})

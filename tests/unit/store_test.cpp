@@ -212,6 +212,26 @@ TEST_F(StoreTest, OldFoldersGoWhenTheirLastReaderDoes) {
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
+TEST_F(StoreTest, AReaderSeesAnotherWritersPublishOnDiskAndFollowsItByReopening) {
+  PatchCache writerCache(64 << 20), readerCache(64 << 20);
+  auto writer = LiveModel::open(dir_, "w", writerCache);
+  auto reader = LiveModel::open(dir_, "r", readerCache, LiveModel::Access::Read);
+  EXPECT_FALSE(reader->changedOnDisk());
+  {
+    auto edit = writer->beginEdit();
+    edit->setPositions({2, 3, 3}, leafGrid(3, 3, 7.0));
+    edit->refreshStale();
+    EXPECT_FALSE(reader->changedOnDisk()) << "nothing is published before publish()";
+    edit->publish();
+  }
+  EXPECT_TRUE(reader->changedOnDisk());
+  auto followed = reader->reopen();
+  EXPECT_FALSE(followed->changedOnDisk());
+  EXPECT_FALSE(followed->writable());
+  EXPECT_NEAR(leafZ(*followed, *followed->snapshot(), {2, 3, 3}),
+              height(3 * 16 + 3, 3 * 16 + 3, 7.0), 1e-3);
+}
+
 TEST_F(StoreTest, PublishedChangesSurviveReopening) {
   {
     PatchCache cache(64 << 20);
