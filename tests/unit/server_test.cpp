@@ -15,6 +15,7 @@
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
+#include "core/opc/texture_file.hpp"
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/config/config.hpp"
@@ -169,10 +170,13 @@ TEST(Config, FileTakesNumbersStringsDurationsAndComments) {
 
 TEST(Config, SetReachesEveryKeyFromTheCommandLine) {
   const Config config =
-      parseCommandLine({"--set", "limits.pipelined_responses=3", "--set", "threads.jobs=5",
-                        "--token", "t0k3n", "--port-file", "/tmp/p", "--log-level", "warn"})
+      parseCommandLine({"--set", "limits.pipelined_responses=3", "--set", "threads.jobs=5", "--set",
+                        "limits.texture_pixels=4096", "--token", "t0k3n", "--port-file", "/tmp/p",
+                        "--log-level", "warn"})
           .config;
   EXPECT_EQ(config.limits.pipelinedResponses, 3u);
+  EXPECT_EQ(config.limits.texturePixels, 4096u);
+  EXPECT_EQ(Config{}.limits.texturePixels, core::kDefaultTexturePixels);
   EXPECT_EQ(config.threads.jobs, 5u);
   EXPECT_EQ(config.token, "t0k3n");
   EXPECT_EQ(config.portFile, "/tmp/p");
@@ -212,10 +216,15 @@ TEST(Config, UnknownKeysAndBadValuesNameTheKey) {
 
 TEST(Config, ValidationRejectsOutOfRangeValues) {
   const std::vector<std::vector<std::string>> cases = {
-      {"--set", "limits.connections=0"},   {"--set", "limits.body_bytes=0"},
-      {"--set", "limits.header_bytes=10"}, {"--set", "limits.idle_timeout=0"},
-      {"--set", "threads.io=0"},           {"--set", "limits.pipelined_responses=1000"},
-      {"--memory-budget", "1000"},         {"--data-root", ""},
+      {"--set", "limits.connections=0"},
+      {"--set", "limits.body_bytes=0"},
+      {"--set", "limits.header_bytes=10"},
+      {"--set", "limits.idle_timeout=0"},
+      {"--set", "threads.io=0"},
+      {"--set", "limits.pipelined_responses=1000"},
+      {"--set", "limits.texture_pixels=0"},
+      {"--memory-budget", "1000"},
+      {"--data-root", ""},
   };
   for (const auto& args : cases) {
     const auto [code, message] = errorOf([&] { parseCommandLine(args); });
@@ -571,6 +580,29 @@ TEST(Request, JsonBodyNeedsJson) {
   EXPECT_EQ(errorOf([&] { http::jsonBody(r); }).first, ErrorCode::InvalidArgument);
   r.headers.clear();
   r.body = "{";
+  EXPECT_EQ(errorOf([&] { http::jsonBody(r); }).first, ErrorCode::InvalidArgument);
+}
+
+TEST(Request, JsonBodyNestsAtMostMaxDepthLevels) {
+  auto r = request(http::Method::Post, "/");
+  const auto nested = [](int depth) {
+    std::string text;
+    for (int i = 0; i < depth; ++i) {
+      text += i % 2 == 0 ? "[" : "{\"a\":";
+    }
+    for (int i = depth - 1; i >= 0; --i) {
+      text += i % 2 == 0 ? "]" : "}";
+    }
+    return text;
+  };
+  r.body = nested(http::kMaxJsonDepth);
+  EXPECT_TRUE(http::jsonBody(r).is_array());
+  r.body = nested(http::kMaxJsonDepth + 1);
+  EXPECT_EQ(errorOf([&] { http::jsonBody(r); }),
+            std::pair(ErrorCode::InvalidArgument,
+                      std::string("request body nests deeper than 64 levels")));
+  // A megabyte of '[' (what the body limit lets through) fails the same way, without recursing.
+  r.body = std::string(1 << 20, '[');
   EXPECT_EQ(errorOf([&] { http::jsonBody(r); }).first, ErrorCode::InvalidArgument);
 }
 
