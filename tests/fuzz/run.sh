@@ -49,6 +49,7 @@ for target in "${TARGETS[@]}"; do
       mapfile -t -O "${#replay[@]}" replay < <(find "$dir" -type f | sort)
     fi
   done
+  export LSAN_OPTIONS="suppressions=$HERE/lsan.supp:print_suppressions=0"
   if ((${#replay[@]})) && ! "$binary" -runs=1 "${replay[@]}" >"$BUILD/replay-$target.log" 2>&1; then
     echo "fuzz: $target: a regression or seed input fails (see $BUILD/replay-$target.log):" >&2
     grep -E "Running:|SUMMARY|property|what\(\)" "$BUILD/replay-$target.log" | tail -5 >&2

@@ -135,7 +135,7 @@ TEST(Aara, AFileIsCheckedAgainstItsHeaderBeforeItsDataIsRead) {
   // A header claiming 2^31 x 2^31 vertices in a file of 13 bytes.
   auto huge = good;
   for (int i = 5; i < 13; ++i) {
-    huge[i] = std::byte{i == 8 || i == 12 ? 0x7f : 0xff};
+    huge[i] = static_cast<std::byte>(i == 8 || i == 12 ? 0x7f : 0xff);
   }
   write(huge, 13);
   EXPECT_NE(messageOf([&] { readAaraFile(file); }).find("negative or too large"),
