@@ -216,10 +216,11 @@ nlohmann::json jsonBody(const Request& request) {
     throw Error(ErrorCode::InvalidArgument, "request body must be a JSON document");
   }
   // Nesting is bounded before anything deeper is built: every use of a document (dump, compare,
-  // items) recurses once per level.
+  // items) recurses once per level. `depth` counts the levels around the one starting (0 for the
+  // outermost).
   const auto boundDepth = [](int depth, nlohmann::json::parse_event_t event, nlohmann::json&) {
-    if (depth > kMaxJsonDepth && (event == nlohmann::json::parse_event_t::object_start ||
-                                  event == nlohmann::json::parse_event_t::array_start)) {
+    if (depth >= kMaxJsonDepth && (event == nlohmann::json::parse_event_t::object_start ||
+                                   event == nlohmann::json::parse_event_t::array_start)) {
       throw Error(ErrorCode::InvalidArgument,
                   "request body nests deeper than " + std::to_string(kMaxJsonDepth) + " levels");
     }

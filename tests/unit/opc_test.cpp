@@ -204,9 +204,10 @@ TEST(TextureFile, ImagesAboveThePixelLimitAreRefusedFromTheirHeader) {
   EXPECT_EQ(messageOf([&] { readTextureTile(claim); }),
             "texture '" + claim.string() +
                 "' is 20000 x 20000 pixels, more than limits.texture_pixels (268435456)");
-  // Within the limit, the same lie is a decoding error, not a crash.
+  // Within the limit the claim is decoded (libtiff pads the short strip): memory stays bounded by
+  // the limit, not by the file.
   const fs::path lie = write("lie.tif", tiffClaiming(64, 64));
-  EXPECT_EQ(codeOf([&] { readTextureTile(lie); }), ErrorCode::Corrupt);
+  EXPECT_EQ(readTextureTile(lie, 64 * 64).size(), 64);
   fs::remove_all(dir);
 }
 

@@ -590,6 +590,7 @@ TEST(Request, JsonBodyNestsAtMostMaxDepthLevels) {
     for (int i = 0; i < depth; ++i) {
       text += i % 2 == 0 ? "[" : "{\"a\":";
     }
+    text += "0";
     for (int i = depth - 1; i >= 0; --i) {
       text += i % 2 == 0 ? "]" : "}";
     }
