@@ -102,26 +102,6 @@ void checkLength(const detail::AaraHeader& header, std::size_t length, std::stri
   }
 }
 
-/// Reads up to out.size() bytes at `offset` (fewer only at the end of the file); returns how many.
-std::size_t readAt(int fd, std::size_t offset, std::span<std::byte> out, std::string_view what) {
-  std::size_t done = 0;
-  while (done < out.size()) {
-    const ssize_t n =
-        ::pread(fd, out.data() + done, out.size() - done, static_cast<off_t>(offset + done));
-    if (n < 0 && errno == EINTR) {
-      continue;
-    }
-    if (n < 0) {
-      throwIoError("cannot read", what, errno);
-    }
-    if (n == 0) {
-      break;
-    }
-    done += static_cast<std::size_t>(n);
-  }
-  return done;
-}
-
 }  // namespace
 
 std::string_view toString(AaraType type) {
@@ -150,6 +130,25 @@ std::size_t AaraArray::elementCount() const {
 }
 
 namespace detail {
+
+std::size_t readAt(int fd, std::size_t offset, std::span<std::byte> out, std::string_view what) {
+  std::size_t done = 0;
+  while (done < out.size()) {
+    const ssize_t n =
+        ::pread(fd, out.data() + done, out.size() - done, static_cast<off_t>(offset + done));
+    if (n < 0 && errno == EINTR) {
+      continue;
+    }
+    if (n < 0) {
+      throwIoError("cannot read", what, errno);
+    }
+    if (n == 0) {
+      break;
+    }
+    done += static_cast<std::size_t>(n);
+  }
+  return done;
+}
 
 int openForReading(const std::filesystem::path& path) {
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
@@ -305,7 +304,7 @@ AaraArray readAaraFile(const std::filesystem::path& path) {
   }
   const auto fileBytes = static_cast<std::size_t>(std::max<off_t>(st.st_size, 0));
   std::vector<std::byte> head(std::min<std::size_t>(fileBytes, kMaxHeaderBytes));
-  head.resize(readAt(fd, 0, head, what));
+  head.resize(detail::readAt(fd, 0, head, what));
   const detail::AaraHeader header = detail::decodeAaraHeader(head, what);
   checkLength(header, fileBytes, what);
   AaraArray array;
@@ -313,7 +312,8 @@ AaraArray readAaraFile(const std::filesystem::path& path) {
   array.sizes = header.sizes;
   array.data.resize(header.dataBytes);
   // A file that shrank since fstat reads short: truncated as well.
-  checkLength(header, header.headerBytes + readAt(fd, header.headerBytes, array.data, what), what);
+  checkLength(header, header.headerBytes + detail::readAt(fd, header.headerBytes, array.data, what),
+              what);
   return array;
 }
 
