@@ -15,6 +15,8 @@ PACKAGES=(
   # tests: gdaladdo (benchmark), GDAL's Python bindings for the independent import checker,
   # a comma-decimal locale (numbers in XML must not follow the locale), clang-format
   gdal-bin python3 python3-gdal python3-numpy locales clang-format
+  # the fuzz targets (tests/fuzz): clang 14 and its libFuzzer runtime (libclang_rt.fuzzer)
+  clang-14 libclang-rt-14-dev
   # the curl walk-through of the daemon's API (client-examples/curl.sh, run by the tests)
   curl jq
   # the browser check of the viewer and CesiumJS (tests/integration/viewer_test.py)

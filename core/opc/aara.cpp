@@ -87,6 +87,21 @@ std::optional<std::size_t> checkedCount(std::span<const std::int32_t> sizes,
   return count;
 }
 
+/// The longest header: name length, a 127-byte name, dimension count, 4 sizes.
+constexpr std::size_t kMaxHeaderBytes = 1 + 127 + 1 + 4 * 4;
+
+/// Throws Error(Corrupt) unless `length` bytes are exactly the header and its data.
+void checkLength(const detail::AaraHeader& header, std::size_t length, std::string_view what) {
+  const std::size_t expected = header.headerBytes + header.dataBytes;
+  if (length < expected) {
+    corrupt(what, "truncated .aara data: " + std::to_string(length) + " bytes instead of " +
+                      std::to_string(expected));
+  }
+  if (length > expected) {
+    corrupt(what, std::to_string(length - expected) + " trailing bytes after the .aara data");
+  }
+}
+
 }  // namespace
 
 std::string_view toString(AaraType type) {
@@ -115,6 +130,25 @@ std::size_t AaraArray::elementCount() const {
 }
 
 namespace detail {
+
+std::size_t readAt(int fd, std::size_t offset, std::span<std::byte> out, std::string_view what) {
+  std::size_t done = 0;
+  while (done < out.size()) {
+    const ssize_t n =
+        ::pread(fd, out.data() + done, out.size() - done, static_cast<off_t>(offset + done));
+    if (n < 0 && errno == EINTR) {
+      continue;
+    }
+    if (n < 0) {
+      throwIoError("cannot read", what, errno);
+    }
+    if (n == 0) {
+      break;
+    }
+    done += static_cast<std::size_t>(n);
+  }
+  return done;
+}
 
 int openForReading(const std::filesystem::path& path) {
   const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC);
@@ -208,8 +242,7 @@ AaraHeader decodeAaraHeader(std::span<const std::byte> bytes, std::string_view w
 }
 
 AaraHeader readAaraHeader(const std::filesystem::path& path) {
-  // The longest header: 1 + 127 + 1 + 4 * 4 bytes.
-  const std::vector<std::byte> bytes = readFile(path, 1 + 127 + 1 + 16);
+  const std::vector<std::byte> bytes = readFile(path, kMaxHeaderBytes);
   return decodeAaraHeader(bytes, path.string());
 }
 
@@ -217,14 +250,7 @@ AaraHeader readAaraHeader(const std::filesystem::path& path) {
 
 AaraArray decodeAara(std::span<const std::byte> bytes, std::string_view what) {
   const detail::AaraHeader header = detail::decodeAaraHeader(bytes, what);
-  const std::size_t expected = header.headerBytes + header.dataBytes;
-  if (bytes.size() < expected) {
-    corrupt(what, "truncated .aara data: " + std::to_string(bytes.size()) + " bytes instead of " +
-                      std::to_string(expected));
-  }
-  if (bytes.size() > expected) {
-    corrupt(what, std::to_string(bytes.size() - expected) + " trailing bytes after the .aara data");
-  }
+  checkLength(header, bytes.size(), what);
   AaraArray array;
   array.type = header.type;
   array.sizes = header.sizes;
@@ -264,7 +290,31 @@ std::vector<std::byte> encodeAara(const AaraArray& array) {
 }
 
 AaraArray readAaraFile(const std::filesystem::path& path) {
-  return decodeAara(detail::readFile(path), path.string());
+  // The header is checked against the file's length before the data is allocated: a header can
+  // claim anything up to 2^31 x 2^31 elements, the file cannot.
+  const std::string what = path.string();
+  const int fd = detail::openForReading(path);
+  struct Closer {
+    int fd;
+    ~Closer() { ::close(fd); }
+  } closer{fd};
+  struct stat st {};
+  if (::fstat(fd, &st) != 0) {
+    throwIoError("cannot stat", what, errno);
+  }
+  const auto fileBytes = static_cast<std::size_t>(std::max<off_t>(st.st_size, 0));
+  std::vector<std::byte> head(std::min<std::size_t>(fileBytes, kMaxHeaderBytes));
+  head.resize(detail::readAt(fd, 0, head, what));
+  const detail::AaraHeader header = detail::decodeAaraHeader(head, what);
+  checkLength(header, fileBytes, what);
+  AaraArray array;
+  array.type = header.type;
+  array.sizes = header.sizes;
+  array.data.resize(header.dataBytes);
+  // A file that shrank since fstat reads short: truncated as well.
+  checkLength(header, header.headerBytes + detail::readAt(fd, header.headerBytes, array.data, what),
+              what);
+  return array;
 }
 
 }  // namespace vsm::core

@@ -39,6 +39,10 @@ AaraHeader readAaraHeader(const std::filesystem::path& path);
 /// Error(Unavailable) when the process is out of descriptors, Error(Io) otherwise.
 int openForReading(const std::filesystem::path& path);
 
+/// Reads up to out.size() bytes of the open file `fd` at `offset` (fewer only at its end; retried
+/// on EINTR); returns how many. Throws Error(Io) naming `what` when a read fails.
+std::size_t readAt(int fd, std::size_t offset, std::span<std::byte> out, std::string_view what);
+
 /// Reads a whole file, or its first `maxBytes`. Throws Error(NotFound) when it does not exist,
 /// Error(Io) on any other failure.
 std::vector<std::byte> readFile(const std::filesystem::path& path,

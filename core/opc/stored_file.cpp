@@ -45,21 +45,7 @@ std::unique_ptr<StoredFile> openFile(const fs::path& path) {
 /// Up to `count` bytes from the start of the file (fewer when it is shorter).
 std::vector<std::byte> readStart(const StoredFile& file, std::size_t count, std::string_view what) {
   std::vector<std::byte> bytes(std::min(count, file.size()));
-  std::size_t done = 0;
-  while (done < bytes.size()) {
-    const ssize_t n =
-        ::pread(file.fd(), bytes.data() + done, bytes.size() - done, static_cast<off_t>(done));
-    if (n < 0 && errno == EINTR) {
-      continue;
-    }
-    if (n < 0) {
-      throwIoError("cannot read", what, errno);
-    }
-    if (n == 0) {
-      break;
-    }
-    done += static_cast<std::size_t>(n);
-  }
+  const std::size_t done = detail::readAt(file.fd(), 0, bytes, what);
   bytes.resize(done);
   return bytes;
 }

@@ -47,8 +47,18 @@ std::vector<std::byte> encodeImage(const char* name, const std::uint8_t* pixels,
   return bytes;
 }
 
-/// The whole first subimage of `file` as 8-bit pixels; channels in `channels`.
-std::vector<std::uint8_t> readImage(const fs::path& file, int& width, int& height, int& channels) {
+/// The first subimage of a texture file as 8-bit pixels, at most 4 channels of it.
+struct Image {
+  int width = 0;
+  int height = 0;
+  /// Channels in `pixels`: min(fileChannels, 4).
+  int channels = 0;
+  int fileChannels = 0;
+  std::vector<std::uint8_t> pixels;
+};
+
+/// Reads `file`, refusing before any allocation an image of more than `maxPixels` pixels.
+Image readImage(const fs::path& file, std::uint64_t maxPixels) {
   std::error_code ec;
   if (!fs::exists(file, ec)) {
     throw Error(ErrorCode::NotFound, "texture '" + file.string() + "' does not exist");
@@ -59,18 +69,30 @@ std::vector<std::uint8_t> readImage(const fs::path& file, int& width, int& heigh
                 "cannot read texture '" + file.string() + "': " + OIIO::geterror());
   }
   const OIIO::ImageSpec& spec = in->spec();
-  width = spec.width;
-  height = spec.height;
-  channels = spec.nchannels;
-  if (width < 1 || height < 1 || channels < 1 || width > 32768 || height > 32768) {
-    throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has unusable dimensions");
+  Image image;
+  image.width = spec.width;
+  image.height = spec.height;
+  image.fileChannels = spec.nchannels;
+  image.channels = std::min(spec.nchannels, 4);
+  if (image.width < 1 || image.height < 1 || image.channels < 1) {
+    throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has unusable dimensions " +
+                                        std::to_string(image.width) + " x " +
+                                        std::to_string(image.height) + " x " +
+                                        std::to_string(image.fileChannels) + " channels");
   }
-  std::vector<std::uint8_t> pixels(static_cast<std::size_t>(width) * height * channels);
-  if (!in->read_image(0, 0, 0, channels, OIIO::TypeDesc::UINT8, pixels.data())) {
+  const std::uint64_t pixels = static_cast<std::uint64_t>(image.width) * image.height;
+  if (pixels > maxPixels) {
+    throw Error(ErrorCode::Corrupt,
+                "texture '" + file.string() + "' is " + std::to_string(image.width) + " x " +
+                    std::to_string(image.height) + " pixels, more than limits.texture_pixels (" +
+                    std::to_string(maxPixels) + ")");
+  }
+  image.pixels.resize(static_cast<std::size_t>(pixels) * image.channels);
+  if (!in->read_image(0, 0, 0, image.channels, OIIO::TypeDesc::UINT8, image.pixels.data())) {
     throw Error(ErrorCode::Corrupt,
                 "cannot decode texture '" + file.string() + "': " + in->geterror());
   }
-  return pixels;
+  return image;
 }
 
 }  // namespace
@@ -80,23 +102,24 @@ std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
                      TextureTile::kChannels, "zip");
 }
 
-TextureTile readTextureTile(const fs::path& file) {
-  int width = 0, height = 0, channels = 0;
-  const std::vector<std::uint8_t> pixels = readImage(file, width, height, channels);
-  if (width != height || width % 2 != 0) {
+TextureTile readTextureTile(const fs::path& file, std::uint64_t maxPixels) {
+  const Image image = readImage(file, maxPixels);
+  const int width = image.width;
+  const int channels = image.channels;
+  if (width != image.height || width % 2 != 0) {
     throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' is " + std::to_string(width) +
-                                        " x " + std::to_string(height) +
+                                        " x " + std::to_string(image.height) +
                                         ", not a square tile of even size");
   }
   TextureTile tile(width);
   std::uint8_t* out = tile.texels().data();
-  for (std::size_t i = 0; i < static_cast<std::size_t>(width) * height; ++i) {
-    const std::uint8_t* p = pixels.data() + i * channels;
+  for (std::size_t i = 0; i < static_cast<std::size_t>(width) * width; ++i) {
+    const std::uint8_t* p = image.pixels.data() + i * channels;
     const bool gray = channels < 3;
     out[4 * i] = p[0];
     out[4 * i + 1] = gray ? p[0] : p[1];
     out[4 * i + 2] = gray ? p[0] : p[2];
-    out[4 * i + 3] = channels == 2 ? p[1] : channels >= 4 ? p[3] : 255;
+    out[4 * i + 3] = channels == 2 ? p[1] : channels == 4 ? p[3] : 255;
   }
   return tile;
 }
@@ -118,19 +141,21 @@ fs::path textureFileOf(const fs::path& dir, const PatchInfo& info) {
 
 }  // namespace
 
-TextureTile readPatchTextureTile(const fs::path& dir, const PatchInfo& info) {
-  return readTextureTile(textureFileOf(dir, info));
+TextureTile readPatchTextureTile(const fs::path& dir, const PatchInfo& info,
+                                 std::uint64_t maxPixels) {
+  return readTextureTile(textureFileOf(dir, info), maxPixels);
 }
 
-std::vector<std::byte> readPatchTexturePng(const fs::path& dir, const PatchInfo& info) {
+std::vector<std::byte> readPatchTexturePng(const fs::path& dir, const PatchInfo& info,
+                                           std::uint64_t maxPixels) {
   const fs::path file = textureFileOf(dir, info);
-  int width = 0, height = 0, channels = 0;
-  const std::vector<std::uint8_t> pixels = readImage(file, width, height, channels);
-  if (channels > 4) {
+  const Image image = readImage(file, maxPixels);
+  if (image.fileChannels > 4) {
     throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has more than 4 channels");
   }
   // PNG holds 1 to 4 channels of 8 bits: the image as it is.
-  return encodeImage("tile.png", pixels.data(), width, height, channels, nullptr);
+  return encodeImage("tile.png", image.pixels.data(), image.width, image.height, image.channels,
+                     nullptr);
 }
 
 std::vector<std::byte> readPatchCoordinates(const fs::path& dir, const PatchInfo& info) {
@@ -138,12 +163,12 @@ std::vector<std::byte> readPatchCoordinates(const fs::path& dir, const PatchInfo
 }
 
 std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& model,
-                                             const PatchInfo& info) {
+                                             const PatchInfo& info, std::uint64_t maxPixels) {
   if (info.textureFile.empty()) {
     return std::nullopt;
   }
   PatchTexture texture;
-  texture.png = readPatchTexturePng(dir, info);
+  texture.png = readPatchTexturePng(dir, info, maxPixels);
 
   const int n = model.gridSize();
   const GridRect& r = info.stored;

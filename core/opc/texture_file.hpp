@@ -1,6 +1,7 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <filesystem>
 #include <optional>
 #include <string_view>
@@ -18,19 +19,28 @@ inline constexpr std::string_view kTextureLayer = "Diffuse";
 /// Throws Error(Internal) when OpenImageIO cannot encode it.
 std::vector<std::byte> encodeTextureTiff(const TextureTile& tile);
 
+/// The default bound on the pixels of a texture file a reader decodes (16384 x 16384), the
+/// configuration's limits.texture_pixels: a file's header may claim any size.
+inline constexpr std::uint64_t kDefaultTexturePixels = std::uint64_t{16384} * 16384;
+
 /// Decodes an image file OpenImageIO reads (our TIFF tiles, foreign .tif/.dds/.png) into a tile.
-/// Throws Error(NotFound) when the file does not exist, Error(Corrupt) when it cannot be decoded
-/// or is not a square tile of even size. 1, 2 and 3 channel images get alpha 255.
-TextureTile readTextureTile(const std::filesystem::path& file);
+/// The size in the file's header is checked before any pixel is allocated. Throws
+/// Error(NotFound) when the file does not exist, Error(Corrupt) when it cannot be decoded, is not
+/// a square tile of even size, or has more than `maxPixels` pixels. 1, 2 and 3 channel images get
+/// alpha 255; channels after the 4th are ignored.
+TextureTile readTextureTile(const std::filesystem::path& file,
+                            std::uint64_t maxPixels = kDefaultTexturePixels);
 
 /// The texture tile a patch of the OPC at `dir` names (info.textureFile). Throws
 /// Error(NotFound) when the patch names none or the file is missing, Error(Corrupt) as
 /// readTextureTile.
-TextureTile readPatchTextureTile(const std::filesystem::path& dir, const PatchInfo& info);
+TextureTile readPatchTextureTile(const std::filesystem::path& dir, const PatchInfo& info,
+                                 std::uint64_t maxPixels = kDefaultTexturePixels);
 
 /// The texture tile a patch names, as a PNG file (the image as stored: 1 to 4 channels of 8 bits).
-/// Throws as readPatchTextureTile.
-std::vector<std::byte> readPatchTexturePng(const std::filesystem::path& dir, const PatchInfo& info);
+/// Throws as readPatchTextureTile, and Error(Corrupt) for more than 4 channels.
+std::vector<std::byte> readPatchTexturePng(const std::filesystem::path& dir, const PatchInfo& info,
+                                           std::uint64_t maxPixels = kDefaultTexturePixels);
 
 /// The bytes of the texture coordinates file (.aara) a patch names, as stored, once checked: V2f or
 /// V2d of the stored positions' size. Throws Error(NotFound) when it names none or the file does
@@ -52,6 +62,7 @@ struct PatchTexture {
 /// Throws Error(NotFound) when a named file is missing, Error(Corrupt) when it cannot be decoded,
 /// when the coordinates are not V2f/V2d of the stored positions' size.
 std::optional<PatchTexture> readPatchTexture(const std::filesystem::path& dir, const Model& model,
-                                             const PatchInfo& info);
+                                             const PatchInfo& info,
+                                             std::uint64_t maxPixels = kDefaultTexturePixels);
 
 }  // namespace vsm::core

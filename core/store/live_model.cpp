@@ -69,8 +69,9 @@ fs::path ourTileFile(const fs::path& dir, const std::string& folder) {
 /// The PatchStore of one LiveModel: knows where every live version of every patch is stored.
 class LiveModel::Store final : public PatchStore {
  public:
-  Store(fs::path dir, PatchCache& cache, const std::string& name, int gridSize)
-      : dir_(std::move(dir)), cache_(cache), shape_(gridSize) {
+  Store(fs::path dir, PatchCache& cache, const std::string& name, int gridSize,
+        std::uint64_t texturePixels)
+      : dir_(std::move(dir)), cache_(cache), shape_(gridSize), texturePixels_(texturePixels) {
     id_ = cache_.addModel(name, *this);
   }
   ~Store() override {
@@ -82,6 +83,7 @@ class LiveModel::Store final : public PatchStore {
   }
 
   PatchCache& cache() { return cache_; }
+  std::uint64_t texturePixels() const { return texturePixels_; }
   PatchCache::ModelId id() const { return id_; }
   const fs::path& dir() const { return dir_; }
 
@@ -106,7 +108,8 @@ class LiveModel::Store final : public PatchStore {
   CacheValue load(const ObjectId& id) override {
     const PatchInfo info = lookup(id);
     if (id.category == MemoryCategory::Textures) {
-      auto tile = std::make_shared<const TextureTile>(readPatchTextureTile(dir_, info));
+      auto tile =
+          std::make_shared<const TextureTile>(readPatchTextureTile(dir_, info, texturePixels_));
       const std::size_t bytes = tile->bytes();
       return {std::move(tile), bytes};
     }
@@ -148,14 +151,15 @@ class LiveModel::Store final : public PatchStore {
   const Model shape_;
   mutable std::mutex mutex_;  // guards versions_
   std::map<std::pair<PatchKey, std::uint64_t>, PatchInfo> versions_;
+  const std::uint64_t texturePixels_;
 };
 
 // ---- LiveModel -------------------------------------------------------------------------------
 
 std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name, PatchCache& cache,
-                                           Access access) {
+                                           Access access, std::uint64_t texturePixels) {
   if (access == Access::Read) {
-    return load(dir, std::move(name), cache, nullptr, false, 1);
+    return load(dir, std::move(name), cache, nullptr, false, 1, texturePixels);
   }
   patchesDirOf(dir);  // NotFound for a directory without an OPC, before anything is created
   std::shared_ptr<const durable::WriterLock> lock;
@@ -166,22 +170,23 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
     if (access != Access::WriteIfPossible || (e.code() != ErrorCode::Conflict && !unwritable)) {
       throw;
     }
-    auto model = load(dir, std::move(name), cache, nullptr, false, 1);
+    auto model = load(dir, std::move(name), cache, nullptr, false, 1, texturePixels);
     model->readOnlyReason_ = e.what();
     return model;
   }
-  return load(dir, std::move(name), cache, std::move(lock), true, 1);
+  return load(dir, std::move(name), cache, std::move(lock), true, 1, texturePixels);
 }
 
 std::unique_ptr<LiveModel> LiveModel::reopen() const {
   // A version number of its own, so that nothing cached for this opening's versions is taken for
   // the new one's.
-  return load(dir_, name_, store_->cache(), lock_, false, snapshot()->version + 1);
+  return load(dir_, name_, store_->cache(), lock_, false, snapshot()->version + 1, texturePixels());
 }
 
 std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name, PatchCache& cache,
                                            std::shared_ptr<const durable::WriterLock> lock,
-                                           bool sweep, std::uint64_t version) {
+                                           bool sweep, std::uint64_t version,
+                                           std::uint64_t texturePixels) {
   // Stamped before reading: a publish during the read leaves a stamp that differs from the file's.
   const std::optional<HierarchyStamp> stamp = hierarchyStamp(dir);
   auto model = std::make_shared<Model>(readOpcModel(dir));
@@ -234,7 +239,7 @@ std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name
     }
   }
 
-  auto store = std::make_shared<Store>(dir, cache, name, model->gridSize());
+  auto store = std::make_shared<Store>(dir, cache, name, model->gridSize(), texturePixels);
   for (const auto& [key, info] : model->patches()) {
     store->add(info);
   }
@@ -260,6 +265,10 @@ LiveModel::~LiveModel() = default;
 
 bool LiveModel::changedOnDisk() const {
   return hierarchyStamp(dir_) != readStamp_;
+}
+
+std::uint64_t LiveModel::texturePixels() const {
+  return store_->texturePixels();
 }
 
 std::shared_ptr<const ModelSnapshot> LiveModel::snapshot() const {

@@ -18,6 +18,7 @@
 #include "core/durable/writer_lock.hpp"
 #include "core/grid/texture_tile.hpp"
 #include "core/opc/opc_reader.hpp"
+#include "core/opc/texture_file.hpp"
 #include "core/pyramid/model.hpp"
 
 namespace vsm::core {
@@ -65,8 +66,11 @@ class LiveModel {
   /// folders named like vsm's ("d_x_y", "d_x_y-vN") that the hierarchy does not name, their
   /// texture tiles, and temporary files of interrupted writes (a removal that fails is logged and
   /// retried at the next open). Throws as readOpcModel, and Error(Io).
+  ///
+  /// `texturePixels` bounds the texture files it decodes (readTextureTile's `maxPixels`).
   static std::unique_ptr<LiveModel> open(const std::filesystem::path& dir, std::string name,
-                                         PatchCache& cache, Access access = Access::Write);
+                                         PatchCache& cache, Access access = Access::Write,
+                                         std::uint64_t texturePixels = kDefaultTexturePixels);
 
   /// A new opening of the same directory, read again from disk, with this one's writer lock
   /// passed on (both share it): after a failed write nothing this opening holds in memory is
@@ -87,6 +91,8 @@ class LiveModel {
   /// which follows such publishes by reopen(); an opening that writes publishes itself.
   bool changedOnDisk() const;
   const std::filesystem::path& dir() const { return dir_; }
+  /// The bound on the pixels of a texture file this model decodes, as open() was given it.
+  std::uint64_t texturePixels() const;
 
   /// The current published version.
   std::shared_ptr<const ModelSnapshot> snapshot() const;
@@ -123,7 +129,8 @@ class LiveModel {
   static std::unique_ptr<LiveModel> load(const std::filesystem::path& dir, std::string name,
                                          PatchCache& cache,
                                          std::shared_ptr<const durable::WriterLock> lock,
-                                         bool sweep, std::uint64_t version);
+                                         bool sweep, std::uint64_t version,
+                                         std::uint64_t texturePixels);
 
   std::filesystem::path dir_;
   std::string name_;

@@ -3,6 +3,7 @@
 
 #include "core/common/error.hpp"
 #include "server/api/model_routes.hpp"
+#include "server/api/requests.hpp"
 #include "server/jobs/job_registry.hpp"
 #include "server/jobs/model_jobs.hpp"
 
@@ -21,35 +22,9 @@ http::Response jobResponse(int status, const jobs::JobStatus& job) {
 }
 
 http::Response postJob(const ModelContext& c, const http::Request& request) {
-  const json body = http::jsonBody(request);
-  if (!body.is_object()) {
-    throw Error(ErrorCode::InvalidArgument, "request body must be a JSON object");
-  }
-  for (const auto& [key, value] : body.items()) {
-    if (key != "type" && key != "target" && key != "source" && key != "register") {
-      throw Error(ErrorCode::InvalidArgument, "unknown member '" + key.substr(0, 64) + "'");
-    }
-  }
-  const auto type = body.find("type");
-  if (type == body.end() || !type->is_string() || *type != "merge") {
-    throw Error(ErrorCode::InvalidArgument,
-                R"('type' must be "merge" (imports are submitted with POST /v1/models))");
-  }
-  const auto target = body.find("target");
-  const auto source = body.find("source");
-  if (target == body.end() || !target->is_string() || source == body.end() ||
-      !source->is_string()) {
-    throw Error(ErrorCode::InvalidArgument, "'target' and 'source' must be model ids (strings)");
-  }
-  bool registerFirst = false;
-  if (const auto reg = body.find("register"); reg != body.end()) {
-    if (!reg->is_boolean()) {
-      throw Error(ErrorCode::InvalidArgument, "'register' must be true or false");
-    }
-    registerFirst = reg->get<bool>();
-  }
-  const jobs::JobStatus job = jobs::submitMerge(c.jobs, c.models, target->get<std::string>(),
-                                                source->get<std::string>(), registerFirst);
+  const MergeRequest body = parseMergeRequest(request);
+  const jobs::JobStatus job =
+      jobs::submitMerge(c.jobs, c.models, body.target, body.source, body.registerFirst);
   http::Response response = jobResponse(202, job);
   response.set("Location", "/v1/jobs/" + job.id);
   return response;

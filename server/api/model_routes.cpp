@@ -83,28 +83,6 @@ http::Response withCache(http::Response response, std::string_view cacheControl,
   return response;
 }
 
-/// The JSON object body of a write; rejects members other than `allowed` (typos fail loudly).
-json objectBody(const http::Request& request, std::initializer_list<std::string_view> allowed) {
-  json body = http::jsonBody(request);
-  if (!body.is_object()) {
-    throw Error(ErrorCode::InvalidArgument, "request body must be a JSON object");
-  }
-  for (const auto& [key, value] : body.items()) {
-    if (std::find(allowed.begin(), allowed.end(), key) == allowed.end()) {
-      throw Error(ErrorCode::InvalidArgument, "unknown member '" + key.substr(0, 64) + "'");
-    }
-  }
-  return body;
-}
-
-const std::string& stringMember(const json& object, const char* name) {
-  const auto it = object.find(name);
-  if (it == object.end() || !it->is_string()) {
-    throw Error(ErrorCode::InvalidArgument, std::string("'") + name + "' must be a string");
-  }
-  return it->get_ref<const std::string&>();
-}
-
 int intQuery(const http::Request& request, std::string_view name, int fallback, int lo, int hi) {
   const auto text = request.queryParam(name);
   if (!text) {
@@ -116,17 +94,6 @@ int intQuery(const http::Request& request, std::string_view name, int fallback, 
     throw Error(ErrorCode::InvalidArgument, "query parameter '" + std::string(name) +
                                                 "' must be an integer from " + std::to_string(lo) +
                                                 " to " + std::to_string(hi));
-  }
-  return value;
-}
-
-double parseNumber(std::string_view text, std::string_view what) {
-  double value = 0;
-  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
-  if (text.empty() || ec != std::errc() || end != text.data() + text.size() ||
-      !std::isfinite(value)) {
-    throw Error(ErrorCode::InvalidArgument, std::string(what) + " must be a finite number, not '" +
-                                                std::string(text.substr(0, 32)) + "'");
   }
   return value;
 }
@@ -162,28 +129,11 @@ http::Response listModels(const ModelContext& c, const http::Request&) {
 }
 
 http::Response postModel(const ModelContext& c, const http::Request& request) {
-  const json body = objectBody(request, {"id", "source"});
-  const std::string& id = stringMember(body, "id");
+  const ModelRequest body = parseModelRequest(request);
+  const std::string& id = body.id;
   models::checkModelId(id);
-  const auto source = body.find("source");
-  if (source == body.end() || !source->is_object()) {
-    throw Error(ErrorCode::InvalidArgument,
-                R"('source' must be an object: {"path": ...} or {"import": ..., "patch_size": N})");
-  }
-  for (const auto& [key, value] : source->items()) {
-    if (key != "path" && key != "import" && key != "patch_size") {
-      throw Error(ErrorCode::InvalidArgument, "unknown member 'source." + key.substr(0, 64) + "'");
-    }
-  }
-  const bool byPath = source->contains("path");
-  if (byPath == source->contains("import")) {
-    throw Error(ErrorCode::InvalidArgument, "'source' needs exactly one of 'path' and 'import'");
-  }
-  if (byPath) {
-    if (source->contains("patch_size")) {
-      throw Error(ErrorCode::InvalidArgument, "'patch_size' goes with 'import' only");
-    }
-    const fs::path dir = models::resolveInside(c.models.dataRoot(), stringMember(*source, "path"));
+  if (body.path) {
+    const fs::path dir = models::resolveInside(c.models.dataRoot(), *body.path);
     std::error_code ec;
     if (!fs::is_directory(dir, ec)) {
       throw Error(ErrorCode::NotFound, "source path is not a directory in the data root");
@@ -193,17 +143,8 @@ http::Response postModel(const ModelContext& c, const http::Request& request) {
     response.set("Location", "/v1/models/" + id);
     return withCache(std::move(response), http::cache_control::kNoStore);
   }
-  int patchSize = 257;
-  if (const auto size = source->find("patch_size"); size != source->end()) {
-    if (!size->is_number_integer()) {
-      throw Error(ErrorCode::InvalidArgument, "'patch_size' must be an integer (2^n + 1)");
-    }
-    const auto value = size->get<std::int64_t>();
-    patchSize = value < 0 || value > 1'000'000 ? -1 : static_cast<int>(value);
-  }
-  const fs::path input =
-      models::resolveInside(c.models.dataRoot(), stringMember(*source, "import"));
-  const jobs::JobStatus job = jobs::submitImport(c.jobs, c.models, id, input, patchSize);
+  const fs::path input = models::resolveInside(c.models.dataRoot(), *body.import);
+  const jobs::JobStatus job = jobs::submitImport(c.jobs, c.models, id, input, body.patchSize);
   http::Response response = http::jsonResponse(202, jobs::toJson(job));
   response.set("Location", "/v1/jobs/" + job.id);
   return response;
@@ -463,8 +404,9 @@ std::optional<http::Response> texture(const ModelContext& c, const http::Request
     if (onNetworkThread) {
       return std::nullopt;
     }
-    body = served.encoded->put(info.key, info.version, models::Encoding::TexturePng,
-                               core::readPatchTexturePng(served.live->dir(), info));
+    body = served.encoded->put(
+        info.key, info.version, models::Encoding::TexturePng,
+        core::readPatchTexturePng(served.live->dir(), info, served.live->texturePixels()));
   }
   http::Response response = textureResponse(*snapshot, info, "image/png", etag);
   response.set("X-VSM-Texture-Layer", std::string(textureLayer(info.textureFile)));
@@ -597,37 +539,6 @@ std::string matrixText(const core::Mat4d& m) {
     const auto [end, ec] = std::to_chars(text, text + sizeof text, m.m[i]);
     out.append(i == 0 ? "" : ",");
     out.append(text, ec == std::errc() ? end : text);
-  }
-  return out;
-}
-
-LodQuery parseLodQuery(std::string_view box, std::string_view resolution) {
-  LodQuery out;
-  double v[6];
-  std::size_t count = 0;
-  for (std::string_view rest = box;;) {
-    const std::size_t comma = rest.find(',');
-    if (count == 6) {
-      count = 7;
-      break;
-    }
-    v[count++] = parseNumber(rest.substr(0, comma), "each box coordinate");
-    if (comma == std::string_view::npos) {
-      break;
-    }
-    rest.remove_prefix(comma + 1);
-  }
-  if (count != 6) {
-    throw Error(ErrorCode::InvalidArgument, "box must be six numbers x0,y0,z0,x1,y1,z1");
-  }
-  if (v[0] > v[3] || v[1] > v[4] || v[2] > v[5]) {
-    throw Error(ErrorCode::InvalidArgument, "box must have x0 <= x1, y0 <= y1 and z0 <= z1");
-  }
-  out.box.min = {v[0], v[1], v[2]};
-  out.box.max = {v[3], v[4], v[5]};
-  out.resolution = parseNumber(resolution, "resolution");
-  if (out.resolution <= 0) {
-    throw Error(ErrorCode::InvalidArgument, "resolution must be greater than 0 (metres)");
   }
   return out;
 }

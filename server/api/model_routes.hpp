@@ -10,6 +10,7 @@
 #include "core/grid/geometry.hpp"
 #include "core/pyramid/patch_key.hpp"
 #include "server/api/etags.hpp"
+#include "server/api/requests.hpp"
 #include "server/http/router.hpp"
 
 namespace vsm::core {
@@ -58,13 +59,5 @@ nlohmann::json hierarchyJson(const core::Model& model, const core::PatchKey& roo
 
 /// 16 numbers, row-major, comma-separated, shortest round-trip form ("1,0,0,12.5,...").
 std::string matrixText(const core::Mat4d& m);
-
-/// Parses the LOD query: `box` is "x0,y0,z0,x1,y1,z1" (six finite numbers, min <= max per axis),
-/// `resolution` a finite number > 0. Throws core::Error(InvalidArgument).
-struct LodQuery {
-  core::Box3d box;
-  double resolution = 0;
-};
-LodQuery parseLodQuery(std::string_view box, std::string_view resolution);
 
 }  // namespace vsm::server::api

@@ -129,8 +129,8 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
     // the snapshot.
     const core::PatchCache::Pin pin = served.live->positions(*snapshot, key);
     // The patch's texture tile (converted to PNG) and coordinates, read from disk.
-    const std::optional<core::PatchTexture> texture =
-        core::readPatchTexture(served.live->dir(), *snapshot->model, *info);
+    const std::optional<core::PatchTexture> texture = core::readPatchTexture(
+        served.live->dir(), *snapshot->model, *info, served.live->texturePixels());
     core::GlbOptions options;
     if (texture) {
       options.texture = {texture->png, "image/png"};

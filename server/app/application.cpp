@@ -138,7 +138,8 @@ Application::Application(Config config) : config_(std::move(config)) {
   // Merges and imports run here, a pool of its own so that they can never take the threads
   // request handlers need.
   jobPool_ = std::make_unique<exec::WorkPool>("jobs", config_.threads.jobs);
-  models_ = std::make_unique<models::ModelRegistry>(config_.dataRoot, *cache_);
+  models_ = std::make_unique<models::ModelRegistry>(config_.dataRoot, *cache_,
+                                                    config_.limits.texturePixels);
   const std::size_t opened = models_->openAll();
   log::info("data root " + models_->dataRoot().string() + ": " + std::to_string(opened) +
             " model(s) open");

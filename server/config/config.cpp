@@ -259,6 +259,9 @@ const Key kKeys[] = {
        c.limits.pipelinedResponses = countOf(k, v);
      },
      [](const Config& c) { return std::to_string(c.limits.pipelinedResponses); }},
+    {"limits.texture_pixels",
+     [](Config& c, std::string_view k, const json& v) { c.limits.texturePixels = countOf(k, v); },
+     [](const Config& c) { return std::to_string(c.limits.texturePixels); }},
     {"limits.shutdown_grace",
      [](Config& c, std::string_view k, const json& v) {
        c.limits.shutdownGrace = durationOf(k, v);
@@ -457,6 +460,7 @@ void Config::validate() const {
   checkCount("limits.connections", limits.connections, 1, 100'000);
   checkCount("limits.connections_per_client", limits.connectionsPerClient, 1, 100'000);
   checkCount("limits.pipelined_responses", limits.pipelinedResponses, 1, 256);
+  checkCount("limits.texture_pixels", limits.texturePixels, 1, std::size_t{1} << 32);
   checkCount("threads.io", threads.io, 1, 256);
   checkCount("threads.cpu", threads.cpu, 0, 1024);
   checkCount("threads.jobs", threads.jobs, 1, 256);
@@ -522,7 +526,7 @@ void loadConfigFile(const std::filesystem::path& file, Config& config) {
   json parsed;
   try {
     parsed = json::parse(text.str(), nullptr, true, /*ignore_comments=*/true);
-  } catch (const json::parse_error& e) {
+  } catch (const json::exception& e) {  // parse_error, or out_of_range for "1E400"
     throw Error(ErrorCode::InvalidArgument,
                 "config file '" + file.string() + "' is not valid JSON: " + e.what());
   }
@@ -557,7 +561,7 @@ std::string_view commandLineUsage() {
          "  fifo-second-chance), token, token_file, port_file, viewer_dir, log_level,\n"
          "  limits.body_bytes, limits.header_bytes, limits.header_timeout, limits.read_timeout,\n"
          "  limits.idle_timeout, limits.write_timeout, limits.connections,\n"
-         "  limits.connections_per_client, limits.pipelined_responses,\n"
+         "  limits.connections_per_client, limits.pipelined_responses, limits.texture_pixels,\n"
          "  limits.shutdown_grace, threads.io, threads.cpu (0 = one per core), threads.jobs\n"
          "sizes: bytes or 512KiB, 64MiB, 4GiB, 1GB ...; durations: seconds or 250ms, 30s, 5m\n";
 }

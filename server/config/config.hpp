@@ -54,6 +54,9 @@ struct Limits {
   /// Pipelined requests of one connection being handled or waiting to be written; the server
   /// stops reading the connection while it has this many.
   std::size_t pipelinedResponses = 8;
+  /// Pixels of a texture file the server decodes (width x height from the file's header, checked
+  /// before anything is allocated); larger ones are refused. 16384 x 16384 by default.
+  std::size_t texturePixels = std::size_t{16384} * 16384;
   /// On SIGTERM/SIGINT, how long in-flight requests may take before connections are closed.
   std::chrono::milliseconds shutdownGrace{10'000};
 };

@@ -215,9 +215,21 @@ nlohmann::json jsonBody(const Request& request) {
   if (request.body.empty()) {
     throw Error(ErrorCode::InvalidArgument, "request body must be a JSON document");
   }
+  // Nesting is bounded before anything deeper is built: every use of a document (dump, compare,
+  // items) recurses once per level. `depth` counts the levels around the one starting (0 for the
+  // outermost).
+  const auto boundDepth = [](int depth, nlohmann::json::parse_event_t event, nlohmann::json&) {
+    if (depth >= kMaxJsonDepth && (event == nlohmann::json::parse_event_t::object_start ||
+                                   event == nlohmann::json::parse_event_t::array_start)) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "request body nests deeper than " + std::to_string(kMaxJsonDepth) + " levels");
+    }
+    return true;
+  };
   try {
-    return nlohmann::json::parse(request.body);
-  } catch (const nlohmann::json::parse_error& e) {
+    return nlohmann::json::parse(request.body, boundDepth);
+  } catch (const nlohmann::json::exception& e) {
+    // parse_error, and out_of_range for a number beyond double ("1E400"): the client's fault.
     throw Error(ErrorCode::InvalidArgument, std::string("request body is not JSON: ") + e.what());
   }
 }

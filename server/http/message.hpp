@@ -45,7 +45,8 @@ struct Request {
   const std::string* header(std::string_view name) const;
   /// A path parameter. Throws core::Error(Internal) when the route has no such parameter.
   const std::string& param(std::string_view name) const;
-  /// The first query parameter `name`, percent- and '+'-decoded; nullopt when absent.
+  /// The first query parameter `name`, percent- and '+'-decoded; nullopt when absent. Throws
+  /// core::Error(InvalidArgument) when its value has a malformed %-escape.
   std::optional<std::string> queryParam(std::string_view name) const;
 };
 
@@ -92,7 +93,11 @@ Response jsonResponse(int status, const nlohmann::json& body);
 /// The one error body: {"error": {"code": code, "message": message}}.
 Response errorResponse(int status, std::string_view code, std::string_view message);
 
-/// Parses a JSON request body. Throws core::Error(InvalidArgument) when it is empty, not JSON, or
+/// Deepest nesting of arrays and objects a JSON request body may have.
+inline constexpr int kMaxJsonDepth = 64;
+
+/// Parses a JSON request body: the one parser of every POST route. Throws
+/// core::Error(InvalidArgument) when it is empty, not JSON, nested deeper than kMaxJsonDepth, or
 /// declared with a Content-Type other than application/json (or a +json type).
 nlohmann::json jsonBody(const Request& request);
 

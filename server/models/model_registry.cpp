@@ -118,8 +118,9 @@ void ModelRegistry::Lease::release() {
 
 // ---- ModelRegistry ---------------------------------------------------------------------------
 
-ModelRegistry::ModelRegistry(const fs::path& dataRoot, core::PatchCache& cache)
-    : root_(fs::canonical(dataRoot)), cache_(cache) {}
+ModelRegistry::ModelRegistry(const fs::path& dataRoot, core::PatchCache& cache,
+                             std::uint64_t texturePixels)
+    : root_(fs::canonical(dataRoot)), cache_(cache), texturePixels_(texturePixels) {}
 
 ModelRegistry::~ModelRegistry() {
   std::map<std::string, Served, std::less<>> models;
@@ -210,7 +211,8 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
   std::shared_ptr<core::LiveModel> model;
   std::shared_ptr<EncodedCache> encoded;
   try {
-    model = core::LiveModel::open(canonical, id, cache_, core::LiveModel::Access::WriteIfPossible);
+    model = core::LiveModel::open(canonical, id, cache_, core::LiveModel::Access::WriteIfPossible,
+                                  texturePixels_);
     if (!model->writable()) {
       log::warn("model=" + id + " opened for reading only: " + model->readOnlyReason());
     }

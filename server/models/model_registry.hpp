@@ -13,6 +13,8 @@
 #include <string_view>
 #include <vector>
 
+#include "core/opc/texture_file.hpp"
+
 namespace vsm::core {
 class LiveModel;
 class PatchCache;
@@ -49,8 +51,10 @@ std::filesystem::path resolveInside(const std::filesystem::path& root, std::stri
 /// destroyed (both read the disk).
 class ModelRegistry {
  public:
-  /// `dataRoot` must be an existing directory; `cache` must outlive the registry.
-  ModelRegistry(const std::filesystem::path& dataRoot, core::PatchCache& cache);
+  /// `dataRoot` must be an existing directory; `cache` must outlive the registry. Models decode
+  /// texture files of at most `texturePixels` pixels (limits.texture_pixels).
+  ModelRegistry(const std::filesystem::path& dataRoot, core::PatchCache& cache,
+                std::uint64_t texturePixels = core::kDefaultTexturePixels);
   /// Closes every model (their dirty data is written back by the cache).
   ~ModelRegistry();
   ModelRegistry(const ModelRegistry&) = delete;
@@ -145,6 +149,7 @@ class ModelRegistry {
 
   std::filesystem::path root_;
   core::PatchCache& cache_;
+  const std::uint64_t texturePixels_;
   mutable std::mutex mutex_;  // guards models_, leases_, reserved_, opening_
   std::map<std::string, Served, std::less<>> models_;
   /// Id -> number of leases (on open models and reservations alike).

@@ -13,6 +13,7 @@
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/opc/stored_file.hpp"
+#include "core/opc/texture_file.hpp"
 #include "core/opc/validate.hpp"
 #include "tests/unit/test_support.hpp"
 
@@ -112,6 +113,102 @@ TEST(Aara, CorruptInputsAreRejectedWithAClearMessage) {
   EXPECT_EQ(codeOf([&] { decodeAara(huge, "f.aara"); }), ErrorCode::Corrupt);
   EXPECT_EQ(codeOf([&] { decodeAara({}, "f.aara"); }), ErrorCode::Corrupt);
   EXPECT_EQ(codeOf([&] { decodeAara(bytesOf({0xff, 'a'}), "f.aara"); }), ErrorCode::Corrupt);
+}
+
+TEST(Aara, AFileIsCheckedAgainstItsHeaderBeforeItsDataIsRead) {
+  const fs::path file =
+      fs::temp_directory_path() / ("vsm-aara-test-" + std::to_string(::getpid()) + ".aara");
+  const auto write = [&](const std::vector<std::byte>& bytes, off_t length) {
+    std::ofstream(file, std::ios::binary | std::ios::trunc)
+        .write(reinterpret_cast<const char*>(bytes.data()),
+               static_cast<std::streamsize>(bytes.size()));
+    ASSERT_EQ(::truncate(file.c_str(), length), 0);
+  };
+  const std::vector<std::byte> good = specExample();
+  write(good, static_cast<off_t>(good.size()));
+  EXPECT_EQ(readAaraFile(file).data, decodeAara(good, "f").data);
+  // A sparse file of 64 GiB behind an 85-byte array: refused from its length, not read whole.
+  write(good, off_t{64} << 30);
+  EXPECT_EQ(messageOf([&] { readAaraFile(file); }),
+            file.string() + ": " + std::to_string((std::size_t{64} << 30) - good.size()) +
+                " trailing bytes after the .aara data");
+  // A header claiming 2^31 x 2^31 vertices in a file of 13 bytes.
+  auto huge = good;
+  for (int i = 5; i < 13; ++i) {
+    huge[i] = static_cast<std::byte>(i == 8 || i == 12 ? 0x7f : 0xff);
+  }
+  write(huge, 13);
+  EXPECT_NE(messageOf([&] { readAaraFile(file); }).find("negative or too large"),
+            std::string::npos);
+  // A claim that fits size_t but not the file.
+  auto large = good;
+  large[5] = std::byte{0};
+  large[7] = std::byte{0x10};  // 3 x 2 -> 1048576 x 2 vertices
+  write(large, 13 + 100);
+  EXPECT_EQ(messageOf([&] { readAaraFile(file); }),
+            file.string() + ": truncated .aara data: 113 bytes instead of " +
+                std::to_string(13 + 1048576 * 2 * 12));
+  write({}, 0);
+  EXPECT_EQ(codeOf([&] { readAaraFile(file); }), ErrorCode::Corrupt);
+  fs::remove(file);
+}
+
+/// The header of an 8-bit grey, uncompressed TIFF of `width` x `height` pixels in one strip,
+/// followed by a few bytes of pixels only: what a hostile or broken file claims.
+std::vector<std::byte> tiffClaiming(std::uint32_t width, std::uint32_t height) {
+  std::vector<std::byte> out = bytesOf({'I', 'I', 42, 0, 8, 0, 0, 0});
+  const auto u16 = [&](std::uint32_t v) {
+    out.push_back(static_cast<std::byte>(v & 0xff));
+    out.push_back(static_cast<std::byte>(v >> 8 & 0xff));
+  };
+  const auto u32 = [&](std::uint32_t v) {
+    u16(v & 0xffff);
+    u16(v >> 16);
+  };
+  const std::uint32_t entries[][3] = {
+      {256, 4, width}, {257, 4, height}, {258, 3, 8},
+      {259, 3, 1},     {262, 3, 1},      {273, 4, 8 + 2 + 9 * 12 + 4},
+      {277, 3, 1},     {278, 4, height}, {279, 4, 16}};
+  u16(9);
+  for (const auto& [tag, type, value] : entries) {
+    u16(tag);
+    u16(type);
+    u32(1);
+    type == 3 ? (u16(value), u16(0)) : u32(value);
+  }
+  u32(0);
+  out.resize(out.size() + 16, std::byte{0x80});
+  return out;
+}
+
+TEST(TextureFile, ImagesAboveThePixelLimitAreRefusedFromTheirHeader) {
+  const fs::path dir =
+      fs::temp_directory_path() / ("vsm-texture-test-" + std::to_string(::getpid()));
+  fs::create_directories(dir);
+  const auto write = [&](const std::string& name, const std::vector<std::byte>& bytes) {
+    std::ofstream(dir / name, std::ios::binary)
+        .write(reinterpret_cast<const char*>(bytes.data()),
+               static_cast<std::streamsize>(bytes.size()));
+    return dir / name;
+  };
+  TextureTile tile(64);
+  tile.texels()[0] = 200;
+  const fs::path small = write("small.tif", encodeTextureTiff(tile));
+  EXPECT_EQ(readTextureTile(small, 64 * 64).texels()[0], 200);
+  EXPECT_EQ(
+      messageOf([&] { readTextureTile(small, 64 * 64 - 1); }),
+      "texture '" + small.string() + "' is 64 x 64 pixels, more than limits.texture_pixels (4095)");
+  // 20000 x 20000 pixels (400 MB) in a file of 142 bytes: refused by the default limit before
+  // anything is allocated.
+  const fs::path claim = write("claim.tif", tiffClaiming(20000, 20000));
+  EXPECT_EQ(messageOf([&] { readTextureTile(claim); }),
+            "texture '" + claim.string() +
+                "' is 20000 x 20000 pixels, more than limits.texture_pixels (268435456)");
+  // Within the limit the claim is decoded (libtiff pads the short strip): memory stays bounded by
+  // the limit, not by the file.
+  const fs::path lie = write("lie.tif", tiffClaiming(64, 64));
+  EXPECT_EQ(readTextureTile(lie, 64 * 64).size(), 64);
+  fs::remove_all(dir);
 }
 
 TEST(Aara, AMissingFileIsNotFound) {

@@ -15,6 +15,7 @@
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
+#include "core/opc/texture_file.hpp"
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/app/application.hpp"
@@ -209,10 +210,13 @@ TEST(Config, ABadTokenFileIsAClearError) {
 
 TEST(Config, SetReachesEveryKeyFromTheCommandLine) {
   const Config config =
-      parseCommandLine({"--set", "limits.pipelined_responses=3", "--set", "threads.jobs=5",
-                        "--token", "t0k3n", "--port-file", "/tmp/p", "--log-level", "warn"})
+      parseCommandLine({"--set", "limits.pipelined_responses=3", "--set", "threads.jobs=5", "--set",
+                        "limits.texture_pixels=4096", "--token", "t0k3n", "--port-file", "/tmp/p",
+                        "--log-level", "warn"})
           .config;
   EXPECT_EQ(config.limits.pipelinedResponses, 3u);
+  EXPECT_EQ(config.limits.texturePixels, 4096u);
+  EXPECT_EQ(Config{}.limits.texturePixels, core::kDefaultTexturePixels);
   EXPECT_EQ(config.threads.jobs, 5u);
   EXPECT_EQ(config.token, "t0k3n");
   EXPECT_EQ(config.portFile, "/tmp/p");
@@ -258,6 +262,7 @@ TEST(Config, ValidationRejectsOutOfRangeValues) {
       {"--set", "limits.idle_timeout=0"},
       {"--set", "threads.io=0"},
       {"--set", "limits.pipelined_responses=1000"},
+      {"--set", "limits.texture_pixels=0"},
       {"--memory-budget", "1000"},
       {"--data-root", ""},
       {"--set", "limits.header_timeout=0"},
@@ -644,6 +649,30 @@ TEST(Request, JsonBodyNeedsJson) {
   EXPECT_EQ(errorOf([&] { http::jsonBody(r); }).first, ErrorCode::InvalidArgument);
   r.headers.clear();
   r.body = "{";
+  EXPECT_EQ(errorOf([&] { http::jsonBody(r); }).first, ErrorCode::InvalidArgument);
+}
+
+TEST(Request, JsonBodyNestsAtMostMaxDepthLevels) {
+  auto r = request(http::Method::Post, "/");
+  const auto nested = [](int depth) {
+    std::string text;
+    for (int i = 0; i < depth; ++i) {
+      text += i % 2 == 0 ? "[" : "{\"a\":";
+    }
+    text += "0";
+    for (int i = depth - 1; i >= 0; --i) {
+      text += i % 2 == 0 ? "]" : "}";
+    }
+    return text;
+  };
+  r.body = nested(http::kMaxJsonDepth);
+  EXPECT_TRUE(http::jsonBody(r).is_array());
+  r.body = nested(http::kMaxJsonDepth + 1);
+  EXPECT_EQ(errorOf([&] { http::jsonBody(r); }),
+            std::pair(ErrorCode::InvalidArgument,
+                      std::string("request body nests deeper than 64 levels")));
+  // A megabyte of '[' (what the body limit lets through) fails the same way, without recursing.
+  r.body = std::string(1 << 20, '[');
   EXPECT_EQ(errorOf([&] { http::jsonBody(r); }).first, ErrorCode::InvalidArgument);
 }
 

@@ -1,0 +1,148 @@
+#include "server/api/requests.hpp"
+
+#include <algorithm>
+#include <charconv>
+#include <cmath>
+#include <cstdint>
+#include <initializer_list>
+
+#include <nlohmann/json.hpp>
+
+#include "core/common/error.hpp"
+
+namespace vsm::server::api {
+
+using core::Error;
+using core::ErrorCode;
+using nlohmann::json;
+
+namespace {
+
+/// The JSON object body of a write; rejects members other than `allowed` (typos fail loudly).
+json objectBody(const http::Request& request, std::initializer_list<std::string_view> allowed) {
+  json body = http::jsonBody(request);
+  if (!body.is_object()) {
+    throw Error(ErrorCode::InvalidArgument, "request body must be a JSON object");
+  }
+  for (const auto& [key, value] : body.items()) {
+    if (std::find(allowed.begin(), allowed.end(), key) == allowed.end()) {
+      throw Error(ErrorCode::InvalidArgument, "unknown member '" + key.substr(0, 64) + "'");
+    }
+  }
+  return body;
+}
+
+std::string stringMember(const json& object, const char* name) {
+  const auto it = object.find(name);
+  if (it == object.end() || !it->is_string()) {
+    throw Error(ErrorCode::InvalidArgument, std::string("'") + name + "' must be a string");
+  }
+  return it->get<std::string>();
+}
+
+double parseNumber(std::string_view text, std::string_view what) {
+  double value = 0;
+  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
+  if (text.empty() || ec != std::errc() || end != text.data() + text.size() ||
+      !std::isfinite(value)) {
+    throw Error(ErrorCode::InvalidArgument, std::string(what) + " must be a finite number, not '" +
+                                                std::string(text.substr(0, 32)) + "'");
+  }
+  return value;
+}
+
+}  // namespace
+
+LodQuery parseLodQuery(std::string_view box, std::string_view resolution) {
+  LodQuery out;
+  double v[6];
+  std::size_t count = 0;
+  for (std::string_view rest = box;;) {
+    const std::size_t comma = rest.find(',');
+    if (count == 6) {
+      count = 7;
+      break;
+    }
+    v[count++] = parseNumber(rest.substr(0, comma), "each box coordinate");
+    if (comma == std::string_view::npos) {
+      break;
+    }
+    rest.remove_prefix(comma + 1);
+  }
+  if (count != 6) {
+    throw Error(ErrorCode::InvalidArgument, "box must be six numbers x0,y0,z0,x1,y1,z1");
+  }
+  if (v[0] > v[3] || v[1] > v[4] || v[2] > v[5]) {
+    throw Error(ErrorCode::InvalidArgument, "box must have x0 <= x1, y0 <= y1 and z0 <= z1");
+  }
+  out.box.min = {v[0], v[1], v[2]};
+  out.box.max = {v[3], v[4], v[5]};
+  out.resolution = parseNumber(resolution, "resolution");
+  if (out.resolution <= 0) {
+    throw Error(ErrorCode::InvalidArgument, "resolution must be greater than 0 (metres)");
+  }
+  return out;
+}
+
+ModelRequest parseModelRequest(const http::Request& request) {
+  const json body = objectBody(request, {"id", "source"});
+  ModelRequest out;
+  out.id = stringMember(body, "id");
+  const auto source = body.find("source");
+  if (source == body.end() || !source->is_object()) {
+    throw Error(ErrorCode::InvalidArgument,
+                R"('source' must be an object: {"path": ...} or {"import": ..., "patch_size": N})");
+  }
+  for (const auto& [key, value] : source->items()) {
+    if (key != "path" && key != "import" && key != "patch_size") {
+      throw Error(ErrorCode::InvalidArgument, "unknown member 'source." + key.substr(0, 64) + "'");
+    }
+  }
+  const bool byPath = source->contains("path");
+  if (byPath == source->contains("import")) {
+    throw Error(ErrorCode::InvalidArgument, "'source' needs exactly one of 'path' and 'import'");
+  }
+  if (byPath) {
+    if (source->contains("patch_size")) {
+      throw Error(ErrorCode::InvalidArgument, "'patch_size' goes with 'import' only");
+    }
+    out.path = stringMember(*source, "path");
+    return out;
+  }
+  if (const auto size = source->find("patch_size"); size != source->end()) {
+    if (!size->is_number_integer()) {
+      throw Error(ErrorCode::InvalidArgument, "'patch_size' must be an integer (2^n + 1)");
+    }
+    const auto value = size->get<std::int64_t>();
+    out.patchSize = value < 0 || value > 1'000'000 ? -1 : static_cast<int>(value);
+  }
+  out.import = stringMember(*source, "import");
+  return out;
+}
+
+MergeRequest parseMergeRequest(const http::Request& request) {
+  const json body = objectBody(request, {"type", "target", "source", "register"});
+  const auto type = body.find("type");
+  if (type == body.end() || !type->is_string() || *type != "merge") {
+    throw Error(ErrorCode::InvalidArgument,
+                R"('type' must be "merge" (imports are submitted with POST /v1/models))");
+  }
+  const auto target = body.find("target");
+  const auto source = body.find("source");
+  if (target == body.end() || !target->is_string() || source == body.end() ||
+      !source->is_string()) {
+    throw Error(ErrorCode::InvalidArgument, "'target' and 'source' must be model ids (strings)");
+  }
+  MergeRequest out;
+  out.target = target->get<std::string>();
+  out.source = source->get<std::string>();
+  if (const auto reg = body.find("register"); reg != body.end()) {
+    if (!reg->is_boolean()) {
+      throw Error(ErrorCode::InvalidArgument, "'register' must be true or false");
+    }
+    out.registerFirst = reg->get<bool>();
+  }
+  return out;
+}
+
+}  // namespace vsm::server::api

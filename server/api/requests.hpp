@@ -1,0 +1,50 @@
+#pragma once
+
+// What the routes read from a request before they touch a model: the LOD query and the JSON
+// bodies of the POST routes, parsed and checked. Kept apart from the handlers (and their
+// registries) so the parsing can be tested and fuzzed alone (tests/fuzz/).
+
+#include <optional>
+#include <string>
+#include <string_view>
+
+#include "core/grid/geometry.hpp"
+#include "server/http/message.hpp"
+
+namespace vsm::server::api {
+
+/// Parses the LOD query: `box` is "x0,y0,z0,x1,y1,z1" (six finite numbers, min <= max per axis),
+/// `resolution` a finite number > 0. Throws core::Error(InvalidArgument).
+struct LodQuery {
+  core::Box3d box;
+  double resolution = 0;
+};
+LodQuery parseLodQuery(std::string_view box, std::string_view resolution);
+
+/// The body of POST /v1/models (proto/examples/model-open-request.json and
+/// model-import-request.json): open the OPC at `path`, or import the raster at `import`.
+struct ModelRequest {
+  /// Not yet checked against the model id rules (models::checkModelId).
+  std::string id;
+  /// Exactly one of `path` and `import` is set; both relative to the data root, not resolved.
+  std::optional<std::string> path;
+  std::optional<std::string> import;
+  /// With `import`: the patch size asked for (257 when absent), -1 when it is out of any range
+  /// (the import rejects it with the rule 2^n + 1).
+  int patchSize = 257;
+};
+/// Throws core::Error(InvalidArgument) naming the first wrong member, as http::jsonBody does for
+/// a body that is not JSON.
+ModelRequest parseModelRequest(const http::Request& request);
+
+/// The body of POST /v1/jobs (proto/examples/merge-request.json): merge model `source` into
+/// model `target`.
+struct MergeRequest {
+  std::string target;
+  std::string source;
+  bool registerFirst = false;
+};
+/// Throws core::Error(InvalidArgument) naming the first wrong member.
+MergeRequest parseMergeRequest(const http::Request& request);
+
+}  // namespace vsm::server::api

@@ -1,0 +1,31 @@
+// Fuzz target: the JSON bodies of every POST route (POST /v1/models, POST /v1/jobs), through
+// http::jsonBody (the one parser, with its nesting bound) and the routes' body parsers.
+#include <cstddef>
+#include <cstdint>
+#include <string>
+
+#include "server/api/requests.hpp"
+#include "tests/fuzz/fuzz_support.hpp"
+
+using namespace vsm;
+
+extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+  server::http::Request request;
+  request.method = server::http::Method::Post;
+  request.methodName = "POST";
+  request.headers = {{"content-type", "application/json"}};
+  request.body.assign(reinterpret_cast<const char*>(data), size);
+
+  request.target = "/v1/models";
+  fuzz::succeeds([&] {
+    const server::api::ModelRequest model = server::api::parseModelRequest(request);
+    fuzz::check(model.path.has_value() != model.import.has_value(),
+                "a model request has exactly one of path and import");
+    fuzz::check(model.patchSize == -1 || (model.patchSize >= 0 && model.patchSize <= 1'000'000),
+                "a patch size is -1 or in range");
+    fuzz::check(!model.path || model.patchSize == 257, "patch_size goes with import only");
+  });
+  request.target = "/v1/jobs";
+  fuzz::succeeds([&] { server::api::parseMergeRequest(request); });
+  return 0;
+}

@@ -1,0 +1,43 @@
+// Fuzz target: texture file reading through our OpenImageIO wrapper (readTextureTile and the
+// PNG conversion the server sends), with a pixel limit: what a file's header claims is checked
+// before pixels are allocated. Inputs are written to Images/Diffuse/tile.tif; OpenImageIO tries
+// its other readers (PNG, DDS, JPEG, ...) when the bytes are not a TIFF.
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+#include "core/opc/texture_file.hpp"
+#include "tests/fuzz/fuzz_support.hpp"
+
+using namespace vsm;
+namespace fs = std::filesystem;
+
+namespace {
+
+/// Small enough that a claim just under it stays far below -malloc_limit_mb: 4 bytes x 2^22.
+constexpr std::uint64_t kMaxPixels = std::uint64_t{1} << 22;
+
+}  // namespace
+
+extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
+  static const fuzz::ScratchDir scratch("texture");
+  static const fs::path file = [] {
+    fs::create_directories(scratch.path() / "Images" / "Diffuse");
+    return scratch.path() / "Images" / "Diffuse" / "tile.tif";
+  }();
+  fuzz::writeFile(file, data, size);
+
+  fuzz::succeeds([&] {
+    const core::TextureTile tile = core::readTextureTile(file, kMaxPixels);
+    fuzz::check(static_cast<std::uint64_t>(tile.size()) * tile.size() <= kMaxPixels,
+                "a tile read is within the pixel limit");
+  });
+  core::PatchInfo info;
+  info.folder = "0_0_0";
+  info.textureFile = "Diffuse\\tile.tif";
+  fuzz::succeeds([&] {
+    const std::vector<std::byte> png = core::readPatchTexturePng(scratch.path(), info, kMaxPixels);
+    fuzz::check(png.size() >= 8, "a PNG has its signature");
+  });
+  return 0;
+}
