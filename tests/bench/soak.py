@@ -387,16 +387,16 @@ class Control:
 
 
 def read_proc(pid):
-    rss = 0
+    mem = {}
     with open("/proc/%d/status" % pid) as f:
         for line in f:
-            if line.startswith("VmRSS:"):
-                rss = int(line.split()[1]) * 1024
+            if line.startswith(("VmRSS:", "RssAnon:", "RssFile:")):
+                mem[line.split(":")[0]] = int(line.split()[1]) * 1024
     fds = len(os.listdir("/proc/%d/fd" % pid))
     with open("/proc/%d/stat" % pid) as f:
         fields = f.read().rsplit(")", 1)[1].split()
     cpu = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    return rss, fds, cpu
+    return mem, fds, cpu
 
 
 # ---------------------------------------------------------------- analysis
@@ -425,6 +425,8 @@ def plot(rows, path, title):
     t = [r["t_s"] / 60 for r in rows]
     fig, ax = plt.subplots(4, 1, figsize=(10, 11), sharex=True)
     ax[0].plot(t, [r["rss_bytes"] / 2**20 for r in rows], label="vsmd RSS")
+    ax[0].plot(t, [r["rss_anon_bytes"] / 2**20 for r in rows], label="RSS anonymous")
+    ax[0].plot(t, [r["rss_file_bytes"] / 2**20 for r in rows], label="RSS file-backed")
     ax[0].plot(t, [r["resident_bytes"] / 2**20 for r in rows], label="budget resident")
     ax[0].plot(t, [r["budget_bytes"] / 2**20 for r in rows], "--", label="budget")
     ax[0].set_ylabel("MiB")
@@ -446,7 +448,7 @@ def plot(rows, path, title):
     ax[3].set_xlabel("minutes")
     for w in (0, 1, 2, 3):
         ax[w].grid(alpha=0.3)
-    fig.suptitle(title, fontsize=9)
+    fig.suptitle(title, fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=80)
 
@@ -535,7 +537,8 @@ def main():
             if at > deadline + 0.01:
                 break
             collect(at)
-            rss, fds, cpu = read_proc(a.pid)
+            mem, fds, cpu = read_proc(a.pid)
+            rss = mem.get("VmRSS", 0)
             try:
                 stats = api.json("GET", "/v1/stats")
             except Exception as e:  # noqa: BLE001
@@ -549,6 +552,8 @@ def main():
                 {
                     "t_s": k * a.window,
                     "rss_bytes": rss,
+                    "rss_anon_bytes": mem.get("RssAnon", 0),
+                    "rss_file_bytes": mem.get("RssFile", 0),
                     "fds": fds,
                     "vsmd_cpu_pct": cpu_pct,
                     "resident_bytes": m.get("resident_bytes", -1),
@@ -561,10 +566,11 @@ def main():
                     "exhausted": c.get("exhausted", -1),
                 }
             )
-            w = windows.get(k - 1, {"n": 0, "err": 0})
+            w = windows.get(k - 2, {"n": 0, "err": 0})  # the last window all workers have sent
             print(
-                "  %5.0f s  RSS %7.1f MiB  fds %4d  resident %6.1f / %6.1f MiB  reads (so far) %6d  errors %d"
-                % (k * a.window, rss / 2**20, fds, m.get("resident_bytes", 0) / 2**20, m.get("budget_bytes", 0) / 2**20, w["n"], w["err"]),
+                "  %5.0f s  RSS %7.1f MiB (anon %7.1f)  fds %4d  resident %6.1f / %6.1f MiB  reads %6d  errors %d"
+                % (k * a.window, rss / 2**20, mem.get("RssAnon", 0) / 2**20, fds, m.get("resident_bytes", 0) / 2**20,
+                   m.get("budget_bytes", 0) / 2**20, w["n"], w["err"]),
                 flush=True,
             )
     finally:
@@ -615,6 +621,7 @@ def main():
     n = len(rows)
     after = rows[int(n * a.warmup) :] if n else []
     rss_slope = slope_per_min([r["t_s"] for r in after], [r["rss_bytes"] / 2**20 for r in after])
+    anon_slope = slope_per_min([r["t_s"] for r in after], [r["rss_anon_bytes"] / 2**20 for r in after])
     fd_slope = slope_per_min([r["t_s"] for r in after], [r["fds"] for r in after])
     over = [r for r in rows if r["budget_bytes"] < 0 or r["resident_bytes"] > r["budget_bytes"]]
     read_errors = sum(r["errors"] for r in rows)
@@ -634,7 +641,9 @@ def main():
     all_lat = pooled(rows)
     total_reads = sum(r["reads"] for r in rows)
     statuses = {}
-    for agg in windows.values():
+    for w, agg in windows.items():
+        if w >= n:
+            continue  # after the last sample
         for kk, v in agg["status"].items():
             statuses[kk] = statuses.get(kk, 0) + v
     kinds = {}
@@ -647,7 +656,8 @@ def main():
         ("errors", read_errors == 0 and control_errors == 0,
          "%d read errors of %d reads, %d failed control actions" % (read_errors, total_reads, control_errors)),
         ("RSS flat", rss_slope < a.rss_slope,
-         "slope %.3f MiB/min after the first %d%% (limit %.2f)" % (rss_slope, a.warmup * 100, a.rss_slope)),
+         "slope %.3f MiB/min after the first %d%% (limit %.2f; anonymous %.3f MiB/min)" % (
+             rss_slope, a.warmup * 100, a.rss_slope, anon_slope)),
         ("descriptors flat", fd_slope < a.fd_slope,
          "slope %.3f fd/min after the first %d%% (limit %.2f)" % (fd_slope, a.warmup * 100, a.fd_slope)),
         ("resident <= budget", not over and n > 0,
@@ -669,8 +679,9 @@ def main():
         sum(r["vsmd_cpu_pct"] for r in rows[1:]) / max(1, n - 1)))
     lines.append("control: " + ", ".join("%s %d ok / %d failed (longest %.1f s)" % (k2, v[0], v[1], v[2]) for k2, v in sorted(kinds.items())))
     if rows:
-        lines.append("RSS %.1f -> %.1f MiB (max %.1f); descriptors %d -> %d (max %d); cache evictions %d, exhausted %d" % (
+        lines.append("RSS %.1f -> %.1f MiB (max %.1f; anonymous %.1f -> %.1f); descriptors %d -> %d (max %d); cache evictions %d, exhausted %d" % (
             rows[0]["rss_bytes"] / 2**20, rows[-1]["rss_bytes"] / 2**20, max(r["rss_bytes"] for r in rows) / 2**20,
+            rows[0]["rss_anon_bytes"] / 2**20, rows[-1]["rss_anon_bytes"] / 2**20,
             rows[0]["fds"], rows[-1]["fds"], max(r["fds"] for r in rows), rows[-1]["evictions"], rows[-1]["exhausted"]))
     for name, ok, why in checks:
         lines.append("  %-20s %s  %s" % (name, "ok  " if ok else "FAIL", why))
@@ -684,7 +695,7 @@ def main():
     with open(os.path.join(a.out, "summary.txt"), "w") as f:
         f.write(summary + "\n")
     if rows:
-        plot(rows, os.path.join(a.out, "soak.png"), "vsmd soak, %.0f min: %s" % (a.minutes, "; ".join(why for _, _, why in checks[1:])))
+        plot(rows, os.path.join(a.out, "soak.png"), "vsmd soak, %.0f min, %s\n%s" % (a.minutes, "PASSED" if passed else "FAILED", "\n".join(why for _, _, why in checks)))
     return 0 if passed else 1
 
 
