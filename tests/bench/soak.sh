@@ -55,7 +55,7 @@
 #     grows with the run - a queue, a list scanned per request - shows more than that).
 #
 # Measured on 2026-12-01, 30 minutes (SOAK_RESULTS=tests/bench/results tests/bench/soak.sh 30;
-# 2 cores shared with two other builds, load average 5 to 8): PASSED. Budget 27.6 MiB, a tenth
+# 2 cores shared with other builds, load average 8.1 at the start): PASSED. Budget 27.6 MiB, a tenth
 # of 289 MB stored. 1,547,558 reads (860/s mean, 485 to 1439/s per window, 313 MiB/s), all 200;
 # p50 64 ms, p99 277 ms (64 connections in a closed loop on a daemon that got 94% of one core;
 # the generator used 20% of one); 30 merges, 6 imports, 60 open/close, all succeeded. RSS 221 ->
