@@ -123,7 +123,8 @@ bool isTempFileName(std::string_view name) {
 }
 
 void syncDirectory(const fs::path& dir) {
-  syncPath(dir, true);
+  // The parent of a bare file name ("port".parent_path()) is empty: the working directory.
+  syncPath(dir.empty() ? fs::path(".") : dir, true);
 }
 
 void syncFile(const fs::path& file) {

@@ -86,6 +86,22 @@ TEST_F(DurableTest, AFailedWriteLeavesTheOldFileAndNoTemporaryFile) {
   EXPECT_EQ(entries(dir_), 1u);
 }
 
+// `vsmd --port-file port` wrote "port" in the working directory and then failed to sync its
+// parent, the empty path ("cannot open for fsync ''"), and exited.
+TEST_F(DurableTest, ABareFileNameIsWrittenInTheWorkingDirectory) {
+  const fs::path before = fs::current_path();
+  fs::current_path(dir_);
+  try {
+    writeFileAtomically("port", bytes("8080\n"));
+  } catch (...) {
+    fs::current_path(before);
+    throw;
+  }
+  fs::current_path(before);
+  EXPECT_EQ(read(dir_ / "port"), "8080\n");
+  EXPECT_EQ(entries(dir_), 1u);
+}
+
 TEST_F(DurableTest, RenameNoReplaceNeverReplacesAnExistingDirectory) {
   fs::create_directory(dir_ / "staging");
   fs::create_directory(dir_ / "target");  // empty: a plain rename() would replace it
