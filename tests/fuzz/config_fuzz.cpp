@@ -28,7 +28,8 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   copy.token = config.token;  // described as "(redacted)"
   for (const auto& [key, value] : described) {
     // Empty paths are described as "(none)", the default.
-    const bool none = (key == "port_file" || key == "viewer_dir") && value == "(none)";
+    const bool none =
+        (key == "port_file" || key == "viewer_dir" || key == "token_file") && value == "(none)";
     if (key != "token" && !none) {
       const bool set =
           fuzz::succeeds([&, &key = key, &value = value] { copy.set(key, nlohmann::json(value)); });
