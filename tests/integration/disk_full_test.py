@@ -44,8 +44,9 @@ import time
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import fault_sweep_test  # noqa: E402
 from fault_sweep_test import PATCH, CliMerge, DaemonMerge, Scenario  # noqa: E402
-from model_states import (crop, digest_tree, exit_status, make_outside_model,  # noqa: E402
-                          version_of, which)
+from model_states import (  # noqa: E402
+                          check_valid_and_reopened, crop, digest_tree, exit_status,
+                          make_outside_model, version_of, which)
 
 SKIP = 77
 TIMEOUT = 60
@@ -162,20 +163,8 @@ def check_merge_state(label, scenario, new, free_before, need, failures):
     if state is None:
         failures.append("%s: the target is neither the old nor the new version" % label)
         return None
-    validate = subprocess.run([ARGS.vsm, "validate", where], stdout=subprocess.PIPE,
-                              stderr=subprocess.STDOUT, text=True, timeout=TIMEOUT)
-    if validate.returncode != 0:
-        failures.append("%s: vsm validate: %s" % (label, validate.stdout[-400:]))
-    reopen = subprocess.run([ARGS.vsm, "merge", where, scenario.outside], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, timeout=TIMEOUT)
-    if reopen.returncode != 1 or "outside" not in reopen.stderr:
-        failures.append("%s: reopening: exit %d %s" % (label, reopen.returncode,
-                                                       reopen.stderr[-300:]))
-    after = version_of(where)
-    if which(after, scenario.old, new) != state:
-        failures.append("%s: reopening changed the version" % label)
-    if after[2]:
-        failures.append("%s: orphans after reopening: %s" % (label, after[2][:5]))
+    check_valid_and_reopened(ARGS.vsm, where, scenario.outside, scenario.old, new, state, label,
+                             failures, timeout=TIMEOUT)
     leftovers = [e for e in os.listdir(scenario.run_dir) if ".partial-" in e or ".tmp-" in e]
     if leftovers:
         failures.append("%s: left in the data directory: %s" % (label, leftovers))

@@ -44,8 +44,9 @@ import urllib.request
 
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from model_states import (crop, exit_status, make_outside_model, version_of,  # noqa: E402
-                          which)
+from model_states import (  # noqa: E402
+                          check_valid_and_reopened, crop, exit_status,
+                          make_outside_model, version_of, which)
 
 
 CLASSES = ["write", "sync", "rename", "mkdir", "create", "unlink"]
@@ -328,21 +329,9 @@ def sweep(scenario, failures, totals):
         counts[state] += 1
         print("%s -> %s version; %s" % (label, state, outcome[-160:]), flush=True)
         if version is not None:
-            validate = subprocess.run([ARGS.vsm, "validate", where], stdout=subprocess.PIPE,
-                                      stderr=subprocess.STDOUT, text=True)
-            if validate.returncode != 0:
-                failures.append("%s: vsm validate: %s" % (label, validate.stdout[-400:]))
             # The next open (for writing) removes every orphan.
-            reopen = subprocess.run([ARGS.vsm, "merge", where, scenario.outside],
-                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-            if reopen.returncode != 1 or "outside" not in reopen.stderr:
-                failures.append("%s: reopening: exit %d %s" % (label, reopen.returncode,
-                                                               reopen.stderr[-300:]))
-            after = version_of(where)
-            if which(after, scenario.old, new) != state:
-                failures.append("%s: reopening changed the version" % label)
-            if after[2]:
-                failures.append("%s: orphans after reopening: %s" % (label, after[2][:5]))
+            check_valid_and_reopened(ARGS.vsm, where, scenario.outside, scenario.old, new,
+                                     state, label, failures)
         staging = [e for e in os.listdir(scenario.run_dir) if ".partial-" in e]
         if staging:
             failures.append("%s: staging directories left: %s" % (label, staging))

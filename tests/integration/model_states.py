@@ -69,6 +69,27 @@ def which(version, old, new):
     return None
 
 
+def check_valid_and_reopened(vsm, where, outside, old, new, state, label, failures,
+                             timeout=None):
+    """After a failed or finished write that left `where` at `state` ("old" or "new"): `vsm
+    validate` passes, and the next open for writing (a merge of `outside`, which fails as lying
+    outside the target) changes no version and removes every orphan."""
+    validate = subprocess.run([vsm, "validate", where], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True, timeout=timeout)
+    if validate.returncode != 0:
+        failures.append("%s: vsm validate: %s" % (label, validate.stdout[-400:]))
+    reopen = subprocess.run([vsm, "merge", where, outside], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, timeout=timeout)
+    if reopen.returncode != 1 or "outside" not in reopen.stderr:
+        failures.append("%s: reopening: exit %d %s" % (label, reopen.returncode,
+                                                       reopen.stderr[-300:]))
+    after = version_of(where)
+    if which(after, old, new) != state:
+        failures.append("%s: reopening changed the version" % label)
+    if after[2]:
+        failures.append("%s: orphans after reopening: %s" % (label, after[2][:5]))
+
+
 def make_outside_model(vsm, directory, patch_size):
     """A one-patch model in the Alps (10 E, 47 N), far outside any CONUS target."""
     tif = os.path.join(directory, "outside.tif")
