@@ -12,7 +12,9 @@
 # with exit status 1, naming the input libFuzzer saved: make it a regression test by copying it
 # into tests/fuzz/regressions/<target>/ with the fix.
 #
-# Environment: VSM_FUZZ_BUILD_DIR; VSM_FUZZ_NICE=19 runs the fuzzers at low priority.
+# Environment: VSM_FUZZ_BUILD_DIR; VSM_FUZZ_NICE=19 runs the fuzzers at low priority;
+# VSM_FUZZ_RUNS=N also stops a target after N executions (the long run: SECONDS=3600 and
+# VSM_FUZZ_RUNS=10000000, whichever comes first).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../.." && pwd)
 HERE="$ROOT/tests/fuzz"
@@ -64,10 +66,12 @@ for target in "${TARGETS[@]}"; do
   artifacts="$BUILD/artifacts/$target"
   mkdir -p "$work" "$artifacts"
   log="$BUILD/fuzz-$target.log"
+  target_start=$(date +%s)
   # -malloc_limit_mb: one allocation above 512 MiB is a bug (an unbounded size from input).
   if ! nice -n "${VSM_FUZZ_NICE:-0}" "$binary" "$work" "$HERE/corpus/$target" \
-    -max_total_time="$SECONDS_EACH" -timeout=10 -rss_limit_mb=2048 -malloc_limit_mb=512 \
-    -max_len=65536 -print_final_stats=1 -print_funcs=0 -print_pcs=0 \
+    -max_total_time="$SECONDS_EACH" -runs="${VSM_FUZZ_RUNS:--1}" -timeout=10 \
+    -rss_limit_mb=2048 -malloc_limit_mb=512 -max_len=65536 -print_final_stats=1 \
+    -print_funcs=0 -print_pcs=0 \
     -artifact_prefix="$artifacts/" >"$log" 2>&1; then
     echo "fuzz: $target: CRASH (log $log):" >&2
     grep -E "SUMMARY|property|what\(\)|Test unit written" "$log" | tail -5 >&2
@@ -76,8 +80,9 @@ for target in "${TARGETS[@]}"; do
   fi
   runs=$(sed -n 's/^stat::number_of_executed_units: *//p' "$log")
   rate=$(sed -n 's/^stat::average_exec_per_sec: *//p' "$log")
-  echo "fuzz: $target: ${runs:-?} executions in $SECONDS_EACH s (${rate:-?}/s), corpus" \
-    "$(find "$work" -type f | wc -l) inputs, no crash"
+  cov=$(grep -oE "cov: [0-9]+ ft: [0-9]+" "$log" | tail -1)
+  echo "fuzz: $target: ${runs:-?} executions in $(($(date +%s) - target_start)) s" \
+    "(${rate:-?}/s), ${cov:-cov: ?}, corpus $(find "$work" -type f | wc -l) inputs, no crash"
 done
 echo "fuzz: total $(($(date +%s) - start)) s"
 exit "$status"
