@@ -21,6 +21,8 @@ PACKAGES=(
   curl jq
   # the browser check of the viewer and CesiumJS (tests/integration/viewer_test.py)
   chromium
+  # the consistency check of the deploy files (tests/deploy/deploy_files_test.py) parses YAML
+  python3-yaml
 )
 
 missing=()
