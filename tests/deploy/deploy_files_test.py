@@ -14,7 +14,9 @@
   (listen and data root overridden to 127.0.0.1:0 and a temporary directory); every key is one
   `vsmd --help` lists, and vsmd does reject an unknown key (so starting is a real check).
 - Every --flag of the manifests, the unit (also its commented drop-in) and the Containerfile is
-  one `vsmd --help` lists.
+  one `vsmd --help` lists. When vsmd has --coordinator and etcd is installed, the StatefulSet's
+  args and the unit's drop-in ExecStart start a node that joins a local etcd (paths made
+  temporary) and publishes its --advertise URL there.
 - deploy/container/Containerfile runs deploy/install-deps.sh and deploy/build.sh, on Debian 12,
   as the same non-root uid as the manifests and the sysusers.d snippet.
 
@@ -22,6 +24,7 @@ Run by ctest (deploy.files):
     deploy_files_test.py --vsmd build/server/vsmd [--source .]"""
 
 import argparse
+import base64
 import http.client
 import json
 import os
@@ -29,6 +32,7 @@ import re
 import shlex
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -174,6 +178,84 @@ class Daemon:
             self.proc.send_signal(signal.SIGTERM)
             try:
                 self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        with open(self.log_path, errors="replace") as f:
+            self.log = f.read()
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Etcd:
+    """A one-member etcd on free loopback ports with a temporary data directory."""
+
+    def __init__(self, binary):
+        self.dir = tempfile.mkdtemp(prefix="etcd-deploy-test-")
+        self.url = "http://127.0.0.1:%d" % free_port()
+        peer = "http://127.0.0.1:%d" % free_port()
+        self.log_path = os.path.join(self.dir, "etcd.log")
+        with open(self.log_path, "wb") as log:
+            self.proc = subprocess.Popen(
+                [binary, "--name", "deploy-test", "--data-dir", os.path.join(self.dir, "data"),
+                 "--listen-client-urls", self.url, "--advertise-client-urls", self.url,
+                 "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer,
+                 "--initial-cluster", "deploy-test=" + peer],
+                stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 20
+        while not self.healthy():
+            if self.proc.poll() is not None or time.monotonic() > deadline:
+                self.close()
+                raise AssertionError("etcd did not start:\n" + self.log)
+            time.sleep(0.1)
+
+    def call(self, route, body):
+        host, port = self.url[len("http://"):].split(":")
+        conn = http.client.HTTPConnection(host, int(port), timeout=5)
+        try:
+            conn.request("POST", route, body=json.dumps(body))
+            response = conn.getresponse()
+            return response.status, response.read()
+        finally:
+            conn.close()
+
+    def healthy(self):
+        host, port = self.url[len("http://"):].split(":")
+        conn = http.client.HTTPConnection(host, int(port), timeout=2)
+        try:
+            conn.request("GET", "/health")
+            response = conn.getresponse()
+            response.read()
+            return response.status == 200
+        except OSError:
+            return False
+        finally:
+            conn.close()
+
+    def everything(self):
+        """All keys and values as text (the etcd v3 JSON API, range over the whole key space)."""
+        zero = base64.b64encode(b"\0").decode()
+        status, body = self.call("/v3/kv/range", {"key": zero, "range_end": zero})
+        assert status == 200, "etcd range: %d %s" % (status, body)
+        return "\n".join(base64.b64decode(kv.get(part, "")).decode(errors="replace")
+                         for kv in json.loads(body).get("kvs", []) for part in ("key", "value"))
+
+    def close(self):
+        if self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(timeout=20)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(timeout=10)
@@ -564,6 +646,47 @@ class ConfigAndFlags(unittest.TestCase):
             self.assertEqual(flags - accepted, set(), "%s: flags vsmd --help does not list"
                              % where)
         self.assertIn("--coordinator", used["deploy/k8s StatefulSet vsm"])
+
+    def test_nodes_start_with_the_deploy_arguments(self):
+        # The StatefulSet's args and the unit's drop-in ExecStart, as written, join a real etcd:
+        # only the paths become temporary files ($(POD_NAME) -> vsm-0, the ConfigMap/vsmd.json,
+        # the token) and --coordinator the local etcd; listen and data root are overridden.
+        etcd_binary = shutil.which("etcd")
+        if "--coordinator" not in self.flags or etcd_binary is None:
+            print("skipped: nodes joining etcd (%s)" % ("no etcd on PATH" if etcd_binary
+                  else "vsmd --help lists no --coordinator yet"), file=sys.stderr)
+            return
+        k8s = K8s()
+        unit = Unit()
+        cases = {"deploy/k8s StatefulSet vsm": (k8s.vsmd_container()["args"], k8s.config_text())}
+        clustered = [l for l in unit.exec_starts() if "--coordinator" in l]
+        self.assertTrue(clustered, "vsmd.service shows no ExecStart with --coordinator")
+        cases["deploy/systemd/vsmd.service drop-in"] = (
+            shlex.split(clustered[0])[1:], read("deploy", "systemd", "vsmd.json"))
+        with tempfile.TemporaryDirectory() as tmp, Etcd(etcd_binary) as etcd:
+            config = os.path.join(tmp, "vsmd.json")
+            token = os.path.join(tmp, "token")
+            with open(token, "w") as f:
+                f.write("deploy-test-token\n")
+            os.chmod(token, 0o600)
+            for where, (args, config_text) in cases.items():
+                with open(config, "w") as f:
+                    f.write(config_text)
+                replaced = {"--config": config, "--token-file": token, "--coordinator": etcd.url}
+                flags = []
+                for i, arg in enumerate(args):
+                    if i > 0 and args[i - 1] in replaced:
+                        arg = replaced[args[i - 1]]
+                    flags.append(arg.replace("$(POD_NAME)", "vsm-0")
+                                    .replace("$(POD_NAMESPACE)", "vsm"))
+                advertise = arg_value(flags, "--advertise")
+                self.assertIsNotNone(advertise, "%s: no --advertise" % where)
+                with Daemon(*flags) as vsmd:
+                    self.assertEqual(vsmd.get_until_200("/readyz"), 200,
+                                     "%s: vsmd with a coordinator never became ready" % where)
+                    registered = etcd.everything()
+                    self.assertIn(advertise, registered, "%s: the node's --advertise URL is not "
+                                  "in etcd:\n%s" % (where, registered))
 
 
 class Containerfile(unittest.TestCase):
