@@ -653,7 +653,7 @@ class ConfigAndFlags(unittest.TestCase):
         # the token) and --coordinator the local etcd; listen and data root are overridden.
         etcd_binary = shutil.which("etcd")
         if "--coordinator" not in self.flags or etcd_binary is None:
-            print("skipped: nodes joining etcd (%s)" % ("no etcd on PATH" if etcd_binary
+            print("skipped: nodes joining etcd (%s)" % ("no etcd on PATH" if etcd_binary is None
                   else "vsmd --help lists no --coordinator yet"), file=sys.stderr)
             return
         k8s = K8s()
