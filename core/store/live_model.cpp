@@ -20,17 +20,27 @@ namespace fs = std::filesystem;
 
 namespace vsm::core {
 
-ModelSnapshot::~ModelSnapshot() {
-  if (onRelease) {
+ModelSnapshot::~ModelSnapshot() = default;
+
+namespace {
+
+/// Runs a function when the last owner lets go; a failure is logged.
+class RunOnRelease {
+ public:
+  explicit RunOnRelease(std::function<void()> run) : run_(std::move(run)) {}
+  ~RunOnRelease() {
     try {
-      onRelease();
+      run_();
     } catch (const std::exception& e) {
       log::warn(std::string("releasing a model version: ") + e.what());
     }
   }
-}
+  RunOnRelease(const RunOnRelease&) = delete;
+  RunOnRelease& operator=(const RunOnRelease&) = delete;
 
-namespace {
+ private:
+  std::function<void()> run_;
+};
 
 /// Folder of a patch version written by an edit: never the name of an imported patch, so a crash
 /// leftover is recognisable (and removable) by its name alone.
@@ -159,7 +169,7 @@ class LiveModel::Store final : public PatchStore {
 std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name, PatchCache& cache,
                                            Access access, std::uint64_t texturePixels) {
   if (access == Access::Read) {
-    return load(dir, std::move(name), cache, nullptr, false, 1, texturePixels);
+    return load(dir, std::move(name), cache, nullptr, false, texturePixels);
   }
   patchesDirOf(dir);  // NotFound for a directory without an OPC, before anything is created
   std::shared_ptr<const durable::WriterLock> lock;
@@ -170,23 +180,20 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
     if (access != Access::WriteIfPossible || (e.code() != ErrorCode::Conflict && !unwritable)) {
       throw;
     }
-    auto model = load(dir, std::move(name), cache, nullptr, false, 1, texturePixels);
+    auto model = load(dir, std::move(name), cache, nullptr, false, texturePixels);
     model->readOnlyReason_ = e.what();
     return model;
   }
-  return load(dir, std::move(name), cache, std::move(lock), true, 1, texturePixels);
+  return load(dir, std::move(name), cache, std::move(lock), true, texturePixels);
 }
 
 std::unique_ptr<LiveModel> LiveModel::reopen() const {
-  // A version number of its own, so that nothing cached for this opening's versions is taken for
-  // the new one's.
-  return load(dir_, name_, store_->cache(), lock_, false, snapshot()->version + 1, texturePixels());
+  return load(dir_, name_, store_->cache(), lock_, false, texturePixels());
 }
 
 std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name, PatchCache& cache,
                                            std::shared_ptr<const durable::WriterLock> lock,
-                                           bool sweep, std::uint64_t version,
-                                           std::uint64_t texturePixels) {
+                                           bool sweep, std::uint64_t texturePixels) {
   // Stamped before reading: a publish during the read leaves a stamp that differs from the file's.
   const std::optional<HierarchyStamp> stamp = hierarchyStamp(dir);
   auto model = std::make_shared<Model>(readOpcModel(dir));
@@ -244,8 +251,13 @@ std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name
     store->add(info);
   }
   auto snapshot = std::make_shared<ModelSnapshot>();
+  // The published version is the newest patch version: every publish gives the patches it changes
+  // version (published + 1), so every process reading the directory, and every opening after a
+  // restart, names the same content by the same version.
+  for (const auto& [key, info] : model->patches()) {
+    snapshot->version = std::max(snapshot->version, info.version);
+  }
   snapshot->model = std::move(model);
-  snapshot->version = version;
   auto live = std::unique_ptr<LiveModel>(
       new LiveModel(dir, std::move(name), std::move(store), std::move(snapshot), std::move(lock)));
   live->readStamp_ = stamp;
@@ -342,8 +354,9 @@ ModelEdit::~ModelEdit() {
 }
 
 ObjectId ModelEdit::draftId(const PatchKey& key) const {
-  const PatchInfo* published = base_->model->find(key);
-  return {key, published != nullptr ? published->version + 1 : 1, MemoryCategory::Positions};
+  // The version this edit publishes: above every patch version on disk (the published version is
+  // their maximum), so a draft's folder never names a published one.
+  return {key, base_->version + 1, MemoryCategory::Positions};
 }
 
 PatchCache::Pin ModelEdit::positions(const PatchKey& key) {
@@ -485,8 +498,10 @@ void ModelEdit::publish(const CancelToken* cancel) {
   auto snapshot = std::make_shared<ModelSnapshot>();
   snapshot->model = std::move(next);
   snapshot->version = base_->version + 1;
-  // The folders only the old version used go when its last reader does; a removal that fails
-  // leaves an orphan the next open removes.
+  // The folders only the old version used go when neither it nor the new version is read any
+  // more: kept one publish longer than this process needs them, because other processes reading
+  // the directory (replicas, which follow a publish within a second) may still read the old
+  // version. A removal that fails leaves an orphan the next open removes.
   std::vector<std::pair<PatchKey, PatchInfo>> obsolete;
   for (const PatchKey& key : changed_) {
     if (const PatchInfo* old = base_->model->find(key)) {
@@ -518,7 +533,9 @@ void ModelEdit::publish(const CancelToken* cancel) {
   published_ = true;
   {
     std::lock_guard lock(live_.mutex_);
-    live_.snapshot_->onRelease = std::move(release);
+    auto removal = std::make_shared<const RunOnRelease>(std::move(release));
+    live_.snapshot_->heldRemovals.push_back(removal);
+    snapshot->heldRemovals.push_back(std::move(removal));
     live_.snapshot_ = std::move(snapshot);
   }
   // What others derived from the replaced versions goes now (see LiveModel::onPublish).

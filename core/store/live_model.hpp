@@ -28,10 +28,12 @@ namespace vsm::core {
 /// version however long they take.
 struct ModelSnapshot {
   std::shared_ptr<const Model> model;
-  /// Increases with every publish.
+  /// Increases with every publish: the newest version of any of its patches (at least 1), so it is
+  /// the same in every process that reads the directory and after a restart.
   std::uint64_t version = 1;
-  /// Runs when the last holder lets go (removes the folders only this version used).
-  std::function<void()> onRelease;
+  /// Removals of folders that a publish replaced, held back while this version is read (each
+  /// runs when the last version holding it is released; see ModelEdit::publish).
+  std::vector<std::shared_ptr<const void>> heldRemovals;
 
   ModelSnapshot() = default;
   ModelSnapshot(const ModelSnapshot&) = delete;
@@ -129,8 +131,7 @@ class LiveModel {
   static std::unique_ptr<LiveModel> load(const std::filesystem::path& dir, std::string name,
                                          PatchCache& cache,
                                          std::shared_ptr<const durable::WriterLock> lock,
-                                         bool sweep, std::uint64_t version,
-                                         std::uint64_t texturePixels);
+                                         bool sweep, std::uint64_t texturePixels);
 
   std::filesystem::path dir_;
   std::string name_;
