@@ -63,12 +63,21 @@ class Client:
             headers["Content-Type"] = "application/json"
         if self.token and method not in ("GET", "HEAD"):
             headers["Authorization"] = "Bearer " + self.token
-        req = urllib.request.Request(self.url + path, data=data, method=method, headers=headers)
-        try:
-            with self.opener.open(req, timeout=self.timeout) as r:
-                response = Response(r.status, r.headers, r.read())
-        except urllib.error.HTTPError as e:  # 3xx (304), 4xx and 5xx land here
-            response = Response(e.code, e.headers, e.read())
+        url = self.url + path
+        # In a cluster, a node that does not write the model answers a write with 307 naming the
+        # node that does: the same request, body and all, goes there (urllib follows 307 only for
+        # GET). A few hops at most.
+        for _ in range(4):
+            req = urllib.request.Request(url, data=data, method=method, headers=headers)
+            try:
+                with self.opener.open(req, timeout=self.timeout) as r:
+                    response = Response(r.status, r.headers, r.read())
+            except urllib.error.HTTPError as e:  # 3xx (304, 307), 4xx and 5xx land here
+                response = Response(e.code, e.headers, e.read())
+            location = response.headers.get("Location") if response.headers else None
+            if response.status not in (307, 308) or not location or response.status in ok:
+                break
+            url = urllib.parse.urljoin(url, location)
         if response.status not in ok:
             try:
                 error = response.json()["error"]

@@ -22,6 +22,7 @@
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
 #include "core/tiles/lod_cut.hpp"
+#include "server/cluster/coordinator.hpp"
 #include "server/jobs/job_registry.hpp"
 #include "server/jobs/model_jobs.hpp"
 #include "server/models/encoded_cache.hpp"
@@ -132,6 +133,9 @@ http::Response postModel(const ModelContext& c, const http::Request& request) {
   const ModelRequest body = parseModelRequest(request);
   const std::string& id = body.id;
   models::checkModelId(id);
+  if (auto redirect = redirectToWriter(c, id, request)) {
+    return std::move(*redirect);
+  }
   if (body.path) {
     const fs::path dir = models::resolveInside(c.models.dataRoot(), *body.path);
     std::error_code ec;
@@ -163,6 +167,11 @@ http::Response getModel(const ModelContext& c, const http::Request& request) {
 }
 
 http::Response deleteModel(const ModelContext& c, const http::Request& request) {
+  if (c.cluster != nullptr) {
+    throw Error(ErrorCode::Conflict,
+                "in a cluster every node serves every model of the data root: to retire a model, "
+                "move its directory out of the data root");
+  }
   c.models.close(request.param("m"));
   http::Response response;
   response.status = 204;
@@ -544,6 +553,27 @@ std::string matrixText(const core::Mat4d& m) {
 }
 
 // ---- routes ----------------------------------------------------------------------------------
+
+std::optional<http::Response> redirectToWriter(const ModelContext& context, const std::string& id,
+                                               const http::Request& request) {
+  if (context.cluster == nullptr) {
+    return std::nullopt;
+  }
+  const std::optional<std::string> writer = context.cluster->writerElsewhere(id);
+  if (!writer) {
+    return std::nullopt;
+  }
+  return temporaryRedirect(*writer + request.target,
+                           "model '" + id + "' is written by another node");
+}
+
+http::Response temporaryRedirect(const std::string& location, std::string_view why) {
+  http::Response response = http::errorResponse(
+      307, "temporary_redirect", std::string(why) + ": repeat the request at " + location);
+  response.set("Location", location);
+  response.set("Cache-Control", std::string(http::cache_control::kNoStore));
+  return response;
+}
 
 void addModelRoutes(http::Router& router, ModelContext context) {
   const auto bind = [context](

@@ -1,6 +1,7 @@
 #pragma once
 
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -26,6 +27,9 @@ class ModelRegistry;
 namespace vsm::server::jobs {
 class JobRegistry;
 }
+namespace vsm::server::cluster {
+class Coordinator;
+}
 
 namespace vsm::server::api {
 
@@ -33,7 +37,18 @@ namespace vsm::server::api {
 struct ModelContext {
   models::ModelRegistry& models;
   jobs::JobRegistry& jobs;
+  /// In a cluster: who writes which model. Null for a daemon alone.
+  cluster::Coordinator* cluster = nullptr;
 };
+
+/// In a cluster, a write to model `id` that another node must do: 307 to the same target on that
+/// node (the client repeats the request there, body and all), naming it. nullopt when this node
+/// writes `id` or works alone. Throws core::Error(Unavailable) when no writer can be named.
+std::optional<http::Response> redirectToWriter(const ModelContext& context, const std::string& id,
+                                               const http::Request& request);
+
+/// 307 to `location`, with an error body (code "temporary_redirect") saying `why`.
+http::Response temporaryRedirect(const std::string& location, std::string_view why);
 
 /// GET/POST /v1/models, GET/DELETE /v1/models/{m}, GET /v1/models/{m}/hierarchy,
 /// /v1/models/{m}/patches/{p}, /v1/models/{m}/patches/{p}/positions, .../coordinates,

@@ -19,6 +19,7 @@
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/api/tiles_routes.hpp"
+#include "server/cluster/coordinator.hpp"
 #include "server/exec/work_pool.hpp"
 #include "server/http/pipeline.hpp"
 #include "server/http/router.hpp"
@@ -74,6 +75,28 @@ std::size_t raiseDescriptorLimit() {
 
 bool isLoopback(const std::string& host) {
   return host == "localhost" || host == "::1" || host.starts_with("127.");
+}
+
+std::string hostName() {
+  char name[256] = {};
+  if (::gethostname(name, sizeof name - 1) != 0 || name[0] == '\0') {
+    return "localhost";
+  }
+  return name;
+}
+
+/// The name of this node in a cluster: cluster.node, or the host name made a valid node name.
+std::string nodeName(const ClusterConfig& cluster) {
+  if (!cluster.node.empty()) {
+    return cluster.node;
+  }
+  std::string name = hostName().substr(0, 32);
+  for (char& c : name) {
+    if (!isNodeName(std::string_view(&c, 1))) {
+      c = '-';
+    }
+  }
+  return name;
 }
 
 }  // namespace
@@ -140,17 +163,37 @@ Application::Application(Config config) : config_(std::move(config)) {
   jobPool_ = std::make_unique<exec::WorkPool>("jobs", config_.threads.jobs);
   models_ = std::make_unique<models::ModelRegistry>(config_.dataRoot, *cache_,
                                                     config_.limits.texturePixels);
+  // Jobs live in memory only: after a restart none is listed, and a merge that had not published
+  // left its model at the last published version (drafts are removed when the model opens).
+  jobs::JobLimits jobLimits;
+  if (!config_.cluster.coordinator.empty()) {
+    cluster::Coordinator::Options options;
+    options.coordinator = config_.cluster.coordinator;
+    options.node = nodeName(config_.cluster);
+    options.advertise = config_.cluster.advertise;
+    options.leaseTtl = config_.cluster.leaseTtl;
+    jobLimits.node = options.node;
+    cluster::Coordinator::Node node;
+    node.models = [this] { return models_->ids(); };
+    node.setWriter = [this](const std::string& id, bool writer) {
+      return models_->setWriter(id, writer);
+    };
+    node.lostLease = [this] { jobs_->cancelAll(/*refuseNew=*/false); };
+    coordinator_ = std::make_unique<cluster::Coordinator>(std::move(options), std::move(node));
+    // Every model is read only until this node is elected to write it (Coordinator::start).
+    models_->electWriters([this](std::string_view id) { return coordinator_->writes(id); });
+    log::info("cluster: node " + coordinator_->node() + ", coordinator " +
+              config_.cluster.coordinator);
+  }
   const std::size_t opened = models_->openAll();
   log::info("data root " + models_->dataRoot().string() + ": " + std::to_string(opened) +
             " model(s) open");
-  // Jobs live in memory only: after a restart none is listed, and a merge that had not published
-  // left its model at the last published version (drafts are removed when the model opens).
-  jobs_ = std::make_unique<jobs::JobRegistry>(*jobPool_);
+  jobs_ = std::make_unique<jobs::JobRegistry>(*jobPool_, jobLimits);
 
   router_ = std::make_unique<http::Router>();
   api::addSystemRoutes(*router_, {*cache_, *metrics_, [this] { return ready(); }});
-  api::addModelRoutes(*router_, {*models_, *jobs_});
-  api::addJobRoutes(*router_, {*models_, *jobs_});
+  api::addModelRoutes(*router_, {*models_, *jobs_, coordinator_.get()});
+  api::addJobRoutes(*router_, {*models_, *jobs_, coordinator_.get()});
   api::addTilesRoutes(*router_, *models_);
   if (!config_.viewerDir.empty()) {
     api::addStaticRoutes(*router_, "/viewer", config_.viewerDir);
@@ -171,6 +214,7 @@ Application::Application(Config config) : config_(std::move(config)) {
   options.maxConnections = descriptors.connections;
   options.maxPerClient = config_.limits.connectionsPerClient;
   options.maxPipelined = config_.limits.pipelinedResponses;
+  options.node = coordinator_ != nullptr ? coordinator_->node() : std::string();
   server_ = std::make_unique<http::Server>(options, *pipeline_, *cpuPool_, *metrics_);
 
   // Collectors run only while the server answers /metrics, i.e. while every component they read
@@ -238,6 +282,15 @@ void Application::start() {
   }
   server_->start();
   log::info("listening on " + server_->address());
+  if (coordinator_ != nullptr) {
+    std::string advertise = config_.cluster.advertise;
+    if (advertise.empty()) {
+      const bool any = config_.listen.host == "0.0.0.0" || config_.listen.host == "::";
+      advertise = "http://" +
+                  (any ? hostName() + ":" + std::to_string(server_->port()) : server_->address());
+    }
+    coordinator_->start(advertise);
+  }
   if (!config_.portFile.empty()) {
     writePortFile(config_.portFile, server_->port());
   }
@@ -262,6 +315,9 @@ void Application::run() {
       if (stopRequested_.wait_for(lock, kFollowEvery, [this] { return stopCalls_ > 0; })) {
         break;
       }
+    }
+    if (coordinator_ != nullptr) {
+      models_->openAll();  // models other nodes imported
     }
     models_->follow();
   }
@@ -306,6 +362,9 @@ void Application::shutdown() {
   // it must outlive them, so the pools are drained before any component is destroyed.
   cpuPool_->join();
   jobPool_->join();
+  if (coordinator_ != nullptr) {
+    coordinator_->stop();  // the lease goes: the other nodes take this node's models over
+  }
   if (wasStarted && !config_.portFile.empty()) {
     std::error_code ignored;
     fs::remove(config_.portFile, ignored);

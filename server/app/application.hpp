@@ -33,6 +33,9 @@ class ModelRegistry;
 namespace jobs {
 class JobRegistry;
 }
+namespace cluster {
+class Coordinator;
+}
 
 /// How the descriptors of the process are shared out.
 struct DescriptorPlan {
@@ -68,9 +71,10 @@ class Application {
   Application(const Application&) = delete;
   Application& operator=(const Application&) = delete;
 
-  /// Binds and starts serving; logs "listening on HOST:PORT" and writes the port file. Returns
-  /// once connections are accepted. Throws core::Error(Unavailable) when the address cannot be
-  /// bound, core::Error(Io) when the port file cannot be written.
+  /// Binds and starts serving; in a cluster, joins it (Coordinator::start); logs "listening on
+  /// HOST:PORT" and writes the port file. Returns once connections are accepted. Throws
+  /// core::Error(Unavailable) when the address cannot be bound, core::Error(Io) when the port
+  /// file cannot be written.
   void start();
 
   /// start() unless started, then blocks until stop() is called, then shuts down gracefully:
@@ -102,6 +106,8 @@ class Application {
   std::unique_ptr<exec::WorkPool> jobPool_;
   std::unique_ptr<models::ModelRegistry> models_;
   std::unique_ptr<jobs::JobRegistry> jobs_;
+  /// Null unless cluster.coordinator is set.
+  std::unique_ptr<cluster::Coordinator> coordinator_;
   std::unique_ptr<http::Router> router_;
   std::unique_ptr<http::Pipeline> pipeline_;
   std::unique_ptr<http::Server> server_;

@@ -1,6 +1,7 @@
 #include "server/config/config.hpp"
 
 #include <algorithm>
+#include <cctype>
 #include <cerrno>
 #include <charconv>
 #include <cmath>
@@ -276,6 +277,28 @@ const Key kKeys[] = {
     {"threads.jobs",
      [](Config& c, std::string_view k, const json& v) { c.threads.jobs = countOf(k, v); },
      [](const Config& c) { return std::to_string(c.threads.jobs); }},
+    {"cluster.coordinator",
+     [](Config& c, std::string_view k, const json& v) {
+       c.cluster.coordinator = textOf(k, v, "\"http://HOST:PORT\"");
+     },
+     [](const Config& c) {
+       return c.cluster.coordinator.empty() ? std::string("(none)") : c.cluster.coordinator;
+     }},
+    {"cluster.node",
+     [](Config& c, std::string_view k, const json& v) { c.cluster.node = textOf(k, v, "a name"); },
+     [](const Config& c) {
+       return c.cluster.node.empty() ? std::string("(host name)") : c.cluster.node;
+     }},
+    {"cluster.advertise",
+     [](Config& c, std::string_view k, const json& v) {
+       c.cluster.advertise = textOf(k, v, "\"http://HOST:PORT\"");
+     },
+     [](const Config& c) {
+       return c.cluster.advertise.empty() ? std::string("(listen address)") : c.cluster.advertise;
+     }},
+    {"cluster.lease_ttl",
+     [](Config& c, std::string_view k, const json& v) { c.cluster.leaseTtl = durationOf(k, v); },
+     [](const Config& c) { return formatDuration(c.cluster.leaseTtl); }},
 };
 
 void flatten(const json& object, const std::string& prefix, Config& config) {
@@ -322,7 +345,34 @@ bool isTokenChar(char c) {
          c == '.' || c == '_' || c == '~' || c == '+' || c == '/' || c == '=';
 }
 
+/// "http://HOST:PORT" with a non-empty host, a port, and nothing after it.
+bool isHttpUrl(std::string_view url) {
+  constexpr std::string_view kScheme = "http://";
+  if (!url.starts_with(kScheme)) {
+    return false;
+  }
+  const std::string_view rest = url.substr(kScheme.size());
+  const std::size_t colon = rest.rfind(':');
+  if (colon == std::string_view::npos || colon == 0 || colon + 1 == rest.size() ||
+      rest.size() - colon > 6) {
+    return false;
+  }
+  const auto isHostChar = [](char c) {
+    return std::isalnum(static_cast<unsigned char>(c)) != 0 || c == '.' || c == '-' || c == '[' ||
+           c == ']' || c == ':';
+  };
+  return std::all_of(rest.begin(), rest.begin() + static_cast<std::ptrdiff_t>(colon), isHostChar) &&
+         std::all_of(rest.begin() + static_cast<std::ptrdiff_t>(colon) + 1, rest.end(),
+                     [](char c) { return c >= '0' && c <= '9'; });
+}
+
 }  // namespace
+
+bool isNodeName(std::string_view name) {
+  return !name.empty() && name.size() <= 32 && std::all_of(name.begin(), name.end(), [](char c) {
+    return std::isalnum(static_cast<unsigned char>(c)) != 0 || c == '_' || c == '-';
+  });
+}
 
 std::string ListenAddress::toString() const {
   const bool v6 = host.find(':') != std::string::npos;
@@ -464,6 +514,16 @@ void Config::validate() const {
   checkCount("threads.io", threads.io, 1, 256);
   checkCount("threads.cpu", threads.cpu, 0, 1024);
   checkCount("threads.jobs", threads.jobs, 1, 256);
+  if (!cluster.coordinator.empty() && !isHttpUrl(cluster.coordinator)) {
+    outOfRange("cluster.coordinator", "http://HOST:PORT", cluster.coordinator);
+  }
+  if (!cluster.advertise.empty() && !isHttpUrl(cluster.advertise)) {
+    outOfRange("cluster.advertise", "http://HOST:PORT", cluster.advertise);
+  }
+  if (!cluster.node.empty() && !isNodeName(cluster.node)) {
+    outOfRange("cluster.node", "1 to 32 of A-Z a-z 0-9 _ -", cluster.node);
+  }
+  checkDuration("cluster.lease_ttl", cluster.leaseTtl, 2s, 5min);
 }
 
 std::vector<std::pair<std::string, std::string>> Config::describe() const {
@@ -553,6 +613,10 @@ std::string_view commandLineUsage() {
          "  --port-file PATH       write the bound port there once listening\n"
          "  --log-level LEVEL      debug, info, warn, error or off (default info)\n"
          "  --viewer-dir DIR       serve the browser viewer's files from DIR at /viewer/\n"
+         "  --coordinator URL      join a cluster: etcd's client URL (http://HOST:PORT); every\n"
+         "                         node serves every model, one elected node writes each\n"
+         "  --node NAME            this node's name in the cluster (default: the host name)\n"
+         "  --advertise URL        how other nodes reach this one (default http://LISTEN)\n"
          "  --set KEY=VALUE        any configuration key, e.g. --set limits.body_bytes=4MiB\n"
          "  --help, --version\n"
          "\n"
@@ -562,7 +626,8 @@ std::string_view commandLineUsage() {
          "  limits.body_bytes, limits.header_bytes, limits.header_timeout, limits.read_timeout,\n"
          "  limits.idle_timeout, limits.write_timeout, limits.connections,\n"
          "  limits.connections_per_client, limits.pipelined_responses, limits.texture_pixels,\n"
-         "  limits.shutdown_grace, threads.io, threads.cpu (0 = one per core), threads.jobs\n"
+         "  limits.shutdown_grace, threads.io, threads.cpu (0 = one per core), threads.jobs,\n"
+         "  cluster.coordinator, cluster.node, cluster.advertise, cluster.lease_ttl (10s)\n"
          "sizes: bytes or 512KiB, 64MiB, 4GiB, 1GB ...; durations: seconds or 250ms, 30s, 5m\n";
 }
 
@@ -576,6 +641,9 @@ CommandLine parseCommandLine(const std::vector<std::string>& args) {
       {"--port-file", "port_file"},
       {"--log-level", "log_level"},
       {"--viewer-dir", "viewer_dir"},
+      {"--coordinator", "cluster.coordinator"},
+      {"--node", "cluster.node"},
+      {"--advertise", "cluster.advertise"},
       {"--config", ""},
       {"--set", ""},
   };

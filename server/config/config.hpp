@@ -71,6 +71,21 @@ struct ThreadCounts {
   std::size_t jobs = 2;
 };
 
+/// Membership of a cluster of nodes serving one shared data root (see server/cluster/). Without a
+/// coordinator the daemon works alone.
+struct ClusterConfig {
+  /// etcd's client URL, "http://HOST:PORT" (its v3 JSON API); empty = no cluster.
+  std::string coordinator;
+  /// This node's name, unique in the cluster: 1 to 32 of [A-Za-z0-9_-]. Defaults to the host name.
+  std::string node;
+  /// The URL other nodes and the front reach this node by ("http://HOST:PORT", no path); redirects
+  /// to the writer of a model name it. Defaults to http://<listen address>.
+  std::string advertise;
+  /// The etcd lease of the node's writer roles: when the node stops renewing it, another node
+  /// takes its models over after this long.
+  std::chrono::milliseconds leaseTtl{10'000};
+};
+
 /// The daemon's configuration: defaults here, then a JSON file (--config), then command-line
 /// flags, each overriding the one before. Keys are dotted paths ("limits.body_bytes"); in a file
 /// they may be written nested ({"limits": {"body_bytes": "1MiB"}}) or dotted.
@@ -99,6 +114,7 @@ struct Config {
   core::log::Level logLevel = core::log::Level::Info;
   Limits limits;
   ThreadCounts threads;
+  ClusterConfig cluster;
 
   /// Sets one key from a JSON value (a string is accepted wherever a number is, "--set" style).
   /// Throws core::Error(InvalidArgument) naming the key on an unknown key or a bad value.
@@ -132,6 +148,9 @@ struct CommandLine {
   bool help = false;
   bool version = false;
 };
+
+/// True for a valid cluster node name: 1 to 32 of [A-Za-z0-9_-].
+bool isNodeName(std::string_view name);
 
 /// Usage text for --help.
 std::string_view commandLineUsage();

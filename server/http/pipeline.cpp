@@ -215,7 +215,7 @@ void Pipeline::finish(Response& response, std::string_view requestId) {
   response.set("Access-Control-Allow-Origin", "*");
   response.set("Access-Control-Expose-Headers",
                "ETag, Location, Retry-After, X-Request-Id, X-VSM-Local2Global, X-VSM-Grid-Size, "
-               "X-VSM-Model-Version, X-VSM-Patch-Version");
+               "X-VSM-Model-Version, X-VSM-Patch-Version, X-VSM-Node");
   response.set("X-Request-Id", std::string(requestId));
   if (response.header("Cache-Control") == nullptr) {
     response.set("Cache-Control", std::string(cache_control::kNoStore));

@@ -709,6 +709,9 @@ class Connection : public std::enable_shared_from_this<Connection> {
     message->version(slot.version == 10 ? 10 : 11);
     message->result(static_cast<unsigned>(r.status));
     message->set(bhttp::field::server, "vsmd");
+    if (!server_.options.node.empty()) {
+      message->set("X-VSM-Node", server_.options.node);
+    }
     if (!r.contentType.empty()) {
       message->set(bhttp::field::content_type, r.contentType);
     }

@@ -35,6 +35,8 @@ struct ServerOptions {
   /// those over maxConnections.
   std::size_t maxPerClient = 256;
   std::size_t maxPipelined = 8;
+  /// In a cluster, this node's name: every response then carries "X-VSM-Node: <node>".
+  std::string node;
 };
 
 /// The HTTP/1.1 server (Boost.Beast, kept out of this header): an acceptor, one strand per

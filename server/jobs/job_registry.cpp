@@ -139,7 +139,7 @@ JobStatus JobRegistry::submit(std::string type, json params, JobContext::Plan pl
     }
     char id[24];
     std::snprintf(id, sizeof id, "%08x%08llx", idPrefix_, static_cast<unsigned long long>(++next_));
-    job->status.id = id;
+    job->status.id = limits_.node.empty() ? std::string(id) : limits_.node + "-" + id;
     jobs_.emplace(job->status.id, job);
     order_.push_back(job->status.id);
     out = job->status;
@@ -284,11 +284,11 @@ JobStatus JobRegistry::cancel(std::string_view id) {
   return out;
 }
 
-void JobRegistry::cancelAll() {
+void JobRegistry::cancelAll(bool refuseNew) {
   std::vector<std::string> ids;
   {
     const std::lock_guard lock(mutex_);
-    closed_ = true;
+    closed_ = closed_ || refuseNew;
     for (const auto& [id, job] : jobs_) {
       if (!isFinal(job->status.state)) {
         ids.push_back(id);

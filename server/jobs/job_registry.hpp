@@ -93,6 +93,9 @@ struct JobLimits {
   std::size_t active = 16;
   /// Finished jobs remembered (oldest forgotten first).
   std::size_t finished = 100;
+  /// In a cluster, the node's name: job ids are then "<node>-<hex>", so that any node can tell
+  /// whose job an id names.
+  std::string node;
 };
 
 /// Every job of this process: queued, running, and the last finished ones. Jobs run on a WorkPool
@@ -120,8 +123,9 @@ class JobRegistry {
   /// Asks a job to stop: a queued one is cancelled at once, a running one at its next check.
   /// Returns its status afterwards. Throws core::Error(NotFound), Conflict when it has finished.
   JobStatus cancel(std::string_view id);
-  /// Cancels everything queued or running and refuses new jobs (shutdown).
-  void cancelAll();
+  /// Cancels everything queued or running; with `refuseNew`, refuses new jobs from now on
+  /// (shutdown). Without it (a cluster node that lost its lease), new jobs are still taken.
+  void cancelAll(bool refuseNew = true);
   /// Jobs per state, for metrics.
   std::map<JobState, std::size_t> counts() const;
 

@@ -147,6 +147,15 @@ std::size_t ModelRegistry::openAll() {
   std::size_t opened = 0;
   for (const fs::path& dir : dirs) {
     const std::string id = dir.filename().string();
+    if (find(id) != nullptr) {
+      continue;
+    }
+    // Skipped before and unchanged since: skipped again without a word.
+    const std::optional<core::HierarchyStamp> stamp = core::hierarchyStamp(dir);
+    if (const auto it = skipped_.find(id); it != skipped_.end() && it->second == stamp) {
+      continue;
+    }
+    skipped_[id] = stamp;
     if (!isValidModelId(id)) {
       log::info("data root: skipping '" + id + "' (not a model id)");
       continue;
@@ -159,11 +168,12 @@ std::size_t ModelRegistry::openAll() {
     }
     try {
       open(id, resolved);
+      skipped_.erase(id);
       ++opened;
     } catch (const Error& e) {
       if (e.code() == ErrorCode::NotFound) {
         log::info("data root: skipping '" + id + "' (no OPC hierarchy)");
-      } else {
+      } else if (e.code() != ErrorCode::Conflict) {  // Conflict: opened or imported meanwhile
         log::warn("model=" + id + " skipped: cannot open: " + e.what());
       }
     } catch (const std::exception& e) {
@@ -171,6 +181,63 @@ std::size_t ModelRegistry::openAll() {
     }
   }
   return opened;
+}
+
+void ModelRegistry::electWriters(std::function<bool(std::string_view id)> writes) {
+  writes_ = std::move(writes);
+}
+
+bool ModelRegistry::setWriter(std::string_view id, bool writer) {
+  const std::shared_ptr<core::LiveModel> old = find(id);
+  if (old == nullptr) {
+    return false;
+  }
+  if (old->writable() == writer) {
+    return true;
+  }
+  const std::string name(id);
+  Served fresh;
+  try {
+    fresh.live = core::LiveModel::open(
+        old->dir(), name, cache_,
+        writer ? core::LiveModel::Access::Write : core::LiveModel::Access::Read, texturePixels_);
+    fresh.encoded = EncodedCache::create(cache_, *fresh.live);
+  } catch (const std::exception& e) {
+    bool first = false;
+    {
+      const std::lock_guard lock(mutex_);
+      first = roleFailed_.insert(name).second;
+    }
+    if (first) {
+      log::warn("model=" + name + " cannot be opened for " + (writer ? "writing" : "reading") +
+                " (tried again every second): " + e.what());
+    }
+    return false;
+  }
+  const std::uint64_t version = fresh.live->snapshot()->version;
+  Served replaced;
+  {
+    const std::lock_guard lock(mutex_);
+    const auto it = models_.find(id);
+    if (it == models_.end() || it->second.live != old) {
+      return false;  // closed or replaced meanwhile; asked again
+    }
+    replaced = std::exchange(it->second, std::move(fresh));
+    roleFailed_.erase(name);
+  }
+  log::info("model=" + name + (writer ? " is written by this process now" : " is only read now") +
+            " (version " + std::to_string(version) + ")");
+  return true;
+}
+
+std::vector<std::string> ModelRegistry::ids() const {
+  const std::lock_guard lock(mutex_);
+  std::vector<std::string> out;
+  out.reserve(models_.size());
+  for (const auto& [id, served] : models_) {
+    out.push_back(id);
+  }
+  return out;
 }
 
 std::shared_ptr<core::LiveModel> ModelRegistry::open(const std::string& id, const fs::path& dir) {
@@ -211,9 +278,12 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
   std::shared_ptr<core::LiveModel> model;
   std::shared_ptr<EncodedCache> encoded;
   try {
-    model = core::LiveModel::open(canonical, id, cache_, core::LiveModel::Access::WriteIfPossible,
-                                  texturePixels_);
-    if (!model->writable()) {
+    const bool elected = !writes_ || writes_(id);
+    model = core::LiveModel::open(
+        canonical, id, cache_,
+        elected ? core::LiveModel::Access::WriteIfPossible : core::LiveModel::Access::Read,
+        texturePixels_);
+    if (elected && !model->writable()) {
       log::warn("model=" + id + " opened for reading only: " + model->readOnlyReason());
     }
     encoded = EncodedCache::create(cache_, *model);

@@ -4,6 +4,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -13,6 +14,7 @@
 #include <string_view>
 #include <vector>
 
+#include "core/opc/opc_reader.hpp"
 #include "core/opc/texture_file.hpp"
 
 namespace vsm::core {
@@ -65,10 +67,25 @@ class ModelRegistry {
   /// The one patch cache of every model.
   core::PatchCache& cache() const { return cache_; }
 
-  /// Opens every directory directly under the data root whose name is a valid id and that holds
-  /// an OPC (metadata only). A directory that fails to open is logged and skipped. Returns the
-  /// number opened.
+  /// Opens every directory directly under the data root whose name is a valid id, that holds an
+  /// OPC (metadata only) and that is not open yet. A directory that fails to open is logged and
+  /// skipped; called again (a cluster node discovers models other nodes imported), it tries such a
+  /// directory again, silently, only once its hierarchy file changed. Returns the number opened.
+  /// For one caller at a time.
   std::size_t openAll();
+
+  /// In a cluster: from now on a model is opened for writing only when `writes(id)` says this node
+  /// is its elected writer, and for reading otherwise; setWriter() changes it. Call before
+  /// openAll(). Without it, every model is opened for writing when its writer lock is free.
+  void electWriters(std::function<bool(std::string_view id)> writes);
+  /// Makes the open model `id` one this process writes (opened again for writing: its writer lock
+  /// taken, leftovers of interrupted writes removed) or only reads (opened again for reading, the
+  /// lock let go once the jobs holding the old opening end). Requests and jobs holding the old
+  /// opening finish on it. True when `id` is open in that role now; false when it is not open or
+  /// the opening failed (logged once per model until it succeeds).
+  bool setWriter(std::string_view id, bool writer);
+  /// The ids of the open models, in order.
+  std::vector<std::string> ids() const;
 
   /// Opens the OPC directory `dir` (inside the data root) as `id`, for writing (holding its
   /// writer lock), or for reading only when another writer holds the lock or the directory is not
@@ -158,6 +175,11 @@ class ModelRegistry {
   std::set<std::string, std::less<>> reserved_;
   /// Ids being opened right now (open() reads the disk without the lock).
   std::set<std::string, std::less<>> opening_;
+  std::function<bool(std::string_view)> writes_;  // set before any model is opened
+  /// setWriter()'s own state: models whose last change of role failed (logged once).
+  std::set<std::string, std::less<>> roleFailed_;
+  /// openAll()'s own state: directories it skipped, with their hierarchy file as it was then.
+  std::map<std::string, std::optional<core::HierarchyStamp>, std::less<>> skipped_;
   /// follow()'s own state: when a model whose reading failed is tried again.
   std::map<std::string, std::chrono::steady_clock::time_point, std::less<>> followRetry_;
 };

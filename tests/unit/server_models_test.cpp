@@ -458,7 +458,7 @@ TEST(JobRegistry, CancelStopsQueuedJobsAtOnceAndRunningOnesAtTheirNextCheck) {
 
 TEST(JobRegistry, FailuresKeepTheirCodeAndTheQueueIsBounded) {
   exec::WorkPool pool("jobs", 1);
-  jobs::JobRegistry registry(pool, {.active = 2, .finished = 1});
+  jobs::JobRegistry registry(pool, {.active = 2, .finished = 1, .node = {}});
   Gate gate;
   const auto failing = registry.submit("test", json::object(), {}, [&](jobs::JobContext&) -> json {
     gate.wait();
@@ -479,6 +479,25 @@ TEST(JobRegistry, FailuresKeepTheirCodeAndTheQueueIsBounded) {
               registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json(); });
             }),
             ErrorCode::Unavailable);
+  pool.join();
+}
+
+TEST(JobRegistry, InAClusterJobIdsNameTheNodeAndALostLeaseCancelsButStillTakesJobs) {
+  exec::WorkPool pool("jobs", 1);
+  jobs::JobRegistry registry(pool, {.active = 4, .finished = 4, .node = "n2"});
+  Gate gate;
+  const auto running = registry.submit("test", json::object(), {}, [&](jobs::JobContext& context) {
+    gate.wait();
+    context.throwIfCancelled();
+    return json::object();
+  });
+  EXPECT_TRUE(running.id.starts_with("n2-")) << running.id;
+  registry.cancelAll(/*refuseNew=*/false);
+  gate.open();
+  EXPECT_EQ(waitFinal(registry, running.id).state, jobs::JobState::Cancelled);
+  const auto next =
+      registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json::object(); });
+  EXPECT_EQ(waitFinal(registry, next.id).state, jobs::JobState::Succeeded);
   pool.join();
 }
 

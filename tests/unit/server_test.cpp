@@ -19,6 +19,7 @@
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/app/application.hpp"
+#include "server/cluster/etcd_client.hpp"
 #include "server/config/config.hpp"
 #include "server/exec/work_pool.hpp"
 #include "server/http/message.hpp"
@@ -221,6 +222,48 @@ TEST(Config, SetReachesEveryKeyFromTheCommandLine) {
   EXPECT_EQ(config.token, "t0k3n");
   EXPECT_EQ(config.portFile, "/tmp/p");
   EXPECT_EQ(config.logLevel, core::log::Level::Warn);
+}
+
+TEST(Config, TheClusterFlagsSetTheClusterKeysAndBadOnesAreRefused) {
+  const Config config =
+      parseCommandLine({"--coordinator", "http://127.0.0.1:2379", "--node", "n-1_a", "--advertise",
+                        "http://[::1]:8081", "--set", "cluster.lease_ttl=4s"})
+          .config;
+  EXPECT_EQ(config.cluster.coordinator, "http://127.0.0.1:2379");
+  EXPECT_EQ(config.cluster.node, "n-1_a");
+  EXPECT_EQ(config.cluster.advertise, "http://[::1]:8081");
+  EXPECT_EQ(config.cluster.leaseTtl, std::chrono::seconds(4));
+  EXPECT_TRUE(Config{}.cluster.coordinator.empty()) << "alone by default";
+  const std::vector<std::vector<std::string>> bad = {
+      {"--coordinator", "127.0.0.1:2379"},      {"--coordinator", "https://etcd:2379"},
+      {"--coordinator", "http://etcd:2379/v3"}, {"--coordinator", "http://:2379"},
+      {"--advertise", "http://node"},           {"--node", "n/1"},
+      {"--node", std::string(33, 'n')},         {"--set", "cluster.lease_ttl=1s"},
+  };
+  for (const auto& args : bad) {
+    const auto [code, message] = errorOf([&] { parseCommandLine(args); });
+    EXPECT_EQ(code, ErrorCode::InvalidArgument) << args[0] << " " << args[1];
+    EXPECT_NE(message.find("cluster."), std::string::npos) << message;
+  }
+}
+
+TEST(Base64, MatchesTheVectorsOfRfc4648AndRefusesJunk) {
+  const std::pair<std::string, std::string> vectors[] = {{"", ""},
+                                                         {"f", "Zg=="},
+                                                         {"fo", "Zm8="},
+                                                         {"foo", "Zm9v"},
+                                                         {"foob", "Zm9vYg=="},
+                                                         {"fooba", "Zm9vYmE="},
+                                                         {"foobar", "Zm9vYmFy"}};
+  for (const auto& [plain, encoded] : vectors) {
+    EXPECT_EQ(cluster::base64Encode(plain), encoded);
+    EXPECT_EQ(cluster::base64Decode(encoded), plain);
+  }
+  const std::string bytes{'\0', '\xff', '\x80', '/', '+'};
+  EXPECT_EQ(cluster::base64Decode(cluster::base64Encode(bytes)), bytes);
+  for (const char* junk : {"Zg=", "Z===", "Zg=a", "Zm9v!A==", "=Zm9"}) {
+    EXPECT_THROW(cluster::base64Decode(junk), core::Error) << junk;
+  }
 }
 
 TEST(Config, UnknownKeysAndBadValuesNameTheKey) {

@@ -1,0 +1,277 @@
+#include "server/cluster/coordinator.hpp"
+
+#include <algorithm>
+#include <utility>
+
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+#include "server/cluster/etcd_client.hpp"
+
+namespace vsm::server::cluster {
+
+using core::Error;
+using core::ErrorCode;
+namespace log = core::log;
+using namespace std::chrono_literals;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+std::string nodeKey(std::string_view node) {
+  return std::string(kNodesPrefix) + std::string(node);
+}
+
+std::string writerKey(std::string_view model) {
+  return std::string(kWritersPrefix) + std::string(model);
+}
+
+/// One etcd call may take this long: a quarter of the TTL, at most 2 s, so that a renewal that
+/// hangs still leaves time to give the models up before the lease expires.
+std::chrono::milliseconds callTimeout(std::chrono::milliseconds ttl) {
+  return std::min<std::chrono::milliseconds>(2s, ttl / 4);
+}
+
+}  // namespace
+
+Coordinator::Coordinator(Options options, Node node)
+    : options_(std::move(options)),
+      node_(std::move(node)),
+      tickEvery_(std::min<std::chrono::milliseconds>(1s, options_.leaseTtl / 4)) {}
+
+Coordinator::~Coordinator() {
+  stop();
+}
+
+void Coordinator::start(const std::string& advertise) {
+  if (options_.advertise.empty()) {
+    options_.advertise = advertise;
+  }
+  EtcdClient etcd(options_.coordinator, callTimeout(options_.leaseTtl));
+  try {
+    tick(etcd);
+  } catch (const std::exception& e) {
+    // Reads are served meanwhile; the thread tries again every second.
+    log::warn(std::string("cluster: cannot join yet, this node writes no model until it does: ") +
+              e.what());
+  }
+  thread_ = std::thread([this] { loop(); });
+}
+
+void Coordinator::stop() {
+  {
+    const std::lock_guard lock(mutex_);
+    stopping_ = true;
+  }
+  wake_.notify_all();
+  if (thread_.joinable()) {
+    thread_.join();
+  }
+  std::int64_t lease = 0;
+  {
+    const std::lock_guard lock(mutex_);
+    lease = std::exchange(lease_, 0);
+    writers_.clear();
+  }
+  if (lease == 0) {
+    return;
+  }
+  try {
+    EtcdClient(options_.coordinator, callTimeout(options_.leaseTtl)).revoke(lease);
+    log::info("cluster: lease revoked; the other nodes take this node's models over");
+  } catch (const std::exception& e) {
+    log::warn(std::string("cluster: cannot revoke the lease (the other nodes take over when it "
+                          "expires): ") +
+              e.what());
+  }
+}
+
+void Coordinator::loop() {
+  EtcdClient etcd(options_.coordinator, callTimeout(options_.leaseTtl));
+  bool failing = false;
+  std::unique_lock lock(mutex_);
+  while (!wake_.wait_for(lock, tickEvery_, [this] { return stopping_; })) {
+    lock.unlock();
+    try {
+      tick(etcd);
+      if (failing) {
+        log::info("cluster: etcd answers again");
+      }
+      failing = false;
+    } catch (const std::exception& e) {
+      if (!failing) {
+        log::warn(std::string("cluster: ") + e.what());
+      }
+      failing = true;
+      bool expiring = false;
+      {
+        const std::lock_guard relock(mutex_);
+        // Give the models up while the lease surely still holds: one more failed round could
+        // otherwise outlast it, and another node write meanwhile.
+        expiring = lease_ != 0 && Clock::now() - renewed_ >= options_.leaseTtl - tickEvery_ -
+                                                                 callTimeout(options_.leaseTtl);
+      }
+      if (expiring) {
+        loseLease("it could not be renewed in time");
+      }
+    }
+    lock.lock();
+  }
+}
+
+void Coordinator::tick(EtcdClient& etcd) {
+  std::int64_t lease = 0;
+  Clock::time_point renewed;
+  {
+    const std::lock_guard lock(mutex_);
+    lease = lease_;
+    renewed = renewed_;
+  }
+  const auto now = Clock::now();
+  if (lease == 0) {
+    const auto ttl = std::chrono::ceil<std::chrono::seconds>(options_.leaseTtl);
+    lease = etcd.grant(ttl);
+    etcd.put(nodeKey(options_.node), options_.advertise, lease);
+    {
+      const std::lock_guard lock(mutex_);
+      lease_ = lease;
+      renewed_ = now;
+    }
+    log::info("cluster: node " + options_.node + " (" + options_.advertise + ") joined through " +
+              options_.coordinator + " with a lease of " + std::to_string(ttl.count()) + " s");
+  } else if (now - renewed >= options_.leaseTtl / 3) {
+    if (etcd.keepAlive(lease) <= 0) {
+      loseLease("etcd says it expired");
+      return;
+    }
+    const std::lock_guard lock(mutex_);
+    renewed_ = now;
+  }
+
+  std::map<std::string, std::string, std::less<>> nodes;
+  std::map<std::string, std::string, std::less<>> writers;
+  for (KeyValue& kv : etcd.range("/vsm/")) {
+    if (kv.key.starts_with(kNodesPrefix)) {
+      nodes[kv.key.substr(kNodesPrefix.size())] = std::move(kv.value);
+    } else if (kv.key.starts_with(kWritersPrefix)) {
+      // A key of this node under an older lease is not a role: that lease is lost, and the key
+      // vanishes with it.
+      if (kv.value != options_.node || kv.lease == lease) {
+        writers[kv.key.substr(kWritersPrefix.size())] = std::move(kv.value);
+      }
+    }
+  }
+  if (!nodes.contains(options_.node)) {
+    etcd.put(nodeKey(options_.node), options_.advertise, lease);
+    nodes[options_.node] = options_.advertise;
+  }
+  const std::vector<std::string> models = node_.models();
+  for (const std::string& id : models) {
+    if (!writers.contains(id) && etcd.putIfAbsent(writerKey(id), options_.node, lease)) {
+      writers[id] = options_.node;
+      log::info("cluster: model=" + id + " is written by this node");
+    }
+  }
+  {
+    const std::lock_guard lock(mutex_);
+    if (lease_ != lease) {
+      return;  // lost meanwhile
+    }
+    nodes_ = nodes;
+    writers_ = writers;
+  }
+  for (const std::string& id : models) {
+    const auto it = writers.find(id);
+    node_.setWriter(id, it != writers.end() && it->second == options_.node);
+  }
+}
+
+void Coordinator::loseLease(std::string_view why) {
+  log::warn("cluster: node " + options_.node + " lost its lease (" + std::string(why) +
+            "): it writes no model until it joins again");
+  node_.lostLease();
+  {
+    const std::lock_guard lock(mutex_);
+    lease_ = 0;
+    writers_.clear();
+  }
+  for (const std::string& id : node_.models()) {
+    node_.setWriter(id, false);
+  }
+}
+
+std::optional<std::string> Coordinator::writerElsewhere(const std::string& id) {
+  std::int64_t lease = 0;
+  const auto urlOf = [this](const std::string& writer) -> std::optional<std::string> {
+    if (writer == options_.node) {
+      return std::nullopt;
+    }
+    const auto url = nodes_.find(writer);
+    if (url == nodes_.end()) {
+      throw Error(ErrorCode::Unavailable, "model is written by node " + writer +
+                                              ", whose URL is not known yet; retry in a second");
+    }
+    return url->second;
+  };
+  {
+    const std::lock_guard lock(mutex_);
+    if (const auto it = writers_.find(id); it != writers_.end()) {
+      return urlOf(it->second);
+    }
+    lease = lease_;
+  }
+  if (lease == 0) {
+    throw Error(ErrorCode::Unavailable, "node " + options_.node +
+                                            " holds no lease of the cluster (etcd at " +
+                                            options_.coordinator + " unreachable?); retry later");
+  }
+  EtcdClient etcd(options_.coordinator, callTimeout(options_.leaseTtl));
+  if (etcd.putIfAbsent(writerKey(id), options_.node, lease)) {
+    {
+      const std::lock_guard lock(mutex_);
+      writers_[id] = options_.node;
+    }
+    log::info("cluster: model=" + id + " is written by this node");
+    node_.setWriter(id, true);
+    return std::nullopt;
+  }
+  std::string writer;
+  for (const KeyValue& kv : etcd.range(writerKey(id))) {
+    if (kv.key == writerKey(id)) {
+      writer = kv.value;
+    }
+  }
+  if (writer.empty()) {
+    throw Error(ErrorCode::Unavailable, "model '" + id + "' changes its writer; retry in a second");
+  }
+  for (const KeyValue& kv : etcd.range(nodeKey(writer))) {
+    if (kv.key == nodeKey(writer)) {
+      const std::lock_guard lock(mutex_);
+      nodes_[writer] = kv.value;
+    }
+  }
+  const std::lock_guard lock(mutex_);
+  writers_[id] = writer;
+  return urlOf(writer);
+}
+
+bool Coordinator::writes(std::string_view id) const {
+  const std::lock_guard lock(mutex_);
+  const auto it = writers_.find(id);
+  return it != writers_.end() && it->second == options_.node;
+}
+
+std::optional<std::string> Coordinator::nodeUrl(std::string_view name) const {
+  const std::lock_guard lock(mutex_);
+  if (name == options_.node) {
+    return std::nullopt;
+  }
+  const auto it = nodes_.find(name);
+  return it == nodes_.end() ? std::nullopt : std::optional<std::string>(it->second);
+}
+
+std::map<std::string, std::string> Coordinator::writers() const {
+  const std::lock_guard lock(mutex_);
+  return {writers_.begin(), writers_.end()};
+}
+
+}  // namespace vsm::server::cluster

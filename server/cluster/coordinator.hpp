@@ -1,0 +1,108 @@
+#pragma once
+
+#include <chrono>
+#include <condition_variable>
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <mutex>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <thread>
+#include <vector>
+
+namespace vsm::server::cluster {
+
+class EtcdClient;
+
+/// Where a node is and what it writes, as etcd holds it:
+///   /vsm/nodes/<node>    = the node's advertised URL
+///   /vsm/writers/<model> = the name of the node that writes the model
+/// Both attached to the node's one lease, so when a node stops renewing it (it died, or lost etcd)
+/// its keys vanish after the lease's TTL and the other nodes take its models over.
+inline constexpr std::string_view kNodesPrefix = "/vsm/nodes/";
+inline constexpr std::string_view kWritersPrefix = "/vsm/writers/";
+
+/// A node's part in a cluster of vsmd nodes sharing one data root: every node serves every model;
+/// for each model one node, elected through etcd, writes it (runs its jobs, holds its writer
+/// lock), and the others follow its publishes from the disk.
+///
+/// A thread of its own renews the node's lease (every TTL/3), reads who writes what (every
+/// second), claims every model that has no writer, and tells the node which models it writes
+/// (Node::setWriter, called again every second for each model until it succeeds). When the lease
+/// cannot be renewed for nearly its TTL, or etcd says it expired, the node gives every model up
+/// (Node::lostLease first, so that jobs stop) before another node can claim them; it then joins
+/// again with a new lease. stop() revokes the lease, so the others take over at once.
+///
+/// Thread-safe: the queries from any thread.
+class Coordinator {
+ public:
+  struct Options {
+    std::string coordinator;  // etcd's client URL
+    std::string node;
+    std::string advertise;
+    std::chrono::milliseconds leaseTtl{10'000};
+  };
+  /// How the coordinator acts on the node. Called from the coordinator's thread, or from the thread
+  /// of a query that claims a model (writerElsewhere).
+  struct Node {
+    /// The ids of the models the node serves.
+    std::function<std::vector<std::string>()> models;
+    /// Makes the node write `id` (true) or only read it (false); false when that failed (it is
+    /// asked again a second later).
+    std::function<bool(const std::string& id, bool writer)> setWriter;
+    /// The lease is lost: stop writing (cancel jobs) before the models are given up.
+    std::function<void()> lostLease;
+  };
+
+  Coordinator(Options options, Node node);
+  /// stop().
+  ~Coordinator();
+  Coordinator(const Coordinator&) = delete;
+  Coordinator& operator=(const Coordinator&) = delete;
+
+  /// Starts the thread, after joining the cluster once (lease, node key, claims) so that the node
+  /// is known when it starts answering. `advertise` is the node's URL when Options::advertise is
+  /// empty. When etcd cannot be reached, logs it and goes on: the node serves reads, writes no
+  /// model, and the thread tries again every second.
+  void start(const std::string& advertise);
+  /// Revokes the lease (the node's models go to others at once) and ends the thread. Idempotent.
+  void stop();
+
+  const std::string& node() const { return options_.node; }
+
+  /// Where a write to model `id` must go: nullopt when this node writes it; otherwise the writer's
+  /// advertised URL. A model without a writer is claimed for this node on the spot. Throws
+  /// core::Error(Unavailable) when no node can be named (etcd unreachable, the writer's URL
+  /// unknown) or this node has no lease.
+  std::optional<std::string> writerElsewhere(const std::string& id);
+  /// True when this node is the elected writer of `id`.
+  bool writes(std::string_view id) const;
+  /// The advertised URL of node `name`: nullopt for this node and for a node not in the cluster.
+  std::optional<std::string> nodeUrl(std::string_view name) const;
+  /// The writer of every model with one, by model id.
+  std::map<std::string, std::string> writers() const;
+
+ private:
+  void loop();
+  /// One round: renew or get the lease, read the keys, claim, tell the node. Throws on etcd errors.
+  void tick(EtcdClient& etcd);
+  void loseLease(std::string_view why);
+
+  Options options_;  // advertise is set by start()
+  const Node node_;
+  std::chrono::milliseconds tickEvery_;
+
+  mutable std::mutex mutex_;  // guards the state below
+  std::condition_variable wake_;
+  bool stopping_ = false;
+  std::int64_t lease_ = 0;
+  /// When the last renewal that etcd confirmed was sent.
+  std::chrono::steady_clock::time_point renewed_;
+  std::map<std::string, std::string, std::less<>> nodes_;    // name -> URL
+  std::map<std::string, std::string, std::less<>> writers_;  // model -> node
+  std::thread thread_;
+};
+
+}  // namespace vsm::server::cluster
