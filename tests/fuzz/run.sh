@@ -14,7 +14,9 @@
 #
 # Environment: VSM_FUZZ_BUILD_DIR; VSM_FUZZ_NICE=19 runs the fuzzers at low priority;
 # VSM_FUZZ_RUNS=N also stops a target after N executions (the long run: SECONDS=3600 and
-# VSM_FUZZ_RUNS=10000000, whichever comes first).
+# VSM_FUZZ_RUNS=10000000, whichever comes first); VSM_FUZZ_TIMEOUT=S (default 10) is the wall time
+# one input may take: raise it for low-priority runs on a busy machine, where a fuzzer waiting for
+# a core looks like a slow input.
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../.." && pwd)
 HERE="$ROOT/tests/fuzz"
@@ -69,7 +71,8 @@ for target in "${TARGETS[@]}"; do
   target_start=$(date +%s)
   # -malloc_limit_mb: one allocation above 512 MiB is a bug (an unbounded size from input).
   if ! nice -n "${VSM_FUZZ_NICE:-0}" "$binary" "$work" "$HERE/corpus/$target" \
-    -max_total_time="$SECONDS_EACH" -runs="${VSM_FUZZ_RUNS:--1}" -timeout=10 \
+    -max_total_time="$SECONDS_EACH" -runs="${VSM_FUZZ_RUNS:--1}" \
+    -timeout="${VSM_FUZZ_TIMEOUT:-10}" \
     -rss_limit_mb=2048 -malloc_limit_mb=512 -max_len=65536 -print_final_stats=1 \
     -print_funcs=0 -print_pcs=0 \
     -artifact_prefix="$artifacts/" >"$log" 2>&1; then
