@@ -23,6 +23,9 @@ PACKAGES=(
   chromium
   # the consistency check of the deploy files (tests/deploy/deploy_files_test.py) parses YAML
   python3-yaml
+  # the cluster on loopback (deploy/local-cluster.sh, tests/integration/cluster_test.py): etcd for
+  # the writer leases, nginx (with SSL and HTTP/2) in front, openssl for its certificate
+  etcd-server nginx-light openssl
 )
 
 missing=()

@@ -1,0 +1,323 @@
+#!/usr/bin/python3
+"""A VSM cluster on loopback, as deploy/local-cluster.sh starts it: real etcd, three real vsmd
+nodes over one data root, real nginx in front (deploy/nginx/vsm.conf).
+
+    /usr/bin/python3 cluster_test.py --vsm <vsm> --vsmd <vsmd> --data <shared/data> --work <dir>
+                                     --repo <source tree>
+
+1. Through the front: models, hierarchy and patches answer; 50 patches' positions come from at
+   least two nodes, and each is byte for byte what every node serves directly. Over TLS the front
+   speaks HTTP/2.
+2. A merge job submitted through the front (a replica answers 307, nginx follows it to the
+   writer) succeeds, and within 2 s every node serves the new version: its number and its bytes.
+   Meanwhile 8 clients read through the front: no error, and no mixed version (one patch version
+   always has the same bytes, whichever node and whichever moment).
+3. kill -9 of a node that is not the writer: 200 reads through the front, none failed.
+4. kill -9 of the writer during a merge: another node holds the model's writer key in etcd within
+   the lease TTL + 2 s; the model is the old or the new version and validates; a new merge job
+   through the front succeeds.
+5. A second writer, `vsm merge` from the shell into the served model, is refused.
+"""
+
+import argparse
+import base64
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+import unittest
+import urllib.error
+import urllib.request
+
+ARGS = None
+LEASE_TTL = 5  # seconds; the bound checked is relative to it
+TOKEN = "cluster-test-token"
+
+
+def request(url, method="GET", body=None, timeout=30, token=TOKEN):
+    """(status, headers, body bytes); no redirect is followed."""
+    data = None if body is None else json.dumps(body).encode()
+    req = urllib.request.Request(url, data=data, method=method)
+    if body is not None:
+        req.add_header("Content-Type", "application/json")
+    if method != "GET" and token:
+        req.add_header("Authorization", "Bearer " + token)
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), NoRedirect())
+    try:
+        with opener.open(req, timeout=timeout) as response:
+            return response.status, response.headers, response.read()
+    except urllib.error.HTTPError as e:
+        return e.code, e.headers, e.read()
+
+
+class NoRedirect(urllib.request.HTTPRedirectHandler):
+    def redirect_request(self, *args, **kwargs):
+        return None
+
+
+def get_json(url):
+    status, _, body = request(url)
+    if status != 200:
+        raise AssertionError("GET %s: %d %s" % (url, status, body[:200]))
+    return json.loads(body)
+
+
+def walk_keys(node):
+    yield node["key"]
+    for child in node.get("children", []):
+        yield from walk_keys(child)
+
+
+def etcd_value(etcd, key):
+    """The value of `key` in etcd (its v3 JSON API), or None."""
+    status, _, body = request(etcd + "/v3/kv/range", "POST",
+                              {"key": base64.b64encode(key.encode()).decode()}, token=None)
+    if status != 200:
+        raise AssertionError("etcd range: %d %s" % (status, body[:200]))
+    kvs = json.loads(body).get("kvs", [])
+    return base64.b64decode(kvs[0]["value"]).decode() if kvs else None
+
+
+def read_env(path):
+    env = {}
+    with open(path) as f:
+        for line in f:
+            name, _, value = line.strip().partition("=")
+            env[name] = value
+    return env
+
+
+class Cluster(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        cls.dir = os.path.abspath(ARGS.work)
+        shutil.rmtree(cls.dir, ignore_errors=True)
+        os.makedirs(os.path.join(cls.dir, "data"))
+        cls.data = os.path.join(cls.dir, "data")
+        for name, raster in (("prism", "PRISMelevation.tif"), ("jacksboro", "jacksboro_fault_dem.tif")):
+            # Patches of 65 x 65: a few hundred patches, enough to spread.
+            subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, raster),
+                            os.path.join(cls.data, name), "--patch-size", "65"],
+                           check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        token = os.path.join(cls.dir, "token")
+        with open(token, "w") as f:
+            f.write(TOKEN + "\n")
+        os.chmod(token, 0o600)
+        cls.script = os.path.join(ARGS.repo, "deploy", "local-cluster.sh")
+        env = dict(os.environ, VSMD=ARGS.vsmd, VSM_LEASE_TTL="%ds" % LEASE_TTL,
+                   VSM_MEMORY_BUDGET="128MiB", VSM_TOKEN_FILE=token)
+        started = time.monotonic()
+        subprocess.run([cls.script, "up", cls.dir], check=True, env=env, timeout=180)
+        print("cluster up in %.1f s" % (time.monotonic() - started), flush=True)
+        cls.env = read_env(os.path.join(cls.dir, "cluster.env"))
+        cls.front = cls.env["FRONT"]
+        cls.nodes = {"n1": cls.env["N1"], "n2": cls.env["N2"], "n3": cls.env["N3"]}
+        cls.pids = {"n1": int(cls.env["PID_N1"]), "n2": int(cls.env["PID_N2"]),
+                    "n3": int(cls.env["PID_N3"])}
+        cls.killed = set()
+
+    @classmethod
+    def tearDownClass(cls):
+        subprocess.run([cls.script, "down", cls.dir], timeout=120)
+
+    # -- helpers ----------------------------------------------------------------------------
+
+    def alive(self):
+        return {n: u for n, u in self.nodes.items() if n not in self.killed}
+
+    def writer(self, model):
+        return etcd_value(self.env["ETCD"], "/vsm/writers/" + model)
+
+    def submit_merge(self, target="prism", source="jacksboro"):
+        status, headers, body = request(self.front + "/v1/jobs", "POST",
+                                        {"type": "merge", "target": target, "source": source})
+        self.assertEqual(status, 202, body[:300])
+        job = json.loads(body)
+        return job["id"], headers.get("X-VSM-Node")
+
+    def wait_job(self, job_id, timeout=120):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            status, _, body = request(self.front + "/v1/jobs/" + job_id)
+            self.assertEqual(status, 200, body[:300])
+            job = json.loads(body)
+            if job["state"] in ("succeeded", "failed", "cancelled"):
+                return job
+            time.sleep(0.1)
+        self.fail("job %s did not finish in %d s" % (job_id, timeout))
+
+    def kill(self, node):
+        os.kill(self.pids[node], signal.SIGKILL)
+        self.killed.add(node)
+
+    # -- the checks, in order ---------------------------------------------------------------
+
+    def test_1_reads_through_the_front_come_from_several_nodes_and_agree(self):
+        models = get_json(self.front + "/v1/models")
+        self.assertEqual(sorted(m["id"] for m in models["models"]), ["jacksboro", "prism"])
+        keys = []
+        for model in ("prism", "jacksboro"):
+            self.assertEqual(get_json(self.front + "/v1/models/" + model)["id"], model)
+            hierarchy = get_json(self.front + "/v1/models/%s/hierarchy" % model)
+            keys += [(model, k) for k in walk_keys(hierarchy["root"])]
+        self.assertGreaterEqual(len(keys), 50)
+        served_by = {}
+        for model, key in keys[:50]:
+            path = "/v1/models/%s/patches/%s/positions" % (model, key)
+            status, headers, body = request(self.front + path)
+            self.assertEqual(status, 200, path)
+            served_by[headers["X-VSM-Node"]] = served_by.get(headers["X-VSM-Node"], 0) + 1
+            for node, url in self.nodes.items():
+                status, direct_headers, direct = request(url + path)
+                self.assertEqual(status, 200, node + path)
+                self.assertEqual(direct_headers["X-VSM-Node"], node)
+                self.assertEqual(direct, body, "%s%s differs from the front's" % (node, path))
+        print("50 patches through the front, served by", served_by, flush=True)
+        self.assertGreaterEqual(len(served_by), 2, served_by)
+        # HTTP/2 over TLS, as browsers use it.
+        out = subprocess.run(["curl", "-sk", "--http2", "-o", "/dev/null", "-w", "%{http_version} %{http_code}",
+                              self.env["FRONT_TLS"] + "/v1/models/prism"],
+                             capture_output=True, text=True, timeout=30)
+        self.assertEqual(out.stdout, "2 200", out.stderr)
+
+    def test_2_a_merge_through_the_front_reaches_every_node_and_readers_see_no_mix(self):
+        before = get_json(self.nodes["n1"] + "/v1/models/prism")["version"]
+        keys = list(walk_keys(get_json(self.front + "/v1/models/prism/hierarchy")["root"]))
+        stop = threading.Event()
+        errors = []
+        seen = {}  # (key, patch version) -> bytes
+        lock = threading.Lock()
+        reads = [0]
+
+        def reader(index):
+            i = index
+            while not stop.is_set():
+                key = keys[i % len(keys)]
+                i += 7
+                # Every other read passes the front's cache (a query it has not seen), so that
+                # the nodes answer while the merge publishes and they follow.
+                bust = "?read=%d-%d" % (index, i) if i % 2 else ""
+                try:
+                    status, headers, body = request(
+                        self.front + "/v1/models/prism/patches/%s/positions%s" % (key, bust),
+                        timeout=10)
+                except OSError as e:
+                    errors.append("%s: %s" % (key, e))
+                    continue
+                if status != 200:
+                    errors.append("%s: %d %s" % (key, status, body[:100]))
+                    continue
+                version = (key, headers["X-VSM-Patch-Version"])
+                with lock:
+                    reads[0] += 1
+                    if seen.setdefault(version, body) != body:
+                        errors.append("patch %s version %s has two contents" % version)
+
+        threads = [threading.Thread(target=reader, args=(i,)) for i in range(8)]
+        for t in threads:
+            t.start()
+        try:
+            time.sleep(0.5)
+            job_id, node = self.submit_merge()
+            writer = self.writer("prism")
+            self.assertTrue(job_id.startswith(writer + "-"), (job_id, writer))
+            job = self.wait_job(job_id)
+            self.assertEqual(job["state"], "succeeded", job)
+            done = time.monotonic()
+            after = get_json(self.nodes[writer] + "/v1/models/prism")["version"]
+            self.assertGreater(after, before)
+            # Every node follows within 2 s: the version, and the changed patches' bytes.
+            changed = [k for k in walk_keys(get_json(self.nodes[writer] + "/v1/models/prism/hierarchy")["root"])]
+            for name, url in self.nodes.items():
+                while get_json(url + "/v1/models/prism")["version"] != after:
+                    self.assertLess(time.monotonic() - done, 2.0, name + " did not follow in 2 s")
+                    time.sleep(0.05)
+                print("%s serves version %d %.2f s after the job ended" % (name, after, time.monotonic() - done),
+                      flush=True)
+            for key in changed[-20:]:
+                path = "/v1/models/prism/patches/%s/positions" % key
+                bodies = {name: request(url + path)[2] for name, url in self.nodes.items()}
+                self.assertEqual(len(set(bodies.values())), 1, path)
+            time.sleep(0.5)
+        finally:
+            stop.set()
+            for t in threads:
+                t.join()
+        versions = {v for _, v in seen}
+        print("8 readers: %d reads during the merge, patch versions %s, %d errors"
+              % (reads[0], sorted(versions), len(errors)), flush=True)
+        self.assertEqual(errors, [])
+        self.assertIn(str(after), versions, "the readers saw the merged version too")
+        self.assertGreater(reads[0], 100)
+
+    def test_3_killing_a_replica_fails_no_read_through_the_front(self):
+        writer = self.writer("prism")
+        replica = next(n for n in sorted(self.alive()) if n != writer)
+        self.kill(replica)
+        keys = list(walk_keys(get_json(self.front + "/v1/models/prism/hierarchy")["root"]))
+        failed = []
+        for i in range(200):
+            # Model metadata is not cached by the front (no-cache): every read reaches a node.
+            path = "/v1/models/prism" if i % 2 == 0 else "/v1/models/prism/patches/%s" % keys[i % len(keys)]
+            status, headers, body = request(self.front + path, timeout=10)
+            if status != 200:
+                failed.append((path, status, body[:100]))
+            else:
+                self.assertNotEqual(headers["X-VSM-Node"], replica)
+        print("killed %s: 200 reads through the front, %d failed" % (replica, len(failed)), flush=True)
+        self.assertEqual(failed, [])
+
+    def test_4_killing_the_writer_during_a_merge_hands_the_model_over(self):
+        writer = self.writer("prism")
+        before = get_json(self.front + "/v1/models/prism")["version"]
+        job_id, _ = self.submit_merge()
+        deadline = time.monotonic() + 30
+        while get_json(self.front + "/v1/jobs/" + job_id)["state"] == "queued":
+            self.assertLess(time.monotonic(), deadline)
+            time.sleep(0.02)
+        self.kill(writer)
+        killed_at = time.monotonic()
+        while True:
+            holder = self.writer("prism")
+            if holder is not None and holder != writer:
+                break
+            self.assertLess(time.monotonic() - killed_at, LEASE_TTL + 2,
+                            "no node took prism over within the TTL + 2 s")
+            time.sleep(0.1)
+        took = time.monotonic() - killed_at
+        print("killed the writer %s during a merge: %s writes prism %.1f s later (TTL %d s)"
+              % (writer, holder, took, LEASE_TTL), flush=True)
+        # Old or new version, and valid.
+        version = get_json(self.nodes[holder] + "/v1/models/prism")["version"]
+        self.assertIn(version, (before, before + 1))
+        validate = subprocess.run([ARGS.vsm, "validate", os.path.join(self.data, "prism")],
+                                  capture_output=True, text=True, timeout=300)
+        self.assertEqual(validate.returncode, 0, validate.stdout + validate.stderr)
+        job_id, _ = self.submit_merge()
+        self.assertTrue(job_id.startswith(holder + "-"), job_id)
+        job = self.wait_job(job_id)
+        self.assertEqual(job["state"], "succeeded", job)
+
+    def test_5_a_second_writer_from_the_shell_is_refused(self):
+        out = subprocess.run([ARGS.vsm, "merge", os.path.join(self.data, "prism"),
+                              os.path.join(self.data, "jacksboro")],
+                             capture_output=True, text=True, timeout=120)
+        self.assertEqual(out.returncode, 1, out.stdout + out.stderr)
+        self.assertIn("is being written by vsmd", out.stderr)
+
+
+def main():
+    global ARGS
+    parser = argparse.ArgumentParser()
+    for name in ("--vsm", "--vsmd", "--data", "--work", "--repo"):
+        parser.add_argument(name, required=True)
+    ARGS, rest = parser.parse_known_args()
+    unittest.main(argv=[sys.argv[0]] + rest, verbosity=2)
+
+
+if __name__ == "__main__":
+    main()
