@@ -13,7 +13,8 @@
 #
 # Environment: VSMD (default build/server/vsmd, built with deploy/build.sh when missing),
 # VSM_MEMORY_BUDGET (per node, default 256MiB), VSM_LEASE_TTL (default 10s), VSM_TOKEN_FILE (a
-# token file every node uses), VSMD_ARGS (more flags for every node).
+# token file every node uses), VSMD_ARGS (more flags for every node), VSM_NODES (1 to 3 nodes,
+# default 3; the others' lines in cluster.env are empty).
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
 
@@ -134,10 +135,15 @@ up() {
   write_env
   wait_for "$etcd_url/health" 30
 
+  local count=${VSM_NODES:-3}
+  if ! [[ "$count" =~ ^[123]$ ]]; then
+    echo "local-cluster: VSM_NODES must be 1, 2 or 3 (got '$count')" >&2
+    exit 2
+  fi
   local token_args=()
   [[ -n "${VSM_TOKEN_FILE:-}" ]] && token_args=(--token-file "$VSM_TOKEN_FILE")
   local i
-  for i in 1 2 3; do
+  for ((i = 1; i <= count; i++)); do
     local port=${ports[$((i + 1))]}
     url[N$i]="http://127.0.0.1:$port"
     # shellcheck disable=SC2086
@@ -156,7 +162,7 @@ up() {
   {
     echo "upstream vsm_nodes {"
     echo "    hash \$vsm_shard consistent;"
-    for i in 1 2 3; do
+    for ((i = 1; i <= count; i++)); do
       echo "    server ${url[N$i]#http://} max_fails=1 fail_timeout=5s;"
     done
     echo "    keepalive 32;"
@@ -190,10 +196,10 @@ CONF
   pid[NGINX]=$!
   write_env
 
-  for i in 1 2 3; do wait_for "${url[N$i]}/readyz" 60; done
+  for ((i = 1; i <= count; i++)); do wait_for "${url[N$i]}/readyz" 60; done
   wait_for "http://127.0.0.1:$front_port/readyz" 30
   echo "local-cluster: up; front http://127.0.0.1:$front_port and https://127.0.0.1:$tls_port," \
-    "nodes ${url[N1]} ${url[N2]} ${url[N3]}, etcd $etcd_url ($ENV_FILE)"
+    "nodes ${url[*]}, etcd $etcd_url ($ENV_FILE)"
 }
 
 case "$COMMAND" in

@@ -14,9 +14,11 @@
   (listen and data root overridden to 127.0.0.1:0 and a temporary directory); every key is one
   `vsmd --help` lists, and vsmd does reject an unknown key (so starting is a real check).
 - Every --flag of the manifests, the unit (also its commented drop-in) and the Containerfile is
-  one `vsmd --help` lists. When vsmd has --coordinator and etcd is installed, the StatefulSet's
+  one `vsmd --help` lists. When etcd is installed, the StatefulSet's
   args and the unit's drop-in ExecStart start a node that joins a local etcd (paths made
   temporary) and publishes its --advertise URL there.
+- deploy/nginx: nginx -t accepts vsm.conf with nodes.conf; the nodes are the StatefulSet's pods
+  on the container port; client_max_body_size is vsmd's limits.body_bytes.
 - deploy/container/Containerfile runs deploy/install-deps.sh and deploy/build.sh, on Debian 12,
   as the same non-root uid as the manifests and the sysusers.d snippet.
 
@@ -42,11 +44,6 @@ import unittest
 import yaml  # Debian python3-yaml (deploy/install-deps.sh)
 
 ARGS = None
-
-# The flags of issue 13 (several nodes) that the lead adds to vsmd in parallel with these files.
-# Accepted while `vsmd --help` does not list them yet; once it lists --coordinator, every flag
-# must be in --help like the others.
-PENDING_CLUSTER_FLAGS = {"--coordinator", "--advertise", "--node"}
 
 # The memory limit must exceed memory_budget by this factor: the budget counts patch data and
 # encoded responses, not connection buffers, thread stacks, imports' GDAL/PCL memory or allocator
@@ -639,11 +636,8 @@ class ConfigAndFlags(unittest.TestCase):
             m = re.search(r"^%s\s+(\[.*\])\s*$" % directive, container, re.M)
             if m:
                 used["Containerfile " + directive] = flags_of(json.loads(m.group(1)))
-        # Once vsmd has cluster support (--help lists --coordinator), all three must be listed.
-        accepted = self.flags if "--coordinator" in self.flags else (
-            self.flags | PENDING_CLUSTER_FLAGS)
         for where, flags in used.items():
-            self.assertEqual(flags - accepted, set(), "%s: flags vsmd --help does not list"
+            self.assertEqual(flags - self.flags, set(), "%s: flags vsmd --help does not list"
                              % where)
         self.assertIn("--coordinator", used["deploy/k8s StatefulSet vsm"])
 
@@ -652,9 +646,8 @@ class ConfigAndFlags(unittest.TestCase):
         # only the paths become temporary files ($(POD_NAME) -> vsm-0, the ConfigMap/vsmd.json,
         # the token) and --coordinator the local etcd; listen and data root are overridden.
         etcd_binary = shutil.which("etcd")
-        if "--coordinator" not in self.flags or etcd_binary is None:
-            print("skipped: nodes joining etcd (%s)" % ("no etcd on PATH" if etcd_binary is None
-                  else "vsmd --help lists no --coordinator yet"), file=sys.stderr)
+        if etcd_binary is None:
+            print("skipped: nodes joining etcd (no etcd on PATH)", file=sys.stderr)
             return
         k8s = K8s()
         unit = Unit()
@@ -687,6 +680,59 @@ class ConfigAndFlags(unittest.TestCase):
                     registered = etcd.everything()
                     self.assertIn(advertise, registered, "%s: the node's --advertise URL is not "
                                   "in etcd:\n%s" % (where, registered))
+
+
+class NginxFront(unittest.TestCase):
+    """deploy/nginx/vsm.conf with deploy/nginx/nodes.conf: nginx -t accepts them (node host names
+    made 127.0.0.1, paths made temporary, a self-signed certificate); the nodes are the
+    StatefulSet's pods on the container port; the body limit is vsmd's."""
+
+    def test_nginx_accepts_the_front(self):
+        nginx = shutil.which("nginx") or "/usr/sbin/nginx"
+        if not os.path.exists(nginx) or shutil.which("openssl") is None:
+            print("skipped: nginx -t (no nginx or openssl)", file=sys.stderr)
+            return
+        with tempfile.TemporaryDirectory() as tmp:
+            nodes = re.sub(r"server\s+[^\s:;]+:(\d+)", r"server 127.0.0.1:\1",
+                           read("deploy", "nginx", "nodes.conf"))
+            front = (read("deploy", "nginx", "vsm.conf").replace("/etc/nginx/vsm/", tmp + "/")
+                     .replace("/var/cache/nginx/vsm", tmp + "/cache"))
+            for name, text in (("nodes.conf", nodes), ("vsm.conf", front)):
+                with open(os.path.join(tmp, name), "w") as f:
+                    f.write(text)
+            subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days",
+                            "1", "-subj", "/CN=localhost", "-keyout", tmp + "/key.pem", "-out",
+                            tmp + "/cert.pem"], check=True, capture_output=True)
+            main = os.path.join(tmp, "nginx.conf")
+            with open(main, "w") as f:
+                f.write("pid %(t)s/nginx.pid;\nerror_log %(t)s/error.log;\nevents {}\n"
+                        "http {\n  client_body_temp_path %(t)s/body;\n"
+                        "  proxy_temp_path %(t)s/proxy;\n  include %(t)s/nodes.conf;\n"
+                        "  include %(t)s/vsm.conf;\n}\n" % {"t": tmp})
+            out = subprocess.run([nginx, "-t", "-c", main], capture_output=True, text=True,
+                                 timeout=60)
+            self.assertEqual(out.returncode, 0, out.stderr)
+
+    def test_the_nodes_are_the_statefulset_pods_on_the_container_port(self):
+        k8s = K8s()
+        nodes = read("deploy", "nginx", "nodes.conf")
+        servers = re.findall(r"^\s*server\s+([^\s:;]+):(\d+)", nodes, re.M)
+        statefulset = k8s.vsm()
+        expected = ["vsm-%d.%s" % (i, statefulset["spec"]["serviceName"])
+                    for i in range(statefulset["spec"]["replicas"])]
+        self.assertEqual([host for host, _ in servers], expected)
+        port = next(iter(p["containerPort"] for p in k8s.vsmd_container()["ports"]))
+        for host, server_port in servers:
+            self.assertEqual(int(server_port), port, "%s: not the container port" % host)
+        self.assertRegex(nodes, r"hash\s+\$vsm_shard\s+consistent;")
+        self.assertRegex(read("deploy", "nginx", "vsm.conf"), r"map\s+\$uri\s+\$vsm_shard\s")
+
+    def test_the_body_limit_is_vsmds(self):
+        m = re.search(r"client_max_body_size\s+(\d+)([km]?);", read("deploy", "nginx", "vsm.conf"))
+        self.assertIsNotNone(m, "vsm.conf sets no client_max_body_size")
+        limit = int(m.group(1)) * {"": 1, "k": 1024, "m": 1024 * 1024}[m.group(2)]
+        body_bytes = K8s().config().get("limits", {}).get("body_bytes", "1MiB")
+        self.assertEqual(limit, vsm_size(str(body_bytes)))
 
 
 class Containerfile(unittest.TestCase):
