@@ -179,7 +179,11 @@ Image readImage(const fs::path& file, std::uint64_t maxPixels) {
                     std::to_string(maxPixels) + ")");
   }
   image.pixels.resize(static_cast<std::size_t>(pixels) * image.channels);
-  if (!in->read_image(0, 0, 0, image.channels, OIIO::TypeDesc::UINT8, image.pixels.data())) {
+  // An 8-bit file is read as it is (TypeDesc::UNKNOWN): OpenImageIO 2.4 converts any other
+  // request through a buffer of about 64 MB, whatever the image's size.
+  const bool eightBit = spec.format == OIIO::TypeDesc::UINT8 && spec.channelformats.empty();
+  const OIIO::TypeDesc format = eightBit ? OIIO::TypeDesc::UNKNOWN : OIIO::TypeDesc::UINT8;
+  if (!in->read_image(0, 0, 0, image.channels, format, image.pixels.data())) {
     throw Error(ErrorCode::Corrupt,
                 "cannot decode texture '" + file.string() + "': " + in->geterror());
   }
