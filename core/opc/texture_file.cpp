@@ -5,10 +5,13 @@
 #include <OpenImageIO/imageio.h>
 
 #include <algorithm>
+#include <cctype>
 #include <cmath>
 #include <cstring>
+#include <fstream>
 #include <memory>
 #include <string>
+#include <string_view>
 
 #include "core/common/error.hpp"
 #include "core/opc/aara.hpp"
@@ -57,17 +60,105 @@ struct Image {
   std::vector<std::uint8_t> pixels;
 };
 
+// Texture files are opened only with the readers of the formats OPC textures come in (TIFF and
+// DDS as OPC.md names them, PNG and JPEG from other producers), each chosen by name: never
+// OpenImageIO's ImageInput::open(path), which picks any reader by extension (a Patch.xml may name
+// "x.exr" or "x.mp4") and then tries every reader it has (FFmpeg, OpenEXR, RAW, ...) on a file
+// its extension's reader refuses: a large attack surface for hostile files, and slow. A reader
+// created by name opens the file itself and falls back to nothing, so OpenImageIO's global
+// try_all_readers is left as it is.
+
+/// OpenImageIO's reader for a texture file's extension (any letter case); null for others.
+const char* readerForExtension(const fs::path& file) {
+  std::string ext = file.extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(),
+                 [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+  if (ext == ".tif" || ext == ".tiff") {
+    return "tiff";
+  }
+  if (ext == ".dds") {
+    return "dds";
+  }
+  if (ext == ".png") {
+    return "png";
+  }
+  if (ext == ".jpg" || ext == ".jpeg") {
+    return "jpeg";
+  }
+  return nullptr;
+}
+
+/// OpenImageIO's reader for the format `file`'s first bytes announce; null for others.
+const char* readerForContent(const fs::path& file) {
+  char bytes[8] = {};
+  std::ifstream stream(file, std::ios::binary);
+  stream.read(bytes, sizeof bytes);
+  const std::string_view head(bytes, static_cast<std::size_t>(stream.gcount()));
+  const auto startsWith = [&](std::string_view magic) { return head.starts_with(magic); };
+  using namespace std::string_view_literals;
+  if (startsWith("II*\0"sv) || startsWith("MM\0*"sv)) {
+    return "tiff";
+  }
+  if (startsWith("DDS "sv)) {
+    return "dds";
+  }
+  if (startsWith("\x89PNG\r\n\x1a\n"sv)) {
+    return "png";
+  }
+  if (startsWith("\xFF\xD8\xFF"sv)) {
+    return "jpeg";
+  }
+  return nullptr;
+}
+
+/// `file` opened with OpenImageIO's reader `reader`; null, with the reader's message in `error`,
+/// when that reader cannot open it.
+std::unique_ptr<OIIO::ImageInput> openWith(const char* reader, const fs::path& file,
+                                           std::string& error) {
+  std::unique_ptr<OIIO::ImageInput> in = OIIO::ImageInput::create(reader);
+  if (!in) {
+    throw Error(ErrorCode::Internal,
+                std::string("OpenImageIO has no ") + reader + " reader: " + OIIO::geterror());
+  }
+  OIIO::ImageSpec spec;
+  if (!in->open(file.string(), spec)) {
+    error = in->geterror();
+    return nullptr;
+  }
+  return in;
+}
+
+/// `file` opened with the reader its extension implies, else with the one its first bytes name.
+/// Throws Error(Corrupt) when neither opens it.
+std::unique_ptr<OIIO::ImageInput> openTexture(const fs::path& file) {
+  std::string error;
+  const char* byExtension = readerForExtension(file);
+  if (byExtension != nullptr) {
+    if (auto in = openWith(byExtension, file, error)) {
+      return in;
+    }
+  }
+  const char* byContent = readerForContent(file);
+  if (byContent == nullptr) {
+    throw Error(ErrorCode::Corrupt, "texture '" + file.string() +
+                                        "' is not a TIFF, DDS, PNG or JPEG image, the formats "
+                                        "accepted for textures");
+  }
+  if (byExtension == nullptr || std::strcmp(byContent, byExtension) != 0) {
+    if (auto in = openWith(byContent, file, error)) {
+      return in;
+    }
+  }
+  throw Error(ErrorCode::Corrupt, "cannot read texture '" + file.string() + "': " + error);
+}
+
 /// Reads `file`, refusing before any allocation an image of more than `maxPixels` pixels.
 Image readImage(const fs::path& file, std::uint64_t maxPixels) {
   std::error_code ec;
   if (!fs::exists(file, ec)) {
     throw Error(ErrorCode::NotFound, "texture '" + file.string() + "' does not exist");
   }
-  std::unique_ptr<OIIO::ImageInput> in = OIIO::ImageInput::open(file.string());
-  if (!in) {
-    throw Error(ErrorCode::Corrupt,
-                "cannot read texture '" + file.string() + "': " + OIIO::geterror());
-  }
+  const std::unique_ptr<OIIO::ImageInput> in = openTexture(file);
   const OIIO::ImageSpec& spec = in->spec();
   Image image;
   image.width = spec.width;
@@ -88,7 +179,11 @@ Image readImage(const fs::path& file, std::uint64_t maxPixels) {
                     std::to_string(maxPixels) + ")");
   }
   image.pixels.resize(static_cast<std::size_t>(pixels) * image.channels);
-  if (!in->read_image(0, 0, 0, image.channels, OIIO::TypeDesc::UINT8, image.pixels.data())) {
+  // An 8-bit file is read as it is (TypeDesc::UNKNOWN): OpenImageIO 2.4 converts any other
+  // request through a buffer of about 64 MB, whatever the image's size.
+  const bool eightBit = spec.format == OIIO::TypeDesc::UINT8 && spec.channelformats.empty();
+  const OIIO::TypeDesc format = eightBit ? OIIO::TypeDesc::UNKNOWN : OIIO::TypeDesc::UINT8;
+  if (!in->read_image(0, 0, 0, image.channels, format, image.pixels.data())) {
     throw Error(ErrorCode::Corrupt,
                 "cannot decode texture '" + file.string() + "': " + in->geterror());
   }

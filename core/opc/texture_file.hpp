@@ -23,9 +23,12 @@ std::vector<std::byte> encodeTextureTiff(const TextureTile& tile);
 /// configuration's limits.texture_pixels: a file's header may claim any size.
 inline constexpr std::uint64_t kDefaultTexturePixels = std::uint64_t{16384} * 16384;
 
-/// Decodes an image file OpenImageIO reads (our TIFF tiles, foreign .tif/.dds/.png) into a tile.
-/// The size in the file's header is checked before any pixel is allocated. Throws
-/// Error(NotFound) when the file does not exist, Error(Corrupt) when it cannot be decoded, is not
+/// Decodes a texture file (our TIFF tiles, foreign TIFF, DDS, PNG or JPEG) into a tile.
+/// Only OpenImageIO's readers of those four formats are used: the one the extension implies
+/// (.tif/.tiff, .dds, .png, .jpg/.jpeg, any letter case), else the one the first bytes name (a
+/// PNG named .tif reads); a file of any other format is refused, whatever the extension. The size
+/// in the file's header is checked before any pixel is allocated. Throws Error(NotFound) when the
+/// file does not exist, Error(Corrupt) when it is of no accepted format, cannot be decoded, is not
 /// a square tile of even size, or has more than `maxPixels` pixels. 1, 2 and 3 channel images get
 /// alpha 255; channels after the 4th are ignored.
 TextureTile readTextureTile(const std::filesystem::path& file,

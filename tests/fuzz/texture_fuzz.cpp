@@ -1,7 +1,8 @@
 // Fuzz target: texture file reading through our OpenImageIO wrapper (readTextureTile and the
 // PNG conversion the server sends), with a pixel limit: what a file's header claims is checked
-// before pixels are allocated. Inputs are written to Images/Diffuse/tile.tif; OpenImageIO tries
-// its other readers (PNG, DDS, JPEG, ...) when the bytes are not a TIFF.
+// before pixels are allocated. Inputs are written to Images/Diffuse/tile.tif: OpenImageIO's TIFF
+// reader sees every input, and when it refuses one, the DDS, PNG or JPEG reader sees it if its
+// first bytes are of that format; no other reader is ever tried (other formats are refused).
 #include <cstddef>
 #include <cstdint>
 #include <vector>

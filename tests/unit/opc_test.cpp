@@ -7,6 +7,7 @@
 #include <fstream>
 #include <map>
 #include <sstream>
+#include <string_view>
 
 #include "core/common/error.hpp"
 #include "core/opc/aara.hpp"
@@ -209,6 +210,139 @@ TEST(TextureFile, ImagesAboveThePixelLimitAreRefusedFromTheirHeader) {
   const fs::path lie = write("lie.tif", tiffClaiming(64, 64));
   EXPECT_EQ(readTextureTile(lie, 64 * 64).size(), 64);
   fs::remove_all(dir);
+}
+
+/// `bytes` as the file `file`; returns `file`.
+fs::path writeBytes(const fs::path& file, const std::vector<std::byte>& bytes) {
+  std::ofstream(file, std::ios::binary)
+      .write(reinterpret_cast<const char*>(bytes.data()),
+             static_cast<std::streamsize>(bytes.size()));
+  return file;
+}
+
+/// A 4 x 4 RGBA DDS file, uncompressed, every texel `bgra` (as stored: blue, green, red, alpha).
+std::vector<std::byte> ddsFile(std::array<std::uint8_t, 4> bgra) {
+  std::vector<std::byte> out = bytesOf({'D', 'D', 'S', ' '});
+  const auto u32 = [&](std::uint32_t v) {
+    for (int shift = 0; shift < 32; shift += 8) {
+      out.push_back(static_cast<std::byte>(v >> shift & 0xff));
+    }
+  };
+  // DDS_HEADER: size, flags (caps, height, width, pitch, pixel format), height, width, pitch,
+  // depth, mipmaps, 11 reserved; DDS_PIXELFORMAT: size, flags (RGB + alpha), FourCC, bits,
+  // R/G/B/A masks; caps (texture), caps2-4, reserved.
+  for (const std::uint32_t v : {124u, 0x100fu, 4u, 4u, 16u, 0u, 0u}) {
+    u32(v);
+  }
+  for (int i = 0; i < 11; ++i) {
+    u32(0);
+  }
+  for (const std::uint32_t v :
+       {32u, 0x41u, 0u, 32u, 0xff0000u, 0xff00u, 0xffu, 0xff000000u, 0x1000u, 0u, 0u, 0u, 0u}) {
+    u32(v);
+  }
+  for (int i = 0; i < 16; ++i) {
+    for (const std::uint8_t b : bgra) {
+      out.push_back(static_cast<std::byte>(b));
+    }
+  }
+  return out;
+}
+
+/// A 4 x 4 grey binary PGM: a format OpenImageIO reads that OPC textures never come in.
+std::vector<std::byte> pgmFile() {
+  std::vector<std::byte> out;
+  for (const char c : std::string_view("P5\n4 4\n255\n")) {
+    out.push_back(static_cast<std::byte>(c));
+  }
+  out.resize(out.size() + 16, std::byte{0x80});
+  return out;
+}
+
+/// A scratch directory with Images/Diffuse/ for the texture file tests, removed afterwards.
+class TextureFileTest : public ::testing::Test {
+ protected:
+  void SetUp() override { fs::create_directories(dir_ / "Images" / "Diffuse"); }
+  void TearDown() override { fs::remove_all(dir_); }
+  /// The path of `name` in Images/Diffuse/.
+  fs::path file(const std::string& name) const { return dir_ / "Images" / "Diffuse" / name; }
+  /// `tile` as a PNG file (converted by readPatchTexturePng from our TIFF).
+  std::vector<std::byte> pngOf(const TextureTile& tile) const {
+    writeBytes(file("source.tif"), encodeTextureTiff(tile));
+    PatchInfo info;
+    info.folder = "0_0_0";
+    info.textureFile = "Diffuse\\source.tif";
+    return readPatchTexturePng(dir_, info);
+  }
+
+  const fs::path dir_ =
+      fs::temp_directory_path() / ("vsm-texture-file-test-" + std::to_string(::getpid()));
+};
+
+/// The texels of `tile`, comparable.
+std::vector<std::uint8_t> texelsOf(const TextureTile& tile) {
+  return {tile.texels().begin(), tile.texels().end()};
+}
+
+/// A 4 x 4 opaque tile with distinct colours (opaque: OpenImageIO's PNG reader premultiplies
+/// colour by alpha).
+TextureTile sampleTile() {
+  TextureTile tile(4);
+  for (std::size_t i = 0; i < tile.texels().size(); ++i) {
+    tile.texels()[i] = i % 4 == 3 ? 255 : static_cast<std::uint8_t>(i * 3 + 1);
+  }
+  return tile;
+}
+
+TEST_F(TextureFileTest, ATiffReadsUnderItsOwnExtensionInAnyCaseOrUnderAnother) {
+  const TextureTile tile = sampleTile();
+  for (const char* name : {"tile.tif", "tile.TIFF", "tile.dds", "tile.png"}) {
+    const fs::path path = writeBytes(file(name), encodeTextureTiff(tile));
+    EXPECT_EQ(texelsOf(readTextureTile(path)), texelsOf(tile)) << name;
+  }
+}
+
+TEST_F(TextureFileTest, APngNamedTifReadsByItsFirstBytes) {
+  const TextureTile tile = sampleTile();
+  const std::vector<std::byte> png = pngOf(tile);
+  for (const char* name : {"tile.png", "tile.tif", "tile.dds"}) {
+    const fs::path path = writeBytes(file(name), png);
+    EXPECT_EQ(texelsOf(readTextureTile(path)), texelsOf(tile)) << name;
+  }
+}
+
+TEST_F(TextureFileTest, ADdsReadsUnderItsOwnExtensionOrAsTif) {
+  for (const char* name : {"tile.dds", "tile.tif"}) {
+    const fs::path path = writeBytes(file(name), ddsFile({10, 20, 30, 40}));
+    const TextureTile tile = readTextureTile(path);
+    ASSERT_EQ(tile.size(), 4) << name;
+    EXPECT_EQ(tile.texels()[0], 30) << name;  // red
+    EXPECT_EQ(tile.texels()[1], 20) << name;
+    EXPECT_EQ(tile.texels()[2], 10) << name;
+    EXPECT_EQ(tile.texels()[3], 40) << name;
+  }
+}
+
+TEST_F(TextureFileTest, AFileOfAnotherFormatIsRefusedWhateverItsName) {
+  // OpenImageIO reads a PGM (under a .tif name once its TIFF reader fails, by trying all its
+  // readers); textures come in TIFF, DDS, PNG or JPEG only.
+  for (const char* name : {"tile.tif", "tile.pgm", "tile.exr", "tile"}) {
+    const fs::path path = writeBytes(file(name), pgmFile());
+    EXPECT_EQ(codeOf([&] { readTextureTile(path); }), ErrorCode::Corrupt) << name;
+    EXPECT_EQ(messageOf([&] { readTextureTile(path); }),
+              "texture '" + path.string() +
+                  "' is not a TIFF, DDS, PNG or JPEG image, the formats accepted for textures")
+        << name;
+  }
+}
+
+TEST_F(TextureFileTest, ABrokenFileOfAnAcceptedFormatGivesItsReadersMessage) {
+  const std::vector<std::byte> png = pngOf(sampleTile());
+  const fs::path path =
+      writeBytes(file("tile.tif"), std::vector<std::byte>(png.begin(), png.begin() + 20));
+  const std::string message = messageOf([&] { readTextureTile(path); });
+  EXPECT_TRUE(message.starts_with("cannot read texture '" + path.string() + "': ")) << message;
+  EXPECT_EQ(codeOf([&] { readTextureTile(path); }), ErrorCode::Corrupt);
 }
 
 TEST(Aara, AMissingFileIsNotFound) {
