@@ -131,22 +131,106 @@ class Client:
     def job(self, job_id):
         return self.get_json("/v1/jobs/" + quote(job_id))
 
-    def wait(self, job_id, interval=0.1, timeout=3600, on_progress=None):
-        """Polls a job until it is final; calls on_progress(job) whenever state, stage or progress
-        changed. Returns the final job."""
+    def wait(self, job_id, interval=0.1, timeout=3600, on_progress=None, use_events=True):
+        """Waits until a job is final; calls on_progress(job) whenever state, stage or progress
+        changed. Returns the final job (as GET /v1/jobs/{j} has it).
+
+        Listens to the event stream (GET /v1/events) when it can, and polls every `interval`
+        seconds when it cannot (an older daemon, the subscriber limit reached, the stream
+        dropped or silent for longer than its heartbeat)."""
         deadline = time.monotonic() + timeout
-        last = None
+        last = [None]
+
+        def report(job):
+            seen = (job["state"], job["stage"], job["progress"])
+            if seen != last[0] and on_progress is not None:
+                on_progress(job)
+            last[0] = seen
+
+        if use_events:
+            try:
+                job = self._wait_events(job_id, deadline, report)
+                if job is not None:
+                    return job
+            except (ApiError, OSError, ValueError):
+                pass  # no stream (or it broke): poll
         while True:
             job = self.job(job_id)
-            seen = (job["state"], job["stage"], job["progress"])
-            if seen != last and on_progress is not None:
-                on_progress(job)
-            last = seen
+            report(job)
             if job["state"] in FINAL_STATES:
                 return job
             if time.monotonic() > deadline:
                 raise TimeoutError("job %s not final after %d s" % (job_id, timeout))
             time.sleep(interval)
+
+    def _wait_events(self, job_id, deadline, report):
+        """wait() on the event stream; None when the stream ended before the job did."""
+        # Subscribed first, then the job read once: an end between the two is not missed.
+        stream = self.events(timeout=max(1.0, min(40.0, deadline - time.monotonic())))
+        try:
+            next(stream)  # the subscription is live once the stream answered
+            job = self.job(job_id)
+            report(job)
+            if job["state"] in FINAL_STATES:
+                return job
+            for event in stream:
+                data = event["data"]
+                if event["event"] == "dropped":
+                    return None
+                if not isinstance(data, dict) or data.get("job") != job_id:
+                    continue
+                if event["event"] == "job":
+                    job = dict(job, state=data["state"], stage=data["stage"],
+                               progress=data["progress"])
+                    report(job)
+                elif event["event"] == "job_end":
+                    job = self.job(job_id)
+                    report(job)
+                    return job
+                if time.monotonic() > deadline:
+                    raise TimeoutError("job %s not final" % job_id)
+            return None
+        finally:
+            stream.close()
+
+    def events(self, timeout=40.0):
+        """The event stream (GET /v1/events, Server-Sent Events) as a generator of dicts
+        {"id": str or None, "event": name, "data": parsed JSON}. It first yields
+        {"event": "open", ...} once the daemon answered (from then on nothing is missed), then
+        every event. Heartbeats (comments) are skipped but reset the read `timeout`, which should
+        exceed the daemon's heartbeat (15 s). Ends when the daemon closes the stream (after an
+        event "dropped" when this client read too slowly); raises ApiError when the daemon
+        refuses (503 over the subscriber limit), OSError when the connection fails."""
+        req = urllib.request.Request(self.url + "/v1/events",
+                                     headers={"Accept": "text/event-stream"})
+        try:
+            r = self.opener.open(req, timeout=timeout)
+        except urllib.error.HTTPError as e:
+            body = e.read()
+            try:
+                error = json.loads(body)["error"]
+                raise ApiError(e.code, error["code"], error["message"]) from None
+            except (ValueError, KeyError, TypeError):
+                raise ApiError(e.code, "http_%d" % e.code, body[:200].decode(errors="replace"))
+        with r:
+            yield {"id": None, "event": "open", "data": None}
+            event = {"id": None, "event": "message", "data": []}
+            for raw in r:
+                line = raw.decode("utf-8").rstrip("\r\n")
+                if not line:
+                    if event["data"]:
+                        text = "\n".join(event["data"])
+                        yield {"id": event["id"], "event": event["event"], "data": json.loads(text)}
+                    event = {"id": None, "event": "message", "data": []}
+                    continue
+                if line.startswith(":"):
+                    continue  # a comment: the heartbeat
+                name, _, value = line.partition(":")
+                value = value[1:] if value.startswith(" ") else value
+                if name == "data":
+                    event["data"].append(value)
+                elif name in ("id", "event"):
+                    event[name] = value
 
 
 def quote(segment):

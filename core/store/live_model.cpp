@@ -306,6 +306,11 @@ void LiveModel::onPublish(std::function<void(const ReplacedVersions&)> observer)
   onPublish_ = std::move(observer);
 }
 
+void LiveModel::onNewVersion(NewVersionObserver observer) {
+  std::lock_guard lock(mutex_);
+  onNewVersion_ = std::move(observer);
+}
+
 std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
   if (lock_ == nullptr) {
     throw Error(ErrorCode::Conflict,
@@ -552,6 +557,14 @@ void ModelEdit::publish(const CancelToken* cancel) {
       }
     }
     observer(replaced);
+  }
+  LiveModel::NewVersionObserver announce;
+  {
+    std::lock_guard lock(live_.mutex_);
+    announce = live_.onNewVersion_;
+  }
+  if (announce) {
+    announce(base_->version + 1, changed_);
   }
 
   // 4. Reported, never undone; the next open retries it.

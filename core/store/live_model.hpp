@@ -121,6 +121,14 @@ class LiveModel {
   /// responses) to drop what readers of the new version never ask for. Thread-safe.
   void onPublish(std::function<void(const ReplacedVersions&)> observer);
 
+  /// Sets the one function called after every publish, after the onPublish observer, with the
+  /// version published and every key it changed (added or replaced): for telling clients (the
+  /// daemon's event stream). Same thread and lock rules as onPublish; independent of it, so that
+  /// caches and notifications do not replace each other. Thread-safe.
+  using NewVersionObserver =
+      std::function<void(std::uint64_t version, const std::set<PatchKey>& changed)>;
+  void onNewVersion(NewVersionObserver observer);
+
   class Store;  // the PatchStore over the directory; defined in the .cpp
 
  private:
@@ -145,6 +153,7 @@ class LiveModel {
   /// The hierarchy file as it was just before this opening read it.
   std::optional<HierarchyStamp> readStamp_;
   std::function<void(const ReplacedVersions&)> onPublish_;  // guarded by mutex_
+  NewVersionObserver onNewVersion_;                         // guarded by mutex_
 };
 
 /// The next version of a LiveModel, invisible to readers until publish(). A changed patch gets

@@ -15,11 +15,13 @@
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "core/durable/durable_io.hpp"
+#include "server/api/event_routes.hpp"
 #include "server/api/model_routes.hpp"
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/api/tiles_routes.hpp"
 #include "server/cluster/coordinator.hpp"
+#include "server/events/event_hub.hpp"
 #include "server/exec/work_pool.hpp"
 #include "server/http/pipeline.hpp"
 #include "server/http/router.hpp"
@@ -161,6 +163,9 @@ Application::Application(Config config) : config_(std::move(config)) {
   // Merges and imports run here, a pool of its own so that they can never take the threads
   // request handlers need.
   jobPool_ = std::make_unique<exec::WorkPool>("jobs", config_.threads.jobs);
+  events::HubOptions hubOptions;
+  hubOptions.maxSubscribers = config_.limits.eventSubscribers;
+  events_ = std::make_unique<events::EventHub>(std::move(hubOptions));
   models_ = std::make_unique<models::ModelRegistry>(config_.dataRoot, *cache_,
                                                     config_.limits.texturePixels);
   // Jobs live in memory only: after a restart none is listed, and a merge that had not published
@@ -185,16 +190,19 @@ Application::Application(Config config) : config_(std::move(config)) {
     log::info("cluster: node " + coordinator_->node() + ", coordinator " +
               config_.cluster.coordinator);
   }
+  jobs_ = std::make_unique<jobs::JobRegistry>(*jobPool_, jobLimits);
+  // Before any model opens, so that every opening is watched.
+  api::connectEvents(*events_, *jobs_, *models_);
   const std::size_t opened = models_->openAll();
   log::info("data root " + models_->dataRoot().string() + ": " + std::to_string(opened) +
             " model(s) open");
-  jobs_ = std::make_unique<jobs::JobRegistry>(*jobPool_, jobLimits);
 
   router_ = std::make_unique<http::Router>();
   api::addSystemRoutes(*router_, {*cache_, *metrics_, [this] { return ready(); }});
   api::addModelRoutes(*router_, {*models_, *jobs_, coordinator_.get()});
   api::addJobRoutes(*router_, {*models_, *jobs_, coordinator_.get()});
   api::addTilesRoutes(*router_, *models_);
+  api::addEventRoutes(*router_, *events_);
   if (!config_.viewerDir.empty()) {
     api::addStaticRoutes(*router_, "/viewer", config_.viewerDir);
     log::info("viewer: files of " + config_.viewerDir.string() + " at /viewer/");
@@ -280,6 +288,7 @@ void Application::start() {
       return;
     }
   }
+  events_->start();
   server_->start();
   log::info("listening on " + server_->address());
   if (coordinator_ != nullptr) {
@@ -357,6 +366,9 @@ void Application::shutdown() {
   // Jobs stop first (at their next check), so a long merge does not hold the exit; their edits
   // are discarded and the models stay at their last published version.
   jobs_->cancelAll();
+  // Event streams never end by themselves: they end now (their queued events still go), so
+  // that they do not hold the grace period.
+  events_->close();
   server_->stop(config_.limits.shutdownGrace);
   // Handlers still running (past the grace period) post their results into the stopped server;
   // it must outlive them, so the pools are drained before any component is destroyed.

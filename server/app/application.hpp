@@ -36,6 +36,9 @@ class JobRegistry;
 namespace cluster {
 class Coordinator;
 }
+namespace events {
+class EventHub;
+}
 
 /// How the descriptors of the process are shared out.
 struct DescriptorPlan {
@@ -104,6 +107,8 @@ class Application {
   std::unique_ptr<core::PatchCache> cache_;
   std::unique_ptr<exec::WorkPool> cpuPool_;
   std::unique_ptr<exec::WorkPool> jobPool_;
+  /// Before the registries it hears from: it outlives their models and jobs.
+  std::unique_ptr<events::EventHub> events_;
   std::unique_ptr<models::ModelRegistry> models_;
   std::unique_ptr<jobs::JobRegistry> jobs_;
   /// Null unless cluster.coordinator is set.

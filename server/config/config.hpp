@@ -57,6 +57,9 @@ struct Limits {
   /// Pixels of a texture file the server decodes (width x height from the file's header, checked
   /// before anything is allocated); larger ones are refused. 16384 x 16384 by default.
   std::size_t texturePixels = std::size_t{16384} * 16384;
+  /// Subscribers of the event stream (GET /v1/events) at once; one more is answered 503 with
+  /// Retry-After. Each is also a connection (limits.connections).
+  std::size_t eventSubscribers = 64;
   /// On SIGTERM/SIGINT, how long in-flight requests may take before connections are closed.
   std::chrono::milliseconds shutdownGrace{10'000};
 };

@@ -1,6 +1,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <memory>
 #include <optional>
@@ -50,6 +51,38 @@ struct Request {
   std::optional<std::string> queryParam(std::string_view name) const;
 };
 
+/// A response body written as it is produced, for as long as the connection lasts (a
+/// Server-Sent Events stream), instead of one complete body. The server writes the header without
+/// Content-Length and with "Connection: close" (the body ends when the connection does), then
+/// pulls bytes from the stream on the connection's strand whenever the previous ones are written
+/// and the stream woke it. Nothing else is read from or written to such a connection.
+///
+/// Bounds are the stream's business: what pull() hands over is what the connection holds beyond
+/// the socket's buffer, so a stream must keep what it queues bounded (and end itself when a slow
+/// reader makes it overflow).
+class BodyStream {
+ public:
+  virtual ~BodyStream() = default;
+
+  /// Called once, on the connection's strand, once the header is written. `wake` asks the
+  /// connection to call pull() soon: thread-safe, cheap, never blocks, and does nothing once the
+  /// connection is gone. A stream calls it when bytes become ready or it ends.
+  virtual void start(std::function<void()> wake) = 0;
+
+  /// Moves the bytes ready now into `out` (empty on entry). Returns false when the stream has
+  /// ended: `out` holds its last bytes, after which the connection closes.
+  virtual bool pull(std::string& out) = 0;
+
+  /// True once the stream has ended (pull() would return false). Thread-safe. A connection whose
+  /// write is stuck behind a reader that does not read checks it to close soon after the end
+  /// rather than wait for the write timeout.
+  virtual bool ended() const = 0;
+
+  /// The connection is done with the stream (peer gone, write failed, server stopping); `wake`
+  /// may still be called, to no effect. Idempotent.
+  virtual void stop() noexcept = 0;
+};
+
 /// One HTTP response. Every header but Content-Type is in `headers`; the server adds
 /// Content-Length, Connection, CORS and X-Request-Id.
 struct Response {
@@ -73,6 +106,9 @@ struct Response {
   };
   FileRange file;
   std::vector<std::pair<std::string, std::string>> headers;
+  /// A body produced over time (see BodyStream): `body`, `sharedBody` and `file` are then unused
+  /// and the connection closes when the stream ends. Null for a complete response.
+  std::shared_ptr<BodyStream> stream;
 
   /// What Content-Length says: file.size for a file body, else body.size() + sharedBody.size().
   std::size_t bodySize() const {

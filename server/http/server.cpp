@@ -123,6 +123,9 @@ constexpr std::chrono::milliseconds kAcceptBackoff{100};
 constexpr std::size_t kMaxRejecting = 64;
 /// Longest request target written to the access log.
 constexpr std::size_t kLoggedTargetMax = 256;
+/// How long a streamed body that ended (dropped, or the daemon stopping) may take to write its
+/// last bytes when a write is stuck behind a client that does not read; then the connection closes.
+constexpr std::chrono::milliseconds kStreamEndGrace{1000};
 
 /// The source address a connection is counted under (limits.connections_per_client): an
 /// IPv4-mapped IPv6 address counts as the IPv4 one.
@@ -271,6 +274,7 @@ class Connection : public std::enable_shared_from_this<Connection> {
       : server_(server),
         stream_(std::move(socket)),
         fileTimer_(stream_.get_executor()),
+        streamTimer_(stream_.get_executor()),
         buffer_(server.options.headerLimit + kReadAhead),
         client_(std::move(client)),
         counted_(counted),
@@ -280,6 +284,9 @@ class Connection : public std::enable_shared_from_this<Connection> {
     peer_ = ec ? std::string("-") : endpointText(remote);
   }
   ~Connection() {
+    if (bodyStream_) {
+      bodyStream_->stop();
+    }
     if (counted_) {
       server_.forget(this, client_);
     } else {
@@ -310,6 +317,10 @@ class Connection : public std::enable_shared_from_this<Connection> {
   void beginShutdown() {
     net::post(stream_.get_executor(), [self = shared_from_this()] {
       self->shutdown_ = true;
+      if (self->streaming_) {
+        self->finishStream({});  // a stream never ends by itself: it must not hold the shutdown
+        return;
+      }
       if (self->idleWait_ ||
           (!self->reading_ && !self->writing_ && !self->lingering_ && self->queue_.empty())) {
         self->closeNow();
@@ -669,9 +680,21 @@ class Connection : public std::enable_shared_from_this<Connection> {
     // The last response before closing says so: the client asked, a protocol error, the peer
     // half-closed, or shutdown (then only once nothing else is pending).
     slot.close = slot.close || ((closing_ || shutdown_) && queue_.size() == 1 && !reading_);
+    const bool stream = slot.handled.response.stream != nullptr;
+    if (stream) {
+      slot.close = true;  // a streamed body ends with the connection
+      closing_ = true;
+    }
     slot.message = toBeast(slot);
     writing_ = true;
     stream_.expires_after(server_.options.writeTimeout);
+    if (stream && !slot.head) {
+      // The header (the message has no body and no length); then the stream's bytes as they come.
+      bhttp::async_write(
+          stream_, *slot.message,
+          [self = shared_from_this()](error_code ec, std::size_t) { self->onStreamHeader(ec); });
+      return;
+    }
     if (slot.handled.response.file.fd >= 0 && slot.bodyBytes > 0) {
       // The header by Beast's serializer, the body by sendfile(2): the kernel sends the file's
       // pages without copying them through user space (as nginx serves static files).
@@ -727,6 +750,8 @@ class Connection : public std::enable_shared_from_this<Connection> {
     const bool bodiless = r.status == 204 || r.status == 304 || r.status < 200;
     if (bodiless) {
       // No body and no Content-Length (RFC 9110 8.6).
+    } else if (r.stream) {
+      // No length: the body ends when the connection closes (keep_alive(false) above).
     } else if (slot.head) {
       message->content_length(r.bodySize());  // what GET would send; the body itself is not
     } else if (r.file.fd >= 0) {
@@ -936,7 +961,119 @@ class Connection : public std::enable_shared_from_this<Connection> {
                             });
   }
 
+  // ---- A streamed body (Response::stream) ---------------------------------------------------
+
+  /// The header of a streamed response is written: the stream starts, and the socket is watched
+  /// for the client going away (nothing else is read from this connection any more).
+  void onStreamHeader(error_code ec) {
+    writing_ = false;
+    Slot& slot = queue_.front();
+    bodyStream_ = slot.handled.response.stream;
+    streaming_ = true;
+    if (ec || closed_ || shutdown_) {
+      finishStream(ec);
+      return;
+    }
+    if (!reading_) {
+      watchPeer();
+    }
+    // The stream may call wake from any thread, after this connection is gone too: it holds the
+    // connection weakly and only posts to its strand.
+    bodyStream_->start([weak = weak_from_this(), executor = stream_.get_executor()] {
+      net::post(executor, [weak] {
+        if (const auto self = weak.lock()) {
+          self->pumpStream();
+        }
+      });
+    });
+    pumpStream();
+  }
+
+  /// Writes what the stream has ready, unless a write is in flight (its completion pulls again).
+  void pumpStream() {
+    if (!streaming_ || closed_) {
+      return;
+    }
+    if (writing_) {
+      if (!streamEnding_ && bodyStream_->ended()) {
+        // Ended (e.g. dropped for not reading) while a write waits on a full socket: the last
+        // bytes get a moment, not the whole write timeout.
+        streamEnding_ = true;
+        streamTimer_.expires_after(kStreamEndGrace);
+        streamTimer_.async_wait([self = shared_from_this()](error_code wait) {
+          if (!wait) {
+            self->finishStream(beast::error::timeout);
+          }
+        });
+      }
+      return;
+    }
+    streamChunk_.clear();
+    streamMore_ = bodyStream_->pull(streamChunk_);
+    if (streamChunk_.empty()) {
+      if (!streamMore_) {
+        finishStream({});
+      }
+      return;
+    }
+    writing_ = true;
+    stream_.expires_after(server_.options.writeTimeout);
+    net::async_write(stream_, net::buffer(streamChunk_),
+                     [self = shared_from_this()](error_code ec, std::size_t bytes) {
+                       self->writing_ = false;
+                       self->streamBytes_ += bytes;
+                       if (ec) {
+                         if (ec == beast::error::timeout) {
+                           self->server_.timeouts.inc({"write"});
+                         }
+                         self->finishStream(ec);
+                       } else if (!self->streamMore_) {
+                         self->finishStream({});
+                       } else {
+                         self->pumpStream();
+                       }
+                     });
+  }
+
+  /// Reads (and discards) what the client sends while its stream runs, to notice at once when it
+  /// goes away. On the socket itself, not the tcp_stream: no read timeout applies here.
+  void watchPeer() {
+    stream_.socket().async_read_some(
+        net::buffer(watchBuffer_), [self = shared_from_this()](error_code ec, std::size_t) {
+          if (!self->streaming_) {
+            return;
+          }
+          if (ec) {
+            self->finishStream(ec == net::error::eof ? error_code{} : ec);
+          } else {
+            self->watchPeer();
+          }
+        });
+  }
+
+  /// Ends the streamed response at the front of the queue: the stream is stopped, the access log
+  /// gets its line (the bytes streamed, the whole duration) and the connection closes. Idempotent.
+  void finishStream(error_code ec) {
+    if (!streaming_) {
+      return;
+    }
+    streaming_ = false;
+    streamTimer_.cancel();
+    bodyStream_->stop();
+    if (!queue_.empty()) {
+      Slot slot = std::move(queue_.front());
+      queue_.pop_front();
+      slot.bodyBytes = streamBytes_;
+      record(slot, ec);
+    }
+    closeNow();
+  }
+
   void closeNow() {
+    if (streaming_) {
+      finishStream(net::error::operation_aborted);
+      return;
+    }
     if (closed_) {
       return;
     }
@@ -960,7 +1097,16 @@ class Connection : public std::enable_shared_from_this<Connection> {
   Server::Impl& server_;
   std::optional<Series> series_;
   beast::tcp_stream stream_;
-  net::steady_timer fileTimer_;  // the write timeout of a body sent by sendfile()
+  net::steady_timer fileTimer_;    // the write timeout of a body sent by sendfile()
+  net::steady_timer streamTimer_;  // the last write of a streamed body that ended (see pumpStream)
+  /// The streamed body being written (Response::stream), from its header on; and its state.
+  std::shared_ptr<BodyStream> bodyStream_;
+  std::string streamChunk_;  // the bytes being written
+  std::size_t streamBytes_ = 0;
+  std::array<char, 512> watchBuffer_{};  // what the client sends meanwhile, discarded
+  bool streaming_ = false;               // bodyStream_ runs (the front slot is its response)
+  bool streamMore_ = true;               // the chunk being written is not the stream's last
+  bool streamEnding_ = false;    // the stream ended while a write was stuck (streamTimer_ armed)
   std::uint64_t fileWrite_ = 0;  // counts file bodies started; a timer acts for its own only
   bool fileWriting_ = false;     // a file body is being sent (fileTimer_ is armed for it)
   beast::flat_buffer buffer_;

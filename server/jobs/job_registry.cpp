@@ -111,13 +111,22 @@ JobStatus JobRegistry::submit(std::string type, json params, JobContext::Plan pl
   job->work = std::move(work);
   Job* raw = job.get();
   job->context.reset(new JobContext([this, raw](std::string_view stage, double overall) {
-    const std::lock_guard lock(mutex_);
-    if (raw->status.state != JobState::Running) {
-      return;
+    std::optional<JobStatus> changed;
+    {
+      const std::lock_guard lock(mutex_);
+      if (raw->status.state != JobState::Running) {
+        return;
+      }
+      raw->status.stage = stage;
+      if (overall >= 0) {
+        raw->status.progress = std::max(raw->status.progress, std::min(overall, 1.0));
+      }
+      if (listener_) {
+        changed = raw->status;
+      }
     }
-    raw->status.stage = stage;
-    if (overall >= 0) {
-      raw->status.progress = std::max(raw->status.progress, std::min(overall, 1.0));
+    if (changed) {
+      tell(*changed);
     }
   }));
   job->context->plan(std::move(plan));
@@ -145,12 +154,14 @@ JobStatus JobRegistry::submit(std::string type, json params, JobContext::Plan pl
     out = job->status;
   }
   log::info("job=" + out.id + " queued: " + out.type + " " + out.params.dump());
+  tell(out);
   pool_.post([this, job] { run(job); });
   return out;
 }
 
 void JobRegistry::run(const std::shared_ptr<Job>& job) {
   JobWork work;
+  JobStatus running;
   {
     const std::lock_guard lock(mutex_);
     if (job->status.state != JobState::Queued) {
@@ -160,8 +171,10 @@ void JobRegistry::run(const std::shared_ptr<Job>& job) {
     job->status.stage = "starting";
     job->status.started = std::chrono::system_clock::now();
     work = std::move(job->work);
+    running = job->status;
   }
-  log::info("job=" + job->status.id + " running");
+  log::info("job=" + running.id + " running");
+  tell(running);
   lowerThreadPriority();
   json result;
   JobState state = JobState::Succeeded;
@@ -191,6 +204,7 @@ void JobRegistry::run(const std::shared_ptr<Job>& job) {
 void JobRegistry::finish(Job& job, JobState state, json result, std::optional<ErrorCode> code,
                          std::string message) {
   std::string line;
+  JobStatus final;
   {
     const std::lock_guard lock(mutex_);
     JobStatus& s = job.status;
@@ -208,6 +222,7 @@ void JobRegistry::finish(Job& job, JobState state, json result, std::optional<Er
     if (state != JobState::Succeeded) {
       line += " in stage " + s.stage + ": " + s.errorMessage;
     }
+    final = s;
     forgetOldFinished();
   }
   if (state == JobState::Failed) {
@@ -215,6 +230,7 @@ void JobRegistry::finish(Job& job, JobState state, json result, std::optional<Er
   } else {
     log::info(line);
   }
+  tell(final);
 }
 
 void JobRegistry::forgetOldFinished() {
@@ -281,6 +297,9 @@ JobStatus JobRegistry::cancel(std::string_view id) {
     out = job.status;
   }
   log::info("job=" + out.id + (cancelledNow ? " cancelled while queued" : " cancel requested"));
+  if (cancelledNow) {
+    tell(out);  // final; a running job tells its own end (its next report shows the request)
+  }
   return out;
 }
 
@@ -301,6 +320,16 @@ void JobRegistry::cancelAll(bool refuseNew) {
     } catch (const Error&) {
       // finished meanwhile
     }
+  }
+}
+
+void JobRegistry::onChange(std::function<void(const JobStatus&)> listener) {
+  listener_ = std::move(listener);
+}
+
+void JobRegistry::tell(const JobStatus& status) const {
+  if (listener_) {
+    listener_(status);
   }
 }
 

@@ -129,6 +129,12 @@ class JobRegistry {
   /// Jobs per state, for metrics.
   std::map<JobState, std::size_t> counts() const;
 
+  /// Sets the one function told of every change of a job (queued, running, each progress report,
+  /// final), with its status then; on the thread that changed it (the submitting, the job's, the
+  /// cancelling one), with no lock held, in the order the changes happened for one job. It must
+  /// not throw or block. Call before the first submit().
+  void onChange(std::function<void(const JobStatus&)> listener);
+
  private:
   struct Job;
   void run(const std::shared_ptr<Job>& job);
@@ -136,8 +142,11 @@ class JobRegistry {
               std::string message);
   void forgetOldFinished();
 
+  void tell(const JobStatus& status) const;
+
   exec::WorkPool& pool_;
   JobLimits limits_;
+  std::function<void(const JobStatus&)> listener_;  // set before the first job
   std::uint32_t idPrefix_;
   mutable std::mutex mutex_;  // guards everything below and every Job::status
   std::uint64_t next_ = 0;

@@ -183,6 +183,41 @@ std::size_t ModelRegistry::openAll() {
   return opened;
 }
 
+void ModelRegistry::onPublished(std::function<void(const Publication&)> listener) {
+  onPublished_ = std::move(listener);
+}
+
+void ModelRegistry::watch(core::LiveModel& live) const {
+  if (!onPublished_) {
+    return;
+  }
+  live.onNewVersion([listener = onPublished_, id = live.name()](
+                        std::uint64_t version, const std::set<core::PatchKey>& changed) {
+    listener(Publication{id, version, {changed.begin(), changed.end()}, false});
+  });
+}
+
+void ModelRegistry::announceFollowed(const core::LiveModel& old,
+                                     const core::LiveModel& fresh) const {
+  if (!onPublished_) {
+    return;
+  }
+  const auto before = old.snapshot();
+  const auto after = fresh.snapshot();
+  if (after->version == before->version) {
+    return;  // the same version (read again after a failed write, a change of role)
+  }
+  // What the other writer changed: every patch whose version differs (a patch is never removed).
+  Publication publication{fresh.name(), after->version, {}, true};
+  for (const auto& [key, info] : after->model->patches()) {
+    const core::PatchInfo* was = before->model->find(key);
+    if (was == nullptr || was->version != info.version) {
+      publication.changed.push_back(key);
+    }
+  }
+  onPublished_(publication);
+}
+
 void ModelRegistry::electWriters(std::function<bool(std::string_view id)> writes) {
   writes_ = std::move(writes);
 }
@@ -202,6 +237,7 @@ bool ModelRegistry::setWriter(std::string_view id, bool writer) {
         old->dir(), name, cache_,
         writer ? core::LiveModel::Access::Write : core::LiveModel::Access::Read, texturePixels_);
     fresh.encoded = EncodedCache::create(cache_, *fresh.live);
+    watch(*fresh.live);
   } catch (const std::exception& e) {
     bool first = false;
     {
@@ -215,6 +251,7 @@ bool ModelRegistry::setWriter(std::string_view id, bool writer) {
     return false;
   }
   const std::uint64_t version = fresh.live->snapshot()->version;
+  const std::shared_ptr<core::LiveModel> freshLive = fresh.live;
   Served replaced;
   {
     const std::lock_guard lock(mutex_);
@@ -225,6 +262,7 @@ bool ModelRegistry::setWriter(std::string_view id, bool writer) {
     replaced = std::exchange(it->second, std::move(fresh));
     roleFailed_.erase(name);
   }
+  announceFollowed(*old, *freshLive);
   log::info("model=" + name + (writer ? " is written by this process now" : " is only read now") +
             " (version " + std::to_string(version) + ")");
   return true;
@@ -287,6 +325,7 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
       log::warn("model=" + id + " opened for reading only: " + model->readOnlyReason());
     }
     encoded = EncodedCache::create(cache_, *model);
+    watch(*model);
   } catch (...) {
     const std::lock_guard lock(mutex_);
     opening_.erase(id);
@@ -318,12 +357,14 @@ std::optional<std::uint64_t> ModelRegistry::replace(const std::shared_ptr<core::
   try {
     fresh.live = old->reopen();
     fresh.encoded = EncodedCache::create(cache_, *fresh.live);
+    watch(*fresh.live);
   } catch (const std::exception& e) {
     log::error("model=" + std::string(id) + " cannot be read again from disk " + std::string(why) +
                ": " + e.what());
     return std::nullopt;
   }
   const std::uint64_t version = fresh.live->snapshot()->version;
+  const std::shared_ptr<core::LiveModel> freshLive = fresh.live;
   Served replaced;
   {
     const std::lock_guard lock(mutex_);
@@ -333,6 +374,7 @@ std::optional<std::uint64_t> ModelRegistry::replace(const std::shared_ptr<core::
     }
     replaced = std::exchange(it->second, std::move(fresh));
   }
+  announceFollowed(*old, *freshLive);
   return version;
 }
 

@@ -16,6 +16,7 @@
 
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/texture_file.hpp"
+#include "core/pyramid/patch_key.hpp"
 
 namespace vsm::core {
 class LiveModel;
@@ -86,6 +87,22 @@ class ModelRegistry {
   bool setWriter(std::string_view id, bool writer);
   /// The ids of the open models, in order.
   std::vector<std::string> ids() const;
+
+  /// A new version of an open model: published by this process, or read again after another
+  /// writer published it (follow(), setWriter(), reopen()).
+  struct Publication {
+    std::string model;
+    std::uint64_t version = 0;
+    /// The keys of the patches added or replaced, in key order: as the publish made them, or,
+    /// for a version read again, the patches whose version differs between the two openings.
+    std::vector<core::PatchKey> changed;
+    /// True when the version was read again (another writer published it).
+    bool followed = false;
+  };
+  /// Sets the one function told of every new version, on the publishing (or following) thread
+  /// with no lock held; it must not throw or block. Call before openAll() and open(): openings
+  /// made earlier are not watched.
+  void onPublished(std::function<void(const Publication&)> listener);
 
   /// Opens the OPC directory `dir` (inside the data root) as `id`, for writing (holding its
   /// writer lock), or for reading only when another writer holds the lock or the directory is not
@@ -159,6 +176,10 @@ class ModelRegistry {
   std::shared_ptr<core::LiveModel> openChecked(const std::string& id,
                                                const std::filesystem::path& dir, bool reserved);
   void unlease(const std::string& id);
+  /// Passes `live`'s publishes to onPublished_.
+  void watch(core::LiveModel& live) const;
+  /// Tells onPublished_ of `fresh` when it is a newer version than `old` (another writer's).
+  void announceFollowed(const core::LiveModel& old, const core::LiveModel& fresh) const;
   /// Replaces the opening `old` of `id` by old->reopen() and returns the new opening's version;
   /// nullopt when reading failed (logged with `why`) or `id` was closed or replaced meanwhile.
   std::optional<std::uint64_t> replace(const std::shared_ptr<core::LiveModel>& old,
@@ -175,7 +196,8 @@ class ModelRegistry {
   std::set<std::string, std::less<>> reserved_;
   /// Ids being opened right now (open() reads the disk without the lock).
   std::set<std::string, std::less<>> opening_;
-  std::function<bool(std::string_view)> writes_;  // set before any model is opened
+  std::function<bool(std::string_view)> writes_;         // set before any model is opened
+  std::function<void(const Publication&)> onPublished_;  // set before any model is opened
   /// setWriter()'s own state: models whose last change of role failed (logged once).
   std::set<std::string, std::less<>> roleFailed_;
   /// openAll()'s own state: directories it skipped, with their hierarchy file as it was then.

@@ -1,0 +1,383 @@
+#!/usr/bin/python3
+"""GET /v1/events end to end: the real vsmd on 127.0.0.1:0 and real data (PRISM and Jacksboro
+imported by the real `vsm` at --patch-size 65).
+
+    /usr/bin/python3 events_test.py --vsm <vsm> --vsmd <vsmd> --data <shared/data>
+                                    --clients <client-examples> --work <dir>
+
+1. Three subscribers read the stream while a merge of Jacksboro into PRISM runs (POST /v1/jobs).
+   Each sees the job's progress events ("job", coalesced: at most ~4 a second), then "published"
+   for PRISM with the job's new version and the changed keys, then the job's "job_end"
+   (succeeded), with strictly increasing ids, all three the same events.
+2. A fourth subscriber with a tiny receive buffer never reads while a flood of events is produced
+   (hundreds of import jobs of a file that is no raster, each failing at once): the daemon logs
+   that it dropped it and closes its connection; the three others keep receiving every event
+   (no gap in the ids); the daemon's VmRSS stays below its level before the flood plus
+   RSS_BOUND.
+3. The Python client's wait() follows a job on the stream and returns its final state.
+4. SIGTERM ends every stream at once: vsmd exits well within its grace period.
+5. With limits.event_subscribers=2 a third subscriber gets 503 with Retry-After, and once one
+   leaves, a new one is taken.
+"""
+
+import argparse
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+
+MiB = 1024 * 1024
+# What the flood may add to the daemon's resident memory. The never-reading subscriber's share is
+# bounded by its queue (256 events or 256 KiB) plus one write in flight (at most as much again);
+# the rest is slack for allocator noise and the failing imports.
+RSS_BOUND = 48 * MiB
+FLOOD_JOBS = 400
+
+
+class Reader(threading.Thread):
+    """A subscriber that reads and parses the stream as it comes."""
+
+    def __init__(self, base, name):
+        super().__init__(daemon=True)
+        self.name = name
+        self.events = []  # (id, event, data, monotonic time)
+        self.status = None
+        self.headers = None
+        self.ended = threading.Event()
+        self.opened = threading.Event()
+        self.error = None
+        self.sock = socket.create_connection(("127.0.0.1", int(base.rsplit(":", 1)[1])), timeout=60)
+        self.sock.sendall(b"GET /v1/events HTTP/1.1\r\nHost: test\r\nAccept: text/event-stream\r\n\r\n")
+
+    def run(self):
+        try:
+            f = self.sock.makefile("rb")
+            status_line = f.readline().decode()
+            self.status = int(status_line.split()[1])
+            headers = {}
+            while True:
+                line = f.readline().decode().rstrip("\r\n")
+                if not line:
+                    break
+                name, _, value = line.partition(":")
+                headers[name.strip().lower()] = value.strip()
+            self.headers = headers
+            self.opened.set()
+            current = {}
+            for raw in f:
+                line = raw.decode().rstrip("\r\n")
+                if not line:
+                    if "data" in current:
+                        self.events.append((int(current["id"]) if "id" in current else None,
+                                            current.get("event", "message"),
+                                            json.loads(current["data"]), time.monotonic()))
+                    current = {}
+                elif not line.startswith(":"):
+                    key, _, value = line.partition(": ")
+                    current[key] = value
+        except Exception as e:  # noqa: BLE001 - reported by the test
+            self.error = e
+        finally:
+            self.opened.set()
+            self.ended.set()
+
+    def close(self):
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+        self.sock.close()
+
+
+def rss(pid):
+    with open("/proc/%d/status" % pid) as f:
+        return int(re.search(r"(?m)^VmRSS:\s+(\d+) kB", f.read()).group(1)) * 1024
+
+
+def http(base, method, path, body=None):
+    data = None if body is None else json.dumps(body).encode()
+    req = urllib.request.Request(base + path, data=data, method=method)
+    req.add_header("Content-Type", "application/json")
+    try:
+        with urllib.request.urlopen(req, timeout=60) as r:
+            return r.status, dict(r.headers), json.loads(r.read() or b"null")
+    except urllib.error.HTTPError as e:
+        return e.code, dict(e.headers), json.loads(e.read() or b"null")
+
+
+class Daemon:
+    def __init__(self, vsmd, root, work, name, *extra):
+        self.port_file = os.path.join(work, name + ".port")
+        self.log_path = os.path.join(work, name + ".log")
+        if os.path.exists(self.port_file):
+            os.remove(self.port_file)
+        self.log = open(self.log_path, "w")
+        self.proc = subprocess.Popen([vsmd, "--listen", "127.0.0.1:0", "--data-root", root,
+                                      "--port-file", self.port_file] + list(extra),
+                                     stdout=self.log, stderr=subprocess.STDOUT)
+        deadline = time.monotonic() + 60
+        while not os.path.exists(self.port_file):
+            if time.monotonic() > deadline or self.proc.poll() is not None:
+                raise RuntimeError("vsmd did not start; see " + self.log_path)
+            time.sleep(0.02)
+        self.base = "http://127.0.0.1:%s" % open(self.port_file).read().strip()
+
+    def log_text(self):
+        self.log.flush()
+        return open(self.log_path).read()
+
+    def stop(self):
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self.log.close()
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("--vsm", required=True)
+    parser.add_argument("--vsmd", required=True)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--clients", required=True)
+    parser.add_argument("--work", required=True)
+    args = parser.parse_args()
+    sys.path.insert(0, os.path.join(args.clients, "python"))
+    import vsm_client  # noqa: E402
+
+    work = os.path.abspath(args.work)
+    shutil.rmtree(work, ignore_errors=True)
+    root = os.path.join(work, "root")
+    os.makedirs(root)
+    failures = []
+
+    def check(condition, message):
+        print(("ok   " if condition else "FAIL ") + message, flush=True)
+        if not condition:
+            failures.append(message)
+
+    for tif, name in (("PRISMelevation.tif", "prism"), ("jacksboro_fault_dem.tif", "jacksboro")):
+        result = subprocess.run([args.vsm, "import", os.path.join(args.data, tif),
+                                 os.path.join(root, name), "--patch-size", "65"],
+                                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        if result.returncode != 0:
+            print("FAIL import %s: %s" % (tif, result.stdout))
+            return 1
+    with open(os.path.join(root, "junk.txt"), "w") as f:
+        f.write("not a raster\n")
+
+    daemon = Daemon(args.vsmd, root, work, "vsmd", "--memory-budget", "64MiB")
+    try:
+        base = daemon.base
+        readers = [Reader(base, "reader%d" % i) for i in range(3)]
+        for reader in readers:
+            reader.start()
+        for reader in readers:
+            reader.opened.wait(10)
+        check(all(r.status == 200 and r.headers.get("content-type") == "text/event-stream"
+                  for r in readers), "three subscribers get 200 text/event-stream")
+        check(all(r.headers.get("connection", "").lower() == "close" and
+                  "content-length" not in r.headers for r in readers),
+              "the stream has no length and ends with the connection")
+
+        # The never-reading subscriber: a receive buffer as small as the kernel allows.
+        stuck = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        stuck.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
+        stuck.connect(("127.0.0.1", int(base.rsplit(":", 1)[1])))
+        stuck.sendall(b"GET /v1/events HTTP/1.1\r\nHost: test\r\n\r\n")
+
+        # 1. A merge seen by the three.
+        submitted = time.monotonic()
+        status, _, job = http(base, "POST", "/v1/jobs",
+                              {"type": "merge", "target": "prism", "source": "jacksboro"})
+        check(status == 202, "merge submitted (202)")
+        job_id = job["id"]
+
+        # 2. The flood, while the merge runs: import jobs that fail at once.
+        rss_before = rss(daemon.proc.pid)
+        peak = [rss_before]
+        sampling = threading.Event()
+
+        def sample():
+            while not sampling.is_set():
+                peak[0] = max(peak[0], rss(daemon.proc.pid))
+                time.sleep(0.02)
+
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        flood_ids = set()
+        for i in range(FLOOD_JOBS):
+            status, headers, body = http(base, "POST", "/v1/models",
+                                         {"id": "junk%04d" % i,
+                                          "source": {"import": "junk.txt", "patch_size": 65}})
+            if status == 202:
+                flood_ids.add(body["id"])
+            elif status == 503:
+                time.sleep(0.05)  # the job queue is full: the flood waits a little
+        check(len(flood_ids) >= FLOOD_JOBS // 2, "%d failing import jobs submitted" % len(flood_ids))
+
+        deadline = time.monotonic() + 600
+        final = None
+        while time.monotonic() < deadline:
+            _, _, final = http(base, "GET", "/v1/jobs/" + job_id)
+            if final["state"] in ("succeeded", "failed", "cancelled") and \
+                    all(any(e[1] == "job_end" and e[2]["job"] == job_id for e in r.events)
+                        for r in readers):
+                break
+            time.sleep(0.2)
+        merge_seconds = time.monotonic() - submitted
+        check(final["state"] == "succeeded", "the merge succeeded in %.1f s" % merge_seconds)
+        new_version = final["result"]["version"]
+        # Every flood job ends too.
+        time.sleep(1.0)
+        ended = 0
+        while time.monotonic() < deadline:
+            ended = sum(1 for e in readers[0].events if e[1] == "job_end" and e[2]["job"] in flood_ids)
+            if ended == len(flood_ids):
+                break
+            time.sleep(0.2)
+        sampling.set()
+        sampler.join()
+        grown = peak[0] - rss_before
+        print("     VmRSS before the flood %.1f MiB, peak %.1f MiB (+%.1f MiB, bound +%d MiB)"
+              % (rss_before / MiB, peak[0] / MiB, grown / MiB, RSS_BOUND // MiB))
+        check(grown < RSS_BOUND, "the daemon's VmRSS stays below its level before the flood + %d MiB"
+              % (RSS_BOUND // MiB))
+
+        for reader in readers:
+            events = reader.events
+            ids = [e[0] for e in events]
+            check(ids == sorted(set(ids)) and len(ids) > 0, "%s: ids strictly increase (%d events)"
+                  % (reader.name, len(ids)))
+            check(ids == list(range(ids[0], ids[0] + len(ids))),
+                  "%s: no event missing (ids %d..%d without a gap)" % (reader.name, ids[0], ids[-1]))
+            mine = [e for e in events if isinstance(e[2], dict) and e[2].get("job") == job_id]
+            progress = [e for e in mine if e[1] == "job"]
+            ends = [e for e in mine if e[1] == "job_end"]
+            published = [e for e in events if e[1] == "published" and e[2]["model"] == "prism"]
+            check(len(progress) >= 3, "%s: %d progress events of the merge" % (reader.name, len(progress)))
+            check(all(p[2]["models"] == ["prism", "jacksboro"] and p[2]["type"] == "merge"
+                      for p in progress), "%s: progress names the job's type and models" % reader.name)
+            fractions = [p[2]["progress"] for p in progress]
+            check(fractions == sorted(fractions), "%s: progress never decreases" % reader.name)
+            running = [p for p in progress if p[2]["state"] == "running"]
+            span = running[-1][3] - running[0][3] if len(running) > 1 else 0
+            check(len(running) <= 4 * span + 4,
+                  "%s: progress coalesced: %d running events over %.1f s"
+                  % (reader.name, len(running), span))
+            check(len(ends) == 1 and ends[0][2]["state"] == "succeeded" and
+                  ends[0][2]["result"]["version"] == new_version,
+                  "%s: one job_end, succeeded, with the result" % reader.name)
+            check(len(published) == 1 and published[0][2]["version"] == new_version and
+                  published[0][2]["changed_count"] > 0 and
+                  (not published[0][2]["changed_complete"] or
+                   len(published[0][2]["changed"]) == published[0][2]["changed_count"]),
+                  "%s: published prism version %d with %d changed keys"
+                  % (reader.name, new_version, published[0][2]["changed_count"] if published else -1))
+            if ends and published:
+                check(all(p[0] < ends[0][0] for p in progress) and published[0][0] < ends[0][0],
+                      "%s: progress and published come before job_end" % reader.name)
+                check(progress[0][0] < published[0][0],
+                      "%s: progress starts before published" % reader.name)
+        check(all([e[:3] for e in r.events] == [e[:3] for e in readers[0].events] for r in readers),
+              "the three subscribers got the same events")
+        check(ended == len(flood_ids), "every flood job's end reached the readers (%d)" % ended)
+        total = len(readers[0].events)
+        size = sum(len(json.dumps(e[2])) for e in readers[0].events)
+        print("     %d events, %.0f KiB of data, in the run" % (total, size / 1024))
+
+        log = daemon.log_text()
+        dropped_lines = [line for line in log.splitlines() if "dropped: it fell behind" in line]
+        check(len(dropped_lines) == 1, "the daemon logs one dropped subscriber: %s"
+              % (dropped_lines[0].split(" events: ", 1)[-1] if dropped_lines else "none"))
+        stuck.settimeout(10)
+        received = b""
+        closed = False
+        try:
+            while True:
+                chunk = stuck.recv(65536)
+                if not chunk:
+                    closed = True
+                    break
+                received += chunk
+        except (socket.timeout, ConnectionResetError):
+            closed = not isinstance(sys.exc_info()[1], socket.timeout)
+        check(closed, "the dropped subscriber's connection was closed by the daemon "
+              "(%d bytes had reached it)" % len(received))
+        print("     its last bytes %s the final 'event: dropped'"
+              % ("include" if b"event: dropped" in received else "do not include (best effort)"))
+        stuck.close()
+
+        # 3. The Python client follows a job on the stream.
+        client = vsm_client.Client(base)
+        status, _, job = http(base, "POST", "/v1/models",
+                              {"id": "junkwait", "source": {"import": "junk.txt", "patch_size": 65}})
+        seen = []
+        final = client.wait(job["id"], on_progress=seen.append)
+        check(final["state"] == "failed" and seen and seen[-1]["state"] == "failed",
+              "vsm_client wait() follows a job to its end (%d updates)" % len(seen))
+        stream = client.events(timeout=10)
+        check(next(stream)["event"] == "open", "vsm_client events() opens the stream")
+        http(base, "POST", "/v1/models",
+             {"id": "junkgen", "source": {"import": "junk.txt", "patch_size": 65}})
+        names = []
+        for event in stream:
+            names.append(event["event"])
+            if event["event"] == "job_end":
+                break
+        stream.close()
+        check(names[0] == "job" and names[-1] == "job_end", "vsm_client events() yields %s" % names)
+
+        # 4. SIGTERM ends the streams at once.
+        started = time.monotonic()
+        daemon.proc.send_signal(signal.SIGTERM)
+        daemon.proc.wait(30)
+        seconds = time.monotonic() - started
+        check(daemon.proc.returncode == 0 and seconds < 5,
+              "SIGTERM with three streams open: exit %d after %.2f s (grace 10 s)"
+              % (daemon.proc.returncode, seconds))
+        check(all(r.ended.wait(5) for r in readers), "every stream ended with the daemon")
+    finally:
+        daemon.stop()
+
+    # 5. The cap.
+    daemon = Daemon(args.vsmd, root, work, "capped", "--set", "limits.event_subscribers=2")
+    try:
+        base = daemon.base
+        first, second = Reader(base, "a"), Reader(base, "b")
+        first.start()
+        second.start()
+        first.opened.wait(10)
+        second.opened.wait(10)
+        third = Reader(base, "c")
+        third.start()
+        third.opened.wait(10)
+        check(first.status == 200 and second.status == 200 and third.status == 503 and
+              third.headers.get("retry-after") == "1",
+              "limits.event_subscribers=2: a third subscriber gets 503 with Retry-After: 1")
+        first.close()
+        time.sleep(0.5)
+        fourth = Reader(base, "d")
+        fourth.start()
+        fourth.opened.wait(10)
+        check(fourth.status == 200, "once one left, a new subscriber is taken")
+    finally:
+        daemon.stop()
+
+    print("%d failure(s)" % len(failures))
+    return 1 if failures else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
