@@ -12,11 +12,12 @@
 # The model is imported with the last binary, into a temporary directory (removed afterwards).
 #
 # Each figure is the median of $VSM_BENCH_REPEAT (default 20) runs, the binaries taking turns run
-# by run so that the load of a shared machine falls on all alike: wall time from fork to exit
-# (stdout and stderr to /dev/null), and the CPU time (user + system) of the process; "libraries" is
-# the number of shared objects ld.so mapped (LD_DEBUG=files, dlopen included; not counting the
-# binary, the vDSO and ld.so itself). The machine's load average is printed with the table: the
-# wall times of a busy machine are no better than it.
+# by run so that the load of a shared machine falls on all alike: wall time from posix_spawn to
+# exit (stdout and stderr to /dev/null), and the CPU time (user + system) of the process;
+# "libraries" is the number of shared objects ld.so mapped (LD_DEBUG=files, dlopen included; not
+# counting the binary, the vDSO and ld.so itself). /bin/true, run in the same turns, is the floor:
+# what starting any process costs on this machine at the moment. The load average is printed
+# with the table.
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../.." && pwd)
 PYTHON=/usr/bin/python3
@@ -49,15 +50,15 @@ binaries = [(s.split("=", 1)[0], os.path.abspath(s.split("=", 1)[1])) for s in s
 commands = [("--help", ["--help"]), ("info", ["info", model]), ("validate", ["validate", model])]
 
 
+NULL_OUTPUT = [(os.POSIX_SPAWN_OPEN, fd, os.devnull, os.O_WRONLY, 0) for fd in (1, 2)]
+
+
 def run_once(argv):
-    """Wall and CPU milliseconds of one run, output discarded."""
+    """Wall and CPU milliseconds of one run, output discarded. posix_spawn (vfork), not fork: a
+    fork of this Python process costs more than all of a small vsm (/bin/true: 50 ms against 14 ms
+    on a busy 2-core VM), and its page faults would count as the child's CPU time."""
     start = time.perf_counter()
-    pid = os.fork()
-    if pid == 0:
-        null = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(null, 1)
-        os.dup2(null, 2)
-        os.execv(argv[0], argv)
+    pid = os.posix_spawn(argv[0], argv, os.environ, file_actions=NULL_OUTPUT)
     _, status, usage = os.wait4(pid, 0)
     wall = (time.perf_counter() - start) * 1000
     if os.waitstatus_to_exitcode(status) != 0:
@@ -71,8 +72,11 @@ def libraries(argv):
     return sum(1 for line in err.splitlines() if line.endswith("generating link map"))
 
 
+# The floor: the cost of starting any process on this machine now.
+floor = []
 samples = {(b, c): [] for b, _ in binaries for c, _ in commands}
 for _ in range(repeat):
+    floor.append(run_once(["/bin/true"]))
     for name, args in commands:
         for label, path in binaries:
             samples[(label, name)].append(run_once([path, *args]))
@@ -83,6 +87,8 @@ print("vsm start-up: median of %d runs; load average %s on %d cores; model %s (%
       % (repeat, " ".join(open("/proc/loadavg").read().split()[:3]), os.cpu_count(), model,
          folders))
 print("%-10s %-9s %12s %11s %10s" % ("binary", "command", "wall ms", "cpu ms", "libraries"))
+print("%-10s %-9s %12.1f %11.1f %10s" % ("/bin/true", "", statistics.median(w for w, _ in floor),
+                                         statistics.median(c for _, c in floor), "-"))
 for name, args in commands:
     for label, path in binaries:
         walls = [w for w, _ in samples[(label, name)]]

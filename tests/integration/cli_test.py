@@ -151,7 +151,7 @@ class CliErrors(unittest.TestCase):
 
 class StartUp(unittest.TestCase):
     """help, info and validate load neither GDAL, PCL nor OpenImageIO (~300 libraries that took
-    ld.so 0.3-1.5 s per start: tests/bench/startup_bench.sh)."""
+    ld.so 0.1-1.5 s per start: tests/bench/startup_bench.sh)."""
 
     @classmethod
     def setUpClass(cls):
