@@ -94,9 +94,11 @@ int runValidate(const std::vector<std::string_view>& args) {
   return 1;
 }
 
-/// Replaces this process with vsm-heavy running `command` with the same arguments; returns only
-/// by throwing Error(NotFound) naming the missing binary, or Error(Io) when exec fails otherwise.
-[[noreturn]] void execHeavy(std::string_view command, char** argv) {
+/// Replaces this process with vsm-heavy running `command` with the same arguments, argv[0]
+/// included: the process stays "vsm" to its user (the writer lock names its holder by it).
+/// Returns only by throwing Error(NotFound) naming the missing binary, or Error(Io) when exec
+/// fails otherwise.
+[[noreturn]] void execHeavy(std::string_view command, char* const* argv) {
   std::error_code ec;
   const fs::path self = fs::read_symlink("/proc/self/exe", ec);
   if (ec) {
@@ -104,7 +106,6 @@ int runValidate(const std::vector<std::string_view>& args) {
   }
   const fs::path heavy = self.parent_path() / kHeavyBinary;
   const std::string file = heavy.string();
-  argv[0] = const_cast<char*>(file.c_str());
   ::execv(file.c_str(), argv);
   const int error = errno;
   if (error == ENOENT) {
