@@ -1,150 +1,35 @@
 // vsm: the offline command. Parses arguments and runs one command; everything else is in core.
+//
+// Only help, info and validate run here: this binary links the OPC reader and none of GDAL, PCL
+// or OpenImageIO, whose ~300 shared libraries took ld.so 0.1-1.5 s to load before main on every
+// start (tests/bench/startup_bench.sh). import, merge and render-lod need them: they are run by
+// exec'ing `vsm-heavy` from the directory of this binary, with the same arguments (same process,
+// same exit code and signals).
 #include <unistd.h>
 
-#include <algorithm>
-#include <atomic>
-#include <charconv>
-#include <chrono>
+#include <cerrno>
 #include <cstdio>
 #include <cstring>
-#include <exception>
 #include <filesystem>
-#include <functional>
 #include <iostream>
-#include <mutex>
-#include <optional>
-#include <span>
 #include <string>
 #include <string_view>
-#include <thread>
+#include <system_error>
 #include <vector>
 
-#include <OpenImageIO/imageio.h>
-
-#include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
-#include "core/common/numbers.hpp"
-#include "core/durable/durable_io.hpp"
-#include "core/io/grid_source.hpp"
-#include "core/merge/merge.hpp"
-#include "core/merge/register.hpp"
 #include "core/opc/opc_reader.hpp"
-#include "core/opc/opc_writer.hpp"
 #include "core/opc/validate.hpp"
-#include "core/store/live_model.hpp"
-#include "core/tiles/lod_render.hpp"
-#include "server/config/config.hpp"
+#include "server/cli/console.hpp"
 
 namespace fs = std::filesystem;
 using namespace vsm::core;
+using vsm::cli::UsageError;
 
 namespace {
 
-constexpr std::string_view kUsage =
-    "usage: vsm <command> [arguments]\n"
-    "\n"
-    "commands:\n"
-    "  import <input> <out-dir> [--patch-size N]   import a georeferenced raster (GDAL) or an\n"
-    "                                              organized point cloud (.pcd, .ply) into a new "
-    "OPC\n"
-    "         [--texture <image>]                  and drape an image over it: placed by its\n"
-    "                                              georeference, or stretched over the input's\n"
-    "                                              extent (a texture tile per patch)\n"
-    "  info <opc>                                  depth, patches per level, bounds, resolution, "
-    "bytes\n"
-    "  validate <opc>                              check every invariant; exit 1 listing findings\n"
-    "  merge <target> <detail> [--register] [--out <dir>] [--memory-budget SIZE]\n"
-    "                                              insert the detail model into the target (in\n"
-    "                                              place, or into a new <dir>); --register aligns\n"
-    "                                              it first (ICP); SIZE like 512MiB (default "
-    "1GiB)\n"
-    "  render-lod <opc> <out.png> [--size N]       top-down picture of which depth covers which\n"
-    "                                              area (colours: core/tiles/README.md), N pixels\n"
-    "                                              on the longer side (default 1024), and a world\n"
-    "                                              file <out>.pgw (lon/lat for ECEF models)\n"
-    "  help                                        this text\n";
-
-/// Runs a batch of tasks on up to two threads per core, for imports: they wait on the file system
-/// (three new files per patch) about as long as they compute, so one thread per core leaves the
-/// cores idle half the time (the bench's 8193^2 import: 2.2-2.8 s on 2 threads, 1.5-1.75 s on 4,
-/// 1.7-1.9 s on 8, on 2 cores).
-class ThreadExecutor final : public Executor {
- public:
-  void runAll(std::vector<std::function<void()>> tasks) override {
-    const std::size_t threads =
-        std::min<std::size_t>(tasks.size(), 2 * std::max(1u, std::thread::hardware_concurrency()));
-    std::atomic<std::size_t> next{0};
-    std::mutex mutex;
-    std::exception_ptr first;
-    auto work = [&] {
-      for (std::size_t i; (i = next++) < tasks.size();) {
-        try {
-          tasks[i]();
-        } catch (...) {
-          std::lock_guard lock(mutex);
-          if (!first) {
-            first = std::current_exception();
-          }
-        }
-      }
-    };
-    std::vector<std::jthread> pool;
-    for (std::size_t t = 1; t < threads; ++t) {
-      pool.emplace_back(work);
-    }
-    work();
-    pool.clear();  // joins
-    if (first) {
-      std::rethrow_exception(first);
-    }
-  }
-};
-
-struct UsageError {
-  std::string message;
-};
-
-/// Draws a progress bar on a terminal; prints a line per 10 % otherwise (logs, CI).
-class ConsoleProgress final : public Progress {
- public:
-  ConsoleProgress() : tty_(isatty(STDERR_FILENO) == 1) {}
-  ~ConsoleProgress() override {
-    if (tty_ && drawn_) {
-      std::fputc('\n', stderr);
-    }
-  }
-
-  void report(std::string_view stage, double fraction) override {
-    if (stage != stage_) {
-      if (tty_ && drawn_) {
-        std::fputc('\n', stderr);
-      }
-      stage_ = std::string(stage);
-      lastPercent_ = -1;
-    }
-    const int percent = static_cast<int>(fraction * 100.0 + 1e-9);
-    if (tty_) {
-      if (percent == lastPercent_) {
-        return;
-      }
-      constexpr int kWidth = 40;
-      const int filled = percent * kWidth / 100;
-      std::fprintf(stderr, "\r%-10s [%s%s] %3d%%", stage_.c_str(), std::string(filled, '#').c_str(),
-                   std::string(kWidth - filled, ' ').c_str(), percent);
-      std::fflush(stderr);
-      drawn_ = true;
-    } else if (percent / 10 != lastPercent_ / 10 || lastPercent_ < 0) {
-      std::fprintf(stderr, "%s %d%%\n", stage_.c_str(), percent / 10 * 10);
-    }
-    lastPercent_ = percent;
-  }
-
- private:
-  bool tty_;
-  bool drawn_ = false;
-  std::string stage_;
-  int lastPercent_ = -1;
-};
+/// The binary that runs the commands needing GDAL, PCL or OpenImageIO; beside this one.
+constexpr std::string_view kHeavyBinary = "vsm-heavy";
 
 std::string formatBox(const Box3d& b) {
   if (b.empty()) {
@@ -156,19 +41,6 @@ std::string formatBox(const Box3d& b) {
   return text;
 }
 
-std::string formatBytes(std::uintmax_t bytes) {
-  const char* units[] = {"B", "KiB", "MiB", "GiB", "TiB"};
-  double value = static_cast<double>(bytes);
-  int unit = 0;
-  while (value >= 1024 && unit < 4) {
-    value /= 1024;
-    ++unit;
-  }
-  char text[64];
-  std::snprintf(text, sizeof text, unit == 0 ? "%.0f %s" : "%.1f %s", value, units[unit]);
-  return text;
-}
-
 std::uintmax_t directoryBytes(const fs::path& dir) {
   std::uintmax_t total = 0;
   for (const auto& entry : fs::recursive_directory_iterator(dir)) {
@@ -177,47 +49,6 @@ std::uintmax_t directoryBytes(const fs::path& dir) {
     }
   }
   return total;
-}
-
-int runImport(const std::vector<std::string_view>& args) {
-  std::vector<std::string_view> positional;
-  ImportOptions options;
-  for (std::size_t i = 0; i < args.size(); ++i) {
-    if (args[i] == "--patch-size") {
-      if (i + 1 >= args.size()) {
-        throw UsageError{"--patch-size needs a value"};
-      }
-      const auto value = parseInteger(args[++i]);
-      if (!value || *value < 3 || *value > 65537) {
-        throw UsageError{"--patch-size must be 2^n+1, e.g. 65, 129 or 257"};
-      }
-      options.patchSize = static_cast<int>(*value);
-    } else if (args[i] == "--texture") {
-      if (i + 1 >= args.size()) {
-        throw UsageError{"--texture needs an image"};
-      }
-      options.texture = fs::path(args[++i]);
-    } else if (args[i].starts_with("--")) {
-      throw UsageError{"unknown option " + std::string(args[i])};
-    } else {
-      positional.push_back(args[i]);
-    }
-  }
-  if (positional.size() != 2) {
-    throw UsageError{"import needs <input> and <out-dir>"};
-  }
-  ConsoleProgress progress;
-  options.progress = &progress;
-  ThreadExecutor executor;
-  options.executor = &executor;
-  const auto start = std::chrono::steady_clock::now();
-  const Model model = importFile(fs::path(positional[0]), fs::path(positional[1]), options);
-  const double seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  std::printf("imported %s -> %s: %zu patches, depth %d, %.2f s\n",
-              std::string(positional[0]).c_str(), std::string(positional[1]).c_str(),
-              model.patchCount(), model.maxDepth(), seconds);
-  return 0;
 }
 
 int runInfo(const std::vector<std::string_view>& args) {
@@ -237,7 +68,7 @@ int runInfo(const std::vector<std::string_view>& args) {
   std::printf("depth       %d (%zu levels)\n", model.maxDepth(), levels.size());
   std::printf("patches     %zu (%zu leaves)\n", model.patchCount(), leaves);
   std::printf("bounds      %s\n", formatBox(root.globalBox).c_str());
-  std::printf("bytes       %s on disk\n", formatBytes(directoryBytes(dir)).c_str());
+  std::printf("bytes       %s on disk\n", vsm::cli::formatBytes(directoryBytes(dir)).c_str());
   std::printf("\n%5s %8s %8s %14s  %s\n", "depth", "patches", "leaves", "resolution m", "bounds");
   for (const auto& level : levels) {
     std::printf("%5d %8zu %8zu %14.3f  %s\n", level.depth, level.patches, level.leaves,
@@ -250,7 +81,7 @@ int runValidate(const std::vector<std::string_view>& args) {
   if (args.size() != 1) {
     throw UsageError{"validate needs <opc>"};
   }
-  ConsoleProgress progress;
+  vsm::cli::ConsoleProgress progress;
   const auto findings = validateOpc(fs::path(args[0]), &progress);
   if (findings.empty()) {
     std::printf("%s: valid\n", std::string(args[0]).c_str());
@@ -263,226 +94,26 @@ int runValidate(const std::vector<std::string_view>& args) {
   return 1;
 }
 
-/// The copy a merge with --out works on: `<out>.partial-<pid>` beside the output, removed on
-/// destruction unless published. Its write-back errors are captured from before the copy on.
-class StagingCopy {
- public:
-  StagingCopy(const fs::path& from, const fs::path& to)
-      : to_(to),
-        path_(to.parent_path() /
-              (to.filename().string() + ".partial-" + std::to_string(::getpid()))),
-        sync_(to.parent_path().empty() ? fs::path(".") : to.parent_path()) {
-    std::error_code ec;
-    if (fs::exists(fs::symlink_status(to, ec))) {
-      throw Error(ErrorCode::Conflict, "output directory '" + to.string() + "' exists");
-    }
-    // A throwing constructor runs no destructor: a partial copy (the file system full, a read
-    // error) is removed here.
-    try {
-      fs::copy(from, path_, fs::copy_options::recursive);
-    } catch (const fs::filesystem_error& e) {
-      fs::remove_all(path_, ec);
-      throw Error(ErrorCode::Io, "cannot copy '" + from.string() + "' to '" + path_.string() +
-                                     "': " + e.code().message());
-    } catch (...) {
-      fs::remove_all(path_, ec);
-      throw;
-    }
+/// Replaces this process with vsm-heavy running `command` with the same arguments, argv[0]
+/// included: the process stays "vsm" to its user (the writer lock names its holder by it).
+/// Returns only by throwing Error(NotFound) naming the missing binary, or Error(Io) when exec
+/// fails otherwise.
+[[noreturn]] void execHeavy(std::string_view command, char* const* argv) {
+  std::error_code ec;
+  const fs::path self = fs::read_symlink("/proc/self/exe", ec);
+  if (ec) {
+    throw Error(ErrorCode::Io, "cannot find the vsm binary (/proc/self/exe): " + ec.message());
   }
-  ~StagingCopy() {
-    if (!path_.empty()) {
-      std::error_code ec;
-      fs::remove_all(path_, ec);
-    }
+  const fs::path heavy = self.parent_path() / kHeavyBinary;
+  const std::string file = heavy.string();
+  ::execv(file.c_str(), argv);
+  const int error = errno;
+  if (error == ENOENT) {
+    throw Error(ErrorCode::NotFound, std::string(command) + " needs " + file +
+                                         " (GDAL, PCL and OpenImageIO), which is missing");
   }
-  StagingCopy(const StagingCopy&) = delete;
-  StagingCopy& operator=(const StagingCopy&) = delete;
-
-  const fs::path& path() const { return path_; }
-  /// Makes the finished copy durable and renames it to the output: the commit point of a merge
-  /// with --out.
-  void publish() {
-    sync_.sync();
-    durable::renameNoReplace(path_, to_);
-    path_.clear();
-    try {
-      durable::syncDirectory(to_.parent_path().empty() ? fs::path(".") : to_.parent_path());
-    } catch (const Error& e) {
-      throw Error(ErrorCode::Io, "the merged model is at '" + to_.string() + "', but " + e.what());
-    }
-  }
-
- private:
-  fs::path to_;
-  fs::path path_;
-  durable::FileSystemSync sync_;
-};
-
-int runMerge(const std::vector<std::string_view>& args) {
-  std::vector<std::string_view> positional;
-  bool registerFirst = false;
-  std::optional<fs::path> out;
-  std::size_t budget = std::size_t{1} << 30;
-  for (std::size_t i = 0; i < args.size(); ++i) {
-    if (args[i] == "--register") {
-      registerFirst = true;
-    } else if (args[i] == "--out" || args[i] == "--memory-budget") {
-      if (i + 1 >= args.size()) {
-        throw UsageError{std::string(args[i]) + " needs a value"};
-      }
-      if (args[i] == "--out") {
-        out = fs::path(args[++i]);
-      } else {
-        try {
-          budget = vsm::server::parseSize(args[++i]);
-        } catch (const Error& e) {
-          throw UsageError{e.what()};
-        }
-      }
-    } else if (args[i].starts_with("--")) {
-      throw UsageError{"unknown option " + std::string(args[i])};
-    } else {
-      positional.push_back(args[i]);
-    }
-  }
-  if (positional.size() != 2) {
-    throw UsageError{"merge needs <target> and <detail>"};
-  }
-  const fs::path target(positional[0]);
-  const fs::path detailDir(positional[1]);
-  const auto start = std::chrono::steady_clock::now();
-  PatchCache cache(budget);
-  // In place, the target's writer lock comes first: a model another writer (vsmd, another vsm
-  // merge) holds fails at once, naming the holder. The detail model is only read (no lock). With
-  // --out both are read before anything is copied: a corrupt model fails there and nothing is
-  // written.
-  std::unique_ptr<LiveModel> live;
-  if (!out) {
-    live = LiveModel::open(target, "target", cache);
-  }
-  auto detail = LiveModel::open(detailDir, "detail", cache, LiveModel::Access::Read);
-  std::optional<StagingCopy> copy;
-  if (out) {
-    readOpcModel(target);
-    copy.emplace(target, *out);
-    live = LiveModel::open(copy->path(), "target", cache);
-  }
-  ConsoleProgress progress;
-  MergeOptions options;
-  options.progress = &progress;
-  if (registerFirst) {
-    RegistrationOptions registration;
-    registration.progress = &progress;
-    const RegistrationResult r = registerModels(*live, *detail, registration);
-    options.transform = r.transform;
-    std::printf("registration: fitness %.6g m^2, rms %.4g m, %s, %d stages, %.2f s\n", r.fitness,
-                r.rms, r.converged ? "converged" : "NOT converged", r.stages, r.seconds);
-    for (int row = 0; row < 3; ++row) {
-      const auto& m = r.transform.m;
-      std::printf("  [%.9f %.9f %.9f %.4f]\n", m[row * 4], m[row * 4 + 1], m[row * 4 + 2],
-                  m[row * 4 + 3]);
-    }
-  }
-  auto edit = live->beginEdit();
-  const MergeResult result = mergeModels(*edit, *detail, options);
-  progress.report("publishing", 0.0);
-  edit->publish();
-  progress.report("publishing", 1.0);
-  edit.reset();
-  live.reset();
-  if (copy) {
-    copy->publish();
-  }
-  const double seconds =
-      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  const CacheStats stats = cache.stats();
-  std::printf(
-      "merged %s into %s: %zu target leaves matched, %zu detail leaves, %zu new patches, %zu "
-      "leaves resampled in place, up to %d new levels, %.2f s\n",
-      detailDir.string().c_str(), out.value_or(target).string().c_str(), result.matchedLeaves,
-      result.detailLeaves, result.newPatches, result.resampledLeaves, result.maxLevels, seconds);
-  std::printf("memory: budget %s, peak resident %s, %llu evictions, %llu write-backs\n",
-              formatBytes(stats.budgetBytes).c_str(), formatBytes(stats.peakResidentBytes).c_str(),
-              static_cast<unsigned long long>(stats.evictions),
-              static_cast<unsigned long long>(stats.writeBacks));
-  return 0;
-}
-
-/// `vsm render-lod`: the leaves coloured by depth, seen from above, as an RGBA PNG (transparent
-/// where no leaf is) plus a world file so GDAL and GIS tools place it.
-int runRenderLod(const std::vector<std::string_view>& args) {
-  std::vector<std::string_view> positional;
-  LodRenderOptions options;
-  for (std::size_t i = 0; i < args.size(); ++i) {
-    if (args[i] == "--size") {
-      if (i + 1 >= args.size()) {
-        throw UsageError{"--size needs a value"};
-      }
-      const std::string_view text = args[++i];
-      const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), options.size);
-      if (ec != std::errc() || end != text.data() + text.size() || options.size < 1 ||
-          options.size > 16384) {
-        throw UsageError{"--size must be an integer from 1 to 16384"};
-      }
-    } else if (args[i].starts_with("--")) {
-      throw UsageError{"unknown option " + std::string(args[i])};
-    } else {
-      positional.push_back(args[i]);
-    }
-  }
-  if (positional.size() != 2) {
-    throw UsageError{"render-lod needs <opc> and <out.png>"};
-  }
-  const fs::path dir(positional[0]);
-  const fs::path out(positional[1]);
-  const Model model = readOpcModel(dir);
-  const LodImage image = renderLod(
-      model,
-      [&](const PatchInfo& info) {
-        return std::make_shared<const PatchGrid>(readPatchGrid(dir, model, info));
-      },
-      options);
-
-  // Written under a temporary name in the same directory (ending in the extension, which picks
-  // the format), then renamed: a reader never sees half a picture.
-  const fs::path temporary =
-      out.parent_path() / ("." + out.filename().string() + ".tmp-" + std::to_string(::getpid()) +
-                           out.extension().string());
-  const auto output = OIIO::ImageOutput::create(temporary.string());
-  if (!output) {
-    throw Error(ErrorCode::InvalidArgument,
-                "cannot write '" + out.string() + "': " + OIIO::geterror());
-  }
-  const OIIO::ImageSpec spec(image.width, image.height, 4, OIIO::TypeDesc::UINT8);
-  if (!output->open(temporary.string(), spec) ||
-      !output->write_image(OIIO::TypeDesc::UINT8, image.rgba.data()) || !output->close()) {
-    const std::string message = output->geterror();
-    std::error_code ignored;
-    fs::remove(temporary, ignored);
-    throw Error(ErrorCode::Io, "cannot write '" + out.string() + "': " + message);
-  }
-  durable::syncFile(temporary);
-  durable::replaceFile(temporary, out);
-  // World file: pixel sizes, rotations, then the centre of the upper-left pixel.
-  fs::path world = out;
-  world.replace_extension(".pgw");
-  char text[256];
-  const int length =
-      std::snprintf(text, sizeof text, "%.17g\n0\n0\n%.17g\n%.17g\n%.17g\n", image.dx, -image.dy,
-                    image.x0 + 0.5 * image.dx, image.y0 - 0.5 * image.dy);
-  durable::writeFileAtomically(
-      world, std::as_bytes(std::span(text, static_cast<std::size_t>(std::max(length, 0)))));
-
-  std::printf("%s: %d x %d pixels, %s x %.10g .. %.10g, y %.10g .. %.10g\n", out.string().c_str(),
-              image.width, image.height, image.geographic ? "lon/lat (degrees)" : "global x/y,",
-              image.x0, image.x0 + image.width * image.dx, image.y0 - image.height * image.dy,
-              image.y0);
-  for (std::size_t depth = 0; depth < image.pixelsPerDepth.size(); ++depth) {
-    const Rgb8 c = depthColour(static_cast<int>(depth));
-    std::printf("depth %2zu  #%02x%02x%02x  %zu pixels\n", depth, c.r, c.g, c.b,
-                image.pixelsPerDepth[depth]);
-  }
-  return 0;
+  throw Error(ErrorCode::Io,
+              "cannot run " + file + " for " + std::string(command) + ": " + std::strerror(error));
 }
 
 }  // namespace
@@ -490,39 +121,21 @@ int runRenderLod(const std::vector<std::string_view>& args) {
 int main(int argc, char** argv) {
   std::vector<std::string_view> args(argv + 1, argv + argc);
   if (args.empty() || args[0] == "help" || args[0] == "--help" || args[0] == "-h") {
-    std::cout << kUsage;
+    std::cout << vsm::cli::kUsage;
     return args.empty() ? 2 : 0;
   }
   const std::string_view command = args[0];
   args.erase(args.begin());
-  try {
-    if (command == "import") {
-      return runImport(args);
-    }
+  return vsm::cli::runReportingErrors([&]() -> int {
     if (command == "info") {
       return runInfo(args);
     }
     if (command == "validate") {
       return runValidate(args);
     }
-    if (command == "merge") {
-      return runMerge(args);
-    }
-    if (command == "render-lod") {
-      return runRenderLod(args);
+    if (command == "import" || command == "merge" || command == "render-lod") {
+      execHeavy(command, argv);
     }
     throw UsageError{"unknown command '" + std::string(command) + "'"};
-  } catch (const UsageError& e) {
-    std::cerr << "vsm: " << e.message << "\n\n" << kUsage;
-    return 2;
-  } catch (const Error& e) {
-    std::cerr << "vsm: error: " << e.what() << '\n';
-    return 1;
-  } catch (const fs::filesystem_error& e) {
-    std::cerr << "vsm: error: " << e.what() << '\n';
-    return 1;
-  } catch (const std::bad_alloc&) {
-    std::cerr << "vsm: error: out of memory\n";
-    return 1;
-  }
+  });
 }

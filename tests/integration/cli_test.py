@@ -135,6 +135,46 @@ class CliErrors(unittest.TestCase):
         os.makedirs(out)
         self.assert_one_line_error(vsm("info", out))
 
+    def test_a_missing_vsm_heavy_is_one_line_naming_it(self):
+        # vsm execs vsm-heavy from its own directory for the commands that need GDAL, PCL or
+        # OpenImageIO: a vsm copied alone says so in one line.
+        lone = work("lone")
+        os.makedirs(lone)
+        shutil.copy2(ARGS.vsm, lone)
+        for command in (["import", "in.tif", "out"], ["merge", "a", "b"],
+                        ["render-lod", "a", "a.png"]):
+            result = subprocess.run([os.path.join(lone, "vsm"), *command], capture_output=True,
+                                    text=True, timeout=60)
+            self.assert_one_line_error(result, command[0] + " needs",
+                                       os.path.join(lone, "vsm-heavy"), "missing")
+
+
+class StartUp(unittest.TestCase):
+    """help, info and validate load neither GDAL, PCL nor OpenImageIO (~300 libraries that took
+    ld.so 0.1-1.5 s per start: tests/bench/startup_bench.sh)."""
+
+    @classmethod
+    def setUpClass(cls):
+        cls.model = work("prism-startup")
+        result = vsm("import", os.path.join(ARGS.data, "PRISMelevation.tif"), cls.model)
+        assert result.returncode == 0, result.stderr
+
+    def loaded_libraries(self, *args):
+        """The shared objects ld.so maps for `vsm args` (LD_DEBUG=files, dlopen included)."""
+        result = subprocess.run([ARGS.vsm, *args], capture_output=True, text=True, timeout=60,
+                                env=dict(os.environ, LD_DEBUG="files"))
+        self.assertEqual(result.returncode, 0, result.stderr)
+        return re.findall(r"file=(\S+) \[\d+\];\s+generating link map", result.stderr)
+
+    def test_help_info_and_validate_load_only_the_runtime_and_pugixml(self):
+        for args in (["--help"], ["info", self.model], ["validate", self.model]):
+            libraries = self.loaded_libraries(*args)
+            if any(re.match(r"lib(asan|tsan|ubsan)\.", name) for name in libraries):
+                self.skipTest("a sanitizer build links without --as-needed")
+            heavy = [name for name in libraries if re.match(r"lib(gdal|pcl_|OpenImageIO)", name)]
+            self.assertEqual(heavy, [], "vsm %s loads %s" % (args[0], heavy))
+            self.assertLessEqual(len(libraries), 10, "vsm %s loads %s" % (args[0], libraries))
+
 
 class ValidateFindsEachBreak(unittest.TestCase):
     @classmethod

@@ -1,0 +1,49 @@
+#pragma once
+// What both halves of the `vsm` command share: the usage text, argument errors, the progress
+// display, byte formatting and the one place that turns errors into messages and exit codes.
+// `vsm` (main.cpp) runs help, info and validate itself and hands import, merge and render-lod to
+// `vsm-heavy` (heavy_main.cpp), the binary that links GDAL, PCL and OpenImageIO.
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <string_view>
+
+#include "core/common/progress.hpp"
+
+namespace vsm::cli {
+
+/// The help text of every command, printed by `vsm help` and after an argument error.
+extern const std::string_view kUsage;
+
+/// A wrong command line: printed with the usage text, exit code 2.
+struct UsageError {
+  std::string message;
+};
+
+/// Draws a progress bar on a terminal; prints a line per 10 % otherwise (logs, CI).
+class ConsoleProgress final : public core::Progress {
+ public:
+  ConsoleProgress();
+  ~ConsoleProgress() override;
+  ConsoleProgress(const ConsoleProgress&) = delete;
+  ConsoleProgress& operator=(const ConsoleProgress&) = delete;
+
+  void report(std::string_view stage, double fraction) override;
+
+ private:
+  bool tty_;
+  bool drawn_ = false;
+  std::string stage_;
+  int lastPercent_ = -1;
+};
+
+/// `bytes` in B, KiB, MiB, GiB or TiB, like "1.5 MiB".
+std::string formatBytes(std::uintmax_t bytes);
+
+/// Runs `command` and returns its exit code; the one catch point of both binaries: UsageError is
+/// printed with the usage text (2), core::Error, filesystem errors and std::bad_alloc as one line
+/// "vsm: error: ..." (1).
+int runReportingErrors(const std::function<int()>& command);
+
+}  // namespace vsm::cli
