@@ -251,18 +251,13 @@ bool ModelRegistry::setWriter(std::string_view id, bool writer) {
     return false;
   }
   const std::uint64_t version = fresh.live->snapshot()->version;
-  const std::shared_ptr<core::LiveModel> freshLive = fresh.live;
-  Served replaced;
+  if (!swapOpening(id, old, std::move(fresh))) {
+    return false;  // closed or replaced meanwhile; asked again
+  }
   {
     const std::lock_guard lock(mutex_);
-    const auto it = models_.find(id);
-    if (it == models_.end() || it->second.live != old) {
-      return false;  // closed or replaced meanwhile; asked again
-    }
-    replaced = std::exchange(it->second, std::move(fresh));
     roleFailed_.erase(name);
   }
-  announceFollowed(*old, *freshLive);
   log::info("model=" + name + (writer ? " is written by this process now" : " is only read now") +
             " (version " + std::to_string(version) + ")");
   return true;
@@ -364,18 +359,26 @@ std::optional<std::uint64_t> ModelRegistry::replace(const std::shared_ptr<core::
     return std::nullopt;
   }
   const std::uint64_t version = fresh.live->snapshot()->version;
-  const std::shared_ptr<core::LiveModel> freshLive = fresh.live;
+  if (!swapOpening(id, old, std::move(fresh))) {
+    return std::nullopt;  // closed or replaced meanwhile
+  }
+  return version;
+}
+
+bool ModelRegistry::swapOpening(std::string_view id, const std::shared_ptr<core::LiveModel>& old,
+                                Served fresh) {
+  const std::shared_ptr<core::LiveModel> live = fresh.live;
   Served replaced;
   {
     const std::lock_guard lock(mutex_);
     const auto it = models_.find(id);
     if (it == models_.end() || it->second.live != old) {
-      return std::nullopt;  // closed or replaced meanwhile
+      return false;
     }
     replaced = std::exchange(it->second, std::move(fresh));
   }
-  announceFollowed(*old, *freshLive);
-  return version;
+  announceFollowed(*old, *live);
+  return true;  // `replaced` goes here, outside the lock
 }
 
 std::size_t ModelRegistry::follow() {

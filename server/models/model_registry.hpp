@@ -182,6 +182,10 @@ class ModelRegistry {
   void announceFollowed(const core::LiveModel& old, const core::LiveModel& fresh) const;
   /// Replaces the opening `old` of `id` by old->reopen() and returns the new opening's version;
   /// nullopt when reading failed (logged with `why`) or `id` was closed or replaced meanwhile.
+  /// Puts `fresh`, a new opening of `id`, in place of the opening `old` and announces the
+  /// versions between them (announceFollowed); false, dropping `fresh`, when `id` was closed or
+  /// replaced meanwhile.
+  bool swapOpening(std::string_view id, const std::shared_ptr<core::LiveModel>& old, Served fresh);
   std::optional<std::uint64_t> replace(const std::shared_ptr<core::LiveModel>& old,
                                        std::string_view id, std::string_view why);
 

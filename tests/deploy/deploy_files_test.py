@@ -123,7 +123,31 @@ def help_keys(text):
     return {k.strip() for k in section.replace("\n", " ").split(",") if k.strip()}
 
 
-class Daemon:
+class Process:
+    """A child process with a log file in a temporary directory (self.proc, self.log_path,
+    self.dir): close() stops it with SIGTERM (SIGKILL after 30 s), keeps its log in self.log and
+    removes the directory."""
+
+    def close(self):
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(timeout=10)
+        with open(self.log_path, errors="replace") as f:
+            self.log = f.read()
+        shutil.rmtree(self.dir, ignore_errors=True)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+class Daemon(Process):
     """vsmd on 127.0.0.1:0 with a temporary data root; the port comes from --port-file."""
 
     def __init__(self, *flags):
@@ -169,24 +193,6 @@ class Daemon:
                 return status
             time.sleep(0.1)
 
-    def close(self):
-        """SIGTERM, and the log."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
-        with open(self.log_path, errors="replace") as f:
-            self.log = f.read()
-        shutil.rmtree(self.dir, ignore_errors=True)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 def free_port():
@@ -195,7 +201,7 @@ def free_port():
         return s.getsockname()[1]
 
 
-class Etcd:
+class Etcd(Process):
     """A one-member etcd on free loopback ports with a temporary data directory."""
 
     def __init__(self, binary):
@@ -248,23 +254,6 @@ class Etcd:
         return "\n".join(base64.b64decode(kv.get(part, "")).decode(errors="replace")
                          for kv in json.loads(body).get("kvs", []) for part in ("key", "value"))
 
-    def close(self):
-        if self.proc.poll() is None:
-            self.proc.terminate()
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout=10)
-        with open(self.log_path, errors="replace") as f:
-            self.log = f.read()
-        shutil.rmtree(self.dir, ignore_errors=True)
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()
 
 
 # --- the files ---------------------------------------------------------------------------------
