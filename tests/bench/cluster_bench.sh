@@ -4,13 +4,16 @@
 #
 #   tests/bench/cluster_bench.sh [WORK_DIR]      (default /tmp/vsm-cluster-bench)
 #
-# Models: PRISM and Jacksboro imported at 65 x 65 (682 patches). wrk (-t2 -c32, keep-alive) reads
+# Models: PRISM and Jacksboro imported at 65 x 65 (357 patches). wrk (-t2 -c32, keep-alive) reads
 # the positions of every patch round robin, for BENCH_DURATION (default 10s) after a 2 s warm-up:
 #   cached:    the URLs as clients send them; nginx serves them from its cache once it has them
 #              (vsmd allows a minute), so this measures the front;
-#   uncached:  each URL with a query nginx has not seen (?b=<n>), so every read goes through nginx
-#              to a node: this measures the nodes behind the front;
-#   direct:    (1 node only) the same uncached reads from the node, without nginx.
+#   misses:    each URL with a query nginx has not seen (?b=<run>-<n>), so every read misses the
+#              front's cache and goes to a node (nginx stores each answer, as for any miss): this
+#              measures the front's misses (proxying and storing);
+#   bypass:    ?nocache=1 on every URL: nginx passes each read to a node and stores nothing
+#              (deploy/nginx/vsm.conf), so this measures the nodes behind the front;
+#   direct:    (1 node only) the same reads from the node, without nginx.
 # Environment: VSMD, VSM (built binaries; default build/), BENCH_DURATION.
 set -euo pipefail
 ROOT=$(cd "$(dirname "$0")/../.." && pwd)
@@ -28,17 +31,20 @@ mkdir -p "$CLUSTER/data"
 "$VSM" import "$DATA/PRISMelevation.tif" "$CLUSTER/data/prism" --patch-size 65 >/dev/null 2>&1
 "$VSM" import "$DATA/jacksboro_fault_dem.tif" "$CLUSTER/data/jacksboro" --patch-size 65 >/dev/null 2>&1
 
-# Round robin over the paths in $WORK/paths; with BUST set, a query of its own per request. Counts
+# Round robin over the paths in $WORK/paths; BENCH_MODE misses: a query of its own per request,
+# bypass: ?nocache=1. Counts
 # the X-Cache-Status of each answer.
 cat >"$WORK/paths.lua" <<'LUA'
 local paths, threads = {}, {}
 for line in io.lines(os.getenv("BENCH_PATHS")) do paths[#paths + 1] = line end
-local bust = os.getenv("BENCH_BUST") == "1"
+local mode = os.getenv("BENCH_MODE")
 function setup(thread)
   thread:set("id", #threads)
   threads[#threads + 1] = thread
 end
 function init(args)
+  math.randomseed(os.time() * 1000 + id)
+  nonce = math.random(1, 1000000000)
   i = id * 97
   n = 0
   hits = 0
@@ -48,7 +54,11 @@ function request()
   i = i + 1
   n = n + 1
   local path = paths[(i % #paths) + 1]
-  if bust then path = path .. "?b=" .. id .. "-" .. n end
+  if mode == "misses" then
+    path = path .. "?b=" .. nonce .. "-" .. id .. "-" .. n
+  elseif mode == "bypass" then
+    path = path .. "?nocache=1"
+  end
   return wrk.format("GET", path)
 end
 function response(status, headers, body)
@@ -102,14 +112,13 @@ for model in ("prism", "jacksboro"):
         for key in walk(json.load(r)["root"]):
             print("/v1/models/%s/patches/%s/positions" % (model, key))
 PY
-  out=$(BENCH_BUST=0 run "$FRONT")
-  read -r rps hits p99 <<<"$out"
-  printf "%-6s %-9s %12s %8s %10s\n" "$nodes" cached "$rps" "$hits" "$p99"
-  out=$(BENCH_BUST=1 run "$FRONT")
-  read -r rps hits p99 <<<"$out"
-  printf "%-6s %-9s %12s %8s %10s\n" "$nodes" uncached "$rps" "$hits" "$p99"
+  for mode in cached misses bypass; do
+    out=$(BENCH_MODE=$mode run "$FRONT")
+    read -r rps hits p99 <<<"$out"
+    printf "%-6s %-9s %12s %8s %10s\n" "$nodes" "$mode" "$rps" "$hits" "$p99"
+  done
   if ((nodes == 1)); then
-    out=$(BENCH_BUST=1 run "$N1")
+    out=$(BENCH_MODE=bypass run "$N1")
     read -r rps hits p99 <<<"$out"
     printf "%-6s %-9s %12s %8s %10s\n" "$nodes" direct "$rps" "-" "$p99"
   fi
