@@ -120,11 +120,9 @@ void Coordinator::loop() {
 
 void Coordinator::tick(EtcdClient& etcd) {
   std::int64_t lease = 0;
-  Clock::time_point renewed;
   {
     const std::lock_guard lock(mutex_);
     lease = lease_;
-    renewed = renewed_;
   }
   const auto now = Clock::now();
   if (lease == 0) {
@@ -138,13 +136,8 @@ void Coordinator::tick(EtcdClient& etcd) {
     }
     log::info("cluster: node " + options_.node + " (" + options_.advertise + ") joined through " +
               options_.coordinator + " with a lease of " + std::to_string(ttl.count()) + " s");
-  } else if (now - renewed >= options_.leaseTtl / 3) {
-    if (etcd.keepAlive(lease) <= 0) {
-      loseLease("etcd says it expired");
-      return;
-    }
-    const std::lock_guard lock(mutex_);
-    renewed_ = now;
+  } else if (!renewIfDue(etcd, lease)) {
+    return;
   }
 
   std::map<std::string, std::string, std::less<>> nodes;
@@ -180,9 +173,31 @@ void Coordinator::tick(EtcdClient& etcd) {
     writers_ = writers;
   }
   for (const std::string& id : models) {
+    // Opening a large model for writing can take seconds: renewed between models, so that many
+    // models taken over at once cannot outlast the lease.
+    if (!renewIfDue(etcd, lease)) {
+      return;
+    }
     const auto it = writers.find(id);
     node_.setWriter(id, it != writers.end() && it->second == options_.node);
   }
+}
+
+bool Coordinator::renewIfDue(EtcdClient& etcd, std::int64_t lease) {
+  const auto now = Clock::now();
+  {
+    const std::lock_guard lock(mutex_);
+    if (now - renewed_ < options_.leaseTtl / 3) {
+      return true;
+    }
+  }
+  if (etcd.keepAlive(lease) <= 0) {
+    loseLease("etcd says it expired");
+    return false;
+  }
+  const std::lock_guard lock(mutex_);
+  renewed_ = now;
+  return true;
 }
 
 void Coordinator::loseLease(std::string_view why) {

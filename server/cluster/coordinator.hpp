@@ -89,6 +89,9 @@ class Coordinator {
   /// One round: renew or get the lease, read the keys, claim, tell the node. Throws on etcd errors.
   void tick(EtcdClient& etcd);
   void loseLease(std::string_view why);
+  /// Renews `lease` when a third of its TTL has passed since the last renewal. False when etcd says
+  /// it has expired: the models are given up (loseLease). Throws on etcd errors.
+  bool renewIfDue(EtcdClient& etcd, std::int64_t lease);
 
   Options options_;  // advertise is set by start()
   const Node node_;
