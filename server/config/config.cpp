@@ -587,11 +587,29 @@ void loadConfigFile(const std::filesystem::path& file, Config& config) {
     }
     core::throwIoError("cannot read config file", file.string(), errno);
   }
-  std::stringstream text;
-  text << in.rdbuf();
+  // A configuration is a few hundred bytes, two levels deep ("limits": {"body_bytes": ...}); a
+  // file far beyond is a mistake (or hostile), refused before it is parsed or recursed into.
+  constexpr std::streamsize kMaxBytes = 1 << 20;
+  constexpr int kMaxDepth = 8;
+  std::string text(static_cast<std::size_t>(kMaxBytes) + 1, '\0');
+  in.read(text.data(), kMaxBytes + 1);
+  text.resize(static_cast<std::size_t>(in.gcount()));
+  if (text.size() > static_cast<std::size_t>(kMaxBytes)) {
+    throw Error(ErrorCode::InvalidArgument,
+                "config file '" + file.string() + "' is larger than 1 MiB: not a configuration");
+  }
+  const auto boundDepth = [&](int depth, json::parse_event_t event, json&) {
+    if (depth >= kMaxDepth &&
+        (event == json::parse_event_t::object_start || event == json::parse_event_t::array_start)) {
+      throw Error(ErrorCode::InvalidArgument, "config file '" + file.string() +
+                                                  "' nests deeper than " +
+                                                  std::to_string(kMaxDepth) + " levels");
+    }
+    return true;
+  };
   json parsed;
   try {
-    parsed = json::parse(text.str(), nullptr, true, /*ignore_comments=*/true);
+    parsed = json::parse(text, boundDepth, true, /*ignore_comments=*/true);
   } catch (const json::exception& e) {  // parse_error, or out_of_range for "1E400"
     throw Error(ErrorCode::InvalidArgument,
                 "config file '" + file.string() + "' is not valid JSON: " + e.what());

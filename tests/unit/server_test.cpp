@@ -224,6 +224,22 @@ TEST(Config, SetReachesEveryKeyFromTheCommandLine) {
   EXPECT_EQ(config.logLevel, core::log::Level::Warn);
 }
 
+TEST(Config, ADeeplyNestedOrHugeFileIsRefusedBeforeItIsUsed) {
+  const TempFile deep(std::string(100000, '[') + std::string(100000, ']'));
+  auto [code, message] = errorOf([&] { parseCommandLine({"--config", deep.path()}); });
+  EXPECT_EQ(code, ErrorCode::InvalidArgument);
+  EXPECT_NE(message.find("nests deeper than 8 levels"), std::string::npos) << message;
+  const TempFile nine(R"({"a": {"b": {"c": {"d": {"e": {"f": {"g": {"h": {"i": 1}}}}}}}}})");
+  std::tie(code, message) = errorOf([&] { parseCommandLine({"--config", nine.path()}); });
+  EXPECT_NE(message.find("nests deeper"), std::string::npos) << message;
+  const TempFile huge("{\"listen\": \"127.0.0.1:0\"" + std::string(2 << 20, ' ') + "}");
+  std::tie(code, message) = errorOf([&] { parseCommandLine({"--config", huge.path()}); });
+  EXPECT_EQ(code, ErrorCode::InvalidArgument);
+  EXPECT_NE(message.find("larger than 1 MiB"), std::string::npos) << message;
+  const TempFile nested(R"({"limits": {"body_bytes": "2MiB"}})");
+  EXPECT_EQ(parseCommandLine({"--config", nested.path()}).config.limits.bodyBytes, 2u << 20);
+}
+
 TEST(Config, TheClusterFlagsSetTheClusterKeysAndBadOnesAreRefused) {
   const Config config =
       parseCommandLine({"--coordinator", "http://127.0.0.1:2379", "--node", "n-1_a", "--advertise",
