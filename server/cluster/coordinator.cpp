@@ -251,7 +251,9 @@ std::optional<std::string> Coordinator::writerElsewhere(const std::string& id) {
   }
   std::string writer;
   for (const KeyValue& kv : etcd.range(writerKey(id))) {
-    if (kv.key == writerKey(id)) {
+    // This node's name under an older lease is a role it lost: nobody writes the model until
+    // that lease expires and the key goes.
+    if (kv.key == writerKey(id) && (kv.value != options_.node || kv.lease == lease)) {
       writer = kv.value;
     }
   }

@@ -17,6 +17,9 @@ nodes over one data root, real nginx in front (deploy/nginx/vsm.conf).
    the lease TTL + 2 s; the model is the old or the new version and validates; a new merge job
    through the front succeeds.
 5. A second writer, `vsm merge` from the shell into the served model, is refused.
+6. etcd stopped (SIGSTOP): the writer gives its models up within the lease TTL, reads through the
+   front still answer, a write answers 503; etcd resumed: the node joins again, writes the model
+   again, and a merge through the front succeeds.
 """
 
 import argparse
@@ -138,6 +141,14 @@ class Cluster(unittest.TestCase):
         self.assertEqual(status, 202, body[:300])
         job = json.loads(body)
         return job["id"], headers.get("X-VSM-Node")
+
+    def submit_merge_or_none(self):
+        """(job id, node) of a merge the front took, or (None, status) when it answered otherwise."""
+        status, headers, body = request(self.front + "/v1/jobs", "POST",
+                                        {"type": "merge", "target": "prism", "source": "jacksboro"})
+        if status != 202:
+            return None, status
+        return json.loads(body)["id"], headers.get("X-VSM-Node")
 
     def wait_job(self, job_id, timeout=120):
         deadline = time.monotonic() + timeout
@@ -308,6 +319,45 @@ class Cluster(unittest.TestCase):
                              capture_output=True, text=True, timeout=120)
         self.assertEqual(out.returncode, 1, out.stdout + out.stderr)
         self.assertIn("is being written by vsmd", out.stderr)
+
+    def test_6_a_node_cut_off_from_etcd_stops_writing_and_comes_back(self):
+        (node,) = self.alive()
+        log_path = os.path.join(self.dir, "logs", node + ".log")
+        with open(log_path, errors="replace") as f:
+            lost_before = f.read().count("lost its lease")
+        etcd = int(self.env["PID_ETCD"])
+        os.kill(etcd, signal.SIGSTOP)
+        try:
+            stopped = time.monotonic()
+            while True:
+                with open(log_path, errors="replace") as f:
+                    if f.read().count("lost its lease") > lost_before:
+                        break
+                self.assertLess(time.monotonic() - stopped, LEASE_TTL + 5,
+                                node + " did not give its models up without etcd")
+                time.sleep(0.1)
+            print("etcd stopped: %s gave its models up %.1f s later (TTL %d s)"
+                  % (node, time.monotonic() - stopped, LEASE_TTL), flush=True)
+            status, _, body = request(self.front + "/v1/models/prism")
+            self.assertEqual(status, 200, body[:200])
+            status, _, body = request(self.front + "/v1/jobs", "POST",
+                                      {"type": "merge", "target": "prism", "source": "jacksboro"})
+            self.assertEqual(status, 503, body[:300])
+        finally:
+            os.kill(etcd, signal.SIGCONT)
+        resumed = time.monotonic()
+        # The node joins again with a new lease; its old writer key goes when the old lease
+        # expires, then it claims the model again and opens it for writing. Until then a write
+        # answers 503.
+        while True:
+            job_id, _ = self.submit_merge_or_none()
+            if job_id is not None or time.monotonic() - resumed > LEASE_TTL + 10:
+                break
+            time.sleep(0.2)
+        print("etcd resumed: %s took a merge again %.1f s later"
+              % (node, time.monotonic() - resumed), flush=True)
+        self.assertIsNotNone(job_id, "no merge was taken after etcd came back")
+        self.assertEqual(self.wait_job(job_id)["state"], "succeeded")
 
 
 def main():
