@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "core/opc/aara.hpp"
+#include "core/opc/opc_reader.hpp"
 #include "core/pyramid/model.hpp"
 
 namespace vsm::core::detail {
@@ -89,6 +90,8 @@ struct OpcContents {
   std::filesystem::path hierarchyFile;
   std::vector<double> avgGeometrySizes;
   bool hasHierarchyExtension = false;
+  /// The hierarchy's <Vsm><Revision> record, when it has one.
+  std::optional<RevisionRecord> revision;
   std::map<PatchKey, PatchDetails> patches;
   /// SubPatchMap keys no walk from the root reaches.
   std::vector<std::string> unreachableItems;
@@ -96,8 +99,10 @@ struct OpcContents {
   std::vector<std::filesystem::path> hierarchyCaches;
 };
 
-/// The reader behind readOpcModel; throws as it does.
-OpcContents readOpc(const std::filesystem::path& dir);
+/// The reader behind readOpcModel, of the hierarchy file `hierarchyName` under Patches/; throws as
+/// readOpcModel does.
+OpcContents readOpc(const std::filesystem::path& dir,
+                    std::string_view hierarchyName = "patchhierarchy.xml");
 
 /// Float32 rounding of one stored coordinate of `grid`, in global units: half an ulp of its
 /// largest local coordinate (2^-24 x maxAbsLocal), scaled by the linear part of Local2Global.

@@ -286,44 +286,58 @@ double roundingOf(const PatchGrid& grid) {
   return std::ldexp(grid.maxAbsLocal(), -24) * linearScale(grid.local2global());
 }
 
-OpcContents readOpc(const fs::path& dir) {
-  std::error_code ec;
-  if (!fs::is_directory(dir, ec)) {
-    throw Error(ErrorCode::NotFound, "no OPC at '" + dir.string() + "' (not a directory)");
+namespace {
+
+/// What a hierarchy file says, before any Patch.xml is read.
+struct ParsedHierarchy {
+  std::vector<double> avgSizes;
+  std::string rootFolder;
+  /// Parent folder -> child folder per quadrant.
+  std::map<std::string, std::array<std::string, 4>> subPatches;
+  std::optional<int> gridSize;
+  bool hasExtension = false;
+  std::optional<RevisionRecord> revision;
+};
+
+std::uint64_t revisionNumber(const fs::path& file, const pugi::xml_node& node,
+                             std::string_view name) {
+  const pugi::xml_node element = childCi(node, name);
+  if (!element) {
+    return 0;
   }
-  const fs::path patchesDir = patchesDirOf(dir);
-  const auto hierarchyFile = findEntry(patchesDir, "patchhierarchy.xml");
-  if (!hierarchyFile) {
-    throw Error(ErrorCode::NotFound,
-                "no OPC at '" + dir.string() + "' (no Patches/patchhierarchy.xml)");
+  const auto n = parseInteger(textOf(element));
+  if (!n || *n < 0) {
+    corrupt(file,
+            "<Revision><" + std::string(name) + "> is not a count: '" + textOf(element) + "'");
   }
-  const pugi::xml_document doc = parseXml(*hierarchyFile);
+  return static_cast<std::uint64_t>(*n);
+}
+
+ParsedHierarchy parseHierarchy(const fs::path& file) {
+  const pugi::xml_document doc = parseXml(file);
   const pugi::xml_node hierarchy = childCi(childCi(doc, "Aardvark"), "PatchHierarchy");
   if (!hierarchy) {
-    corrupt(*hierarchyFile, "no <Aardvark><PatchHierarchy> element");
+    corrupt(file, "no <Aardvark><PatchHierarchy> element");
   }
-  std::vector<double> avgSizes;
+  ParsedHierarchy parsed;
   if (const pugi::xml_node sizes = childCi(hierarchy, "AvgGeometrySizes")) {
     const auto values = parseNumberList(textOf(sizes));
     if (!values) {
-      corrupt(*hierarchyFile, "<AvgGeometrySizes> is not a list of numbers");
+      corrupt(file, "<AvgGeometrySizes> is not a list of numbers");
     }
-    avgSizes = *values;
+    parsed.avgSizes = *values;
   }
-  const std::string rootFolder = textOf(childCi(hierarchy, "RootPatch"));
-  if (rootFolder.empty()) {
-    corrupt(*hierarchyFile, "no <RootPatch>");
+  parsed.rootFolder = textOf(childCi(hierarchy, "RootPatch"));
+  if (parsed.rootFolder.empty()) {
+    corrupt(file, "no <RootPatch>");
   }
-
-  // Parent folder -> child folder per quadrant.
-  std::map<std::string, std::array<std::string, 4>> subPatches;
   for (pugi::xml_node item : childCi(hierarchy, "SubPatchMap").children()) {
     if (item.type() != pugi::node_element || !equalsIgnoreCase(item.name(), "item")) {
       continue;
     }
     const std::string key = textOf(childCi(item, "key"));
     if (!isSafeName(key)) {
-      corrupt(*hierarchyFile, "patch name '" + key + "' is not a plain folder name");
+      corrupt(file, "patch name '" + key + "' is not a plain folder name");
     }
     std::array<std::string, 4> children;
     const pugi::xml_node val = childCi(item, "val");
@@ -331,18 +345,57 @@ OpcContents readOpc(const fs::path& dir) {
       if (const pugi::xml_node child = childCi(val, toString(q))) {
         const std::string name = textOf(child);
         if (!isSafeName(name)) {
-          corrupt(*hierarchyFile, "patch name '" + name + "' is not a plain folder name");
+          corrupt(file, "patch name '" + name + "' is not a plain folder name");
         }
         children[static_cast<int>(q)] = name;
       }
     }
-    if (!subPatches.emplace(key, children).second) {
-      corrupt(*hierarchyFile, "patch '" + key + "' has two <item> entries");
+    if (!parsed.subPatches.emplace(key, children).second) {
+      corrupt(file, "patch '" + key + "' has two <item> entries");
     }
   }
-  if (!isSafeName(rootFolder)) {
-    corrupt(*hierarchyFile, "patch name '" + rootFolder + "' is not a plain folder name");
+  if (!isSafeName(parsed.rootFolder)) {
+    corrupt(file, "patch name '" + parsed.rootFolder + "' is not a plain folder name");
   }
+  const pugi::xml_node vsm = childCi(hierarchy, "Vsm");
+  parsed.hasExtension = static_cast<bool>(vsm);
+  if (const pugi::xml_node size = childCi(vsm, "GridSize")) {
+    const auto n = parseInteger(textOf(size));
+    if (!n || !isPowerOfTwoPlusOne(*n) || *n > 32769) {
+      corrupt(file, "<GridSize> must be 2^n+1, not '" + textOf(size) + "'");
+    }
+    parsed.gridSize = static_cast<int>(*n);
+  }
+  if (const pugi::xml_node revision = childCi(vsm, "Revision")) {
+    RevisionRecord record;
+    record.parent = revisionNumber(file, revision, "Parent");
+    record.time = textOf(childCi(revision, "Time"));
+    record.job = textOf(childCi(revision, "Job"));
+    record.changed = revisionNumber(file, revision, "Changed");
+    record.removed = revisionNumber(file, revision, "Removed");
+    record.restoredFrom = revisionNumber(file, revision, "RestoredFrom");
+    parsed.revision = std::move(record);
+  }
+  return parsed;
+}
+
+}  // namespace
+
+OpcContents readOpc(const fs::path& dir, std::string_view hierarchyName) {
+  std::error_code ec;
+  if (!fs::is_directory(dir, ec)) {
+    throw Error(ErrorCode::NotFound, "no OPC at '" + dir.string() + "' (not a directory)");
+  }
+  const fs::path patchesDir = patchesDirOf(dir);
+  const auto hierarchyFile = findEntry(patchesDir, hierarchyName);
+  if (!hierarchyFile) {
+    throw Error(ErrorCode::NotFound,
+                "no OPC at '" + dir.string() + "' (no Patches/" + std::string(hierarchyName) + ")");
+  }
+  ParsedHierarchy hierarchy = parseHierarchy(*hierarchyFile);
+  const std::vector<double>& avgSizes = hierarchy.avgSizes;
+  const std::string& rootFolder = hierarchy.rootFolder;
+  const auto& subPatches = hierarchy.subPatches;
 
   // Walk from the root; keys come from the position in the tree.
   std::vector<std::pair<PatchKey, ParsedPatch>> parsed;
@@ -378,14 +431,7 @@ OpcContents readOpc(const fs::path& dir) {
   }
 
   // The grid size: our extensions when present, else the root's stored positions.
-  std::optional<int> gridSize;
-  if (const pugi::xml_node size = childCi(childCi(hierarchy, "Vsm"), "GridSize")) {
-    const auto n = parseInteger(textOf(size));
-    if (!n || !isPowerOfTwoPlusOne(*n) || *n > 32769) {
-      corrupt(*hierarchyFile, "<GridSize> must be 2^n+1, not '" + textOf(size) + "'");
-    }
-    gridSize = static_cast<int>(*n);
-  }
+  std::optional<int> gridSize = hierarchy.gridSize;
   for (auto& [key, patch] : parsed) {
     if (patch.gridSize) {
       if (gridSize && *gridSize != *patch.gridSize) {
@@ -418,7 +464,8 @@ OpcContents readOpc(const fs::path& dir) {
                        patchesDir,
                        *hierarchyFile,
                        avgSizes,
-                       static_cast<bool>(childCi(hierarchy, "Vsm")),
+                       hierarchy.hasExtension,
+                       hierarchy.revision,
                        {},
                        {},
                        {}};
@@ -495,6 +542,29 @@ std::optional<HierarchyStamp> hierarchyStamp(const fs::path& dir) {
 
 Model readOpcModel(const fs::path& dir) {
   return std::move(detail::readOpc(dir).model);
+}
+
+OpcRevision readOpcRevision(const fs::path& dir, std::string_view hierarchyName) {
+  detail::OpcContents contents = detail::readOpc(dir, hierarchyName);
+  return {std::move(contents.model), std::move(contents.revision)};
+}
+
+std::optional<RevisionRecord> readRevisionRecord(const fs::path& hierarchyFile) {
+  return detail::parseHierarchy(hierarchyFile).revision;
+}
+
+std::set<std::string> namedFolders(const fs::path& hierarchyFile) {
+  const detail::ParsedHierarchy parsed = detail::parseHierarchy(hierarchyFile);
+  std::set<std::string> folders{parsed.rootFolder};
+  for (const auto& [folder, children] : parsed.subPatches) {
+    folders.insert(folder);
+    for (const std::string& child : children) {
+      if (!child.empty()) {
+        folders.insert(child);
+      }
+    }
+  }
+  return folders;
 }
 
 PatchGrid readPatchGrid(const fs::path& dir, const Model& model, const PatchInfo& info) {

@@ -3,6 +3,9 @@
 #include <cstdint>
 #include <filesystem>
 #include <optional>
+#include <set>
+#include <string>
+#include <string_view>
 
 #include "core/pyramid/model.hpp"
 
@@ -18,6 +21,39 @@ namespace vsm::core {
 /// malformed XML, a hierarchy naming a missing folder, a cycle or a patch reached twice, a folder
 /// name containing "..", "/" or "\\", a bad number, or grids of differing sizes.
 Model readOpcModel(const std::filesystem::path& dir);
+
+/// What vsm records about a revision in the hierarchy that publishes it (<Vsm><Revision>, an
+/// extension other readers ignore): the revision it was made from, when (UTC, ISO 8601), by which
+/// job, how many patches it added or replaced and removed, and the revision it restored if any. Its
+/// number is the model version the hierarchy describes (the newest patch version).
+struct RevisionRecord {
+  std::uint64_t parent = 0;  // 0: none (an import)
+  std::string time;
+  std::string job;
+  std::uint64_t changed = 0;
+  std::uint64_t removed = 0;
+  std::uint64_t restoredFrom = 0;  // the revision whose content it restored; 0: none
+};
+
+/// How many revisions a publish keeps by default, the new one included (core/store).
+inline constexpr unsigned kDefaultKeepRevisions = 8;
+
+/// The model one hierarchy file of `dir` describes (Patches/`hierarchyName`: the current one, or a
+/// kept revision's) with its revision record when it has one. Throws as readOpcModel.
+struct OpcRevision {
+  Model model;
+  std::optional<RevisionRecord> record;
+};
+OpcRevision readOpcRevision(const std::filesystem::path& dir,
+                            std::string_view hierarchyName = "patchhierarchy.xml");
+
+/// The revision record of one hierarchy file, read from that file alone; nullopt when it has none.
+/// Throws Error(NotFound / Io / Corrupt) as readOpcModel.
+std::optional<RevisionRecord> readRevisionRecord(const std::filesystem::path& hierarchyFile);
+
+/// The patch folders a hierarchy file names (its root and every SubPatchMap entry), read from that
+/// file alone. Throws Error(NotFound / Io / Corrupt) as readOpcModel.
+std::set<std::string> namedFolders(const std::filesystem::path& hierarchyFile);
 
 /// `dir`/Patches in whatever letter case it exists. Throws Error(NotFound) when there is none.
 std::filesystem::path patchesDirOf(const std::filesystem::path& dir);

@@ -233,7 +233,7 @@ void OpcWriter::removePatchFiles(const PatchInfo& info) {
 
 namespace {
 
-std::string hierarchyXml(const Model& model) {
+std::string hierarchyXml(const Model& model, const RevisionRecord* revision) {
   if (model.empty()) {
     throw Error(ErrorCode::InvalidArgument, "cannot write the hierarchy of an empty model");
   }
@@ -265,15 +265,27 @@ std::string hierarchyXml(const Model& model) {
   pugi::xml_node vsm = hierarchy.append_child("Vsm");
   addText(vsm, "GridSize", std::to_string(model.gridSize()));
   addText(vsm, "FormatVersion", "1");
+  if (revision != nullptr) {
+    pugi::xml_node node = vsm.append_child("Revision");
+    addText(node, "Parent", std::to_string(revision->parent));
+    addText(node, "Time", revision->time);
+    addText(node, "Job", revision->job);
+    addText(node, "Changed", std::to_string(revision->changed));
+    addText(node, "Removed", std::to_string(revision->removed));
+    if (revision->restoredFrom != 0) {
+      addText(node, "RestoredFrom", std::to_string(revision->restoredFrom));
+    }
+  }
   return xmlText(doc);
 }
 
 }  // namespace
 
-std::unique_ptr<durable::PendingFile> stageHierarchy(const fs::path& dir, const Model& model) {
-  const std::string xml = hierarchyXml(model);
-  return std::make_unique<durable::PendingFile>(patchesDirOf(dir) / "patchhierarchy.xml",
-                                                bytesOf(xml));
+std::unique_ptr<durable::PendingFile> stageHierarchy(const fs::path& dir, const Model& model,
+                                                     const RevisionRecord* revision,
+                                                     std::string_view fileName) {
+  const std::string xml = hierarchyXml(model, revision);
+  return std::make_unique<durable::PendingFile>(patchesDirOf(dir) / fileName, bytesOf(xml));
 }
 
 void finishHierarchy(const fs::path& dir) {
@@ -292,7 +304,7 @@ void OpcWriter::writeHierarchy(const Model& model) {
     stageHierarchy(dir_.parent_path(), model)->commit();
     finishHierarchy(dir_.parent_path());
   } else {
-    writeFile(dir_ / "patchhierarchy.xml", bytesOf(hierarchyXml(model)));
+    writeFile(dir_ / "patchhierarchy.xml", bytesOf(hierarchyXml(model, nullptr)));
   }
 }
 

@@ -9,6 +9,7 @@
 
 #include "core/durable/durable_io.hpp"
 #include "core/grid/texture_tile.hpp"
+#include "core/opc/opc_reader.hpp"
 #include "core/pyramid/model.hpp"
 
 namespace vsm::core {
@@ -73,9 +74,12 @@ class OpcWriter {
 
 /// The hierarchy of the OPC at `dir` written and fsynced under a temporary name beside
 /// Patches/patchhierarchy.xml; its commit() (a rename) is the commit point of a new model version.
-/// Throws Error(InvalidArgument) for an empty model, Error(NotFound) without Patches/, Error(Io).
-std::unique_ptr<durable::PendingFile> stageHierarchy(const std::filesystem::path& dir,
-                                                     const Model& model);
+/// With `revision`, the hierarchy records it (<Vsm><Revision>); `fileName` names another hierarchy
+/// file under Patches/ (a kept revision's). Throws Error(InvalidArgument) for an empty model,
+/// Error(NotFound) without Patches/, Error(Io).
+std::unique_ptr<durable::PendingFile> stageHierarchy(
+    const std::filesystem::path& dir, const Model& model, const RevisionRecord* revision = nullptr,
+    std::string_view fileName = "patchhierarchy.xml");
 
 /// What follows a committed hierarchy: syncs Patches/ (making the rename durable) and removes a
 /// stale `hierarchy.cache` of other readers. Idempotent: the next open retries it after a

@@ -67,6 +67,17 @@ PatchInfo& Model::insert(PatchInfo info) {
   return patches_.emplace(key, std::move(info)).first->second;
 }
 
+void Model::eraseLeaf(const PatchKey& key) {
+  const PatchInfo& info = at(key);
+  const auto parentKey = key.parent();
+  if (!info.isLeaf() || !parentKey) {
+    throw Error(ErrorCode::InvalidArgument,
+                "patch " + key.toString() + " is not a leaf below the root: it cannot be removed");
+  }
+  at(*parentKey).childMask &= static_cast<std::uint8_t>(~(1u << static_cast<int>(key.quadrant())));
+  patches_.erase(key);
+}
+
 std::vector<PatchKey> Model::children(const PatchKey& key) const {
   std::vector<PatchKey> result;
   const PatchInfo& info = at(key);

@@ -84,6 +84,9 @@ class Model {
   /// child bit. Throws Error(Conflict) when the key exists, Error(InvalidArgument) when the parent
   /// is missing.
   PatchInfo& insert(PatchInfo info);
+  /// Removes a leaf and clears its parent's child bit. Throws Error(NotFound) for a key not in the
+  /// model, Error(InvalidArgument) for a patch with children or the root.
+  void eraseLeaf(const PatchKey& key);
 
   std::vector<PatchKey> children(const PatchKey& key) const;
   std::vector<PatchKey> leaves() const;

@@ -1,6 +1,11 @@
 #include "core/store/live_model.hpp"
 
+#include <sys/stat.h>
 #include <unistd.h>
+
+#include <cerrno>
+#include <cstring>
+#include <ctime>
 
 #include <algorithm>
 #include <cctype>
@@ -60,6 +65,95 @@ bool isOurTileName(const std::string& name) {
   return std::regex_match(name, pattern);
 }
 
+/// The file of a tile OpcWriter::writeTexture wrote for `folder` under the model at `dir`.
+fs::path ourTileFile(const fs::path& dir, const std::string& folder) {
+  return dir / "Images" / std::string(kTextureLayer) / (folder + ".tif");
+}
+
+/// The revision a kept hierarchy file holds, from its name ("vsm-revision-<n>.xml").
+std::optional<std::uint64_t> revisionOfFile(const std::string& name) {
+  static const std::regex pattern("vsm-revision-([0-9]{1,19})\\.xml");
+  std::smatch match;
+  if (!std::regex_match(name, match, pattern)) {
+    return std::nullopt;
+  }
+  return std::stoull(match[1].str());
+}
+
+/// The kept revision files under `patches` by revision number.
+std::map<std::uint64_t, fs::path> revisionFiles(const fs::path& patches) {
+  std::map<std::uint64_t, fs::path> files;
+  for (const auto& entry : fs::directory_iterator(patches)) {
+    if (const auto n = revisionOfFile(entry.path().filename().string());
+        n && entry.is_regular_file()) {
+      files.emplace(*n, entry.path());
+    }
+  }
+  return files;
+}
+
+/// Now, UTC, ISO 8601 to the second.
+std::string utcNow() {
+  const std::time_t now = std::time(nullptr);
+  std::tm utc{};
+  gmtime_r(&now, &utc);
+  char text[32];
+  std::strftime(text, sizeof text, "%Y-%m-%dT%H:%M:%SZ", &utc);
+  return text;
+}
+
+/// The modification time of `file`, UTC, ISO 8601; empty when it cannot be read.
+std::string fileTime(const fs::path& file) {
+  struct stat st {};
+  if (::stat(file.c_str(), &st) != 0) {
+    return {};
+  }
+  std::tm utc{};
+  gmtime_r(&st.st_mtim.tv_sec, &utc);
+  char text[32];
+  std::strftime(text, sizeof text, "%Y-%m-%dT%H:%M:%SZ", &utc);
+  return text;
+}
+
+/// A snapshot of one revision read from its hierarchy (the current one or a kept file).
+std::shared_ptr<ModelSnapshot> snapshotOf(OpcRevision read, const fs::path& hierarchyFile) {
+  auto snapshot = std::make_shared<ModelSnapshot>();
+  // The published version is the newest patch version: every publish gives the patches it changes
+  // version (published + 1), so every process reading the directory, and every opening after a
+  // restart, names the same content by the same version.
+  for (const auto& [key, info] : read.model.patches()) {
+    snapshot->version = std::max(snapshot->version, info.version);
+  }
+  if (read.record) {
+    snapshot->revision = std::move(*read.record);
+  } else {
+    snapshot->revision.time = fileTime(hierarchyFile);
+    for (const auto& [key, info] : read.model.patches()) {
+      snapshot->revision.changed += info.version == snapshot->version ? 1 : 0;
+    }
+  }
+  snapshot->model = std::make_shared<const Model>(std::move(read.model));
+  return snapshot;
+}
+
+/// Removes patch folders (and the tiles vsm named for them) that no kept revision names any more.
+void removeFolders(const fs::path& dir, const std::set<std::string>& folders) {
+  const fs::path patches = patchesDirOf(dir);
+  for (const std::string& folder : folders) {
+    std::error_code ec;
+    fs::remove_all(patches / folder, ec);
+    // Only a tile vsm named for one of its folders is the folder's own (foreign OPCs may share
+    // one).
+    if (!ec && isOurFolderName(folder)) {
+      fs::remove(ourTileFile(dir, folder), ec);
+    }
+    if (ec) {
+      log::warn("cannot remove " + folder + " of a dropped revision: " + ec.message() +
+                " (the next open removes it)");
+    }
+  }
+}
+
 /// A texture entry as readers resolve it: either slash, any letter case ("Diffuse/2_0_1.TIF" and
 /// "diffuse\\2_0_1.tif" name the same file).
 std::string normalisedEntry(std::string entry) {
@@ -67,11 +161,6 @@ std::string normalisedEntry(std::string entry) {
     c = c == '/' ? '\\' : static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
   }
   return entry;
-}
-
-/// The file of a tile OpcWriter::writeTexture wrote for `folder` under the model at `dir`.
-fs::path ourTileFile(const fs::path& dir, const std::string& folder) {
-  return dir / "Images" / std::string(kTextureLayer) / (folder + ".tif");
 }
 
 }  // namespace
@@ -107,6 +196,25 @@ class LiveModel::Store final : public PatchStore {
   void forget(const PatchKey& key, std::uint64_t version) {
     std::lock_guard lock(mutex_);
     versions_.erase({key, version});
+  }
+  /// Forgets every version stored in one of `folders` and drops its cached data.
+  void forgetFolders(const std::set<std::string>& folders) {
+    std::vector<std::pair<PatchKey, std::uint64_t>> gone;
+    {
+      std::lock_guard lock(mutex_);
+      for (auto it = versions_.begin(); it != versions_.end();) {
+        if (folders.count(it->second.folder) != 0) {
+          gone.push_back(it->first);
+          it = versions_.erase(it);
+        } else {
+          ++it;
+        }
+      }
+    }
+    for (const auto& [key, version] : gone) {
+      cache_.invalidate(id_, {key, version, MemoryCategory::Positions});
+      cache_.invalidate(id_, {key, version, MemoryCategory::Textures});
+    }
   }
 
   std::size_t expectedBytes(const ObjectId& id) const override {
@@ -196,26 +304,39 @@ std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name
                                            bool sweep, std::uint64_t texturePixels) {
   // Stamped before reading: a publish during the read leaves a stamp that differs from the file's.
   const std::optional<HierarchyStamp> stamp = hierarchyStamp(dir);
-  auto model = std::make_shared<Model>(readOpcModel(dir));
+  const fs::path patches = patchesDirOf(dir);
+  std::shared_ptr<ModelSnapshot> snapshot =
+      snapshotOf(readOpcRevision(dir), patches / "patchhierarchy.xml");
+  const Model& model = *snapshot->model;
   if (lock != nullptr) {
     // A publish interrupted after its commit point left these undone; they are idempotent.
     finishHierarchy(dir);
   }
   if (sweep) {
-    // Leftovers of edits interrupted by a crash or a failure: folders named like ours that the
-    // hierarchy does not name (unpublished drafts, or the old version's folders when the crash came
-    // between the hierarchy's rename and their removal), and temporary files of interrupted
-    // writes. Only the lock holder may do this: another writer's drafts look the same.
+    // Leftovers of edits interrupted by a crash or a failure: folders named like ours that no kept
+    // revision names (unpublished drafts, or a dropped revision's folders when the crash came
+    // between its hierarchy's removal and theirs), revision files newer than the current one, and
+    // temporary files of interrupted writes. Only the lock holder may do this: another writer's
+    // drafts look the same.
     std::set<std::string> named;
     std::set<std::string> namedTiles;
-    for (const auto& [key, info] : model->patches()) {
+    for (const auto& [key, info] : model.patches()) {
       named.insert(info.folder);
       if (!info.textureFile.empty()) {
         namedTiles.insert(normalisedEntry(info.textureFile));
       }
     }
-    const fs::path patches = patchesDirOf(dir);
     std::vector<fs::path> orphans;
+    for (const auto& [number, file] : revisionFiles(patches)) {
+      if (number > snapshot->version) {
+        orphans.push_back(file);
+        continue;
+      }
+      for (const std::string& folder : namedFolders(file)) {
+        named.insert(folder);
+        namedTiles.insert(normalisedEntry(textureEntryFor(folder)));
+      }
+    }
     for (const auto& entry : fs::directory_iterator(patches)) {
       const std::string folder = entry.path().filename().string();
       if ((entry.is_directory() && isOurFolderName(folder) && named.count(folder) == 0) ||
@@ -246,20 +367,14 @@ std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name
     }
   }
 
-  auto store = std::make_shared<Store>(dir, cache, name, model->gridSize(), texturePixels);
-  for (const auto& [key, info] : model->patches()) {
+  auto store = std::make_shared<Store>(dir, cache, name, model.gridSize(), texturePixels);
+  for (const auto& [key, info] : model.patches()) {
     store->add(info);
   }
-  auto snapshot = std::make_shared<ModelSnapshot>();
-  // The published version is the newest patch version: every publish gives the patches it changes
-  // version (published + 1), so every process reading the directory, and every opening after a
-  // restart, names the same content by the same version.
-  for (const auto& [key, info] : model->patches()) {
-    snapshot->version = std::max(snapshot->version, info.version);
-  }
-  snapshot->model = std::move(model);
+  const std::uint64_t version = snapshot->version;
   auto live = std::unique_ptr<LiveModel>(
-      new LiveModel(dir, std::move(name), std::move(store), std::move(snapshot), std::move(lock)));
+      new LiveModel(dir, std::move(name), std::move(store), snapshot, std::move(lock)));
+  live->revisionSnapshots_[version] = snapshot;
   live->readStamp_ = stamp;
   return live;
 }
@@ -286,6 +401,86 @@ std::uint64_t LiveModel::texturePixels() const {
 std::shared_ptr<const ModelSnapshot> LiveModel::snapshot() const {
   std::lock_guard lock(mutex_);
   return snapshot_;
+}
+
+std::string revisionFileName(std::uint64_t number) {
+  return "vsm-revision-" + std::to_string(number) + ".xml";
+}
+
+std::shared_ptr<const ModelSnapshot> LiveModel::heldSnapshot(std::uint64_t revision) const {
+  std::lock_guard lock(mutex_);
+  if (snapshot_->version == revision) {
+    return snapshot_;
+  }
+  if (const auto it = revisionSnapshots_.find(revision); it != revisionSnapshots_.end()) {
+    return it->second.lock();
+  }
+  return nullptr;
+}
+
+std::shared_ptr<const ModelSnapshot> LiveModel::snapshotAt(std::uint64_t revision) {
+  if (auto held = heldSnapshot(revision)) {
+    return held;
+  }
+  std::shared_ptr<const ModelSnapshot> current = snapshot();
+  const fs::path file = patchesDirOf(dir_) / revisionFileName(revision);
+  if (revision > current->version || !fs::is_regular_file(file)) {
+    throw Error(ErrorCode::NotFound, "model '" + name_ + "' keeps no revision " +
+                                         std::to_string(revision) + " (GET its revisions)");
+  }
+  std::shared_ptr<ModelSnapshot> read =
+      snapshotOf(readOpcRevision(dir_, file.filename().string()), file);
+  if (read->version != revision || read->model->gridSize() != current->model->gridSize()) {
+    throw Error(ErrorCode::Corrupt, file.string() + " does not hold revision " +
+                                        std::to_string(revision) + " of this model");
+  }
+  for (const auto& [key, info] : read->model->patches()) {
+    store_->add(info);
+  }
+  {
+    std::lock_guard lock(mutex_);
+    revisionSnapshots_[revision] = read;
+    recentRevisions_.push_back(read);
+    if (recentRevisions_.size() > 2) {
+      recentRevisions_.pop_front();
+    }
+  }
+  // A publish that dropped the revision meanwhile removed its file before looking for snapshots
+  // of it to hand its folders to: either it found this one, or the file is gone now.
+  if (!fs::exists(file)) {
+    std::lock_guard lock(mutex_);
+    std::erase(recentRevisions_, read);
+    throw Error(ErrorCode::NotFound,
+                "model '" + name_ + "' no longer keeps revision " + std::to_string(revision));
+  }
+  return read;
+}
+
+std::vector<RevisionSummary> LiveModel::revisions() const {
+  const std::shared_ptr<const ModelSnapshot> current = snapshot();
+  std::vector<RevisionSummary> list;
+  for (const auto& [number, file] : revisionFiles(patchesDirOf(dir_))) {
+    if (number >= current->version) {
+      continue;
+    }
+    {
+      std::lock_guard lock(mutex_);
+      if (const auto it = revisionSnapshots_.find(number); it != revisionSnapshots_.end()) {
+        if (const auto held = it->second.lock()) {
+          list.push_back({number, held->revision, false});
+          continue;
+        }
+      }
+    }
+    // The record alone: the hierarchy file without the patches' metadata.
+    RevisionRecord record = readRevisionRecord(file).value_or(RevisionRecord{});
+    if (record.time.empty()) {
+      record.time = fileTime(file);
+    }
+    list.push_back({number, std::move(record), false});
+  }
+  list.push_back({current->version, current->revision, true});
+  return list;
 }
 
 PatchCache::Pin LiveModel::positions(const ModelSnapshot& snapshot, const PatchKey& key) {
@@ -480,9 +675,73 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
   }
 }
 
-void ModelEdit::publish(const CancelToken* cancel) {
+void ModelEdit::restore(const ModelSnapshot& from, const CancelToken* cancel) {
+  const Model& target = *from.model;
+  if (target.gridSize() != model_->gridSize()) {
+    throw Error(ErrorCode::InvalidArgument, "a revision of another patch size cannot be restored");
+  }
+  // Deepest first: what `from` does not hold goes, leaves before their parents.
+  std::vector<PatchKey> keys;
+  for (const auto& [key, info] : model_->patches()) {
+    keys.push_back(key);
+  }
+  std::stable_sort(keys.begin(), keys.end(),
+                   [](const PatchKey& a, const PatchKey& b) { return a.depth > b.depth; });
+  for (const PatchKey& key : keys) {
+    if (target.find(key) == nullptr) {
+      model_->eraseLeaf(key);
+      live_.store_->cache().drop(live_.store_->id(), draftId(key));
+      if (base_->model->find(key) != nullptr) {
+        removed_.insert(key);
+      }
+      changed_.erase(key);
+    }
+  }
+  // Parents first, what the edit lacks is placed (its data follows), so that the data can then go
+  // in deepest first: a patch's box holds its children's final boxes.
+  for (const auto& [key, info] : target.patches()) {
+    if (model_->find(key) == nullptr) {
+      PatchInfo placeholder;
+      placeholder.key = key;
+      model_->insert(std::move(placeholder));
+    }
+  }
+  keys.clear();
+  for (const auto& [key, info] : target.patches()) {
+    if (model_->at(key).version != info.version || changed_.count(key) != 0) {
+      keys.push_back(key);
+    }
+  }
+  std::stable_sort(keys.begin(), keys.end(),
+                   [](const PatchKey& a, const PatchKey& b) { return a.depth > b.depth; });
+  for (const PatchKey& key : keys) {
+    if (cancel != nullptr) {
+      cancel->throwIfCancelled();
+    }
+    std::shared_ptr<const PatchGrid> grid = live_.positions(from, key).get<PatchGrid>();
+    std::shared_ptr<const TextureTile> texture;
+    if (PatchCache::Pin pin = live_.texture(from, key)) {
+      texture = pin.get<TextureTile>();
+    }
+    setPositions(key, std::move(grid), std::move(texture));
+  }
+  // Every overview is `from`'s own now: none is recomputed.
+  for (auto& [key, info] : target.patches()) {
+    model_->at(key).stale = false;
+  }
+}
+
+void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options) {
   if (published_) {
     throw Error(ErrorCode::Conflict, "edit already published");
+  }
+  if (options.keepRevisions < 2) {
+    throw Error(ErrorCode::InvalidArgument,
+                "at least 2 revisions are kept (the previous one while replicas follow), not " +
+                    std::to_string(options.keepRevisions));
+  }
+  if (changed_.empty() && removed_.empty()) {
+    throw Error(ErrorCode::InvalidArgument, "the edit changes nothing: no new revision");
   }
   refreshStale(cancel);
   if (cancel != nullptr) {
@@ -495,85 +754,122 @@ void ModelEdit::publish(const CancelToken* cancel) {
   if (cancel != nullptr) {
     cancel->throwIfCancelled();
   }
-  // 2. The hierarchy naming them, fsynced under a temporary name, and everything the switch to
-  // the new version needs, prepared so that nothing after the commit point can fail but its
-  // durability.
-  auto next = std::make_shared<Model>(*model_);
-  const std::unique_ptr<durable::PendingFile> hierarchy = stageHierarchy(live_.dir_, *next);
-  auto snapshot = std::make_shared<ModelSnapshot>();
-  snapshot->model = std::move(next);
-  snapshot->version = base_->version + 1;
-  // The folders only the old version used go when neither it nor the new version is read any
-  // more: kept one publish longer than this process needs them, because other processes reading
-  // the directory (replicas, which follow a publish within a second) may still read the old
-  // version. A removal that fails leaves an orphan the next open removes.
-  std::vector<std::pair<PatchKey, PatchInfo>> obsolete;
-  for (const PatchKey& key : changed_) {
-    if (const PatchInfo* old = base_->model->find(key)) {
-      obsolete.emplace_back(key, *old);
-    }
-  }
-  std::shared_ptr<LiveModel::Store> keep = live_.store_;
+  // 2. The base revision's hierarchy kept under its own name (once), durable before the commit
+  // point: from then on its folders are named by a kept revision. Then the new hierarchy naming
+  // the new folders, fsynced under a temporary name, and everything the switch to the new version
+  // needs, prepared so that nothing after the commit point can fail but its durability.
   const fs::path patches = patchesDirOf(live_.dir_);
-  std::function<void()> release = [keep, patches, obsolete = std::move(obsolete)] {
-    for (const auto& [key, info] : obsolete) {
-      keep->cache().invalidate(keep->id(), {key, info.version, MemoryCategory::Positions});
-      keep->cache().invalidate(keep->id(), {key, info.version, MemoryCategory::Textures});
-      keep->forget(key, info.version);
-      std::error_code ec;
-      fs::remove_all(patches / info.folder, ec);
-      // Only a tile vsm named for the folder is the folder's own (foreign OPCs may share one).
-      if (!ec && info.textureFile == textureEntryFor(info.folder)) {
-        fs::remove(ourTileFile(keep->dir(), info.folder), ec);
-      }
-      if (ec) {
-        log::warn("cannot remove " + info.folder + " of a replaced version: " + ec.message() +
-                  " (the next open removes it)");
-      }
-    }
-  };
+  const std::string baseName = revisionFileName(base_->version);
+  if (!fs::exists(patches / baseName)) {
+    stageHierarchy(live_.dir_, *base_->model, &base_->revision, baseName)->commit();
+    durable::syncDirectory(patches);
+  }
+  const std::uint64_t version = base_->version + 1;
+  auto next = std::make_shared<Model>(*model_);
+  auto snapshot = std::make_shared<ModelSnapshot>();
+  snapshot->revision = {base_->version,  utcNow(),        options.job,
+                        changed_.size(), removed_.size(), options.restoredFrom};
+  const std::unique_ptr<durable::PendingFile> hierarchy =
+      stageHierarchy(live_.dir_, *next, &snapshot->revision);
+  snapshot->model = std::move(next);
+  snapshot->version = version;
 
   // 3. The commit point: from the rename on, the new version is the model's.
   hierarchy->commit();
   published_ = true;
   {
     std::lock_guard lock(live_.mutex_);
-    auto removal = std::make_shared<const RunOnRelease>(std::move(release));
-    live_.snapshot_->heldRemovals.push_back(removal);
-    snapshot->heldRemovals.push_back(std::move(removal));
-    live_.snapshot_ = std::move(snapshot);
+    live_.snapshot_ = snapshot;
+    live_.revisionSnapshots_[version] = snapshot;
   }
-  // What others derived from the replaced versions goes now (see LiveModel::onPublish).
-  LiveModel::ReplacedVersions replaced;
+  // What others derived from the replaced versions may go now (see LiveModel::onPublish).
   std::function<void(const LiveModel::ReplacedVersions&)> observer;
+  LiveModel::NewVersionObserver announce;
   {
     std::lock_guard lock(live_.mutex_);
     observer = live_.onPublish_;
+    announce = live_.onNewVersion_;
   }
   if (observer) {
+    LiveModel::ReplacedVersions replaced;
     for (const PatchKey& key : changed_) {
       if (const PatchInfo* old = base_->model->find(key)) {
         replaced.emplace_back(key, old->version);
       }
     }
+    for (const PatchKey& key : removed_) {
+      replaced.emplace_back(key, base_->model->at(key).version);
+    }
     observer(replaced);
   }
-  LiveModel::NewVersionObserver announce;
-  {
-    std::lock_guard lock(live_.mutex_);
-    announce = live_.onNewVersion_;
-  }
   if (announce) {
-    announce(base_->version + 1, changed_);
+    announce(version, changed_);
   }
 
   // 4. Reported, never undone; the next open retries it.
   try {
     finishHierarchy(live_.dir_);
   } catch (const Error& e) {
-    throw Error(ErrorCode::Io, "version " + std::to_string(base_->version + 1) + " of model '" +
-                                   live_.name_ + "' is published, but " + e.what() +
+    throw Error(ErrorCode::Io, "version " + std::to_string(version) + " of model '" + live_.name_ +
+                                   "' is published, but " + e.what() +
                                    " (retried at the next open)");
+  }
+  // 5. Revisions beyond the count go, oldest first.
+  live_.dropRevisions(version, *snapshot->model, options.keepRevisions);
+}
+
+void LiveModel::dropRevisions(std::uint64_t current, const Model& latest, unsigned keep) {
+  try {
+    const fs::path patches = patchesDirOf(dir_);
+    std::map<std::uint64_t, fs::path> files = revisionFiles(patches);
+    std::erase_if(files, [&](const auto& entry) { return entry.first >= current; });
+    while (files.size() + 1 > keep) {
+      const auto oldest = files.begin();
+      const std::uint64_t number = oldest->first;
+      std::set<std::string> only = namedFolders(oldest->second);
+      // Folders are never shared across a gap (a restore copies), so what the next kept revision
+      // does not name, no later one does.
+      const auto nextFile = std::next(oldest);
+      if (nextFile != files.end()) {
+        for (const std::string& folder : namedFolders(nextFile->second)) {
+          only.erase(folder);
+        }
+      } else {
+        for (const auto& [key, info] : latest.patches()) {
+          only.erase(info.folder);
+        }
+      }
+      // The file first: a crash after it leaves folders no kept revision names, which the next
+      // open removes; never a listed revision without its folders.
+      if (::unlink(oldest->second.c_str()) != 0 && errno != ENOENT) {
+        throw Error(ErrorCode::Io,
+                    "cannot remove " + oldest->second.string() + ": " + std::strerror(errno));
+      }
+      durable::syncDirectory(patches);
+      files.erase(oldest);
+      log::info("model=" + name_ + " dropped revision " + std::to_string(number) + " (" +
+                std::to_string(only.size()) + " folders only it used)");
+      std::shared_ptr<Store> keepStore = store_;
+      const fs::path dir = dir_;
+      auto removal = std::make_shared<const RunOnRelease>([keepStore, dir, only] {
+        keepStore->forgetFolders(only);
+        removeFolders(dir, only);
+      });
+      std::lock_guard lock(mutex_);
+      std::erase_if(recentRevisions_, [&](const auto& held) { return held->version == number; });
+      if (const auto it = revisionSnapshots_.find(number); it != revisionSnapshots_.end()) {
+        if (const std::shared_ptr<ModelSnapshot> held = it->second.lock()) {
+          held->heldRemovals.push_back(std::move(removal));  // runs when its readers let go
+        }
+        revisionSnapshots_.erase(it);
+      }
+      // Otherwise `removal` runs here, as its last owner goes.
+    }
+    std::lock_guard lock(mutex_);
+    std::erase_if(revisionSnapshots_, [](const auto& entry) { return entry.second.expired(); });
+  } catch (const std::exception& e) {
+    log::warn("model=" + name_ + " dropping old revisions: " + e.what() +
+              " (retried at the next publish)");
   }
 }
 

@@ -2,8 +2,10 @@
 
 #include <atomic>
 #include <cstdint>
+#include <deque>
 #include <filesystem>
 #include <functional>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -31,8 +33,12 @@ struct ModelSnapshot {
   /// Increases with every publish: the newest version of any of its patches (at least 1), so it is
   /// the same in every process that reads the directory and after a restart.
   std::uint64_t version = 1;
-  /// Removals of folders that a publish replaced, held back while this version is read (each
-  /// runs when the last version holding it is released; see ModelEdit::publish).
+  /// What the hierarchy records about this revision (for one without a record, such as an
+  /// import's or a foreign OPC's: no parent, the hierarchy file's time, every patch of this
+  /// version counted as changed).
+  RevisionRecord revision;
+  /// Removals of folders only dropped revisions used, held back while this version is read (each
+  /// runs when the last snapshot holding it is released; see ModelEdit::publish).
   std::vector<std::shared_ptr<const void>> heldRemovals;
 
   ModelSnapshot() = default;
@@ -42,6 +48,28 @@ struct ModelSnapshot {
 };
 
 class ModelEdit;
+
+/// The file under Patches/ that keeps the hierarchy of revision `number` once a later one is
+/// published: "vsm-revision-<number>.xml".
+std::string revisionFileName(std::uint64_t number);
+
+/// One kept revision of a model, as LiveModel::revisions() lists it.
+struct RevisionSummary {
+  std::uint64_t number = 0;
+  RevisionRecord record;
+  bool latest = false;
+};
+
+/// What publish() records and keeps.
+struct PublishOptions {
+  /// The job that made the revision (empty: none, e.g. the CLI).
+  std::string job;
+  /// Revisions kept after the publish, the new one included: at least 2 (the previous revision
+  /// stays while replicas in other processes follow the new one).
+  unsigned keepRevisions = kDefaultKeepRevisions;
+  /// The revision whose content this one restores (0: none).
+  std::uint64_t restoredFrom = 0;
+};
 
 /// An open model: its OPC directory, the published metadata, and its patch data in the shared
 /// cache. Readers work on snapshots; one edit at a time prepares the next version copy-on-write
@@ -99,6 +127,20 @@ class LiveModel {
   /// The current published version.
   std::shared_ptr<const ModelSnapshot> snapshot() const;
 
+  /// A kept revision (its number is the version it published): the current one, or one whose
+  /// hierarchy is kept as Patches/vsm-revision-<n>.xml. Its patches are read through the cache as
+  /// the current version's; its folders stay while the snapshot is held, even when a publish
+  /// drops the revision meanwhile. Throws Error(NotFound) for a revision not kept (or newer than
+  /// this opening's current one), Error(Corrupt / Io) from its files.
+  std::shared_ptr<const ModelSnapshot> snapshotAt(std::uint64_t revision);
+  /// snapshotAt() when that needs no disk access (the current revision, or one held in memory);
+  /// null otherwise. Never blocks on I/O.
+  std::shared_ptr<const ModelSnapshot> heldSnapshot(std::uint64_t revision) const;
+
+  /// The kept revisions, oldest first, the current one last. Throws Error(Corrupt / Io) from a
+  /// revision file.
+  std::vector<RevisionSummary> revisions() const;
+
   /// Vertex data of `key` as published in `snapshot`, through the cache (pinned while the Pin
   /// lives). Throws Error(NotFound) when the snapshot has no such patch, Error(ResourceExhausted)
   /// when the budget is full of pinned data, Error(Corrupt / Io) from the files.
@@ -136,6 +178,9 @@ class LiveModel {
   LiveModel(std::filesystem::path dir, std::string name, std::shared_ptr<Store> store,
             std::shared_ptr<ModelSnapshot> snapshot,
             std::shared_ptr<const durable::WriterLock> lock);
+  /// Step 5 of ModelEdit::publish: drops the oldest kept revisions until `keep` remain with the
+  /// current one (`current`, whose model is `latest`). Failures are logged, not thrown.
+  void dropRevisions(std::uint64_t current, const Model& latest, unsigned keep);
   static std::unique_ptr<LiveModel> load(const std::filesystem::path& dir, std::string name,
                                          PatchCache& cache,
                                          std::shared_ptr<const durable::WriterLock> lock,
@@ -150,6 +195,12 @@ class LiveModel {
   /// Null when opened for reading.
   std::shared_ptr<const durable::WriterLock> lock_;
   std::string readOnlyReason_;
+  /// Every snapshot of a revision this opening made that may still be held (guarded by mutex_):
+  /// a publish that drops a revision hands its folder removal to it.
+  std::map<std::uint64_t, std::weak_ptr<ModelSnapshot>> revisionSnapshots_;
+  /// The last old revisions read by snapshotAt, held so that the next request for them does not
+  /// read their metadata again (guarded by mutex_; dropped with their revision).
+  std::deque<std::shared_ptr<ModelSnapshot>> recentRevisions_;
   /// The hierarchy file as it was just before this opening read it.
   std::optional<HierarchyStamp> readStamp_;
   std::function<void(const ReplacedVersions&)> onPublish_;  // guarded by mutex_
@@ -192,28 +243,43 @@ class ModelEdit {
   /// them has one.
   void refreshStale(const CancelToken* cancel = nullptr);
 
+  /// Makes this edit's content that of `from`, a kept revision of the same model
+  /// (LiveModel::snapshotAt): each patch it holds in another version than the edit gets its data
+  /// and texture tile again in a new folder (copy-on-write, so the model version still rises),
+  /// and each patch it does not hold is removed. Published, the surface is `from`'s, patch for
+  /// patch. Call it on a fresh edit. Throws as setPositions, and Error(InvalidArgument) for a
+  /// snapshot of another patch size.
+  void restore(const ModelSnapshot& from, const CancelToken* cancel = nullptr);
+
   /// Publishes the edit as the model's next version:
   ///
   /// 1. refreshes stale overviews, writes every changed patch that is still in the cache, and
   ///    makes all draft files durable with the edit's FileSystemSync (its descriptor was opened
   ///    when the edit began, so no write-back error since is missed);
-  /// 2. writes the new hierarchy under a temporary name and fsyncs it;
+  /// 2. keeps the base revision's hierarchy as Patches/vsm-revision-<base>.xml (when not kept
+  ///    yet), and writes the new hierarchy, recording the revision (`options`), under a temporary
+  ///    name and fsyncs it;
   /// 3. **the commit point**: renames it over Patches/patchhierarchy.xml. snapshot() is the new
   ///    version from here on;
-  /// 4. syncs Patches/ and removes a stale hierarchy.cache (OpcWriter::finishHierarchy).
+  /// 4. syncs Patches/ and removes a stale hierarchy.cache (OpcWriter::finishHierarchy);
+  /// 5. drops the oldest revisions beyond options.keepRevisions: first its hierarchy file, then
+  ///    the folders (and tiles) no later revision names, once no snapshot of it is held here.
   ///
   /// A failure before 3 throws and leaves the old version: the edit is then only fit to be
   /// discarded (its drafts are removed; a failed sync is never retried on the same pages).
   /// Cancellation is honoured up to 3. A failure in 4 throws Error(Io) saying the version is
-  /// published: it is not undone, and the next open() retries step 4. Folders only the old version
-  /// used are removed once no reader holds it; a removal that fails leaves them to the next open.
-  void publish(const CancelToken* cancel = nullptr);
+  /// published: it is not undone, and the next open() retries step 4. A removal in 5 that fails is
+  /// logged and left to the next open. Throws Error(InvalidArgument) first when keepRevisions < 2
+  /// or the edit changes nothing.
+  void publish(const CancelToken* cancel = nullptr, const PublishOptions& options = {});
 
   /// True from the commit point of publish() on.
   bool published() const { return published_; }
 
-  /// Keys changed in this edit.
+  /// Keys changed (added or replaced) in this edit.
   const std::set<PatchKey>& changed() const { return changed_; }
+  /// Keys of the base this edit removed.
+  const std::set<PatchKey>& removed() const { return removed_; }
 
  private:
   friend class LiveModel;
@@ -226,6 +292,7 @@ class ModelEdit {
   std::shared_ptr<const ModelSnapshot> base_;
   std::unique_ptr<Model> model_;
   std::set<PatchKey> changed_;
+  std::set<PatchKey> removed_;
   bool published_ = false;
 };
 

@@ -129,6 +129,58 @@ http::Response listModels(const ModelContext& c, const http::Request&) {
                    http::cache_control::kRevalidate);
 }
 
+/// A revision number in the path or the query: a decimal integer >= 1.
+std::uint64_t parseRevision(std::string_view name, std::string_view text) {
+  std::uint64_t value = 0;
+  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
+  if (ec != std::errc() || end != text.data() + text.size() || value == 0) {
+    throw Error(ErrorCode::InvalidArgument,
+                std::string(name) + " must be a revision number (an integer >= 1), not '" +
+                    std::string(text.substr(0, 32)) + "'");
+  }
+  return value;
+}
+
+json revisionJson(const core::RevisionSummary& revision) {
+  const core::RevisionRecord& r = revision.record;
+  const auto orNull = [](auto value) { return value ? json(value) : json(nullptr); };
+  return {{"revision", revision.number},
+          {"parent", orNull(r.parent)},
+          {"time", r.time},
+          {"job", r.job.empty() ? json(nullptr) : json(r.job)},
+          {"changed_patches", r.changed},
+          {"removed_patches", r.removed},
+          {"restored_from", orNull(r.restoredFrom)},
+          {"latest", revision.latest}};
+}
+
+/// GET /v1/models/{m}/revisions: the kept revisions, oldest first.
+http::Response getRevisions(const ModelContext& c, const http::Request& request) {
+  const std::string& id = request.param("m");
+  const auto live = c.models.get(id);
+  json list = json::array();
+  for (const core::RevisionSummary& revision : live->revisions()) {
+    list.push_back(revisionJson(revision));
+  }
+  return withCache(
+      http::jsonResponse(200,
+                         {{"model", id}, {"keep", c.models.keepRevisions()}, {"revisions", list}}),
+      http::cache_control::kRevalidate);
+}
+
+/// POST /v1/models/{m}/revisions/{n}/restore: a job publishing revision n's content anew.
+http::Response postRestore(const ModelContext& c, const http::Request& request) {
+  const std::string& id = request.param("m");
+  const std::uint64_t revision = parseRevision("the revision", request.param("n"));
+  if (auto redirect = redirectToWriter(c, id, request)) {
+    return std::move(*redirect);
+  }
+  const jobs::JobStatus job = jobs::submitRestore(c.jobs, c.models, id, revision);
+  http::Response response = http::jsonResponse(202, jobs::toJson(job));
+  response.set("Location", "/v1/jobs/" + job.id);
+  return withCache(std::move(response), http::cache_control::kNoStore);
+}
+
 http::Response postModel(const ModelContext& c, const http::Request& request) {
   const ModelRequest body = parseModelRequest(request);
   const std::string& id = body.id;
@@ -157,7 +209,7 @@ http::Response postModel(const ModelContext& c, const http::Request& request) {
 http::Response getModel(const ModelContext& c, const http::Request& request) {
   const std::string& id = request.param("m");
   const auto live = c.models.get(id);
-  const auto snapshot = live->snapshot();
+  const auto snapshot = requestedSnapshot(*live, request);
   const std::string etag = modelEtag(*snapshot);
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, http::cache_control::kRevalidate);
@@ -181,7 +233,7 @@ http::Response deleteModel(const ModelContext& c, const http::Request& request) 
 http::Response getHierarchy(const ModelContext& c, const http::Request& request) {
   const std::string& id = request.param("m");
   const auto live = c.models.get(id);
-  const auto snapshot = live->snapshot();
+  const auto snapshot = requestedSnapshot(*live, request);
   const auto rootText = request.queryParam("root");
   const core::PatchKey root = rootText ? parseKey(*rootText) : core::PatchKey::root();
   const int levels = intQuery(request, "depth", -1, 0, core::PatchKey::kMaxDepth);
@@ -201,7 +253,7 @@ http::Response getPatch(const ModelContext& c, const http::Request& request) {
   const std::string& id = request.param("m");
   const auto live = c.models.get(id);
   const core::PatchKey key = parseKey(request.param("p"));
-  const auto snapshot = live->snapshot();
+  const auto snapshot = requestedSnapshot(*live, request);
   const core::PatchInfo& info = findPatch(id, *snapshot, key);
   const std::string etag = patchEtag(info);
   if (http::ifNoneMatch(request, etag)) {
@@ -271,7 +323,10 @@ std::optional<http::Response> positions(const ModelContext& c, const http::Reque
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = c.models.getServed(id);
   const core::PatchKey key = parseKey(request.param("p"));
-  const auto snapshot = served.live->snapshot();
+  const auto snapshot = requestedSnapshot(*served.live, request, onNetworkThread);
+  if (snapshot == nullptr) {
+    return std::nullopt;
+  }
   const core::PatchInfo& info = findPatch(id, *snapshot, key);
   std::string etag = patchEtag(info);
   if (http::ifNoneMatch(request, etag)) {
@@ -374,7 +429,10 @@ std::optional<http::Response> coordinates(const ModelContext& c, const http::Req
                                           bool onNetworkThread) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = c.models.getServed(id);
-  const auto snapshot = served.live->snapshot();
+  const auto snapshot = requestedSnapshot(*served.live, request, onNetworkThread);
+  if (snapshot == nullptr) {
+    return std::nullopt;
+  }
   const core::PatchInfo& info = texturedPatch(id, *snapshot, request);
   const std::string etag = patchDataEtag(info, "uv");
   if (http::ifNoneMatch(request, etag)) {
@@ -401,7 +459,10 @@ std::optional<http::Response> texture(const ModelContext& c, const http::Request
                                       bool onNetworkThread) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = c.models.getServed(id);
-  const auto snapshot = served.live->snapshot();
+  const auto snapshot = requestedSnapshot(*served.live, request, onNetworkThread);
+  if (snapshot == nullptr) {
+    return std::nullopt;
+  }
   const core::PatchInfo& info = texturedPatch(id, *snapshot, request);
   const std::string etag = patchDataEtag(info, "png");
   if (http::ifNoneMatch(request, etag)) {
@@ -433,7 +494,7 @@ http::Response getLod(const ModelContext& c, const http::Request& request) {
                 "lod needs ?box=x0,y0,z0,x1,y1,z1&resolution=r (metres)");
   }
   const LodQuery query = parseLodQuery(*boxText, *resolutionText);
-  const auto snapshot = live->snapshot();
+  const auto snapshot = requestedSnapshot(*live, request);
   const std::string etag = viewEtag(*snapshot, "l", request.query());
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, http::cache_control::kRevalidate);
@@ -554,6 +615,17 @@ std::string matrixText(const core::Mat4d& m) {
 
 // ---- routes ----------------------------------------------------------------------------------
 
+std::shared_ptr<const core::ModelSnapshot> requestedSnapshot(core::LiveModel& live,
+                                                             const http::Request& request,
+                                                             bool onNetworkThread) {
+  const auto text = request.queryParam("rev");
+  if (!text) {
+    return live.snapshot();
+  }
+  const std::uint64_t revision = parseRevision("query parameter 'rev'", *text);
+  return onNetworkThread ? live.heldSnapshot(revision) : live.snapshotAt(revision);
+}
+
 std::optional<http::Response> redirectToWriter(const ModelContext& context, const std::string& id,
                                                const http::Request& request) {
   if (context.cluster == nullptr) {
@@ -586,6 +658,8 @@ void addModelRoutes(http::Router& router, ModelContext context) {
   router.add(http::Method::Delete, "/v1/models/{m}", bind(deleteModel));
   router.add(http::Method::Get, "/v1/models/{m}/hierarchy", bind(getHierarchy));
   router.add(http::Method::Get, "/v1/models/{m}/patches/{p}", bind(getPatch));
+  router.add(http::Method::Get, "/v1/models/{m}/revisions", bind(getRevisions));
+  router.add(http::Method::Post, "/v1/models/{m}/revisions/{n}/restore", bind(postRestore));
   // Routes with an inline handler: answered on the network thread when cached.
   using Inline = std::optional<http::Response> (*)(const ModelContext&, const http::Request&, bool);
   const auto addCached = [&](const char* pattern, Inline handler) {

@@ -1,6 +1,7 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <optional>
 #include <string>
 #include <string_view>
@@ -15,6 +16,7 @@
 #include "server/http/router.hpp"
 
 namespace vsm::core {
+class LiveModel;
 class Model;
 struct ModelSnapshot;
 struct PatchInfo;
@@ -46,6 +48,14 @@ struct ModelContext {
 /// writes `id` or works alone. Throws core::Error(Unavailable) when no writer can be named.
 std::optional<http::Response> redirectToWriter(const ModelContext& context, const std::string& id,
                                                const http::Request& request);
+
+/// The snapshot a read asks for: the kept revision `?rev=N` (LiveModel::snapshotAt) or, without
+/// the parameter, the current one. With `onNetworkThread` a revision that would have to be read
+/// from disk gives null (the caller answers on the CPU pool instead). Throws
+/// core::Error(InvalidArgument) for a malformed `rev`, NotFound for a revision not kept.
+std::shared_ptr<const core::ModelSnapshot> requestedSnapshot(core::LiveModel& live,
+                                                             const http::Request& request,
+                                                             bool onNetworkThread = false);
 
 /// 307 to `location`, with an error body (code "temporary_redirect") saying `why`.
 http::Response temporaryRedirect(const std::string& location, std::string_view why);

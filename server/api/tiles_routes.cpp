@@ -37,17 +37,22 @@ json translationJson(const core::Vec3d& t) {
       {1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, t.x, t.y, t.z, 1.0});
 }
 
-/// "{key}.glb", with "?v={patch version}" when `model` is given.
-std::string contentUri(const core::PatchKey& key, const core::Model* model) {
+/// "{key}.glb", with "?v={patch version}" when `model` is given, and "&rev={revision}" for a
+/// revision other than 0.
+std::string contentUri(const core::PatchKey& key, const core::Model* model,
+                       std::uint64_t revision) {
   std::string uri = key.toString() + ".glb";
   if (model != nullptr) {
     uri += "?v=" + std::to_string(model->at(key).version);
+    if (revision != 0) {
+      uri += "&rev=" + std::to_string(revision);
+    }
   }
   return uri;
 }
 
-json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre,
-              const core::Model* model) {
+json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre, const core::Model* model,
+              std::uint64_t revision) {
   const core::Vec3d c = node.box.center() - node.centre;
   const core::Vec3d half = node.box.size() * 0.5;
   json tile = {{"transform", translationJson(node.centre - parentCentre)},
@@ -56,11 +61,11 @@ json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre,
                                       half.z})}}},
                {"geometricError", node.geometricError},
                {"refine", "REPLACE"},
-               {"content", {{"uri", contentUri(node.key, model)}}}};
+               {"content", {{"uri", contentUri(node.key, model, revision)}}}};
   if (!node.children.empty()) {
     json children = json::array();
     for (const core::TileNode& child : node.children) {
-      children.push_back(tileJson(child, node.centre, model));
+      children.push_back(tileJson(child, node.centre, model, revision));
     }
     tile["children"] = std::move(children);
   }
@@ -85,7 +90,7 @@ http::Response withCache(http::Response response, std::string_view etag) {
 http::Response getTileset(models::ModelRegistry& models, const http::Request& request) {
   const std::string& id = request.param("m");
   const auto live = models.get(id);
-  const auto snapshot = live->snapshot();
+  const auto snapshot = requestedSnapshot(*live, request);
   if (snapshot->model->empty()) {
     throw Error(ErrorCode::NotFound, "model '" + id + "' has no patches");
   }
@@ -95,7 +100,8 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
   }
   const core::TileNode root = core::buildTileTree(*snapshot->model);
   http::Response response = http::jsonResponse(
-      200, tilesetJson(root, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get()));
+      200, tilesetJson(root, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get(),
+                       request.queryParam("rev") ? snapshot->version : 0));
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   return withCache(std::move(response), etag);
 }
@@ -109,7 +115,10 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = models.getServed(id);
   const core::PatchKey key = parseGlbKey(request.param("p"));
-  const auto snapshot = served.live->snapshot();
+  const auto snapshot = requestedSnapshot(*served.live, request, onNetworkThread);
+  if (snapshot == nullptr) {
+    return std::nullopt;
+  }
   const core::PatchInfo* info = snapshot->model->find(key);
   if (info == nullptr) {
     throw Error(ErrorCode::NotFound, "model '" + id + "' has no patch " + key.toString() +
@@ -156,11 +165,11 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
 }  // namespace
 
 json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
-                 const core::Model* model) {
+                 const core::Model* model, std::uint64_t revision) {
   return {
       {"asset", {{"version", "1.1"}, {"tilesetVersion", tilesetVersion}, {"generator", "vsmd"}}},
       {"geometricError", core::tilesetGeometricError(root)},
-      {"root", tileJson(root, core::Vec3d{0, 0, 0}, model)}};
+      {"root", tileJson(root, core::Vec3d{0, 0, 0}, model, revision)}};
 }
 
 void addTilesRoutes(http::Router& router, models::ModelRegistry& models) {

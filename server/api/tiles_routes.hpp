@@ -36,8 +36,9 @@ void addTilesRoutes(http::Router& router, models::ModelRegistry& models);
 /// relative to the tile's centre, geometricError, refine "REPLACE", content.uri "{key}.glb"
 /// (relative to the tileset's URL) and children. With `model` (the one the tree was built from),
 /// each URI names the patch's version, "{key}.glb?v={version}", so that browser and CDN caches
-/// never mix a tile of one version of the model with a tileset of another.
+/// never mix a tile of one version of the model with a tileset of another. A `revision` other than
+/// 0 (the tileset of ?rev=N) is added to each URI ("&rev=N"), so the tiles come from that revision.
 nlohmann::json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
-                           const core::Model* model = nullptr);
+                           const core::Model* model = nullptr, std::uint64_t revision = 0);
 
 }  // namespace vsm::server::api

@@ -177,6 +177,9 @@ const Key kKeys[] = {
     {"memory_budget",
      [](Config& c, std::string_view k, const json& v) { c.memoryBudget = sizeOf(k, v); },
      [](const Config& c) { return formatSize(c.memoryBudget); }},
+    {"keep_revisions",
+     [](Config& c, std::string_view k, const json& v) { c.keepRevisions = countOf(k, v); },
+     [](const Config& c) { return std::to_string(c.keepRevisions); }},
     {"cache_policy",
      [](Config& c, std::string_view k, const json& v) {
        const std::string text =
@@ -496,6 +499,7 @@ void Config::validate() const {
     outOfRange("data_root", "a directory", "an empty path");
   }
   checkSize("memory_budget", memoryBudget, kMiB, std::numeric_limits<std::size_t>::max());
+  checkCount("keep_revisions", keepRevisions, 2, 10000);
   if (!token.empty()) {
     for (const char c : token) {
       if (!isTokenChar(c)) {
@@ -637,6 +641,8 @@ std::string_view commandLineUsage() {
          "  --port-file PATH       write the bound port there once listening\n"
          "  --log-level LEVEL      debug, info, warn, error or off (default info)\n"
          "  --viewer-dir DIR       serve the browser viewer's files from DIR at /viewer/\n"
+         "  --keep-revisions N     revisions kept per model, the latest included (default 8,\n"
+         "                         at least 2): older ones are read with ?rev=N and restored\n"
          "  --coordinator URL      join a cluster: etcd's client URL (http://HOST:PORT); every\n"
          "                         node serves every model, one elected node writes each\n"
          "  --node NAME            this node's name in the cluster (default: the host name)\n"
@@ -646,7 +652,8 @@ std::string_view commandLineUsage() {
          "\n"
          "configuration keys (file or --set):\n"
          "  listen, data_root, memory_budget, cache_policy (cost-aware-clock |\n"
-         "  fifo-second-chance), token, token_file, port_file, viewer_dir, log_level,\n"
+         "  fifo-second-chance), keep_revisions, token, token_file, port_file, viewer_dir,\n"
+         "  log_level,\n"
          "  limits.body_bytes, limits.header_bytes, limits.header_timeout, limits.read_timeout,\n"
          "  limits.idle_timeout, limits.write_timeout, limits.connections,\n"
          "  limits.connections_per_client, limits.pipelined_responses, limits.texture_pixels,\n"
@@ -666,6 +673,7 @@ CommandLine parseCommandLine(const std::vector<std::string>& args) {
       {"--port-file", "port_file"},
       {"--log-level", "log_level"},
       {"--viewer-dir", "viewer_dir"},
+      {"--keep-revisions", "keep_revisions"},
       {"--coordinator", "cluster.coordinator"},
       {"--node", "cluster.node"},
       {"--advertise", "cluster.advertise"},

@@ -103,6 +103,9 @@ struct Config {
   /// One budget (bytes) for the patch data of all open models.
   std::size_t memoryBudget = std::size_t{1} << 30;
   core::EvictionPolicy cachePolicy = core::EvictionPolicy::CostAwareClock;
+  /// Revisions every model keeps (the latest included) when a job publishes a new one: older
+  /// ones can be read (?rev=N) and restored. At least 2.
+  std::size_t keepRevisions = 8;
   /// Bearer token required for writes (POST, PUT, PATCH, DELETE); empty = writes are open.
   std::string token;
   /// A file holding the token (its first line), so that it stays out of `ps`; read by

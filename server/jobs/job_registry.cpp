@@ -149,6 +149,7 @@ JobStatus JobRegistry::submit(std::string type, json params, JobContext::Plan pl
     char id[24];
     std::snprintf(id, sizeof id, "%08x%08llx", idPrefix_, static_cast<unsigned long long>(++next_));
     job->status.id = limits_.node.empty() ? std::string(id) : limits_.node + "-" + id;
+    job->context->id_ = job->status.id;
     jobs_.emplace(job->status.id, job);
     order_.push_back(job->status.id);
     out = job->status;

@@ -72,12 +72,15 @@ class JobContext final : public core::Progress {
   void throwIfCancelled() const { cancel_.throwIfCancelled(); }
   /// Replaces the plan (before the operation starts reporting).
   void plan(Plan plan);
+  /// The job's id (set before the work runs).
+  const std::string& id() const { return id_; }
 
  private:
   friend class JobRegistry;
   JobContext(std::function<void(std::string_view, double)> update) : update_(std::move(update)) {}
 
   std::function<void(std::string_view, double)> update_;
+  std::string id_;
   core::CancelToken cancel_;
   mutable std::mutex mutex_;  // guards plan_
   Plan plan_;

@@ -118,7 +118,7 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
           context.report("publishing", 0);
           // Cancellation is honoured up to the commit point; after it the new version is the
           // model's and the job has succeeded.
-          edit->publish(&context.cancelToken());
+          edit->publish(&context.cancelToken(), {context.id(), models.keepRevisions()});
           result["version"] = targetModel->snapshot()->version;
           edit.reset();
           context.report("publishing", 1);
@@ -136,6 +136,48 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
             // the old version, or the new one when only a step after the commit point failed).
             edit.reset();
             models.reopen(target);
+          }
+          throw;
+        }
+      });
+}
+
+JobStatus submitRestore(JobRegistry& jobs, models::ModelRegistry& models, const std::string& id,
+                        std::uint64_t revision) {
+  models::checkModelId(id);
+  auto lease = std::make_shared<models::ModelRegistry::Lease>(models.lease(id));
+  std::shared_ptr<core::LiveModel> model = models.get(id);
+  if (!model->writable()) {
+    throw Error(ErrorCode::Conflict,
+                "model '" + id + "' is open for reading only: " + model->readOnlyReason());
+  }
+  // NotFound for a revision not kept, before a job is queued.
+  std::shared_ptr<const core::ModelSnapshot> from = model->snapshotAt(revision);
+  json params = {{"model", id}, {"revision", revision}};
+  JobContext::Plan plan = {{"restoring", 0.8}, {"publishing", 0.2}};
+  return jobs.submit(
+      "restore", std::move(params), std::move(plan),
+      [&models, id, lease, model, from, revision](JobContext& context) mutable {
+        std::unique_ptr<core::ModelEdit> edit = model->beginEdit();
+        try {
+          json result = {
+              {"model", id}, {"restored", revision}, {"base_version", edit->base().version}};
+          context.report("restoring", 0);
+          edit->restore(*from, &context.cancelToken());
+          result["changed_patches"] = edit->changed().size();
+          result["removed_patches"] = edit->removed().size();
+          from.reset();
+          context.report("publishing", 0);
+          core::PublishOptions options{context.id(), models.keepRevisions(), revision};
+          edit->publish(&context.cancelToken(), options);
+          result["version"] = model->snapshot()->version;
+          edit.reset();
+          context.report("publishing", 1);
+          return result;
+        } catch (const Error& e) {
+          if (e.code() == ErrorCode::Io) {
+            edit.reset();
+            models.reopen(id);
           }
           throw;
         }

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <cstdint>
 #include <filesystem>
 #include <string>
 
@@ -27,5 +28,14 @@ JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const s
 /// open, Unavailable when the job queue is full.
 JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const std::string& target,
                       const std::string& source, bool registerFirst);
+
+/// Submits a restore: publishes the content of kept revision `revision` of the open model `id` as
+/// its next revision (ModelEdit::restore; the revision record names it). The model is leased until
+/// the job ends.
+///
+/// Throws core::Error(NotFound) for a model not open or a revision not kept, Conflict for a model
+/// open for reading only, Unavailable when the job queue is full.
+JobStatus submitRestore(JobRegistry& jobs, models::ModelRegistry& models, const std::string& id,
+                        std::uint64_t revision);
 
 }  // namespace vsm::server::jobs

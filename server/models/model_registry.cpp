@@ -119,8 +119,11 @@ void ModelRegistry::Lease::release() {
 // ---- ModelRegistry ---------------------------------------------------------------------------
 
 ModelRegistry::ModelRegistry(const fs::path& dataRoot, core::PatchCache& cache,
-                             std::uint64_t texturePixels)
-    : root_(fs::canonical(dataRoot)), cache_(cache), texturePixels_(texturePixels) {}
+                             std::uint64_t texturePixels, unsigned keepRevisions)
+    : root_(fs::canonical(dataRoot)),
+      cache_(cache),
+      texturePixels_(texturePixels),
+      keepRevisions_(keepRevisions) {}
 
 ModelRegistry::~ModelRegistry() {
   std::map<std::string, Served, std::less<>> models;

@@ -56,8 +56,10 @@ class ModelRegistry {
  public:
   /// `dataRoot` must be an existing directory; `cache` must outlive the registry. Models decode
   /// texture files of at most `texturePixels` pixels (limits.texture_pixels).
+  /// Jobs publishing into its models keep `keepRevisions` revisions (keep_revisions).
   ModelRegistry(const std::filesystem::path& dataRoot, core::PatchCache& cache,
-                std::uint64_t texturePixels = core::kDefaultTexturePixels);
+                std::uint64_t texturePixels = core::kDefaultTexturePixels,
+                unsigned keepRevisions = core::kDefaultKeepRevisions);
   /// Closes every model (their dirty data is written back by the cache).
   ~ModelRegistry();
   ModelRegistry(const ModelRegistry&) = delete;
@@ -65,6 +67,8 @@ class ModelRegistry {
 
   /// The canonical data root.
   const std::filesystem::path& dataRoot() const { return root_; }
+  /// Revisions a publish keeps (core::PublishOptions::keepRevisions).
+  unsigned keepRevisions() const { return keepRevisions_; }
   /// The one patch cache of every model.
   core::PatchCache& cache() const { return cache_; }
 
@@ -192,6 +196,7 @@ class ModelRegistry {
   std::filesystem::path root_;
   core::PatchCache& cache_;
   const std::uint64_t texturePixels_;
+  const unsigned keepRevisions_;
   mutable std::mutex mutex_;  // guards models_, leases_, reserved_, opening_
   std::map<std::string, Served, std::less<>> models_;
   /// Id -> number of leases (on open models and reservations alike).

@@ -107,9 +107,11 @@ def read_aara(path):
     return type_name, sizes, values.reshape(sizes[1], sizes[0], components).astype(np.float64)
 
 
-def read_hierarchy(opc):
+def read_hierarchy(opc, name="patchhierarchy.xml"):
+    """(Patches dir, root folder, {folder: {quadrant: child folder}}) of the hierarchy file
+    `name` (the current one, or a kept revision's "vsm-revision-N.xml")."""
     patches = find_ci(opc, "Patches")
-    root = ET.parse(find_ci(patches, "patchhierarchy.xml")).getroot()
+    root = ET.parse(find_ci(patches, name)).getroot()
     ph = child_ci(root, "PatchHierarchy")
     children = {}
     for item in child_ci(ph, "SubPatchMap"):

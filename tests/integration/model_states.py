@@ -15,6 +15,10 @@ from merge_check import folder_digest
 gdal.UseExceptions()
 
 TEMP = re.compile(r"\..+\.tmp-[0-9]+-[0-9]+")
+# A kept revision's hierarchy (docs: core/store/README.md), and the record of a revision in a
+# hierarchy: when and by which job differ between two runs of the same write.
+REVISION_FILE = re.compile(r"vsm-revision-[0-9]+\.xml")
+REVISION_RECORD = re.compile(rb"<Revision>.*?</Revision>", re.S)
 LOCK = ".vsm-writer.lock"
 
 
@@ -36,12 +40,9 @@ def digest_tree(root):
     return files
 
 
-def version_of(opc):
-    """(hierarchy bytes, {reachable folder: digest}, orphans): orphans are entries of Patches/
-    the hierarchy does not reach, tiles of Images/Diffuse it does not name, temporary files."""
-    patches_dir, root, children = read_hierarchy(opc)
-    with open(find_ci(patches_dir, "patchhierarchy.xml"), "rb") as f:
-        hierarchy = f.read()
+def reachable_folders(opc, name="patchhierarchy.xml"):
+    """The folders the hierarchy file `name` reaches from its root."""
+    _, root, children = read_hierarchy(opc, name)
     reachable = set()
     stack = [root]
     while stack:
@@ -50,13 +51,29 @@ def version_of(opc):
             continue
         reachable.add(folder)
         stack.extend(children.get(folder, {}).values())
+    return reachable
+
+
+def version_of(opc):
+    """(hierarchy bytes without the revision record, {reachable folder: digest}, orphans):
+    orphans are entries of Patches/ neither the hierarchy nor a kept revision reaches, tiles of
+    Images/Diffuse none of them names, temporary files."""
+    patches_dir = find_ci(opc, "Patches")
+    with open(find_ci(patches_dir, "patchhierarchy.xml"), "rb") as f:
+        hierarchy = REVISION_RECORD.sub(b"", f.read())
+    reachable = reachable_folders(opc)
+    kept = set()
+    for name in os.listdir(patches_dir):
+        if REVISION_FILE.fullmatch(name):
+            kept |= reachable_folders(opc, name)
     folders = {folder: folder_digest(os.path.join(patches_dir, folder)) for folder in reachable}
     orphans = sorted(e for e in os.listdir(patches_dir)
-                     if e not in reachable and e.lower() != "patchhierarchy.xml")
+                     if e not in reachable | kept and e.lower() != "patchhierarchy.xml"
+                     and not REVISION_FILE.fullmatch(e))
     tiles = os.path.join(opc, "Images", "Diffuse")
     if os.path.isdir(tiles):
         orphans += ["Images/Diffuse/" + t for t in sorted(os.listdir(tiles))
-                    if t[:-4] not in reachable]
+                    if t[:-4] not in reachable | kept]
     orphans += [e for e in os.listdir(opc) if TEMP.fullmatch(e)]
     return hierarchy, folders, orphans
 

@@ -201,32 +201,188 @@ TEST_F(StoreTest, ReadersSeeTheOldVersionUntilPublishAndTheNewOneAfter) {
   EXPECT_TRUE(fs::exists(dir_ / "Patches" / oldFolder));
 }
 
-TEST_F(StoreTest, OldFoldersGoWhenNeitherTheirVersionNorTheNextIsRead) {
+/// Publishes leaf `key` raised by `bump`, keeping `keep` revisions.
+void publishLeaf(LiveModel& live, const PatchKey& key, double bump, unsigned keep,
+                 const std::string& job = "j") {
+  auto edit = live.beginEdit();
+  edit->setPositions(key, leafGrid(key.x, key.y, bump));
+  edit->publish(nullptr, {job, keep});
+}
+
+std::vector<std::uint64_t> revisionNumbers(const LiveModel& live) {
+  std::vector<std::uint64_t> numbers;
+  for (const RevisionSummary& r : live.revisions()) {
+    numbers.push_back(r.number);
+  }
+  return numbers;
+}
+
+/// Folders under Patches/.
+std::set<std::string> folders(const fs::path& dir) {
+  std::set<std::string> names;
+  for (const auto& entry : fs::directory_iterator(dir / "Patches")) {
+    if (entry.is_directory()) {
+      names.insert(entry.path().filename().string());
+    }
+  }
+  return names;
+}
+
+std::set<std::string> foldersOf(const Model& model) {
+  std::set<std::string> names;
+  for (const auto& [key, info] : model.patches()) {
+    names.insert(info.folder);
+  }
+  return names;
+}
+
+TEST_F(StoreTest, RevisionsAreKeptReadableAndDroppedOldestFirstWithTheFoldersOnlyTheyUsed) {
   PatchCache cache(64 << 20);
   auto live = LiveModel::open(dir_, "m", cache);
-  auto before = live->snapshot();
-  const std::string oldFolder = before->model->at({2, 0, 0}).folder;
-  const auto publishLeaf = [&](const PatchKey& key, double bump) {
-    auto edit = live->beginEdit();
-    edit->setPositions(key, leafGrid(key.x, key.y, bump));
-    edit->publish();
-  };
-  publishLeaf({2, 0, 0}, 5.0);
-  EXPECT_TRUE(fs::exists(dir_ / "Patches" / oldFolder));
-  before.reset();
-  // Kept one publish longer: another process reading the directory may not have followed yet.
-  EXPECT_TRUE(fs::exists(dir_ / "Patches" / oldFolder));
-  publishLeaf({2, 3, 3}, 1.0);
-  EXPECT_FALSE(fs::exists(dir_ / "Patches" / oldFolder));
-  // A reader of a version keeps what it reads however many publishes go by.
-  auto middle = live->snapshot();
-  const std::string middleFolder = middle->model->at({2, 0, 0}).folder;
-  publishLeaf({2, 0, 0}, 6.0);
-  publishLeaf({2, 3, 3}, 2.0);
-  EXPECT_TRUE(fs::exists(dir_ / "Patches" / middleFolder));
-  middle.reset();
-  EXPECT_FALSE(fs::exists(dir_ / "Patches" / middleFolder));
+  const PatchKey leaf{2, 0, 0};
+  const double z1 = leafZ(*live, *live->snapshot(), leaf);
+  const std::uint64_t v = live->snapshot()->version;  // the import's
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v}));
+  for (int i = 1; i <= 4; ++i) {
+    publishLeaf(*live, leaf, 10.0 * i, 3, "job-" + std::to_string(i));
+  }
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 2, v + 3, v + 4}));
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / revisionFileName(v)));
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / revisionFileName(v + 1)));
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / revisionFileName(v + 2)));
+  // Each kept revision reads as it was published; a dropped one is not found.
+  for (std::uint64_t n = v + 2; n <= v + 4; ++n) {
+    const auto snapshot = live->snapshotAt(n);
+    EXPECT_EQ(snapshot->version, n);
+    EXPECT_NEAR(leafZ(*live, *snapshot, leaf), z1 + 10.0 * static_cast<double>(n - v), 1e-3);
+  }
+  EXPECT_EQ(codeOf([&] { live->snapshotAt(v + 1); }), ErrorCode::NotFound);
+  EXPECT_EQ(codeOf([&] { live->snapshotAt(v + 5); }), ErrorCode::NotFound);
+  // On disk: exactly the folders the kept revisions name.
+  std::set<std::string> kept;
+  for (std::uint64_t n = v + 2; n <= v + 4; ++n) {
+    const auto names = foldersOf(*live->snapshotAt(n)->model);
+    kept.insert(names.begin(), names.end());
+  }
+  EXPECT_EQ(folders(dir_), kept);
+  EXPECT_EQ(kept.count("2_0_0"), 0u) << "the import's leaf went with revision 1";
+  // The records survive reopening: parent, job, what changed.
+  live.reset();
+  auto reopened = LiveModel::open(dir_, "m", cache, LiveModel::Access::Read);
+  const std::vector<RevisionSummary> list = reopened->revisions();
+  ASSERT_EQ(list.size(), 3u);
+  EXPECT_EQ(list[0].record.parent, v + 1);
+  EXPECT_EQ(list[0].record.job, "job-2");
+  EXPECT_EQ(list[0].record.changed, 3u) << "the leaf and its two overviews";
+  EXPECT_EQ(list[2].record.job, "job-4");
+  EXPECT_TRUE(list[2].latest);
+  EXPECT_EQ(list[2].record.time.size(), 20u) << list[2].record.time;
   EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+TEST_F(StoreTest, AReaderPinnedOnADroppedRevisionReadsItUntilItLetsGo) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  auto pinned = live->snapshot();  // the import's revision
+  const std::uint64_t v = pinned->version;
+  const std::string folder = pinned->model->at({2, 0, 0}).folder;
+  const double z = leafZ(*live, *pinned, {2, 1, 1});
+  publishLeaf(*live, {2, 0, 0}, 5.0, 2);
+  publishLeaf(*live, {2, 0, 0}, 6.0, 2);  // drops revision 1 while it is read
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 1, v + 2}));
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / folder));
+  EXPECT_NEAR(leafZ(*live, *pinned, {2, 0, 0}), height(3, 3, 0), 1e-3) << "read from disk";
+  EXPECT_DOUBLE_EQ(leafZ(*live, *pinned, {2, 1, 1}), z);
+  pinned.reset();
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / folder));
+  EXPECT_EQ(codeOf([&] { live->snapshotAt(v); }), ErrorCode::NotFound);
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+TEST_F(StoreTest, RestoreMakesANewRevisionWithTheOldSurfacePatchForPatch) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v = live->snapshot()->version;
+  {
+    // Revision v + 1 changes a leaf and adds a level below another.
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 1, 1}, leafGrid(1, 1, 3.0));
+    edit->setPositions({3, 6, 6}, leafGrid(3, 3, 1.0));
+    edit->publish(nullptr, {"merge", 8});
+  }
+  ASSERT_NE(live->snapshot()->model->find({3, 6, 6}), nullptr);
+  const auto one = live->snapshotAt(v);
+  {
+    auto edit = live->beginEdit();
+    edit->restore(*one);
+    EXPECT_EQ(edit->removed(), (std::set<PatchKey>{{3, 6, 6}}));
+    edit->publish(nullptr, {"restore", 8, v});
+  }
+  const auto three = live->snapshot();
+  EXPECT_EQ(three->version, v + 2);
+  EXPECT_EQ(three->revision.restoredFrom, v);
+  EXPECT_EQ(three->revision.removed, 1u);
+  ASSERT_EQ(three->model->patchCount(), one->model->patchCount());
+  for (const auto& [key, info] : one->model->patches()) {
+    const PatchInfo* now = three->model->find(key);
+    ASSERT_NE(now, nullptr) << key.toString();
+    EXPECT_EQ(now->childMask, info.childMask) << key.toString();
+    const auto a = live->positions(*one, key).get<PatchGrid>();
+    const auto b = live->positions(*three, key).get<PatchGrid>();
+    for (int j = 0; j < kSize; ++j) {
+      for (int i = 0; i < kSize; ++i) {
+        ASSERT_EQ(a->global(i, j).z, b->global(i, j).z) << key.toString() << " " << i << "," << j;
+      }
+    }
+  }
+  // Copied, not shared: the version rises and every process names it the same after a restart.
+  EXPECT_EQ(three->model->at({2, 1, 1}).version, v + 2);
+  EXPECT_EQ(three->model->at({2, 0, 0}).version, one->model->at({2, 0, 0}).version)
+      << "untouched patches are shared";
+  live.reset();
+  auto reopened = LiveModel::open(dir_, "m", cache, LiveModel::Access::Read);
+  EXPECT_EQ(reopened->snapshot()->version, v + 2);
+  EXPECT_EQ(revisionNumbers(*reopened), (std::vector<std::uint64_t>{v, v + 1, v + 2}));
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+TEST_F(StoreTest, OpenRemovesFoldersNoKeptRevisionNamesAndKeepsTheOthers) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v = live->snapshot()->version;
+  publishLeaf(*live, {2, 0, 0}, 5.0, 8);
+  publishLeaf(*live, {2, 0, 0}, 6.0, 8);
+  const auto kept = folders(dir_);
+  live.reset();
+  // A crash after a drop removed the first revision's hierarchy, before its folders.
+  ASSERT_TRUE(fs::remove(dir_ / "Patches" / revisionFileName(v)));
+  auto reopened = LiveModel::open(dir_, "m", cache);
+  EXPECT_EQ(revisionNumbers(*reopened), (std::vector<std::uint64_t>{v + 1, v + 2}));
+  std::set<std::string> expected;
+  for (std::uint64_t n = v + 1; n <= v + 2; ++n) {
+    const auto names = foldersOf(*reopened->snapshotAt(n)->model);
+    expected.insert(names.begin(), names.end());
+  }
+  EXPECT_EQ(folders(dir_), expected);
+  EXPECT_LT(expected.size(), kept.size());
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / "2_0_0"));
+}
+
+TEST_F(StoreTest, APublishThatChangesNothingOrKeepsTooFewIsRefused) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const auto before = filesUnder(dir_);
+  {
+    auto edit = live->beginEdit();
+    EXPECT_EQ(codeOf([&] { edit->publish(); }), ErrorCode::InvalidArgument);
+  }
+  {
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 0, 0}, leafGrid(0, 0, 1.0));
+    EXPECT_EQ(codeOf([&] { edit->publish(nullptr, {"", 1}); }), ErrorCode::InvalidArgument);
+  }
+  EXPECT_EQ(filesUnder(dir_), before);
+  EXPECT_EQ(revisionNumbers(*live).size(), 1u);
 }
 
 TEST_F(StoreTest, AReaderSeesAnotherWritersPublishOnDiskAndFollowsItByReopening) {
@@ -428,10 +584,17 @@ TEST_F(TexturedStoreTest, EditCarriesTexturesIntoNewTilesAndOverviewsAndDropsThe
   EXPECT_EQ(texel(parent, 3, 3), (std::array<std::uint8_t, 4>{nw[0], nw[1], nw[2], 255}));
   EXPECT_EQ(texel(live->texture(*after, PatchKey::root()), 3, 15),
             (std::array<std::uint8_t, 4>{0, 0, 250, 255}));
-  // The replaced tiles stay while the published version is read; once it is not, every tile on
-  // disk is one it names. A fresh open reads the same texels.
-  const std::set<std::string> named = namedTiles(*after->model);
+  // The replaced tiles stay with revision 1; once a publish drops it, every tile on disk is one
+  // a kept revision names. A fresh open reads the same texels.
+  std::set<std::string> named = namedTiles(*after->model);
   EXPECT_GT(tileFiles(dir_).size(), named.size());
+  {
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 0, 0}, leafGrid(0, 0, 3.0), uniformTile(0, 250, 0));
+    edit->publish(nullptr, {"", 2});
+  }
+  const std::set<std::string> latest = namedTiles(*live->snapshot()->model);
+  named.insert(latest.begin(), latest.end());
   after.reset();
   live.reset();
   EXPECT_EQ(tileFiles(dir_), named);
@@ -466,7 +629,7 @@ TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
     auto edit = live->beginEdit();
     edit->setPositions({2, 0, 0}, leafGrid(0, 0, 1.0), uniformTile(1, 2, 3));
     edit->setPositions({2, 0, 0}, leafGrid(0, 0, 1.0));  // replaced, untextured
-    edit->publish();
+    edit->publish(nullptr, {"", 2});
   }
   auto after = live->snapshot();
   EXPECT_TRUE(after->model->at({2, 0, 0}).textureFile.empty());
@@ -475,14 +638,24 @@ TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
   EXPECT_EQ(texel(live->texture(*after, {1, 0, 0}), 2, 2)[3], 0);
   const std::shared_ptr<const Model> published = after->model;
   after.reset();
-  live.reset();  // the replaced version's tiles go once the published version is not read
+  // Revision 1's tiles go when a publish drops it: then every tile is revision 2's or 3's.
+  {
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 3, 3}, leafGrid(3, 3, 1.0));
+    edit->publish(nullptr, {"", 2});
+  }
+  const std::shared_ptr<const Model> third = live->snapshot()->model;
+  live.reset();
   std::set<std::string> named = tileFiles(dir_);
-  for (const auto& [key, info] : published->patches()) {
-    if (!info.textureFile.empty()) {
-      EXPECT_EQ(named.erase(info.folder + ".tif"), 1u) << key.toString();
+  for (const auto* model : {published.get(), third.get()}) {
+    for (const auto& [key, info] : model->patches()) {
+      if (!info.textureFile.empty()) {
+        named.erase(info.folder + ".tif");
+      }
     }
   }
   EXPECT_TRUE(named.empty()) << *named.begin();
+  EXPECT_FALSE(fs::exists(dir_ / "Images" / "Diffuse" / "2_0_0.tif"));
 }
 
 TEST_F(TexturedStoreTest, OpenKeepsTilesNamedWithTheOtherSlashOrLetterCase) {
