@@ -16,6 +16,9 @@ import xml.etree.ElementTree as ET
 
 from osgeo import gdal, osr
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from check_import import Failures, check_pro3d  # noqa: E402
+
 gdal.UseExceptions()
 ARGS = None
 
@@ -252,6 +255,43 @@ class ValidateFindsEachBreak(unittest.TestCase):
         info = vsm("info", opc)
         self.assertEqual(info.returncode, 1)
         self.assertIn(leaf, info.stderr)
+
+
+class Pro3dComplete(unittest.TestCase):
+    """Every import is complete for PRo3D (Images/, Coordinates.aara and a tile per patch) unless
+    `--texture none` asks otherwise, which vsm warns about; such a model still validates."""
+
+    def test_the_default_import_is_complete_for_pro3d(self):
+        out = work("jacksboro-relief")
+        result = vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), out,
+                     "--patch-size", "33")
+        self.assertEqual(result.returncode, 0, result.stderr)
+        self.assertNotIn("PRo3D", result.stderr)
+        failures = Failures()
+        self.assertGreater(check_pro3d(out, failures), 20)
+        self.assertEqual(failures.items, [])
+
+    def test_texture_none_warns_on_stderr_and_writes_no_texture(self):
+        out = work("jacksboro-bare")
+        result = vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), out,
+                     "--patch-size", "33", "--texture", "none")
+        self.assertEqual(result.returncode, 0, result.stderr)
+        self.assertRegex(result.stderr, r"--texture none.*PRo3D will not open it")
+        self.assertFalse(os.path.exists(os.path.join(out, "Images")))
+        patches, root, _ = hierarchy(out)
+        self.assertNotIn("Coordinates.aara", os.listdir(os.path.join(patches, root)))
+        failures = Failures()
+        check_pro3d(out, failures)
+        self.assertEqual(failures.count, 1, failures.items)  # the check does tell
+        # A model without Images/ (as foreign OPCs may be) is still valid and readable.
+        self.assertEqual(vsm("validate", out).returncode, 0)
+        self.assertEqual(vsm("info", out).returncode, 0)
+
+    def test_help_states_the_relief_light_and_none(self):
+        text = vsm("help").stdout
+        for fragment in ("shaded relief", "azimuth 315", "altitude 45", "--texture <image>|none",
+                         "no vertical", "PRo3D"):
+            self.assertIn(fragment, re.sub(r"\s+", " ", text))
 
 
 def main():
