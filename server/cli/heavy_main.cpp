@@ -304,6 +304,8 @@ int runRenderLod(const std::vector<std::string_view>& args) {
   const fs::path dir(positional[0]);
   const fs::path out(positional[1]);
   const Model model = readOpcModel(dir);
+  ConsoleProgress progress;
+  options.progress = &progress;
   const LodImage image = renderLod(
       model,
       [&](const PatchInfo& info) {
