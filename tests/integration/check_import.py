@@ -89,17 +89,23 @@ def numbers(text):
                                          text, flags=re.IGNORECASE)]
 
 
-def read_aara(path):
-    """(type name, sizes, elements as float64 array of shape (rows, cols, 3))."""
+def aara_parts(path):
+    """(type name, sizes, data, header length) of an .aara file, per OPC.md."""
     with open(path, "rb") as f:
         data = f.read()
     n = data[0]
     type_name = data[1:1 + n].decode("ascii")
     dims = data[1 + n]
     sizes = struct.unpack_from("<%di" % dims, data, 2 + n)
-    header = 2 + n + 4 * dims
-    if type_name not in AARA_TYPES or dims != 2:
-        raise ValueError("%s: unexpected array %s with %d dimensions" % (path, type_name, dims))
+    return type_name, sizes, data, 2 + n + 4 * dims
+
+
+def read_aara(path):
+    """(type name, sizes, elements as float64 array of shape (rows, cols, 3))."""
+    type_name, sizes, data, header = aara_parts(path)
+    if type_name not in AARA_TYPES or len(sizes) != 2:
+        raise ValueError("%s: unexpected array %s with %d dimensions" %
+                         (path, type_name, len(sizes)))
     dtype, components = AARA_TYPES[type_name]
     count = sizes[0] * sizes[1]
     expected = header + count * components * np.dtype(dtype).itemsize
@@ -184,17 +190,11 @@ TIFF_MAGIC = (b"II*\x00", b"MM\x00*")
 
 def aara_header(path):
     """(type name, sizes) of an .aara file, checking that its length fits them."""
-    with open(path, "rb") as f:
-        data = f.read()
-    n = data[0]
-    type_name = data[1:1 + n].decode("ascii")
-    dims = data[1 + n]
-    sizes = list(struct.unpack_from("<%di" % dims, data, 2 + n))
+    type_name, sizes, data, header = aara_parts(path)
     element = {"V2f": 8, "V2d": 16, "V3f": 12, "V3d": 24}.get(type_name, 0)
-    count = int(np.prod(sizes)) if sizes else 0
-    if len(data) != 2 + n + 4 * dims + count * element:
+    if len(data) != header + int(np.prod(sizes)) * element:
         raise ValueError("%s: %d bytes do not hold %s %s" % (path, len(data), type_name, sizes))
-    return type_name, sizes
+    return type_name, list(sizes)
 
 
 def check_pro3d(opc, failures, only=None):
