@@ -1,5 +1,7 @@
 #include "core/common/log.hpp"
 
+#include <unistd.h>
+
 #include <atomic>
 #include <chrono>
 #include <cstdio>
@@ -46,8 +48,14 @@ void write(Level lvl, std::string_view message) {
   gmtime_r(&seconds, &utc);
   char stamp[32];
   std::strftime(stamp, sizeof stamp, "%Y-%m-%dT%H:%M:%S", &utc);
+  // On a terminal a line starts by erasing the one it lands on: the `vsm` command redraws its
+  // progress there (carriage return, no newline), which a log line would otherwise run into.
+  static const bool terminal = isatty(STDERR_FILENO) == 1;
   std::string line;
   line.reserve(message.size() + 48);
+  if (terminal) {
+    line += "\r\x1b[K";
+  }
   line += stamp;
   char ms[8];
   std::snprintf(ms, sizeof ms, ".%03dZ ", static_cast<int>(millis));

@@ -11,6 +11,8 @@ void setLevel(Level level);
 Level level();
 
 /// Writes one line "<time> <level> <message>" to stderr. Thread-safe; each line is written whole.
+/// When stderr is a terminal the line starts with "\r\x1b[K" (erase the current line), so it
+/// replaces a progress line drawn in place instead of running into it.
 void write(Level level, std::string_view message);
 
 inline void debug(std::string_view m) {

@@ -94,4 +94,16 @@ Box3d transformBox(const Mat4d& m, const Box3d& box) {
   return result;
 }
 
+Vec3d upAt(const Vec3d& p) {
+  const double norm = p.norm();
+  if (norm > 1e5) {
+    return p * (1.0 / norm);
+  }
+  return {0, 0, 1};
+}
+
+Vec3d defaultUp(const Box3d& box) {
+  return box.empty() ? Vec3d{0, 0, 1} : upAt(box.center());
+}
+
 }  // namespace vsm::core

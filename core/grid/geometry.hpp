@@ -60,6 +60,14 @@ struct Mat4d {
   friend bool operator==(const Mat4d&, const Mat4d&) = default;
 };
 
+/// The up direction vsm uses at global point `p`: for body-centred coordinates (ECEF; `p` farther
+/// than 100 km from the origin) the normalised position, i.e. the local vertical of a sphere
+/// around the origin (any planet); otherwise +z (a local Cartesian frame).
+Vec3d upAt(const Vec3d& p);
+
+/// upAt() of the centre of `box` (+z for an empty box): the up direction of a whole model.
+Vec3d defaultUp(const Box3d& box);
+
 /// The axis-aligned box holding `box` transformed by `m` (its eight corners); empty stays empty.
 Box3d transformBox(const Mat4d& m, const Box3d& box);
 

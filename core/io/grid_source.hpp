@@ -51,11 +51,22 @@ struct ImportOptions {
   /// through its own handle of the source (GridSource::reopen; GDAL datasets are not thread-safe),
   /// or under a lock where the source has none. Progress is reported from them under a lock.
   Executor* executor = nullptr;
-  /// An image to drape over the model when not empty: georeferenced (GDAL reads a geotransform
-  /// and a CRS) it is placed by each vertex's geographic position, otherwise stretched over the
-  /// grid's extent (pixel edge to pixel edge). Every patch then gets a texture tile
-  /// (Images/Diffuse/<patch>.tif, leaves resampled from the image, parents downsampled from their
-  /// children's tiles) and Coordinates.aara.
+  /// What the import drapes over the model. Every patch gets a texture tile
+  /// (Images/Diffuse/<patch>.tif: leaves from the source, parents downsampled from their
+  /// children's tiles) and Coordinates.aara, except with Drape::None.
+  enum class Drape {
+    /// The surface's own shaded relief (shadedRelief: grey, sun from azimuth 315 deg at 45 deg
+    /// altitude, no vertical exaggeration), computed per texel from the bottom grids.
+    ShadedRelief,
+    /// The image `texture`: georeferenced (GDAL reads a geotransform and a CRS) it is placed by
+    /// each vertex's geographic position, otherwise stretched over the grid's extent (pixel edge
+    /// to pixel edge).
+    Image,
+    /// No texture, no Images/ and no Coordinates.aara: PRo3D does not open such a model.
+    None,
+  };
+  Drape drape = Drape::ShadedRelief;
+  /// The image of Drape::Image (and only then not empty).
   std::filesystem::path texture;
 };
 
@@ -66,8 +77,9 @@ struct ImportOptions {
 /// when complete, so no half-written model is ever left at `outDir`.
 ///
 /// Throws Error(Conflict) when outDir exists, Error(InvalidArgument) when the source has no defined
-/// sample or the patch size is invalid, Error(NotFound / Corrupt / InvalidArgument) for an
-/// unreadable or unplaceable texture, Error(Cancelled), or the source's errors.
+/// sample or the patch size is invalid or `texture` is given exactly when the drape is not Image,
+/// Error(NotFound / Corrupt / InvalidArgument) for an unreadable or unplaceable texture,
+/// Error(Cancelled), or the source's errors.
 Model buildOpc(GridSource& source, const std::filesystem::path& outDir,
                const ImportOptions& options);
 

@@ -80,8 +80,8 @@ class StagingDirectory {
 struct BuildShared {
   GridSource& source;
   OpcWriter& writer;
-  /// The image draped over the model; null for an untextured import. Thread-safe itself.
-  const TextureSource* texture;
+  /// What is draped over the model; null for an untextured import. Thread-safe itself.
+  const TileSource* texture;
   const ImportOptions& options;
   std::mutex sourceMutex;
   std::mutex progressMutex;  // guards leavesDone and options.progress
@@ -288,7 +288,7 @@ class PyramidBuilder {
     BuiltPatch built{std::move(grid), nullptr};
     if (shared_.texture != nullptr) {
       built.texture = std::make_unique<TextureTile>(textureTileSize(size_));
-      shared_.texture->fillTile(x0, y0, *built.texture);
+      shared_.texture->fillTile(x0, y0, *built.grid, *built.texture);
     }
     return built;
   }
@@ -328,6 +328,10 @@ class PyramidBuilder {
 
 Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& options) {
   Model model(options.patchSize);  // validates the patch size
+  if ((options.drape == ImportOptions::Drape::Image) == options.texture.empty()) {
+    throw Error(ErrorCode::InvalidArgument,
+                "an image texture needs an image file, and only an image texture takes one");
+  }
   if (source.width() < 1 || source.height() < 1) {
     throw Error(ErrorCode::InvalidArgument, "source " + source.describe() + " has no samples");
   }
@@ -364,11 +368,22 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
   durable::FileSystemSync sync(staging.path());
   const std::unique_ptr<durable::WriterLock> lock = durable::WriterLock::acquire(staging.path());
 
-  std::unique_ptr<TextureSource> texture;
-  if (!options.texture.empty()) {
-    texture = std::make_unique<TextureSource>(options.texture, source.width(), source.height(),
-                                              source.georeference());
-    log::info("import: texture " + options.texture.string() + ": " + texture->describe());
+  std::unique_ptr<TileSource> texture;
+  switch (options.drape) {
+    case ImportOptions::Drape::ShadedRelief:
+      texture = std::make_unique<ShadedReliefSource>();
+      break;
+    case ImportOptions::Drape::Image:
+      texture = std::make_unique<TextureSource>(options.texture, source.width(), source.height(),
+                                                source.georeference());
+      break;
+    case ImportOptions::Drape::None:
+      break;
+  }
+  if (texture) {
+    // An image is worth a line of its own (where it was placed); the default relief is not.
+    (options.drape == ImportOptions::Drape::Image ? log::info : log::debug)("import: texture " +
+                                                                            texture->describe());
   }
   OpcWriter writer(staging.path(), OpcWriter::Durability::Deferred);
   BuildShared shared{source,

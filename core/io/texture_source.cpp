@@ -16,6 +16,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/grid/shaded_relief.hpp"
 #include "core/io/gdal_support.hpp"
 
 namespace vsm::core {
@@ -90,6 +91,17 @@ struct TextureSource::Impl {
   }
 };
 
+std::string ShadedReliefSource::describe() const {
+  return "shaded relief of the surface (sun azimuth " +
+         std::to_string(static_cast<int>(kReliefAzimuthDeg)) + " deg, altitude " +
+         std::to_string(static_cast<int>(kReliefAltitudeDeg)) + " deg)";
+}
+
+void ShadedReliefSource::fillTile(int /*x0*/, int /*y0*/, const PatchGrid& grid,
+                                  TextureTile& tile) const {
+  tile = shadedRelief(grid);
+}
+
 TextureSource::TextureSource(const std::filesystem::path& image, int gridWidth, int gridHeight,
                              const std::optional<Georeference>& grid)
     : impl_(std::make_unique<Impl>()) {
@@ -149,7 +161,7 @@ TextureSource::TextureSource(const std::filesystem::path& image, int gridWidth, 
     crsText = authority != nullptr && code != nullptr ? std::string(authority) + ":" + code
                                                       : std::string("a CRS");
   }
-  m.description = std::string(m.dataset->GetDriver()->GetDescription()) + " " +
+  m.description = "'" + image.string() + "': " + m.dataset->GetDriver()->GetDescription() + " " +
                   std::to_string(m.imageWidth) + "x" + std::to_string(m.imageHeight) + " " +
                   std::to_string(count) + " band" + (count == 1 ? "" : "s") + ", " + crsText +
                   (m.georeferenced ? ", georeferenced" : ", stretched over the grid");
@@ -178,7 +190,7 @@ std::optional<std::pair<double, double>> TextureSource::imagePoint(double gx, do
   return std::pair{xs[0], ys[0]};
 }
 
-void TextureSource::fillTile(int x0, int y0, TextureTile& tile) const {
+void TextureSource::fillTile(int x0, int y0, const PatchGrid& /*grid*/, TextureTile& tile) const {
   const Impl& m = *impl_;
   const int t = tile.size();
   const std::size_t n = static_cast<std::size_t>(t) * t;

@@ -7,10 +7,32 @@
 #include <optional>
 #include <string>
 
+#include "core/grid/patch_grid.hpp"
 #include "core/grid/texture_tile.hpp"
 #include "core/io/grid_source.hpp"
 
 namespace vsm::core {
+
+/// What an import drapes over its grid, bottom patch by bottom patch (the builder downsamples the
+/// parents' tiles from their children's). Thread-safe: builders of disjoint subtrees call
+/// fillTile concurrently.
+class TileSource {
+ public:
+  virtual ~TileSource() = default;
+  /// One line for logs.
+  virtual std::string describe() const = 0;
+  /// Fills the tile of the bottom patch `grid` whose vertex (0, 0) is grid sample (x0, y0): texel
+  /// (i, j) covers the quad between its vertices (i, j) and (i + 1, j + 1).
+  /// Throws Error(Io / Corrupt) when the source cannot be read.
+  virtual void fillTile(int x0, int y0, const PatchGrid& grid, TextureTile& tile) const = 0;
+};
+
+/// The shaded relief of the surface itself (shadedRelief), for imports without an image.
+class ShadedReliefSource final : public TileSource {
+ public:
+  std::string describe() const override;
+  void fillTile(int x0, int y0, const PatchGrid& grid, TextureTile& tile) const override;
+};
 
 /// An image placed over a grid of gridWidth x gridHeight samples, read through GDAL.
 ///
@@ -24,7 +46,7 @@ namespace vsm::core {
 ///
 /// Thread-safe: the GDAL dataset and the OGR transformation are used under an internal lock, the
 /// sampling runs outside it.
-class TextureSource {
+class TextureSource final : public TileSource {
  public:
   /// Throws Error(NotFound) when `image` does not exist, Error(Corrupt) when GDAL cannot read it,
   /// Error(InvalidArgument) when it has no band or its CRS cannot be reached from the grid's.
@@ -34,18 +56,18 @@ class TextureSource {
   TextureSource(const TextureSource&) = delete;
   TextureSource& operator=(const TextureSource&) = delete;
 
-  /// "GTiff 333x147 RGB, EPSG:4326, georeferenced" or "... stretched".
-  std::string describe() const;
+  /// "'<image>': GTiff 333x147 3 bands, EPSG:4326, georeferenced" or "... stretched".
+  std::string describe() const override;
   bool georeferenced() const;
 
   /// Image pixel coordinates (pixel-edge convention: (0, 0) the top left corner of the image) of
   /// grid point (gx, gy) (sample coordinates). nullopt when the point cannot be transformed.
   std::optional<std::pair<double, double>> imagePoint(double gx, double gy) const;
 
-  /// Fills the tile of a bottom patch whose vertex (0, 0) is grid sample (x0, y0): texel (i, j)
-  /// takes the colour at grid point (x0 + i + 0.5, y0 + j + 0.5), the centre of the quad it covers.
-  /// Throws Error(Io / Corrupt) when the image cannot be read.
-  void fillTile(int x0, int y0, TextureTile& tile) const;
+  /// Texel (i, j) takes the colour at grid point (x0 + i + 0.5, y0 + j + 0.5), the centre of the
+  /// quad it covers (the grid's positions are not used). Throws Error(Io / Corrupt) when the image
+  /// cannot be read.
+  void fillTile(int x0, int y0, const PatchGrid& grid, TextureTile& tile) const override;
 
  private:
   struct Impl;

@@ -9,6 +9,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/grid/shaded_relief.hpp"
 #include "core/merge/subdivider.hpp"
 #include "core/merge/surface_sampler.hpp"
 
@@ -65,22 +66,23 @@ std::shared_ptr<const TextureTile> textureOf(PatchSource& source, const PatchKey
   return tile;
 }
 
-/// The texture of new patch (i, j) of `level` below a's leaf: per texel, B's texture where a
-/// textured part of B lies under the texel's centre (level k only, `detail` given), else a's tile
-/// upsampled (`aTile`, may be null), else transparent. Null when nothing of either falls on it.
+/// The texture of new patch (i, j) of `level` below a's leaf, whose vertices are `grid`: per
+/// texel, B's texture where a textured part of B lies under the texel's centre (level k only,
+/// `detail` given), else a's tile upsampled (`aTile`, may be null), else the patch's own shaded
+/// relief (so every patch a merge writes has a tile, whichever model had none).
 std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, int level,
                                                 std::uint32_t i, std::uint32_t j,
-                                                const TextureTile* aTile,
+                                                const PatchGrid& grid, const TextureTile* aTile,
                                                 const SurfaceSampler* detail,
                                                 const std::vector<const TextureTile*>& bTiles) {
-  const int size = textureTileSize(subdivider.size());
-  auto tile = std::make_shared<TextureTile>(size);
+  auto tile = std::make_shared<TextureTile>(shadedRelief(grid));
+  const int size = tile->size();
   const double scale = std::ldexp(1.0, level);
   const bool fromDetail =
       detail != nullptr && level == subdivider.k() &&
       std::any_of(bTiles.begin(), bTiles.end(), [](const TextureTile* t) { return t != nullptr; });
   if (aTile == nullptr && !fromDetail) {
-    return nullptr;
+    return tile;
   }
   // Texel (p, q) covers the quad between union vertices (u, v) and (u + 1, v + 1) of level k.
   const std::int64_t u0 = std::int64_t{i} * size;
@@ -94,7 +96,6 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
   if (fromDetail) {
     row(v0, bottom);
   }
-  bool any = false;
   for (int q = 0; q < size; ++q) {
     if (fromDetail) {
       std::swap(top, bottom);
@@ -118,11 +119,10 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
       }
       if (colour[3] != 0) {
         std::copy(colour.begin(), colour.end(), tile->at(p, q));
-        any = true;
       }
     }
   }
-  return any ? tile : nullptr;
+  return tile;
 }
 
 /// Mean distance between defined horizontal and vertical grid neighbours, measured in the plane
@@ -359,6 +359,7 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
     // Refined patches waiting to be inserted: a parent goes in just before its first child.
     std::vector<std::pair<PatchKey, PatchGrid>> pending;
     auto insert = [&](const PatchKey& key, std::vector<Vec3d>& positions,
+                      std::shared_ptr<const PatchGrid> grid,
                       std::shared_ptr<const TextureTile> texture) {
       for (auto& [parentKey, placeholder] : pending) {
         if (target.model().find(parentKey) != nullptr) {
@@ -374,9 +375,7 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
         target.setPositions(parentKey, std::make_shared<const PatchGrid>(placeholder), nullptr);
         ++added;
       }
-      target.setPositions(
-          key, std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions)),
-          std::move(texture));
+      target.setPositions(key, std::move(grid), std::move(texture));
       ++added;
     };
     std::function<void(int, std::uint32_t, std::uint32_t)> place = [&](int level, std::uint32_t i,
@@ -392,8 +391,10 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
         if (std::any_of(positions.begin(), positions.end(),
                         [](const Vec3d& p) { return p.finite(); })) {
           // An empty patch is omitted.
-          insert(key, positions,
-                 placeTexture(*subdivider, level, i, j, aTexture.get(), surface, samplerTiles));
+          auto grid = std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions));
+          auto texture =
+              placeTexture(*subdivider, level, i, j, *grid, aTexture.get(), surface, samplerTiles);
+          insert(key, positions, std::move(grid), std::move(texture));
           result.verticesFromDetail += taken;
         }
         return;

@@ -92,13 +92,14 @@ struct MergeResult {
 /// 3. reducing: every stale overview, from the new levels up to the root, is recomputed by
 ///    reduction. Patches outside the matched leaves' subtrees and their ancestors are not touched.
 ///
-/// Textures (vsm's layout: one texel per grid quad, textureTileSize) are carried when either model
-/// has them: a texel of a new level-k patch takes B's texture where B has a textured surface under
-/// the texel's centre (located as the vertices are, and sampled bilinearly in B's tile at that
-/// point of B's grid), else a's texture bilinearly upsampled (a's texel-to-quad mapping holds on
-/// every level of the subdivision); a new patch above level k that stays a leaf takes a's
-/// texture upsampled; every recomputed overview gets its children's tiles downsampled
-/// (downsampleQuadrants). Where neither has a texture, texels stay transparent.
+/// Every patch the merge writes gets a texture tile (vsm's layout: one texel per grid quad,
+/// textureTileSize), so the result stays complete for PRo3D (OPC.md): a texel of a new level-k
+/// patch takes B's texture where B has a textured surface under the texel's centre (located as
+/// the vertices are, and sampled bilinearly in B's tile at that point of B's grid), else a's
+/// texture bilinearly upsampled (a's texel-to-quad mapping holds on every level of the
+/// subdivision), else the new patch's own shaded relief (shadedRelief); a new patch above level k
+/// that stays a leaf takes a's texture upsampled, else its shaded relief; every recomputed
+/// overview gets its children's tiles downsampled (ModelEdit::refreshStale).
 ///
 /// The target is not published: the caller publishes the edit (or discards it on error).
 ///

@@ -104,14 +104,6 @@ Rect2d UpFrame::footprint(const Box3d& box) const {
   return r;
 }
 
-Vec3d defaultUp(const Box3d& box) {
-  const Vec3d c = box.center();
-  if (!box.empty() && c.norm() > 1e5) {
-    return c * (1.0 / c.norm());
-  }
-  return {0, 0, 1};
-}
-
 SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid>>& grids,
                                const Vec3d& up, const std::optional<Mat4d>& transform)
     : frame_({}, up) {

@@ -59,11 +59,6 @@ struct SurfacePoint {
   double x = 0, y = 0;
 };
 
-/// The up direction vsm uses for a model with bounding box `box`: for earth-centred (ECEF)
-/// coordinates (box centre farther than 100 km from the origin) the normalised centre, i.e. the
-/// local vertical; otherwise +z (a local Cartesian frame).
-Vec3d defaultUp(const Box3d& box);
-
 /// B's surface as a function over the plane perpendicular to `up`: built from B's bottom grids in
 /// global coordinates, it answers "where does the line through p along up meet B's surface".
 ///

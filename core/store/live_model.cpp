@@ -16,6 +16,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/grid/shaded_relief.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/opc/texture_file.hpp"
@@ -635,40 +636,49 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
     }
     std::shared_ptr<const PatchGrid> parent;
     std::shared_ptr<const TextureTile> parentTexture;
+    // A child without a tile of this model's size (none, or a foreign one of another size)
+    // counts with its shaded relief, computed while its grid is held anyway.
+    std::array<std::optional<TextureTile>, 4> reliefs;
     {
       std::array<PatchCache::Pin, 4> pins;
       std::array<const PatchGrid*, 4> children{};
       for (const Quadrant q : kQuadrants) {
         const PatchKey child = key.child(q);
-        if (model_->find(child) != nullptr) {
+        if (const PatchInfo* info = model_->find(child)) {
           auto& pin = pins[static_cast<int>(q)];
           pin = positions(child);
           children[static_cast<int>(q)] = pin.get<PatchGrid>().get();
+          if (info->textureFile.empty()) {
+            reliefs[static_cast<int>(q)].emplace(shadedRelief(*children[static_cast<int>(q)]));
+          }
         }
       }
       parent = std::make_shared<const PatchGrid>(reduce(children));
     }
     {
-      // The parent's tile from its children's, one at a time as the grids (a texture of another
-      // size, from a foreign OPC, counts as none).
+      // The parent's tile from its children's, one at a time as the grids.
       const int size = textureTileSize(model_->gridSize());
       std::array<PatchCache::Pin, 4> pins;
       std::array<const TextureTile*, 4> children{};
-      bool any = false;
       for (const Quadrant q : kQuadrants) {
         const PatchKey child = key.child(q);
-        if (model_->find(child) != nullptr) {
-          auto& pin = pins[static_cast<int>(q)];
-          pin = texture(child);
-          if (pin && pin.get<TextureTile>()->size() == size) {
-            children[static_cast<int>(q)] = pin.get<TextureTile>().get();
-            any = true;
-          }
+        const int i = static_cast<int>(q);
+        if (model_->find(child) == nullptr) {
+          continue;
         }
+        if (!reliefs[i]) {
+          pins[i] = texture(child);
+          if (pins[i].get<TextureTile>()->size() == size) {
+            children[i] = pins[i].get<TextureTile>().get();
+            continue;
+          }
+          pins[i] = {};
+          const PatchCache::Pin grid = positions(child);
+          reliefs[i].emplace(shadedRelief(*grid.get<PatchGrid>()));
+        }
+        children[i] = &*reliefs[i];
       }
-      if (any) {
-        parentTexture = std::make_shared<const TextureTile>(downsampleQuadrants(children, size));
-      }
+      parentTexture = std::make_shared<const TextureTile>(downsampleQuadrants(children, size));
     }
     setPositions(key, std::move(parent), std::move(parentTexture));
     model_->at(key).stale = false;

@@ -239,8 +239,9 @@ class ModelEdit {
                     std::shared_ptr<const TextureTile> texture = nullptr);
 
   /// Recomputes every stale overview bottom-up by reduction, holding one parent's children at a
-  /// time; its texture tile is downsampled from the children's (downsampleQuadrants) when any of
-  /// them has one.
+  /// time; its texture tile is downsampled from the children's (downsampleQuadrants), a child
+  /// without a tile of its own size (none, or a foreign one of another size) counting with its
+  /// shaded relief (shadedRelief), so every overview an edit writes has a tile.
   void refreshStale(const CancelToken* cancel = nullptr);
 
   /// Makes this edit's content that of `from`, a kept revision of the same model

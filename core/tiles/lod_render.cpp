@@ -119,8 +119,18 @@ LodImage renderLod(const Model& model,
   std::stable_sort(leaves.begin(), leaves.end(),
                    [](const PatchKey& a, const PatchKey& b) { return a.depth < b.depth; });
 
+  // One pass over the leaves per stage, each reported per leaf.
+  std::size_t done = 0;
+  const auto reportLeaf = [&](std::string_view stage) {
+    if (options.progress != nullptr) {
+      options.progress->report(stage,
+                               static_cast<double>(++done) / static_cast<double>(leaves.size()));
+    }
+  };
+
   double minX = Box3d::kInf, minY = Box3d::kInf, maxX = -Box3d::kInf, maxY = -Box3d::kInf;
   for (const PatchKey& key : leaves) {
+    reportLeaf("bounds");
     const auto grid = load(model.at(key));
     for (int y = 0; y < grid->size(); ++y) {
       for (int x = 0; x < grid->size(); ++x) {
@@ -150,7 +160,9 @@ LodImage renderLod(const Model& model,
   image.y0 = maxY;
   image.depth.assign(static_cast<std::size_t>(image.width) * image.height, -1);
 
+  done = 0;
   for (const PatchKey& key : leaves) {
+    reportLeaf("drawing");
     const auto grid = load(model.at(key));
     const int n = grid->size();
     std::vector<Point2> pixel(grid->vertexCount());

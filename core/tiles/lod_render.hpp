@@ -7,6 +7,7 @@
 #include <memory>
 #include <vector>
 
+#include "core/common/progress.hpp"
 #include "core/grid/geometry.hpp"
 
 namespace vsm::core {
@@ -58,6 +59,8 @@ bool looksEcef(const PatchGrid& grid);
 struct LodRenderOptions {
   /// Pixels along the longer side of the image.
   int size = 1024;
+  /// Told of the two passes over the leaves ("bounds", "drawing") when given.
+  Progress* progress = nullptr;
 };
 
 /// A top-down false-colour picture of which depth covers which area.

@@ -94,7 +94,7 @@ ModelRequest parseModelRequest(const http::Request& request) {
                 R"('source' must be an object: {"path": ...} or {"import": ..., "patch_size": N})");
   }
   for (const auto& [key, value] : source->items()) {
-    if (key != "path" && key != "import" && key != "patch_size") {
+    if (key != "path" && key != "import" && key != "patch_size" && key != "texture") {
       throw Error(ErrorCode::InvalidArgument, "unknown member 'source." + key.substr(0, 64) + "'");
     }
   }
@@ -103,8 +103,8 @@ ModelRequest parseModelRequest(const http::Request& request) {
     throw Error(ErrorCode::InvalidArgument, "'source' needs exactly one of 'path' and 'import'");
   }
   if (byPath) {
-    if (source->contains("patch_size")) {
-      throw Error(ErrorCode::InvalidArgument, "'patch_size' goes with 'import' only");
+    if (source->contains("patch_size") || source->contains("texture")) {
+      throw Error(ErrorCode::InvalidArgument, "'patch_size' and 'texture' go with 'import' only");
     }
     out.path = stringMember(*source, "path");
     return out;
@@ -115,6 +115,12 @@ ModelRequest parseModelRequest(const http::Request& request) {
     }
     const auto value = size->get<std::int64_t>();
     out.patchSize = value < 0 || value > 1'000'000 ? -1 : static_cast<int>(value);
+  }
+  if (const auto texture = source->find("texture"); texture != source->end()) {
+    if (!texture->is_string() || (*texture != "relief" && *texture != "none")) {
+      throw Error(ErrorCode::InvalidArgument, R"('texture' must be "relief" or "none")");
+    }
+    out.untextured = *texture == "none";
   }
   out.import = stringMember(*source, "import");
   return out;

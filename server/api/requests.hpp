@@ -32,6 +32,9 @@ struct ModelRequest {
   /// With `import`: the patch size asked for (257 when absent), -1 when it is out of any range
   /// (the import rejects it with the rule 2^n + 1).
   int patchSize = 257;
+  /// With `import`: "texture": "relief" (the default, the surface's shaded relief) or "none" (no
+  /// texture; PRo3D will not open the model). True for "none".
+  bool untextured = false;
 };
 /// Throws core::Error(InvalidArgument) naming the first wrong member, as http::jsonBody does for
 /// a body that is not JSON.

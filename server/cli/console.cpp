@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <iostream>
 #include <new>
+#include <string>
 
 #include "core/common/error.hpp"
 
@@ -18,9 +19,14 @@ const std::string_view kUsage =
     "  import <input> <out-dir> [--patch-size N]   import a georeferenced raster (GDAL) or an\n"
     "                                              organized point cloud (.pcd, .ply) into a new "
     "OPC\n"
-    "         [--texture <image>]                  and drape an image over it: placed by its\n"
-    "                                              georeference, or stretched over the input's\n"
-    "                                              extent (a texture tile per patch)\n"
+    "         [--texture <image>|none]             the texture tile of every patch: <image>\n"
+    "                                              placed by its georeference, or stretched over\n"
+    "                                              the input's extent; by default the surface's\n"
+    "                                              own shaded relief (grey, Lambertian, sun at\n"
+    "                                              azimuth 315, altitude 45 degrees in the local\n"
+    "                                              east-north-up frame, no vertical\n"
+    "                                              exaggeration); none: no texture (PRo3D will\n"
+    "                                              then not open the model)\n"
     "  info <opc>                                  depth, patches per level, bounds, resolution, "
     "bytes\n"
     "  validate <opc>                              check every invariant; exit 1 listing findings\n"
@@ -43,25 +49,46 @@ ConsoleProgress::~ConsoleProgress() {
   }
 }
 
+namespace {
+
+/// "4 s", "2 min 05 s", "1 h 02 min".
+std::string formatDuration(double seconds) {
+  const auto total = static_cast<long long>(seconds + 0.5);
+  char text[64];
+  if (total < 60) {
+    std::snprintf(text, sizeof text, "%lld s", total);
+  } else if (total < 3600) {
+    std::snprintf(text, sizeof text, "%lld min %02lld s", total / 60, total % 60);
+  } else {
+    std::snprintf(text, sizeof text, "%lld h %02lld min", total / 3600, total % 3600 / 60);
+  }
+  return text;
+}
+
+}  // namespace
+
 void ConsoleProgress::report(std::string_view stage, double fraction) {
+  const Clock::time_point now = Clock::now();
   if (stage != stage_) {
-    if (tty_ && drawn_) {
-      std::fputc('\n', stderr);
-    }
     stage_ = std::string(stage);
     lastPercent_ = -1;
+    stageStart_ = now;
   }
   const int percent = static_cast<int>(fraction * 100.0 + 1e-9);
   if (tty_) {
-    if (percent == lastPercent_) {
+    // Redrawn when the percentage changes, and twice a second for the clock.
+    if (percent == lastPercent_ && now - lastDraw_ < std::chrono::milliseconds(500)) {
       return;
     }
-    constexpr int kWidth = 40;
-    const int filled = percent * kWidth / 100;
-    std::fprintf(stderr, "\r%-10s [%s%s] %3d%%", stage_.c_str(), std::string(filled, '#').c_str(),
-                 std::string(kWidth - filled, ' ').c_str(), percent);
+    const double elapsed = std::chrono::duration<double>(now - stageStart_).count();
+    std::string line = stage_ + " " + std::to_string(percent) + "%, " + formatDuration(elapsed);
+    if (fraction >= 0.01 && fraction < 1.0 && elapsed >= 1.0) {
+      line += ", ETA " + formatDuration(elapsed * (1.0 - fraction) / fraction);
+    }
+    std::fprintf(stderr, "\r%s\x1b[K", line.c_str());
     std::fflush(stderr);
     drawn_ = true;
+    lastDraw_ = now;
   } else if (percent / 10 != lastPercent_ / 10 || lastPercent_ < 0) {
     std::fprintf(stderr, "%s %d%%\n", stage_.c_str(), percent / 10 * 10);
   }

@@ -4,6 +4,7 @@
 // `vsm` (main.cpp) runs help, info and validate itself and hands import, merge and render-lod to
 // `vsm-heavy` (heavy_main.cpp), the binary that links GDAL, PCL and OpenImageIO.
 
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <string>
@@ -21,7 +22,10 @@ struct UsageError {
   std::string message;
 };
 
-/// Draws a progress bar on a terminal; prints a line per 10 % otherwise (logs, CI).
+/// Progress on stderr. On a terminal: one line, redrawn in place (carriage return, erase to the
+/// end of the line) with the stage, its percentage, the time it has taken and an estimate of the
+/// time left (from its pace so far), ended by a newline when done. Otherwise (logs, CI): a line
+/// "<stage> <p>%" per 10 % of each stage.
 class ConsoleProgress final : public core::Progress {
  public:
   ConsoleProgress();
@@ -32,10 +36,14 @@ class ConsoleProgress final : public core::Progress {
   void report(std::string_view stage, double fraction) override;
 
  private:
+  using Clock = std::chrono::steady_clock;
+
   bool tty_;
   bool drawn_ = false;
   std::string stage_;
   int lastPercent_ = -1;
+  Clock::time_point stageStart_;
+  Clock::time_point lastDraw_;
 };
 
 /// `bytes` in B, KiB, MiB, GiB or TiB, like "1.5 MiB".

@@ -92,9 +92,16 @@ int runImport(const std::vector<std::string_view>& args) {
       options.patchSize = static_cast<int>(*value);
     } else if (args[i] == "--texture") {
       if (i + 1 >= args.size()) {
-        throw UsageError{"--texture needs an image"};
+        throw UsageError{"--texture needs an image or 'none'"};
       }
-      options.texture = fs::path(args[++i]);
+      const std::string_view value = args[++i];
+      if (value == "none") {
+        options.drape = ImportOptions::Drape::None;
+        options.texture.clear();
+      } else {
+        options.drape = ImportOptions::Drape::Image;
+        options.texture = fs::path(value);
+      }
     } else if (args[i].starts_with("--")) {
       throw UsageError{"unknown option " + std::string(args[i])};
     } else {
@@ -103,6 +110,11 @@ int runImport(const std::vector<std::string_view>& args) {
   }
   if (positional.size() != 2) {
     throw UsageError{"import needs <input> and <out-dir>"};
+  }
+  if (options.drape == ImportOptions::Drape::None) {
+    std::fprintf(stderr,
+                 "vsm: warning: --texture none: the model gets no Images/ and no texture "
+                 "coordinates, so PRo3D will not open it\n");
   }
   ConsoleProgress progress;
   options.progress = &progress;
@@ -292,6 +304,8 @@ int runRenderLod(const std::vector<std::string_view>& args) {
   const fs::path dir(positional[0]);
   const fs::path out(positional[1]);
   const Model model = readOpcModel(dir);
+  ConsoleProgress progress;
+  options.progress = &progress;
   const LodImage image = renderLod(
       model,
       [&](const PatchInfo& info) {

@@ -25,7 +25,10 @@ json matrixJson(const core::Mat4d& m) {
 }  // namespace
 
 JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const std::string& id,
-                       const fs::path& input, int patchSize) {
+                       const fs::path& input, int patchSize, core::ImportOptions::Drape drape) {
+  if (drape == core::ImportOptions::Drape::Image) {
+    throw Error(ErrorCode::InvalidArgument, "an import job drapes no image");
+  }
   models::checkModelId(id);
   if (patchSize < 3 || patchSize > 4097 || ((patchSize - 1) & (patchSize - 2)) != 0) {
     throw Error(ErrorCode::InvalidArgument,
@@ -45,25 +48,28 @@ JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const s
   }
   json params = {{"id", id},
                  {"import", fs::relative(input, models.dataRoot()).generic_string()},
-                 {"patch_size", patchSize}};
+                 {"patch_size", patchSize},
+                 {"texture", drape == core::ImportOptions::Drape::None ? "none" : "relief"}};
   JobContext::Plan plan = {{"import", 0.95}, {"opening", 0.05}};
-  return jobs.submit("import", std::move(params), std::move(plan),
-                     [&models, reservation, id, input, outDir, patchSize](JobContext& context) {
-                       core::ImportOptions options;
-                       options.patchSize = patchSize;
-                       options.progress = &context;
-                       options.cancel = &context.cancelToken();
-                       core::importFile(input, outDir, options);
-                       context.report("opening", 0);
-                       const auto live = models.openReserved(*reservation, outDir);
-                       context.report("opening", 1);
-                       const auto snapshot = live->snapshot();
-                       return json{{"model", id},
-                                   {"version", snapshot->version},
-                                   {"patches", snapshot->model->patchCount()},
-                                   {"depth", snapshot->model->maxDepth()},
-                                   {"grid_size", snapshot->model->gridSize()}};
-                     });
+  return jobs.submit(
+      "import", std::move(params), std::move(plan),
+      [&models, reservation, id, input, outDir, patchSize, drape](JobContext& context) {
+        core::ImportOptions options;
+        options.patchSize = patchSize;
+        options.drape = drape;
+        options.progress = &context;
+        options.cancel = &context.cancelToken();
+        core::importFile(input, outDir, options);
+        context.report("opening", 0);
+        const auto live = models.openReserved(*reservation, outDir);
+        context.report("opening", 1);
+        const auto snapshot = live->snapshot();
+        return json{{"model", id},
+                    {"version", snapshot->version},
+                    {"patches", snapshot->model->patchCount()},
+                    {"depth", snapshot->model->maxDepth()},
+                    {"grid_size", snapshot->model->gridSize()}};
+      });
 }
 
 JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const std::string& target,

@@ -4,6 +4,7 @@
 #include <filesystem>
 #include <string>
 
+#include "core/io/grid_source.hpp"
 #include "server/jobs/job_registry.hpp"
 #include "server/models/model_registry.hpp"
 
@@ -11,12 +12,14 @@ namespace vsm::server::jobs {
 
 /// Submits an import: `input` (a raster or organized point cloud inside the data root, resolved
 /// already) is built into the OPC directory <data root>/<id> with `patchSize` vertices per side
-/// (importFile), which is then opened as model `id`. The id is reserved until the job ends.
+/// (importFile) and `drape` (ShadedRelief or None), which is then opened as model `id`. The id is
+/// reserved until the job ends.
 ///
 /// Throws core::Error(InvalidArgument) for a bad id or patch size, Conflict when the id is open
 /// or reserved or <data root>/<id> exists, Unavailable when the job queue is full.
 JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const std::string& id,
-                       const std::filesystem::path& input, int patchSize);
+                       const std::filesystem::path& input, int patchSize,
+                       core::ImportOptions::Drape drape);
 
 /// Submits a merge of the open model `source` (the detail) into the open model `target`
 /// (DESIGN.md section 3): target->beginEdit(), registerModels() when `registerFirst`,

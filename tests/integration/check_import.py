@@ -21,7 +21,9 @@ Checks
   each patch holding that line, all equal to the sample);
 - every parent vertex (i, j) equals vertex (2i, 2j) of its children's union, and is undefined
   exactly where no present child defines that vertex; tolerance: the float32 rounding of both
-  patches (2^-23 x largest absolute local coordinate of each).
+  patches (2^-23 x largest absolute local coordinate of each);
+- PRo3D opens it (check_pro3d, OPC.md): Images/ beside Patches/, and every patch names a
+  Coordinates file of its positions' size and a first texture whose tile exists under Images/.
 
 Exit 0 printing one summary line; exit 1 listing the failures (at most 50, then a count).
 """
@@ -87,17 +89,23 @@ def numbers(text):
                                          text, flags=re.IGNORECASE)]
 
 
-def read_aara(path):
-    """(type name, sizes, elements as float64 array of shape (rows, cols, 3))."""
+def aara_parts(path):
+    """(type name, sizes, data, header length) of an .aara file, per OPC.md."""
     with open(path, "rb") as f:
         data = f.read()
     n = data[0]
     type_name = data[1:1 + n].decode("ascii")
     dims = data[1 + n]
     sizes = struct.unpack_from("<%di" % dims, data, 2 + n)
-    header = 2 + n + 4 * dims
-    if type_name not in AARA_TYPES or dims != 2:
-        raise ValueError("%s: unexpected array %s with %d dimensions" % (path, type_name, dims))
+    return type_name, sizes, data, 2 + n + 4 * dims
+
+
+def read_aara(path):
+    """(type name, sizes, elements as float64 array of shape (rows, cols, 3))."""
+    type_name, sizes, data, header = aara_parts(path)
+    if type_name not in AARA_TYPES or len(sizes) != 2:
+        raise ValueError("%s: unexpected array %s with %d dimensions" %
+                         (path, type_name, len(sizes)))
     dtype, components = AARA_TYPES[type_name]
     count = sizes[0] * sizes[1]
     expected = header + count * components * np.dtype(dtype).itemsize
@@ -173,6 +181,67 @@ class Patch:
         undefined = np.isnan(grid).any(axis=2)
         grid[undefined] = np.nan
         self.grid = grid
+
+
+# ------------------------------------------------------------------------------------------------
+# What PRo3D needs to open a model (OPC.md)
+
+TEXTURE_EXTENSIONS = (".dds", ".tif", ".tiff")  # readers swap the extension trying these
+TIFF_MAGIC = (b"II*\x00", b"MM\x00*")
+
+
+def aara_header(path):
+    """(type name, sizes) of an .aara file, checking that its length fits them."""
+    type_name, sizes, data, header = aara_parts(path)
+    element = {"V2f": 8, "V2d": 16, "V3f": 12, "V3d": 24}.get(type_name, 0)
+    if len(data) != header + int(np.prod(sizes)) * element:
+        raise ValueError("%s: %d bytes do not hold %s %s" % (path, len(data), type_name, sizes))
+    return type_name, list(sizes)
+
+
+def check_pro3d(opc, failures, only=None):
+    """OPC.md's "What PRo3D needs": `Images/` beside `Patches/`, and for every patch reached from
+    the root (or only the folders in `only`) a first <Coordinates> entry naming a V2f/V2d file of
+    the positions' size in its folder and a first <Textures> entry whose tile exists under
+    Images/ (backslash paths, the extension swapped as readers do) and is a TIFF or DDS file.
+    Returns the patches checked."""
+    for name in ("Images", "Patches"):
+        if not os.path.isdir(os.path.join(opc, name)):
+            failures.add("%s: no %s/ folder: PRo3D does not open the model" % (opc, name))
+            return 0
+    patches_dir, root, children = read_hierarchy(opc)
+    folders = [root] + [f for kids in children.values() for f in kids.values()]
+    if only is not None:
+        folders = [f for f in folders if f in only]
+    for folder in folders:
+        directory = find_ci(patches_dir, folder)
+        patch = child_ci(ET.parse(find_ci(directory, "Patch.xml")).getroot(), "Patch")
+        coordinates = child_ci(patch, "Coordinates")
+        textures = child_ci(patch, "Textures")
+        if coordinates is None or len(coordinates) == 0 or textures is None or len(textures) == 0:
+            failures.add("%s: Patch.xml names no texture coordinates or no texture" % folder)
+            continue
+        coords_file = os.path.join(directory, coordinates[0].text.strip())
+        positions_file = os.path.join(directory, child_ci(patch, "Positions").text.strip())
+        if not os.path.isfile(coords_file):
+            failures.add("%s: coordinates %s missing" % (folder, coords_file))
+        else:
+            ctype, csizes = aara_header(coords_file)
+            _, psizes = aara_header(positions_file)
+            if ctype not in ("V2f", "V2d") or csizes != psizes:
+                failures.add("%s: coordinates are %s %s, positions %s" %
+                             (folder, ctype, csizes, psizes))
+        entry = textures[0].text.strip().replace("\\", "/")
+        stem = os.path.splitext(os.path.join(opc, "Images", entry))[0]
+        tiles = [stem + ext for ext in TEXTURE_EXTENSIONS if os.path.isfile(stem + ext)]
+        if not tiles:
+            failures.add("%s: texture %s is not under Images/" % (folder, textures[0].text))
+            continue
+        with open(tiles[0], "rb") as f:
+            magic = f.read(4)
+        if magic not in TIFF_MAGIC and magic != b"DDS ":
+            failures.add("%s: texture %s is neither TIFF nor DDS" % (folder, tiles[0]))
+    return len(folders)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -454,6 +523,7 @@ def check(raster_path, opc):
              "parent": 0.0, "parent_vertices": 0}
     check_leaves(patches, children_of, raster, n, depth, failures, stats)
     check_parents(patches, children_of, n, failures, stats)
+    check_pro3d(opc, failures)
     leaves = sum(1 for k in patches if not children_of[k])
     summary = ("%s: %d patches (%d leaves), depth %d, patch size %d; %d samples checked "
                "(%d on shared borders), %d no-data; %d parent vertices; max error horizontal "

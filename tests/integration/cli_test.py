@@ -6,6 +6,7 @@ Run by ctest with Debian's python3 (python3-gdal for making test rasters)."""
 
 import argparse
 import os
+import pty
 import re
 import shutil
 import struct
@@ -15,6 +16,9 @@ import unittest
 import xml.etree.ElementTree as ET
 
 from osgeo import gdal, osr
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from check_import import Failures, check_pro3d  # noqa: E402
 
 gdal.UseExceptions()
 ARGS = None
@@ -252,6 +256,122 @@ class ValidateFindsEachBreak(unittest.TestCase):
         info = vsm("info", opc)
         self.assertEqual(info.returncode, 1)
         self.assertIn(leaf, info.stderr)
+
+
+class Pro3dComplete(unittest.TestCase):
+    """Every import is complete for PRo3D (Images/, Coordinates.aara and a tile per patch) unless
+    `--texture none` asks otherwise, which vsm warns about; such a model still validates."""
+
+    def test_the_default_import_is_complete_for_pro3d(self):
+        out = work("jacksboro-relief")
+        result = vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), out,
+                     "--patch-size", "33")
+        self.assertEqual(result.returncode, 0, result.stderr)
+        self.assertNotIn("PRo3D", result.stderr)
+        failures = Failures()
+        self.assertGreater(check_pro3d(out, failures), 20)
+        self.assertEqual(failures.items, [])
+
+    def test_texture_none_warns_on_stderr_and_writes_no_texture(self):
+        out = work("jacksboro-bare")
+        result = vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), out,
+                     "--patch-size", "33", "--texture", "none")
+        self.assertEqual(result.returncode, 0, result.stderr)
+        self.assertRegex(result.stderr, r"--texture none.*PRo3D will not open it")
+        self.assertFalse(os.path.exists(os.path.join(out, "Images")))
+        patches, root, _ = hierarchy(out)
+        self.assertNotIn("Coordinates.aara", os.listdir(os.path.join(patches, root)))
+        failures = Failures()
+        check_pro3d(out, failures)
+        self.assertEqual(failures.count, 1, failures.items)  # the check does tell
+        # A model without Images/ (as foreign OPCs may be) is still valid and readable.
+        self.assertEqual(vsm("validate", out).returncode, 0)
+        self.assertEqual(vsm("info", out).returncode, 0)
+
+    def test_help_states_the_relief_light_and_none(self):
+        text = vsm("help").stdout
+        for fragment in ("shaded relief", "azimuth 315", "altitude 45", "--texture <image>|none",
+                         "no vertical", "PRo3D"):
+            self.assertIn(fragment, re.sub(r"\s+", " ", text))
+
+
+class Progress(unittest.TestCase):
+    """Long commands draw one updating line on a terminal and print plain lines otherwise."""
+
+    def test_without_a_terminal_progress_is_a_line_per_ten_percent(self):
+        out = work("progress-plain")
+        result = vsm("import", os.path.join(ARGS.data, "PRISMelevation.tif"), out,
+                     "--patch-size", "65")
+        self.assertEqual(result.returncode, 0, result.stderr)
+        self.assertNotIn("\r", result.stderr)
+        self.assertNotIn("\x1b", result.stderr)
+        self.assertEqual(result.stderr.splitlines(),
+                         ["import %d%%" % p for p in range(0, 101, 10)])
+
+    def run_on_terminal(self, *args):
+        """(exit code, stdout, stderr bytes) of `vsm args` with stderr on a pseudo-terminal."""
+        master, slave = pty.openpty()
+        process = subprocess.Popen([ARGS.vsm, *args], stdin=subprocess.DEVNULL,
+                                   stdout=subprocess.PIPE, stderr=slave)
+        os.close(slave)
+        terminal = b""
+        while True:
+            try:
+                chunk = os.read(master, 4096)
+            except OSError:  # EIO: the other side is closed
+                break
+            if not chunk:
+                break
+            terminal += chunk
+        os.close(master)
+        stdout = process.stdout.read()
+        process.stdout.close()
+        return process.wait(timeout=600), stdout, terminal.decode()
+
+    def assert_one_updating_line(self, terminal, last):
+        # The terminal turns the final "\n" into "\r\n"; before it, nothing but redraws.
+        self.assertTrue(terminal.endswith("\r\n"), repr(terminal[-80:]))
+        # Log lines erase the progress line they land on ("\r" + erase to the end of the line)
+        # and end with a newline; the progress is redrawn after them.
+        logs = re.findall(r"\r\x1b\[K\d{4}-\d\d-\d\dT[^\r\n]*\r\n", terminal)
+        body = terminal[:-2]
+        for line in logs:
+            body = body.replace(line, "", 1)
+        self.assertNotIn("\n", body)
+        draws = [d for d in body.split("\r") if d]
+        self.assertGreater(len(draws), 3, repr(body[:300]))
+        for draw in draws:
+            self.assertRegex(draw, r"^[a-z]+ \d{1,3}%, \d+ (s|min \d\d s)(, ETA \d+ "
+                                   r"(s|min \d\d s))?\x1b\[K$")
+        self.assertRegex(draws[-1], last)
+        percents = [int(re.match(r"^[a-z]+ (\d+)%", d).group(1)) for d in draws]
+        self.assertTrue(any(0 < p < 100 for p in percents), percents)
+
+    def test_on_a_terminal_import_validate_merge_and_render_lod_draw_one_line(self):
+        target = work("progress-tty-prism")
+        code, stdout, terminal = self.run_on_terminal(
+            "import", os.path.join(ARGS.data, "PRISMelevation.tif"), target, "--patch-size", "65")
+        self.assertEqual(code, 0, terminal)
+        self.assertIn(b"imported", stdout)
+        self.assert_one_updating_line(terminal, r"^import 100%")
+
+        code, _, terminal = self.run_on_terminal("validate", target)
+        self.assertEqual(code, 0, terminal)
+        self.assert_one_updating_line(terminal, r"^validating 100%")
+
+        detail = work("progress-tty-jack")
+        self.assertEqual(vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), detail,
+                             "--patch-size", "65").returncode, 0)
+        merged = work("progress-tty-merged")
+        code, _, terminal = self.run_on_terminal("merge", target, detail, "--out", merged)
+        self.assertEqual(code, 0, terminal)
+        self.assert_one_updating_line(terminal, r"^publishing 100%")
+        self.assertIn("placing", terminal)
+
+        picture = os.path.join(ARGS.work, "progress-tty.png")
+        code, _, terminal = self.run_on_terminal("render-lod", merged, picture, "--size", "256")
+        self.assertEqual(code, 0, terminal)
+        self.assert_one_updating_line(terminal, r"^drawing 100%")
 
 
 def main():

@@ -39,7 +39,8 @@ import numpy as np
 from osgeo import gdal, osr
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from check_import import (QUADRANTS, Failures, check_parents, ecef_to_geodetic,  # noqa: E402
+from check_import import (QUADRANTS, Failures, check_parents, check_pro3d,  # noqa: E402
+                          ecef_to_geodetic,
                           read_hierarchy, walk)
 
 gdal.UseExceptions()
@@ -342,6 +343,7 @@ def main():
     check_parents(merged, merged_children, n, failures, stats)
     check_untouched(target_patches, target, target_children, merged_patches, merged,
                     merged_children, detail_raster, failures, stats)
+    check_pro3d(merged_dir, failures)
 
     summary = (
         "%s: %d patches (target %d), depth %d (target %d), merge %.2f s; "

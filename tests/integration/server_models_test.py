@@ -24,6 +24,7 @@ import urllib.parse
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import server_test as base  # noqa: E402  (the Daemon harness and helpers)
 from server_test import Daemon, example, shape  # noqa: E402
+from check_import import Failures, check_pro3d  # noqa: E402
 
 TOKEN = "models-token-0123456789"
 AUTH = {"Authorization": "Bearer " + TOKEN}
@@ -33,9 +34,16 @@ ARGS = None
 
 
 
-def import_opc(dem, out, size=PATCH):
+def import_opc(dem, out, size=PATCH, *options):
     subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, dem), out, "--patch-size",
-                    str(size)], check=True, capture_output=True, timeout=300)
+                    str(size), *options], check=True, capture_output=True, timeout=300)
+
+
+def assert_pro3d_complete(opc):
+    """check_import.check_pro3d: Images/, and a coordinates file and texture tile per patch."""
+    failures = Failures()
+    checked = check_pro3d(opc, failures)
+    assert failures.count == 0 and checked > 0, (opc, failures.items)
 
 
 def decode_aara(data):
@@ -327,7 +335,10 @@ class Models(unittest.TestCase):
     def test_bad_json_and_bad_requests_are_400(self):
         for body in (b"not json", b"[]", b'{"id": "x"}', b'{"id": "x", "source": {}}',
                      b'{"id": "x", "source": {"path": "jacksboro"}, "extra": 1}',
-                     b'{"id": "x", "source": {"import": "rasters/prism.tif", "patch_size": 64}}'):
+                     b'{"id": "x", "source": {"import": "rasters/prism.tif", "patch_size": 64}}',
+                     b'{"id": "x", "source": {"import": "rasters/prism.tif", "texture": "nasa"}}',
+                     b'{"id": "x", "source": {"import": "rasters/prism.tif", "texture": false}}',
+                     b'{"id": "x", "source": {"path": "jacksboro", "texture": "none"}}'):
             status, _, data = self.daemon.request("POST", "/v1/models", body=body,
                                                   headers={**JSON, **AUTH})
             self.assert_error(status, data, 400, "invalid_argument")
@@ -416,6 +427,18 @@ class Models(unittest.TestCase):
         self.assertEqual(status, 200)
         self.assertEqual(prism["version"], 1)
         self.assertEqual(done["result"]["patches"], prism["patches"])
+        self.assertEqual(done["params"]["texture"], "relief")
+        assert_pro3d_complete(os.path.join(d.dir, "prism"))
+        # "texture": "none": no Images/ and no coordinates (PRo3D will not open it, vsm does).
+        status, _, job = post_json(d, "/v1/models", {
+            "id": "bare", "source": {"import": "rasters/prism.tif", "patch_size": PATCH,
+                                     "texture": "none"}})
+        self.assertEqual(status, 202, job)
+        self.assertEqual(job["params"]["texture"], "none")
+        self.assertEqual(wait_job(d, job["id"])["state"], "succeeded")
+        self.assertTrue(os.path.isdir(os.path.join(d.dir, "bare", "Patches")))
+        self.assertFalse(os.path.exists(os.path.join(d.dir, "bare", "Images")))
+        self.assertIsNone(d.get_json("/v1/models/bare/patches/0_0_0")[2]["texture"])
 
         # Merge Jacksboro into PRISM; readers hammer PRISM meanwhile.
         _, before_headers, before_tree = d.get_json("/v1/models/prism/hierarchy")
@@ -479,6 +502,7 @@ class Models(unittest.TestCase):
         self.assertTrue(any(0 < p < 1 for p in progress), seen[:20])
         self.assertEqual(done["result"]["version"], 2)
         self.assertGreater(done["result"]["new_patches"], 0)
+        assert_pro3d_complete(os.path.join(d.dir, "prism"))
         _, after_headers, after = d.get_json("/v1/models/prism")
         self.assertEqual(after["version"], 2)
         self.assertEqual(after["patches"], before_count + done["result"]["new_patches"])
@@ -541,7 +565,9 @@ class TexturedModel(unittest.TestCase):
                             os.path.join(root, "textured"), "--patch-size", str(PATCH),
                             "--texture", os.path.join(ARGS.data, "conus_visible_earth.tif")],
                            check=True, capture_output=True, timeout=300)
-            import_opc("jacksboro_fault_dem.tif", os.path.join(root, "plain"))
+            # Untextured on purpose: the texture routes' 404s and "texture": null.
+            import_opc("jacksboro_fault_dem.tif", os.path.join(root, "plain"), PATCH,
+                       "--texture", "none")
 
         cls.daemon = Daemon("--token", TOKEN, prepare=prepare)
         cls.root = cls.daemon.dir

@@ -16,7 +16,11 @@ both with 65 x 65 patches. `vsm merge A B --out M`, `vsm validate M`, then with 
     many of them (so (c) fails if the merge kept A's texture);
 (d) texels of the new patches outside B match the NASA image at their lon/lat within
     IMAGE_TOLERANCE (A's texture upsampled);
-(e) every parent texel is the mean of the 2 x 2 child texels it covers (within rounding).
+(e) every parent texel is the mean of the 2 x 2 child texels it covers (within rounding);
+(f) merges mixing textured and untextured models still give every patch they write a tile and
+    coordinates (check_import.check_pro3d): A untextured (`--texture none`, as a foreign OPC
+    without Images/) with B textured: every patch the merge wrote, B's image inside B and grey
+    shaded relief outside it in the new leaves; A textured with B untextured: the whole result.
 
 Run by ctest:  texture_merge_test.py --vsm build/server/cli/vsm --data ../shared/data --work <dir>
 """
@@ -32,7 +36,7 @@ import numpy as np
 from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from check_import import QUADRANTS, Failures, ecef_to_geodetic  # noqa: E402
+from check_import import QUADRANTS, Failures, check_pro3d, ecef_to_geodetic  # noqa: E402
 from merge_check import load  # noqa: E402
 from texture_test import bilinear  # noqa: E402
 
@@ -78,6 +82,65 @@ def texel_lonlat(patch, i, j):
     c = corners.mean(axis=0)
     lon, lat, _ = ecef_to_geodetic(c[0], c[1], c[2])
     return float(lon), float(lat)
+
+
+def check_mixed(args, textured_a, textured_b, failures):
+    """(f): the merges of a textured model with an untextured one, both ways."""
+    bare_a, bare_b = (os.path.join(args.work, name) for name in ("bare-a", "bare-b"))
+    for dem, out in (("PRISMelevation.tif", bare_a), ("jacksboro_fault_dem.tif", bare_b)):
+        subprocess.run([args.vsm, "import", os.path.join(args.data, dem), out, "--texture", "none",
+                        "--patch-size", str(N)], check=True, stdout=subprocess.DEVNULL,
+                       stderr=subprocess.DEVNULL)
+        if os.path.exists(os.path.join(out, "Images")):
+            failures.add("%s: --texture none wrote Images/" % out)
+
+    # A untextured, B textured: every patch the merge wrote (the folders A did not have).
+    merged = os.path.join(args.work, "merged-bare-a")
+    subprocess.run([args.vsm, "merge", bare_a, textured_b, "--out", merged], check=True,
+                   stdout=subprocess.DEVNULL)
+    subprocess.run([args.vsm, "validate", merged], check=True, stdout=subprocess.DEVNULL)
+    _, a_patches, _, _ = load(bare_a, N, failures)
+    _, m_patches, m_children, _ = load(merged, N, failures)
+    a_folders = {p.folder for p in a_patches.values()}
+    written = {p.folder for p in m_patches.values() if p.folder not in a_folders}
+    checked = check_pro3d(merged, failures, only=written)
+    if checked != len(written) or checked < 10:
+        failures.add("merge into an untextured target: %d of %d written patches checked" %
+                     (checked, len(written)))
+    # In the new leaves: B's gradient (blue 200) or grey relief (r = g = b), nothing transparent
+    # where the quad has a surface.
+    coloured = grey = 0
+    for key, patch in m_patches.items():
+        if patch.folder not in written or m_children[key]:
+            continue
+        tile = read_tile(merged, patch.folder)
+        for j in range(0, TILE, 5):
+            for i in range(0, TILE, 5):
+                if texel_lonlat(patch, i, j) is None:
+                    continue
+                r, g, b, a = tile[:, j, i]
+                if a != 255:
+                    failures.add("%s texel (%d, %d) transparent over the surface" %
+                                 (patch.folder, i, j))
+                elif r == g == b:
+                    grey += 1
+                elif b == 200:
+                    coloured += 1
+                else:
+                    failures.add("%s texel (%d, %d) %s: neither B's image nor relief" %
+                                 (patch.folder, i, j, (r, g, b)))
+    if coloured < 100 or grey < 100:
+        failures.add("merge into an untextured target: %d texels of B's image, %d of relief" %
+                     (coloured, grey))
+
+    # A textured, B untextured: the result is complete for PRo3D.
+    merged = os.path.join(args.work, "merged-bare-b")
+    subprocess.run([args.vsm, "merge", textured_a, bare_b, "--out", merged], check=True,
+                   stdout=subprocess.DEVNULL)
+    complete = check_pro3d(merged, failures)
+    return ("untextured target: %d written patches with tiles (%d texels of B's image, %d of "
+            "relief); untextured detail: %d patches complete" %
+            (len(written), coloured, grey, complete))
 
 
 def main():
@@ -214,11 +277,13 @@ def main():
                              (m_patches[key].folder, q, m_patches[child_key].folder))
             parents += 1
 
+    mixed = check_mixed(args, target, detail, failures)
+
     summary = (
         "texture merge: %d patches (%d new, %d shared byte-identical), %d texels inside B within "
         "%.2f of B's image (%d unlike A's), %d outside within %.2f of A's image, %d parent "
         "quadrants exact" % (len(m_patches), len(new_keys), len(shared), inside, worst_inside,
-                             differs, outside, worst_outside, parents))
+                             differs, outside, worst_outside, parents) + "; " + mixed)
     if failures.count:
         print("\n".join(failures.items), file=sys.stderr)
         print("texture merge: %d failures" % failures.count, file=sys.stderr)

@@ -4,6 +4,7 @@
 
 #include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
+#include "core/grid/shaded_relief.hpp"
 #include "core/grid/texture_tile.hpp"
 
 namespace vsm::core {
@@ -232,3 +233,87 @@ TEST(TextureTile, SampleBilinearIsExactAtCentresAndSkipsTransparentTexels) {
   EXPECT_EQ(vsm::core::sampleBilinear(tile, 2.5, 2.5), (Rgba{23, 47, 7, 255}));
   EXPECT_EQ(vsm::core::sampleBilinear(tile, 3, 3), (Rgba{0, 0, 0, 0}));
 }
+
+namespace vsm::core {
+namespace {
+
+/// A 5 x 5 grid of the plane z = a x + b y (1 m lattice, +z up, +x east, +y north) placed by
+/// `local2global` (a rotation of the whole plane and translation moves the frame with it).
+PatchGrid plane(double a, double b, const Mat4d& local2global = Mat4d::identity()) {
+  PatchGrid grid(5, local2global);
+  for (int y = 0; y < 5; ++y) {
+    for (int x = 0; x < 5; ++x) {
+      grid.setLocal(x, y, {float(x), float(y), float(a * x + b * y)});
+    }
+  }
+  return grid;
+}
+
+/// Lambert's law for the plane z = a x + b y under the sun at azimuth 315, altitude 45 degrees
+/// (east-north-up): the sun vector is (-1/2, 1/2, sqrt(1/2)).
+double lambert(double a, double b) {
+  const double n = std::sqrt(a * a + b * b + 1);
+  return 255 * std::max(0.0, (a * 0.5 - b * 0.5 + std::sqrt(0.5)) / n);
+}
+
+TEST(ShadedRelief, AFlatSurfaceIsLitAtTheSunsAltitude) {
+  const TextureTile tile = shadedRelief(plane(0, 0));
+  ASSERT_EQ(tile.size(), 4);
+  for (int j = 0; j < 4; ++j) {
+    for (int i = 0; i < 4; ++i) {
+      EXPECT_EQ(tile.at(i, j)[0], 180);  // 255 sin 45 degrees
+      EXPECT_EQ(tile.at(i, j)[1], 180);
+      EXPECT_EQ(tile.at(i, j)[2], 180);
+      EXPECT_EQ(tile.at(i, j)[3], 255);
+    }
+  }
+}
+
+TEST(ShadedRelief, SlopesFollowLambertWithTheSunInTheNorthWest) {
+  // Rising to the east faces west, towards the sun: brighter; rising to the north darker; a
+  // steep face away from the sun is black.
+  for (const auto& [a, b] :
+       {std::pair{0.5, 0.0}, {-0.5, 0.0}, {0.0, 0.5}, {0.3, -0.7}, {-3.0, 3.0}}) {
+    const TextureTile tile = shadedRelief(plane(a, b));
+    EXPECT_NEAR(tile.at(1, 2)[0], lambert(a, b), 0.5) << a << " " << b;
+  }
+  EXPECT_GT(shadedRelief(plane(0.5, 0)).at(0, 0)[0], 180);
+  EXPECT_LT(shadedRelief(plane(0, 0.5)).at(0, 0)[0], 180);
+  EXPECT_EQ(shadedRelief(plane(-3, 3)).at(0, 0)[0], 0);
+}
+
+TEST(ShadedRelief, RowOrderDoesNotTurnTheSurfaceUpsideDown) {
+  // Rows running south (as rasters do) give the same shading for the same surface.
+  PatchGrid grid(5, Mat4d::identity());
+  for (int y = 0; y < 5; ++y) {
+    for (int x = 0; x < 5; ++x) {
+      grid.setLocal(x, y, {float(x), float(-y), float(0.5 * x)});
+    }
+  }
+  EXPECT_NEAR(shadedRelief(grid).at(2, 2)[0], lambert(0.5, 0), 0.5);
+}
+
+TEST(ShadedRelief, UsesTheLocalVerticalOfEarthCentredCoordinates) {
+  // A plane tangent to the sphere at lon 90 degrees, lat 0 (ECEF: up +y, east -x, north +z),
+  // rising to the east with slope 0.5: Lambert's value of the same slope in a local frame.
+  Mat4d m;  // local x -> east (-x), local y -> north (+z), local z -> up (+y)
+  m.m = {-1, 0, 0, 0, 0, 0, 1, 6378137, 0, 1, 0, 0, 0, 0, 0, 1};
+  EXPECT_NEAR(shadedRelief(plane(0.5, 0, m)).at(2, 2)[0], lambert(0.5, 0), 0.5);
+  EXPECT_NEAR(shadedRelief(plane(0, 0.5, m)).at(2, 2)[0], lambert(0, 0.5), 0.5);
+}
+
+TEST(ShadedRelief, QuadsWithFewerThanThreeCornersAreTransparent) {
+  PatchGrid grid = plane(0.5, 0);
+  grid.setUndefined(1, 1);  // quads (0,0), (1,0), (0,1), (1,1) lose a corner: triangles
+  grid.setUndefined(4, 4);
+  grid.setUndefined(3, 4);  // quad (3, 3) keeps two corners
+  const TextureTile tile = shadedRelief(grid);
+  EXPECT_EQ(tile.at(0, 0)[3], 255);
+  EXPECT_NEAR(tile.at(0, 0)[0], lambert(0.5, 0), 0.5);  // the triangle lies in the same plane
+  EXPECT_EQ(tile.at(3, 3)[3], 0);
+  EXPECT_EQ(tile.at(3, 3)[0], 0);
+  EXPECT_EQ(tile.at(2, 2)[3], 255);
+}
+
+}  // namespace
+}  // namespace vsm::core

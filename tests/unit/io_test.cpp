@@ -938,7 +938,7 @@ TEST(TextureSource, AGeoreferencedImageIsPlacedByGeographicPosition) {
   // Texel (0, 0) of the tile at sample (0, 0) is the quad centre (0.5, 0.5): image (4, 4), the
   // corner of pixels 3 and 4: the bilinear mean of their colours.
   TextureTile tile(2);
-  texture.fillTile(0, 0, tile);
+  texture.fillTile(0, 0, PatchGrid(3, Mat4d::identity()), tile);
   EXPECT_NEAR(tile.at(0, 0)[0], 3.5 * 16, 1);
   EXPECT_NEAR(tile.at(0, 0)[1], 3.5 * 16, 1);
   EXPECT_EQ(tile.at(0, 0)[2], 100);
@@ -956,6 +956,7 @@ TEST(TexturedImport, EveryPatchGetsATileCoordinatesAndXmlAsOpcSays) {
   makeImage(dir / "plain.tif", 16, 16, std::nullopt);
   ImportOptions options;
   options.patchSize = 5;
+  options.drape = ImportOptions::Drape::Image;
   options.texture = dir / "plain.tif";
   const Model model = importFile(dir / "dem.tif", dir / "opc", options);
   EXPECT_EQ(model.patchCount(), 5u);
@@ -1002,6 +1003,7 @@ TEST(TexturedImport, AMissingTextureFailsAndLeavesNothingBehind) {
              std::vector<double>(81, 5.0));
   ImportOptions options;
   options.patchSize = 5;
+  options.drape = ImportOptions::Drape::Image;
   options.texture = dir / "missing.png";
   EXPECT_EQ(codeOf([&] { importFile(dir / "dem.tif", dir / "opc", options); }),
             ErrorCode::NotFound);

@@ -634,8 +634,25 @@ TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
   auto after = live->snapshot();
   EXPECT_TRUE(after->model->at({2, 0, 0}).textureFile.empty());
   EXPECT_FALSE(live->texture(*after, {2, 0, 0}));
-  // Its parent's north-west quadrant has no texture left to show: transparent.
-  EXPECT_EQ(texel(live->texture(*after, {1, 0, 0}), 2, 2)[3], 0);
+  // Its parent's north-west quadrant shows its shaded relief: the parent texel (2, 2) is the mean
+  // of the child's texels (4..5, 4..5), each Lambertian from the surface's normal at its quad's
+  // centre (+z up, +x east, +y north here; the sun at azimuth 315, altitude 45 degrees).
+  double expected = 0;
+  for (int j = 4; j <= 5; ++j) {
+    for (int i = 4; i <= 5; ++i) {
+      const double u = i + 0.5;
+      const double dzdu = std::cos(u * 0.2);  // d/du of sin(0.2 u) * 5
+      const double dzdv = 0.1;
+      const double n = std::sqrt(dzdu * dzdu + dzdv * dzdv + 1);
+      const double c = std::sqrt(0.5);
+      expected += 255 * (-dzdu * c * -c + -dzdv * c * c + c) / n / 4;
+    }
+  }
+  const auto relief = texel(live->texture(*after, {1, 0, 0}), 2, 2);
+  EXPECT_EQ(relief[3], 255);
+  EXPECT_NEAR(relief[0], expected, 1.5);
+  EXPECT_EQ(relief[0], relief[1]);
+  EXPECT_EQ(relief[0], relief[2]);
   const std::shared_ptr<const Model> published = after->model;
   after.reset();
   // Revision 1's tiles go when a publish drops it: then every tile is revision 2's or 3's.
