@@ -637,7 +637,9 @@ async function submitMerge() {
       $('jobs').textContent = `merge refused: ${response.status} ${message}`;
       return;
     }
-    state.jobs[answer.id] = { type: 'merge', state: answer.state, progress: 0, models: [modelId, source] };
+    state.jobs[answer.id] = {
+      type: 'merge', state: answer.state, progress: 0, models: [modelId, source],
+    };
     showJobs();
     return;
   }
