@@ -19,8 +19,9 @@ PACKAGES=(
   clang-14 libclang-rt-14-dev
   # the curl walk-through of the daemon's API (client-examples/curl.sh, run by the tests)
   curl jq
-  # the browser check of the viewer and CesiumJS (tests/integration/viewer_test.py)
-  chromium
+  # the browser viewer's build (client-examples/web/build.sh: npm packages), and its check and
+  # CesiumJS' in headless Chromium (tests/integration/viewer_test.py, demo_viewer_test.py)
+  nodejs npm chromium
   # the consistency check of the deploy files (tests/deploy/deploy_files_test.py) parses YAML
   python3-yaml
   # the cluster on loopback (deploy/local-cluster.sh, tests/integration/cluster_test.py): etcd for

@@ -1,20 +1,38 @@
 // The VSM browser viewer: streams a model's OGC 3D Tiles view from vsmd with three.js and
 // 3d-tiles-renderer.
 //
-//   /viewer/?model=ID[&mode=lod|texture][&view=oblique|top][&error=PIXELS][&tileset=URL]
+//   /viewer/?model=ID[&mode=lod|relief|texture][&lit=1][&view=oblique|top][&error=PIXELS]
+//            [&exaggeration=K][&sun=AZIMUTH,ALTITUDE][&fly=ID][&merge=ID][&tileset=URL]
 //
 // mode=lod (the default) colours every tile by its depth in the pyramid, the depth being the first
 // number of its content URI "depth_x_y.glb", with the palette of `vsm render-lod`
-// (core/tiles/README.md, kDepthPalette); mode=texture shows the GLB's own material: a textured
-// tile unlit (the image's own colours, as imagery is shown), an untextured one lit by a headlight.
-// view=top looks straight down on the model (north up) instead of from above and to the south.
-// error is the screen-space error target in pixels (default 4; smaller loads deeper levels
-// sooner).
+// (core/tiles/README.md, kDepthPalette); mode=relief shades the surface in grey by the sun;
+// mode=texture shows the GLB's image (an untextured tile as in relief). lod and texture are unlit
+// (exact palette colours, the image's own colours, as imagery is shown) unless lit=1.
 //
-// For tests and scripts, window.vsmViewer holds counters: tiles requested, loaded (of them
-// textured) and failed, pending loads, `idle` (the root is in and nothing is queued, downloading
-// or parsing), and `camera`: the matrices of the last frame drawn (column-major, as three.js keeps
-// them) and the canvas size in CSS pixels, so that a script can project a point to the screen.
+// The sun: azimuth (degrees clockwise from north) and altitude (degrees above the horizon) in each
+// point's own east-north-up frame, as a hillshade has it (one fixed direction would light a model
+// the size of the US differently in the east and the west); default 315,45, GDAL's. A surface
+// facing it is lit fully, one facing away gets AMBIENT. Normals are the GLB's when it has them,
+// otherwise computed per tile from its triangles.
+// exaggeration scales every vertex's height above the WGS 84 ellipsoid (default 1).
+// view=top looks straight down on the model (north up) instead of from above and to the south.
+// error is the screen-space error target in pixels (default 4; smaller loads deeper levels sooner).
+// fly=ID flies to the finest area (the deepest level's bounds) of model ID once the model is in.
+// merge=ID preselects ID as the model the merge button merges into the shown one.
+//
+// Live: the page follows GET /v1/events. Job progress is shown; on a `published` event for the
+// shown model it replaces the tileset by the new version's (tile URIs carry patch versions: the
+// browser's cache answers the unchanged tiles) and reads the model's levels again (legend,
+// fly-to).
+//
+// For tests and scripts, window.vsmViewer holds counters of the tileset drawn: tiles requested,
+// loaded (of them textured) and failed, pending loads, `idle` (the root is in and nothing is
+// queued, downloading or parsing), `version` (the model version drawn),
+// `reloads`, `shown` (key, depth and ECEF box of each tile drawn), `legend`, `jobs`, `published`,
+// `overlays` (screen rectangles of the panel and legend) and `camera`: the matrices of the last
+// frame drawn (column-major, as three.js keeps them) and the canvas size in CSS pixels, so that a
+// script can project a point to the screen.
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -25,33 +43,57 @@ export const DEPTH_PALETTE = [
   '#30123b', '#4145ab', '#4675ed', '#39a2fc', '#1bcfd4', '#24eca6', '#61fc6c', '#a4fc3b',
   '#d1e834', '#f3c63a', '#fe9b2d', '#f36315', '#d93806', '#b11901', '#7a0402', '#4a0000',
 ];
+/// The relief's grey (sRGB) and the share of it a surface facing away from the sun keeps.
+const RELIEF_GREY = '#c8c8c8';
+const AMBIENT = 0.2;
+const DEFAULT_SUN = [315, 45];
+const MODES = ['lod', 'relief', 'texture'];
+const MODE_NAMES = { lod: 'level of detail', relief: 'relief', texture: 'texture' };
+// WGS 84.
+const WGS84_A = 6378137.0;
+const WGS84_B = 6356752.314245179;
 
 const params = new URLSearchParams(window.location.search);
 const modelId = params.get('model');
-let mode = params.get('mode') === 'texture' ? 'texture' : 'lod';
+let mode = MODES.includes(params.get('mode')) ? params.get('mode') : 'lod';
+let lit = params.get('lit') === '1';
 const view = params.get('view') === 'top' ? 'top' : 'oblique';
+const sunParam = (params.get('sun') || '').split(',').map(Number);
+const sun = sunParam.length === 2 && sunParam.every(Number.isFinite) ? sunParam : DEFAULT_SUN;
+let exaggeration = Math.max(Number(params.get('exaggeration')) || 1, 0);
+
+/// The counters of one tileset's renderer (the drawn one's are copied into window.vsmViewer).
+function newCounts() {
+  return { requested: 0, loaded: 0, textured: 0, failed: 0, errors: [], depths: {} };
+}
 
 const state = {
   model: modelId,
   mode,
+  lit,
   view,
-  requested: 0,
-  loaded: 0,
-  textured: 0,
-  failed: 0,
-  errors: [],
-  depths: {},
+  sun: { azimuth: sun[0], altitude: sun[1] },
+  exaggeration,
+  ...newCounts(),
   rootLoaded: false,
   pending: 0,
   idle: false,
   frames: 0,
+  version: null,
+  reloads: 0,
+  shown: [],
+  legend: [],
+  jobs: {},
+  published: [],
+  flownTo: null,
+  overlays: [],
   camera: null,
 };
 window.vsmViewer = state;
 
-const statusEl = document.getElementById('status');
+const $ = (id) => document.getElementById(id);
 function showStatus(text) {
-  statusEl.textContent = text;
+  $('status').textContent = text;
 }
 
 /// The depth of a tile from its content URL (".../3dtiles/2_1_3.glb" -> 2); null if it has none.
@@ -60,33 +102,72 @@ export function depthOf(url) {
   return match ? Number(match[1]) : null;
 }
 
+/// The patch key of a tile from its content URL (".../2_1_3.glb?v=4" -> "2_1_3"); null if none.
+function keyOf(url) {
+  const match = /(?:^|\/)(\d+_\d+_\d+)\.glb(?:[?#].*)?$/.exec(url || '');
+  return match ? match[1] : null;
+}
+
 function paletteColour(depth) {
   return DEPTH_PALETTE[Math.min(depth, DEPTH_PALETTE.length - 1)];
 }
 
-// The legend under the mode switch.
-const legend = document.getElementById('legend');
-DEPTH_PALETTE.forEach((colour, depth) => {
-  const swatch = document.createElement('span');
-  swatch.style.background = colour;
-  swatch.title = depth === DEPTH_PALETTE.length - 1 ? `depth ${depth}+` : `depth ${depth}`;
-  legend.appendChild(swatch);
-});
+/// "4.6 km", "37 m", "0.8 m".
+function formatMetres(metres) {
+  if (metres === null || metres === undefined) {
+    return 'n/a';
+  }
+  if (metres >= 1000) {
+    return `${(metres / 1000).toFixed(metres >= 10000 ? 0 : 1)} km`;
+  }
+  return `${metres.toFixed(metres >= 10 ? 0 : 1)} m`;
+}
+
+async function getJson(path) {
+  const response = await fetch(path, { cache: 'no-store' });
+  if (!response.ok) {
+    throw new Error(`GET ${path}: ${response.status}`);
+  }
+  return response.json();
+}
+
+// ---- controls ---------------------------------------------------------------------------------
+
 for (const input of document.querySelectorAll('input[name=mode]')) {
   input.checked = input.value === mode;
   input.addEventListener('change', () => setMode(input.value));
 }
+$('lit').checked = lit;
+$('lit').addEventListener('change', () => {
+  lit = $('lit').checked;
+  state.lit = lit;
+  recolour();
+});
+$('exaggeration').value = String(exaggeration);
+$('exaggeration-value').textContent = `${exaggeration}x`;
+$('exaggeration').addEventListener('input', () => setExaggeration(Number($('exaggeration').value)));
 
 if (!modelId) {
   showStatus('no model: open /viewer/?model=ID');
   throw new Error('no model given (?model=ID)');
 }
-document.getElementById('title').textContent = `VSM: ${modelId}`;
+$('title').textContent = `VSM: ${modelId}`;
 document.title = `VSM viewer: ${modelId}`;
+
+/// Keeps the URL in step with the controls, so that a reload or a shared link shows the same.
+function setParam(name, value, fallback) {
+  const url = new URL(window.location.href);
+  if (value === fallback) {
+    url.searchParams.delete(name);
+  } else {
+    url.searchParams.set(name, value);
+  }
+  window.history.replaceState(null, '', url);
+}
 
 // ---- scene ------------------------------------------------------------------------------------
 
-const canvas = document.getElementById('view');
+const canvas = $('view');
 const renderer = new THREE.WebGLRenderer({ canvas, antialias: true, preserveDrawingBuffer: true });
 renderer.setPixelRatio(window.devicePixelRatio);
 renderer.setSize(window.innerWidth, window.innerHeight, false);
@@ -97,45 +178,102 @@ const camera = new THREE.PerspectiveCamera(45, window.innerWidth / window.innerH
 const controls = new OrbitControls(camera, canvas);
 controls.enableDamping = false;
 
-// A light from the camera (it follows it) and a dim fill, for the texture mode's lit material.
-scene.add(new THREE.HemisphereLight(0xffffff, 0x404040, 0.8));
-const headlight = new THREE.DirectionalLight(0xffffff, 1.6);
-scene.add(headlight, headlight.target);
-
-const tilesetUrl = params.get('tileset') ||
+const errorTarget = Number(params.get('error'));
+const tilesetBase = params.get('tileset') ||
   new URL(`/v1/models/${encodeURIComponent(modelId)}/3dtiles/tileset.json`,
     window.location.href).toString();
-const tiles = new TilesRenderer(tilesetUrl);
-const errorTarget = Number(params.get('error'));
-tiles.errorTarget = errorTarget > 0 ? errorTarget : 4;
-tiles.setCamera(camera);
-tiles.setResolutionFromRenderer(camera, renderer);
-scene.add(tiles.group);
 
-// ---- colouring --------------------------------------------------------------------------------
+// ---- shading ----------------------------------------------------------------------------------
 
-/// One unlit material per depth (the exact palette colour whatever the light) shared by its tiles.
+/// The sun as a uniform all lit materials share (radians: azimuth, altitude).
+const sunUniform = { value: new THREE.Vector2() };
+function setSun(azimuth, altitude) {
+  sunUniform.value.set(THREE.MathUtils.degToRad(azimuth), THREE.MathUtils.degToRad(altitude));
+  state.sun = { azimuth, altitude };
+}
+setSun(sun[0], sun[1]);
+
+const SUN_VERTEX = `
+varying vec3 vNormal;
+varying vec3 vWorld;
+#ifdef VSM_MAP
+varying vec2 vUv;
+#endif
+void main() {
+  vWorld = (modelMatrix * vec4(position, 1.0)).xyz;
+  vNormal = mat3(modelMatrix) * normal;
+#ifdef VSM_MAP
+  vUv = uv;
+#endif
+  gl_Position = projectionMatrix * modelViewMatrix * vec4(position, 1.0);
+}`;
+
+// Up is the geocentric direction (within 0.2 degrees of the ellipsoid's normal), east and north
+// follow from it; normals are turned to face up (a terrain's triangles may wind either way).
+const SUN_FRAGMENT = `
+uniform vec3 colour;
+uniform vec2 sun;
+uniform float ambient;
+#ifdef VSM_MAP
+uniform sampler2D map;
+varying vec2 vUv;
+#endif
+varying vec3 vNormal;
+varying vec3 vWorld;
+void main() {
+  vec3 up = normalize(vWorld);
+  vec3 east = normalize(vec3(-up.y, up.x, 0.0));
+  vec3 north = cross(up, east);
+  vec3 light = cos(sun.y) * (sin(sun.x) * east + cos(sun.x) * north) + sin(sun.y) * up;
+  vec3 n = normalize(vNormal);
+  n = dot(n, up) < 0.0 ? -n : n;
+  float shade = ambient + (1.0 - ambient) * max(dot(n, light), 0.0);
+  vec4 c = vec4(colour, 1.0);
+#ifdef VSM_MAP
+  c *= texture2D(map, vUv);
+#endif
+  gl_FragColor = vec4(c.rgb * shade, c.a);
+  #include <colorspace_fragment>
+}`;
+
+/// A material lit by the sun: `colour` (sRGB), times `map` when given.
+function sunMaterial(colour, map = null) {
+  return new THREE.ShaderMaterial({
+    uniforms: {
+      colour: { value: new THREE.Color(colour) },
+      sun: sunUniform,
+      ambient: { value: AMBIENT },
+      map: { value: map },
+    },
+    defines: map ? { VSM_MAP: '' } : {},
+    vertexShader: SUN_VERTEX,
+    fragmentShader: SUN_FRAGMENT,
+    side: THREE.DoubleSide,
+  });
+}
+
+const reliefMaterial = sunMaterial(RELIEF_GREY);
+
+/// Materials per depth shared by its tiles: unlit (the exact palette colour) and lit.
 const lodMaterials = new Map();
 function lodMaterial(depth) {
-  const key = Math.min(depth, DEPTH_PALETTE.length - 1);
+  const key = `${Math.min(depth, DEPTH_PALETTE.length - 1)}${lit ? 'lit' : ''}`;
   if (!lodMaterials.has(key)) {
-    lodMaterials.set(key, new THREE.MeshBasicMaterial({
-      color: new THREE.Color(paletteColour(key)),
+    lodMaterials.set(key, lit ? sunMaterial(paletteColour(depth)) : new THREE.MeshBasicMaterial({
+      color: new THREE.Color(paletteColour(depth)),
       side: THREE.DoubleSide,
     }));
   }
   return lodMaterials.get(key);
 }
 
-/// The material a mesh shows in texture mode: its own, except that a textured one is drawn unlit
-/// (a MeshBasicMaterial with the same image and colour, made once per mesh and disposed with it).
+/// The material a textured mesh shows in texture mode, made once per mesh and disposed with it:
+/// unlit (a MeshBasicMaterial with the image and colour of its own) or lit by the sun.
 function textureMaterial(object) {
   const own = object.userData.vsmOwnMaterial;
-  if (!own.map) {
-    return own;
-  }
-  if (!object.userData.vsmUnlitMaterial) {
-    object.userData.vsmUnlitMaterial = new THREE.MeshBasicMaterial({
+  const key = lit ? 'vsmLitMaterial' : 'vsmUnlitMaterial';
+  if (!object.userData[key]) {
+    object.userData[key] = lit ? sunMaterial('#ffffff', own.map) : new THREE.MeshBasicMaterial({
       map: own.map,
       color: own.color,
       side: own.side,
@@ -143,86 +281,284 @@ function textureMaterial(object) {
       opacity: own.opacity,
     });
   }
-  return object.userData.vsmUnlitMaterial;
+  return object.userData[key];
 }
 
 function materialFor(object) {
-  return mode === 'lod' && object.userData.vsmDepth !== null
-    ? lodMaterial(object.userData.vsmDepth) : textureMaterial(object);
+  if (mode === 'lod' && object.userData.vsmDepth !== null) {
+    return lodMaterial(object.userData.vsmDepth);
+  }
+  return mode === 'texture' && object.userData.vsmOwnMaterial.map
+    ? textureMaterial(object) : reliefMaterial;
 }
 
-/// Keeps a tile's own material and depth on its meshes and shows it in the current mode; true if
-/// any of its meshes carries a texture.
-function colourTile(tileScene, depth) {
-  let textured = false;
-  tileScene.traverse((object) => {
-    if (!object.isMesh) {
-      return;
-    }
-    if (!object.userData.vsmOwnMaterial) {
-      object.userData.vsmOwnMaterial = object.material;
-      object.userData.vsmDepth = depth;
-    }
-    textured = textured || Boolean(object.userData.vsmOwnMaterial.map);
-    object.material = materialFor(object);
-  });
-  return textured;
-}
-
-function setMode(next) {
-  mode = next === 'texture' ? 'texture' : 'lod';
-  state.mode = mode;
+function recolour() {
   tiles.group.traverse((object) => {
     if (object.isMesh && object.userData.vsmOwnMaterial) {
       object.material = materialFor(object);
     }
   });
-  const url = new URL(window.location.href);
-  url.searchParams.set('mode', mode);
-  window.history.replaceState(null, '', url);
+  setParam('lit', lit ? '1' : '0', '0');
 }
 
-// ---- events and counters ----------------------------------------------------------------------
+function setMode(next) {
+  mode = MODES.includes(next) ? next : 'lod';
+  state.mode = mode;
+  recolour();
+  setParam('mode', mode, 'lod');
+}
 
-tiles.addEventListener('tile-download-start', () => {
-  state.requested++;
-});
-tiles.addEventListener('load-model', ({ scene: tileScene, url }) => {
-  const depth = depthOf(url);
-  state.loaded++;
-  if (depth !== null) {
-    state.depths[depth] = (state.depths[depth] || 0) + 1;
+// ---- vertical exaggeration and normals --------------------------------------------------------
+
+const scratch = new THREE.Vector3();
+
+/// Per vertex of a mesh (in its own frame) the vector that lifts it by its height above the WGS 84
+/// ellipsoid (radially: the geocentric up is within 0.2 degrees of the normal), so that
+/// exaggeration k puts the vertex at original + (k - 1) * lift. Uses the mesh's transform from its
+/// tile (`toEcef`, mesh frame -> ECEF).
+function liftOf(original, toEcef) {
+  const inverse = new THREE.Matrix4().copy(toEcef).invert();
+  const lift = new Float32Array(original.length);
+  const p = new THREE.Vector3();
+  for (let i = 0; i < original.length; i += 3) {
+    p.set(original[i], original[i + 1], original[i + 2]).applyMatrix4(toEcef);
+    const r = p.length();
+    const horizontal = Math.hypot(p.x, p.y) / r;
+    const vertical = p.z / r;
+    const surface = (WGS84_A * WGS84_B) /
+      Math.hypot(WGS84_B * horizontal, WGS84_A * vertical);
+    // ECEF point lifted by its height, back in the mesh frame, minus the vertex.
+    scratch.copy(p).multiplyScalar((2 * r - surface) / r).applyMatrix4(inverse);
+    lift[i] = scratch.x - original[i];
+    lift[i + 1] = scratch.y - original[i + 1];
+    lift[i + 2] = scratch.z - original[i + 2];
   }
-  if (colourTile(tileScene, depth)) {
-    state.textured++;
+  return lift;
+}
+
+/// Shapes a tile's mesh for the current exaggeration: positions, normals (the GLB's at 1 when it
+/// has them, else computed) and bounds.
+function shapeMesh(mesh) {
+  const geometry = mesh.geometry;
+  const data = mesh.userData;
+  const position = geometry.attributes.position;
+  if (!data.vsmOriginal) {
+    data.vsmOriginal = position.array.slice();
+    data.vsmNormals = geometry.attributes.normal ? geometry.attributes.normal.array.slice() : null;
+    data.vsmLift = null;
+    data.vsmShapedFor = 1;
   }
-});
-tiles.addEventListener('dispose-model', ({ scene: tileScene }) => {
-  tileScene.traverse((object) => {
-    if (object.isMesh && object.userData.vsmOwnMaterial) {
-      object.material = object.userData.vsmOwnMaterial;  // disposed by the renderer, not ours
-      if (object.userData.vsmUnlitMaterial) {
-        object.userData.vsmUnlitMaterial.dispose();  // ours; the image is the renderer's
-        delete object.userData.vsmUnlitMaterial;
-      }
+  if (exaggeration !== data.vsmShapedFor || !geometry.attributes.normal) {
+    if (exaggeration !== 1 && !data.vsmLift) {
+      data.vsmLift = liftOf(data.vsmOriginal, data.vsmToEcef);
+    }
+    const k = exaggeration - 1;
+    const out = position.array;
+    for (let i = 0; i < out.length; i++) {
+      out[i] = data.vsmOriginal[i] + (k === 0 ? 0 : k * data.vsmLift[i]);
+    }
+    position.needsUpdate = true;
+    if (exaggeration === 1 && data.vsmNormals) {
+      geometry.setAttribute('normal', new THREE.BufferAttribute(data.vsmNormals.slice(), 3));
+    } else {
+      geometry.computeVertexNormals();
+    }
+    geometry.computeBoundingBox();
+    geometry.computeBoundingSphere();
+    data.vsmShapedFor = exaggeration;
+  }
+}
+
+function setExaggeration(k) {
+  exaggeration = Math.max(k, 0);
+  state.exaggeration = exaggeration;
+  $('exaggeration-value').textContent = `${exaggeration}x`;
+  tiles.group.traverse((object) => {
+    if (object.isMesh && object.userData.vsmOriginal) {
+      shapeMesh(object);
     }
   });
-});
-tiles.addEventListener('load-error', ({ url, error }) => {
-  state.failed++;
-  state.errors.push(`${url}: ${error && error.message ? error.message : error}`);
-});
+  setParam('exaggeration', String(exaggeration), '1');
+}
 
-let placed = false;
-/// Looks at the tileset's bounding volume from above and to the south (view=top: straight down,
-/// north up, the bounding sphere filling the view), once the root is in.
-function placeCamera() {
-  const sphere = new THREE.Sphere();
-  if (!tiles.getBoundingSphere(sphere)) {
-    return false;
+// ---- tilesets ---------------------------------------------------------------------------------
+
+/// The ECEF axis-aligned box of a tile's bounding box (centre and half axes in its frame).
+function tileBox(tile) {
+  const b = tile.boundingVolume && tile.boundingVolume.box;
+  const transform = tile.engineData && tile.engineData.transform;
+  if (!b || !transform) {
+    return null;
   }
-  const centre = sphere.center.clone().applyMatrix4(tiles.group.matrixWorld);
-  const radius = Math.max(sphere.radius, 1);
+  const box = new THREE.Box3();
+  for (const sx of [-1, 1]) {
+    for (const sy of [-1, 1]) {
+      for (const sz of [-1, 1]) {
+        const corner = new THREE.Vector3(
+          b[0] + sx * b[3] + sy * b[6] + sz * b[9],
+          b[1] + sx * b[4] + sy * b[7] + sz * b[10],
+          b[2] + sx * b[5] + sy * b[8] + sz * b[11]);
+        box.expandByPoint(corner.applyMatrix4(transform));
+      }
+    }
+  }
+  return { min: box.min.toArray(), max: box.max.toArray() };
+}
+
+/// A renderer of one version of the tileset, with its own counters (`t.vsmCounts`) and the tiles
+/// it shows (`t.vsmShown`: tile -> {key, depth, box}).
+function makeTiles(url) {
+  const t = new TilesRenderer(url);
+  t.errorTarget = errorTarget > 0 ? errorTarget : 4;
+  t.setCamera(camera);
+  t.setResolutionFromRenderer(camera, renderer);
+  const counts = newCounts();
+  t.vsmCounts = counts;
+  t.vsmShown = new Map();
+  t.addEventListener('tile-download-start', () => {
+    counts.requested++;
+  });
+  t.addEventListener('load-model', ({ scene: tileScene, url: tileUrl }) => {
+    const depth = depthOf(tileUrl);
+    counts.loaded++;
+    if (depth !== null) {
+      counts.depths[depth] = (counts.depths[depth] || 0) + 1;
+    }
+    // Not in the group yet: its matrices are its tile's transform (group frame = ECEF).
+    tileScene.updateMatrixWorld(true);
+    let textured = false;
+    tileScene.traverse((object) => {
+      if (!object.isMesh) {
+        return;
+      }
+      object.userData.vsmOwnMaterial = object.material;
+      object.userData.vsmDepth = depth;
+      object.userData.vsmToEcef = object.matrixWorld.clone();
+      textured = textured || Boolean(object.material.map);
+      shapeMesh(object);
+      object.material = materialFor(object);
+    });
+    if (textured) {
+      counts.textured++;
+    }
+  });
+  t.addEventListener('tile-visibility-change', ({ tile, visible }) => {
+    const tileUrl = tile.content && tile.content.uri;
+    if (visible && tileUrl) {
+      t.vsmShown.set(tile, { key: keyOf(tileUrl), depth: depthOf(tileUrl), box: tileBox(tile) });
+    } else {
+      t.vsmShown.delete(tile);
+    }
+  });
+  t.addEventListener('dispose-model', ({ scene: tileScene }) => {
+    tileScene.traverse((object) => {
+      if (object.isMesh && object.userData.vsmOwnMaterial) {
+        object.material = object.userData.vsmOwnMaterial;  // disposed by the renderer, not ours
+        for (const key of ['vsmUnlitMaterial', 'vsmLitMaterial']) {
+          if (object.userData[key]) {
+            object.userData[key].dispose();  // ours; the image is the renderer's
+            delete object.userData[key];
+          }
+        }
+      }
+    });
+  });
+  t.addEventListener('load-error', ({ url: tileUrl, error }) => {
+    counts.failed++;
+    counts.errors.push(`${tileUrl}: ${error && error.message ? error.message : error}`);
+  });
+  return t;
+}
+
+let tiles = makeTiles(tilesetBase);
+scene.add(tiles.group);
+
+/// Replaces the tileset by model version `version`'s (the URL names it, so no cache answers the
+/// old one). Unchanged tiles keep their URIs, so the browser's cache answers them; the changed
+/// ones load anew. (Loading the new version beside the old one and swapping when it is complete
+/// would avoid the moment of coarser tiles, but 3d-tiles-renderer's renderers share one tile
+/// cache and queues, and the second one starved.)
+function reloadTileset(version) {
+  scene.remove(tiles.group);
+  tiles.dispose();
+  const url = new URL(tilesetBase);
+  url.searchParams.set('v', String(version));
+  tiles = makeTiles(url.toString());
+  scene.add(tiles.group);
+  state.version = version;
+  state.reloads++;
+  state.idle = false;
+}
+
+// ---- the model: legend, fly-to, merge ---------------------------------------------------------
+
+/// Fills the legend from the model's levels (GET /v1/models/{m}): each depth's palette colour and
+/// resolution (mean distance between grid neighbours).
+async function readModel() {
+  const info = await getJson(`/v1/models/${encodeURIComponent(modelId)}`);
+  if (state.version === null) {
+    state.version = info.version;
+  }
+  const legend = $('legend');
+  legend.textContent = '';
+  state.legend = info.levels.map((level) => {
+    const entry = document.createElement('span');
+    entry.className = 'entry';
+    entry.dataset.depth = String(level.depth);
+    const swatch = document.createElement('span');
+    swatch.className = 'swatch';
+    swatch.style.background = paletteColour(level.depth);
+    entry.append(swatch, `depth ${level.depth}: ${formatMetres(level.resolution)}`);
+    legend.appendChild(entry);
+    const r = swatch.getBoundingClientRect();
+    return {
+      depth: level.depth,
+      resolution: level.resolution,
+      colour: paletteColour(level.depth),
+      text: entry.textContent,
+      swatch: { x: r.x, y: r.y, width: r.width, height: r.height },
+    };
+  });
+  return info;
+}
+
+/// The finest area of each open model (its deepest level's bounds) as fly-to buttons, and the
+/// other models as merge sources.
+const finest = new Map();
+async function readModels() {
+  const list = await getJson('/v1/models');
+  const fly = $('fly');
+  fly.textContent = 'fly to: ';
+  const select = $('merge-source');
+  const wanted = select.value || params.get('merge');
+  select.textContent = '';
+  for (const entry of list.models) {
+    const info = await getJson(`/v1/models/${encodeURIComponent(entry.id)}`);
+    const deepest = info.levels[info.levels.length - 1];
+    if (deepest && deepest.bounds) {
+      finest.set(entry.id, deepest.bounds);
+      const button = document.createElement('button');
+      button.dataset.model = entry.id;
+      button.textContent = entry.id;
+      button.title = `the finest area of ${entry.id}: depth ${deepest.depth}, ` +
+        `${formatMetres(deepest.resolution)}`;
+      button.addEventListener('click', () => flyTo(entry.id));
+      fly.appendChild(button);
+    }
+    if (entry.id !== modelId) {
+      const option = document.createElement('option');
+      option.value = entry.id;
+      option.textContent = entry.id;
+      option.selected = entry.id === wanted;
+      select.appendChild(option);
+    }
+  }
+  $('merge-row').hidden = select.options.length === 0;
+}
+
+/// Looks at a sphere (ECEF centre, radius) from above and to the south (view=top: straight down,
+/// north up, the sphere filling the view).
+function lookAt(centre, radius) {
   // ECEF: "up" is away from the earth's centre (a local tileset without one looks along +z).
   const up = centre.lengthSq() > 1e10 ? centre.clone().normalize() : new THREE.Vector3(0, 0, 1);
   const north = new THREE.Vector3(0, 0, 1).sub(up.clone().multiplyScalar(up.z));
@@ -249,8 +585,124 @@ function placeCamera() {
   camera.updateProjectionMatrix();
   controls.target.copy(centre);
   controls.update();
+}
+
+function flyTo(id) {
+  const bounds = finest.get(id);
+  if (!bounds) {
+    return false;
+  }
+  const box = new THREE.Box3(new THREE.Vector3(...bounds.min), new THREE.Vector3(...bounds.max));
+  const sphere = box.getBoundingSphere(new THREE.Sphere());
+  lookAt(sphere.center, Math.max(sphere.radius, 1));
+  state.flownTo = id;
+  state.idle = false;
   return true;
 }
+
+let placed = false;
+/// Looks at the tileset's bounding volume once the root is in.
+function placeCamera() {
+  const sphere = new THREE.Sphere();
+  if (!tiles.getBoundingSphere(sphere)) {
+    return false;
+  }
+  lookAt(sphere.center.clone().applyMatrix4(tiles.group.matrixWorld), Math.max(sphere.radius, 1));
+  return true;
+}
+
+/// POST /v1/jobs: merges the selected model into the shown one. A daemon with a token answers 401:
+/// then the page asks for the token once and keeps it for the tab (sessionStorage).
+async function submitMerge() {
+  const source = $('merge-source').value;
+  const body = JSON.stringify({ type: 'merge', target: modelId, source });
+  for (let attempt = 0; attempt < 2; attempt++) {
+    const headers = { 'Content-Type': 'application/json' };
+    const token = sessionStorage.getItem('vsmToken');
+    if (token) {
+      headers.Authorization = `Bearer ${token}`;
+    }
+    const response = await fetch('/v1/jobs', { method: 'POST', headers, body });
+    if (response.status === 401 && attempt === 0) {
+      const entered = window.prompt('This vsmd needs a token for writes (vsmd --token):');
+      if (!entered) {
+        break;
+      }
+      sessionStorage.setItem('vsmToken', entered);
+      continue;
+    }
+    const answer = await response.json().catch(() => ({}));
+    if (!response.ok) {
+      const message = answer.error ? answer.error.message : response.statusText;
+      $('jobs').textContent = `merge refused: ${response.status} ${message}`;
+      return;
+    }
+    state.jobs[answer.id] = {
+      type: 'merge', state: answer.state, progress: 0, models: [modelId, source],
+    };
+    showJobs();
+    return;
+  }
+  $('jobs').textContent = 'merge not submitted: no token';
+}
+$('merge').addEventListener('click', () => {
+  submitMerge().catch((error) => {
+    $('jobs').textContent = `merge failed: ${error.message}`;
+  });
+});
+
+// ---- live events ------------------------------------------------------------------------------
+
+function showJobs() {
+  const lines = Object.entries(state.jobs).slice(-3).map(([id, job]) => {
+    const what = `${job.type} ${job.models.join(' / ')}`;
+    const how = job.state === 'running'
+      ? `${Math.round(100 * job.progress)} %${job.stage ? ` (${job.stage})` : ''}`
+      : job.state + (job.error ? `: ${job.error}` : '');
+    return `${id}: ${what}: ${how}`;
+  });
+  $('jobs').textContent = lines.join('\n');
+}
+
+function followEvents() {
+  const events = new EventSource('/v1/events');
+  const onJob = (message) => {
+    const data = JSON.parse(message.data);
+    state.jobs[data.job] = {
+      type: data.type,
+      models: data.models,
+      state: data.state,
+      stage: data.stage,
+      progress: data.progress === undefined ? 1 : data.progress,
+      error: data.error ? data.error.message : null,
+    };
+    showJobs();
+  };
+  events.addEventListener('job', onJob);
+  events.addEventListener('job_end', onJob);
+  events.addEventListener('published', (message) => {
+    const data = JSON.parse(message.data);
+    state.published.push({ model: data.model, version: data.version,
+      changed: data.changed_count });
+    readModels().catch((error) => console.warn(error));
+    if (data.model === modelId) {
+      reloadTileset(data.version);
+      readModel().catch((error) => console.warn(error));
+    }
+  });
+}
+
+readModel().catch((error) => console.warn(error));
+let flyPending = params.get('fly');
+readModels().then(() => {
+  if (flyPending && placed) {
+    flyTo(flyPending);
+    flyPending = null;
+  }
+}).catch((error) => console.warn(error));
+followEvents();
+
+// ---- frames -----------------------------------------------------------------------------------
 
 function onResize() {
   camera.aspect = window.innerWidth / window.innerHeight;
@@ -260,15 +712,22 @@ function onResize() {
 }
 window.addEventListener('resize', onResize);
 
+function rect(element) {
+  const r = element.getBoundingClientRect();
+  return { x: r.x, y: r.y, width: r.width, height: r.height };
+}
+
 function frame() {
   requestAnimationFrame(frame);
   if (!placed) {
     placed = placeCamera();
+    if (placed && flyPending && finest.has(flyPending)) {
+      flyTo(flyPending);
+      flyPending = null;
+    }
   }
   camera.updateMatrixWorld();
   tiles.update();
-  headlight.position.copy(camera.position);
-  headlight.target.position.copy(controls.target);
   renderer.render(scene, camera);
   state.camera = {
     projection: camera.projectionMatrix.toArray(),
@@ -278,12 +737,16 @@ function frame() {
     height: canvas.clientHeight,
   };
 
+  Object.assign(state, tiles.vsmCounts);
+  state.shown = [...tiles.vsmShown.values()];
   const stats = tiles.stats;
   state.rootLoaded = placed;
   state.pending = stats.queued + stats.downloading + stats.parsing;
-  state.idle = placed && state.pending === 0 && !tiles.isLoading;
+  state.idle = placed && state.pending === 0 && !tiles.isLoading && flyPending === null;
+  state.overlays = [rect($('panel')), rect($('legend'))];
   state.frames++;
-  showStatus(`${mode === 'lod' ? 'level of detail' : 'texture'}: ${state.loaded} tiles` +
+  showStatus(`${MODE_NAMES[mode]}${lit || mode === 'relief' ? ', sun' : ''}: ` +
+    `${state.loaded} tiles` +
     (state.pending ? `, ${state.pending} loading` : '') +
     (state.failed ? `, ${state.failed} FAILED` : ''));
 }

@@ -52,9 +52,6 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 PALETTE = ["30123b", "4145ab", "4675ed", "39a2fc", "1bcfd4", "24eca6", "61fc6c", "a4fc3b",
            "d1e834", "f3c63a", "fe9b2d", "f36315", "d93806", "b11901", "7a0402", "4a0000"]
 BACKGROUND = (0x10, 0x14, 0x18)
-# The viewer's panel (title, mode switch, the palette as a legend) lies in the top rows; colours
-# of the model are counted below them.
-PANEL_ROWS = 100
 # Per page: every wait in browser_check.js ends by then (the test's whole budget is ~5 minutes).
 PAGE_SECONDS = 75
 # The textured real model (PRISM with the NASA image) and the same DEM without a texture.
@@ -184,6 +181,76 @@ def project(camera, points, shape):
     return x, y, clip[:, 3] > 0
 
 
+def overlay_mask(state, shape):
+    """(rows, cols) bool: the pixels under the page's overlays (the viewer's panel and legend, as
+    it reports them in `overlays`, CSS pixels scaled to the screenshot)."""
+    import numpy
+    mask = numpy.zeros(shape[:2], dtype=bool)
+    camera = state.get("camera") or {}
+    scale = shape[1] / camera["width"] if camera.get("width") else 1.0
+    for r in state.get("overlays", []):
+        x0, y0 = int(r["x"] * scale) - 2, int(r["y"] * scale) - 2
+        x1, y1 = int((r["x"] + r["width"]) * scale) + 3, int((r["y"] + r["height"]) * scale) + 3
+        mask[max(y0, 0):max(y1, 0), max(x0, 0):max(x1, 0)] = True
+    return mask
+
+
+def screen_samples(state, pixels, lon, lat, height):
+    """Points (lon, lat, height above the ellipsoid) seen in a screenshot, with the page's camera:
+    (which of them are on the screen, clear of its border, the page's overlays and Cesium's credit
+    (bottom left); their screen colours, (n, 3) means of 3 x 3 pixels)."""
+    import numpy
+    x, y, front = project(state["camera"], ecef(lon, lat, height), pixels.shape)
+    rows, cols = pixels.shape[:2]
+    inside = (front & (x >= 2) & (x < cols - 2) & (y >= 2) & (y < rows - 2)
+              & ~((x < 200) & (y > rows - 50)))
+    covered = overlay_mask(state, pixels.shape)
+    xs, ys = numpy.round(x).astype(int), numpy.round(y).astype(int)
+    inside[inside] &= ~covered[ys[inside], xs[inside]]
+    xs, ys = xs[inside], ys[inside]
+    got = numpy.mean([pixels[ys + dy, xs + dx].astype(float)
+                      for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
+    return inside, got
+
+
+def browser_check(base_url, page, state, screenshot, seconds, steps=None):
+    """Runs browser_check.js on `page` (with a list of steps, see there): its report."""
+    if os.path.exists(screenshot):
+        os.remove(screenshot)
+    env = dict(os.environ)
+    if ARGS.chromium:
+        env["VSM_CHROMIUM"] = ARGS.chromium
+    command = ["node", os.path.join(HERE, "browser_check.js"), ARGS.web_tools, base_url + page,
+               state, screenshot, str(seconds)]
+    if steps is not None:
+        steps_file = screenshot + ".steps.json"
+        with open(steps_file, "w") as f:
+            json.dump(steps, f)
+        command.append(steps_file)
+    result = subprocess.run(command, capture_output=True, text=True,
+                            timeout=seconds * (2 + len(steps or [])) + 60, env=env)
+    if result.returncode != 0:
+        raise AssertionError("browser_check.js failed:\n" + result.stderr[-3000:])
+    return json.loads(result.stdout.strip().splitlines()[-1])
+
+
+def load_page(test, base_url, page, state, name, seconds, steps=None):
+    """browser_check on `page` (and its steps), the report kept beside the screenshot (name.png
+    in --screenshots): the page settled, no request left the server or failed; (the report, the
+    screenshot's pixels)."""
+    screenshot = os.path.join(ARGS.screenshots, name + ".png")
+    report = browser_check(base_url, page, state, screenshot, seconds, steps)
+    print("\n%s: %s" % (name, json.dumps(report)[:1500]), file=sys.stderr)
+    with open(screenshot + ".json", "w") as f:
+        json.dump(report, f)
+    test.assertFalse(report.get("timedOut"), "page did not settle in %d s: %s"
+                     % (seconds, json.dumps(report)[:3000]))
+    test.assertEqual(report["offHost"], [], "requests left the server")
+    test.assertEqual(report["failedRequests"], [])
+    test.assertTrue(os.path.exists(screenshot))
+    return report, read_png(screenshot)
+
+
 def texture_match(got, expected):
     """Numbers comparing screen colours with image colours ((n, 3) each) and whether they match."""
     import numpy
@@ -246,25 +313,7 @@ class Browser(unittest.TestCase):
 
     def load(self, page, state, name):
         """Runs browser_check.js on `page`; (its report, the screenshot's pixels)."""
-        screenshot = os.path.join(ARGS.screenshots, name + ".png")
-        if os.path.exists(screenshot):
-            os.remove(screenshot)
-        env = dict(os.environ)
-        if ARGS.chromium:
-            env["VSM_CHROMIUM"] = ARGS.chromium
-        result = subprocess.run(
-            ["node", os.path.join(HERE, "browser_check.js"), ARGS.web_tools,
-             self.base_url + page, state, screenshot, str(PAGE_SECONDS)],
-            capture_output=True, text=True, timeout=PAGE_SECONDS + 60, env=env)
-        self.assertEqual(result.returncode, 0, result.stderr[-3000:])
-        report = json.loads(result.stdout.strip().splitlines()[-1])
-        print("\n%s: %s" % (name, json.dumps(report)[:1500]), file=sys.stderr)
-        self.assertFalse(report.get("timedOut"), "page did not settle in %d s: %s"
-                         % (PAGE_SECONDS, json.dumps(report)[:3000]))
-        self.assertEqual(report["offHost"], [], "requests left the server")
-        self.assertEqual(report["failedRequests"], [])
-        self.assertTrue(os.path.exists(screenshot))
-        return report, read_png(screenshot)
+        return load_page(self, self.base_url, page, state, name, PAGE_SECONDS)
 
     def assert_not_blank(self, pixels, name):
         counts = colour_counts(pixels)
@@ -293,7 +342,8 @@ class Browser(unittest.TestCase):
         # Every tile the renderer asked for came in (none still loading, none lost).
         self.assertEqual(state["loaded"], state["requested"], state)
         self.assert_not_blank(pixels, "viewer-lod")
-        counts = colour_counts(pixels[PANEL_ROWS:])
+        model_area = ~overlay_mask(state, pixels.shape)
+        counts = colour_counts(pixels[model_area])
         # Unlit palette colours: the model shows in the exact colours of depths the renderer loaded
         # (seen whole, PRISM is one depth; Jacksboro's deeper levels cover a few pixels), and the
         # renderer refined below the root.
@@ -305,7 +355,7 @@ class Browser(unittest.TestCase):
         self.assertGreaterEqual(len(shown), 1, (state["depths"], shown))
         self.assertTrue(set(shown) <= loaded, (shown, loaded))
         shown_pixels = sum(counts.get(int(PALETTE[d], 16), 0) for d in shown)
-        self.assertGreater(shown_pixels, (pixels.shape[0] - PANEL_ROWS) * pixels.shape[1] * 0.05)
+        self.assertGreater(shown_pixels, model_area.sum() * 0.05)
 
     def test_viewer_texture_mode_draws_the_model(self):
         report, pixels = self.load("/viewer/?model=%s&mode=texture" % MODEL, "vsmViewer",
@@ -315,7 +365,7 @@ class Browser(unittest.TestCase):
         self.assertEqual(state["mode"], "texture")
         self.assertEqual(state["loaded"], state["requested"], state)
         self.assert_not_blank(pixels, "viewer-texture")
-        counts = colour_counts(pixels[PANEL_ROWS:])
+        counts = colour_counts(pixels[~overlay_mask(state, pixels.shape)])
         shown = [d for d in range(len(PALETTE)) if counts.get(int(PALETTE[d], 16), 0) >= 200]
         self.assertLessEqual(len(shown), 1, "texture mode shows the LOD palette: %s" % shown)
 
@@ -323,23 +373,14 @@ class Browser(unittest.TestCase):
 
     def screen_colours(self, report, pixels, name):
         """The sampled DEM points seen in a screenshot: (their lon, lat, (n, 3) screen colours)."""
-        import numpy
-        camera = report["state"]["camera"]
-        self.assertIsNotNone(camera, report["state"])
+        self.assertIsNotNone(report["state"]["camera"], report["state"])
         lon, lat, height = dem_points(self.dem)
-        x, y, front = project(camera, ecef(lon, lat, height), pixels.shape)
-        rows, cols = pixels.shape[:2]
-        # On the screen, clear of its border, of the viewer's panel (top rows) and of Cesium's
-        # credit (bottom left).
-        inside = (front & (x >= 2) & (x < cols - 2) & (y >= PANEL_ROWS) & (y < rows - 2)
-                  & ~((x < 200) & (y > rows - 50)))
-        xs, ys = numpy.round(x[inside]).astype(int), numpy.round(y[inside]).astype(int)
-        got = numpy.mean([pixels[ys + dy, xs + dx].astype(float)
-                          for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
-        print("%s: %d of %d DEM points on the screen" % (name, len(xs), len(x)), file=sys.stderr)
+        inside, got = screen_samples(report["state"], pixels, lon, lat, height)
+        print("%s: %d of %d DEM points on the screen" % (name, len(got), len(lon)),
+              file=sys.stderr)
         # Most of PRISM in view (a camera that misses it would leave too few points to judge).
-        self.assertGreater(len(xs), 0.8 * len(x), name)
-        self.assertGreater(len(xs), 1000, name)
+        self.assertGreater(len(got), 0.8 * len(lon), name)
+        self.assertGreater(len(got), 1000, name)
         return lon[inside], lat[inside], got
 
     def check_texture(self, name, report, pixels, expect_match=True, shift=None):
