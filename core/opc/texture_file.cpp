@@ -194,7 +194,7 @@ Image readImage(const fs::path& file, std::uint64_t maxPixels) {
 
 std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
   return encodeImage("tile.tif", tile.texels().data(), tile.size(), tile.size(),
-                     TextureTile::kChannels, "zip");
+                     TextureTile::kChannels, "zip:1");
 }
 
 TextureTile readTextureTile(const fs::path& file, std::uint64_t maxPixels) {
