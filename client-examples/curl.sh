@@ -130,6 +130,12 @@ if [[ -n $DETAIL ]]; then
   echo "job $JOB $STATE"
   [[ $STATE == succeeded ]] || exit 1
   get "/v1/models/$MODEL" | jq -c '{id, version, depth, patches}'
+
+  step "the revisions of '$MODEL': the merge made a new one; the one before can still be read"
+  get "/v1/models/$MODEL/revisions" >"$WORK/revisions.json"
+  jq -c '.revisions[] | {revision, parent, job, changed_patches, latest}' "$WORK/revisions.json"
+  FIRST=$(jq -r '.revisions[0].revision' "$WORK/revisions.json")
+  get "/v1/models/$MODEL?rev=$FIRST" | jq -c '{id, version, depth, patches}'
 fi
 
 step "memory and cache statistics"

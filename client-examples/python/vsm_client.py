@@ -117,6 +117,15 @@ class Client:
         grid.local2global = [float(v) for v in r.headers["X-VSM-Local2Global"].split(",")]
         return grid, r.headers["ETag"]
 
+    def revisions(self, model):
+        """The kept revisions of a model, oldest first (the latest has "latest": true)."""
+        return self.get_json("/v1/models/%s/revisions" % quote(model))["revisions"]
+
+    def restore(self, model, revision):
+        """Submits a job publishing revision `revision`'s content as the model's next revision."""
+        return self.request("POST", "/v1/models/%s/revisions/%d/restore" % (quote(model), revision),
+                            ok=(202,)).json()
+
     def lod(self, model, box, resolution):
         query = urllib.parse.urlencode({"box": ",".join(repr(float(v)) for v in box),
                                         "resolution": repr(float(resolution))})
