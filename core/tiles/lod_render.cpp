@@ -2,7 +2,6 @@
 
 #include <algorithm>
 #include <cmath>
-#include <numbers>
 
 #include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
@@ -10,80 +9,9 @@
 
 namespace vsm::core {
 
-namespace {
-
-constexpr double kWgs84A = 6378137.0;
-constexpr double kWgs84F = 1.0 / 298.257223563;
-constexpr double kWgs84E2 = kWgs84F * (2 - kWgs84F);
-constexpr double kDegrees = 180.0 / std::numbers::pi;
-
-struct Point2 {
-  double x = 0, y = 0;
-};
-
-/// Where a vertex goes in the picture's plane.
-Point2 project(const Vec3d& global, bool geographic) {
-  if (geographic) {
-    const Vec3d g = ecefToGeodetic(global);
-    return {g.x, g.y};
-  }
-  return {global.x, global.y};
-}
-
-/// Twice the signed area of (a, b, p): positive when p is left of a -> b (y down: clockwise).
-double edge(const Point2& a, const Point2& b, const Point2& p) {
-  return (b.x - a.x) * (p.y - a.y) - (b.y - a.y) * (p.x - a.x);
-}
-
-/// Sets `value` at every pixel whose centre lies in the triangle (pixel coordinates), edges
-/// included (with a relative tolerance), so triangles sharing an edge leave no gap.
-void fillTriangle(Point2 a, Point2 b, Point2 c, int width, int height, std::int8_t value,
-                  std::vector<std::int8_t>& out) {
-  double area = edge(a, b, c);
-  if (area == 0 || !std::isfinite(area)) {
-    return;
-  }
-  if (area < 0) {
-    std::swap(b, c);
-    area = -area;
-  }
-  const double tolerance = -1e-9 * area;
-  const int x0 = std::max(0, static_cast<int>(std::floor(std::min({a.x, b.x, c.x}) - 0.5)));
-  const int x1 = std::min(width - 1, static_cast<int>(std::ceil(std::max({a.x, b.x, c.x}) - 0.5)));
-  const int y0 = std::max(0, static_cast<int>(std::floor(std::min({a.y, b.y, c.y}) - 0.5)));
-  const int y1 = std::min(height - 1, static_cast<int>(std::ceil(std::max({a.y, b.y, c.y}) - 0.5)));
-  for (int y = y0; y <= y1; ++y) {
-    for (int x = x0; x <= x1; ++x) {
-      const Point2 p{x + 0.5, y + 0.5};
-      if (edge(a, b, p) >= tolerance && edge(b, c, p) >= tolerance && edge(c, a, p) >= tolerance) {
-        out[static_cast<std::size_t>(y) * width + x] = value;
-      }
-    }
-  }
-}
-
-}  // namespace
-
 Rgb8 depthColour(int depth) {
   return kDepthPalette[std::clamp<std::size_t>(static_cast<std::size_t>(std::max(depth, 0)), 0,
                                                kDepthPalette.size() - 1)];
-}
-
-Vec3d ecefToGeodetic(const Vec3d& ecef) {
-  const double p = std::hypot(ecef.x, ecef.y);
-  const double lon = std::atan2(ecef.y, ecef.x);
-  // Fixed-point iteration on the latitude; converges to well below a millimetre in a few steps
-  // for points near the surface.
-  double lat = std::atan2(ecef.z, p * (1 - kWgs84E2));
-  double h = 0;
-  for (int i = 0; i < 6; ++i) {
-    const double s = std::sin(lat);
-    const double n = kWgs84A / std::sqrt(1 - kWgs84E2 * s * s);
-    h = std::abs(std::cos(lat)) > 1e-12 ? p / std::cos(lat) - n
-                                        : std::abs(ecef.z) - n * (1 - kWgs84E2);
-    lat = std::atan2(ecef.z, p * (1 - kWgs84E2 * n / (n + h)));
-  }
-  return {lon * kDegrees, lat * kDegrees, h};
 }
 
 bool looksEcef(const PatchGrid& grid) {
@@ -128,6 +56,8 @@ LodImage renderLod(const Model& model,
     }
   };
 
+  TopDownGrid view;
+  view.geographic = image.geographic;
   double minX = Box3d::kInf, minY = Box3d::kInf, maxX = -Box3d::kInf, maxY = -Box3d::kInf;
   for (const PatchKey& key : leaves) {
     reportLeaf("bounds");
@@ -135,7 +65,7 @@ LodImage renderLod(const Model& model,
     for (int y = 0; y < grid->size(); ++y) {
       for (int x = 0; x < grid->size(); ++x) {
         if (grid->defined(x, y)) {
-          const Point2 p = project(grid->global(x, y), image.geographic);
+          const Point2d p = view.plane(grid->global(x, y));
           minX = std::min(minX, p.x);
           maxX = std::max(maxX, p.x);
           minY = std::min(minY, p.y);
@@ -147,31 +77,25 @@ LodImage renderLod(const Model& model,
   if (!(minX <= maxX && minY <= maxY)) {
     throw Error(ErrorCode::InvalidArgument, "render-lod: the model has no defined vertex");
   }
-  // Ground distance per unit of x relative to y: cos(latitude) for degrees, 1 otherwise.
-  const double xScale =
-      image.geographic ? std::max(std::cos((minY + maxY) * 0.5 / kDegrees), 1e-3) : 1.0;
-  const double spanX = std::max(maxX - minX, 1e-9);
-  const double spanY = std::max(maxY - minY, 1e-9);
-  image.dy = std::max(spanX * xScale, spanY) / options.size;
-  image.dx = image.dy / xScale;
-  image.width = std::max(1, static_cast<int>(std::ceil(spanX / image.dx - 1e-9)));
-  image.height = std::max(1, static_cast<int>(std::ceil(spanY / image.dy - 1e-9)));
-  image.x0 = minX;
-  image.y0 = maxY;
-  image.depth.assign(static_cast<std::size_t>(image.width) * image.height, -1);
+  view = TopDownGrid::fit(image.geographic, minX, maxX, minY, maxY, options.size);
+  image.width = view.width;
+  image.height = view.height;
+  image.x0 = view.x0;
+  image.y0 = view.y0;
+  image.dx = view.dx;
+  image.dy = view.dy;
+  image.depth.assign(view.pixels(), -1);
 
   done = 0;
   for (const PatchKey& key : leaves) {
     reportLeaf("drawing");
     const auto grid = load(model.at(key));
     const int n = grid->size();
-    std::vector<Point2> pixel(grid->vertexCount());
+    std::vector<Point2d> pixel(grid->vertexCount());
     for (int y = 0; y < n; ++y) {
       for (int x = 0; x < n; ++x) {
         if (grid->defined(x, y)) {
-          const Point2 p = project(grid->global(x, y), image.geographic);
-          pixel[static_cast<std::size_t>(y) * n + x] = {(p.x - image.x0) / image.dx,
-                                                        (image.y0 - p.y) / image.dy};
+          pixel[static_cast<std::size_t>(y) * n + x] = view.pixel(view.plane(grid->global(x, y)));
         }
       }
     }
@@ -182,12 +106,15 @@ LodImage renderLod(const Model& model,
             !grid->defined(x + 1, y + 1)) {
           continue;
         }
-        const Point2& a = pixel[static_cast<std::size_t>(y) * n + x];
-        const Point2& b = pixel[static_cast<std::size_t>(y) * n + x + 1];
-        const Point2& c = pixel[static_cast<std::size_t>(y + 1) * n + x];
-        const Point2& d = pixel[static_cast<std::size_t>(y + 1) * n + x + 1];
-        fillTriangle(a, c, d, image.width, image.height, value, image.depth);
-        fillTriangle(a, d, b, image.width, image.height, value, image.depth);
+        const Point2d& a = pixel[static_cast<std::size_t>(y) * n + x];
+        const Point2d& b = pixel[static_cast<std::size_t>(y) * n + x + 1];
+        const Point2d& c = pixel[static_cast<std::size_t>(y + 1) * n + x];
+        const Point2d& d = pixel[static_cast<std::size_t>(y + 1) * n + x + 1];
+        const auto fill = [&](int col, int row, double, double, double) {
+          image.depth[static_cast<std::size_t>(row) * image.width + col] = value;
+        };
+        forEachPixelInTriangle(a, c, d, image.width, image.height, fill);
+        forEachPixelInTriangle(a, d, b, image.width, image.height, fill);
       }
     }
   }

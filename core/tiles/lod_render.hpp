@@ -9,6 +9,7 @@
 
 #include "core/common/progress.hpp"
 #include "core/grid/geometry.hpp"
+#include "core/tiles/top_down.hpp"
 
 namespace vsm::core {
 
@@ -47,10 +48,6 @@ inline constexpr std::array<Rgb8, 16> kDepthPalette{{
 
 /// kDepthPalette[depth], the last entry for deeper patches; precondition depth >= 0.
 Rgb8 depthColour(int depth);
-
-/// WGS 84 geodetic coordinates of an ECEF point: longitude and latitude in degrees, height in
-/// metres above the ellipsoid (x = lon, y = lat, z = h).
-Vec3d ecefToGeodetic(const Vec3d& ecef);
 
 /// True when every defined vertex of `grid` lies within 6200..6500 km of the origin: an
 /// earth-centred (ECEF) model, as `vsm import` makes from georeferenced rasters.
