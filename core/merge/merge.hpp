@@ -13,6 +13,7 @@
 namespace vsm::core {
 
 class LiveModel;
+struct ModelSnapshot;
 class ModelEdit;
 
 /// Read access to a model's metadata and patch data, as a merge needs it.
@@ -116,5 +117,8 @@ MergeResult mergeModels(ModelEdit& target, LiveModel& detail, const MergeOptions
 /// Store adapters, also for registerModels().
 std::unique_ptr<MergeTarget> editTarget(ModelEdit& edit);
 std::unique_ptr<PatchSource> liveSource(LiveModel& model);
+/// A source reading one given snapshot (e.g. a kept revision, LiveModel::snapshotAt) of `model`.
+std::unique_ptr<PatchSource> liveSource(LiveModel& model,
+                                        std::shared_ptr<const ModelSnapshot> snapshot);
 
 }  // namespace vsm::core

@@ -43,7 +43,8 @@ class EditTarget final : public MergeTarget {
 
 class LiveSource final : public PatchSource {
  public:
-  explicit LiveSource(LiveModel& live) : live_(live), snapshot_(live.snapshot()) {}
+  LiveSource(LiveModel& live, std::shared_ptr<const ModelSnapshot> snapshot)
+      : live_(live), snapshot_(std::move(snapshot)) {}
   const Model& model() const override { return *snapshot_->model; }
   std::shared_ptr<const PatchGrid> positions(const PatchKey& key) override {
     return pinned<PatchGrid>(live_.positions(*snapshot_, key));
@@ -64,12 +65,17 @@ std::unique_ptr<MergeTarget> editTarget(ModelEdit& edit) {
 }
 
 std::unique_ptr<PatchSource> liveSource(LiveModel& model) {
-  return std::make_unique<LiveSource>(model);
+  return std::make_unique<LiveSource>(model, model.snapshot());
+}
+
+std::unique_ptr<PatchSource> liveSource(LiveModel& model,
+                                        std::shared_ptr<const ModelSnapshot> snapshot) {
+  return std::make_unique<LiveSource>(model, std::move(snapshot));
 }
 
 MergeResult mergeModels(ModelEdit& target, LiveModel& detail, const MergeOptions& options) {
   EditTarget t(target);
-  LiveSource d(detail);
+  LiveSource d(detail, detail.snapshot());
   return mergeModels(t, d, options);
 }
 

@@ -27,8 +27,9 @@ namespace {
 
 /// Encodes `pixels` (width x height x channels bytes) in the format of `name`'s extension, in
 /// memory (OpenImageIO's IOVecOutput proxy).
-std::vector<std::byte> encodeImage(const char* name, const std::uint8_t* pixels, int width,
-                                   int height, int channels, const char* compression) {
+std::vector<std::byte> encodeImage(
+    const char* name, const std::uint8_t* pixels, int width, int height, int channels,
+    const char* compression, const std::vector<std::pair<std::string, std::string>>& text = {}) {
   std::vector<unsigned char> buffer;
   OIIO::Filesystem::IOVecOutput proxy(buffer);
   std::unique_ptr<OIIO::ImageOutput> out = OIIO::ImageOutput::create(name);
@@ -39,6 +40,9 @@ std::vector<std::byte> encodeImage(const char* name, const std::uint8_t* pixels,
   OIIO::ImageSpec spec(width, height, channels, OIIO::TypeDesc::UINT8);
   if (compression != nullptr) {
     spec.attribute("compression", compression);
+  }
+  for (const auto& [keyword, value] : text) {
+    spec.attribute(keyword, value);
   }
   out->set_ioproxy(&proxy);
   if (!out->open(name, spec) || !out->write_image(OIIO::TypeDesc::UINT8, pixels) || !out->close()) {
@@ -195,6 +199,11 @@ Image readImage(const fs::path& file, std::uint64_t maxPixels) {
 std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
   return encodeImage("tile.tif", tile.texels().data(), tile.size(), tile.size(),
                      TextureTile::kChannels, "zip:1");
+}
+
+std::vector<std::byte> encodePng(const std::uint8_t* rgba, int width, int height,
+                                 const std::vector<std::pair<std::string, std::string>>& text) {
+  return encodeImage("image.png", rgba, width, height, 4, nullptr, text);
 }
 
 TextureTile readTextureTile(const fs::path& file, std::uint64_t maxPixels) {

@@ -4,7 +4,9 @@
 #include <cstdint>
 #include <filesystem>
 #include <optional>
+#include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #include "core/grid/texture_tile.hpp"
@@ -18,6 +20,11 @@ inline constexpr std::string_view kTextureLayer = "Diffuse";
 /// A tile as an RGBA 8-bit TIFF file (deflate-compressed, through OpenImageIO).
 /// Throws Error(Internal) when OpenImageIO cannot encode it.
 std::vector<std::byte> encodeTextureTiff(const TextureTile& tile);
+
+/// An RGBA 8-bit image (width x height x 4 bytes, top row first) as a PNG file, with `text`
+/// as (keyword, value) text chunks. Throws Error(Internal) when OpenImageIO cannot encode it.
+std::vector<std::byte> encodePng(const std::uint8_t* rgba, int width, int height,
+                                 const std::vector<std::pair<std::string, std::string>>& text = {});
 
 /// The default bound on the pixels of a texture file a reader decodes (16384 x 16384), the
 /// configuration's limits.texture_pixels: a file's header may claim any size.

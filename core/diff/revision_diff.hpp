@@ -1,0 +1,141 @@
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "core/common/progress.hpp"
+#include "core/grid/geometry.hpp"
+#include "core/pyramid/patch_key.hpp"
+#include "core/tiles/top_down.hpp"
+
+namespace vsm::core {
+
+class LiveModel;
+struct ModelSnapshot;
+
+/// Statistics of a signed displacement sampled at surface vertices, each vertex weighted by its
+/// share of the surface (a quarter of each full cell around it, a third of each 3-corner cell).
+struct DisplacementStats {
+  /// Vertices compared, and vertices skipped because the other surface has none over them.
+  std::size_t samples = 0;
+  std::size_t skipped = 0;
+  /// Surface area compared (m^2), and the part of it whose vertex has |d| > max(epsilon, noise).
+  double area = 0;
+  double changedArea = 0;
+  /// The largest displacement float32 storage alone can make (metres): for each sampled leaf, the
+  /// rounding of its own vertices plus that of the other revision's leaves around it (half a unit
+  /// in the last place of each local coordinate, DisplacementStats::storageNoise). A 131 km leaf
+  /// of an ECEF model rounds to ~4 mm; below this no change can be told from rounding.
+  double noise = 0;
+  /// Extremes of d (metres); +inf / -inf without samples.
+  double min = Box3d::kInf;
+  double max = -Box3d::kInf;
+  /// Area-weighted sums of d and d^2 (over `area`).
+  double sum = 0;
+  double sumSquares = 0;
+
+  /// Adds a sample of area `weight`, changed when |d| > threshold.
+  void add(double d, double weight, double threshold);
+  void merge(const DisplacementStats& other);
+  /// Area-weighted mean and root mean square of d (NaN when no sample has area).
+  double mean() const;
+  double rms() const;
+  /// max(|min|, |max|), 0 without samples.
+  double maxAbs() const;
+};
+
+/// The largest error float32 rounding of a patch's local coordinates (local box `localBox`)
+/// makes along any unit direction: the norm of the per-axis half units in the last place.
+double storageNoise(const Box3d& localBox);
+
+/// One changed patch: a patch of `to` not shared with `from` (another version, or new), or a
+/// patch of `from` that `to` removed. A leaf's statistics are its own vertices'; an overview's are
+/// those of the changed (or removed) leaves below it.
+struct PatchDisplacement {
+  PatchKey key;
+  /// Global box, from the revision that holds the patch (`to`, or `from` when removed).
+  Box3d box;
+  bool removed = false;
+  bool leaf = false;
+  DisplacementStats stats;
+};
+
+/// A top-down map of the displacement (TopDownGrid over the changed area), NaN where nothing was
+/// compared.
+struct DisplacementMap {
+  TopDownGrid grid;
+  /// Row-major, top row first, grid.pixels() values.
+  std::vector<float> values;
+};
+
+struct DiffOptions {
+  /// The displacement that counts as a change (metres).
+  double epsilon = 1e-3;
+  /// When > 0, also draw a DisplacementMap of about this many pixels along its longer side.
+  int mapSize = 0;
+  Progress* progress = nullptr;
+  const CancelToken* cancel = nullptr;
+};
+
+struct RevisionDiff {
+  std::uint64_t from = 0;
+  std::uint64_t to = 0;
+  double epsilon = 0;
+  /// Changed and removed patches, in key order.
+  std::vector<PatchDisplacement> patches;
+  /// Over every sampled leaf (each vertex once per leaf that holds it).
+  DisplacementStats totals;
+  /// Patches of `to` shared with `from` (same key and version): zero by construction, not sampled.
+  std::size_t sharedPatches = 0;
+  /// Present when DiffOptions::mapSize > 0 and something was compared.
+  std::optional<DisplacementMap> map;
+};
+
+/// The displacement from `from`'s surface to `to`'s (two snapshots of `live`, e.g. from
+/// LiveModel::snapshotAt), comparing surfaces, not files: the same surface stored in another patch
+/// layout differs by zero.
+///
+/// Every leaf of `to` not shared with `from` is sampled at its defined vertices p: the line
+/// through p along the local up (upAt) meets `from`'s surface, given by the finest patches (leaves)
+/// of `from` around p (SurfaceSampler), at a; the displacement is d = (p - a) . n, n the unit
+/// normal of `from`'s cell at a pointing up: the distance of p from `from`'s tangent plane, signed
+/// + where `to` lies above (outward of) `from`; it equals the vertical difference times the cosine
+/// of the slope. Every leaf of `from` that `to` removed is sampled the other way round at its own
+/// vertices (d = (b - p) . n_to, the same sign convention). Vertices where the other surface has
+/// none are skipped (counted). Patch data is read through the cache a few patches at a time (the
+/// leaf and the other revision's leaves around it), pins released after each leaf.
+///
+/// Throws Error(InvalidArgument) for snapshots of different grid sizes, an empty model or a
+/// negative epsilon, Error(Cancelled), and what reading patches throws.
+RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot> from,
+                           std::shared_ptr<const ModelSnapshot> to,
+                           const DiffOptions& options = {});
+
+/// The JSON body of GET /v1/models/{m}/diff and `vsm diff --json` (proto/openapi.yaml, Diff).
+std::string diffJson(const RevisionDiff& diff, std::string_view model);
+
+/// The diverging colour of a displacement: blue for -range, white for 0, red for +range (clamped),
+/// transparent for NaN.
+std::array<std::uint8_t, 4> divergingColour(double d, double range);
+
+/// `map` coloured by divergingColour over [-range, range], RGBA 8 bits, row-major.
+std::vector<std::uint8_t> colourMap(const DisplacementMap& map, double range);
+
+/// What the colours of diff's map mean: "displacement from revision A to B along the surface
+/// normal, metres: blue -R, white 0, red +R", R = diff.totals.maxAbs().
+std::string diffLegend(const RevisionDiff& diff);
+
+/// diff's map as a PNG file coloured over [-R, R] (R = diff.totals.maxAbs()), a legend in its lower
+/// left corner (the colour bar labelled "-R m", "0", "+R m", when the picture has room), the text
+/// chunks
+/// "Description" (diffLegend) and "vsm:range" (R in metres); a transparent `emptySize` square when
+/// the diff has no map (nothing changed). Throws Error(Internal) when it cannot be encoded.
+std::vector<std::byte> diffPng(const RevisionDiff& diff, int emptySize);
+
+}  // namespace vsm::core

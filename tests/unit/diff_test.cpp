@@ -1,0 +1,263 @@
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <functional>
+#include <numbers>
+#include <set>
+
+#include "core/cache/patch_cache.hpp"
+#include "core/common/error.hpp"
+#include "core/diff/revision_diff.hpp"
+#include "core/opc/opc_writer.hpp"
+#include "core/store/live_model.hpp"
+#include "tests/unit/test_support.hpp"
+
+namespace fs = std::filesystem;
+
+namespace vsm::core {
+namespace {
+
+using test::codeOf;
+
+constexpr int kSize = 17;  // 2^4 + 1: leaves of 16 m x 16 m on a 1 m lattice
+using Height = std::function<double(double u, double v)>;
+
+/// A leaf of `size` vertices spaced `step` metres from (u0, v0), sampling `h`.
+std::shared_ptr<PatchGrid> sampled(double u0, double v0, double step, const Height& h) {
+  auto grid = std::make_shared<PatchGrid>(kSize, Mat4d::translation({u0 + 8, v0 + 8, 0}));
+  for (int j = 0; j < kSize; ++j) {
+    for (int i = 0; i < kSize; ++i) {
+      const double u = u0 + i * step, v = v0 + j * step;
+      grid->setGlobal(i, j, {u, v, h(u, v)});
+    }
+  }
+  return grid;
+}
+
+/// Leaf (x, y) of depth 2 (a 4 x 4 bottom level) sampling `h`.
+std::shared_ptr<PatchGrid> leafGrid(std::uint32_t x, std::uint32_t y, const Height& h) {
+  return sampled(x * 16.0, y * 16.0, 1.0, h);
+}
+
+/// Writes a three-level model (16 leaves of depth 2, 4 + 1 overviews) sampling `h`.
+void writeModel(const fs::path& dir, const Height& h) {
+  Model model(kSize);
+  const auto add = [&](const PatchKey& key) {
+    PatchInfo info;
+    info.key = key;
+    model.insert(info);
+  };
+  add(PatchKey::root());
+  for (std::uint32_t y = 0; y < 2; ++y) {
+    for (std::uint32_t x = 0; x < 2; ++x) {
+      add({1, x, y});
+    }
+  }
+  for (std::uint32_t y = 0; y < 4; ++y) {
+    for (std::uint32_t x = 0; x < 4; ++x) {
+      add({2, x, y});
+      model.setGrid({2, x, y}, leafGrid(x, y, h));
+    }
+  }
+  model.refreshStale([](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return nullptr; });
+  OpcWriter writer(dir, OpcWriter::Durability::EachFile);
+  for (auto it = model.patches().rbegin(); it != model.patches().rend(); ++it) {
+    PatchInfo& info = model.at(it->first);
+    info.folder = it->first.toString();
+    writer.writePatch(info, *info.grid, model.childrenBox(it->first));
+  }
+  writer.writeHierarchy(model);
+}
+
+double wavy(double u, double v) {
+  return std::sin(u * 0.2) * 5 + std::cos(v * 0.15) * 3 + v * 0.1;
+}
+
+double tilted(double u, double v) {
+  (void)u;
+  return 0.1 * v;
+}
+
+constexpr double kBumpHeight = 2.0;
+constexpr double kBumpRadius = 7.0;
+
+/// A smooth bump of kBumpHeight at the centre of leaf 2_2_1 (u 40, v 24), zero from kBumpRadius
+/// on, so the leaf's border stays as its neighbours have it.
+double bump(double u, double v) {
+  const double r = std::hypot(u - 40, v - 24);
+  if (r >= kBumpRadius) {
+    return 0;
+  }
+  const double c = std::cos(std::numbers::pi / 2 * r / kBumpRadius);
+  return kBumpHeight * c * c;
+}
+
+class DiffTest : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    dir_ = fs::temp_directory_path() /
+           ("vsm-diff-test-" + std::to_string(::getpid()) + "-" +
+            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+    fs::remove_all(dir_);
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  std::unique_ptr<LiveModel> open(const Height& h) {
+    writeModel(dir_, h);
+    return LiveModel::open(dir_, "m", cache_);
+  }
+
+  std::set<std::string> keys(const RevisionDiff& diff, bool removed) {
+    std::set<std::string> out;
+    for (const PatchDisplacement& p : diff.patches) {
+      if (p.removed == removed) {
+        out.insert(p.key.toString());
+      }
+    }
+    return out;
+  }
+
+  fs::path dir_;
+  PatchCache cache_{64 << 20};
+};
+
+TEST_F(DiffTest, TheSameSurfaceInAnotherPatchLayoutDiffersByZero) {
+  auto live = open(wavy);
+  const std::uint64_t v1 = live->snapshot()->version;
+  {
+    // Leaf 2_1_1 split into four children at half the spacing that interpolate it bilinearly
+    // (its own surface, cell for cell): the parent's reduction gives back its vertices.
+    const auto parent = live->positions(*live->snapshot(), {2, 1, 1}).get<PatchGrid>();
+    auto edit = live->beginEdit();
+    for (std::uint32_t cy = 0; cy < 2; ++cy) {
+      for (std::uint32_t cx = 0; cx < 2; ++cx) {
+        auto child = std::make_shared<PatchGrid>(kSize, parent->local2global());
+        for (int j = 0; j < kSize; ++j) {
+          for (int i = 0; i < kSize; ++i) {
+            const double px = cx * 8 + i * 0.5, py = cy * 8 + j * 0.5;
+            const int x0 = std::min(static_cast<int>(px), kSize - 2);
+            const int y0 = std::min(static_cast<int>(py), kSize - 2);
+            const double fx = px - x0, fy = py - y0;
+            const Vec3d p = parent->global(x0, y0) * ((1 - fx) * (1 - fy)) +
+                            parent->global(x0 + 1, y0) * (fx * (1 - fy)) +
+                            parent->global(x0, y0 + 1) * ((1 - fx) * fy) +
+                            parent->global(x0 + 1, y0 + 1) * (fx * fy);
+            child->setGlobal(i, j, p);
+          }
+        }
+        edit->setPositions({3, 2 + cx, 2 + cy}, child);
+      }
+    }
+    edit->publish();
+  }
+  const std::uint64_t v2 = live->snapshot()->version;
+  ASSERT_GT(v2, v1);
+
+  const RevisionDiff forward = diffRevisions(*live, live->snapshotAt(v1), live->snapshotAt(v2));
+  EXPECT_EQ(keys(forward, false),
+            (std::set<std::string>{"0_0_0", "1_0_0", "2_1_1", "3_2_2", "3_3_2", "3_2_3", "3_3_3"}));
+  EXPECT_TRUE(keys(forward, true).empty());
+  EXPECT_EQ(forward.sharedPatches, 21u - 3u);
+  EXPECT_EQ(forward.totals.samples, 4u * kSize * kSize);
+  EXPECT_EQ(forward.totals.skipped, 0u);
+  EXPECT_LT(forward.totals.maxAbs(), 1e-5);  // float32 storage of coordinates near 60 m
+  EXPECT_EQ(forward.totals.changedArea, 0.0);
+  EXPECT_GT(forward.totals.area, 256.0);  // 16 m x 16 m, wavy
+
+  // Back: rev 1's leaf 2_1_1 against the children, and the removed children against rev 1.
+  const RevisionDiff back = diffRevisions(*live, live->snapshotAt(v2), live->snapshotAt(v1));
+  EXPECT_EQ(keys(back, true), (std::set<std::string>{"3_2_2", "3_3_2", "3_2_3", "3_3_3"}));
+  EXPECT_EQ(back.totals.samples, 4u * kSize * kSize + kSize * kSize);
+  EXPECT_LT(back.totals.maxAbs(), 1e-5);
+
+  // A revision against itself: everything shared, nothing sampled.
+  const RevisionDiff same = diffRevisions(*live, live->snapshotAt(v2), live->snapshotAt(v2));
+  EXPECT_TRUE(same.patches.empty());
+  EXPECT_EQ(same.totals.samples, 0u);
+  EXPECT_EQ(same.sharedPatches, live->snapshot()->model->patchCount());
+}
+
+TEST_F(DiffTest, AKnownBumpGivesItsHeightAlongTheNormal) {
+  auto live = open(tilted);
+  const std::uint64_t v1 = live->snapshot()->version;
+  {
+    auto edit = live->beginEdit();
+    edit->setPositions(
+        {2, 2, 1}, leafGrid(2, 1, [](double u, double v) { return tilted(u, v) + bump(u, v); }));
+    edit->publish();
+  }
+  const std::uint64_t v2 = live->snapshot()->version;
+  DiffOptions options;
+  options.mapSize = 64;
+  const RevisionDiff diff =
+      diffRevisions(*live, live->snapshotAt(v1), live->snapshotAt(v2), options);
+  EXPECT_EQ(keys(diff, false), (std::set<std::string>{"0_0_0", "1_1_0", "2_2_1"}));
+
+  // The plane z = 0.1 v has the unit normal (0, -0.1, 1) / sqrt(1.01): a vertex raised by b is
+  // b / sqrt(1.01) from it.
+  const double scale = 1 / std::sqrt(1.01);
+  const DisplacementStats& t = diff.totals;
+  EXPECT_EQ(t.samples, static_cast<std::size_t>(kSize * kSize));
+  EXPECT_NEAR(t.max, kBumpHeight * scale, 1e-5);
+  EXPECT_NEAR(t.min, 0.0, 1e-5);
+  // Changed: the vertices with b * scale > 1 mm, each with its share of the 16 m x 16 m leaf
+  // (the tilted plane's area is sqrt(1.01) times its projection).
+  double changed = 0;
+  for (int j = 0; j < kSize; ++j) {
+    for (int i = 0; i < kSize; ++i) {
+      if (bump(32 + i, 16 + j) * scale > 1e-3) {
+        changed += std::sqrt(1.01);  // interior vertices: four quarter cells of 1 m^2
+      }
+    }
+  }
+  EXPECT_NEAR(t.changedArea, changed, 0.05 * changed);
+  EXPECT_GT(t.changedArea, 0.5 * std::numbers::pi * kBumpRadius * kBumpRadius);
+  // The area compared is the bumped leaf's: more than the tilted plane's 256 sqrt(1.01) m^2.
+  EXPECT_GT(t.area, 256 * std::sqrt(1.01) + 1);
+  EXPECT_LT(t.area, 1.05 * 256 * std::sqrt(1.01));
+  for (const PatchDisplacement& p : diff.patches) {
+    EXPECT_NEAR(p.stats.max, kBumpHeight * scale, 1e-5) << p.key.toString();
+    EXPECT_GT(p.stats.mean(), 0) << p.key.toString();
+    EXPECT_GT(p.stats.rms(), p.stats.mean()) << p.key.toString();
+  }
+
+  // The map covers the changed leaf: the bump's top is red, its foot white.
+  ASSERT_TRUE(diff.map);
+  float top = -1;
+  std::size_t defined = 0;
+  for (const float v : diff.map->values) {
+    if (std::isfinite(v)) {
+      ++defined;
+      top = std::max(top, v);
+    }
+  }
+  EXPECT_GT(defined, diff.map->values.size() * 9 / 10);
+  EXPECT_LE(top, kBumpHeight * scale + 1e-5);
+  EXPECT_GT(top, 0.9 * kBumpHeight * scale);
+  const auto red = divergingColour(t.max, t.maxAbs());
+  EXPECT_EQ(red[0], 0xb2);
+  EXPECT_EQ(divergingColour(0, 1)[0], 255);
+  EXPECT_EQ(divergingColour(-1, 1)[2], 0xac);
+
+  // Backwards, the same bump is a dent, now along the bumped surface's normal: at the top its
+  // cells are tilted by the plane and the bump's curvature, so -2 m times a cosine near scale.
+  const RevisionDiff back = diffRevisions(*live, live->snapshotAt(v2), live->snapshotAt(v1));
+  EXPECT_NEAR(back.totals.min, -kBumpHeight * scale, 2e-3);
+  EXPECT_GE(back.totals.min, -kBumpHeight);
+  EXPECT_NEAR(back.totals.max, 0.0, 1e-5);
+}
+
+TEST_F(DiffTest, BadArgumentsAreRefused) {
+  auto live = open(tilted);
+  DiffOptions options;
+  options.epsilon = -1;
+  EXPECT_EQ(codeOf([&] { diffRevisions(*live, live->snapshot(), live->snapshot(), options); }),
+            ErrorCode::InvalidArgument);
+  options.epsilon = 1e-3;
+  options.mapSize = 20000;
+  EXPECT_EQ(codeOf([&] { diffRevisions(*live, live->snapshot(), live->snapshot(), options); }),
+            ErrorCode::InvalidArgument);
+}
+
+}  // namespace
+}  // namespace vsm::core
