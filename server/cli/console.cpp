@@ -39,6 +39,13 @@ const std::string_view kUsage =
     "                                              area (colours: core/tiles/README.md), N pixels\n"
     "                                              on the longer side (default 1024), and a world\n"
     "                                              file <out>.pgw (lon/lat for ECEF models)\n"
+    "  diff <opc> --from A --to B [--json <out>] [--png <out>] [--geotiff <out>] [--size N]\n"
+    "       [--memory-budget SIZE]                 what changed between two kept revisions: the\n"
+    "                                              displacement of the surface along its normal\n"
+    "                                              (m, + = outward) per changed patch and in\n"
+    "                                              total; a map (PNG blue-white-red with a world\n"
+    "                                              file, float32 GeoTIFF in lon/lat for ECEF\n"
+    "                                              models), N pixels on the longer side (1024)\n"
     "  help                                        this text\n";
 
 ConsoleProgress::ConsoleProgress() : tty_(isatty(STDERR_FILENO) == 1) {}

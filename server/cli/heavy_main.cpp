@@ -1,4 +1,5 @@
-// vsm-heavy: the commands of `vsm` that need GDAL, PCL or OpenImageIO (import, merge, render-lod).
+// vsm-heavy: the commands of `vsm` that need GDAL, PCL or OpenImageIO (import, merge, render-lod,
+// diff).
 // `vsm` execs it for them (main.cpp), so that info and validate load none of those libraries.
 #include <unistd.h>
 
@@ -6,6 +7,7 @@
 #include <atomic>
 #include <charconv>
 #include <chrono>
+#include <cstdint>
 #include <cstdio>
 #include <exception>
 #include <filesystem>
@@ -23,7 +25,9 @@
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
+#include "core/diff/revision_diff.hpp"
 #include "core/durable/durable_io.hpp"
+#include "core/io/geotiff.hpp"
 #include "core/io/grid_source.hpp"
 #include "core/merge/merge.hpp"
 #include "core/merge/register.hpp"
@@ -185,6 +189,23 @@ class StagingCopy {
   durable::FileSystemSync sync_;
 };
 
+/// The value of option args[i], advancing i past it.
+std::string_view optionValue(const std::vector<std::string_view>& args, std::size_t& i) {
+  if (i + 1 >= args.size()) {
+    throw UsageError{std::string(args[i]) + " needs a value"};
+  }
+  return args[++i];
+}
+
+/// The value of --memory-budget at args[i] (advancing i): a size like 512MiB.
+std::size_t budgetOption(const std::vector<std::string_view>& args, std::size_t& i) {
+  try {
+    return vsm::server::parseSize(optionValue(args, i));
+  } catch (const Error& e) {
+    throw UsageError{e.what()};
+  }
+}
+
 int runMerge(const std::vector<std::string_view>& args) {
   std::vector<std::string_view> positional;
   bool registerFirst = false;
@@ -193,19 +214,10 @@ int runMerge(const std::vector<std::string_view>& args) {
   for (std::size_t i = 0; i < args.size(); ++i) {
     if (args[i] == "--register") {
       registerFirst = true;
-    } else if (args[i] == "--out" || args[i] == "--memory-budget") {
-      if (i + 1 >= args.size()) {
-        throw UsageError{std::string(args[i]) + " needs a value"};
-      }
-      if (args[i] == "--out") {
-        out = fs::path(args[++i]);
-      } else {
-        try {
-          budget = vsm::server::parseSize(args[++i]);
-        } catch (const Error& e) {
-          throw UsageError{e.what()};
-        }
-      }
+    } else if (args[i] == "--out") {
+      out = fs::path(optionValue(args, i));
+    } else if (args[i] == "--memory-budget") {
+      budget = budgetOption(args, i);
     } else if (args[i].starts_with("--")) {
       throw UsageError{"unknown option " + std::string(args[i])};
     } else {
@@ -276,6 +288,32 @@ int runMerge(const std::vector<std::string_view>& args) {
   return 0;
 }
 
+/// The value of option args[i] (advancing i): an integer from lo to hi.
+std::int64_t integerOption(const std::vector<std::string_view>& args, std::size_t& i,
+                           std::int64_t lo, std::int64_t hi) {
+  const std::string name(args[i]);
+  const std::string_view text = optionValue(args, i);
+  std::int64_t value = 0;
+  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
+  if (ec != std::errc() || end != text.data() + text.size() || value < lo || value > hi) {
+    throw UsageError{name + " must be an integer from " + std::to_string(lo) + " to " +
+                     std::to_string(hi)};
+  }
+  return value;
+}
+
+/// The world file beside a picture (<out>.pgw) so GDAL and GIS tools place it: pixel sizes,
+/// rotations, then the centre of the upper-left pixel.
+void writeWorldFile(const fs::path& out, double x0, double y0, double dx, double dy) {
+  fs::path world = out;
+  world.replace_extension(".pgw");
+  char text[256];
+  const int length = std::snprintf(text, sizeof text, "%.17g\n0\n0\n%.17g\n%.17g\n%.17g\n", dx, -dy,
+                                   x0 + 0.5 * dx, y0 - 0.5 * dy);
+  durable::writeFileAtomically(
+      world, std::as_bytes(std::span(text, static_cast<std::size_t>(std::max(length, 0)))));
+}
+
 /// `vsm render-lod`: the leaves coloured by depth, seen from above, as an RGBA PNG (transparent
 /// where no leaf is) plus a world file so GDAL and GIS tools place it.
 int runRenderLod(const std::vector<std::string_view>& args) {
@@ -283,15 +321,7 @@ int runRenderLod(const std::vector<std::string_view>& args) {
   LodRenderOptions options;
   for (std::size_t i = 0; i < args.size(); ++i) {
     if (args[i] == "--size") {
-      if (i + 1 >= args.size()) {
-        throw UsageError{"--size needs a value"};
-      }
-      const std::string_view text = args[++i];
-      const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), options.size);
-      if (ec != std::errc() || end != text.data() + text.size() || options.size < 1 ||
-          options.size > 16384) {
-        throw UsageError{"--size must be an integer from 1 to 16384"};
-      }
+      options.size = static_cast<int>(integerOption(args, i, 1, 16384));
     } else if (args[i].starts_with("--")) {
       throw UsageError{"unknown option " + std::string(args[i])};
     } else {
@@ -333,15 +363,7 @@ int runRenderLod(const std::vector<std::string_view>& args) {
   }
   durable::syncFile(temporary);
   durable::replaceFile(temporary, out);
-  // World file: pixel sizes, rotations, then the centre of the upper-left pixel.
-  fs::path world = out;
-  world.replace_extension(".pgw");
-  char text[256];
-  const int length =
-      std::snprintf(text, sizeof text, "%.17g\n0\n0\n%.17g\n%.17g\n%.17g\n", image.dx, -image.dy,
-                    image.x0 + 0.5 * image.dx, image.y0 - 0.5 * image.dy);
-  durable::writeFileAtomically(
-      world, std::as_bytes(std::span(text, static_cast<std::size_t>(std::max(length, 0)))));
+  writeWorldFile(out, image.x0, image.y0, image.dx, image.dy);
 
   std::printf("%s: %d x %d pixels, %s x %.10g .. %.10g, y %.10g .. %.10g\n", out.string().c_str(),
               image.width, image.height, image.geographic ? "lon/lat (degrees)" : "global x/y,",
@@ -351,6 +373,100 @@ int runRenderLod(const std::vector<std::string_view>& args) {
     const Rgb8 c = depthColour(static_cast<int>(depth));
     std::printf("depth %2zu  #%02x%02x%02x  %zu pixels\n", depth, c.r, c.g, c.b,
                 image.pixelsPerDepth[depth]);
+  }
+  return 0;
+}
+
+/// `vsm diff`: what changed between two kept revisions of a model, as numbers (stdout, --json),
+/// a picture (--png, with a world file) and a float32 GeoTIFF of the displacement (--geotiff).
+int runDiff(const std::vector<std::string_view>& args) {
+  std::vector<std::string_view> positional;
+  std::optional<std::uint64_t> from, to;
+  std::optional<fs::path> json, png, geotiff;
+  DiffOptions options;
+  int size = 1024;
+  std::size_t budget = std::size_t{1} << 30;
+  for (std::size_t i = 0; i < args.size(); ++i) {
+    if (args[i] == "--from") {
+      from = static_cast<std::uint64_t>(integerOption(args, i, 1, INT64_MAX));
+    } else if (args[i] == "--to") {
+      to = static_cast<std::uint64_t>(integerOption(args, i, 1, INT64_MAX));
+    } else if (args[i] == "--size") {
+      size = static_cast<int>(integerOption(args, i, 1, 16384));
+    } else if (args[i] == "--json") {
+      json = fs::path(optionValue(args, i));
+    } else if (args[i] == "--png") {
+      png = fs::path(optionValue(args, i));
+    } else if (args[i] == "--geotiff") {
+      geotiff = fs::path(optionValue(args, i));
+    } else if (args[i] == "--memory-budget") {
+      budget = budgetOption(args, i);
+    } else if (args[i].starts_with("--")) {
+      throw UsageError{"unknown option " + std::string(args[i])};
+    } else {
+      positional.push_back(args[i]);
+    }
+  }
+  if (positional.size() != 1 || !from || !to) {
+    throw UsageError{"diff needs <opc> --from A --to B"};
+  }
+  PatchCache cache(budget);
+  const fs::path dir = fs::path(positional[0]).lexically_normal();
+  const std::string name =
+      (dir.has_filename() ? dir : dir.parent_path()).filename().string();  // "prism/" too
+  auto live = LiveModel::open(dir, name, cache, LiveModel::Access::Read);
+  ConsoleProgress progress;
+  options.progress = &progress;
+  options.mapSize = png || geotiff ? size : 0;
+  const auto start = std::chrono::steady_clock::now();
+  const RevisionDiff diff =
+      diffRevisions(*live, live->snapshotAt(*from), live->snapshotAt(*to), options);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  const std::string body = diffJson(diff, live->name());
+  if (json) {
+    durable::writeFileAtomically(*json, std::as_bytes(std::span(body.data(), body.size())));
+  }
+  const std::string legend = diffLegend(diff);
+  if (diff.map) {
+    const TopDownGrid& g = diff.map->grid;
+    if (png) {
+      durable::writeFileAtomically(*png, diffPng(diff, 1));
+      writeWorldFile(*png, g.x0, g.y0, g.dx, g.dy);
+    }
+    if (geotiff) {
+      FloatRaster raster;
+      raster.width = g.width;
+      raster.height = g.height;
+      raster.values = diff.map->values;
+      raster.geoTransform = {g.x0, g.dx, 0, g.y0, 0, -g.dy};
+      raster.wgs84 = g.geographic;
+      writeFloatGeoTiff(*geotiff, raster);
+    }
+  } else if (png || geotiff) {
+    std::fprintf(stderr, "vsm: nothing changed between revisions %llu and %llu: no map written\n",
+                 static_cast<unsigned long long>(diff.from),
+                 static_cast<unsigned long long>(diff.to));
+  }
+  const DisplacementStats& t = diff.totals;
+  std::size_t removed = 0;
+  for (const PatchDisplacement& p : diff.patches) {
+    removed += p.removed ? 1 : 0;
+  }
+  std::printf(
+      "revision %llu -> %llu: %zu patches changed, %zu removed, %zu shared; %zu vertices "
+      "compared, %zu skipped, %.6g m^2 changed (|d| > %g m and > float32 noise, at most %.3g m) of "
+      "%.6g m^2, %.2f s\n",
+      static_cast<unsigned long long>(diff.from), static_cast<unsigned long long>(diff.to),
+      diff.patches.size() - removed, removed, diff.sharedPatches, t.samples, t.skipped,
+      t.changedArea, diff.epsilon, t.noise, t.area, seconds);
+  if (t.samples > 0) {
+    std::printf("displacement m: min %.6g, max %.6g, mean %.6g, rms %.6g\n", t.min, t.max, t.mean(),
+                t.rms());
+  }
+  if (diff.map) {
+    std::printf("map: %d x %d pixels, %s; %s\n", diff.map->grid.width, diff.map->grid.height,
+                diff.map->grid.geographic ? "lon/lat (WGS 84)" : "global x/y", legend.c_str());
   }
   return 0;
 }
@@ -373,6 +489,9 @@ int main(int argc, char** argv) {
     }
     if (command == "render-lod") {
       return runRenderLod(args);
+    }
+    if (command == "diff") {
+      return runDiff(args);
     }
     throw UsageError{"unknown command '" + std::string(command) + "'"};
   });

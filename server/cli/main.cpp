@@ -2,8 +2,8 @@
 //
 // Only help, info and validate run here: this binary links the OPC reader and none of GDAL, PCL
 // or OpenImageIO, whose ~300 shared libraries took ld.so 0.1-1.5 s to load before main on every
-// start (tests/bench/startup_bench.sh). import, merge and render-lod need them: they are run by
-// exec'ing `vsm-heavy` from the directory of this binary, with the same arguments (same process,
+// start (tests/bench/startup_bench.sh). import, merge, render-lod and diff need them: they are run
+// by exec'ing `vsm-heavy` from the directory of this binary, with the same arguments (same process,
 // same exit code and signals).
 #include <unistd.h>
 
@@ -133,7 +133,7 @@ int main(int argc, char** argv) {
     if (command == "validate") {
       return runValidate(args);
     }
-    if (command == "import" || command == "merge" || command == "render-lod") {
+    if (command == "import" || command == "merge" || command == "render-lod" || command == "diff") {
       execHeavy(command, argv);
     }
     throw UsageError{"unknown command '" + std::string(command) + "'"};
