@@ -5,6 +5,7 @@
 #include <cerrno>
 #include <charconv>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
 #include <optional>
 #include <set>
@@ -14,6 +15,7 @@
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
+#include "core/diff/revision_diff.hpp"
 #include "core/grid/patch_grid.hpp"
 #include "core/opc/aara.hpp"
 #include "core/opc/opc_reader.hpp"
@@ -41,6 +43,10 @@ namespace {
 /// changes what it returns; a minute of staleness in client caches is the trade for fewer
 /// round trips (the ETag makes the revalidation cheap).
 constexpr std::string_view kPatchCacheControl = "public, max-age=60";
+
+/// The largest diff.png asked for (pixels along the longer side): 4096 x 4096 RGBA is 64 MiB
+/// before encoding, the map's floats another 64 MiB.
+constexpr int kMaxDiffPngSize = 4096;
 
 json vecJson(const core::Vec3d& v) {
   return json::array({v.x, v.y, v.z});
@@ -166,6 +172,51 @@ http::Response getRevisions(const ModelContext& c, const http::Request& request)
       http::jsonResponse(200,
                          {{"model", id}, {"keep", c.models.keepRevisions()}, {"revisions", list}}),
       http::cache_control::kRevalidate);
+}
+
+/// The diff a request asks for: between the kept revisions ?from=A and ?to=B of model {m}, with a
+/// map of `mapSize` pixels along its longer side when > 0. Throws Error(InvalidArgument) for a
+/// missing or malformed revision, NotFound for one not kept.
+core::RevisionDiff requestedDiff(const ModelContext& c, const http::Request& request, int mapSize) {
+  const auto live = c.models.get(request.param("m"));
+  const auto fromText = request.queryParam("from");
+  const auto toText = request.queryParam("to");
+  if (!fromText || !toText) {
+    throw Error(ErrorCode::InvalidArgument,
+                "diff needs ?from=A&to=B (revision numbers, GET /v1/models/{m}/revisions)");
+  }
+  const std::uint64_t from = parseRevision("query parameter 'from'", *fromText);
+  const std::uint64_t to = parseRevision("query parameter 'to'", *toText);
+  core::DiffOptions options;
+  options.mapSize = mapSize;
+  return core::diffRevisions(*live, live->snapshotAt(from), live->snapshotAt(to), options);
+}
+
+/// GET /v1/models/{m}/diff?from=A&to=B: the displacement per changed patch and in total.
+http::Response getDiff(const ModelContext& c, const http::Request& request) {
+  const core::RevisionDiff diff = requestedDiff(c, request, 0);
+  http::Response response;
+  response.status = 200;
+  response.contentType = "application/json";
+  response.body = core::diffJson(diff, request.param("m"));
+  return withCache(std::move(response), http::cache_control::kRevalidate);
+}
+
+/// GET /v1/models/{m}/diff.png?from=A&to=B&size=N: the displacement seen from above, blue - white
+/// - red over [-R, R], R the largest |d|, named by the PNG's text and X-VSM-Diff-Range.
+http::Response getDiffPng(const ModelContext& c, const http::Request& request) {
+  const int size = intQuery(request, "size", 1024, 1, kMaxDiffPngSize);
+  const core::RevisionDiff diff = requestedDiff(c, request, size);
+  const std::vector<std::byte> png = core::diffPng(diff, size);
+  http::Response response;
+  response.status = 200;
+  response.contentType = "image/png";
+  response.body.assign(reinterpret_cast<const char*>(png.data()), png.size());
+  char range[64];
+  std::snprintf(range, sizeof range, "%.9g", diff.totals.maxAbs());
+  response.set("X-VSM-Diff-Range", range);
+  response.set("X-VSM-Diff-Legend", core::diffLegend(diff));
+  return withCache(std::move(response), http::cache_control::kRevalidate);
 }
 
 /// POST /v1/models/{m}/revisions/{n}/restore: a job publishing revision n's content anew.
@@ -663,6 +714,8 @@ void addModelRoutes(http::Router& router, ModelContext context) {
   router.add(http::Method::Get, "/v1/models/{m}/patches/{p}", bind(getPatch));
   router.add(http::Method::Get, "/v1/models/{m}/revisions", bind(getRevisions));
   router.add(http::Method::Post, "/v1/models/{m}/revisions/{n}/restore", bind(postRestore));
+  router.add(http::Method::Get, "/v1/models/{m}/diff", bind(getDiff));
+  router.add(http::Method::Get, "/v1/models/{m}/diff.png", bind(getDiffPng));
   // Routes with an inline handler: answered on the network thread when cached.
   using Inline = std::optional<http::Response> (*)(const ModelContext&, const http::Request&, bool);
   const auto addCached = [&](const char* pattern, Inline handler) {

@@ -62,7 +62,8 @@ http::Response temporaryRedirect(const std::string& location, std::string_view w
 
 /// GET/POST /v1/models, GET/DELETE /v1/models/{m}, GET /v1/models/{m}/hierarchy,
 /// /v1/models/{m}/patches/{p}, /v1/models/{m}/patches/{p}/positions, .../coordinates,
-/// .../texture[/{layer}], /v1/models/{m}/lod (see proto/openapi.yaml). Every read works on one
+/// .../texture[/{layer}], /v1/models/{m}/lod, /v1/models/{m}/diff[.png] (see proto/openapi.yaml).
+/// Every read works on one
 /// snapshot of the model, so a response never mixes two versions.
 void addModelRoutes(http::Router& router, ModelContext context);
 
