@@ -136,6 +136,17 @@ if [[ -n $DETAIL ]]; then
   jq -c '.revisions[] | {revision, parent, job, changed_patches, latest}' "$WORK/revisions.json"
   FIRST=$(jq -r '.revisions[0].revision' "$WORK/revisions.json")
   get "/v1/models/$MODEL?rev=$FIRST" | jq -c '{id, version, depth, patches}'
+
+  LATEST=$(jq -r '.revisions[-1].revision' "$WORK/revisions.json")
+  step "what the merge changed: revision $FIRST to $LATEST (metres along the surface normal)"
+  get "/v1/models/$MODEL/diff?from=$FIRST&to=$LATEST" >"$WORK/diff.json"
+  jq -c '.totals | {changed_patches, shared_patches, changed_area, min, max, rms}' \
+    "$WORK/diff.json"
+  show "curl -sS -o diff.png '$URL/v1/models/$MODEL/diff.png?from=$FIRST&to=$LATEST&size=512'"
+  curl -sS --fail-with-body -D "$WORK/diff-headers.txt" -o "$WORK/diff.png" \
+    "$URL/v1/models/$MODEL/diff.png?from=$FIRST&to=$LATEST&size=512"
+  echo "$WORK/diff.png: $(wc -c <"$WORK/diff.png") bytes, $(grep -i '^x-vsm-diff-legend' \
+    "$WORK/diff-headers.txt" | cut -d' ' -f2- | tr -d '\r')"
 fi
 
 step "memory and cache statistics"

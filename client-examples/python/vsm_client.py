@@ -126,6 +126,19 @@ class Client:
         return self.request("POST", "/v1/models/%s/revisions/%d/restore" % (quote(model), revision),
                             ok=(202,)).json()
 
+    def diff(self, model, from_revision, to_revision):
+        """What changed between two kept revisions: the displacement (metres, along the surface
+        normal, + = outward) per changed patch and in "totals" (proto/openapi.yaml, Diff)."""
+        query = urllib.parse.urlencode({"from": int(from_revision), "to": int(to_revision)})
+        return self.get_json("/v1/models/%s/diff?%s" % (quote(model), query))
+
+    def diff_png(self, model, from_revision, to_revision, size=1024):
+        """(PNG bytes, R): the diff seen from above, blue -R .. white 0 .. red +R metres."""
+        query = urllib.parse.urlencode({"from": int(from_revision), "to": int(to_revision),
+                                        "size": int(size)})
+        r = self.request("GET", "/v1/models/%s/diff.png?%s" % (quote(model), query))
+        return r.body, float(r.headers["X-VSM-Diff-Range"])
+
     def lod(self, model, box, resolution):
         query = urllib.parse.urlencode({"box": ",".join(repr(float(v)) for v in box),
                                         "resolution": repr(float(resolution))})
@@ -380,6 +393,23 @@ def cmd_merge(client, args):
     return final
 
 
+def cmd_diff(client, args):
+    d = client.diff(args.model, args.from_revision, args.to_revision)
+    t = d["totals"]
+    print("diff %s %d -> %d: %d patches changed, %d removed, %d shared"
+          % (d["model"], d["from"], d["to"], t["changed_patches"], t["removed_patches"],
+             t["shared_patches"]))
+    if t["samples"]:
+        print("displacement m: min %.4f, max %.4f, rms %.4f; changed area %.6g m^2"
+              % (t["min"], t["max"], t["rms"], t["changed_area"]))
+    if args.png:
+        png, limit = client.diff_png(args.model, args.from_revision, args.to_revision, args.size)
+        with open(args.png, "wb") as f:
+            f.write(png)
+        print("written: %s (blue -%.4g m, white 0, red +%.4g m)" % (args.png, limit, limit))
+    return d
+
+
 def cmd_tour(client, args):
     models = cmd_models(client, args)
     if not models:
@@ -411,6 +441,12 @@ def main(argv=None):
     p.add_argument("target")
     p.add_argument("source")
     p.add_argument("--register", action="store_true", help="register (ICP) before merging")
+    p = sub.add_parser("diff", help="what changed between two kept revisions of a model")
+    p.add_argument("model")
+    p.add_argument("from_revision", type=int)
+    p.add_argument("to_revision", type=int)
+    p.add_argument("--png", help="also write the top-down map there")
+    p.add_argument("--size", type=int, default=1024, help="the map's longer side in pixels")
     p = sub.add_parser("tour", help="models, walk, patch and (with DETAIL) merge")
     p.add_argument("model", nargs="?")
     p.add_argument("detail", nargs="?")
@@ -418,7 +454,7 @@ def main(argv=None):
     client = Client(args.url, args.token)
     try:
         result = {"models": cmd_models, "walk": cmd_walk, "patch": cmd_patch, "merge": cmd_merge,
-                  "tour": cmd_tour}[args.command](client, args)
+                  "diff": cmd_diff, "tour": cmd_tour}[args.command](client, args)
     except ApiError as e:
         print("vsm_client: %s" % e, file=sys.stderr)
         return 1

@@ -97,6 +97,9 @@ class Clients(unittest.TestCase):
         self.assertIn("  succeeded done 100%", out)
         _, _, summary = self.daemon.get_json("/v1/models/prism-curl")
         self.assertEqual(summary["version"], 2)
+        _, _, diff = self.daemon.get_json("/v1/models/prism-curl/diff?from=1&to=2")
+        self.assertIn('"changed_patches":%d,' % diff["totals"]["changed_patches"], out)
+        self.assertRegex(out, r"diff\.png: \d+ bytes, displacement from revision 1 to 2")
         self.assertIn("walk-through done", out)
 
     def test_python_client_walks_downloads_and_merges_prism_with_jacksboro(self):
@@ -132,6 +135,19 @@ class Clients(unittest.TestCase):
         self.assertEqual(after["version"], 2)
         self.assertGreater(after["patches"], before["patches"])
         self.assertGreater(after["depth"], before["depth"])
+
+        # What the merge changed, as the client reads it: the route's totals.
+        png = os.path.join(self.daemon.dir, "diff.png")
+        out = self.run_client(client + ["diff", "prism", "1", "2", "--png", png, "--size", "300"])
+        _, _, diff = self.daemon.get_json("/v1/models/prism/diff?from=1&to=2")
+        totals = diff["totals"]
+        self.assertGreater(totals["changed_patches"], 0)
+        self.assertIn("diff prism 1 -> 2: %d patches changed, 0 removed, %d shared"
+                      % (totals["changed_patches"], totals["shared_patches"]), out)
+        self.assertIn("rms %.4f" % totals["rms"], out)
+        self.assertIn("red +%.4g m" % totals["max_abs"], out)
+        with open(png, "rb") as f:
+            self.assertEqual(f.read(8), b"\x89PNG\r\n\x1a\n")
 
     def test_python_client_reports_errors_as_one_line(self):
         result = subprocess.run([ARGS.python, os.path.join(ARGS.clients, "python", "vsm_client.py"),
