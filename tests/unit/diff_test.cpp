@@ -247,6 +247,33 @@ TEST_F(DiffTest, AKnownBumpGivesItsHeightAlongTheNormal) {
   EXPECT_NEAR(back.totals.max, 0.0, 1e-5);
 }
 
+TEST_F(DiffTest, ADiffOfEveryLeafReadsThroughTheCacheWithinASmallBudget) {
+  // 16 leaves change in both revisions: 42 patches of 17 x 17 float32 vertices (3.4 KiB each,
+  // about 146 KiB) are more than the budget, which holds a leaf and its neighbours a few times.
+  constexpr std::size_t kBudget = 64 << 10;
+  writeModel(dir_, tilted);
+  PatchCache cache(kBudget);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v1 = live->snapshot()->version;
+  {
+    auto edit = live->beginEdit();
+    for (std::uint32_t y = 0; y < 4; ++y) {
+      for (std::uint32_t x = 0; x < 4; ++x) {
+        edit->setPositions({2, x, y},
+                           leafGrid(x, y, [](double u, double v) { return tilted(u, v) + 1; }));
+      }
+    }
+    edit->publish();
+  }
+  const RevisionDiff diff =
+      diffRevisions(*live, live->snapshotAt(v1), live->snapshotAt(live->snapshot()->version));
+  EXPECT_EQ(diff.totals.samples, 16u * kSize * kSize);
+  EXPECT_NEAR(diff.totals.min, 1 / std::sqrt(1.01), 1e-5);
+  EXPECT_NEAR(diff.totals.max, 1 / std::sqrt(1.01), 1e-5);
+  EXPECT_LE(cache.stats().peakResidentBytes, kBudget);
+  live.reset();
+}
+
 TEST_F(DiffTest, BadArgumentsAreRefused) {
   auto live = open(tilted);
   DiffOptions options;
