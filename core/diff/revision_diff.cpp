@@ -435,33 +435,14 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
     return x.key.depth != y.key.depth ? x.key.depth < y.key.depth : x.key < y.key;
   });
 
-  std::optional<DisplacementMap> map;
-  if (options.mapSize > 0 && !work.empty()) {
-    TopDownGrid view;
-    view.geographic = looksEcef(*sourceB->positions(PatchKey::root()));
-    double minX = Box3d::kInf, minY = Box3d::kInf, maxX = -Box3d::kInf, maxY = -Box3d::kInf;
-    for (const Work& w : work) {
-      const Box3d& box = (w.removed ? a : b).at(w.key).globalBox;
-      for (int c = 0; c < 8 && !box.empty(); ++c) {
-        const Point2d p =
-            view.plane({(c & 1) ? box.max.x : box.min.x, (c & 2) ? box.max.y : box.min.y,
-                        (c & 4) ? box.max.z : box.min.z});
-        minX = std::min(minX, p.x);
-        maxX = std::max(maxX, p.x);
-        minY = std::min(minY, p.y);
-        maxY = std::max(maxY, p.y);
-      }
-    }
-    if (minX <= maxX && minY <= maxY) {
-      map.emplace();
-      map->grid = TopDownGrid::fit(view.geographic, minX, maxX, minY, maxY, options.mapSize);
-      map->values.assign(map->grid.pixels(), std::numeric_limits<float>::quiet_NaN());
-    }
-  }
-
   OtherSurface surfaceA(*sourceA), surfaceB(*sourceB);
-  std::size_t done = 0;
-  for (const Work& w : work) {
+  // One leaf sampled: its grid (pinned) and the displacement at each vertex (NaN where none).
+  struct Sampled {
+    std::shared_ptr<const PatchGrid> grid;
+    std::vector<double> d;
+    DisplacementStats stats;
+  };
+  const auto sample = [&](const Work& w) {
     if (options.cancel != nullptr) {
       options.cancel->throwIfCancelled();
     }
@@ -469,42 +450,47 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
     PatchSource& own = w.removed ? *sourceA : *sourceB;
     OtherSurface& other = w.removed ? surfaceB : surfaceA;
     const PatchInfo& info = own.model().at(w.key);
-    const std::shared_ptr<const PatchGrid> grid = own.positions(w.key);
+    Sampled out{own.positions(w.key), {}, {}};
+    const PatchGrid& grid = *out.grid;
     const SurfaceSampler* sampler = other.around(info.globalBox);
-    const std::vector<double> areas = vertexAreas(*grid);
-    std::vector<double> d(grid->vertexCount(), kNaN);
-    DisplacementStats stats;
+    const std::vector<double> areas = vertexAreas(grid);
+    out.d.assign(grid.vertexCount(), kNaN);
     if (sampler != nullptr) {
-      stats.noise = storageNoise(info.localBox) + other.noise();
+      out.stats.noise = storageNoise(info.localBox) + other.noise();
     }
-    const double threshold = std::max(options.epsilon, stats.noise);
-    const int s = grid->size();
+    const double threshold = std::max(options.epsilon, out.stats.noise);
+    const int s = grid.size();
     for (int y = 0; y < s; ++y) {
       for (int x = 0; x < s; ++x) {
-        if (!grid->defined(x, y)) {
+        if (!grid.defined(x, y)) {
           continue;
         }
-        const Vec3d p = grid->global(x, y);
+        const Vec3d p = grid.global(x, y);
         const std::optional<SurfacePoint> hit =
             sampler != nullptr ? sampler->locate(p) : std::nullopt;
         const Vec3d n = hit ? cellNormal(other.grid(hit->grid), hit->x, hit->y, sampler->frame().up)
                             : Vec3d{kNaN, kNaN, kNaN};
         if (!n.finite()) {
-          ++stats.skipped;
+          ++out.stats.skipped;
           continue;
         }
         // `to` minus `from` along from's normal, or along to's where `to` removed the leaf.
         const double distance = dot(p - hit->position, n);
         const std::size_t i = static_cast<std::size_t>(y) * s + x;
-        d[i] = w.removed ? -distance : distance;
-        stats.add(d[i], areas[i], threshold);
+        out.d[i] = w.removed ? -distance : distance;
+        out.stats.add(out.d[i], areas[i], threshold);
       }
     }
-    if (map) {
-      drawLeaf(*grid, d, *map);
-    }
+    return out;
+  };
+
+  // The statistics.
+  std::vector<bool> leafChanged(work.size(), false);
+  for (std::size_t i = 0; i < work.size(); ++i) {
+    const DisplacementStats stats = sample(work[i]).stats;
+    leafChanged[i] = stats.changedArea > 0;
     diff.totals.merge(stats);
-    for (std::optional<PatchKey> k = w.key; k; k = k->parent()) {
+    for (std::optional<PatchKey> k = work[i].key; k; k = k->parent()) {
       const auto it = changed.find(*k);
       if (it != changed.end()) {
         it->second.stats.merge(stats);
@@ -512,7 +498,55 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
     }
     if (options.progress != nullptr) {
       options.progress->report("sampling",
-                               static_cast<double>(++done) / static_cast<double>(work.size()));
+                               static_cast<double>(i + 1) / static_cast<double>(work.size()));
+    }
+  }
+
+  // The map, over the changed area: the leaves that changed (or every sampled one when none did),
+  // and a tenth of that around them for context; their leaves are sampled again to be drawn.
+  if (options.mapSize > 0 && !work.empty()) {
+    const bool any = std::find(leafChanged.begin(), leafChanged.end(), true) != leafChanged.end();
+    TopDownGrid view;
+    view.geographic = looksEcef(*sourceB->positions(PatchKey::root()));
+    const auto extent = [&](const Work& w) {
+      const Box3d& box = (w.removed ? a : b).at(w.key).globalBox;
+      Rect2d r;
+      for (int c = 0; c < 8 && !box.empty(); ++c) {
+        const Point2d p =
+            view.plane({(c & 1) ? box.max.x : box.min.x, (c & 2) ? box.max.y : box.min.y,
+                        (c & 4) ? box.max.z : box.min.z});
+        r.extend({p.x, p.y});
+      }
+      return r;
+    };
+    Rect2d area;
+    for (std::size_t i = 0; i < work.size(); ++i) {
+      if (leafChanged[i] || !any) {
+        const Rect2d r = extent(work[i]);
+        if (!r.empty()) {
+          area.extend(r.min);
+          area.extend(r.max);
+        }
+      }
+    }
+    if (!area.empty()) {
+      const double gu = 0.1 * (area.max.u - area.min.u), gv = 0.1 * (area.max.v - area.min.v);
+      area.min = {area.min.u - gu, area.min.v - gv};
+      area.max = {area.max.u + gu, area.max.v + gv};
+      DisplacementMap& map = diff.map.emplace();
+      map.grid = TopDownGrid::fit(view.geographic, area.min.u, area.max.u, area.min.v, area.max.v,
+                                  options.mapSize);
+      map.values.assign(map.grid.pixels(), std::numeric_limits<float>::quiet_NaN());
+      for (std::size_t i = 0; i < work.size(); ++i) {
+        if (extent(work[i]).intersects(area)) {
+          const Sampled leaf = sample(work[i]);
+          drawLeaf(*leaf.grid, leaf.d, map);
+        }
+        if (options.progress != nullptr) {
+          options.progress->report("drawing",
+                                   static_cast<double>(i + 1) / static_cast<double>(work.size()));
+        }
+      }
     }
   }
   surfaceA.clear();
@@ -521,7 +555,6 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
   for (auto& [key, patch] : changed) {
     diff.patches.push_back(std::move(patch));
   }
-  diff.map = std::move(map);
   return diff;
 }
 

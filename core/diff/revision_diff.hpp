@@ -66,8 +66,8 @@ struct PatchDisplacement {
   DisplacementStats stats;
 };
 
-/// A top-down map of the displacement (TopDownGrid over the changed area), NaN where nothing was
-/// compared.
+/// A top-down map of the displacement (a TopDownGrid over the changed area: the leaves with a
+/// change, and a tenth of their extent around them), NaN where nothing was compared.
 struct DisplacementMap {
   TopDownGrid grid;
   /// Row-major, top row first, grid.pixels() values.
