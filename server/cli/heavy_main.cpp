@@ -190,9 +190,18 @@ int runMerge(const std::vector<std::string_view>& args) {
   bool registerFirst = false;
   std::optional<fs::path> out;
   std::size_t budget = std::size_t{1} << 30;
+  PublishOptions publish;
   for (std::size_t i = 0; i < args.size(); ++i) {
     if (args[i] == "--register") {
       registerFirst = true;
+    } else if (args[i] == "--keep-revisions") {
+      unsigned keep = 0;
+      const std::string_view text = i + 1 < args.size() ? args[++i] : std::string_view();
+      const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), keep);
+      if (ec != std::errc() || end != text.data() + text.size() || keep < 2) {
+        throw UsageError{"--keep-revisions needs a count of at least 2"};
+      }
+      publish.keepRevisions = keep;
     } else if (args[i] == "--out" || args[i] == "--memory-budget") {
       if (i + 1 >= args.size()) {
         throw UsageError{std::string(args[i]) + " needs a value"};
@@ -253,7 +262,7 @@ int runMerge(const std::vector<std::string_view>& args) {
   auto edit = live->beginEdit();
   const MergeResult result = mergeModels(*edit, *detail, options);
   progress.report("publishing", 0.0);
-  edit->publish();
+  edit->publish(nullptr, publish);
   progress.report("publishing", 1.0);
   edit.reset();
   live.reset();

@@ -85,6 +85,12 @@ class CliErrors(unittest.TestCase):
         self.assertEqual(result.returncode, 2)
         self.assertIn("unknown command", result.stderr)
 
+    def test_merge_keeps_at_least_two_revisions(self):
+        for bad in ("1", "0", "x", ""):
+            result = vsm("merge", "a", "b", "--keep-revisions", bad)
+            self.assertEqual(result.returncode, 2, result.stderr)
+            self.assertIn("--keep-revisions needs a count of at least 2", result.stderr)
+
     def test_import_of_a_missing_file_fails_cleanly(self):
         out = work("missing-out")
         result = vsm("import", "/nonexistent/dem.tif", out)
