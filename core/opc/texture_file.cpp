@@ -40,6 +40,9 @@ std::vector<std::byte> encodeImage(const char* name, const std::uint8_t* pixels,
   if (compression != nullptr) {
     spec.attribute("compression", compression);
   }
+  // OpenImageIO stamps a TIFF with the time it is written unless told a time: the same texels must
+  // give the same bytes (imports in parallel, re-imports, a restore compared with its revision).
+  spec.attribute("DateTime", "");
   out->set_ioproxy(&proxy);
   if (!out->open(name, spec) || !out->write_image(OIIO::TypeDesc::UINT8, pixels) || !out->close()) {
     throw Error(ErrorCode::Internal,

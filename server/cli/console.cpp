@@ -43,7 +43,8 @@ const std::string_view kUsage =
     "                                              file <out>.pgw (lon/lat for ECEF models)\n"
     "  help                                        this text\n";
 
-ConsoleProgress::ConsoleProgress() : tty_(isatty(STDERR_FILENO) == 1) {}
+ConsoleProgress::ConsoleProgress(std::uintmax_t inputBytes)
+    : tty_(isatty(STDERR_FILENO) == 1), inputBytes_(inputBytes) {}
 
 ConsoleProgress::~ConsoleProgress() {
   if (tty_ && drawn_) {
@@ -84,6 +85,12 @@ void ConsoleProgress::report(std::string_view stage, double fraction) {
     }
     const double elapsed = std::chrono::duration<double>(now - stageStart_).count();
     std::string line = stage_ + " " + std::to_string(percent) + "%, " + formatDuration(elapsed);
+    if (inputBytes_ > 0 && fraction > 0 && elapsed >= 1.0) {
+      line += ", " +
+              formatBytes(static_cast<std::uintmax_t>(fraction * static_cast<double>(inputBytes_) /
+                                                      elapsed)) +
+              "/s";
+    }
     if (fraction >= 0.01 && fraction < 1.0 && elapsed >= 1.0) {
       line += ", ETA " + formatDuration(elapsed * (1.0 - fraction) / fraction);
     }
@@ -108,6 +115,24 @@ std::string formatBytes(std::uintmax_t bytes) {
   char text[64];
   std::snprintf(text, sizeof text, unit == 0 ? "%.0f %s" : "%.1f %s", value, units[unit]);
   return text;
+}
+
+std::uintmax_t bytesUnder(const std::filesystem::path& path) {
+  std::error_code ec;
+  if (!std::filesystem::is_directory(path, ec)) {
+    const std::uintmax_t size = std::filesystem::file_size(path, ec);
+    return ec ? 0 : size;
+  }
+  std::uintmax_t total = 0;
+  for (std::filesystem::recursive_directory_iterator it(path, ec), end; !ec && it != end;
+       it.increment(ec)) {
+    if (it->is_regular_file(ec)) {
+      const std::uintmax_t size = it->file_size(ec);
+      total += ec ? 0 : size;
+      ec.clear();
+    }
+  }
+  return total;
 }
 
 int runReportingErrors(const std::function<int()>& command) {

@@ -36,6 +36,7 @@
 
 namespace fs = std::filesystem;
 using namespace vsm::core;
+using vsm::cli::bytesUnder;
 using vsm::cli::ConsoleProgress;
 using vsm::cli::UsageError;
 
@@ -116,7 +117,7 @@ int runImport(const std::vector<std::string_view>& args) {
                  "vsm: warning: --texture none: the model gets no Images/ and no texture "
                  "coordinates, so PRo3D will not open it\n");
   }
-  ConsoleProgress progress;
+  ConsoleProgress progress(bytesUnder(fs::path(positional[0])));
   options.progress = &progress;
   ThreadExecutor executor;
   options.executor = &executor;
@@ -243,7 +244,7 @@ int runMerge(const std::vector<std::string_view>& args) {
     copy.emplace(target, *out);
     live = LiveModel::open(copy->path(), "target", cache);
   }
-  ConsoleProgress progress;
+  ConsoleProgress progress(bytesUnder(detailDir));
   MergeOptions options;
   options.progress = &progress;
   if (registerFirst) {
@@ -313,7 +314,7 @@ int runRenderLod(const std::vector<std::string_view>& args) {
   const fs::path dir(positional[0]);
   const fs::path out(positional[1]);
   const Model model = readOpcModel(dir);
-  ConsoleProgress progress;
+  ConsoleProgress progress(bytesUnder(dir));
   options.progress = &progress;
   const LodImage image = renderLod(
       model,

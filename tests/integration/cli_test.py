@@ -347,7 +347,8 @@ class Progress(unittest.TestCase):
         draws = [d for d in body.split("\r") if d]
         self.assertGreater(len(draws), 3, repr(body[:300]))
         for draw in draws:
-            self.assertRegex(draw, r"^[a-z]+ \d{1,3}%, \d+ (s|min \d\d s)(, ETA \d+ "
+            self.assertRegex(draw, r"^[a-z]+ \d{1,3}%, \d+ (s|min \d\d s)"
+                                   r"(, \d+(\.\d)? (B|KiB|MiB|GiB)/s)?(, ETA \d+ "
                                    r"(s|min \d\d s))?\x1b\[K$")
         self.assertRegex(draws[-1], last)
         percents = [int(re.match(r"^[a-z]+ (\d+)%", d).group(1)) for d in draws]
