@@ -20,6 +20,8 @@
 // error is the screen-space error target in pixels (default 4; smaller loads deeper levels sooner).
 // fly=ID flies to the finest area (the deepest level's bounds) of model ID once the model is in.
 // merge=ID preselects ID as the model the merge button merges into the shown one.
+// rev=N shows kept revision N of the model (GET /v1/models/{m}/revisions; the picker lists them)
+// instead of the latest; a publish then changes nothing on screen but the picker.
 //
 // Live: the page follows GET /v1/events. Job progress is shown; on a `published` event for the
 // shown model it replaces the tileset by the new version's (tile URIs carry patch versions: the
@@ -29,6 +31,7 @@
 // For tests and scripts, window.vsmViewer holds counters of the tileset drawn: tiles requested,
 // loaded (of them textured) and failed, pending loads, `idle` (the root is in and nothing is
 // queued, downloading or parsing), `version` (the model version drawn),
+// `revision` (the revision picked, null for the latest), `revisions` (the kept ones listed),
 // `reloads`, `shown` (key, depth and ECEF box of each tile drawn), `legend`, `jobs`, `published`,
 // `overlays` (screen rectangles of the panel and legend) and `camera`: the matrices of the last
 // frame drawn (column-major, as three.js keeps them) and the canvas size in CSS pixels, so that a
@@ -61,6 +64,9 @@ const view = params.get('view') === 'top' ? 'top' : 'oblique';
 const sunParam = (params.get('sun') || '').split(',').map(Number);
 const sun = sunParam.length === 2 && sunParam.every(Number.isFinite) ? sunParam : DEFAULT_SUN;
 let exaggeration = Math.max(Number(params.get('exaggeration')) || 1, 0);
+/// The revision shown; null: the latest, following publishes.
+let revision = Number.isInteger(Number(params.get('rev'))) && Number(params.get('rev')) > 0
+  ? Number(params.get('rev')) : null;
 
 /// The counters of one tileset's renderer (the drawn one's are copied into window.vsmViewer).
 function newCounts() {
@@ -80,6 +86,8 @@ const state = {
   idle: false,
   frames: 0,
   version: null,
+  revision,
+  revisions: [],
   reloads: 0,
   shown: [],
   legend: [],
@@ -470,24 +478,64 @@ function makeTiles(url) {
   return t;
 }
 
-let tiles = makeTiles(tilesetBase);
+/// The tileset of the revision shown: `rev=N` for a picked one (its tiles' URIs carry it too),
+/// else the latest, `v=` naming the version so that no cache answers an older one.
+function tilesetUrl(version) {
+  const url = new URL(tilesetBase);
+  if (revision !== null) {
+    url.searchParams.set('rev', String(revision));
+  } else if (version !== null) {
+    url.searchParams.set('v', String(version));
+  }
+  return url.toString();
+}
+
+let tiles = makeTiles(tilesetUrl(null));
 scene.add(tiles.group);
 
 /// Replaces the tileset by model version `version`'s (the URL names it, so no cache answers the
-/// old one). Unchanged tiles keep their URIs, so the browser's cache answers them; the changed
-/// ones load anew. (Loading the new version beside the old one and swapping when it is complete
-/// would avoid the moment of coarser tiles, but 3d-tiles-renderer's renderers share one tile
-/// cache and queues, and the second one starved.)
+/// old one), or by the picked revision's. Unchanged tiles keep their URIs, so the browser's cache
+/// answers them; the changed ones load anew. (Loading the new version beside the old one and
+/// swapping when it is complete would avoid the moment of coarser tiles, but 3d-tiles-renderer's
+/// renderers share one tile cache and queues, and the second one starved.)
 function reloadTileset(version) {
   scene.remove(tiles.group);
   tiles.dispose();
-  const url = new URL(tilesetBase);
-  url.searchParams.set('v', String(version));
-  tiles = makeTiles(url.toString());
+  tiles = makeTiles(tilesetUrl(version));
   scene.add(tiles.group);
-  state.version = version;
+  state.version = revision !== null ? revision : version;
   state.reloads++;
   state.idle = false;
+}
+
+/// The revision picker: the latest (followed as it is published) and each kept revision, with
+/// when and by which job it was made.
+async function readRevisions() {
+  const list = (await getJson(`/v1/models/${encodeURIComponent(modelId)}/revisions`)).revisions;
+  state.revisions = list.map((r) => ({ revision: r.revision, time: r.time, job: r.job,
+    latest: r.latest }));
+  const select = $('revision');
+  select.textContent = '';
+  const latest = document.createElement('option');
+  latest.value = '';
+  latest.textContent = 'latest';
+  select.appendChild(latest);
+  for (const r of [...list].reverse()) {
+    const option = document.createElement('option');
+    option.value = String(r.revision);
+    option.textContent = `${r.revision}${r.latest ? ' (latest)' : ''} ${r.time.slice(0, 16)}` +
+      (r.restored_from ? ` restores ${r.restored_from}` : '');
+    select.appendChild(option);
+  }
+  select.value = revision === null ? '' : String(revision);
+}
+
+function pickRevision(value) {
+  revision = value ? Number(value) : null;
+  state.revision = revision;
+  setParam('rev', revision === null ? '' : String(revision), '');
+  reloadTileset(state.version);
+  readModel().catch((error) => console.warn(error));
 }
 
 // ---- the model: legend, fly-to, merge ---------------------------------------------------------
@@ -495,7 +543,8 @@ function reloadTileset(version) {
 /// Fills the legend from the model's levels (GET /v1/models/{m}): each depth's palette colour and
 /// resolution (mean distance between grid neighbours).
 async function readModel() {
-  const info = await getJson(`/v1/models/${encodeURIComponent(modelId)}`);
+  const info = await getJson(`/v1/models/${encodeURIComponent(modelId)}` +
+    (revision !== null ? `?rev=${revision}` : ''));
   if (state.version === null) {
     state.version = info.version;
   }
@@ -686,13 +735,18 @@ function followEvents() {
       changed: data.changed_count });
     readModels().catch((error) => console.warn(error));
     if (data.model === modelId) {
-      reloadTileset(data.version);
-      readModel().catch((error) => console.warn(error));
+      readRevisions().catch((error) => console.warn(error));
+      if (revision === null) {
+        reloadTileset(data.version);
+        readModel().catch((error) => console.warn(error));
+      }
     }
   });
 }
 
 readModel().catch((error) => console.warn(error));
+readRevisions().catch((error) => console.warn(error));
+$('revision').addEventListener('change', (event) => pickRevision(event.target.value));
 let flyPending = params.get('fly');
 readModels().then(() => {
   if (flyPending && placed) {

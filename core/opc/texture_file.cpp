@@ -41,6 +41,9 @@ std::vector<std::byte> encodeImage(
   if (compression != nullptr) {
     spec.attribute("compression", compression);
   }
+  // OpenImageIO stamps a TIFF with the time it is written unless told a time: the same texels must
+  // give the same bytes (imports in parallel, re-imports, a restore compared with its revision).
+  spec.attribute("DateTime", "");
   for (const auto& [keyword, value] : text) {
     spec.attribute(keyword, value);
   }

@@ -31,10 +31,12 @@ const std::string_view kUsage =
     "bytes\n"
     "  validate <opc>                              check every invariant; exit 1 listing findings\n"
     "  merge <target> <detail> [--register] [--out <dir>] [--memory-budget SIZE]\n"
-    "                                              insert the detail model into the target (in\n"
+    "        [--keep-revisions N]                  insert the detail model into the target (in\n"
     "                                              place, or into a new <dir>); --register aligns\n"
     "                                              it first (ICP); SIZE like 512MiB (default "
-    "1GiB)\n"
+    "1GiB);\n"
+    "                                              the target keeps its last N revisions (default\n"
+    "                                              8, at least 2; vsmd reads them with ?rev=)\n"
     "  render-lod <opc> <out.png> [--size N]       top-down picture of which depth covers which\n"
     "                                              area (colours: core/tiles/README.md), N pixels\n"
     "                                              on the longer side (default 1024), and a world\n"
@@ -48,7 +50,8 @@ const std::string_view kUsage =
     "                                              models), N pixels on the longer side (1024)\n"
     "  help                                        this text\n";
 
-ConsoleProgress::ConsoleProgress() : tty_(isatty(STDERR_FILENO) == 1) {}
+ConsoleProgress::ConsoleProgress(std::uintmax_t inputBytes)
+    : tty_(isatty(STDERR_FILENO) == 1), inputBytes_(inputBytes) {}
 
 ConsoleProgress::~ConsoleProgress() {
   if (tty_ && drawn_) {
@@ -89,6 +92,12 @@ void ConsoleProgress::report(std::string_view stage, double fraction) {
     }
     const double elapsed = std::chrono::duration<double>(now - stageStart_).count();
     std::string line = stage_ + " " + std::to_string(percent) + "%, " + formatDuration(elapsed);
+    if (inputBytes_ > 0 && fraction > 0 && elapsed >= 1.0) {
+      line += ", " +
+              formatBytes(static_cast<std::uintmax_t>(fraction * static_cast<double>(inputBytes_) /
+                                                      elapsed)) +
+              "/s";
+    }
     if (fraction >= 0.01 && fraction < 1.0 && elapsed >= 1.0) {
       line += ", ETA " + formatDuration(elapsed * (1.0 - fraction) / fraction);
     }
@@ -113,6 +122,24 @@ std::string formatBytes(std::uintmax_t bytes) {
   char text[64];
   std::snprintf(text, sizeof text, unit == 0 ? "%.0f %s" : "%.1f %s", value, units[unit]);
   return text;
+}
+
+std::uintmax_t bytesUnder(const std::filesystem::path& path) {
+  std::error_code ec;
+  if (!std::filesystem::is_directory(path, ec)) {
+    const std::uintmax_t size = std::filesystem::file_size(path, ec);
+    return ec ? 0 : size;
+  }
+  std::uintmax_t total = 0;
+  for (std::filesystem::recursive_directory_iterator it(path, ec), end; !ec && it != end;
+       it.increment(ec)) {
+    if (it->is_regular_file(ec)) {
+      const std::uintmax_t size = it->file_size(ec);
+      total += ec ? 0 : size;
+      ec.clear();
+    }
+  }
+  return total;
 }
 
 int runReportingErrors(const std::function<int()>& command) {

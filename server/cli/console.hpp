@@ -6,6 +6,7 @@
 
 #include <chrono>
 #include <cstdint>
+#include <filesystem>
 #include <functional>
 #include <string>
 #include <string_view>
@@ -28,7 +29,9 @@ struct UsageError {
 /// "<stage> <p>%" per 10 % of each stage.
 class ConsoleProgress final : public core::Progress {
  public:
-  ConsoleProgress();
+  /// `inputBytes`: the size of what the command reads (the raster, the models), shown on a
+  /// terminal as a rate: the stage's fraction of it per second (0: no rate).
+  explicit ConsoleProgress(std::uintmax_t inputBytes = 0);
   ~ConsoleProgress() override;
   ConsoleProgress(const ConsoleProgress&) = delete;
   ConsoleProgress& operator=(const ConsoleProgress&) = delete;
@@ -39,6 +42,7 @@ class ConsoleProgress final : public core::Progress {
   using Clock = std::chrono::steady_clock;
 
   bool tty_;
+  std::uintmax_t inputBytes_;
   bool drawn_ = false;
   std::string stage_;
   int lastPercent_ = -1;
@@ -48,6 +52,10 @@ class ConsoleProgress final : public core::Progress {
 
 /// `bytes` in B, KiB, MiB, GiB or TiB, like "1.5 MiB".
 std::string formatBytes(std::uintmax_t bytes);
+
+/// The bytes of every regular file under `path` (or of the file `path`); what cannot be read
+/// counts 0 (the command itself reports it).
+std::uintmax_t bytesUnder(const std::filesystem::path& path);
 
 /// Runs `command` and returns its exit code; the one catch point of both binaries: UsageError is
 /// printed with the usage text (2), core::Error, filesystem errors and std::bad_alloc as one line

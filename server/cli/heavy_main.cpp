@@ -40,6 +40,7 @@
 
 namespace fs = std::filesystem;
 using namespace vsm::core;
+using vsm::cli::bytesUnder;
 using vsm::cli::ConsoleProgress;
 using vsm::cli::UsageError;
 
@@ -120,7 +121,7 @@ int runImport(const std::vector<std::string_view>& args) {
                  "vsm: warning: --texture none: the model gets no Images/ and no texture "
                  "coordinates, so PRo3D will not open it\n");
   }
-  ConsoleProgress progress;
+  ConsoleProgress progress(bytesUnder(fs::path(positional[0])));
   options.progress = &progress;
   ThreadExecutor executor;
   options.executor = &executor;
@@ -211,9 +212,18 @@ int runMerge(const std::vector<std::string_view>& args) {
   bool registerFirst = false;
   std::optional<fs::path> out;
   std::size_t budget = std::size_t{1} << 30;
+  PublishOptions publish;
   for (std::size_t i = 0; i < args.size(); ++i) {
     if (args[i] == "--register") {
       registerFirst = true;
+    } else if (args[i] == "--keep-revisions") {
+      unsigned keep = 0;
+      const std::string_view text = i + 1 < args.size() ? args[++i] : std::string_view();
+      const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), keep);
+      if (ec != std::errc() || end != text.data() + text.size() || keep < 2) {
+        throw UsageError{"--keep-revisions needs a count of at least 2"};
+      }
+      publish.keepRevisions = keep;
     } else if (args[i] == "--out") {
       out = fs::path(optionValue(args, i));
     } else if (args[i] == "--memory-budget") {
@@ -246,7 +256,7 @@ int runMerge(const std::vector<std::string_view>& args) {
     copy.emplace(target, *out);
     live = LiveModel::open(copy->path(), "target", cache);
   }
-  ConsoleProgress progress;
+  ConsoleProgress progress(bytesUnder(detailDir));
   MergeOptions options;
   options.progress = &progress;
   if (registerFirst) {
@@ -265,7 +275,7 @@ int runMerge(const std::vector<std::string_view>& args) {
   auto edit = live->beginEdit();
   const MergeResult result = mergeModels(*edit, *detail, options);
   progress.report("publishing", 0.0);
-  edit->publish();
+  edit->publish(nullptr, publish);
   progress.report("publishing", 1.0);
   edit.reset();
   live.reset();
@@ -334,7 +344,7 @@ int runRenderLod(const std::vector<std::string_view>& args) {
   const fs::path dir(positional[0]);
   const fs::path out(positional[1]);
   const Model model = readOpcModel(dir);
-  ConsoleProgress progress;
+  ConsoleProgress progress(bytesUnder(dir));
   options.progress = &progress;
   const LodImage image = renderLod(
       model,

@@ -41,16 +41,6 @@ std::string formatBox(const Box3d& b) {
   return text;
 }
 
-std::uintmax_t directoryBytes(const fs::path& dir) {
-  std::uintmax_t total = 0;
-  for (const auto& entry : fs::recursive_directory_iterator(dir)) {
-    if (entry.is_regular_file()) {
-      total += entry.file_size();
-    }
-  }
-  return total;
-}
-
 int runInfo(const std::vector<std::string_view>& args) {
   if (args.size() != 1) {
     throw UsageError{"info needs <opc>"};
@@ -68,7 +58,7 @@ int runInfo(const std::vector<std::string_view>& args) {
   std::printf("depth       %d (%zu levels)\n", model.maxDepth(), levels.size());
   std::printf("patches     %zu (%zu leaves)\n", model.patchCount(), leaves);
   std::printf("bounds      %s\n", formatBox(root.globalBox).c_str());
-  std::printf("bytes       %s on disk\n", vsm::cli::formatBytes(directoryBytes(dir)).c_str());
+  std::printf("bytes       %s on disk\n", vsm::cli::formatBytes(vsm::cli::bytesUnder(dir)).c_str());
   std::printf("\n%5s %8s %8s %14s  %s\n", "depth", "patches", "leaves", "resolution m", "bounds");
   for (const auto& level : levels) {
     std::printf("%5d %8zu %8zu %14.3f  %s\n", level.depth, level.patches, level.leaves,
@@ -81,7 +71,7 @@ int runValidate(const std::vector<std::string_view>& args) {
   if (args.size() != 1) {
     throw UsageError{"validate needs <opc>"};
   }
-  vsm::cli::ConsoleProgress progress;
+  vsm::cli::ConsoleProgress progress(vsm::cli::bytesUnder(args[0]));
   const auto findings = validateOpc(fs::path(args[0]), &progress);
   if (findings.empty()) {
     std::printf("%s: valid\n", std::string(args[0]).c_str());

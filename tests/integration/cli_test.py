@@ -85,6 +85,12 @@ class CliErrors(unittest.TestCase):
         self.assertEqual(result.returncode, 2)
         self.assertIn("unknown command", result.stderr)
 
+    def test_merge_keeps_at_least_two_revisions(self):
+        for bad in ("1", "0", "x", ""):
+            result = vsm("merge", "a", "b", "--keep-revisions", bad)
+            self.assertEqual(result.returncode, 2, result.stderr)
+            self.assertIn("--keep-revisions needs a count of at least 2", result.stderr)
+
     def test_import_of_a_missing_file_fails_cleanly(self):
         out = work("missing-out")
         result = vsm("import", "/nonexistent/dem.tif", out)
@@ -341,7 +347,8 @@ class Progress(unittest.TestCase):
         draws = [d for d in body.split("\r") if d]
         self.assertGreater(len(draws), 3, repr(body[:300]))
         for draw in draws:
-            self.assertRegex(draw, r"^[a-z]+ \d{1,3}%, \d+ (s|min \d\d s)(, ETA \d+ "
+            self.assertRegex(draw, r"^[a-z]+ \d{1,3}%, \d+ (s|min \d\d s)"
+                                   r"(, \d+(\.\d)? (B|KiB|MiB|GiB)/s)?(, ETA \d+ "
                                    r"(s|min \d\d s))?\x1b\[K$")
         self.assertRegex(draws[-1], last)
         percents = [int(re.match(r"^[a-z]+ (\d+)%", d).group(1)) for d in draws]

@@ -22,7 +22,8 @@ into a fresh directory, then the real vsmd on 127.0.0.1:0 started on it as deplo
    button submits the merge (POST /v1/jobs); without a reload (a mark left in the page survives)
    the page sees the job end, reloads the tileset on the `published` event, and the tiles drawn
    over Jacksboro are then deeper than before and than PRISM's deepest level; the job succeeded
-   by the API.
+   by the API. The revision picker then lists the latest, 2 and 1; picking 1 draws the tiles over
+   Jacksboro at PRISM's depths again (?rev=1), still without a reload.
 
 Screenshots and the relief numbers (relief-check.json) in --screenshots; the first screenshot of
 the textured demo is the README's (copied there by hand: client-examples/web/viewer.png).
@@ -279,6 +280,15 @@ class Demo(unittest.TestCase):
             {"name": "mark kept", "run": "return window.vsmMark || null;"},
             {"name": "screenshot after", "screenshot":
              os.path.join(ARGS.screenshots, "merge-after.png")},
+            # The revision picker: revision 1 (before the merge) is drawn again, no reload.
+            {"name": "listed", "until": "window.vsmViewer.revisions.length >= 2"},
+            {"name": "pick 1", "run": "const s = document.getElementById('revision');"
+             " s.value = '1'; s.dispatchEvent(new Event('change'));"
+             " return [...s.options].map((o) => o.value);"},
+            {"name": "revision 1", "until": "window.vsmViewer.revision === 1"
+             " && window.vsmViewer.reloads >= 2"},
+            {"name": "depths at revision 1", "run": over},
+            {"name": "mark kept at revision 1", "run": "return window.vsmMark || null;"},
         ]
         report, _ = self.load("/viewer/?model=%s&mode=texture&view=top" % PRISM, "merge", steps)
         done = {s["name"]: s for s in report["steps"]}
@@ -295,6 +305,14 @@ class Demo(unittest.TestCase):
         self.assertGreater(max(after), prism_depth)
         self.assertEqual(final["failed"], 0, final["errors"])
         self.assertEqual(final["version"], self.model(PRISM)["version"])
+        # Picking revision 1 draws the model as before the merge, without a reload.
+        self.assertEqual(done["pick 1"]["value"], ["", "2", "1"])
+        past = done["depths at revision 1"]["value"]
+        print("tiles over Jacksboro at revision 1: depths %s" % sorted(past), file=sys.stderr)
+        self.assertTrue(past)
+        self.assertLessEqual(max(past), prism_depth)
+        self.assertEqual(done["mark kept at revision 1"]["value"], "no reload")
+        self.assertEqual(done["depths at revision 1"]["state"]["failed"], 0)
         # The page's merge went through the API and succeeded there.
         jobs = [j for j in self.daemon.get_json("/v1/jobs")[2]["jobs"]
                 if j not in jobs_before["jobs"] and j["type"] == "merge"]

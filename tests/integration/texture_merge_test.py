@@ -38,6 +38,7 @@ from osgeo import gdal
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from check_import import QUADRANTS, Failures, check_pro3d, ecef_to_geodetic  # noqa: E402
 from merge_check import load  # noqa: E402
+from model_states import REVISION_FILE, reachable_folders  # noqa: E402
 from texture_test import bilinear  # noqa: E402
 
 gdal.UseExceptions()
@@ -170,7 +171,14 @@ def main():
     _, a_patches, _, _ = load(target, N, failures)
     _, m_patches, m_children, _ = load(merged, N, failures)
 
-    # (a) every patch textured; the tiles on disk exactly the named ones.
+    # (a) every patch textured; the tiles on disk exactly the named ones and those of the target's
+    # revision before the merge, which the merged model keeps (core/store/README.md).
+    kept = set()
+    for name in os.listdir(os.path.join(merged, "Patches")):
+        if REVISION_FILE.fullmatch(name):
+            kept |= {folder + ".tif" for folder in reachable_folders(merged, name)}
+    if not kept:
+        failures.add("the merged model keeps no revision before the merge")
     named = set()
     for key, patch in m_patches.items():
         xml = open(os.path.join(merged, "Patches", patch.folder, "Patch.xml")).read()
@@ -179,9 +187,10 @@ def main():
             failures.add("%s: Patch.xml does not name %s and Coordinates.aara" % (patch.folder, entry))
         named.add(patch.folder + ".tif")
     on_disk = set(os.listdir(os.path.join(merged, "Images", "Diffuse")))
-    if on_disk != named:
+    if on_disk != named | kept:
         failures.add("Images/Diffuse holds %d tiles no patch names (%s) and misses %d named ones" %
-                     (len(on_disk - named), sorted(on_disk - named)[:5], len(named - on_disk)))
+                     (len(on_disk - named - kept), sorted(on_disk - named - kept)[:5],
+                      len((named | kept) - on_disk)))
 
     # (b) shared patches keep their tiles byte for byte.
     a_folders = {p.folder for p in a_patches.values()}
