@@ -155,6 +155,12 @@ void removeFolders(const fs::path& dir, const std::set<std::string>& folders) {
   }
 }
 
+/// Deepest first, keeping the order within a depth: children before their parents.
+void sortDeepestFirst(std::vector<PatchKey>& keys) {
+  std::stable_sort(keys.begin(), keys.end(),
+                   [](const PatchKey& a, const PatchKey& b) { return a.depth > b.depth; });
+}
+
 /// A texture entry as readers resolve it: either slash, any letter case ("Diffuse/2_0_1.TIF" and
 /// "diffuse\\2_0_1.tif" name the same file).
 std::string normalisedEntry(std::string entry) {
@@ -628,8 +634,7 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
     }
   }
   // Deepest first, so every child is final before its parent is reduced from it.
-  std::stable_sort(stale.begin(), stale.end(),
-                   [](const PatchKey& a, const PatchKey& b) { return a.depth > b.depth; });
+  sortDeepestFirst(stale);
   for (const PatchKey& key : stale) {
     if (cancel != nullptr) {
       cancel->throwIfCancelled();
@@ -695,8 +700,7 @@ void ModelEdit::restore(const ModelSnapshot& from, const CancelToken* cancel) {
   for (const auto& [key, info] : model_->patches()) {
     keys.push_back(key);
   }
-  std::stable_sort(keys.begin(), keys.end(),
-                   [](const PatchKey& a, const PatchKey& b) { return a.depth > b.depth; });
+  sortDeepestFirst(keys);
   for (const PatchKey& key : keys) {
     if (target.find(key) == nullptr) {
       model_->eraseLeaf(key);
@@ -722,8 +726,7 @@ void ModelEdit::restore(const ModelSnapshot& from, const CancelToken* cancel) {
       keys.push_back(key);
     }
   }
-  std::stable_sort(keys.begin(), keys.end(),
-                   [](const PatchKey& a, const PatchKey& b) { return a.depth > b.depth; });
+  sortDeepestFirst(keys);
   for (const PatchKey& key : keys) {
     if (cancel != nullptr) {
       cancel->throwIfCancelled();
