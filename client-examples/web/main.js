@@ -20,6 +20,10 @@
 // error is the screen-space error target in pixels (default 4; smaller loads deeper levels sooner).
 // fly=ID flies to the finest area (the deepest level's bounds) of model ID once the model is in.
 // merge=ID preselects ID as the model the merge button merges into the shown one.
+// mode=changes colours each tile by its displacement between revision from=A (default: the one
+// before the shown revision) and the shown one (GET /v1/models/{m}/diff): the patch's largest
+// signed displacement over the range of the whole diff, blue (down) - white (unchanged) - red (up);
+// tiles the two revisions share are white.
 // rev=N shows kept revision N of the model (GET /v1/models/{m}/revisions; the picker lists them)
 // instead of the latest; a publish then changes nothing on screen but the picker.
 //
@@ -32,6 +36,8 @@
 // loaded (of them textured) and failed, pending loads, `idle` (the root is in and nothing is
 // queued, downloading or parsing), `version` (the model version drawn),
 // `revision` (the revision picked, null for the latest), `revisions` (the kept ones listed),
+// `changes` (from, to, range in metres, patches of the diff, or error), `shown[].change` (in
+// changes mode, the displacement a drawn tile is coloured by),
 // `reloads`, `shown` (key, depth and ECEF box of each tile drawn), `legend`, `jobs`, `published`,
 // `overlays` (screen rectangles of the panel and legend) and `camera`: the matrices of the last
 // frame drawn (column-major, as three.js keeps them) and the canvas size in CSS pixels, so that a
@@ -50,8 +56,14 @@ export const DEPTH_PALETTE = [
 const RELIEF_GREY = '#c8c8c8';
 const AMBIENT = 0.2;
 const DEFAULT_SUN = [315, 45];
-const MODES = ['lod', 'relief', 'texture'];
-const MODE_NAMES = { lod: 'level of detail', relief: 'relief', texture: 'texture' };
+const MODES = ['lod', 'relief', 'texture', 'changes'];
+const MODE_NAMES = {
+  lod: 'level of detail', relief: 'relief', texture: 'texture', changes: 'changes',
+};
+/// The diverging scale of the changes mode (sRGB): blue below, white unchanged, red above.
+const CHANGE_LOW = [0x21, 0x66, 0xac];
+const CHANGE_HIGH = [0xb2, 0x18, 0x2b];
+const CHANGE_BINS = 10;
 // WGS 84.
 const WGS84_A = 6378137.0;
 const WGS84_B = 6356752.314245179;
@@ -88,6 +100,7 @@ const state = {
   version: null,
   revision,
   revisions: [],
+  changes: null,
   reloads: 0,
   shown: [],
   legend: [],
@@ -292,7 +305,64 @@ function textureMaterial(object) {
   return object.userData[key];
 }
 
+/// The displacements of the changes mode: {from, to, range, values: key -> signed metres}.
+let changes = null;
+const changeMaterials = new Map();
+function changeColour(t) {
+  const end = t < 0 ? CHANGE_LOW : CHANGE_HIGH;
+  const a = Math.abs(t);
+  return new THREE.Color(...end.map((c) => (255 + (c - 255) * a) / 255)).convertSRGBToLinear();
+}
+function changeMaterial(value) {
+  const t = changes && changes.range > 0 ? Math.max(-1, Math.min(1, value / changes.range)) : 0;
+  const bin = Math.round(t * CHANGE_BINS);
+  const key = `${bin}${lit ? 'lit' : ''}`;
+  if (!changeMaterials.has(key)) {
+    const colour = changeColour(bin / CHANGE_BINS);
+    changeMaterials.set(key, lit ? sunMaterial(`#${colour.getHexString()}`)
+      : new THREE.MeshBasicMaterial({ color: colour, side: THREE.DoubleSide }));
+  }
+  return changeMaterials.get(key);
+}
+function changeOf(key) {
+  return changes ? changes.values.get(key) || 0 : 0;
+}
+
+/// Reads the diff the changes mode shows: from ?from= or the kept revision before the shown one,
+/// to the shown one.
+async function readChanges(latest = latestRevision()) {
+  const to = revision !== null ? revision : latest;
+  const earlier = state.revisions.map((r) => r.revision).filter((n) => n < to);
+  const from = Number(params.get('from')) || earlier[earlier.length - 1];
+  if (!from || !to) {
+    state.changes = { error: 'no earlier revision to compare with' };
+    return;
+  }
+  const diff = await getJson(
+    `/v1/models/${encodeURIComponent(modelId)}/diff?from=${from}&to=${to}`);
+  const values = new Map();
+  for (const p of diff.patches) {
+    if (p.max_abs !== null) {
+      values.set(p.key, Math.abs(p.max) >= Math.abs(p.min) ? p.max : p.min);
+    }
+  }
+  changes = { from, to, range: diff.totals.max_abs || 0, values };
+  state.changes = { from, to, range: changes.range, patches: values.size };
+  const legend = $('changes-legend');
+  const low = `#${changeColour(-1).convertLinearToSRGB().getHexString()}`;
+  const high = `#${changeColour(1).convertLinearToSRGB().getHexString()}`;
+  legend.textContent = `changes ${from} -> ${to}: ${formatMetres(-changes.range)} `;
+  const bar = document.createElement('span');
+  bar.className = 'bar';
+  bar.style.background = `linear-gradient(to right, ${low}, #ffffff, ${high})`;
+  legend.append(bar, ` ${formatMetres(changes.range)}`);
+  recolour();
+}
+
 function materialFor(object) {
+  if (mode === 'changes') {
+    return changeMaterial(changeOf(object.userData.vsmKey));
+  }
   if (mode === 'lod' && object.userData.vsmDepth !== null) {
     return lodMaterial(object.userData.vsmDepth);
   }
@@ -312,6 +382,12 @@ function recolour() {
 function setMode(next) {
   mode = MODES.includes(next) ? next : 'lod';
   state.mode = mode;
+  $('changes-legend').hidden = mode !== 'changes';
+  if (mode === 'changes') {
+    readChanges().catch((error) => {
+      state.changes = { error: String(error) };
+    });
+  }
   recolour();
   setParam('mode', mode, 'lod');
 }
@@ -441,6 +517,7 @@ function makeTiles(url) {
       }
       object.userData.vsmOwnMaterial = object.material;
       object.userData.vsmDepth = depth;
+      object.userData.vsmKey = keyOf(tileUrl);
       object.userData.vsmToEcef = object.matrixWorld.clone();
       textured = textured || Boolean(object.material.map);
       shapeMesh(object);
@@ -506,6 +583,13 @@ function reloadTileset(version) {
   state.version = revision !== null ? revision : version;
   state.reloads++;
   state.idle = false;
+  if (mode === 'changes') {
+    changes = null;
+    state.changes = null;
+    readChanges(version).catch((error) => {
+      state.changes = { error: String(error) };
+    });
+  }
 }
 
 /// The revision picker: the latest (followed as it is published) and each kept revision, with
@@ -530,11 +614,17 @@ async function readRevisions() {
   select.value = revision === null ? '' : String(revision);
 }
 
+/// The newest revision listed (the model's version), else the version drawn.
+function latestRevision() {
+  const latest = state.revisions.find((r) => r.latest);
+  return latest ? latest.revision : state.version;
+}
+
 function pickRevision(value) {
   revision = value ? Number(value) : null;
   state.revision = revision;
   setParam('rev', revision === null ? '' : String(revision), '');
-  reloadTileset(state.version);
+  reloadTileset(latestRevision());
   readModel().catch((error) => console.warn(error));
 }
 
@@ -744,8 +834,13 @@ function followEvents() {
   });
 }
 
-readModel().catch((error) => console.warn(error));
-readRevisions().catch((error) => console.warn(error));
+$('changes-legend').hidden = mode !== 'changes';
+Promise.all([readModel(), readRevisions()]).then(() => {
+  if (mode === 'changes' && changes === null) {
+    return readChanges();
+  }
+  return null;
+}).catch((error) => console.warn(error));
 $('revision').addEventListener('change', (event) => pickRevision(event.target.value));
 let flyPending = params.get('fly');
 readModels().then(() => {
@@ -792,7 +887,8 @@ function frame() {
   };
 
   Object.assign(state, tiles.vsmCounts);
-  state.shown = [...tiles.vsmShown.values()];
+  state.shown = [...tiles.vsmShown.values()].map(
+    (shown) => (mode === 'changes' ? { ...shown, change: changeOf(shown.key) } : shown));
   const stats = tiles.stats;
   state.rootLoaded = placed;
   state.pending = stats.queued + stats.downloading + stats.parsing;

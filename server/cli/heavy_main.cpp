@@ -207,6 +207,20 @@ std::size_t budgetOption(const std::vector<std::string_view>& args, std::size_t&
   }
 }
 
+/// The value of option args[i] (advancing i): an integer from lo to hi.
+std::int64_t integerOption(const std::vector<std::string_view>& args, std::size_t& i,
+                           std::int64_t lo, std::int64_t hi) {
+  const std::string name(args[i]);
+  const std::string_view text = optionValue(args, i);
+  std::int64_t value = 0;
+  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
+  if (ec != std::errc() || end != text.data() + text.size() || value < lo || value > hi) {
+    throw UsageError{name + " must be an integer from " + std::to_string(lo) + " to " +
+                     std::to_string(hi)};
+  }
+  return value;
+}
+
 int runMerge(const std::vector<std::string_view>& args) {
   std::vector<std::string_view> positional;
   bool registerFirst = false;
@@ -217,13 +231,7 @@ int runMerge(const std::vector<std::string_view>& args) {
     if (args[i] == "--register") {
       registerFirst = true;
     } else if (args[i] == "--keep-revisions") {
-      unsigned keep = 0;
-      const std::string_view text = i + 1 < args.size() ? args[++i] : std::string_view();
-      const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), keep);
-      if (ec != std::errc() || end != text.data() + text.size() || keep < 2) {
-        throw UsageError{"--keep-revisions needs a count of at least 2"};
-      }
-      publish.keepRevisions = keep;
+      publish.keepRevisions = static_cast<unsigned>(integerOption(args, i, 2, 10000));
     } else if (args[i] == "--out") {
       out = fs::path(optionValue(args, i));
     } else if (args[i] == "--memory-budget") {
@@ -296,20 +304,6 @@ int runMerge(const std::vector<std::string_view>& args) {
               static_cast<unsigned long long>(stats.evictions),
               static_cast<unsigned long long>(stats.writeBacks));
   return 0;
-}
-
-/// The value of option args[i] (advancing i): an integer from lo to hi.
-std::int64_t integerOption(const std::vector<std::string_view>& args, std::size_t& i,
-                           std::int64_t lo, std::int64_t hi) {
-  const std::string name(args[i]);
-  const std::string_view text = optionValue(args, i);
-  std::int64_t value = 0;
-  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
-  if (ec != std::errc() || end != text.data() + text.size() || value < lo || value > hi) {
-    throw UsageError{name + " must be an integer from " + std::to_string(lo) + " to " +
-                     std::to_string(hi)};
-  }
-  return value;
 }
 
 /// The world file beside a picture (<out>.pgw) so GDAL and GIS tools place it: pixel sizes,

@@ -89,7 +89,7 @@ class CliErrors(unittest.TestCase):
         for bad in ("1", "0", "x", ""):
             result = vsm("merge", "a", "b", "--keep-revisions", bad)
             self.assertEqual(result.returncode, 2, result.stderr)
-            self.assertIn("--keep-revisions needs a count of at least 2", result.stderr)
+            self.assertIn("--keep-revisions must be an integer from 2 to 10000", result.stderr)
 
     def test_import_of_a_missing_file_fails_cleanly(self):
         out = work("missing-out")

@@ -23,7 +23,9 @@ into a fresh directory, then the real vsmd on 127.0.0.1:0 started on it as deplo
    the page sees the job end, reloads the tileset on the `published` event, and the tiles drawn
    over Jacksboro are then deeper than before and than PRISM's deepest level; the job succeeded
    by the API. The revision picker then lists the latest, 2 and 1; picking 1 draws the tiles over
-   Jacksboro at PRISM's depths again (?rev=1), still without a reload.
+   Jacksboro at PRISM's depths again (?rev=1), still without a reload. Back on the latest, the
+   changes mode reads the diff 1 -> 2 (GET /v1/models/{m}/diff) and the tiles over Jacksboro are
+   coloured by more than a metre of displacement, with the range in its legend.
 
 Screenshots and the relief numbers (relief-check.json) in --screenshots; the first screenshot of
 the textured demo is the README's (copied there by hand: client-examples/web/viewer.png).
@@ -289,6 +291,20 @@ class Demo(unittest.TestCase):
              " && window.vsmViewer.reloads >= 2"},
             {"name": "depths at revision 1", "run": over},
             {"name": "mark kept at revision 1", "run": "return window.vsmMark || null;"},
+            # The changes mode on the latest revision: the merge's displacement per tile.
+            {"name": "pick latest", "run": "const s = document.getElementById('revision');"
+             " s.value = ''; s.dispatchEvent(new Event('change')); return true;"},
+            {"name": "latest", "until": "window.vsmViewer.revision === null"
+             " && window.vsmViewer.reloads >= 3"},
+            {"name": "changes mode", "run": "document.querySelector("
+             "'input[name=mode][value=changes]').click(); return true;"},
+            {"name": "changes read", "until": "window.vsmViewer.changes !== null"},
+            {"name": "changes over", "run": over.replace(".map((t) => t.depth)",
+                                                         ".map((t) => t.change)")},
+            {"name": "changes legend", "run": "const l = document.getElementById("
+             "'changes-legend'); return l.hidden ? null : l.textContent;"},
+            {"name": "screenshot changes", "screenshot":
+             os.path.join(ARGS.screenshots, "merge-changes.png")},
         ]
         report, _ = self.load("/viewer/?model=%s&mode=texture&view=top" % PRISM, "merge", steps)
         done = {s["name"]: s for s in report["steps"]}
@@ -313,6 +329,16 @@ class Demo(unittest.TestCase):
         self.assertLessEqual(max(past), prism_depth)
         self.assertEqual(done["mark kept at revision 1"]["value"], "no reload")
         self.assertEqual(done["depths at revision 1"]["state"]["failed"], 0)
+        # The changes mode: the diff 1 -> 2 colours the tiles over Jacksboro by metres of change.
+        changes = done["changes read"]["state"]["changes"]
+        over_jacksboro = done["changes over"]["value"]
+        print("changes mode: %s; tiles over Jacksboro change by %s m"
+              % (changes, sorted(round(v, 1) for v in over_jacksboro)), file=sys.stderr)
+        self.assertEqual((changes.get("from"), changes.get("to")), (1, 2), changes)
+        self.assertGreater(changes["range"], 10.0)
+        self.assertTrue(over_jacksboro)
+        self.assertGreater(max(abs(v) for v in over_jacksboro), 1.0)
+        self.assertIn("changes 1 -> 2", done["changes legend"]["value"] or "")
         # The page's merge went through the API and succeeded there.
         jobs = [j for j in self.daemon.get_json("/v1/jobs")[2]["jobs"]
                 if j not in jobs_before["jobs"] and j["type"] == "merge"]
