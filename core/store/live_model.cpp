@@ -713,16 +713,19 @@ void ModelEdit::restore(const ModelSnapshot& from, const CancelToken* cancel) {
   }
   // Parents first, what the edit lacks is placed (its data follows), so that the data can then go
   // in deepest first: a patch's box holds its children's final boxes.
+  std::set<PatchKey> placed;
   for (const auto& [key, info] : target.patches()) {
     if (model_->find(key) == nullptr) {
       PatchInfo placeholder;
       placeholder.key = key;
       model_->insert(std::move(placeholder));
+      placed.insert(key);
     }
   }
   keys.clear();
   for (const auto& [key, info] : target.patches()) {
-    if (model_->at(key).version != info.version || changed_.count(key) != 0) {
+    if (placed.count(key) != 0 || model_->at(key).version != info.version ||
+        changed_.count(key) != 0) {
       keys.push_back(key);
     }
   }

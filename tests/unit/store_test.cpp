@@ -339,10 +339,28 @@ TEST_F(StoreTest, RestoreMakesANewRevisionWithTheOldSurfacePatchForPatch) {
   EXPECT_EQ(three->model->at({2, 1, 1}).version, v + 2);
   EXPECT_EQ(three->model->at({2, 0, 0}).version, one->model->at({2, 0, 0}).version)
       << "untouched patches are shared";
+  // Restoring the merged revision brings the removed level back, as new versions.
+  const auto two = live->snapshotAt(v + 1);
+  {
+    auto edit = live->beginEdit();
+    edit->restore(*two);
+    edit->publish(nullptr, {"restore", 8, v + 1});
+  }
+  const auto four = live->snapshot();
+  ASSERT_EQ(four->model->patchCount(), two->model->patchCount());
+  EXPECT_EQ(four->model->at({3, 6, 6}).version, v + 3);
+  EXPECT_EQ(four->model->at({2, 3, 3}).childMask, two->model->at({2, 3, 3}).childMask);
+  for (const PatchKey key : {PatchKey{3, 6, 6}, PatchKey{2, 1, 1}, PatchKey::root()}) {
+    const auto a = live->positions(*two, key).get<PatchGrid>();
+    const auto b = live->positions(*four, key).get<PatchGrid>();
+    EXPECT_EQ(a->global(5, 7).z, b->global(5, 7).z) << key.toString();
+    EXPECT_EQ(four->model->at(key).globalBox.max.z, two->model->at(key).globalBox.max.z)
+        << key.toString();
+  }
   live.reset();
   auto reopened = LiveModel::open(dir_, "m", cache, LiveModel::Access::Read);
-  EXPECT_EQ(reopened->snapshot()->version, v + 2);
-  EXPECT_EQ(revisionNumbers(*reopened), (std::vector<std::uint64_t>{v, v + 1, v + 2}));
+  EXPECT_EQ(reopened->snapshot()->version, v + 3);
+  EXPECT_EQ(revisionNumbers(*reopened), (std::vector<std::uint64_t>{v, v + 1, v + 2, v + 3}));
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
