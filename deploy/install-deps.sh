@@ -19,9 +19,9 @@ PACKAGES=(
   clang-14 libclang-rt-14-dev
   # the curl walk-through of the daemon's API (client-examples/curl.sh, run by the tests)
   curl jq
-  # the browser viewer's build (client-examples/web/build.sh: npm packages), and its check and
-  # CesiumJS' in headless Chromium (tests/integration/viewer_test.py, demo_viewer_test.py)
-  nodejs npm chromium
+  # the browser check of the viewer and CesiumJS in headless Chromium (viewer_test.py,
+  # demo_viewer_test.py); node and npm for the viewer's build follow below
+  chromium
   # the consistency check of the deploy files (tests/deploy/deploy_files_test.py) parses YAML
   python3-yaml
   # the cluster on loopback (deploy/local-cluster.sh, tests/integration/cluster_test.py): etcd for
@@ -39,8 +39,9 @@ if ((${#missing[@]})); then
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -q --no-install-recommends "${missing[@]}"
 fi
 
-# node and npm for the tests' npm tools (tests/integration/install-node-tools.sh: gltf-validator).
-# Debian's packages only when no node is installed: NodeSource's nodejs bundles npm and conflicts
+# node and npm for the viewer's build (client-examples/web/build.sh, deploy/demo-setup.sh) and the
+# tests' npm tools (tests/integration/install-node-tools.sh: gltf-validator). Debian's packages
+# only when no node is installed: NodeSource's nodejs bundles npm and conflicts
 # with Debian's npm package.
 if ! command -v node >/dev/null 2>&1 || ! command -v npm >/dev/null 2>&1; then
   echo "installing: nodejs npm"

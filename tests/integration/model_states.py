@@ -17,7 +17,9 @@ gdal.UseExceptions()
 TEMP = re.compile(r"\..+\.tmp-[0-9]+-[0-9]+")
 # A kept revision's hierarchy (docs: core/store/README.md), and the record of a revision in a
 # hierarchy: when and by which job differ between two runs of the same write.
-REVISION_FILE = re.compile(r"vsm-revision-[0-9]+\.xml")
+REVISION_FILE = re.compile(r"vsm-revision-([0-9]+)\.xml")
+PARENT = re.compile(rb"<Revision>\s*<Parent>([0-9]+)</Parent>")
+VERSIONED = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v([0-9]+)")
 REVISION_RECORD = re.compile(rb"<Revision>.*?</Revision>", re.S)
 LOCK = ".vsm-writer.lock"
 
@@ -54,14 +56,29 @@ def reachable_folders(opc, name="patchhierarchy.xml"):
     return reachable
 
 
+def revision_list(patches_dir, hierarchy, reachable):
+    """What the model lists as its revisions: the parent the hierarchy's record names (None
+    without a record) and the kept revision files older than the current version (the newest
+    "-vN" of the folders it reaches; a copy of the current one, left by a write killed before its
+    commit point, is not a revision of its own)."""
+    parent = PARENT.search(hierarchy)
+    current = max([int(m.group(1)) for m in map(VERSIONED.fullmatch, reachable) if m] or [1])
+    kept = sorted(int(REVISION_FILE.fullmatch(e).group(1)) for e in os.listdir(patches_dir)
+                  if REVISION_FILE.fullmatch(e))
+    return (int(parent.group(1)) if parent else None, tuple(n for n in kept if n < current))
+
+
 def version_of(opc):
-    """(hierarchy bytes without the revision record, {reachable folder: digest}, orphans):
+    """((hierarchy bytes without the revision record, the revision list), {reachable folder:
+    digest}, orphans): the revision list is revision_list's, so that a write killed at any moment
+    leaves the old list or the new one;
     orphans are entries of Patches/ neither the hierarchy nor a kept revision reaches, tiles of
     Images/Diffuse none of them names, temporary files."""
     patches_dir = find_ci(opc, "Patches")
     with open(find_ci(patches_dir, "patchhierarchy.xml"), "rb") as f:
-        hierarchy = REVISION_RECORD.sub(b"", f.read())
+        text = f.read()
     reachable = reachable_folders(opc)
+    hierarchy = (REVISION_RECORD.sub(b"", text), revision_list(patches_dir, text, reachable))
     kept = set()
     for name in os.listdir(patches_dir):
         if REVISION_FILE.fullmatch(name):
