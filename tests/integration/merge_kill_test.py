@@ -318,10 +318,18 @@ def run(args, scratch):
 
     counts = {"old": 0, "new": 0, "killed": 0, "finished": 0, "completed": 0}
     # A loaded machine may finish merges before their kill point: then more points, earlier in
-    # the merge, until MIN_KILLS runs were killed (at most MAX_EXTRA more).
+    # the merge, until MIN_KILLS runs were killed; or publish slower: then more points later in
+    # publishing, until one run leaves the new version (at most MAX_EXTRA more in all).
     extra = 0
     run_index = -1
-    while run_index + 1 < len(kills):
+    while True:
+        if run_index + 1 >= len(kills):
+            if counts["new"] > 0 or extra >= MAX_EXTRA:
+                break
+            # A loaded machine may publish slower than the reference runs did (its syncs): later
+            # kills in the publishing stage, further each time, until one leaves the new version.
+            kills.append(("publishing", window * (1.0 + 0.5 * extra + rng.random())))
+            extra += 1
         run_index += 1
         anchor, delay = kills[run_index]
         fresh_copy(old_dir, copy)
