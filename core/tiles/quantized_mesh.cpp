@@ -34,15 +34,25 @@ constexpr int kCells = kTerrainGridSize - 1;  // 64
 constexpr int kQuantMax = 32767;
 
 /// Lon/lat (degrees) and height of an ECEF point by Bowring's formula: one step, well below a
-/// millimetre for points within tens of kilometres of the ellipsoid, about 3x faster than
-/// ecefToGeodetic's iteration (this runs for every vertex a tile samples).
+/// millimetre for points within tens of kilometres of the ellipsoid, and with two atan2 and three
+/// square roots about 3x faster than ecefToGeodetic's iteration (this runs for every vertex a tile
+/// samples): the parametric latitude's sine and cosine and the latitude's come from their
+/// tangents, not from trigonometric calls.
 Vec3d toGeodetic(const Vec3d& p) {
-  const double r = std::hypot(p.x, p.y);
+  const double r = std::sqrt(p.x * p.x + p.y * p.y);
   const double lon = std::atan2(p.y, p.x);
-  const double theta = std::atan2(p.z * kA, r * kB);
-  const double st = std::sin(theta), ct = std::cos(theta);
-  const double lat = std::atan2(p.z + kEp2 * kB * st * st * st, r - kE2 * kA * ct * ct * ct);
-  const double sl = std::sin(lat), cl = std::cos(lat);
+  // tan(theta) = z a / (r b)
+  const double tz = p.z * kA, tr = r * kB;
+  const double tn = std::sqrt(tz * tz + tr * tr);
+  if (!(tn > 0)) {
+    return {lon / kRad, 0, -kA};
+  }
+  const double st = tz / tn, ct = tr / tn;
+  const double num = p.z + kEp2 * kB * st * st * st;
+  const double den = r - kE2 * kA * ct * ct * ct;
+  const double lat = std::atan2(num, den);
+  const double len = std::sqrt(num * num + den * den);
+  const double sl = num / len, cl = den / len;
   const double n = kA / std::sqrt(1 - kE2 * sl * sl);
   const double h = std::abs(cl) > 1e-9 ? r / cl - n : std::abs(p.z) - n * (1 - kE2);
   return {lon / kRad, lat / kRad, h};
@@ -121,6 +131,7 @@ std::string heightFieldProblem(const PatchGrid& root) {
 
 class Writer {
  public:
+  explicit Writer(std::size_t capacity) { bytes_.reserve(capacity); }
   template <typename T>
   void put(T value) {
     const auto at = bytes_.size();
@@ -413,20 +424,31 @@ TerrainHeights sampleTerrain(const Model& model, const std::vector<PatchKey>& so
   for (const PatchKey& patchKey : sources) {
     const auto grid = load(model.at(patchKey));
     const int n = grid->size();
-    const std::size_t count = grid->vertexCount();
-    // Pixel position (x, y) and height per vertex, NaN until converted.
-    std::vector<Vec3d> pix(count, Vec3d{std::nan(""), 0, 0});
-    const auto convert = [&](int x, int y) -> const Vec3d& {
-      Vec3d& p = pix[static_cast<std::size_t>(y) * n + x];
-      if (std::isnan(p.x) && grid->defined(x, y)) {
-        const Vec3d g = toGeodetic(grid->global(x, y));
-        const Point2d q = view.pixel({g.x, g.y});
-        p = {q.x, q.y, g.z};
-      }
-      return p;
-    };
-    // Blocks of the grid whose four corners lie far from the tile are skipped unconverted.
+    // Blocks of the grid whose four corners lie far from the tile are skipped unconverted. The
+    // corners' lon/lat, once per lattice point (shared by up to four blocks).
     const int block = std::min(16, n - 1);
+    const int lattice = (n - 2) / block + 2;
+    std::vector<Point2d> corner(static_cast<std::size_t>(lattice) * lattice);
+    const auto cornerAt = [&](int x, int y) -> Point2d& {
+      return corner[static_cast<std::size_t>(y == n - 1 ? lattice - 1 : y / block) * lattice +
+                    static_cast<std::size_t>(x == n - 1 ? lattice - 1 : x / block)];
+    };
+    for (int y = 0;; y = std::min(y + block, n - 1)) {
+      for (int x = 0;; x = std::min(x + block, n - 1)) {
+        if (grid->defined(x, y)) {
+          const Vec3d g = toGeodetic(grid->global(x, y));
+          cornerAt(x, y) = {g.x, g.y};
+        }
+        if (x == n - 1) {
+          break;
+        }
+      }
+      if (y == n - 1) {
+        break;
+      }
+    }
+    std::vector<std::pair<int, int>> blocks;  // the kept blocks' first vertices
+    int x0 = n, y0 = n, x1 = -1, y1 = -1;     // the vertices they span
     for (int by = 0; by < n - 1; by += block) {
       for (int bx = 0; bx < n - 1; bx += block) {
         const int ex = std::min(bx + block, n - 1), ey = std::min(by + block, n - 1);
@@ -434,7 +456,7 @@ TerrainHeights sampleTerrain(const Model& model, const std::vector<PatchKey>& so
             grid->defined(ex, ey)) {
           GeoRect corners;
           for (const auto& [cx, cy] : {std::pair{bx, by}, {ex, by}, {bx, ey}, {ex, ey}}) {
-            const Vec3d g = toGeodetic(grid->global(cx, cy));
+            const Point2d& g = cornerAt(cx, cy);
             corners.extend(g.x, g.y);
           }
           // The block's surface bulges little beyond its corners: half its size is ample.
@@ -447,28 +469,52 @@ TerrainHeights sampleTerrain(const Model& model, const std::vector<PatchKey>& so
             continue;
           }
         }
-        for (int y = by; y < ey; ++y) {
-          for (int x = bx; x < ex; ++x) {
-            if (!grid->defined(x, y) || !grid->defined(x + 1, y) || !grid->defined(x, y + 1) ||
-                !grid->defined(x + 1, y + 1)) {
-              continue;
-            }
-            const Vec3d a = convert(x, y), b = convert(x + 1, y), c = convert(x, y + 1),
-                        d = convert(x + 1, y + 1);
-            const auto paint = [&](const Vec3d& p, const Vec3d& q, const Vec3d& r) {
-              forEachPixelInTriangle({p.x, p.y}, {q.x, q.y}, {r.x, r.y}, kSize, kSize,
-                                     [&](int col, int row, double wa, double wb, double wc) {
-                                       // Pixel row 0 is the north ring; storage row 0 the south.
-                                       const auto i =
-                                           static_cast<std::size_t>(kSize - 1 - row) * kSize +
-                                           static_cast<std::size_t>(col);
-                                       out.h[i] = wa * p.z + wb * q.z + wc * r.z;
-                                       painted[i] = 1;
-                                     });
-            };
-            paint(a, c, d);
-            paint(a, d, b);
+        blocks.emplace_back(bx, by);
+        x0 = std::min(x0, bx);
+        y0 = std::min(y0, by);
+        x1 = std::max(x1, ex);
+        y1 = std::max(y1, ey);
+      }
+    }
+    if (blocks.empty()) {
+      continue;
+    }
+    // Pixel position (x, y) and height per vertex of the kept blocks' span, NaN until converted.
+    const int spanX = x1 - x0 + 1;
+    std::vector<Vec3d> pix(static_cast<std::size_t>(spanX) * (y1 - y0 + 1),
+                           Vec3d{std::nan(""), 0, 0});
+    const auto convert = [&](int x, int y) -> const Vec3d& {
+      Vec3d& p = pix[static_cast<std::size_t>(y - y0) * spanX + static_cast<std::size_t>(x - x0)];
+      if (std::isnan(p.x)) {
+        const Vec3d g = toGeodetic(grid->global(x, y));
+        const Point2d q = view.pixel({g.x, g.y});
+        p = {q.x, q.y, g.z};
+      }
+      return p;
+    };
+    for (const auto& [bx, by] : blocks) {
+      const int ex = std::min(bx + block, n - 1), ey = std::min(by + block, n - 1);
+      for (int y = by; y < ey; ++y) {
+        for (int x = bx; x < ex; ++x) {
+          if (!grid->defined(x, y) || !grid->defined(x + 1, y) || !grid->defined(x, y + 1) ||
+              !grid->defined(x + 1, y + 1)) {
+            continue;
           }
+          const Vec3d a = convert(x, y), b = convert(x + 1, y), c = convert(x, y + 1),
+                      d = convert(x + 1, y + 1);
+          const auto paint = [&](const Vec3d& p, const Vec3d& q, const Vec3d& r) {
+            forEachPixelInTriangle({p.x, p.y}, {q.x, q.y}, {r.x, r.y}, kSize, kSize,
+                                   [&](int col, int row, double wa, double wb, double wc) {
+                                     // Pixel row 0 is the north ring; storage row 0 the south.
+                                     const auto i =
+                                         static_cast<std::size_t>(kSize - 1 - row) * kSize +
+                                         static_cast<std::size_t>(col);
+                                     out.h[i] = wa * p.z + wb * q.z + wc * r.z;
+                                     painted[i] = 1;
+                                   });
+          };
+          paint(a, c, d);
+          paint(a, d, b);
         }
       }
     }
@@ -559,6 +605,29 @@ std::vector<std::byte> encodeQuantizedMesh(const TerrainHeights& heights,
     id = order[static_cast<std::size_t>(id)];
   }
 
+  // ECEF of grid vertex (i, j) (-1..65 both) at height h, from per-column and per-row terms.
+  struct Column {
+    double cosLon, sinLon;
+  };
+  struct Row {
+    double cosLat, sinLat, n;
+  };
+  std::array<Column, TerrainHeights::kSize> columns;
+  std::array<Row, TerrainHeights::kSize> rows;
+  for (int k = 0; k < TerrainHeights::kSize; ++k) {
+    const double lon = terrainVertexLon(key.z, key.x, k - 1) * kRad;
+    const double lat = terrainVertexLat(key.z, key.y, k - 1) * kRad;
+    columns[static_cast<std::size_t>(k)] = {std::cos(lon), std::sin(lon)};
+    const double sl = std::sin(lat);
+    rows[static_cast<std::size_t>(k)] = {std::cos(lat), sl, kA / std::sqrt(1 - kE2 * sl * sl)};
+  }
+  const auto toEcef = [&](int i, int j, double h) {
+    const Column& c = columns[static_cast<std::size_t>(i + 1)];
+    const Row& r = rows[static_cast<std::size_t>(j + 1)];
+    return Vec3d{(r.n + h) * r.cosLat * c.cosLon, (r.n + h) * r.cosLat * c.sinLon,
+                 (r.n * (1 - kE2) + h) * r.sinLat};
+  };
+
   // Vertex positions (ECEF, at the heights as decoded) for the bounds.
   std::vector<Vec3d> ecef(gridOf.size());
   std::vector<int> quantised(gridOf.size());
@@ -567,8 +636,7 @@ std::vector<std::byte> encodeQuantizedMesh(const TerrainHeights& heights,
     const int i = gridOf[v] % kN, j = gridOf[v] / kN;
     quantised[v] = quantise(heights.at(i, j));
     const double h = minH + range * quantised[v] / kQuantMax;
-    ecef[v] =
-        geodeticToEcef(terrainVertexLon(key.z, key.x, i), terrainVertexLat(key.z, key.y, j), h);
+    ecef[v] = toEcef(i, j, h);
     box.extend(ecef[v]);
   }
   const Vec3d centre = box.center();
@@ -579,7 +647,9 @@ std::vector<std::byte> encodeQuantizedMesh(const TerrainHeights& heights,
   radius = radius * (1 + 1e-9) + 1e-3;
   const Vec3d horizon = horizonOcclusionPoint(ecef, centre);
 
-  Writer w;
+  // Header, vertices, indices, edges, normals, metadata.
+  Writer w(88 + 4 + 6 * kN * kN + 2 + 4 + 6 * kCells * kCells * 2 + 4 * (4 + 2 * kN) + 5 +
+           2 * kN * kN + 9 + options.metadata.size());
   for (const double value : {centre.x, centre.y, centre.z}) {
     w.put(value);
   }
@@ -627,9 +697,16 @@ std::vector<std::byte> encodeQuantizedMesh(const TerrainHeights& heights,
   if (options.normals) {
     // From the unquantised heights of the vertex's four neighbours (the ring at the edges), so
     // neighbouring tiles compute the same normal for a shared vertex.
-    const auto position = [&](int i, int j) {
-      return geodeticToEcef(terrainVertexLon(key.z, key.x, i), terrainVertexLat(key.z, key.y, j),
-                            heights.at(i, j));
+    std::vector<Vec3d> positions(heights.h.size());
+    for (int j = -1; j <= kN; ++j) {
+      for (int i = -1; i <= kN; ++i) {
+        positions[static_cast<std::size_t>(j + 1) * TerrainHeights::kSize +
+                  static_cast<std::size_t>(i + 1)] = toEcef(i, j, heights.at(i, j));
+      }
+    }
+    const auto position = [&](int i, int j) -> const Vec3d& {
+      return positions[static_cast<std::size_t>(j + 1) * TerrainHeights::kSize +
+                       static_cast<std::size_t>(i + 1)];
     };
     w.put(std::uint8_t{1});
     w.put(static_cast<std::uint32_t>(gridOf.size() * 2));
