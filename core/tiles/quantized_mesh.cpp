@@ -168,8 +168,9 @@ double dot(const Vec3d& a, const Vec3d& b) {
 
 /// Cesium's horizon culling point (EllipsoidalOccluder.computeHorizonCullingPoint) for `points`
 /// seen along `direction` (the bounding sphere's centre), in ellipsoid-scaled space. Where no
-/// finite point exists (a tile spanning a hemisphere), a point far out along the direction, which
-/// is as good as never culling by the horizon.
+/// finite point exists (level 0's hemisphere-wide tiles), a point far out along the direction: it
+/// culls the tile from cameras behind the globe, right but for a sliver near the limb from which
+/// vertices high above the tile's edge could be seen.
 Vec3d horizonOcclusionPoint(const std::vector<Vec3d>& points, const Vec3d& direction) {
   const Vec3d scaledDir{direction.x / kA, direction.y / kA, direction.z / kB};
   const double dirNorm = scaledDir.norm();

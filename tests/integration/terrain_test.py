@@ -235,14 +235,15 @@ class Terrain(unittest.TestCase):
                     JACK: Dem(os.path.join(ARGS.data, JACK + ".tif"))}
         cls.daemon = base.Daemon("--token", TOKEN, "--set", "threads.cpu=2", root=root)
         cls.stats = {"tiles": 0, "normals": 0, "normal_max_deg": 0.0, "heights": 0,
-                     "height_max_excess": -1e9}
+                     "height_max_excess": -1e9, "hop_cameras": 0}
 
     @classmethod
     def tearDownClass(cls):
         code = cls.daemon.stop()
         cls.daemon.cleanup(keep=code != 0)
         print("\nterrain: %(tiles)d tiles decoded, %(normals)d normals compared (max %(normal_max_deg).2f"
-              " deg), %(heights)d heights compared" % cls.stats, file=sys.stderr)
+              " deg), %(heights)d heights compared, horizon point below the horizon for"
+              " %(hop_cameras)d cameras" % cls.stats, file=sys.stderr)
 
     # -- helpers --
 
@@ -286,6 +287,7 @@ class Terrain(unittest.TestCase):
             self.assertTrue(0 <= hq <= 32767)
             self.assertTrue(t["min"] - 1e-6 <= h <= t["max"] + 1e-6)
             self.assertLessEqual(np.linalg.norm(ecef(lon, lat, h) - centre), radius * (1 + 1e-9) + 1e-6)
+        self.check_horizon(t, verts)
         for name, coord, value in (("west", "u", 0), ("south", "v", 0), ("east", "u", 32767),
                                    ("north", "v", 32767)):
             self.assertEqual(sorted(t[name]), [i for i in range(n) if t[coord][i] == value], name)
@@ -319,6 +321,35 @@ class Terrain(unittest.TestCase):
                         for cx in range(r["startX"], r["endX"] + 1):
                             got.add((cx, cy))
             self.assertEqual(got, expected, key)
+
+    def check_horizon(self, t, verts):
+        """The horizon occlusion point (ellipsoid-scaled ECEF) culls only what is hidden: from
+        random cameras, whenever the point is below the horizon (CesiumJS's
+        EllipsoidalOccluder.isScaledSpacePointVisible, written from its horizon-culling article),
+        every vertex is too (vertices below the ellipsoid taken at height 0, as CesiumJS does)."""
+        radii = np.array([A, A, B])
+        hop = np.array(t["horizon"])
+        self.assertTrue(np.isfinite(hop).all())
+        self.assertGreaterEqual(np.linalg.norm(hop), 1.0)
+        pts = np.array([ecef(lon, lat, max(h, 0.0)) for lon, lat, h in verts[::7]]) / radii
+        rng = np.random.default_rng(14)
+        occluded_cameras = 0
+        for _ in range(300):
+            d = rng.normal(size=3)
+            d /= np.linalg.norm(d)
+            cam = d * (1 + 10 ** rng.uniform(-4.5, 0.5))  # 40 m .. 20000 km up (scaled units)
+            vh2 = cam.dot(cam) - 1
+
+            def occluded(q):
+                vt = q - cam
+                vtdc = -(vt @ cam)
+                return (vtdc > vh2) & (vtdc * vtdc / np.einsum("...i,...i", vt, vt) > vh2)
+
+            if occluded(hop):
+                occluded_cameras += 1
+                self.assertTrue(occluded(pts).all(), "a vertex visible from %s though the horizon "
+                                "occlusion point is not" % (cam * radii))
+        Terrain.stats["hop_cameras"] = Terrain.stats.get("hop_cameras", 0) + occluded_cameras
 
     def check_against_dem(self, t, key, dem, heights=True):
         """Normals within 10 degrees of the DEM's; heights within the local relief."""
