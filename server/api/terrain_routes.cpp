@@ -1,6 +1,9 @@
 #include "server/api/terrain_routes.hpp"
 
 #include <charconv>
+#include <chrono>
+#include <exception>
+#include <future>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -11,6 +14,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
+#include "core/common/log.hpp"
 #include "core/grid/patch_grid.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
@@ -33,48 +37,88 @@ namespace {
 constexpr std::string_view kTerrainCacheControl = "public, max-age=60";
 constexpr std::string_view kTerrainType = "application/vnd.quantized-mesh";
 
-/// The terrain layers of the published versions being served, built once per version.
+/// The terrain layers of the published versions being served, built once per version: the first
+/// request that needs a version's layer builds it, requests that need it meanwhile wait for that
+/// build (on the CPU pool; network threads only look), and a failed build is forgotten so that the
+/// next request tries again.
 class TerrainLayers {
  public:
-  /// The layer of `snapshot` when built already, else null (never blocks on I/O: network threads).
-  std::shared_ptr<const core::TerrainLayer> find(
-      const std::shared_ptr<const core::ModelSnapshot>& snapshot) const {
-    const std::lock_guard lock(mutex_);
-    const auto it = layers_.find(snapshot.get());
-    if (it == layers_.end() || it->second.snapshot.lock() != snapshot) {
+  using Layer = std::shared_ptr<const core::TerrainLayer>;
+
+  /// The layer of `snapshot` when built already, else null. Never blocks (network threads).
+  Layer find(const std::shared_ptr<const core::ModelSnapshot>& snapshot) const {
+    std::shared_future<Layer> building;
+    {
+      const std::lock_guard lock(mutex_);
+      const auto it = layers_.find(snapshot.get());
+      if (it == layers_.end() || it->second.snapshot.lock() != snapshot) {
+        return nullptr;
+      }
+      building = it->second.layer;
+    }
+    if (building.wait_for(std::chrono::seconds(0)) != std::future_status::ready) {
       return nullptr;
     }
-    return it->second.layer;
+    try {
+      return building.get();
+    } catch (...) {
+      return nullptr;  // the request that built it reports the error
+    }
   }
 
-  /// The layer of `snapshot`, built (reading every patch of it through the cache) when missing.
-  /// Two requests that miss together both build it (no lock is held while building); the first
-  /// one stored wins.
-  std::shared_ptr<const core::TerrainLayer> get(
-      core::LiveModel& live, const std::shared_ptr<const core::ModelSnapshot>& snapshot) {
-    if (auto layer = find(snapshot)) {
+  /// The layer of `snapshot`, built (reading every patch of it through the cache) when missing,
+  /// or waited for while another request builds it. Throws what the build throws.
+  Layer get(core::LiveModel& live, const std::shared_ptr<const core::ModelSnapshot>& snapshot) {
+    std::promise<Layer> promise;
+    std::shared_future<Layer> building;
+    {
+      const std::lock_guard lock(mutex_);
+      // Forget the layers of versions no longer served (their snapshots are gone).
+      std::erase_if(layers_, [](const auto& entry) { return entry.second.snapshot.expired(); });
+      auto& entry = layers_[snapshot.get()];
+      if (entry.snapshot.lock() == snapshot) {
+        building = entry.layer;
+      } else {
+        entry = {snapshot, promise.get_future().share()};
+      }
+    }
+    if (building.valid()) {
+      return building.get();  // no lock held while waiting
+    }
+    try {
+      const auto start = std::chrono::steady_clock::now();
+      auto layer = std::make_shared<const core::TerrainLayer>(
+          core::buildTerrainLayer(*snapshot->model, [&](const core::PatchInfo& info) {
+            return live.positions(*snapshot, info.key).get<core::PatchGrid>();
+          }));
+      core::log::info(
+          "model=" + live.name() + " terrain layer of version " +
+          std::to_string(snapshot->version) + ": " +
+          (layer->heightField ? "levels 0.." + std::to_string(layer->maxZoom) : "no height field") +
+          ", " +
+          std::to_string(std::chrono::duration_cast<std::chrono::milliseconds>(
+                             std::chrono::steady_clock::now() - start)
+                             .count()) +
+          " ms");
+      promise.set_value(layer);
       return layer;
+    } catch (...) {
+      promise.set_exception(std::current_exception());
+      const std::lock_guard lock(mutex_);
+      if (const auto it = layers_.find(snapshot.get());
+          it != layers_.end() && it->second.snapshot.lock() == snapshot) {
+        layers_.erase(it);
+      }
+      throw;
     }
-    auto built = std::make_shared<const core::TerrainLayer>(
-        core::buildTerrainLayer(*snapshot->model, [&](const core::PatchInfo& info) {
-          return live.positions(*snapshot, info.key).get<core::PatchGrid>();
-        }));
-    const std::lock_guard lock(mutex_);
-    // Forget the layers of versions no longer served (their snapshots are gone).
-    std::erase_if(layers_, [](const auto& entry) { return entry.second.snapshot.expired(); });
-    auto& entry = layers_[snapshot.get()];
-    if (entry.snapshot.lock() != snapshot) {
-      entry = {snapshot, std::move(built)};
-    }
-    return entry.layer;
   }
 
  private:
   struct Entry {
     std::weak_ptr<const core::ModelSnapshot> snapshot;  // the key's owner, to detect reuse
-    std::shared_ptr<const core::TerrainLayer> layer;
+    std::shared_future<Layer> layer;                    // ready once built
   };
-  mutable std::mutex mutex_;  // guards layers_ (the map; layers are immutable)
+  mutable std::mutex mutex_;  // guards layers_ (the map; layers are immutable once built)
   std::map<const core::ModelSnapshot*, Entry> layers_;
 };
 

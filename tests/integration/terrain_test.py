@@ -33,6 +33,7 @@ import shutil
 import struct
 import subprocess
 import sys
+import threading
 import time
 import unittest
 
@@ -455,6 +456,27 @@ class Terrain(unittest.TestCase):
             self.assertEqual(json.loads(body)["error"]["code"], "invalid_argument")
         status, _, _ = self.get("/v1/models/nope/terrain/layer.json")
         self.assertEqual(status, 404)
+
+        # Before anything built PRISM's layer: concurrent first requests (the CPU pool's threads
+        # build it once and wait for each other) all answer the same tile.
+        key = tile_of(6, *FAR)
+        results = [None] * 8
+
+        def fetch(k):
+            results[k] = self.daemon.request(
+                "GET", "/v1/models/%s/terrain/%d/%d/%d.terrain" % ((PRISM,) + key),
+                headers={"Accept": CESIUM_ACCEPT})
+        threads = [threading.Thread(target=fetch, args=(k,)) for k in range(len(results))]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(120)
+        self.assertEqual({r[0] for r in results}, {200}, [r[2][:200] for r in results])
+        self.assertEqual(len({r[2] for r in results}), 1)
+        self.assertEqual(len({r[1]["ETag"] for r in results}), 1)
+        built = [line for line in self.daemon.log().splitlines()
+                 if "model=%s terrain layer of version" % PRISM in line]
+        self.assertEqual(len(built), 1, built)
 
         layer, _ = self.layer()
         levels_before = self.check_layer(layer, {PRISM: prism})
