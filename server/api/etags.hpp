@@ -39,7 +39,8 @@ std::string glbEtag(const core::PatchInfo& info);
 inline constexpr std::string_view kTerrainFormat = "q1";
 /// A terrain tile's content version: a digest of the tile, the key and version of every patch it
 /// is sampled from (core::terrainSources), kTerrainFormat and `variant` (the representation:
-/// extensions and content coding). Also its key in the encoded-response cache.
+/// extensions, the metadata extension's text, and content coding). Also its key in the
+/// encoded-response cache.
 std::uint64_t terrainVersion(std::string_view tile, std::span<const core::PatchInfo* const> sources,
                              std::string_view variant);
 /// The tag of a terrain tile of that version.

@@ -213,8 +213,11 @@ std::optional<http::Response> getTile(models::ModelRegistry& models, TerrainLaye
   const std::string* accept = request.header("accept");
   const TerrainExtensions extensions = parseTerrainAccept(accept ? *accept : "");
   const bool gzipped = http::acceptsGzip(request);
+  // The metadata extension lists the children layer.json makes available: part of the content,
+  // so part of the version (a few ranges at most; cheap enough for a network thread).
+  const std::string metadata = extensions.metadata ? core::terrainMetadataJson(*layer, key) : "";
   const std::string variant = std::string(extensions.normals ? "n" : "") +
-                              (extensions.metadata ? "m" : "") + (gzipped ? "-gz" : "");
+                              (extensions.metadata ? "m" + metadata : "") + (gzipped ? "-gz" : "");
   const std::string tile = key.toString();
   const std::uint64_t version = api::terrainVersion(tile, infos, variant);
   const std::string etag = terrainEtag(tile, version);
@@ -237,9 +240,7 @@ std::optional<http::Response> getTile(models::ModelRegistry& models, TerrainLaye
         });
     core::QuantizedMeshOptions options;
     options.normals = extensions.normals;
-    if (extensions.metadata) {
-      options.metadata = core::terrainMetadataJson(*layer, key);
-    }
+    options.metadata = metadata;
     std::vector<std::byte> bytes = core::encodeQuantizedMesh(heights, options);
     if (gzipped) {
       const std::string packed =
