@@ -81,6 +81,23 @@ TileRange tilesMeeting(int z, const GeoRect& r) {
           index((r.east + 180) / span, maxX), index((r.north + 90) / span, maxY)};
 }
 
+/// Bound on the tiles of one level of `available` (the level and deeper ones are left out beyond
+/// it): layer.json stays small even for a patch whose footprint is huge at its resolution.
+constexpr double kMaxAvailableTiles = 1 << 20;
+
+/// A patch's resolution for the level rules: its recorded one, but at least half its footprint's
+/// larger side over its cells (never binding for a patch whose grid is filled: its resolution is
+/// about the side over the cells), so that a sparse patch (few defined neighbours, a resolution
+/// near 0) over a wide area does not count as much finer than its grid can be.
+double effectiveResolution(const Model& model, const PatchKey& key, const GeoRect& footprint) {
+  const double midLat = (footprint.south + footprint.north) * 0.5 * kRad;
+  const double metresPerDegree = kA * kRad;
+  const double side =
+      std::max((footprint.north - footprint.south) * metresPerDegree,
+               (footprint.east - footprint.west) * metresPerDegree * std::cos(midLat));
+  return std::max(model.at(key).resolution, side / (2.0 * (model.gridSize() - 1)));
+}
+
 /// Whether the root is ECEF and does not fold over itself seen from above; "" when it is a height
 /// field, else why not.
 std::string heightFieldProblem(const PatchGrid& root) {
@@ -311,18 +328,24 @@ TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load
   for (int z = 1; z <= TerrainTileKey::kMaxLevel; ++z) {
     const double limit = 2 * terrainVertexSpacing(z);
     std::set<std::pair<std::uint32_t, std::uint32_t>> tiles;  // (y, x)
+    bool tooMany = false;
     for (const auto& [key, rect] : layer.footprint) {
-      if (model.at(key).resolution > limit) {
+      if (effectiveResolution(model, key, rect) > limit) {
         continue;
       }
       const TileRange r = tilesMeeting(z, rect);
+      if (static_cast<double>(r.endX - r.startX + 1) * (r.endY - r.startY + 1) + tiles.size() >
+          kMaxAvailableTiles) {
+        tooMany = true;
+        break;
+      }
       for (std::uint32_t y = r.startY; y <= r.endY; ++y) {
         for (std::uint32_t x = r.startX; x <= r.endX; ++x) {
           tiles.emplace(y, x);
         }
       }
     }
-    if (tiles.empty()) {
+    if (tiles.empty() || tooMany) {
       break;
     }
     // Runs along rows, then runs of equal rows merged north.
@@ -389,7 +412,7 @@ std::vector<PatchKey> terrainSources(const Model& model, const TerrainLayer& lay
       continue;
     }
     const PatchInfo& info = model.at(at);
-    if (info.resolution <= spacing || info.isLeaf()) {
+    if (effectiveResolution(model, at, fp->second) <= spacing || info.isLeaf()) {
       sources.push_back(at);
       continue;
     }

@@ -112,8 +112,11 @@ using TerrainGridLoader = std::function<std::shared_ptr<const PatchGrid>(const P
 ///
 /// (so the finest level a model offers is the last one whose vertices are at most twice as dense
 /// as its finest data; levels are closed under parents because a patch that qualifies at z
-/// qualifies at every coarser level). Level 0's two tiles are always available. A model that is
-/// not a height field gives heightField false and nothing else. Throws what `load` throws, and
+/// qualifies at every coarser level). Level 0's two tiles are always available. A patch's
+/// resolution, here and in terrainSources, is PatchInfo::resolution but at least half its
+/// footprint's larger side over its cells (a guard for sparse patches), and a level that would
+/// list over 2^20 tiles ends the list. A model that is not a height field gives heightField false
+/// and nothing else. Throws what `load` throws, and
 /// Error(InvalidArgument) for an empty model.
 TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load);
 

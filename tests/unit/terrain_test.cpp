@@ -239,6 +239,31 @@ TEST(TerrainLayer, AvailabilityFollowsTheResolutionRule) {
   EXPECT_EQ(meta["available"], json::array());
 }
 
+TEST(TerrainLayer, ASparsePatchCountsNoFinerThanItsGridCanBe) {
+  // Only every fourth vertex of every fourth row defined: no defined neighbours, resolution 0.
+  GeoModel geo;
+  auto sparse = std::make_shared<PatchGrid>(*geo.root);
+  for (int j = 0; j < GeoModel::kSize; ++j) {
+    for (int i = 0; i < GeoModel::kSize; ++i) {
+      if (i % 4 != 0 || j % 4 != 0) {
+        sparse->setUndefined(i, j);
+      }
+    }
+  }
+  Model model{GeoModel::kSize};
+  PatchInfo info;
+  info.key = PatchKey::root();
+  model.insert(info);
+  model.describe(info.key, *sparse);
+  ASSERT_EQ(model.at(PatchKey::root()).resolution, 0);
+  const TerrainLayer layer = buildTerrainLayer(
+      model, [&](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return sparse; });
+  ASSERT_TRUE(layer.heightField) << layer.reason;
+  // Half of the 0.5 deg side over 32 cells: ~870 m, so about level 8, not level 24.
+  EXPECT_GE(layer.maxZoom, 7);
+  EXPECT_LE(layer.maxZoom, 9);
+}
+
 TEST(TerrainLayer, AModelInALocalFrameIsNoHeightField) {
   const GeoModel local(false);
   const TerrainLayer layer = buildTerrainLayer(local.model, local.loader());
