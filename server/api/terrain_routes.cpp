@@ -340,7 +340,12 @@ json terrainLayerJson(std::string_view id, const core::TerrainLayer& layer,
           {"minzoom", 0},
           {"maxzoom", layer.maxZoom},
           {"available", std::move(available)},
-          {"extensions", json::array({"octvertexnormals", "metadata"})}};
+          {"extensions", json::array({"octvertexnormals", "metadata"})},
+          // CesiumJS reads availability from the tiles' metadata extension when this is set (each
+          // tile names its available children), and must: with `available` alone it fails on
+          // every tile that carries the extension (CesiumTerrainProvider has no
+          // availabilityTilesLoaded then). `available` stays, whole, for other clients.
+          {"metadataAvailability", 1}};
 }
 
 void addTerrainRoutes(http::Router& router, models::ModelRegistry& models) {

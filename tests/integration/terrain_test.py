@@ -409,6 +409,9 @@ class Terrain(unittest.TestCase):
             self.assertEqual(layer[field], value, field)
         self.assertEqual(layer["tiles"], ["{z}/{x}/{y}.terrain?v={version}"])
         self.assertEqual(layer["extensions"], ["octvertexnormals", "metadata"])
+        # CesiumJS takes availability from the tiles' metadata (each names its children) only
+        # with this; with `available` alone it fails on tiles that carry the metadata extension.
+        self.assertEqual(layer["metadataAvailability"], 1)
         self.assertEqual(layer["minzoom"], 0)
         self.assertEqual(layer["maxzoom"], len(layer["available"]) - 1)
         self.assertEqual(layer["available"][0], [{"startX": 0, "startY": 0, "endX": 1, "endY": 0}])
