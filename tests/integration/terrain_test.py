@@ -7,7 +7,7 @@ and checked against the source rasters read by GDAL (numpy for the maths):
 
 - layer.json: the fields CesiumTerrainProvider reads; `available` levels closed under parents;
   every available tile meets the DEM; level 0 both tiles;
-- tiles at levels 0..12 over the data (PRISM; Jacksboro after merging it into PRISM) and their
+- tiles at levels 0..13 over the data (PRISM; Jacksboro after merging it into PRISM) and their
   neighbours, with and without gzip and extensions: header min/max heights hold every vertex's
   height, the bounding sphere every vertex (ECEF, own WGS 84 formulas); edge lists are exactly
   the vertices on each edge; neighbours' shared edges match (positions, and heights within both
