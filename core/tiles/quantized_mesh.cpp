@@ -137,8 +137,8 @@ std::string heightFieldProblem(const PatchGrid& root) {
   }
   const std::size_t total = positive + negative;
   if (total > 0 && std::min(positive, negative) * 100 > total) {
-    return "its surface folds over itself seen from above (" + std::to_string(negative) + " of " +
-           std::to_string(total) +
+    return "its surface folds over itself seen from above (" +
+           std::to_string(std::min(positive, negative)) + " of " + std::to_string(total) +
            " grid cells face the other way): it is not a height field over the ellipsoid";
   }
   return {};

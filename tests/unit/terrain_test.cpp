@@ -264,6 +264,37 @@ TEST(TerrainLayer, ASparsePatchCountsNoFinerThanItsGridCanBe) {
   EXPECT_LE(layer.maxZoom, 9);
 }
 
+TEST(TerrainLayer, ASurfaceThatFoldsOverItselfIsNoHeightField) {
+  // An overhang: the eastern half of the grid runs back west over the western half, 500 m higher.
+  constexpr int kSize = GeoModel::kSize;
+  Box3d box;
+  std::vector<Vec3d> points;
+  for (int j = 0; j < kSize; ++j) {
+    for (int i = 0; i < kSize; ++i) {
+      const int folded = i <= kSize / 2 ? i : kSize - 1 - i;
+      const double lon = kWest + kSpan * folded / (kSize - 1);
+      const double lat = kSouth + kSpan - kSpan * j / (kSize - 1);
+      points.push_back(geodeticToEcef(lon, lat, i <= kSize / 2 ? 100.0 : 600.0));
+      box.extend(points.back());
+    }
+  }
+  auto grid = std::make_shared<PatchGrid>(kSize, originFor(box));
+  for (int j = 0; j < kSize; ++j) {
+    for (int i = 0; i < kSize; ++i) {
+      grid->setGlobal(i, j, points[static_cast<std::size_t>(j) * kSize + i]);
+    }
+  }
+  Model model{kSize};
+  PatchInfo info;
+  info.key = PatchKey::root();
+  model.insert(info);
+  model.describe(info.key, *grid);
+  const TerrainLayer layer = buildTerrainLayer(
+      model, [&](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return grid; });
+  EXPECT_FALSE(layer.heightField);
+  EXPECT_NE(layer.reason.find("folds over itself"), std::string::npos) << layer.reason;
+}
+
 TEST(TerrainLayer, AModelInALocalFrameIsNoHeightField) {
   const GeoModel local(false);
   const TerrainLayer layer = buildTerrainLayer(local.model, local.loader());
