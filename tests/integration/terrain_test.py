@@ -15,6 +15,7 @@ and checked against the source rasters read by GDAL (numpy for the maths):
   the DEM (GDAL's raster, the same finite differences); heights at vertices match the DEM
   sampled bilinearly within the relief of the DEM cells around them (the model's surface is a
   piecewise-linear interpolation of the same samples) where the tile samples the finest data;
+- Jacksboro warped to UTM 16N and imported (a projected DEM) is terrain too, with those heights;
 - the metadata extension's `available` equals layer.json's for the children;
 - after the merge (a job): tiles over Jacksboro change ETag, tiles far from it keep theirs,
   `available` grows (deeper levels over Jacksboro);
@@ -227,6 +228,13 @@ class Terrain(unittest.TestCase):
             subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, name + ".tif"),
                             os.path.join(root, name), "--patch-size", "65", "--texture", "none"],
                            check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # Jacksboro in a projected CRS (UTM 16N, 90 m pixels, bilinear), as a projected DEM.
+        utm = os.path.join(ARGS.work, "jack_utm.tif")
+        gdal.Warp(utm, os.path.join(ARGS.data, JACK + ".tif"), dstSRS="EPSG:32616", xRes=90,
+                  yRes=90, resampleAlg="bilinear", dstNodata=-32768)
+        subprocess.run([ARGS.vsm, "import", utm, os.path.join(root, "jack_utm"), "--patch-size",
+                        "65", "--texture", "none"], check=True, stdout=subprocess.DEVNULL,
+                       stderr=subprocess.DEVNULL)
         cloud = os.path.join(ARGS.work, "cloud.pcd")
         write_cloud(cloud)
         subprocess.run([ARGS.vsm, "import", cloud, os.path.join(root, "cloud"), "--patch-size",
@@ -352,12 +360,12 @@ class Terrain(unittest.TestCase):
                                 "occlusion point is not" % (cam * radii))
         Terrain.stats["hop_cameras"] = Terrain.stats.get("hop_cameras", 0) + occluded_cameras
 
-    def check_against_dem(self, t, key, dem, heights=True):
+    def check_against_dem(self, t, key, dem, heights=True, normals=True):
         """Normals within 10 degrees of the DEM's; heights within the local relief."""
         west, south, east, north = tile_rect(*key)
         d = (east - west) / 64
         for k, (lon, lat, h) in enumerate(vertices(t, key)):
-            if 1 in t["extensions"]:
+            if normals and 1 in t["extensions"]:
                 ref = dem.normal(lon, lat, d)
                 if ref is not None and dem.bilinear(lon, lat) is not None:
                     ext = t["extensions"][1]
@@ -480,6 +488,16 @@ class Terrain(unittest.TestCase):
         built = [line for line in self.daemon.log().splitlines()
                  if "model=%s terrain layer of version" % PRISM in line]
         self.assertEqual(len(built), 1, built)
+
+        # A projected DEM is a height field too (vsm import takes it to ECEF through PROJ): its
+        # tiles hold the geographic DEM's heights within the relief (the warp resampled it).
+        utm_layer, _ = self.layer("jack_utm")
+        self.assertGreaterEqual(utm_layer["maxzoom"], 11)
+        self.assertEqual(utm_layer["metadataAvailability"], 1)
+        key = tile_of(utm_layer["maxzoom"] - 1, *JACK_CENTRE)
+        t, _, _ = self.tile(key, model="jack_utm")
+        self.check_tile(t, key, utm_layer)
+        self.check_against_dem(t, key, jack, normals=False)
 
         layer, _ = self.layer()
         levels_before = self.check_layer(layer, {PRISM: prism})
