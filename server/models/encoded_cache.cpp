@@ -29,6 +29,8 @@ std::string_view toString(Encoding encoding) {
       return "glb";
     case Encoding::TexturePng:
       return "png";
+    case Encoding::Terrain:
+      return "terrain";
   }
   return "unknown";
 }
