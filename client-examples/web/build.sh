@@ -1,7 +1,7 @@
 #!/bin/sh
-# Builds the browser viewer (index.html, main.js, and, with --cesium, cesium.html) into <out-dir>,
-# with the ES modules it imports vendored from npm into <out-dir>/vendor, so that vsmd serves it
-# with no network access at runtime (vsmd --viewer-dir <out-dir>, then open /viewer/?model=ID).
+# Builds the browser viewer (index.html, main.js, and, with --cesium, cesium.html and
+# terrain.html) into <out-dir>, with the ES modules it imports vendored from npm into
+# <out-dir>/vendor, so that vsmd serves it with no network access at runtime (vsmd --viewer-dir <out-dir>, then open /viewer/?model=ID).
 # No bundler: index.html maps the bare imports ("three", "3d-tiles-renderer") to the vendored files
 # with an import map.
 #
@@ -84,7 +84,7 @@ for f in "$nm"/3d-tiles-renderer/build/renderer-*.js; do
   cp "$f" "$tmp/vendor/3d-tiles-renderer/build/"
 done
 if $cesium; then
-  cp "$src/cesium.html" "$tmp/"
+  cp "$src/cesium.html" "$src/terrain.html" "$tmp/"
   mkdir -p "$tmp/vendor/cesium"
   cp "$nm/cesium/LICENSE.md" "$tmp/vendor/cesium/" 2>/dev/null || true
   cp -R "$nm/cesium/Build/Cesium" "$tmp/vendor/cesium/Build"
