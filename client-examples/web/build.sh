@@ -1,7 +1,8 @@
 #!/bin/sh
 # Builds the browser viewer (index.html, main.js, and, with --cesium, cesium.html and
 # terrain.html) into <out-dir>, with the ES modules it imports vendored from npm into
-# <out-dir>/vendor, so that vsmd serves it with no network access at runtime (vsmd --viewer-dir <out-dir>, then open /viewer/?model=ID).
+# <out-dir>/vendor, so that vsmd serves it with no network access at runtime
+# (vsmd --viewer-dir <out-dir>, then open /viewer/?model=ID).
 # No bundler: index.html maps the bare imports ("three", "3d-tiles-renderer") to the vendored files
 # with an import map.
 #
