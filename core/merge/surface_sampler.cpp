@@ -126,6 +126,18 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   frame_ = UpFrame(box.empty() ? Vec3d{} : box.center(), up);
 
   constexpr std::uint32_t kNone = kNoVertex;
+  // Every grid's vertices and cells at most: reserved once (samplers are built per new patch of a
+  // merge, so growing these vectors by doubling cost more than the rest of the construction).
+  std::size_t vertexBound = 0;
+  for (const auto& grid : grids) {
+    if (grid) {
+      vertexBound += static_cast<std::size_t>(grid->size()) * grid->size();
+    }
+  }
+  vertices_.reserve(vertexBound);
+  projected_.reserve(vertexBound);
+  origins_.reserve(vertexBound);
+  cells_.reserve(4 * vertexBound);
   std::vector<std::uint32_t> index;  // grid vertex -> vertices_ index, per grid
   for (std::size_t gridIndex = 0; gridIndex < grids.size(); ++gridIndex) {
     const auto& grid = grids[gridIndex];
@@ -183,22 +195,26 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
 
   // Bucket size: the mean projected extent of a cell, so a query scans a handful of them.
   const std::size_t count = cellCount();
+  std::vector<Rect2d> rects(count);
   double extentSum = 0;
+  double maxEdge2 = 0;
   for (std::size_t t = 0; t < count; ++t) {
-    const Rect2d r = cellRect(t);
-    for (int c = 0; c < 4; ++c) {
-      for (int e = c + 1; e < 4; ++e) {
-        if (cells_[4 * t + c] != kNoVertex && cells_[4 * t + e] != kNoVertex) {
-          const Vec2d a = projected_[cells_[4 * t + c]];
-          const Vec2d b = projected_[cells_[4 * t + e]];
-          maxEdge_ = std::max(maxEdge_, std::hypot(a.u - b.u, a.v - b.v));
-        }
+    const std::uint32_t* cell = &cells_[4 * t];
+    const int corners = cell[3] == kNoVertex ? 3 : 4;
+    Rect2d& r = rects[t];
+    for (int c = 0; c < corners; ++c) {
+      const Vec2d a = projected_[cell[c]];
+      r.extend(a);
+      for (int e = c + 1; e < corners; ++e) {
+        const Vec2d b = projected_[cell[e]];
+        maxEdge2 = std::max(maxEdge2, (a.u - b.u) * (a.u - b.u) + (a.v - b.v) * (a.v - b.v));
       }
     }
     extentSum += std::max(r.max.u - r.min.u, r.max.v - r.min.v);
     bounds_.extend(r.min);
     bounds_.extend(r.max);
   }
+  maxEdge_ = std::sqrt(maxEdge2);
   if (count == 0) {
     bucketStart_.assign(1, 0);
     return;
@@ -215,7 +231,7 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   bucketsU_ = static_cast<int>(std::floor(width / bucketSize_)) + 1;
   bucketsV_ = static_cast<int>(std::floor(height / bucketSize_)) + 1;
   auto bucketRange = [&](std::size_t t, int& u0, int& v0, int& u1, int& v1) {
-    const Rect2d r = cellRect(t);
+    const Rect2d& r = rects[t];
     u0 = std::clamp(static_cast<int>(std::floor((r.min.u - bounds_.min.u) / bucketSize_)), 0,
                     bucketsU_ - 1);
     u1 = std::clamp(static_cast<int>(std::floor((r.max.u - bounds_.min.u) / bucketSize_)), 0,
