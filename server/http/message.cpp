@@ -17,8 +17,6 @@ namespace vsm::server::http {
 using core::Error;
 using core::ErrorCode;
 
-namespace {
-
 bool equalsIgnoreCase(std::string_view a, std::string_view b) {
   if (a.size() != b.size()) {
     return false;
@@ -41,6 +39,8 @@ std::string_view trim(std::string_view s) {
   }
   return s;
 }
+
+namespace {
 
 int hexValue(char c) {
   if (c >= '0' && c <= '9') {

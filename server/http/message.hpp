@@ -20,6 +20,12 @@ enum class Method { Get, Head, Post, Put, Patch, Delete, Options, Other };
 std::string_view toString(Method method);
 /// "GET" -> Get; unknown names -> Other. Case-sensitive, as HTTP methods are.
 Method parseMethod(std::string_view name);
+/// ASCII case-insensitive equality (header field names, tokens such as content codings).
+bool equalsIgnoreCase(std::string_view a, std::string_view b);
+
+/// `s` without leading and trailing spaces and tabs (HTTP's optional whitespace).
+std::string_view trim(std::string_view s);
+
 /// POST, PUT, PATCH, DELETE and unknown methods: the ones that need the bearer token.
 bool isWrite(Method method);
 

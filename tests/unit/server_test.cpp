@@ -11,6 +11,7 @@
 #include <string>
 #include <vector>
 
+#include <zlib.h>
 #include <nlohmann/json.hpp>
 
 #include "core/cache/patch_cache.hpp"
@@ -22,6 +23,7 @@
 #include "server/cluster/etcd_client.hpp"
 #include "server/config/config.hpp"
 #include "server/exec/work_pool.hpp"
+#include "server/http/gzip.hpp"
 #include "server/http/message.hpp"
 #include "server/http/pipeline.hpp"
 #include "server/http/router.hpp"
@@ -70,6 +72,88 @@ class TempFile {
 };
 
 // --- config ---------------------------------------------------------------------------------
+
+http::Request withAcceptEncoding(std::string value) {
+  http::Request request;
+  request.headers.emplace_back("accept-encoding", std::move(value));
+  return request;
+}
+
+/// Inflates one gzip member with zlib's inflate (the decoder, not the encoder under test).
+std::string gunzip(const std::string& data) {
+  z_stream stream{};
+  EXPECT_EQ(inflateInit2(&stream, 15 + 16), Z_OK);
+  std::string out;
+  char buffer[4096];
+  stream.next_in = reinterpret_cast<Bytef*>(const_cast<char*>(data.data()));
+  stream.avail_in = static_cast<uInt>(data.size());
+  int result = Z_OK;
+  while (result == Z_OK) {
+    stream.next_out = reinterpret_cast<Bytef*>(buffer);
+    stream.avail_out = sizeof buffer;
+    result = inflate(&stream, Z_NO_FLUSH);
+    out.append(buffer, sizeof buffer - stream.avail_out);
+  }
+  EXPECT_EQ(result, Z_STREAM_END);
+  EXPECT_EQ(stream.avail_in, 0U) << "bytes after the gzip member";
+  inflateEnd(&stream);
+  return out;
+}
+
+TEST(Gzip, AcceptEncodingNegotiation) {
+  EXPECT_FALSE(http::acceptsGzip(http::Request{}));
+  EXPECT_TRUE(http::acceptsGzip(withAcceptEncoding("gzip")));
+  EXPECT_TRUE(http::acceptsGzip(withAcceptEncoding("gzip, deflate, br")));
+  EXPECT_TRUE(http::acceptsGzip(withAcceptEncoding("br;q=1.0, GZIP;q=0.5")));
+  EXPECT_TRUE(http::acceptsGzip(withAcceptEncoding("x-gzip")));
+  EXPECT_TRUE(http::acceptsGzip(withAcceptEncoding("*")));
+  EXPECT_TRUE(http::acceptsGzip(withAcceptEncoding("identity, *;q=0.1")));
+  EXPECT_FALSE(http::acceptsGzip(withAcceptEncoding("identity")));
+  EXPECT_FALSE(http::acceptsGzip(withAcceptEncoding("br, deflate")));
+  EXPECT_FALSE(http::acceptsGzip(withAcceptEncoding("gzip;q=0")));
+  EXPECT_FALSE(http::acceptsGzip(withAcceptEncoding("gzip;q=0.000")));
+  // Named explicitly, gzip's own q wins over the wildcard's.
+  EXPECT_FALSE(http::acceptsGzip(withAcceptEncoding("gzip;q=0, *")));
+  EXPECT_TRUE(http::acceptsGzip(withAcceptEncoding("*;q=0, gzip")));
+  // A malformed q-value refuses rather than guessing.
+  EXPECT_FALSE(http::acceptsGzip(withAcceptEncoding("gzip;q=high")));
+  EXPECT_FALSE(http::acceptsGzip(withAcceptEncoding("gzip;q=2")));
+  EXPECT_FALSE(http::acceptsGzip(withAcceptEncoding("gzipped")));
+}
+
+TEST(Gzip, RoundTripsThroughInflate) {
+  std::string json = "{\"tiles\":[";
+  for (int i = 0; i < 5000; ++i) {
+    json += "{\"uri\":\"3_" + std::to_string(i) + "_1.glb\"},";
+  }
+  json += "]}";
+  for (const int level : {1, 6, 9}) {
+    const std::string packed = http::gzip(json, level);
+    ASSERT_GE(packed.size(), 18U);
+    EXPECT_EQ(static_cast<unsigned char>(packed[0]), 0x1f);  // RFC 1952 magic
+    EXPECT_EQ(static_cast<unsigned char>(packed[1]), 0x8b);
+    EXPECT_LT(packed.size(), json.size() / 4) << "level " << level;
+    EXPECT_EQ(gunzip(packed), json);
+  }
+  EXPECT_EQ(gunzip(http::gzip("")), "");
+  // Incompressible bytes still round-trip (the output may be larger than the input).
+  std::string noise(100000, '\0');
+  std::uint32_t x = 12345;
+  for (char& c : noise) {
+    x = x * 1664525U + 1013904223U;
+    c = static_cast<char>(x >> 24);
+  }
+  EXPECT_EQ(gunzip(http::gzip(noise)), noise);
+}
+
+TEST(Gzip, ResponseHeaders) {
+  http::Response response;
+  http::setGzipEncoded(response);
+  ASSERT_NE(response.header("content-encoding"), nullptr);
+  EXPECT_EQ(*response.header("Content-Encoding"), "gzip");
+  ASSERT_NE(response.header("vary"), nullptr);
+  EXPECT_EQ(*response.header("Vary"), "Accept-Encoding");
+}
 
 TEST(ConfigSize, AcceptsBytesAndBinaryAndDecimalSuffixes) {
   EXPECT_EQ(parseSize("1048576"), 1048576u);
