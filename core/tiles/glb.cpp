@@ -314,11 +314,12 @@ void writeMeshopt(const Mesh& mesh, json& gltf, std::vector<std::byte>& bin) {
     std::memcpy(uvs.data(), mesh.uvs.data(), uvs.size());
   }
 
-  // Triangles in vertex-cache order: smaller after the index codec, faster to draw. The vertex
-  // order stays the grid's, which suits the vertex codec's deltas.
-  std::vector<std::uint32_t> triangles(mesh.triangles.size());
-  meshopt_optimizeVertexCache(triangles.data(), mesh.triangles.data(), mesh.triangles.size(),
-                              count);
+  // Vertices and triangles stay in the grid's row order: neighbouring vertices follow each other
+  // (small deltas for the vertex codec) and consecutive triangles share edges (the index codec's
+  // best case). meshopt_optimizeVertexCache, with or without optimizeVertexFetch, made the real
+  // models' GLBs 10-15 % larger and their encoding 2-8 times slower (tests/bench/glb_bench.sh), for
+  // a post-transform cache gain that tiles of a few thousand triangles do not need.
+  const std::vector<std::uint32_t>& triangles = mesh.triangles;
   // 65535 is the primitive restart value of UNSIGNED_SHORT and must not occur as an index.
   const bool shortIndices = count <= 65535;
 

@@ -62,9 +62,9 @@ struct GlbOptions {
 /// - every accessor carries its exact min/max; buffer views are 4-byte aligned, the JSON chunk is
 ///   padded with spaces and the BIN chunk with zeros.
 ///
-/// With GlbCompression::Meshopt the same vertices (in the same order) and triangles (reordered for
-/// the vertex cache by meshoptimizer, each keeping its winding, possibly rotated) are stored
-/// quantized and compressed:
+/// With GlbCompression::Meshopt the same vertices and triangles, in the same order (the index
+/// codec may rotate a triangle's indices, keeping its winding), are stored quantized and
+/// compressed:
 ///
 /// - POSITION: UNSIGNED_SHORT (unnormalized) per axis, q = round((p - min) / s), with one scale s
 ///   for all three axes (the largest extent / 65535, so normals need no correction) and the

@@ -38,8 +38,8 @@ json translationJson(const core::Vec3d& t) {
       {1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, t.x, t.y, t.z, 1.0});
 }
 
-/// "{key}.glb", with "?v={patch version}" when `model` is given, and "&rev={revision}" for a
-/// revision other than 0.
+/// "{key}.glb", with "?v={patch version}" when `model` is given, "&rev={revision}" for a
+/// revision other than 0, and "compress=none" (after '?' or '&') for uncompressed content.
 std::string contentUri(const core::PatchKey& key, const core::Model* model, std::uint64_t revision,
                        bool compressedContent) {
   std::string uri = key.toString() + ".glb";
@@ -121,8 +121,13 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
   const bool compressedContent = requestedCompression(request) == core::GlbCompression::Meshopt;
   const bool revisionUris = request.queryParam("rev").has_value();
   const bool gzipped = http::acceptsGzip(request);
-  const std::string variant = std::string(compressedContent ? "" : "raw") +
-                              (gzipped ? (compressedContent ? "gz" : "-gz") : "");
+  // The representation: content URIs (compressed or "raw", with "&rev=" or not) and encoding.
+  std::string variant = compressedContent ? "" : "raw";
+  for (const auto& [on, part] : {std::pair{revisionUris, "rev"}, std::pair{gzipped, "gz"}}) {
+    if (on) {
+      variant += (variant.empty() ? "" : "-") + std::string(part);
+    }
+  }
   const std::string etag = tilesetEtag(*snapshot, variant);
   if (http::ifNoneMatch(request, etag)) {
     http::Response response = http::notModified(etag, kTileCacheControl);

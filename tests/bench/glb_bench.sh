@@ -24,6 +24,6 @@ texture=(--texture "$DATA/conus_visible_earth.tif")
   echo "# tests/bench/glb_bench.sh on $(date -u +%Y-%m-%dT%H:%MZ), $(nproc) cores"
   echo "# $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//'), meshoptimizer $(dpkg-query -W -f='${Version}' libmeshoptimizer-dev 2>/dev/null || echo '?')"
   echo "# geometry = GLB bytes without the embedded PNG texture (JSON chunk, vertex and index data)"
-  "$BUILD/tests/bench/glb_bench" "$WORK/prism" "$WORK/merged" "$WORK/prism-default" --repeat 5 |
+  "$BUILD/tests/bench/glb_bench" "$WORK/prism" "$WORK/merged" "$WORK/prism-default" --repeat 15 |
     sed "s|$WORK/||"
 } | tee "$OUT"
