@@ -1,5 +1,6 @@
 #include "server/api/etags.hpp"
 
+#include <algorithm>
 #include <cstdint>
 #include <cstdio>
 #include <type_traits>
@@ -35,6 +36,7 @@ class Digest {
       add(v);
     }
   }
+  std::uint64_t value() const { return hash_; }
   std::string hex() const {
     char text[17];
     std::snprintf(text, sizeof text, "%016llx", static_cast<unsigned long long>(hash_));
@@ -103,6 +105,29 @@ std::string staticFileEtag(std::uint64_t size, std::uint64_t mtimeNs, std::uint6
     return std::string(text);
   };
   return http::strongEtag("s-" + hex(size) + "-" + hex(mtimeNs) + "-" + hex(inode));
+}
+
+std::uint64_t terrainVersion(std::string_view tile, std::span<const core::PatchInfo* const> sources,
+                             std::string_view variant) {
+  Digest digest;
+  digest.add(kTerrainFormat);
+  digest.add(tile);
+  digest.add(variant);
+  for (const core::PatchInfo* info : sources) {
+    digest.add(info->key.depth);
+    digest.add(info->key.x);
+    digest.add(info->key.y);
+    digest.add(info->version);
+  }
+  return digest.value();
+}
+
+std::string terrainEtag(std::string_view tile, std::uint64_t version) {
+  char text[17];
+  std::snprintf(text, sizeof text, "%016llx", static_cast<unsigned long long>(version));
+  std::string name(tile);
+  std::replace(name.begin(), name.end(), '/', '_');
+  return http::strongEtag("terrain-" + name + "-" + text);
 }
 
 std::string glbEtag(const core::PatchInfo& info, std::string_view variant) {

@@ -1,6 +1,7 @@
 #pragma once
 
 #include <cstdint>
+#include <span>
 #include <string>
 #include <string_view>
 
@@ -37,6 +38,17 @@ std::string patchDataEtag(const core::PatchInfo& info, std::string_view suffix);
 /// representations share a tag.
 std::string tilesetEtag(const core::ModelSnapshot& snapshot, std::string_view variant = {});
 std::string glbEtag(const core::PatchInfo& info, std::string_view variant = {});
+/// Bumped whenever the quantized-mesh encoder (core/tiles/quantized_mesh) or layer.json change
+/// what they produce for the same model.
+inline constexpr std::string_view kTerrainFormat = "q1";
+/// A terrain tile's content version: a digest of the tile, the key and version of every patch it
+/// is sampled from (core::terrainSources), kTerrainFormat and `variant` (the representation:
+/// extensions, the metadata extension's text, and content coding). Also its key in the
+/// encoded-response cache.
+std::uint64_t terrainVersion(std::string_view tile, std::span<const core::PatchInfo* const> sources,
+                             std::string_view variant);
+/// The tag of a terrain tile of that version.
+std::string terrainEtag(std::string_view tile, std::uint64_t version);
 /// A static file (the viewer's): its size, modification time (ns) and inode.
 std::string staticFileEtag(std::uint64_t size, std::uint64_t mtimeNs, std::uint64_t inode);
 

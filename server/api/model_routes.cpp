@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
+#include <numbers>
 #include <optional>
 #include <set>
 #include <span>
@@ -538,37 +539,68 @@ std::optional<http::Response> texture(const ModelContext& c, const http::Request
   return response;
 }
 
+json cutPatchJson(const core::PatchInfo& info) {
+  return {{"key", info.key.toString()},
+          {"box", boxJson(info.globalBox)},
+          {"resolution", number(info.resolution)},
+          {"version", info.version},
+          {"leaf", info.isLeaf()}};
+}
+
+/// GET /v1/models/{m}/lod: the cut for a box and a resolution, or for a camera (eye=...).
 http::Response getLod(const ModelContext& c, const http::Request& request) {
   const std::string& id = request.param("m");
   const auto live = c.models.get(id);
+  const bool byCamera = request.queryParam("eye").has_value();
   const auto boxText = request.queryParam("box");
   const auto resolutionText = request.queryParam("resolution");
-  if (!boxText || !resolutionText) {
+  if (byCamera == (boxText || resolutionText)) {
+    throw Error(ErrorCode::InvalidArgument,
+                "lod needs either ?box=x0,y0,z0,x1,y1,z1&resolution=r (metres) or a camera: "
+                "?eye=x,y,z&dir=x,y,z&up=x,y,z&fov=deg&height=px&sse=px");
+  }
+  if (!byCamera && (!boxText || !resolutionText)) {
     throw Error(ErrorCode::InvalidArgument,
                 "lod needs ?box=x0,y0,z0,x1,y1,z1&resolution=r (metres)");
   }
-  const LodQuery query = parseLodQuery(*boxText, *resolutionText);
+  // Parsed before the model is read: a bad query is a 400 whatever the model holds.
+  const std::optional<LodQuery> boxQuery =
+      byCamera ? std::nullopt : std::optional(parseLodQuery(*boxText, *resolutionText));
+  const std::optional<CameraQuery> cameraQuery =
+      byCamera ? std::optional(parseCameraQuery(request)) : std::nullopt;
   const auto snapshot = requestedSnapshot(*live, request);
   const std::string etag = viewEtag(*snapshot, "l", request.query());
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, http::cache_control::kRevalidate);
   }
   json patches = json::array();
-  if (!snapshot->model->empty()) {
-    for (const core::PatchKey& key : core::lodCut(*snapshot->model, query.box, query.resolution)) {
-      const core::PatchInfo& info = snapshot->model->at(key);
-      patches.push_back({{"key", key.toString()},
-                         {"box", boxJson(info.globalBox)},
-                         {"resolution", number(info.resolution)},
-                         {"version", info.version},
-                         {"leaf", info.isLeaf()}});
+  json body = {{"model", id}, {"version", snapshot->version}};
+  if (boxQuery) {
+    if (!snapshot->model->empty()) {
+      for (const core::PatchKey& key :
+           core::lodCut(*snapshot->model, boxQuery->box, boxQuery->resolution)) {
+        patches.push_back(cutPatchJson(snapshot->model->at(key)));
+      }
     }
+    body["box"] = boxJson(boxQuery->box);
+    body["resolution"] = boxQuery->resolution;
+  } else {
+    const core::Camera& camera = cameraQuery->camera;
+    for (const core::CameraCutEntry& entry :
+         core::lodCutForCamera(*snapshot->model, camera, cameraQuery->maxScreenError)) {
+      json patch = cutPatchJson(snapshot->model->at(entry.key));
+      patch["screen_error"] = number(entry.screenError);
+      patches.push_back(std::move(patch));
+    }
+    body["camera"] = {{"eye", vecJson(camera.eye)},
+                      {"dir", vecJson(camera.dir)},
+                      {"up", vecJson(camera.up)},
+                      {"fov", camera.fovY * 180 / std::numbers::pi},
+                      {"width", camera.width},
+                      {"height", camera.height},
+                      {"sse", cameraQuery->maxScreenError}};
   }
-  json body = {{"model", id},
-               {"version", snapshot->version},
-               {"box", boxJson(query.box)},
-               {"resolution", query.resolution},
-               {"patches", std::move(patches)}};
+  body["patches"] = std::move(patches);
   return withCache(http::jsonResponse(200, body), http::cache_control::kRevalidate, etag);
 }
 

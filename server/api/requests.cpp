@@ -1,10 +1,13 @@
 #include "server/api/requests.hpp"
 
 #include <algorithm>
+#include <array>
 #include <charconv>
 #include <cmath>
 #include <cstdint>
 #include <initializer_list>
+#include <numbers>
+#include <string>
 
 #include <nlohmann/json.hpp>
 
@@ -51,27 +54,37 @@ double parseNumber(std::string_view text, std::string_view what) {
   return value;
 }
 
-}  // namespace
-
-LodQuery parseLodQuery(std::string_view box, std::string_view resolution) {
-  LodQuery out;
-  double v[6];
+/// `count` finite numbers separated by commas; throws naming `what` and the form `form`.
+template <std::size_t N>
+std::array<double, N> parseNumbers(std::string_view text, std::string_view what,
+                                   std::string_view form) {
+  std::array<double, N> v{};
   std::size_t count = 0;
-  for (std::string_view rest = box;;) {
+  for (std::string_view rest = text;;) {
     const std::size_t comma = rest.find(',');
-    if (count == 6) {
-      count = 7;
+    if (count == N) {
+      count = N + 1;
       break;
     }
-    v[count++] = parseNumber(rest.substr(0, comma), "each box coordinate");
+    v[count++] = parseNumber(rest.substr(0, comma),
+                             std::string("each ") + std::string(what) + " coordinate");
     if (comma == std::string_view::npos) {
       break;
     }
     rest.remove_prefix(comma + 1);
   }
-  if (count != 6) {
-    throw Error(ErrorCode::InvalidArgument, "box must be six numbers x0,y0,z0,x1,y1,z1");
+  if (count != N) {
+    throw Error(ErrorCode::InvalidArgument, std::string(what) + " must be " + std::to_string(N) +
+                                                " numbers " + std::string(form));
   }
+  return v;
+}
+
+}  // namespace
+
+LodQuery parseLodQuery(std::string_view box, std::string_view resolution) {
+  LodQuery out;
+  const auto v = parseNumbers<6>(box, "box", "x0,y0,z0,x1,y1,z1");
   if (v[0] > v[3] || v[1] > v[4] || v[2] > v[5]) {
     throw Error(ErrorCode::InvalidArgument, "box must have x0 <= x1, y0 <= y1 and z0 <= z1");
   }
@@ -81,6 +94,38 @@ LodQuery parseLodQuery(std::string_view box, std::string_view resolution) {
   if (out.resolution <= 0) {
     throw Error(ErrorCode::InvalidArgument, "resolution must be greater than 0 (metres)");
   }
+  return out;
+}
+
+CameraQuery parseCameraQuery(const http::Request& request) {
+  const auto required = [&](std::string_view name) {
+    auto value = request.queryParam(name);
+    if (!value) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "a camera lod needs eye=x,y,z&dir=x,y,z&up=x,y,z&fov=deg&height=px&sse=px "
+                  "(width=px optional); '" +
+                      std::string(name) + "' is missing");
+    }
+    return *value;
+  };
+  const auto vec = [&](std::string_view name) {
+    const auto v = parseNumbers<3>(required(name), name, "x,y,z");
+    return core::Vec3d{v[0], v[1], v[2]};
+  };
+  CameraQuery out;
+  out.camera.eye = vec("eye");
+  out.camera.dir = vec("dir");
+  out.camera.up = vec("up");
+  const double fovDegrees = parseNumber(required("fov"), "fov");
+  out.camera.fovY = fovDegrees * std::numbers::pi / 180;
+  out.camera.height = parseNumber(required("height"), "height");
+  const auto width = request.queryParam("width");
+  out.camera.width = width ? parseNumber(*width, "width") : out.camera.height;
+  out.maxScreenError = parseNumber(required("sse"), "sse");
+  if (!(out.maxScreenError > 0)) {
+    throw Error(ErrorCode::InvalidArgument, "sse must be greater than 0 (pixels)");
+  }
+  core::checkCamera(out.camera);
   return out;
 }
 

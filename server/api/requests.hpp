@@ -1,6 +1,6 @@
 #pragma once
 
-// What the routes read from a request before they touch a model: the LOD query and the JSON
+// What the routes read from a request before they touch a model: the LOD queries and the JSON
 // bodies of the POST routes, parsed and checked. Kept apart from the handlers (and their
 // registries) so the parsing can be tested and fuzzed alone (tests/fuzz/).
 
@@ -9,6 +9,7 @@
 #include <string_view>
 
 #include "core/grid/geometry.hpp"
+#include "core/tiles/lod_cut.hpp"
 #include "server/http/message.hpp"
 
 namespace vsm::server::api {
@@ -20,6 +21,16 @@ struct LodQuery {
   double resolution = 0;
 };
 LodQuery parseLodQuery(std::string_view box, std::string_view resolution);
+
+/// The camera form of the LOD query: `eye`, `dir`, `up` ("x,y,z", global coordinates), `fov`
+/// (vertical, degrees), `height` and optional `width` (pixels; width defaults to height), `sse`
+/// (the screen-space error threshold, pixels, > 0). Throws core::Error(InvalidArgument) naming
+/// the missing or wrong parameter.
+struct CameraQuery {
+  core::Camera camera;
+  double maxScreenError = 0;
+};
+CameraQuery parseCameraQuery(const http::Request& request);
 
 /// The body of POST /v1/models (proto/examples/model-open-request.json and
 /// model-import-request.json): open the OPC at `path`, or import the raster at `import`.

@@ -19,6 +19,7 @@
 #include "server/api/model_routes.hpp"
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
+#include "server/api/terrain_routes.hpp"
 #include "server/api/tiles_routes.hpp"
 #include "server/cluster/coordinator.hpp"
 #include "server/events/event_hub.hpp"
@@ -203,6 +204,7 @@ Application::Application(Config config) : config_(std::move(config)) {
   api::addModelRoutes(*router_, {*models_, *jobs_, coordinator_.get()});
   api::addJobRoutes(*router_, {*models_, *jobs_, coordinator_.get()});
   api::addTilesRoutes(*router_, *models_);
+  api::addTerrainRoutes(*router_, *models_);
   api::addEventRoutes(*router_, *events_);
   if (!config_.viewerDir.empty()) {
     api::addStaticRoutes(*router_, "/viewer", config_.viewerDir);

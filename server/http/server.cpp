@@ -356,8 +356,16 @@ class Connection : public std::enable_shared_from_this<Connection> {
     std::size_t bodyBytes = 0;
   };
 
+  /// Bytes of a next request have arrived: read into buffer_, or waiting in the socket.
+  bool requestBegun() {
+    error_code ec;
+    return buffer_.size() > 0 || stream_.socket().available(ec) > 0;
+  }
+
   void readNext() {
-    if (reading_ || closing_ || shutdown_ || closed_ || lingering_ ||
+    // Once the server stops, only a request whose bytes have begun to arrive is still read (a
+    // pipelined one behind those in flight); no new one is waited for.
+    if (reading_ || closing_ || (shutdown_ && !requestBegun()) || closed_ || lingering_ ||
         queue_.size() >= server_.options.maxPipelined) {
       return;
     }
@@ -678,8 +686,10 @@ class Connection : public std::enable_shared_from_this<Connection> {
     }
     Slot& slot = queue_.front();
     // The last response before closing says so: the client asked, a protocol error, the peer
-    // half-closed, or shutdown (then only once nothing else is pending).
-    slot.close = slot.close || ((closing_ || shutdown_) && queue_.size() == 1 && !reading_);
+    // half-closed, or shutdown (then only once nothing else is pending: no request in flight and
+    // no bytes of one arrived).
+    slot.close = slot.close ||
+                 (queue_.size() == 1 && !reading_ && (closing_ || (shutdown_ && !requestBegun())));
     const bool stream = slot.handled.response.stream != nullptr;
     if (stream) {
       slot.close = true;  // a streamed body ends with the connection

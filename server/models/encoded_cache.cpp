@@ -30,6 +30,8 @@ std::string_view toString(Encoding encoding) {
       return "glb";
     case Encoding::TexturePng:
       return "png";
+    case Encoding::Terrain:
+      return "terrain";
     case Encoding::GlbMeshopt:
       return "glb_meshopt";
     case Encoding::TilesetGzip:

@@ -30,17 +30,23 @@ enum class Encoding : std::uint8_t {
   Glb = 2,
   /// A texture tile as PNG.
   TexturePng = 3,
+  /// A quantized-mesh terrain tile (server/api/terrain_routes.cpp), keyed not by a patch but by
+  /// the terrain tile (z, x, y as a PatchKey) and, as its "version", a digest of the versions of
+  /// the patches it was sampled from and of the representation (extensions, gzip). A publish
+  /// does not drop these (dropVersion knows patches only): entries of replaced patches are no
+  /// longer asked for and go as the policy evicts them.
+  Terrain = 4,
   /// A 3D Tiles tile: binary glTF, KHR_mesh_quantization + EXT_meshopt_compression (the default).
-  GlbMeshopt = 4,
+  GlbMeshopt = 5,
   /// A model-wide body: tileset.json, gzipped (findModelBody/putModelBody).
-  TilesetGzip = 5,
+  TilesetGzip = 6,
 };
 
-inline constexpr std::array<Encoding, 5> kEncodings{Encoding::PositionsAara, Encoding::Glb,
-                                                    Encoding::TexturePng, Encoding::GlbMeshopt,
-                                                    Encoding::TilesetGzip};
-/// The name /v1/stats and the metrics give an encoding: "aara", "glb", "png", "glb_meshopt",
-/// "tileset_gzip".
+inline constexpr std::array<Encoding, 6> kEncodings{Encoding::PositionsAara, Encoding::Glb,
+                                                    Encoding::TexturePng,    Encoding::Terrain,
+                                                    Encoding::GlbMeshopt,    Encoding::TilesetGzip};
+/// The name /v1/stats and the metrics give an encoding: "aara", "glb", "png", "terrain",
+/// "glb_meshopt", "tileset_gzip".
 std::string_view toString(Encoding encoding);
 
 /// The stored files of a patch the server sends as they are (sendfile(2)).

@@ -43,7 +43,9 @@ http::Response parseAll(const http::Request& request, const std::string& pattern
   if (const auto p = request.params.find("p"); p != request.params.end()) {
     core::PatchKey::parse(p->second);
   }
-  if (pattern.ends_with("/lod")) {
+  if (pattern.ends_with("/lod") && request.queryParam("eye")) {
+    api::parseCameraQuery(request);
+  } else if (pattern.ends_with("/lod")) {
     const auto box = request.queryParam("box");
     const auto resolution = request.queryParam("resolution");
     if (!box || !resolution) {

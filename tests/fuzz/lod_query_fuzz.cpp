@@ -1,6 +1,7 @@
-// Fuzz target: the LOD query (GET /v1/models/{m}/lod?box=...&resolution=...): the query string
-// as sent, its parameters percent-decoded, parsed by parseLodQuery, and the cut of a model of
-// variable depth for the parsed view (core::lodCut).
+// Fuzz target: the LOD query (GET /v1/models/{m}/lod?box=...&resolution=... or
+// ?eye=...&dir=...&up=...&fov=...&height=...&sse=...): the query string as sent, its parameters
+// percent-decoded, parsed by parseLodQuery or parseCameraQuery, and the cut of a model of
+// variable depth for the parsed view (core::lodCut, core::lodCutForCamera).
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -49,6 +50,17 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   server::http::Request request;
   request.target = "/v1/models/m/lod?" + std::string(reinterpret_cast<const char*>(data), size);
   fuzz::succeeds([&] {
+    if (request.queryParam("eye")) {
+      const server::api::CameraQuery query = server::api::parseCameraQuery(request);
+      const auto cut = core::lodCutForCamera(model, query.camera, query.maxScreenError);
+      fuzz::check(cut.size() <= model.patchCount(), "a camera cut names each patch at most once");
+      for (const core::CameraCutEntry& entry : cut) {
+        fuzz::check(model.find(entry.key) != nullptr, "a camera cut names patches of the model");
+        fuzz::check(entry.screenError <= query.maxScreenError || model.at(entry.key).isLeaf(),
+                    "a drawn tile is fine enough or a leaf");
+      }
+      return;
+    }
     const auto box = request.queryParam("box");
     const auto resolution = request.queryParam("resolution");
     if (!box || !resolution) {

@@ -170,21 +170,34 @@ class Shutdown(unittest.TestCase):
     def test_sigterm_finishes_a_patch_download_in_flight_then_exits_0(self):
         daemon = self.start()
         _, _, tree = daemon.get_json("/v1/models/prism/hierarchy")
-        keys = [n["key"] for n in walk(tree["root"])][:8]
-        with daemon.socket(timeout=30) as sock:
-            # Eight pipelined downloads, the last one's request not yet complete.
-            requests = b"".join(b"GET /v1/models/prism/patches/%s/positions HTTP/1.1\r\nHost: x\r\n"
-                                b"\r\n" % k.encode() for k in keys)
-            sock.sendall(requests[:-2])
+        # More answers than the socket's buffers hold (about 6 MB against 4 MB), so vsmd is still writing them
+        # when the last request begins to arrive.
+        tree_keys = [n["key"] for n in walk(tree["root"])]
+        keys = [tree_keys[i % len(tree_keys)] for i in range(120)]
+        # A small receive window, so the answers wait in vsmd until read below (not in the
+        # kernel's buffers).
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.settimeout(30)
+        sock.connect(("127.0.0.1", daemon.port))
+        with sock:
+            # Pipelined downloads, the last one's request not yet complete.
+            requests = [b"GET /v1/models/prism/patches/%s/positions HTTP/1.1\r\nHost: x\r\n"
+                        b"\r\n" % k.encode() for k in keys]
+            sock.sendall(b"".join(requests[:-1]))
             # The first answer has begun: vsmd is reading the pipeline (peeked, so it is read below).
             deadline = time.monotonic() + 10
             while not sock.recv(16, socket.MSG_PEEK).startswith(b"HTTP/1.1 200"):
                 self.assertLess(time.monotonic(), deadline, "no answer to the pipelined requests")
+            # The last begins while the others are answered (their bodies fill the socket, which
+            # is not read yet): it arrives behind them, and must be read after SIGTERM too.
+            sock.sendall(requests[-1][:-2])
+            time.sleep(0.2)
             daemon.proc.send_signal(signal.SIGTERM)
             # A negative check needs a window: vsmd must still be running with a request unfinished.
             time.sleep(0.3)
             self.assertIsNone(daemon.proc.poll(), "vsmd exited with requests in flight")
-            sock.sendall(requests[-2:])
+            sock.sendall(requests[-1][-2:])
             reader = sock.makefile("rb")
             for i, key in enumerate(keys):
                 status_line = reader.readline()

@@ -510,6 +510,106 @@ class Tiles(unittest.TestCase):
             self.assertEqual(status, expected, path)
             self.assertIn("error", json.loads(body), path)
 
+    def test_camera_lod_is_the_cut_a_renderer_draws(self):
+        """GET /lod with a camera against a brute force over every tile of tileset.json: a tile
+        is drawn when it and its ancestors are in the frustum (no box wholly outside one of its
+        planes), its ancestors' screen-space errors exceed the threshold, and its own does not or
+        it is a leaf (3D Tiles' REPLACE traversal, error = geometricError * height /
+        (2 * distance * tan(fov / 2)), the distance the eye's to the box)."""
+        tiles = {}
+        for tile, world, parent in self.tiles:
+            key = key_of(tile["content"]["uri"])
+            tiles[key] = {"box": aabb(box_corners(tile["boundingVolume"]["box"], world)),
+                          "error": tile["geometricError"], "leaf": "children" not in tile,
+                          "parent": key_of(parent["content"]["uri"]) if parent else None}
+        lo, hi = tiles["0_0_0"]["box"]
+        centre = [(lo[i] + hi[i]) / 2 for i in range(3)]
+        zenith = [c / math.dist(centre, [0, 0, 0]) for c in centre]
+        east = normalise(cross([0, 0, 1], zenith))
+        north = cross(zenith, east)
+        width, height, fov = 1024, 768, 60.0
+        cuts = set()
+        for altitude in (2e3, 2e4, 2e5, 2e6):
+            for tilt in (0.0, 0.6, 1.3):  # radians from straight down, looking north
+                for sse in (2.0, 16.0, 64.0):
+                    eye = [centre[i] + zenith[i] * altitude - north[i] * altitude * math.tan(tilt)
+                           * 0.5 for i in range(3)]
+                    direction = [north[i] * math.sin(tilt) - zenith[i] * math.cos(tilt)
+                                 for i in range(3)]
+                    up = north if tilt == 0.0 else zenith
+                    expected = brute_force_cut(tiles, eye, direction, up, fov, width, height, sse)
+                    query = ("eye=%r,%r,%r&dir=%r,%r,%r&up=%r,%r,%r&fov=%r&width=%d&height=%d"
+                             "&sse=%r" % (*eye, *direction, *up, fov, width, height, sse))
+                    status, _, body = self.daemon.get_json("/v1/models/%s/lod?%s" % (MODEL, query))
+                    self.assertEqual(status, 200, body)
+                    got = {p["key"]: p["screen_error"] for p in body["patches"]}
+                    self.assertEqual(set(got), set(expected), query)
+                    for key, error in expected.items():
+                        self.assertAlmostEqual(got[key], error, delta=1e-6 * max(1.0, error))
+                    self.assertEqual(body["camera"]["sse"], sse)
+                    cuts.add(frozenset(got))
+        # The views differ: the cut follows the camera.
+        self.assertGreater(len(cuts), 10)
+        for bad in ("eye=0,0,0&dir=1,0,0&up=2,0,0&fov=60&height=768&sse=16",
+                    "eye=0,0,0&dir=1,0,0&up=0,0,1&fov=180&height=768&sse=16",
+                    "eye=0,0,0&dir=1,0,0&up=0,0,1&fov=60&height=768",
+                    "eye=0,0,0&dir=1,0,0&up=0,0,1&fov=60&height=768&sse=0",
+                    "eye=0,0&dir=1,0,0&up=0,0,1&fov=60&height=768&sse=16",
+                    "eye=0,0,0&dir=1,0,0&up=0,0,1&fov=60&height=768&sse=16&box=0,0,0,1,1,1"):
+            status, _, body = self.daemon.get_json("/v1/models/%s/lod?%s" % (MODEL, bad))
+            self.assertEqual(status, 400, bad)
+            self.assertIn("error", body, bad)
+
+
+def cross(a, b):
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def normalise(v):
+    n = math.sqrt(sum(c * c for c in v))
+    return [c / n for c in v]
+
+
+def brute_force_cut(tiles, eye, direction, up, fov, width, height, sse):
+    """{key: screen-space error} of the tiles a REPLACE renderer draws, tile by tile from its
+    definition (not by descending the tree)."""
+    f = normalise(direction)
+    r = normalise(cross(f, up))
+    u = cross(r, f)
+    tan_y = math.tan(math.radians(fov) / 2)
+    tan_x = tan_y * width / height
+
+    def outside(box):
+        """Every corner behind the near plane, or beyond one side plane."""
+        corners = [[box[(k >> i) & 1][i] for i in range(3)] for k in range(8)]
+        rel = [[c[i] - eye[i] for i in range(3)] for c in corners]
+        depth = [sum(p[i] * f[i] for i in range(3)) for p in rel]
+        across = [sum(p[i] * r[i] for i in range(3)) for p in rel]
+        above = [sum(p[i] * u[i] for i in range(3)) for p in rel]
+        return (all(d < 0 for d in depth)
+                or all(a > tan_x * d for a, d in zip(across, depth))
+                or all(a < -tan_x * d for a, d in zip(across, depth))
+                or all(a > tan_y * d for a, d in zip(above, depth))
+                or all(a < -tan_y * d for a, d in zip(above, depth)))
+
+    def error(tile):
+        if tile["error"] == 0:
+            return 0.0
+        (lo, hi) = tile["box"]
+        distance = math.dist(eye, [min(max(eye[i], lo[i]), hi[i]) for i in range(3)])
+        return math.inf if distance == 0 else tile["error"] * height / (2 * distance * tan_y)
+
+    out = {}
+    for key, tile in tiles.items():
+        if outside(tile["box"]) or not (error(tile) <= sse or tile["leaf"]):
+            continue
+        ancestor = tile["parent"]
+        while ancestor is not None and not outside(tiles[ancestor]["box"]) \
+                and error(tiles[ancestor]) > sse:
+            ancestor = tiles[ancestor]["parent"]
+        if ancestor is None:
+            out[key] = error(tile)
+    return out
 
 def main():
     global ARGS

@@ -19,9 +19,11 @@
 #include "core/grid/patch_grid.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/tiles/glb.hpp"
+#include "core/tiles/lod_cut.hpp"
 #include "core/tiles/lod_render.hpp"
 #include "core/tiles/tile_tree.hpp"
 #include "server/api/tiles_routes.hpp"
+#include "tests/unit/test_support.hpp"
 
 namespace vsm::core {
 namespace {
@@ -696,6 +698,129 @@ TEST(Tileset, TransformsAreColumnMajorTranslationsBetweenCentres) {
   EXPECT_EQ(child["children"].size(), 4u);
   EXPECT_FALSE(root["children"][1].contains("children"));
   EXPECT_EQ(root["children"][1]["geometricError"], 0.0);
+}
+
+// ---- camera LOD --------------------------------------------------------------------------------
+
+/// A camera at the origin looking along +x, up +z, 90 degrees vertical, 200 x 100 pixels.
+Camera cameraAlongX() {
+  Camera c;
+  c.eye = {0, 0, 0};
+  c.dir = {2, 0, 0};   // any length
+  c.up = {0.5, 0, 3};  // not orthogonal to dir: made so
+  c.fovY = std::numbers::pi / 2;
+  c.width = 200;
+  c.height = 100;
+  return c;
+}
+
+Box3d pointBox(const Vec3d& p) {
+  return {p, p};
+}
+
+TEST(CameraLod, FrustumHoldsWhatTheFieldOfViewSees) {
+  const auto planes = frustumPlanes(cameraAlongX());
+  // Vertical half-angle 45 degrees; horizontal: tan = 2 (aspect 2), about 63.4 degrees.
+  EXPECT_TRUE(boxInFrustum(pointBox({10, 0, 0}), planes));
+  EXPECT_TRUE(boxInFrustum(pointBox({10, 0, 9.9}), planes));
+  EXPECT_FALSE(boxInFrustum(pointBox({10, 0, 10.1}), planes));
+  EXPECT_FALSE(boxInFrustum(pointBox({10, 0, -10.1}), planes));
+  EXPECT_TRUE(boxInFrustum(pointBox({10, 19.9, 0}), planes));
+  EXPECT_TRUE(boxInFrustum(pointBox({10, -19.9, 0}), planes));
+  EXPECT_FALSE(boxInFrustum(pointBox({10, 20.1, 0}), planes));
+  EXPECT_FALSE(boxInFrustum(pointBox({10, -20.1, 0}), planes));
+  EXPECT_FALSE(boxInFrustum(pointBox({-1, 0, 0}), planes));  // behind
+  // A box reaching into the frustum from outside is in it; one wholly beside it is not.
+  EXPECT_TRUE(boxInFrustum({{10, 19, -1}, {11, 40, 1}}, planes));
+  EXPECT_FALSE(boxInFrustum({{10, 23, -1}, {11, 40, 1}}, planes));  // y <= 22 at x = 11
+  EXPECT_TRUE(boxInFrustum({{-5, -5, -5}, {5, 5, 5}}, planes));     // around the eye
+}
+
+TEST(CameraLod, ScreenSpaceErrorIsThe3DTilesFormula) {
+  Camera c = cameraAlongX();
+  c.fovY = std::numbers::pi / 3;
+  c.height = 1000;
+  // 10 m of error 100 m away: 10 * 1000 / (2 * 100 * tan(30 deg)) = 86.60 px.
+  EXPECT_NEAR(screenSpaceError(c, {{100, -5, -5}, {120, 5, 5}}, 10), 86.6025, 1e-3);
+  // The distance is the box's nearest point's: 100 m along x, 100 m along y.
+  EXPECT_NEAR(screenSpaceError(c, {{100, 100, -5}, {120, 120, 5}}, 10), 86.6025 / std::sqrt(2),
+              1e-3);
+  EXPECT_EQ(screenSpaceError(c, {{100, -5, -5}, {120, 5, 5}}, 0), 0);
+  EXPECT_TRUE(std::isinf(screenSpaceError(c, {{-1, -1, -1}, {1, 1, 1}}, 1)));
+}
+
+TEST(CameraLod, CheckCameraRejectsWhatNoRendererHas) {
+  Camera c = cameraAlongX();
+  EXPECT_NO_THROW(checkCamera(c));
+  const auto rejected = [](Camera bad) {
+    return test::codeOf([&] { checkCamera(bad); }) == ErrorCode::InvalidArgument;
+  };
+  Camera bad = c;
+  bad.up = {4, 0, 0};  // parallel to dir
+  EXPECT_TRUE(rejected(bad));
+  bad = c;
+  bad.dir = {0, 0, 0};
+  EXPECT_TRUE(rejected(bad));
+  bad = c;
+  bad.fovY = std::numbers::pi;
+  EXPECT_TRUE(rejected(bad));
+  bad = c;
+  bad.height = 0.5;
+  EXPECT_TRUE(rejected(bad));
+  bad = c;
+  bad.eye.x = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_TRUE(rejected(bad));
+}
+
+/// Whether `key` is in the cut, by the definition: it and every ancestor are visible, every
+/// ancestor's error exceeds the threshold (so was refined), and its own does not or it is a leaf.
+void bruteForceCut(const TileNode& node, const Camera& camera, double sse, bool ancestorsRefined,
+                   std::set<std::string>& out) {
+  const bool visible = boxInFrustum(node.box, frustumPlanes(camera));
+  const double error = screenSpaceError(camera, node.box, node.geometricError);
+  if (ancestorsRefined && visible && (error <= sse || node.children.empty())) {
+    out.insert(node.key.toString());
+  }
+  for (const TileNode& child : node.children) {
+    bruteForceCut(child, camera, sse, ancestorsRefined && visible && error > sse, out);
+  }
+}
+
+TEST(CameraLod, CutIsTheBruteForceOneForEveryView) {
+  const Pyramid p;
+  const TileNode tree = buildTileTree(p.model);
+  const Vec3d centre = tree.box.center();
+  const double size = tree.box.size().norm();
+  int nonTrivial = 0;
+  // Cameras above the model at several heights and angles, some looking away.
+  for (const double height : {0.05, 0.2, 1.0, 5.0}) {
+    for (const double tilt : {0.0, 0.5, 1.2, 2.5}) {
+      for (const double sse : {1.0, 16.0, 256.0}) {
+        Camera c;
+        c.eye = centre + Vec3d{0, 0, size * height} + Vec3d{size * 0.3 * tilt, 0, 0};
+        c.dir = Vec3d{std::sin(tilt), 0, -std::cos(tilt)};
+        c.up = {0, 1, 0};
+        c.fovY = 1.0;
+        c.width = 800;
+        c.height = 600;
+        std::set<std::string> expected;
+        bruteForceCut(tree, c, sse, true, expected);
+        std::set<std::string> got;
+        const std::vector<CameraCutEntry> cut = lodCutForCamera(p.model, c, sse);
+        for (std::size_t i = 0; i < cut.size(); ++i) {
+          got.insert(cut[i].key.toString());
+          // Drawn tiles are fine enough (a leaf's error is 0); keys ascend.
+          EXPECT_LE(cut[i].screenError, sse);
+          EXPECT_TRUE(i == 0 || cut[i - 1].key < cut[i].key);
+        }
+        EXPECT_EQ(got, expected) << "height " << height << " tilt " << tilt << " sse " << sse;
+        nonTrivial += got.size() > 1 && got.size() < 9 ? 1 : 0;
+      }
+    }
+  }
+  // Some views cut between the root and the leaves (the test covers refinement, not only "all" or
+  // "root").
+  EXPECT_GT(nonTrivial, 3);
 }
 
 // ---- render-lod --------------------------------------------------------------------------------

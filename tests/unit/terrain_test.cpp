@@ -1,0 +1,458 @@
+// core/tiles/quantized_mesh and the terrain routes' wire mapping. A test executable of its own
+// beside tiles_test (the 3D Tiles half of core/tiles), so that the two halves change apart.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <numbers>
+#include <vector>
+
+#include "core/grid/patch_grid.hpp"
+#include "core/pyramid/model.hpp"
+#include "core/tiles/quantized_mesh.hpp"
+#include "core/tiles/top_down.hpp"
+#include "server/api/terrain_routes.hpp"
+
+namespace vsm::core {
+namespace {
+
+using nlohmann::json;
+
+// ---- a reader of quantized-mesh-1.0, from the spec (github.com/CesiumGS/quantized-mesh) --------
+
+struct Reader {
+  const std::vector<std::byte>& b;
+  std::size_t at = 0;
+  template <typename T>
+  T get() {
+    T v;
+    EXPECT_LE(at + sizeof v, b.size());
+    std::memcpy(&v, b.data() + at, sizeof v);
+    at += sizeof v;
+    return v;
+  }
+};
+
+struct Decoded {
+  double centre[3], sphere[4], horizon[3];
+  float minH = 0, maxH = 0;
+  std::vector<int> u, v, h;
+  std::vector<int> indices;
+  std::vector<int> edges[4];  // west, south, east, north
+  std::vector<std::uint8_t> normals;
+  std::string metadata;
+};
+
+int zigZagDecode(int value) {
+  return (value >> 1) ^ (-(value & 1));
+}
+
+Decoded decode(const std::vector<std::byte>& bytes) {
+  Decoded d;
+  Reader r{bytes};
+  for (double& c : d.centre)
+    c = r.get<double>();
+  d.minH = r.get<float>();
+  d.maxH = r.get<float>();
+  for (double& s : d.sphere)
+    s = r.get<double>();
+  for (double& p : d.horizon)
+    p = r.get<double>();
+  const auto n = r.get<std::uint32_t>();
+  for (auto* array : {&d.u, &d.v, &d.h}) {
+    int value = 0;
+    for (std::uint32_t i = 0; i < n; ++i) {
+      value += zigZagDecode(r.get<std::uint16_t>());
+      array->push_back(value);
+    }
+  }
+  if (r.at % 2 != 0)
+    ++r.at;
+  const auto triangles = r.get<std::uint32_t>();
+  int highest = 0;
+  for (std::uint32_t i = 0; i < triangles * 3; ++i) {
+    const int code = r.get<std::uint16_t>();
+    d.indices.push_back(highest - code);
+    if (code == 0)
+      ++highest;
+  }
+  for (auto& edge : d.edges) {
+    const auto count = r.get<std::uint32_t>();
+    for (std::uint32_t i = 0; i < count; ++i)
+      edge.push_back(r.get<std::uint16_t>());
+  }
+  while (r.at < bytes.size()) {
+    const auto id = r.get<std::uint8_t>();
+    const auto length = r.get<std::uint32_t>();
+    if (id == 1) {
+      for (std::uint32_t i = 0; i < length; ++i)
+        d.normals.push_back(r.get<std::uint8_t>());
+    } else if (id == 4) {
+      const auto jsonLength = r.get<std::uint32_t>();
+      EXPECT_EQ(jsonLength + 4, length);
+      d.metadata.assign(reinterpret_cast<const char*>(bytes.data()) + r.at, jsonLength);
+      r.at += jsonLength;
+    } else {
+      r.at += length;
+    }
+  }
+  EXPECT_EQ(r.at, bytes.size());
+  return d;
+}
+
+// ---- a synthetic height field: h linear in lon/lat, so interpolation is exact -----------------
+
+constexpr double kWest = -100.0, kSouth = 40.0, kSpan = 0.5;
+
+double heightAt(double lon, double lat) {
+  return 100.0 + 200.0 * (lon - kWest) + 300.0 * (lat - kSouth);
+}
+
+struct GeoModel {
+  static constexpr int kSize = 33;
+  Model model{kSize};
+  std::shared_ptr<const PatchGrid> root;
+
+  explicit GeoModel(bool ecef = true) {
+    Box3d box;
+    std::vector<Vec3d> points;
+    for (int j = 0; j < kSize; ++j) {
+      for (int i = 0; i < kSize; ++i) {
+        const double lon = kWest + kSpan * i / (kSize - 1);
+        const double lat = kSouth + kSpan - kSpan * j / (kSize - 1);  // row 0 north
+        points.push_back(ecef ? geodeticToEcef(lon, lat, heightAt(lon, lat))
+                              : Vec3d{lon * 1000, lat * 1000, heightAt(lon, lat)});
+        box.extend(points.back());
+      }
+    }
+    auto grid = std::make_shared<PatchGrid>(kSize, originFor(box));
+    for (int j = 0; j < kSize; ++j) {
+      for (int i = 0; i < kSize; ++i) {
+        grid->setGlobal(i, j, points[static_cast<std::size_t>(j) * kSize + i]);
+      }
+    }
+    PatchInfo info;
+    info.key = PatchKey::root();
+    model.insert(info);
+    model.describe(info.key, *grid);
+    root = grid;
+  }
+  TerrainGridLoader loader() const {
+    return [this](const PatchInfo&) { return root; };
+  }
+};
+
+// A level-10 tile well inside the synthetic patch, and its eastern neighbour.
+constexpr TerrainTileKey kInside{10, 456, 740};
+constexpr TerrainTileKey kEastOfInside{10, 457, 740};
+
+TEST(TerrainTiling, LevelZeroIsTwoTilesOfHalfTheGlobe) {
+  EXPECT_TRUE((TerrainTileKey{0, 0, 0}.valid()));
+  EXPECT_TRUE((TerrainTileKey{0, 1, 0}.valid()));
+  EXPECT_FALSE((TerrainTileKey{0, 2, 0}.valid()));
+  EXPECT_FALSE((TerrainTileKey{0, 0, 1}.valid()));
+  EXPECT_TRUE((TerrainTileKey{3, 15, 7}.valid()));
+  EXPECT_FALSE((TerrainTileKey{3, 16, 7}.valid()));
+  EXPECT_FALSE((TerrainTileKey{25, 0, 0}.valid()));
+  const GeoRect west = terrainTileRect({0, 0, 0});
+  EXPECT_EQ(west.west, -180);
+  EXPECT_EQ(west.east, 0);
+  EXPECT_EQ(west.south, -90);
+  EXPECT_EQ(west.north, 90);
+  const GeoRect ne = terrainTileRect({1, 3, 1});
+  EXPECT_EQ(ne.west, 90);
+  EXPECT_EQ(ne.east, 180);
+  EXPECT_EQ(ne.south, 0);
+  EXPECT_EQ(ne.north, 90);
+}
+
+TEST(TerrainTiling, NeighboursShareTheirEdgeCoordinatesExactly) {
+  for (std::uint32_t x = 0; x + 1 < 2048; x += 37) {
+    EXPECT_EQ(terrainTileRect({10, x, 5}).east, terrainTileRect({10, x + 1, 5}).west);
+    EXPECT_EQ(terrainVertexLon(10, x, 64), terrainVertexLon(10, x + 1, 0));
+    EXPECT_EQ(terrainVertexLon(10, x, 63), terrainVertexLon(10, x + 1, -1));
+  }
+  EXPECT_EQ(terrainVertexLat(10, 5, 64), terrainVertexLat(10, 6, 0));
+  EXPECT_NEAR(terrainVertexSpacing(0), std::numbers::pi * 6378137.0 / 64, 1e-6);
+  EXPECT_NEAR(terrainVertexSpacing(3) * 8, terrainVertexSpacing(0), 1e-6);
+}
+
+TEST(TerrainTiling, GeodeticRoundTrips) {
+  for (const auto& [lon, lat, h] :
+       {std::tuple{-84.2, 36.3, 512.0}, {10.0, -45.0, -30.0}, {179.9, 89.0, 4000.0}}) {
+    const Vec3d g = ecefToGeodetic(geodeticToEcef(lon, lat, h));
+    EXPECT_NEAR(g.x, lon, 1e-9);
+    EXPECT_NEAR(g.y, lat, 1e-9);
+    EXPECT_NEAR(g.z, h, 1e-4);
+  }
+}
+
+TEST(OctEncoding, RoundTripsWithinOneDegree) {
+  for (double a = 0; a < 6.28; a += 0.37) {
+    for (double b = -1.5; b < 1.5; b += 0.29) {
+      const Vec3d n{std::cos(b) * std::cos(a), std::cos(b) * std::sin(a), std::sin(b)};
+      const auto e = octEncode(n);
+      const Vec3d d = octDecode(e[0], e[1]);
+      EXPECT_NEAR(d.norm(), 1, 1e-12);
+      EXPECT_GT(d.x * n.x + d.y * n.y + d.z * n.z, std::cos(1.0 * std::numbers::pi / 180));
+    }
+  }
+}
+
+TEST(TerrainLayer, AvailabilityFollowsTheResolutionRule) {
+  const GeoModel geo;
+  const TerrainLayer layer = buildTerrainLayer(geo.model, geo.loader());
+  ASSERT_TRUE(layer.heightField) << layer.reason;
+  ASSERT_FALSE(layer.available.empty());
+  EXPECT_EQ(layer.available[0], (std::vector<TileRange>{{0, 0, 1, 0}}));
+  const double resolution = geo.model.at(PatchKey::root()).resolution;
+  int expected = 0;
+  while (expected < TerrainTileKey::kMaxLevel &&
+         resolution <= 2 * terrainVertexSpacing(expected + 1)) {
+    ++expected;
+  }
+  EXPECT_EQ(layer.maxZoom, expected);
+  EXPECT_EQ(static_cast<int>(layer.available.size()), expected + 1);
+  EXPECT_NEAR(layer.bounds.west, kWest, 1e-6);            // float32 positions: ~1 mm
+  EXPECT_NEAR(layer.bounds.east, kWest + kSpan, 1e-6);    // float32 positions: ~1 mm
+  EXPECT_NEAR(layer.bounds.south, kSouth, 1e-6);          // float32 positions: ~1 mm
+  EXPECT_NEAR(layer.bounds.north, kSouth + kSpan, 1e-6);  // float32 positions: ~1 mm
+  // Every available tile meets the data; its parent is available; tiles far away are not.
+  for (int z = 1; z <= layer.maxZoom; ++z) {
+    for (const TileRange& r : layer.available[static_cast<std::size_t>(z)]) {
+      for (std::uint32_t y = r.startY; y <= r.endY; ++y) {
+        for (std::uint32_t x = r.startX; x <= r.endX; ++x) {
+          EXPECT_TRUE(terrainTileRect({z, x, y}).intersects(layer.bounds));
+          EXPECT_TRUE(layer.isAvailable({z - 1, x / 2, y / 2}));
+        }
+      }
+    }
+  }
+  EXPECT_FALSE(layer.isAvailable({3, 0, 0}));
+  EXPECT_TRUE(layer.isAvailable({0, 0, 0}));
+  EXPECT_TRUE(layer.isAvailable({0, 1, 0}));
+  // The metadata extension names the available children only.
+  const json meta = json::parse(terrainMetadataJson(layer, {layer.maxZoom - 1, 0, 0}));
+  EXPECT_EQ(meta["available"], json::array());
+}
+
+TEST(TerrainLayer, ASparsePatchCountsNoFinerThanItsGridCanBe) {
+  // Only every fourth vertex of every fourth row defined: no defined neighbours, resolution 0.
+  GeoModel geo;
+  auto sparse = std::make_shared<PatchGrid>(*geo.root);
+  for (int j = 0; j < GeoModel::kSize; ++j) {
+    for (int i = 0; i < GeoModel::kSize; ++i) {
+      if (i % 4 != 0 || j % 4 != 0) {
+        sparse->setUndefined(i, j);
+      }
+    }
+  }
+  Model model{GeoModel::kSize};
+  PatchInfo info;
+  info.key = PatchKey::root();
+  model.insert(info);
+  model.describe(info.key, *sparse);
+  ASSERT_EQ(model.at(PatchKey::root()).resolution, 0);
+  const TerrainLayer layer = buildTerrainLayer(
+      model, [&](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return sparse; });
+  ASSERT_TRUE(layer.heightField) << layer.reason;
+  // Half of the 0.5 deg side over 32 cells: ~870 m, so about level 8, not level 24.
+  EXPECT_GE(layer.maxZoom, 7);
+  EXPECT_LE(layer.maxZoom, 9);
+}
+
+TEST(TerrainLayer, ASurfaceThatFoldsOverItselfIsNoHeightField) {
+  // An overhang: the eastern half of the grid runs back west over the western half, 500 m higher.
+  constexpr int kSize = GeoModel::kSize;
+  Box3d box;
+  std::vector<Vec3d> points;
+  for (int j = 0; j < kSize; ++j) {
+    for (int i = 0; i < kSize; ++i) {
+      const int folded = i <= kSize / 2 ? i : kSize - 1 - i;
+      const double lon = kWest + kSpan * folded / (kSize - 1);
+      const double lat = kSouth + kSpan - kSpan * j / (kSize - 1);
+      points.push_back(geodeticToEcef(lon, lat, i <= kSize / 2 ? 100.0 : 600.0));
+      box.extend(points.back());
+    }
+  }
+  auto grid = std::make_shared<PatchGrid>(kSize, originFor(box));
+  for (int j = 0; j < kSize; ++j) {
+    for (int i = 0; i < kSize; ++i) {
+      grid->setGlobal(i, j, points[static_cast<std::size_t>(j) * kSize + i]);
+    }
+  }
+  Model model{kSize};
+  PatchInfo info;
+  info.key = PatchKey::root();
+  model.insert(info);
+  model.describe(info.key, *grid);
+  const TerrainLayer layer = buildTerrainLayer(
+      model, [&](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return grid; });
+  EXPECT_FALSE(layer.heightField);
+  EXPECT_NE(layer.reason.find("folds over itself"), std::string::npos) << layer.reason;
+}
+
+TEST(TerrainLayer, AModelInALocalFrameIsNoHeightField) {
+  const GeoModel local(false);
+  const TerrainLayer layer = buildTerrainLayer(local.model, local.loader());
+  EXPECT_FALSE(layer.heightField);
+  EXPECT_NE(layer.reason.find("not earth-centred"), std::string::npos) << layer.reason;
+  EXPECT_TRUE(terrainSources(local.model, layer, kInside).empty());
+}
+
+TEST(TerrainSampling, HeightsInterpolateTheSurfaceAndAreZeroOutside) {
+  const GeoModel geo;
+  const TerrainLayer layer = buildTerrainLayer(geo.model, geo.loader());
+  const auto sources = terrainSources(geo.model, layer, kInside);
+  ASSERT_EQ(sources, std::vector<PatchKey>{PatchKey::root()});
+  const TerrainHeights t = sampleTerrain(geo.model, sources, kInside, geo.loader());
+  EXPECT_EQ(t.covered, 65u * 65u);
+  for (int j = -1; j <= 65; ++j) {
+    for (int i = -1; i <= 65; ++i) {
+      const double lon = terrainVertexLon(10, kInside.x, i),
+                   lat = terrainVertexLat(10, kInside.y, j);
+      ASSERT_NEAR(t.at(i, j), heightAt(lon, lat), 2e-3) << i << "," << j;
+    }
+  }
+  // A tile outside the model: no sources, flat at 0.
+  const TerrainTileKey far{10, 100, 100};
+  EXPECT_TRUE(terrainSources(geo.model, layer, far).empty());
+  const TerrainHeights flat = sampleTerrain(geo.model, {}, far, geo.loader());
+  EXPECT_EQ(flat.covered, 0u);
+  const Decoded d = decode(encodeQuantizedMesh(flat));
+  EXPECT_EQ(d.minH, 0);
+  EXPECT_EQ(d.maxH, 0);
+}
+
+TEST(QuantizedMesh, EncodesTheSpecsLayoutAndInvariants) {
+  const GeoModel geo;
+  const TerrainLayer layer = buildTerrainLayer(geo.model, geo.loader());
+  const TerrainHeights t =
+      sampleTerrain(geo.model, terrainSources(geo.model, layer, kInside), kInside, geo.loader());
+  const Decoded d = decode(encodeQuantizedMesh(t, {.normals = true, .metadata = "{\"a\":1}"}));
+  ASSERT_EQ(d.u.size(), 65u * 65u);
+  EXPECT_EQ(d.indices.size(), 64u * 64u * 6);
+  EXPECT_EQ(d.normals.size(), 65u * 65u * 2);
+  EXPECT_EQ(d.metadata, "{\"a\":1}");
+  const GeoRect rect = terrainTileRect(kInside);
+  std::vector<int> onEdge[4];
+  double maxError = 0;
+  for (std::size_t k = 0; k < d.u.size(); ++k) {
+    ASSERT_GE(d.u[k], 0);
+    ASSERT_LE(d.u[k], 32767);
+    ASSERT_GE(d.v[k], 0);
+    ASSERT_LE(d.v[k], 32767);
+    ASSERT_GE(d.h[k], 0);
+    ASSERT_LE(d.h[k], 32767);
+    if (d.u[k] == 0)
+      onEdge[0].push_back(static_cast<int>(k));
+    if (d.v[k] == 0)
+      onEdge[1].push_back(static_cast<int>(k));
+    if (d.u[k] == 32767)
+      onEdge[2].push_back(static_cast<int>(k));
+    if (d.v[k] == 32767)
+      onEdge[3].push_back(static_cast<int>(k));
+    const double lon = rect.west + (rect.east - rect.west) * d.u[k] / 32767.0;
+    const double lat = rect.south + (rect.north - rect.south) * d.v[k] / 32767.0;
+    const double h = d.minH + (d.maxH - d.minH) * d.h[k] / 32767.0;
+    maxError = std::max(maxError, std::abs(h - heightAt(lon, lat)));
+    const Vec3d p = geodeticToEcef(lon, lat, h);
+    const double dist = std::hypot(p.x - d.sphere[0], p.y - d.sphere[1], p.z - d.sphere[2]);
+    EXPECT_LE(dist, d.sphere[3]);
+    // Normals: unit, and within a degree of the plane's normal is too strict for a sloped
+    // plane on the ellipsoid; within 10 degrees of the ellipsoid normal here (slopes are small).
+    const Vec3d n = octDecode(d.normals[k * 2], d.normals[k * 2 + 1]);
+    const Vec3d up = geodeticToEcef(lon, lat, 1000) - geodeticToEcef(lon, lat, 0);
+    EXPECT_GT((n.x * up.x + n.y * up.y + n.z * up.z) / up.norm(),
+              std::cos(10 * std::numbers::pi / 180));
+  }
+  EXPECT_LT(maxError, (d.maxH - d.minH) / 32767.0 + 2e-3);
+  for (int e = 0; e < 4; ++e) {
+    std::vector<int> listed = d.edges[e];
+    std::sort(listed.begin(), listed.end());
+    EXPECT_EQ(listed, onEdge[e]) << "edge " << e;
+    EXPECT_EQ(listed.size(), 65u);
+  }
+  // Triangles: counter-clockwise in (u, v), indices in range.
+  for (std::size_t k = 0; k < d.indices.size(); k += 3) {
+    const int a = d.indices[k], b = d.indices[k + 1], c = d.indices[k + 2];
+    ASSERT_LT(std::max({a, b, c}), 65 * 65);
+    const double area =
+        double(d.u[b] - d.u[a]) * (d.v[c] - d.v[a]) - double(d.v[b] - d.v[a]) * (d.u[c] - d.u[a]);
+    EXPECT_GT(area, 0);
+  }
+}
+
+TEST(QuantizedMesh, NeighboursAgreeOnTheirSharedEdge) {
+  const GeoModel geo;
+  const TerrainLayer layer = buildTerrainLayer(geo.model, geo.loader());
+  const auto tileOf = [&](const TerrainTileKey& key) {
+    return decode(encodeQuantizedMesh(
+        sampleTerrain(geo.model, terrainSources(geo.model, layer, key), key, geo.loader()),
+        {.normals = true}));
+  };
+  const Decoded w = tileOf(kInside), e = tileOf(kEastOfInside);
+  const auto byV = [](const Decoded& d, int edge) {
+    std::map<int, std::pair<double, Vec3d>> out;
+    for (const int k : d.edges[edge]) {
+      out[d.v[k]] = {d.minH + (d.maxH - d.minH) * d.h[k] / 32767.0,
+                     octDecode(d.normals[k * 2], d.normals[k * 2 + 1])};
+    }
+    return out;
+  };
+  const auto east = byV(w, 2), west = byV(e, 0);
+  ASSERT_EQ(east.size(), 65u);
+  for (const auto& [v, value] : east) {
+    ASSERT_TRUE(west.count(v));
+    const double tolerance = (w.maxH - w.minH + e.maxH - e.minH) / 32767.0;
+    EXPECT_NEAR(value.first, west.at(v).first, tolerance);
+    const Vec3d a = value.second, b = west.at(v).second;
+    EXPECT_GT(a.x * b.x + a.y * b.y + a.z * b.z, std::cos(1.5 * std::numbers::pi / 180));
+  }
+}
+
+}  // namespace
+}  // namespace vsm::core
+
+namespace vsm::server::api {
+namespace {
+
+TEST(TerrainRoutes, AcceptHeaderSelectsTheExtensions) {
+  const auto cesium = parseTerrainAccept(
+      "application/vnd.quantized-mesh;extensions=octvertexnormals-metadata,"
+      "application/octet-stream;q=0.9,*/*;q=0.01");
+  EXPECT_TRUE(cesium.normals);
+  EXPECT_TRUE(cesium.metadata);
+  const auto plain = parseTerrainAccept("application/vnd.quantized-mesh,application/octet-stream");
+  EXPECT_FALSE(plain.normals);
+  EXPECT_FALSE(plain.metadata);
+  const auto meta = parseTerrainAccept("application/vnd.quantized-mesh; extensions=metadata");
+  EXPECT_FALSE(meta.normals);
+  EXPECT_TRUE(meta.metadata);
+  EXPECT_TRUE(
+      parseTerrainAccept("application/vnd.quantized-mesh;extensions=vertexnormals").normals);
+  EXPECT_FALSE(parseTerrainAccept("text/plain;extensions=octvertexnormals").normals);
+  EXPECT_FALSE(parseTerrainAccept("").normals);
+}
+
+TEST(TerrainRoutes, LayerJsonNamesTheSchemeAndTemplate) {
+  core::TerrainLayer layer;
+  layer.heightField = true;
+  layer.bounds = {-1, -2, 3, 4};
+  layer.available = {{{0, 0, 1, 0}}, {{1, 1, 1, 1}}};
+  layer.maxZoom = 1;
+  const nlohmann::json j = terrainLayerJson("m", layer, 7);
+  EXPECT_EQ(j["format"], "quantized-mesh-1.0");
+  EXPECT_EQ(j["scheme"], "tms");
+  EXPECT_EQ(j["projection"], "EPSG:4326");
+  EXPECT_EQ(j["tiles"][0], "{z}/{x}/{y}.terrain?v={version}&rev=7");
+  EXPECT_EQ(j["maxzoom"], 1);
+  EXPECT_EQ(j["available"][1][0]["startX"], 1);
+  EXPECT_EQ(j["bounds"], nlohmann::json::array({-1.0, -2.0, 3.0, 4.0}));
+}
+
+}  // namespace
+}  // namespace vsm::server::api
