@@ -12,6 +12,8 @@ PACKAGES=(
   build-essential cmake ninja-build pkg-config git
   libboost-dev libeigen3-dev libpcl-dev libpugixml-dev libopenimageio-dev nlohmann-json3-dev
   libgtest-dev libgdal-dev zlib1g-dev
+  # the 3D Tiles GLBs' EXT_meshopt_compression codecs (encoder in vsmd, decoder in the unit tests)
+  libmeshoptimizer-dev
   # tests: gdaladdo (benchmark), GDAL's Python bindings for the independent import checker,
   # a comma-decimal locale (numbers in XML must not follow the locale), clang-format
   gdal-bin python3 python3-gdal python3-numpy locales clang-format

@@ -70,12 +70,13 @@ rm -rf "$tmp"
 trap 'rm -rf "$tmp"' EXIT
 mkdir -p "$tmp/vendor/three/build" "$tmp/vendor/three/examples/jsm/loaders" \
   "$tmp/vendor/three/examples/jsm/controls" "$tmp/vendor/three/examples/jsm/utils" \
+  "$tmp/vendor/three/examples/jsm/libs" \
   "$tmp/vendor/3d-tiles-renderer/build"
 cp "$src/index.html" "$src/main.js" "$tmp/"
 cp "$nm/three/LICENSE" "$tmp/vendor/three/"
 cp "$nm/three/build/three.module.js" "$nm/three/build/three.core.js" "$tmp/vendor/three/build/"
 for f in loaders/GLTFLoader.js controls/OrbitControls.js utils/BufferGeometryUtils.js \
-  utils/SkeletonUtils.js; do
+  utils/SkeletonUtils.js libs/meshopt_decoder.module.js; do
   cp "$nm/three/examples/jsm/$f" "$tmp/vendor/three/examples/jsm/$f"
 done
 cp "$nm/3d-tiles-renderer/LICENSE" "$tmp/vendor/3d-tiles-renderer/"

@@ -45,6 +45,8 @@
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
+import { GLTFLoader } from 'three/addons/loaders/GLTFLoader.js';
+import { MeshoptDecoder } from 'three/addons/libs/meshopt_decoder.module.js';
 import { TilesRenderer } from '3d-tiles-renderer';
 
 /// sRGB colour per depth, 15 and deeper share the last: the same as kDepthPalette.
@@ -420,13 +422,37 @@ function liftOf(original, toEcef) {
   return lift;
 }
 
+/// The mesh's position and normal attributes as plain float32 ones. vsmd's default GLBs are
+/// quantized (KHR_mesh_quantization: uint16 positions scaled by the mesh's node, int8 normalized
+/// normals, both interleaved with padding); shapeMesh() rewrites positions in place and copies
+/// normals, which needs one float per component. Values stay in the mesh's frame (its matrices
+/// keep the node's scale), read through getX/Y/Z, which undo the normalization.
+function floatAttributes(geometry) {
+  for (const name of ['position', 'normal']) {
+    const attribute = geometry.getAttribute(name);
+    if (!attribute || (!attribute.isInterleavedBufferAttribute &&
+                       attribute.array instanceof Float32Array)) {
+      continue;
+    }
+    const out = new Float32Array(attribute.count * 3);
+    for (let i = 0; i < attribute.count; i++) {
+      out[i * 3] = attribute.getX(i);
+      out[i * 3 + 1] = attribute.getY(i);
+      out[i * 3 + 2] = attribute.getZ(i);
+    }
+    geometry.setAttribute(name, new THREE.BufferAttribute(out, 3));
+  }
+}
+
 /// Shapes a tile's mesh for the current exaggeration: positions, normals (the GLB's at 1 when it
 /// has them, else computed) and bounds.
 function shapeMesh(mesh) {
   const geometry = mesh.geometry;
   const data = mesh.userData;
-  const position = geometry.attributes.position;
+  let position = geometry.attributes.position;
   if (!data.vsmOriginal) {
+    floatAttributes(geometry);
+    position = geometry.attributes.position;
     data.vsmOriginal = position.array.slice();
     data.vsmNormals = geometry.attributes.normal ? geometry.attributes.normal.array.slice() : null;
     data.vsmLift = null;
@@ -493,6 +519,12 @@ function tileBox(tile) {
 /// it shows (`t.vsmShown`: tile -> {key, depth, box}).
 function makeTiles(url) {
   const t = new TilesRenderer(url);
+  // vsmd's tiles are KHR_mesh_quantization + EXT_meshopt_compression GLBs (the default): the
+  // renderer takes its glTF loader from the manager's handler for "path.glb", so register one
+  // that decodes meshopt (WebAssembly, in meshopt_decoder.module.js).
+  const gltfLoader = new GLTFLoader(t.manager);
+  gltfLoader.setMeshoptDecoder(MeshoptDecoder);
+  t.manager.addHandler(/\.(gltf|glb)$/, gltfLoader);
   t.errorTarget = errorTarget > 0 ? errorTarget : 4;
   t.setCamera(camera);
   t.setResolutionFromRenderer(camera, renderer);

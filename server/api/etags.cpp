@@ -92,9 +92,10 @@ std::string patchDataEtag(const core::PatchInfo& info, std::string_view suffix) 
   return http::strongEtag(std::string(http::opaqueOf(patchEtag(info))) + "-" + std::string(suffix));
 }
 
-std::string tilesetEtag(const core::ModelSnapshot& snapshot) {
+std::string tilesetEtag(const core::ModelSnapshot& snapshot, std::string_view variant) {
   return http::strongEtag("tileset-" + std::string(http::opaqueOf(modelEtag(snapshot))) + "-" +
-                          std::string(kTilesFormat));
+                          std::string(kTilesFormat) + (variant.empty() ? "" : "-") +
+                          std::string(variant));
 }
 
 std::string staticFileEtag(std::uint64_t size, std::uint64_t mtimeNs, std::uint64_t inode) {
@@ -129,8 +130,9 @@ std::string terrainEtag(std::string_view tile, std::uint64_t version) {
   return http::strongEtag("terrain-" + name + "-" + text);
 }
 
-std::string glbEtag(const core::PatchInfo& info) {
-  return patchDataEtag(info, "glb-" + std::string(kTilesFormat));
+std::string glbEtag(const core::PatchInfo& info, std::string_view variant) {
+  return patchDataEtag(info, "glb-" + std::string(kTilesFormat) + (variant.empty() ? "" : "-") +
+                                 std::string(variant));
 }
 
 }  // namespace vsm::server::api

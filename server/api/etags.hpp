@@ -17,7 +17,8 @@ namespace vsm::server::api {
 
 /// Bumped whenever the GLB encoder or tilesetJson() change what they produce for the same model,
 /// so clients holding the old bytes under an ETag revalidate to the new ones.
-inline constexpr std::string_view kTilesFormat = "t2";  // t2: textures embedded
+/// t2: textures embedded; t3: meshopt-compressed content by default, per-variant tags.
+inline constexpr std::string_view kTilesFormat = "t3";
 
 /// A model's published metadata (summary, hierarchy, LOD cuts): a digest of every patch's key,
 /// version, folder, children and box. Derived from content rather than from the snapshot's
@@ -31,9 +32,12 @@ std::string viewEtag(const core::ModelSnapshot& snapshot, std::string_view view,
 std::string patchEtag(const core::PatchInfo& info);
 /// Other data of one patch: its tag with `suffix` ("uv": coordinates, "png": texture).
 std::string patchDataEtag(const core::PatchInfo& info, std::string_view suffix);
-/// A model's tileset and one patch's GLB: the model's and the patch's tags with kTilesFormat.
-std::string tilesetEtag(const core::ModelSnapshot& snapshot);
-std::string glbEtag(const core::PatchInfo& info);
+/// A model's tileset and one patch's GLB: the model's and the patch's tags with kTilesFormat and
+/// `variant`, which names the representation ("" for the default: compressed content, identity
+/// transfer; e.g. "raw" for uncompressed content, "gz" for a gzipped body), so that no two
+/// representations share a tag.
+std::string tilesetEtag(const core::ModelSnapshot& snapshot, std::string_view variant = {});
+std::string glbEtag(const core::PatchInfo& info, std::string_view variant = {});
 /// Bumped whenever the quantized-mesh encoder (core/tiles/quantized_mesh) or layer.json change
 /// what they produce for the same model.
 inline constexpr std::string_view kTerrainFormat = "q1";

@@ -15,6 +15,7 @@
 #include "core/tiles/glb.hpp"
 #include "core/tiles/tile_tree.hpp"
 #include "server/api/model_routes.hpp"
+#include "server/http/gzip.hpp"
 #include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
 
@@ -37,10 +38,10 @@ json translationJson(const core::Vec3d& t) {
       {1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, t.x, t.y, t.z, 1.0});
 }
 
-/// "{key}.glb", with "?v={patch version}" when `model` is given, and "&rev={revision}" for a
-/// revision other than 0.
-std::string contentUri(const core::PatchKey& key, const core::Model* model,
-                       std::uint64_t revision) {
+/// "{key}.glb", with "?v={patch version}" when `model` is given, "&rev={revision}" for a
+/// revision other than 0, and "compress=none" (after '?' or '&') for uncompressed content.
+std::string contentUri(const core::PatchKey& key, const core::Model* model, std::uint64_t revision,
+                       bool compressedContent) {
   std::string uri = key.toString() + ".glb";
   if (model != nullptr) {
     uri += "?v=" + std::to_string(model->at(key).version);
@@ -48,11 +49,14 @@ std::string contentUri(const core::PatchKey& key, const core::Model* model,
       uri += "&rev=" + std::to_string(revision);
     }
   }
+  if (!compressedContent) {
+    uri += model != nullptr ? "&compress=none" : "?compress=none";
+  }
   return uri;
 }
 
 json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre, const core::Model* model,
-              std::uint64_t revision) {
+              std::uint64_t revision, bool compressedContent) {
   const core::Vec3d c = node.box.center() - node.centre;
   const core::Vec3d half = node.box.size() * 0.5;
   json tile = {{"transform", translationJson(node.centre - parentCentre)},
@@ -61,11 +65,11 @@ json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre, const
                                       half.z})}}},
                {"geometricError", node.geometricError},
                {"refine", "REPLACE"},
-               {"content", {{"uri", contentUri(node.key, model, revision)}}}};
+               {"content", {{"uri", contentUri(node.key, model, revision, compressedContent)}}}};
   if (!node.children.empty()) {
     json children = json::array();
     for (const core::TileNode& child : node.children) {
-      children.push_back(tileJson(child, node.centre, model, revision));
+      children.push_back(tileJson(child, node.centre, model, revision, compressedContent));
     }
     tile["children"] = std::move(children);
   }
@@ -87,21 +91,78 @@ http::Response withCache(http::Response response, std::string_view etag) {
   return response;
 }
 
+/// The GLB encoding a request's `compress` asks for: absent or "meshopt" the compressed one (the
+/// default), "none" float32. Throws Error(InvalidArgument) for anything else.
+core::GlbCompression requestedCompression(const http::Request& request) {
+  const std::optional<std::string> value = request.queryParam("compress");
+  if (!value || *value == "meshopt") {
+    return core::GlbCompression::Meshopt;
+  }
+  if (*value == "none") {
+    return core::GlbCompression::None;
+  }
+  throw Error(
+      ErrorCode::InvalidArgument,
+      "compress must be 'meshopt' (the default) or 'none', not '" + value->substr(0, 32) + "'");
+}
+
+/// GET /v1/models/{m}/3dtiles/tileset.json[?compress=none][&rev=N]. A client that accepts gzip
+/// gets the body gzipped; that body is made once per snapshot version and variant (content
+/// compression, revision URIs) and kept in the model's EncodedCache, within the budget. The
+/// identity body is built per request, as before (serialising the tree is cheaper than
+/// compressing it). Both carry "Vary: Accept-Encoding" and their own ETag.
 http::Response getTileset(models::ModelRegistry& models, const http::Request& request) {
   const std::string& id = request.param("m");
-  const auto live = models.get(id);
-  const auto snapshot = requestedSnapshot(*live, request);
+  const models::ModelRegistry::Served served = models.getServed(id);
+  const auto snapshot = requestedSnapshot(*served.live, request);
   if (snapshot->model->empty()) {
     throw Error(ErrorCode::NotFound, "model '" + id + "' has no patches");
   }
-  const std::string etag = tilesetEtag(*snapshot);
-  if (http::ifNoneMatch(request, etag)) {
-    return http::notModified(etag, kTileCacheControl);
+  const bool compressedContent = requestedCompression(request) == core::GlbCompression::Meshopt;
+  const bool revisionUris = request.queryParam("rev").has_value();
+  const bool gzipped = http::acceptsGzip(request);
+  // The representation: content URIs (compressed or "raw", with "&rev=" or not) and encoding.
+  std::string variant = compressedContent ? "" : "raw";
+  for (const auto& [on, part] : {std::pair{revisionUris, "rev"}, std::pair{gzipped, "gz"}}) {
+    if (on) {
+      variant += (variant.empty() ? "" : "-") + std::string(part);
+    }
   }
-  const core::TileNode root = core::buildTileTree(*snapshot->model);
-  http::Response response = http::jsonResponse(
-      200, tilesetJson(root, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get(),
-                       request.queryParam("rev") ? snapshot->version : 0));
+  const std::string etag = tilesetEtag(*snapshot, variant);
+  if (http::ifNoneMatch(request, etag)) {
+    http::Response response = http::notModified(etag, kTileCacheControl);
+    http::varyOnEncoding(response);
+    return response;
+  }
+  const auto build = [&] {
+    const core::TileNode root = core::buildTileTree(*snapshot->model);
+    return tilesetJson(root, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get(),
+                       revisionUris ? snapshot->version : 0, compressedContent);
+  };
+  http::Response response;
+  if (gzipped) {
+    // Variants 1..4: content compressed or not, URIs with or without the revision.
+    const auto cacheVariant =
+        static_cast<std::uint8_t>(1 + (compressedContent ? 0 : 1) + (revisionUris ? 2 : 0));
+    auto body = served.encoded->findModelBody(models::Encoding::TilesetGzip, cacheVariant,
+                                              snapshot->version, true);
+    if (body == nullptr) {
+      const std::string packed = http::gzip(build().dump());
+      const auto* bytes = reinterpret_cast<const std::byte*>(packed.data());
+      // Throws ResourceExhausted (503, retry) when the budget is full of pinned data.
+      body = served.encoded->putModelBody(models::Encoding::TilesetGzip, cacheVariant,
+                                          snapshot->version,
+                                          std::vector<std::byte>(bytes, bytes + packed.size()));
+    }
+    response.status = 200;
+    response.contentType = "application/json";
+    response.sharedBody = body->text();
+    response.bodyOwner = std::move(body);
+    http::setGzipEncoded(response);
+  } else {
+    response = http::jsonResponse(200, build());
+  }
+  http::varyOnEncoding(response);
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   return withCache(std::move(response), etag);
 }
@@ -124,12 +185,16 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
     throw Error(ErrorCode::NotFound, "model '" + id + "' has no patch " + key.toString() +
                                          " (version " + std::to_string(snapshot->version) + ")");
   }
-  const std::string etag = glbEtag(*info);
+  const core::GlbCompression compression = requestedCompression(request);
+  const bool compressed = compression == core::GlbCompression::Meshopt;
+  const models::Encoding encoding =
+      compressed ? models::Encoding::GlbMeshopt : models::Encoding::Glb;
+  const std::string etag = glbEtag(*info, compressed ? "" : "raw");
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kTileCacheControl);
   }
   // The handler pool runs this after the network thread's look missed: count that miss once.
-  auto body = served.encoded->find(key, info->version, models::Encoding::Glb, onNetworkThread);
+  auto body = served.encoded->find(key, info->version, encoding, onNetworkThread);
   if (body == nullptr) {
     if (onNetworkThread) {
       return std::nullopt;
@@ -141,6 +206,7 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
     const std::optional<core::PatchTexture> texture = core::readPatchTexture(
         served.live->dir(), *snapshot->model, *info, served.live->texturePixels());
     core::GlbOptions options;
+    options.compression = compression;
     if (texture) {
       options.texture = {texture->png, "image/png"};
       options.texcoords = texture->texcoords;
@@ -148,7 +214,7 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
     }
     // Throws ResourceExhausted (503, retry) when the budget is full of pinned data.
     body = served.encoded->put(
-        key, info->version, models::Encoding::Glb,
+        key, info->version, encoding,
         core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(*info), options));
   }
   http::Response response;
@@ -165,11 +231,11 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
 }  // namespace
 
 json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
-                 const core::Model* model, std::uint64_t revision) {
+                 const core::Model* model, std::uint64_t revision, bool compressedContent) {
   return {
       {"asset", {{"version", "1.1"}, {"tilesetVersion", tilesetVersion}, {"generator", "vsmd"}}},
       {"geometricError", core::tilesetGeometricError(root)},
-      {"root", tileJson(root, core::Vec3d{0, 0, 0}, model, revision)}};
+      {"root", tileJson(root, core::Vec3d{0, 0, 0}, model, revision, compressedContent)}};
 }
 
 void addTilesRoutes(http::Router& router, models::ModelRegistry& models) {

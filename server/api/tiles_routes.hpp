@@ -38,7 +38,11 @@ void addTilesRoutes(http::Router& router, models::ModelRegistry& models);
 /// each URI names the patch's version, "{key}.glb?v={version}", so that browser and CDN caches
 /// never mix a tile of one version of the model with a tileset of another. A `revision` other than
 /// 0 (the tileset of ?rev=N) is added to each URI ("&rev=N"), so the tiles come from that revision.
+/// `compressedContent` false (the tileset of ?compress=none) adds "compress=none" to each URI
+/// (after
+/// '?' or '&'), which names the uncompressed GLBs; true names the default, compressed ones.
 nlohmann::json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
-                           const core::Model* model = nullptr, std::uint64_t revision = 0);
+                           const core::Model* model = nullptr, std::uint64_t revision = 0,
+                           bool compressedContent = true);
 
 }  // namespace vsm::server::api

@@ -1,6 +1,7 @@
 #include "server/models/encoded_cache.hpp"
 
 #include <exception>
+#include <optional>
 #include <type_traits>
 #include <utility>
 
@@ -31,6 +32,10 @@ std::string_view toString(Encoding encoding) {
       return "png";
     case Encoding::Terrain:
       return "terrain";
+    case Encoding::GlbMeshopt:
+      return "glb_meshopt";
+    case Encoding::TilesetGzip:
+      return "tileset_gzip";
   }
   return "unknown";
 }
@@ -39,6 +44,11 @@ namespace {
 
 core::ObjectId bodyId(const core::PatchKey& key, std::uint64_t version, Encoding encoding) {
   return {key, version, core::MemoryCategory::Encoded, static_cast<std::uint8_t>(encoding)};
+}
+
+/// The key of a model-wide body: depth -1 is no patch's.
+core::PatchKey modelBodyKey(std::uint8_t variant) {
+  return {-1, variant, 0};
 }
 
 core::ObjectId fileId(const core::PatchKey& key, std::uint64_t version, StoredKind kind) {
@@ -122,6 +132,33 @@ std::shared_ptr<const EncodedCache::Body> EncodedCache::put(const core::PatchKey
                                core::CacheValue{std::move(object), size, 0}, /*dirty=*/false));
 }
 
+std::shared_ptr<const EncodedCache::Body> EncodedCache::findModelBody(Encoding encoding,
+                                                                      std::uint8_t variant,
+                                                                      std::uint64_t version,
+                                                                      bool countMiss) const {
+  return find(modelBodyKey(variant), version, encoding, countMiss);
+}
+
+std::shared_ptr<const EncodedCache::Body> EncodedCache::putModelBody(Encoding encoding,
+                                                                     std::uint8_t variant,
+                                                                     std::uint64_t version,
+                                                                     std::vector<std::byte> bytes) {
+  auto body = put(modelBodyKey(variant), version, encoding, std::move(bytes));
+  std::optional<std::uint64_t> replaced;
+  {
+    const std::lock_guard lock(modelBodiesMutex_);
+    auto [it, inserted] = modelBodies_.try_emplace({encoding, variant}, version);
+    if (!inserted && it->second != version) {
+      replaced = it->second;
+      it->second = version;
+    }
+  }
+  if (replaced) {
+    cache_.invalidate(model_, bodyId(modelBodyKey(variant), *replaced, encoding));
+  }
+  return body;
+}
+
 void EncodedCache::countMiss() const {
   cache_.countMiss();
 }
@@ -143,7 +180,8 @@ std::shared_ptr<const EncodedCache::File> EncodedCache::putFile(
 }
 
 void EncodedCache::dropVersion(const core::PatchKey& key, std::uint64_t version) {
-  for (const Encoding encoding : {Encoding::PositionsAara, Encoding::Glb, Encoding::TexturePng}) {
+  for (const Encoding encoding :
+       {Encoding::PositionsAara, Encoding::Glb, Encoding::TexturePng, Encoding::GlbMeshopt}) {
     cache_.invalidate(model_, bodyId(key, version, encoding));
   }
   for (const StoredKind kind : {StoredKind::Positions, StoredKind::Coordinates}) {

@@ -3,10 +3,13 @@
 #include <array>
 #include <cstddef>
 #include <cstdint>
+#include <map>
 #include <memory>
+#include <mutex>
 #include <span>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
 #include "core/cache/patch_cache.hpp"
@@ -23,7 +26,7 @@ enum class Encoding : std::uint8_t {
   /// Positions as the full-grid .aara of a patch whose stored file is laid out otherwise (cropped,
   /// V3d), or whose file could not be held open.
   PositionsAara = 1,
-  /// A 3D Tiles tile: binary glTF.
+  /// A 3D Tiles tile: binary glTF, float32 (`?compress=none`).
   Glb = 2,
   /// A texture tile as PNG.
   TexturePng = 3,
@@ -33,11 +36,17 @@ enum class Encoding : std::uint8_t {
   /// does not drop these (dropVersion knows patches only): entries of replaced patches are no
   /// longer asked for and go as the policy evicts them.
   Terrain = 4,
+  /// A 3D Tiles tile: binary glTF, KHR_mesh_quantization + EXT_meshopt_compression (the default).
+  GlbMeshopt = 5,
+  /// A model-wide body: tileset.json, gzipped (findModelBody/putModelBody).
+  TilesetGzip = 6,
 };
 
-inline constexpr std::array<Encoding, 4> kEncodings{Encoding::PositionsAara, Encoding::Glb,
-                                                    Encoding::TexturePng, Encoding::Terrain};
-/// The name /v1/stats and the metrics give an encoding: "aara", "glb", "png", "terrain".
+inline constexpr std::array<Encoding, 6> kEncodings{Encoding::PositionsAara, Encoding::Glb,
+                                                    Encoding::TexturePng,    Encoding::Terrain,
+                                                    Encoding::GlbMeshopt,    Encoding::TilesetGzip};
+/// The name /v1/stats and the metrics give an encoding: "aara", "glb", "png", "terrain",
+/// "glb_meshopt", "tileset_gzip".
 std::string_view toString(Encoding encoding);
 
 /// The stored files of a patch the server sends as they are (sendfile(2)).
@@ -82,6 +91,16 @@ class EncodedCache : public std::enable_shared_from_this<EncodedCache> {
                                   Encoding encoding, std::vector<std::byte> bytes,
                                   std::string note = {});
 
+  /// A body of the whole model rather than of one patch (Encoding::TilesetGzip): `variant` (1..255)
+  /// names what the body depends on besides the model's version (such as query parameters), and
+  /// `version` is the snapshot's version. find as find(); put keeps one version per variant and
+  /// encoding, dropping the one it replaces (publishes name patch versions only, so they cannot
+  /// drop these). Stored under a key no patch has (depth -1, x = variant).
+  std::shared_ptr<const Body> findModelBody(Encoding encoding, std::uint8_t variant,
+                                            std::uint64_t version, bool countMiss) const;
+  std::shared_ptr<const Body> putModelBody(Encoding encoding, std::uint8_t variant,
+                                           std::uint64_t version, std::vector<std::byte> bytes);
+
   /// Counts one miss in the statistics (see core::PatchCache::countMiss).
   void countMiss() const;
 
@@ -106,6 +125,10 @@ class EncodedCache : public std::enable_shared_from_this<EncodedCache> {
   core::PatchCache& cache_;
   std::unique_ptr<Store> store_;
   core::PatchCache::ModelId model_ = 0;
+  /// Guards modelBodies_ only; never held while calling into cache_.
+  std::mutex modelBodiesMutex_;
+  /// (encoding, variant) -> the version putModelBody() last stored.
+  std::map<std::pair<Encoding, std::uint8_t>, std::uint64_t> modelBodies_;
 };
 
 /// What an Encoded entry holds.

@@ -605,7 +605,7 @@ class EncodedResponses(unittest.TestCase):
             glbs[key] = body
         stats = self.stats()
         self.assertGreater(stats["cache"]["evictions"], 0)
-        self.assertGreater(stats["memory"]["encoded_bytes_by_encoding"]["glb"], 0)
+        self.assertGreater(stats["memory"]["encoded_bytes_by_encoding"]["glb_meshopt"], 0)
         self.assertEqual(sum(stats["memory"]["encoded_bytes_by_encoding"].values()),
                          stats["memory"]["resident_bytes_by_category"]["encoded"])
         # Evicted or not, every answer stays the same.

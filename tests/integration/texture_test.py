@@ -84,34 +84,48 @@ def check_glb(args, opc):
             time.sleep(0.05)  # the poll interval
         with open(port_file) as f:  # written atomically (renamed into place) once listening
             port = int(f.read())
-        url = "http://127.0.0.1:%d/v1/models/jack/3dtiles/0_0_0.glb" % port
-        with urllib.request.urlopen(url, timeout=60) as response:
-            data = response.read()
+        # The default (meshopt-compressed) GLB and the uncompressed one.
+        glbs = {}
+        for query in ("", "?compress=none"):
+            url = "http://127.0.0.1:%d/v1/models/jack/3dtiles/0_0_0.glb%s" % (port, query)
+            with urllib.request.urlopen(url, timeout=60) as response:
+                glbs[query] = response.read()
     finally:
         daemon.terminate()
         daemon.wait(timeout=30)
         log.close()
-    json_length = struct.unpack_from("<I", data, 12)[0]
-    gltf = json.loads(data[20:20 + json_length])
-    assert gltf["images"][0]["mimeType"] == "image/png", gltf.get("images")
-    bin_start = 20 + json_length + 8
-    view = gltf["bufferViews"][gltf["images"][0]["bufferView"]]
-    png = data[bin_start + view.get("byteOffset", 0):][:8]
-    assert png == b"\x89PNG\r\n\x1a\n", png
-    material = gltf["materials"][0]["pbrMetallicRoughness"]
-    assert material["baseColorTexture"]["index"] == 0
-    uv = gltf["accessors"][gltf["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_0"]]
-    assert min(uv["min"]) >= 0 and max(uv["max"]) <= 1, uv
+    for query, data in glbs.items():
+        json_length = struct.unpack_from("<I", data, 12)[0]
+        gltf = json.loads(data[20:20 + json_length])
+        assert gltf["images"][0]["mimeType"] == "image/png", gltf.get("images")
+        bin_start = 20 + json_length + 8
+        view = gltf["bufferViews"][gltf["images"][0]["bufferView"]]
+        png = data[bin_start + view.get("byteOffset", 0):][:8]
+        assert png == b"\x89PNG\r\n\x1a\n", png
+        material = gltf["materials"][0]["pbrMetallicRoughness"]
+        assert material["baseColorTexture"]["index"] == 0
+        uv = gltf["accessors"][gltf["meshes"][0]["primitives"][0]["attributes"]["TEXCOORD_0"]]
+        if query:
+            assert min(uv["min"]) >= 0 and max(uv["max"]) <= 1, uv
+        else:
+            # Compressed: UNSIGNED_SHORT normalized, so in [0, 1] by construction.
+            assert uv["componentType"] == 5123 and uv["normalized"], uv
+            assert "EXT_meshopt_compression" in gltf["extensionsRequired"], gltf
     validator = os.path.join(args.node_tools or "", "node_modules", "gltf-validator")
     if args.validator and os.path.isdir(validator) and shutil.which("node"):
-        glb = os.path.join(root, "0_0_0.glb")
-        with open(glb, "wb") as f:
-            f.write(data)
-        out = subprocess.run(["node", args.validator, args.node_tools, glb], check=True,
+        paths = []
+        for query, data in glbs.items():
+            glb = os.path.join(root, "0_0_0%s.glb" % ("-raw" if query else ""))
+            with open(glb, "wb") as f:
+                f.write(data)
+            paths.append(glb)
+        out = subprocess.run(["node", args.validator, args.node_tools, *paths], check=True,
                              capture_output=True, text=True).stdout
-        report = json.loads(out.splitlines()[0])
-        assert report["errors"] == 0, report
-        print("texture: textured GLB valid (gltf-validator %s)" % report["validator"])
+        for line in out.splitlines():
+            report = json.loads(line)
+            assert report["errors"] == 0, report
+        print("texture: textured GLBs (compressed and not) valid (gltf-validator %s)"
+              % report["validator"])
     shutil.rmtree(root, ignore_errors=True)
 
 

@@ -21,6 +21,7 @@ Run by ctest:
         --node-tools build/node-tools --validator tests/integration/validate_gltf.js"""
 
 import argparse
+import gzip
 import json
 import math
 import os
@@ -39,6 +40,9 @@ from server_test import Daemon  # noqa: E402
 ARGS = None
 MODEL = "merged"
 PREFIX = "/v1/models/%s/3dtiles/" % MODEL
+# The tileset of uncompressed (float32) content, which this test's own reader decodes; the default
+# one names the KHR_mesh_quantization + EXT_meshopt_compression GLBs.
+RAW_TILESET = "tileset.json?compress=none"
 
 
 # ---- an independent reader of GLB and 3D Tiles -------------------------------------------------
@@ -171,7 +175,7 @@ class Tiles(unittest.TestCase):
         cls.daemon = Daemon("--set", "threads.cpu=2", prepare=prepare)
         cls.glb_dir = tempfile.mkdtemp(prefix="vsm-glb-")
         start = time.monotonic()
-        status, headers, body = cls.daemon.request("GET", PREFIX + "tileset.json")
+        status, headers, body = cls.daemon.request("GET", PREFIX + RAW_TILESET)
         cls.tileset_seconds = time.monotonic() - start
         assert status == 200, body
         cls.tileset_headers = headers
@@ -189,6 +193,20 @@ class Tiles(unittest.TestCase):
             cls.glbs[uri] = body
             cls.glb_headers[uri] = headers
         cls.glb_seconds = time.monotonic() - start
+        # The default tileset and its compressed content.
+        status, headers, body = cls.daemon.request("GET", PREFIX + "tileset.json")
+        assert status == 200, body
+        cls.packed_tileset_headers = headers
+        cls.packed_tileset_body = body
+        cls.packed_tileset = json.loads(body)
+        cls.packed_tiles = list(walk(cls.packed_tileset["root"]))
+        cls.packed_glbs = {}
+        for tile, _, _ in cls.packed_tiles:
+            uri = tile["content"]["uri"]
+            status, headers, body = cls.daemon.request("GET", PREFIX + uri)
+            assert status == 200, (uri, status, body[:200])
+            assert headers["Content-Type"] == "model/gltf-binary", uri
+            cls.packed_glbs[uri] = body
 
     @classmethod
     def tearDownClass(cls):
@@ -289,19 +307,27 @@ class Tiles(unittest.TestCase):
                                 "%s vertex %d %r outside %r..%r" % (uri, v, p, lo, hi))
 
     def test_every_glb_passes_the_khronos_validator(self):
+        """Both tilesets' content: the compressed GLBs (the default) and the float32 ones."""
         paths = []
-        for uri, body in self.glbs.items():
-            path = os.path.join(self.glb_dir, key_of(uri) + ".glb")
-            with open(path, "wb") as f:
-                f.write(body)
-            paths.append(path)
+        for suffix, glbs in (("", self.packed_glbs), ("-raw", self.glbs)):
+            for uri, body in glbs.items():
+                path = os.path.join(self.glb_dir, key_of(uri) + suffix + ".glb")
+                with open(path, "wb") as f:
+                    f.write(body)
+                paths.append(path)
+        self.assertEqual(len(paths), 2 * len(self.tiles))
         start = time.monotonic()
         result = subprocess.run(["node", ARGS.validator, ARGS.node_tools, *paths],
                                 capture_output=True, text=True, timeout=600)
         seconds = time.monotonic() - start
         self.assertEqual(result.returncode, 0, result.stderr)
         reports = [json.loads(line) for line in result.stdout.splitlines() if line.strip()]
-        self.assertEqual(len(reports), len(paths))
+        # One report per file, and one more per compressed GLB with a mesh: its data decoded by
+        # meshoptimizer's JavaScript decoder and validated as a plain GLB (validate_gltf.js).
+        with_mesh = sum(1 for body in self.packed_glbs.values() if "meshes" in decode_glb(body)[0])
+        self.assertGreater(with_mesh, 0)
+        self.assertEqual(len(reports), len(paths) + with_mesh)
+        self.assertEqual(sum(1 for r in reports if r["file"].endswith("#decoded")), with_mesh)
         failed = [r for r in reports if r["errors"] != 0]
         self.assertEqual(failed, [], "validator errors:\n" + "\n".join(
             "%s: %s" % (r["file"], "; ".join(r["messages"])) for r in failed[:5]))
@@ -314,6 +340,104 @@ class Tiles(unittest.TestCase):
         if examples:
             print("  e.g. " + "\n  e.g. ".join(examples), file=sys.stderr)
 
+    def test_the_default_tileset_names_compressed_content_inside_the_same_volumes(self):
+        raw = {key_of(t["content"]["uri"]): (t, w) for t, w, _ in self.tiles}
+        self.assertEqual(len(self.packed_tiles), len(self.tiles))
+        packed_bytes = raw_bytes = 0
+        for tile, world, _ in self.packed_tiles:
+            uri = tile["content"]["uri"]
+            self.assertNotIn("compress", uri)
+            raw_tile, raw_world = raw[key_of(uri)]
+            self.assertEqual(raw_tile["content"]["uri"], uri + "&compress=none")
+            # The same tree: placement, volumes and errors as the raw tileset's.
+            for field in ("transform", "boundingVolume", "geometricError"):
+                self.assertEqual(tile[field], raw_tile[field], uri)
+            gltf, bin_chunk = decode_glb(self.packed_glbs[uri])
+            raw_gltf, _ = decode_glb(self.glbs[raw_tile["content"]["uri"]])
+            packed_bytes += len(self.packed_glbs[uri])
+            raw_bytes += len(self.glbs[raw_tile["content"]["uri"]])
+            if "meshes" not in raw_gltf:
+                self.assertNotIn("meshes", gltf, uri)
+                continue
+            self.assertEqual(gltf["extensionsRequired"],
+                             ["EXT_meshopt_compression", "KHR_mesh_quantization"], uri)
+            self.assertEqual(gltf["buffers"][1]["extensions"]["EXT_meshopt_compression"],
+                             {"fallback": True}, uri)
+            self.assertNotIn("uri", gltf["buffers"][1])
+            primitive = gltf["meshes"][0]["primitives"][0]
+            raw_primitive = raw_gltf["meshes"][0]["primitives"][0]
+            for semantic in ("POSITION", "NORMAL", "TEXCOORD_0"):
+                self.assertEqual(gltf["accessors"][primitive["attributes"][semantic]]["count"],
+                                 raw_gltf["accessors"][raw_primitive["attributes"][semantic]]
+                                 ["count"], (uri, semantic))
+                view = gltf["bufferViews"][gltf["accessors"][primitive["attributes"][semantic]]
+                                           ["bufferView"]]
+                self.assertIn("EXT_meshopt_compression", view["extensions"], (uri, semantic))
+            self.assertEqual(gltf["accessors"][primitive["indices"]]["count"],
+                             raw_gltf["accessors"][raw_primitive["indices"]]["count"], uri)
+            # The quantized range through the node's translation and scale, glTF's y-up -> z-up
+            # and the tile's transform lies inside the tile's volume.
+            position = gltf["accessors"][primitive["attributes"]["POSITION"]]
+            self.assertEqual(position["componentType"], 5123)
+            node = gltf["nodes"][0]
+            t, s = node["translation"], node["scale"]
+            lo, hi = aabb(box_corners(tile["boundingVolume"]["box"], world))
+            for qx in (position["min"][0], position["max"][0]):
+                for qy in (position["min"][1], position["max"][1]):
+                    for qz in (position["min"][2], position["max"][2]):
+                        x, y, z = (t[0] + s[0] * qx, t[1] + s[1] * qy, t[2] + s[2] * qz)
+                        p = apply(world, [x, -z, y])
+                        self.assertTrue(all(lo[i] <= p[i] <= hi[i] for i in range(3)),
+                                        "%s corner %r outside %r..%r" % (uri, p, lo, hi))
+        self.assertLess(packed_bytes, raw_bytes)
+        print("\ncompressed tileset: %d GLBs, %d bytes (float32: %d bytes, %.2f)"
+              % (len(self.packed_glbs), packed_bytes, raw_bytes, packed_bytes / raw_bytes),
+              file=sys.stderr)
+
+    def test_tileset_json_is_gzipped_once_when_accepted_with_vary(self):
+        plain = self.packed_tileset_body
+        self.assertIsNone(self.packed_tileset_headers.get("Content-Encoding"))
+        self.assertEqual(self.packed_tileset_headers["Vary"], "Accept-Encoding")
+        status, _, before = self.daemon.get_json("/v1/stats")
+        status, headers, body = self.daemon.request(
+            "GET", PREFIX + "tileset.json", headers={"Accept-Encoding": "gzip, deflate"})
+        self.assertEqual(status, 200)
+        self.assertEqual(headers["Content-Encoding"], "gzip")
+        self.assertEqual(headers["Vary"], "Accept-Encoding")
+        self.assertEqual(headers["Content-Type"], "application/json")
+        self.assertEqual(int(headers["Content-Length"]), len(body))
+        self.assertNotEqual(headers["ETag"], self.packed_tileset_headers["ETag"])
+        self.assertEqual(gzip.decompress(body), plain)
+        self.assertLess(len(body) * 4, len(plain))
+        # Made once: the second request is a cache hit with the same bytes, no miss.
+        status, _, middle = self.daemon.get_json("/v1/stats")
+        self.assertGreater(middle["memory"]["encoded_bytes_by_encoding"]["tileset_gzip"], 0)
+        status, headers2, body2 = self.daemon.request(
+            "GET", PREFIX + "tileset.json", headers={"Accept-Encoding": "gzip"})
+        status, _, after = self.daemon.get_json("/v1/stats")
+        self.assertEqual(body2, body)
+        self.assertEqual(headers2["ETag"], headers["ETag"])
+        self.assertEqual(after["cache"]["misses"], middle["cache"]["misses"])
+        self.assertGreater(after["cache"]["hits"], middle["cache"]["hits"])
+        self.assertGreater(middle["cache"]["misses"], before["cache"]["misses"])
+        # Revalidation of the gzipped representation; q=0 refuses gzip.
+        status, headers3, _ = self.daemon.request(
+            "GET", PREFIX + "tileset.json",
+            headers={"Accept-Encoding": "gzip", "If-None-Match": headers["ETag"]})
+        self.assertEqual(status, 304)
+        self.assertEqual(headers3["Vary"], "Accept-Encoding")
+        status, headers4, body4 = self.daemon.request(
+            "GET", PREFIX + "tileset.json", headers={"Accept-Encoding": "gzip;q=0"})
+        self.assertIsNone(headers4.get("Content-Encoding"))
+        self.assertEqual(body4, plain)
+        # The raw tileset gzipped is its own body.
+        status, headers5, body5 = self.daemon.request(
+            "GET", PREFIX + RAW_TILESET, headers={"Accept-Encoding": "gzip"})
+        self.assertEqual(headers5["Content-Encoding"], "gzip")
+        self.assertEqual(json.loads(gzip.decompress(body5)), self.tileset)
+        status, _, body = self.daemon.request("GET", PREFIX + "tileset.json?compress=zstd")
+        self.assertEqual(status, 400)
+
     def test_etags_answer_304_and_head_has_no_body(self):
         uri = self.tiles[-1][0]["content"]["uri"]
         etag = self.glb_headers[uri]["ETag"]
@@ -323,9 +447,14 @@ class Tiles(unittest.TestCase):
         self.assertEqual(body, b"")
         self.assertEqual(headers["ETag"], etag)
         etag = self.tileset_headers["ETag"]
-        status, _, _ = self.daemon.request("GET", PREFIX + "tileset.json",
+        status, _, _ = self.daemon.request("GET", PREFIX + RAW_TILESET,
                                            headers={"If-None-Match": etag})
         self.assertEqual(status, 304)
+        # The other tileset and the other encoding of the tile are other representations.
+        self.assertNotEqual(self.packed_tileset_headers["ETag"], etag)
+        status, _, _ = self.daemon.request("GET", PREFIX + "tileset.json",
+                                           headers={"If-None-Match": etag})
+        self.assertEqual(status, 200)
         status, headers, body = self.daemon.request("HEAD", PREFIX + uri)
         self.assertEqual(status, 200)
         self.assertEqual(body, b"")
@@ -352,7 +481,8 @@ class Tiles(unittest.TestCase):
                              str(versions[key_of(uri)]), uri)
         # The query is only for caches: the route answers the same bytes with any version, or none.
         uri = self.tiles[0][0]["content"]["uri"]
-        for other in (key_of(uri) + ".glb", key_of(uri) + ".glb?v=12345"):
+        for other in (key_of(uri) + ".glb?compress=none",
+                      key_of(uri) + ".glb?v=12345&compress=none"):
             status, _, body = self.daemon.request("GET", PREFIX + other)
             self.assertEqual(status, 200, other)
             self.assertEqual(body, self.glbs[uri], other)

@@ -905,8 +905,12 @@ TEST(SystemRoutes, StatsReportTheBudgetAndEveryCategory) {
   EXPECT_EQ(stats.at("memory").at("budget_bytes"), 64 * kMiB);
   EXPECT_EQ(stats.at("memory").at("resident_bytes"), 0);
   EXPECT_EQ(stats.at("memory").at("resident_bytes_by_category").size(), core::kMemoryCategoryCount);
-  EXPECT_EQ(stats.at("memory").at("encoded_bytes_by_encoding"),
-            json({{"aara", 0}, {"glb", 0}, {"png", 0}, {"terrain", 0}}));
+  EXPECT_EQ(stats.at("memory").at("encoded_bytes_by_encoding"), json({{"aara", 0},
+                                                                      {"glb", 0},
+                                                                      {"png", 0},
+                                                                      {"terrain", 0},
+                                                                      {"glb_meshopt", 0},
+                                                                      {"tileset_gzip", 0}}));
   EXPECT_TRUE(stats.at("memory").at("resident_bytes_by_model").is_object());
   for (const char* key : {"hits", "misses", "evictions", "write_backs", "exhausted"}) {
     EXPECT_EQ(stats.at("cache").at(key), 0) << key;

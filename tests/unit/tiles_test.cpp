@@ -1,5 +1,8 @@
 #include <gtest/gtest.h>
+#include <meshoptimizer.h>
 
+#include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -328,6 +331,256 @@ TEST(Glb, TextureHookEmbedsTheImageAndCoordinates) {
   EXPECT_THROW(
       encodeGlb(grid, {0, 0, 0}, {.texture = {}, .texcoords = std::span(texcoords).first(3)}),
       Error);
+}
+
+// ---- the compressed encoding: decoded with meshoptimizer's own decoder ------------------------
+
+/// The attribute or index data of a GLB whose views may be EXT_meshopt_compression views, decoded
+/// to doubles as glTF says a loader reads them (normalized integers to [-1, 1] or [0, 1]).
+struct MeshoptGlb {
+  DecodedGlb glb;
+  std::map<int, std::vector<std::byte>> decodedViews;
+
+  explicit MeshoptGlb(const std::vector<std::byte>& bytes) : glb(decodeGlb(bytes)) {}
+
+  const std::vector<std::byte>& view(int index) {
+    auto found = decodedViews.find(index);
+    if (found != decodedViews.end()) {
+      return found->second;
+    }
+    const json& view = glb.gltf["bufferViews"][index];
+    std::vector<std::byte> out(view["byteLength"].get<std::size_t>());
+    if (view.contains("extensions") && view["extensions"].contains("EXT_meshopt_compression")) {
+      const json& ext = view["extensions"]["EXT_meshopt_compression"];
+      EXPECT_EQ(ext["buffer"], 0);
+      EXPECT_EQ(view["buffer"], 1) << "decodes into the fallback buffer";
+      const std::size_t offset = ext["byteOffset"], length = ext["byteLength"];
+      const std::size_t count = ext["count"], stride = ext["byteStride"];
+      EXPECT_EQ(count * stride, out.size());
+      EXPECT_LE(offset + length, glb.bin.size());
+      const auto* source = reinterpret_cast<const unsigned char*>(glb.bin.data() + offset);
+      const std::string mode = ext["mode"];
+      EXPECT_EQ(ext.value("filter", "NONE"), "NONE");
+      int rc = -1;
+      if (mode == "ATTRIBUTES") {
+        EXPECT_EQ(view["byteStride"], stride);
+        rc = meshopt_decodeVertexBuffer(out.data(), count, stride, source, length);
+      } else {
+        EXPECT_EQ(mode, "TRIANGLES");
+        EXPECT_FALSE(view.contains("byteStride"));
+        rc = meshopt_decodeIndexBuffer(out.data(), count, stride, source, length);
+      }
+      EXPECT_EQ(rc, 0) << "meshopt decode of view " << index;
+    } else {
+      EXPECT_EQ(view["buffer"], 0);
+      const std::size_t offset = view.value("byteOffset", 0);
+      std::memcpy(out.data(), glb.bin.data() + offset, out.size());
+    }
+    return decodedViews.emplace(index, std::move(out)).first->second;
+  }
+
+  std::vector<double> read(int accessorIndex) {
+    const json& a = glb.gltf["accessors"][accessorIndex];
+    const int viewIndex = a["bufferView"];
+    const std::vector<std::byte>& data = view(viewIndex);
+    const int type = a["componentType"];
+    const bool normalized = a.value("normalized", false);
+    const std::string kind = a["type"];
+    const std::size_t components = kind == "SCALAR" ? 1 : kind == "VEC2" ? 2 : 3;
+    const std::size_t size = type == 5126 || type == 5125 ? 4 : type == 5123 ? 2 : 1;
+    const std::size_t stride =
+        glb.gltf["bufferViews"][viewIndex].value("byteStride", components * size);
+    const std::size_t count = a["count"];
+    EXPECT_LE((count - 1) * stride + components * size, data.size());
+    std::vector<double> out(count * components);
+    for (std::size_t i = 0; i < count; ++i) {
+      for (std::size_t c = 0; c < components; ++c) {
+        const std::byte* p = data.data() + a.value("byteOffset", 0) + i * stride + c * size;
+        double value = 0;
+        if (type == 5126) {
+          float f;
+          std::memcpy(&f, p, 4);
+          value = f;
+        } else if (type == 5125) {
+          std::uint32_t v;
+          std::memcpy(&v, p, 4);
+          value = v;
+        } else if (type == 5123) {
+          std::uint16_t v;
+          std::memcpy(&v, p, 2);
+          value = normalized ? v / 65535.0 : v;
+        } else {
+          EXPECT_EQ(type, 5120);
+          std::int8_t v;
+          std::memcpy(&v, p, 1);
+          value = normalized ? std::max(v / 127.0, -1.0) : v;
+        }
+        out[i * components + c] = value;
+      }
+    }
+    return out;
+  }
+};
+
+/// A triangle as its indices, rotated to start at its smallest (winding kept).
+std::array<std::uint32_t, 3> canonical(double a, double b, double c) {
+  std::array<std::uint32_t, 3> t{static_cast<std::uint32_t>(a), static_cast<std::uint32_t>(b),
+                                 static_cast<std::uint32_t>(c)};
+  while (t[0] > t[1] || t[0] > t[2]) {
+    t = {t[1], t[2], t[0]};
+  }
+  return t;
+}
+
+/// Encodes `grid` both ways and checks that the compressed GLB decodes (meshoptimizer's decoder,
+/// the node's translation and scale) to the uncompressed one within the quantization steps.
+/// Returns the two sizes.
+std::pair<std::size_t, std::size_t> checkCompressed(const PatchGrid& grid, GlbOptions options) {
+  const Vec3d centre = grid.globalBox().center();
+  options.compression = GlbCompression::None;
+  const std::vector<std::byte> plainBytes = encodeGlb(grid, centre, options);
+  options.compression = GlbCompression::Meshopt;
+  const std::vector<std::byte> packedBytes = encodeGlb(grid, centre, options);
+  const DecodedGlb plain = decodeGlb(plainBytes);
+  MeshoptGlb packed(packedBytes);
+  const json& gltf = packed.glb.gltf;
+
+  EXPECT_EQ(gltf["extensionsUsed"],
+            json::array({"EXT_meshopt_compression", "KHR_mesh_quantization"}));
+  EXPECT_EQ(gltf["extensionsRequired"], gltf["extensionsUsed"]);
+  EXPECT_EQ(gltf["buffers"].size(), 2u);
+  EXPECT_FALSE(gltf["buffers"][1].contains("uri"));
+  EXPECT_TRUE(gltf["buffers"][1]["extensions"]["EXT_meshopt_compression"]["fallback"].get<bool>());
+  for (const json& view : gltf["bufferViews"]) {
+    EXPECT_EQ(view["byteOffset"].get<std::size_t>() % 4, 0u);
+    if (view["buffer"] == 1) {
+      EXPECT_LE(view["byteOffset"].get<std::size_t>() + view["byteLength"].get<std::size_t>(),
+                gltf["buffers"][1]["byteLength"].get<std::size_t>());
+      EXPECT_EQ(view["extensions"]["EXT_meshopt_compression"]["byteOffset"].get<std::size_t>() % 4,
+                0u);
+    }
+  }
+  const json& attributes = gltf["meshes"][0]["primitives"][0]["attributes"];
+  const json& node = gltf["nodes"][0];
+  EXPECT_EQ(gltf["accessors"][attributes["POSITION"].get<int>()]["componentType"], 5123);
+  EXPECT_EQ(gltf["accessors"][attributes["NORMAL"].get<int>()]["componentType"], 5120);
+  const std::vector<double> q = packed.read(attributes["POSITION"]);
+  const std::vector<double> normals = packed.read(attributes["NORMAL"]);
+  const std::vector<double> uvs = packed.read(attributes["TEXCOORD_0"]);
+  const std::vector<double> indices = packed.read(gltf["meshes"][0]["primitives"][0]["indices"]);
+  const std::vector<double> plainPositions = plain.read(0), plainNormals = plain.read(1),
+                            plainUvs = plain.read(2), plainIndices = plain.read(3);
+
+  // The same vertices in the same order.
+  EXPECT_EQ(q.size(), plainPositions.size());
+  EXPECT_EQ(uvs.size(), plainUvs.size());
+  EXPECT_EQ(indices.size(), plainIndices.size());
+  const double scale = node["scale"][0];
+  EXPECT_EQ(node["scale"][1], scale);
+  EXPECT_EQ(node["scale"][2], scale);
+  const json& positionAccessor = gltf["accessors"][attributes["POSITION"].get<int>()];
+  const json& plainAccessor = plain.gltf["accessors"][0];
+  double largestError = 0;
+  for (std::size_t i = 0; i < std::min(q.size(), plainPositions.size()); ++i) {
+    const std::size_t c = i % 3;
+    const double position = node["translation"][c].get<double>() + q[i] * scale;
+    const double expected = plainPositions[i];
+    // Within one step (rounding, or clamping at the top of the range) and float32's rounding of
+    // the plain encoding.
+    EXPECT_NEAR(position, expected, scale * 1.0001 + 1e-6 * std::abs(expected) + 1e-9) << i;
+    largestError = std::max(largestError, std::abs(position - expected));
+    // Inside the plain encoding's range, so inside the tile's box.
+    const double slack = 1e-6 * (std::abs(expected) + 1);
+    EXPECT_GE(position, plainAccessor["min"][c].get<double>() - slack);
+    EXPECT_LE(position, plainAccessor["max"][c].get<double>() + slack);
+    EXPECT_GE(q[i], positionAccessor["min"][c].get<double>());
+    EXPECT_LE(q[i], positionAccessor["max"][c].get<double>());
+  }
+  EXPECT_GT(largestError, 0) << "the positions are quantized";
+  for (std::size_t c = 0; c < 3; ++c) {  // min and max are the data's extremes
+    double lo = 65535, hi = 0;
+    for (std::size_t i = c; i < q.size(); i += 3) {
+      lo = std::min(lo, q[i]);
+      hi = std::max(hi, q[i]);
+    }
+    EXPECT_EQ(positionAccessor["min"][c].get<double>(), lo);
+    EXPECT_EQ(positionAccessor["max"][c].get<double>(), hi);
+  }
+  for (std::size_t i = 0; i < std::min(normals.size(), plainNormals.size()); ++i) {
+    EXPECT_NEAR(normals[i], plainNormals[i], 0.5 / 127 + 1e-6) << i;
+  }
+  const bool quantizedUvs =
+      gltf["accessors"][attributes["TEXCOORD_0"].get<int>()]["componentType"] == 5123;
+  for (std::size_t i = 0; i < std::min(uvs.size(), plainUvs.size()); ++i) {
+    EXPECT_NEAR(uvs[i], plainUvs[i], quantizedUvs ? 0.5 / 65535 + 1e-7 : 0.0) << i;
+  }
+  // The same triangles, each with its winding (the codec may rotate and reorder them).
+  std::multiset<std::array<std::uint32_t, 3>> triangles, plainTriangles;
+  for (std::size_t t = 0; t + 2 < indices.size(); t += 3) {
+    triangles.insert(canonical(indices[t], indices[t + 1], indices[t + 2]));
+  }
+  for (std::size_t t = 0; t + 2 < plainIndices.size(); t += 3) {
+    plainTriangles.insert(canonical(plainIndices[t], plainIndices[t + 1], plainIndices[t + 2]));
+  }
+  EXPECT_TRUE(triangles == plainTriangles);
+  EXPECT_EQ(
+      gltf["accessors"][gltf["meshes"][0]["primitives"][0]["indices"].get<int>()]["componentType"],
+      plain.gltf["accessors"][3]["componentType"]);
+  // The texture, byte for byte.
+  if (!options.texture.image.empty()) {
+    const json& view = gltf["bufferViews"][gltf["images"][0]["bufferView"].get<int>()];
+    EXPECT_EQ(view["buffer"], 0);
+    const std::size_t offset = view["byteOffset"];
+    EXPECT_EQ(view["byteLength"].get<std::size_t>(), options.texture.image.size());
+    EXPECT_TRUE(offset + options.texture.image.size() <= packed.glb.bin.size() &&
+                std::equal(options.texture.image.begin(), options.texture.image.end(),
+                           packed.glb.bin.begin() + static_cast<std::ptrdiff_t>(offset)));
+  }
+  return {packedBytes.size(), plainBytes.size()};
+}
+
+TEST(Glb, CompressedDecodesToTheUncompressedMeshWithinTheQuantizationSteps) {
+  const PatchGrid grid = terrainGrid(65, [](int x, int y) {
+    return (x == 3 && y == 4) || (y == 40 && x > 50) || x == 64;  // a hole, a ragged edge, a column
+  });
+  std::vector<float> texcoords(grid.vertexCount() * 2);
+  for (std::size_t i = 0; i < texcoords.size(); i += 2) {
+    texcoords[i] = static_cast<float>((i / 2) % 65) / 64;
+    texcoords[i + 1] = static_cast<float>((i / 2) / 65) / 64;
+  }
+  const std::vector<std::byte> image(41, std::byte{0x5c});
+  GlbOptions options;
+  options.texture = {image, "image/png"};
+  options.texcoords = texcoords;
+  const auto [packed, plain] = checkCompressed(grid, options);
+  // Smooth terrain: well under a third of the float32 encoding.
+  EXPECT_LT(packed * 3, plain) << packed << " bytes against " << plain;
+}
+
+TEST(Glb, CompressedLargeGridsKeepUnsignedIntIndices) {
+  const PatchGrid grid = terrainGrid(257, [](int x, int y) { return x + y < 20; });
+  checkCompressed(grid, {});
+}
+
+TEST(Glb, CompressedTexcoordsOutsideTheUnitSquareStayFloat) {
+  const PatchGrid grid = terrainGrid(9, [](int, int) { return false; });
+  std::vector<float> texcoords(grid.vertexCount() * 2, 0.25f);
+  texcoords[7] = 1.5f;
+  GlbOptions options;
+  options.texcoords = texcoords;
+  checkCompressed(grid, options);
+  options.compression = GlbCompression::Meshopt;
+  const DecodedGlb glb = decodeGlb(encodeGlb(grid, grid.globalBox().center(), options));
+  EXPECT_EQ(glb.gltf["accessors"][2]["componentType"], 5126);
+}
+
+TEST(Glb, CompressedGridWithoutCompleteQuadIsAValidEmptyAsset) {
+  const PatchGrid grid = terrainGrid(9, [](int x, int y) { return (x + y) % 2 == 1; });
+  GlbOptions options;
+  options.compression = GlbCompression::Meshopt;
+  const DecodedGlb glb = decodeGlb(encodeGlb(grid, grid.globalBox().center(), options));
+  EXPECT_TRUE(glb.bin.empty());
+  EXPECT_FALSE(glb.gltf.contains("extensionsRequired"));
 }
 
 // ---- the tile tree and tileset.json -----------------------------------------------------------
