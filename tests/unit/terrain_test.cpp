@@ -392,7 +392,7 @@ TEST(QuantizedMesh, NeighboursAgreeOnTheirSharedEdge) {
   const auto tileOf = [&](const TerrainTileKey& key) {
     return decode(encodeQuantizedMesh(
         sampleTerrain(geo.model, terrainSources(geo.model, layer, key), key, geo.loader()),
-        {.normals = true}));
+        {.normals = true, .metadata = {}}));
   };
   const Decoded w = tileOf(kInside), e = tileOf(kEastOfInside);
   const auto byV = [](const Decoded& d, int edge) {
