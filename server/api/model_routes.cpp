@@ -26,6 +26,7 @@
 #include "core/store/live_model.hpp"
 #include "core/tiles/lod_cut.hpp"
 #include "server/cluster/coordinator.hpp"
+#include "server/http/gzip.hpp"
 #include "server/jobs/job_registry.hpp"
 #include "server/jobs/model_jobs.hpp"
 #include "server/models/encoded_cache.hpp"
@@ -723,6 +724,24 @@ std::optional<http::Response> redirectToWriter(const ModelContext& context, cons
   }
   return temporaryRedirect(*writer + request.target,
                            "model '" + id + "' is written by another node");
+}
+
+http::Response gzippedJson(models::EncodedCache& encoded, std::uint8_t variant,
+                           std::uint64_t version, const std::function<json()>& build) {
+  auto body = encoded.findModelBody(models::Encoding::JsonGzip, variant, version, true);
+  if (body == nullptr) {
+    const std::string packed = http::gzip(build().dump());
+    const auto* bytes = reinterpret_cast<const std::byte*>(packed.data());
+    body = encoded.putModelBody(models::Encoding::JsonGzip, variant, version,
+                                std::vector<std::byte>(bytes, bytes + packed.size()));
+  }
+  http::Response response;
+  response.status = 200;
+  response.contentType = "application/json";
+  response.sharedBody = body->text();
+  response.bodyOwner = std::move(body);
+  http::setGzipEncoded(response);
+  return response;
 }
 
 http::Response temporaryRedirect(const std::string& location, std::string_view why) {

@@ -1,6 +1,7 @@
 #pragma once
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <string>
@@ -24,8 +25,9 @@ class PatchGrid;
 }  // namespace vsm::core
 
 namespace vsm::server::models {
+class EncodedCache;
 class ModelRegistry;
-}
+}  // namespace vsm::server::models
 namespace vsm::server::jobs {
 class JobRegistry;
 }
@@ -56,6 +58,15 @@ std::optional<http::Response> redirectToWriter(const ModelContext& context, cons
 std::shared_ptr<const core::ModelSnapshot> requestedSnapshot(core::LiveModel& live,
                                                              const http::Request& request,
                                                              bool onNetworkThread = false);
+
+/// A model-wide JSON document answered gzipped (the client accepts gzip): the bytes made once per
+/// (`variant`, snapshot `version`) from build().dump() and kept in `encoded` as Encoding::JsonGzip,
+/// within the memory budget, never gzipped per request. `variant` (1..255) names the document and
+/// what it depends on besides the version. Sets the body, Content-Type and Content-Encoding; the
+/// caller adds Vary (on every answer of the route), ETag and caching. Throws
+/// core::Error(ResourceExhausted) when the budget is full of pinned data.
+http::Response gzippedJson(models::EncodedCache& encoded, std::uint8_t variant,
+                           std::uint64_t version, const std::function<nlohmann::json()>& build);
 
 /// 307 to `location`, with an error body (code "temporary_redirect") saying `why`.
 http::Response temporaryRedirect(const std::string& location, std::string_view why);

@@ -169,15 +169,23 @@ http::Response getLayer(models::ModelRegistry& models, TerrainLayers& layers,
     throw Error(ErrorCode::NotFound, "model '" + id + "' has no patches");
   }
   const auto rev = request.queryParam("rev");
-  const std::string etag = viewEtag(*snapshot, "terrain-" + std::string(kTerrainFormat),
-                                    rev ? "rev=" + std::to_string(snapshot->version) : "");
+  const bool gzipped = http::acceptsGzip(request);
+  const std::string etag =
+      viewEtag(*snapshot, "terrain-" + std::string(kTerrainFormat) + (gzipped ? "-gz" : ""),
+               rev ? "rev=" + std::to_string(snapshot->version) : "");
   if (http::ifNoneMatch(request, etag)) {
-    return http::notModified(etag, http::cache_control::kRevalidate);
+    http::Response response = http::notModified(etag, http::cache_control::kRevalidate);
+    http::varyOnEncoding(response);
+    return response;
   }
   const auto layer = layers.get(*served.live, snapshot);
   requireHeightField(id, *layer);
+  const auto build = [&] { return terrainLayerJson(id, *layer, rev ? snapshot->version : 0); };
+  // Gzipped variants 5 and 6 (tileset.json has 1..4): without and with the revision in the URIs.
   http::Response response =
-      http::jsonResponse(200, terrainLayerJson(id, *layer, rev ? snapshot->version : 0));
+      gzipped ? gzippedJson(*served.encoded, rev ? 6 : 5, snapshot->version, build)
+              : http::jsonResponse(200, build());
+  http::varyOnEncoding(response);
   response.set("Cache-Control", std::string(http::cache_control::kRevalidate));
   response.set("ETag", etag);
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));

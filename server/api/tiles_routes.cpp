@@ -139,29 +139,14 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
     return tilesetJson(root, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get(),
                        revisionUris ? snapshot->version : 0, compressedContent);
   };
-  http::Response response;
-  if (gzipped) {
-    // Variants 1..4: content compressed or not, URIs with or without the revision.
-    const auto cacheVariant =
-        static_cast<std::uint8_t>(1 + (compressedContent ? 0 : 1) + (revisionUris ? 2 : 0));
-    auto body = served.encoded->findModelBody(models::Encoding::TilesetGzip, cacheVariant,
-                                              snapshot->version, true);
-    if (body == nullptr) {
-      const std::string packed = http::gzip(build().dump());
-      const auto* bytes = reinterpret_cast<const std::byte*>(packed.data());
-      // Throws ResourceExhausted (503, retry) when the budget is full of pinned data.
-      body = served.encoded->putModelBody(models::Encoding::TilesetGzip, cacheVariant,
-                                          snapshot->version,
-                                          std::vector<std::byte>(bytes, bytes + packed.size()));
-    }
-    response.status = 200;
-    response.contentType = "application/json";
-    response.sharedBody = body->text();
-    response.bodyOwner = std::move(body);
-    http::setGzipEncoded(response);
-  } else {
-    response = http::jsonResponse(200, build());
-  }
+  // Gzipped variants 1..4: content compressed or not, URIs with or without the revision.
+  http::Response response =
+      gzipped
+          ? gzippedJson(
+                *served.encoded,
+                static_cast<std::uint8_t>(1 + (compressedContent ? 0 : 1) + (revisionUris ? 2 : 0)),
+                snapshot->version, build)
+          : http::jsonResponse(200, build());
   http::varyOnEncoding(response);
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   return withCache(std::move(response), etag);

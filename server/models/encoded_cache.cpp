@@ -34,8 +34,8 @@ std::string_view toString(Encoding encoding) {
       return "terrain";
     case Encoding::GlbMeshopt:
       return "glb_meshopt";
-    case Encoding::TilesetGzip:
-      return "tileset_gzip";
+    case Encoding::JsonGzip:
+      return "json_gzip";
   }
   return "unknown";
 }

@@ -38,15 +38,16 @@ enum class Encoding : std::uint8_t {
   Terrain = 4,
   /// A 3D Tiles tile: binary glTF, KHR_mesh_quantization + EXT_meshopt_compression (the default).
   GlbMeshopt = 5,
-  /// A model-wide body: tileset.json, gzipped (findModelBody/putModelBody).
-  TilesetGzip = 6,
+  /// A model-wide JSON document, gzipped (findModelBody/putModelBody): tileset.json, the
+  /// terrain's layer.json.
+  JsonGzip = 6,
 };
 
 inline constexpr std::array<Encoding, 6> kEncodings{Encoding::PositionsAara, Encoding::Glb,
                                                     Encoding::TexturePng,    Encoding::Terrain,
-                                                    Encoding::GlbMeshopt,    Encoding::TilesetGzip};
+                                                    Encoding::GlbMeshopt,    Encoding::JsonGzip};
 /// The name /v1/stats and the metrics give an encoding: "aara", "glb", "png", "terrain",
-/// "glb_meshopt", "tileset_gzip".
+/// "glb_meshopt", "json_gzip".
 std::string_view toString(Encoding encoding);
 
 /// The stored files of a patch the server sends as they are (sendfile(2)).
@@ -91,7 +92,7 @@ class EncodedCache : public std::enable_shared_from_this<EncodedCache> {
                                   Encoding encoding, std::vector<std::byte> bytes,
                                   std::string note = {});
 
-  /// A body of the whole model rather than of one patch (Encoding::TilesetGzip): `variant` (1..255)
+  /// A body of the whole model rather than of one patch (Encoding::JsonGzip): `variant` (1..255)
   /// names what the body depends on besides the model's version (such as query parameters), and
   /// `version` is the snapshot's version. find as find(); put keeps one version per variant and
   /// encoding, dropping the one it replaces (publishes name patch versions only, so they cannot

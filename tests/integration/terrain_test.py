@@ -260,8 +260,19 @@ class Terrain(unittest.TestCase):
         return self.daemon.request("GET", path, headers=headers or {})
 
     def layer(self, model=PRISM):
-        status, headers, body = self.get("/v1/models/%s/terrain/layer.json" % model)
+        """layer.json, plain; fetched gzipped too, which must decompress to the same bytes."""
+        path = "/v1/models/%s/terrain/layer.json" % model
+        status, headers, body = self.get(path)
         self.assertEqual(status, 200, body[:300])
+        self.assertIsNone(headers.get("Content-Encoding"))
+        self.assertIn("Accept-Encoding", headers.get("Vary", ""))
+        status, zipped_headers, zipped = self.get(path, {"Accept-Encoding": "gzip"})
+        self.assertEqual(status, 200, zipped[:300])
+        self.assertEqual(zipped_headers.get("Content-Encoding"), "gzip")
+        self.assertIn("Accept-Encoding", zipped_headers.get("Vary", ""))
+        self.assertNotEqual(zipped_headers["ETag"], headers["ETag"])
+        self.assertEqual(gzip.decompress(zipped), body)
+        self.assertLess(len(zipped), len(body))
         return json.loads(body), headers
 
     def tile(self, key, accept=CESIUM_ACCEPT, gz=False, model=PRISM, status=200):

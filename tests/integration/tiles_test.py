@@ -411,7 +411,7 @@ class Tiles(unittest.TestCase):
         self.assertLess(len(body) * 4, len(plain))
         # Made once: the second request is a cache hit with the same bytes, no miss.
         status, _, middle = self.daemon.get_json("/v1/stats")
-        self.assertGreater(middle["memory"]["encoded_bytes_by_encoding"]["tileset_gzip"], 0)
+        self.assertGreater(middle["memory"]["encoded_bytes_by_encoding"]["json_gzip"], 0)
         status, headers2, body2 = self.daemon.request(
             "GET", PREFIX + "tileset.json", headers={"Accept-Encoding": "gzip"})
         status, _, after = self.daemon.get_json("/v1/stats")
