@@ -726,8 +726,9 @@ std::optional<http::Response> redirectToWriter(const ModelContext& context, cons
                            "model '" + id + "' is written by another node");
 }
 
-http::Response gzippedJson(models::EncodedCache& encoded, std::uint8_t variant,
+http::Response gzippedJson(models::EncodedCache& encoded, GzippedDocument document,
                            std::uint64_t version, const std::function<json()>& build) {
+  const auto variant = static_cast<std::uint8_t>(document);
   auto body = encoded.findModelBody(models::Encoding::JsonGzip, variant, version, true);
   if (body == nullptr) {
     const std::string packed = http::gzip(build().dump());

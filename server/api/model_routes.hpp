@@ -61,11 +61,22 @@ std::shared_ptr<const core::ModelSnapshot> requestedSnapshot(core::LiveModel& li
 
 /// A model-wide JSON document answered gzipped (the client accepts gzip): the bytes made once per
 /// (`variant`, snapshot `version`) from build().dump() and kept in `encoded` as Encoding::JsonGzip,
-/// within the memory budget, never gzipped per request. `variant` (1..255) names the document and
+/// within the memory budget, never gzipped per request. `document` names the document and
 /// what it depends on besides the version. Sets the body, Content-Type and Content-Encoding; the
 /// caller adds Vary (on every answer of the route), ETag and caching. Throws
 /// core::Error(ResourceExhausted) when the budget is full of pinned data.
-http::Response gzippedJson(models::EncodedCache& encoded, std::uint8_t variant,
+/// Which document a gzipped body is (gzippedJson's `variant`), allocated here for every route.
+enum class GzippedDocument : std::uint8_t {
+  /// tileset.json: content compressed or not (?compress=none), URIs with or without "&rev=".
+  Tileset = 1,
+  TilesetUncompressed = 2,
+  TilesetRevision = 3,
+  TilesetUncompressedRevision = 4,
+  /// The terrain's layer.json, tile URIs without or with "&rev=".
+  TerrainLayer = 5,
+  TerrainLayerRevision = 6,
+};
+http::Response gzippedJson(models::EncodedCache& encoded, GzippedDocument document,
                            std::uint64_t version, const std::function<nlohmann::json()>& build);
 
 /// 307 to `location`, with an error body (code "temporary_redirect") saying `why`.

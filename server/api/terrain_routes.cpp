@@ -181,10 +181,11 @@ http::Response getLayer(models::ModelRegistry& models, TerrainLayers& layers,
   const auto layer = layers.get(*served.live, snapshot);
   requireHeightField(id, *layer);
   const auto build = [&] { return terrainLayerJson(id, *layer, rev ? snapshot->version : 0); };
-  // Gzipped variants 5 and 6 (tileset.json has 1..4): without and with the revision in the URIs.
-  http::Response response =
-      gzipped ? gzippedJson(*served.encoded, rev ? 6 : 5, snapshot->version, build)
-              : http::jsonResponse(200, build());
+  http::Response response = gzipped ? gzippedJson(*served.encoded,
+                                                  rev ? GzippedDocument::TerrainLayerRevision
+                                                      : GzippedDocument::TerrainLayer,
+                                                  snapshot->version, build)
+                                    : http::jsonResponse(200, build());
   http::varyOnEncoding(response);
   response.set("Cache-Control", std::string(http::cache_control::kRevalidate));
   response.set("ETag", etag);

@@ -139,14 +139,14 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
     return tilesetJson(root, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get(),
                        revisionUris ? snapshot->version : 0, compressedContent);
   };
-  // Gzipped variants 1..4: content compressed or not, URIs with or without the revision.
-  http::Response response =
-      gzipped
-          ? gzippedJson(
-                *served.encoded,
-                static_cast<std::uint8_t>(1 + (compressedContent ? 0 : 1) + (revisionUris ? 2 : 0)),
-                snapshot->version, build)
-          : http::jsonResponse(200, build());
+  const GzippedDocument document =
+      compressedContent
+          ? (revisionUris ? GzippedDocument::TilesetRevision : GzippedDocument::Tileset)
+          : (revisionUris ? GzippedDocument::TilesetUncompressedRevision
+                          : GzippedDocument::TilesetUncompressed);
+  http::Response response = gzipped
+                                ? gzippedJson(*served.encoded, document, snapshot->version, build)
+                                : http::jsonResponse(200, build());
   http::varyOnEncoding(response);
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   return withCache(std::move(response), etag);
