@@ -318,105 +318,135 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       }
       return keys;
     };
-    // B's surface under one new bottom patch, from only the B leaves meeting it: held (and pinned)
-    // one patch at a time, so a merge's working set stays a few patches whatever B's size. The
-    // last one is kept for the next patch when it needs the same leaves (neighbours mostly do).
-    std::vector<PatchKey> samplerKeys;
-    std::optional<SurfaceSampler> sampler;
-    // Their texture tiles (null where a leaf has none), indexed as the sampler's grids.
-    std::vector<std::shared_ptr<const TextureTile>> samplerTextures;
-    std::vector<const TextureTile*> samplerTiles;
-    auto samplerFor = [&](const Rect2d& rect) -> const SurfaceSampler* {
-      std::vector<PatchKey> keys = detailUnder(rect);
-      if (keys.empty()) {
-        return nullptr;
-      }
-      if (!sampler || keys != samplerKeys) {
-        sampler.reset();
-        samplerTextures.clear();
-        samplerTiles.clear();
-        std::vector<std::shared_ptr<const PatchGrid>> grids;
-        grids.reserve(keys.size());
-        for (const PatchKey& key : keys) {
-          grids.push_back(detail.positions(key));
-          samplerTextures.push_back(textureOf(detail, key));
-          samplerTiles.push_back(samplerTextures.back().get());
-        }
-        sampler.emplace(grids, up, options.transform);
-        samplerKeys = std::move(keys);
-      }
-      return &*sampler;
-    };
     const std::shared_ptr<const TextureTile> aTexture = textureOf(target, match.target);
+    const PatchKey& top = match.target;
 
     // Adaptive refinement: a new patch is refined further only where B may have surface;
     // elsewhere it stays a leaf holding a's surface interpolated to its level (the actual surface
     // there is unchanged, only denser), so the cost follows B's area, not a's times 4^k. Every
-    // refined patch gets all its (non-empty) children, so reduction covers its whole area.
-    const PatchKey& top = match.target;
-    std::size_t added = 0;
-    std::size_t done = 0;  // level-1 quarters finished, for progress
-    // Refined patches waiting to be inserted: a parent goes in just before its first child.
-    std::vector<std::pair<PatchKey, PatchGrid>> pending;
-    auto insert = [&](const PatchKey& key, std::vector<Vec3d>& positions,
-                      std::shared_ptr<const PatchGrid> grid,
-                      std::shared_ptr<const TextureTile> texture) {
-      for (auto& [parentKey, placeholder] : pending) {
-        if (target.model().find(parentKey) != nullptr) {
-          continue;
-        }
-        if (!placeholder.anyDefined()) {
-          // Only possible when k exceeds the grid's own levels: any defined vertex will do, the
-          // placeholder never outlives the reducing stage (it is stale from now on).
-          const auto first = std::find_if(positions.begin(), positions.end(),
-                                          [](const Vec3d& p) { return p.finite(); });
-          placeholder.setGlobal(0, 0, *first);
-        }
-        target.setPositions(parentKey, std::make_shared<const PatchGrid>(placeholder), nullptr);
-        ++added;
-      }
-      target.setPositions(key, std::move(grid), std::move(texture));
-      ++added;
+    // refined patch gets all its (non-empty) children, so reduction covers its whole area. The
+    // new leaves, in the order they are inserted (depth first, quadrant order):
+    struct NewLeaf {
+      int level;
+      std::uint32_t i, j;
+      Rect2d foot;
     };
-    std::function<void(int, std::uint32_t, std::uint32_t)> place = [&](int level, std::uint32_t i,
-                                                                       std::uint32_t j) {
-      checkCancelled(options);
-      const PatchKey key{top.depth + level, (top.x << level) + i, (top.y << level) + j};
+    std::vector<NewLeaf> leaves;
+    std::function<void(int, std::uint32_t, std::uint32_t)> plan = [&](int level, std::uint32_t i,
+                                                                      std::uint32_t j) {
       const Rect2d foot = subdivider->footprint(level, i, j, frame);
-      const bool refine = level < k && !detailUnder(foot).empty();
-      if (!refine) {
-        std::size_t taken = 0;
-        const SurfaceSampler* surface = level == k ? samplerFor(foot) : nullptr;
-        std::vector<Vec3d> positions = subdivider->positions(level, i, j, surface, &taken);
-        if (std::any_of(positions.begin(), positions.end(),
-                        [](const Vec3d& p) { return p.finite(); })) {
-          // An empty patch is omitted.
-          auto grid = std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions));
-          auto texture =
-              placeTexture(*subdivider, level, i, j, *grid, aTexture.get(), surface, samplerTiles);
-          insert(key, positions, std::move(grid), std::move(texture));
-          result.verticesFromDetail += taken;
-        }
+      if (level == k || detailUnder(foot).empty()) {
+        leaves.push_back({level, i, j, foot});
         return;
       }
-      pending.emplace_back(key, subdivider->patch(level, i, j, nullptr));
       for (const Quadrant q : kQuadrants) {
         const auto qi = static_cast<std::uint32_t>(q);
-        place(level + 1, 2 * i + (qi & 1), 2 * j + (qi >> 1));
+        plan(level + 1, 2 * i + (qi & 1), 2 * j + (qi >> 1));
       }
-      pending.pop_back();
     };
     if (k == 0) {
-      place(0, 0, 0);  // resampled in place
+      plan(0, 0, 0);  // resampled in place
     } else {
       for (const Quadrant q : kQuadrants) {
         const auto qi = static_cast<std::uint32_t>(q);
-        place(1, qi & 1, qi >> 1);
-        ++done;
-        report(options, "placing",
-               (static_cast<double>(m) + static_cast<double>(done) / 4) /
-                   static_cast<double>(matches.size()));
+        plan(1, qi & 1, qi >> 1);
       }
+    }
+    auto keyOf = [&](int level, std::uint32_t i, std::uint32_t j) {
+      return PatchKey{top.depth + level, (top.x << level) + i, (top.y << level) + j};
+    };
+
+    // One new leaf, computed by a task: its vertices (placed on B's surface at level k, from the
+    // B leaves meeting it, read and pinned by this task only, in a sampler clipped to the
+    // patch) and its texture; no grid when it is empty.
+    struct Computed {
+      std::vector<Vec3d> positions;
+      std::shared_ptr<const PatchGrid> grid;
+      std::shared_ptr<const TextureTile> texture;
+      std::size_t taken = 0;
+    };
+    auto compute = [&](const NewLeaf& leaf, Computed& out) {
+      checkCancelled(options);
+      std::optional<SurfaceSampler> sampler;
+      std::vector<std::shared_ptr<const TextureTile>> textures;
+      std::vector<const TextureTile*> tiles;
+      if (leaf.level == k) {
+        const std::vector<PatchKey> keys = detailUnder(leaf.foot);
+        if (!keys.empty()) {
+          std::vector<std::shared_ptr<const PatchGrid>> grids;
+          grids.reserve(keys.size());
+          for (const PatchKey& key : keys) {
+            grids.push_back(detail.positions(key));
+            textures.push_back(textureOf(detail, key));
+            tiles.push_back(textures.back().get());
+          }
+          sampler.emplace(grids, up, options.transform, SurfaceSampler::Clip{frame, leaf.foot});
+        }
+      }
+      const SurfaceSampler* surface = sampler ? &*sampler : nullptr;
+      out.positions = subdivider->positions(leaf.level, leaf.i, leaf.j, surface, &out.taken);
+      if (std::none_of(out.positions.begin(), out.positions.end(),
+                       [](const Vec3d& p) { return p.finite(); })) {
+        return;  // an empty patch is omitted
+      }
+      out.grid = std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), out.positions));
+      out.texture = placeTexture(*subdivider, leaf.level, leaf.i, leaf.j, *out.grid, aTexture.get(),
+                                 surface, tiles);
+    };
+
+    // Inserted in plan order; a refined patch goes in, as a placeholder (a's surface subdivided
+    // to its level), just before its first non-empty descendant.
+    std::size_t added = 0;
+    auto insert = [&](const NewLeaf& leaf, Computed& computed) {
+      for (int level = 1; level < leaf.level; ++level) {
+        const int shift = leaf.level - level;
+        const std::uint32_t i = leaf.i >> shift, j = leaf.j >> shift;
+        const PatchKey parent = keyOf(level, i, j);
+        if (target.model().find(parent) != nullptr) {
+          continue;
+        }
+        PatchGrid placeholder = subdivider->patch(level, i, j, nullptr);
+        if (!placeholder.anyDefined()) {
+          // Only possible when k exceeds the grid's own levels: any defined vertex will do, the
+          // placeholder never outlives the reducing stage (it is stale from now on).
+          const auto first = std::find_if(computed.positions.begin(), computed.positions.end(),
+                                          [](const Vec3d& p) { return p.finite(); });
+          placeholder.setGlobal(0, 0, *first);
+        }
+        target.setPositions(parent, std::make_shared<const PatchGrid>(std::move(placeholder)),
+                            nullptr);
+        ++added;
+      }
+      target.setPositions(keyOf(leaf.level, leaf.i, leaf.j), std::move(computed.grid),
+                          std::move(computed.texture));
+      ++added;
+      result.verticesFromDetail += computed.taken;
+    };
+
+    for (std::size_t first = 0; first < leaves.size(); first += kMergeBatch) {
+      const std::size_t count = std::min(kMergeBatch, leaves.size() - first);
+      std::vector<Computed> computed(count);
+      std::vector<std::function<void()>> tasks;
+      tasks.reserve(count);
+      for (std::size_t t = 0; t < count; ++t) {
+        tasks.emplace_back([&, t] { compute(leaves[first + t], computed[t]); });
+      }
+      if (options.executor != nullptr && count > 1) {
+        options.executor->runAll(std::move(tasks));
+      } else {
+        for (const auto& task : tasks) {
+          task();
+        }
+      }
+      for (std::size_t t = 0; t < count; ++t) {
+        if (computed[t].grid) {
+          insert(leaves[first + t], computed[t]);
+        }
+      }
+      report(options, "placing",
+             (static_cast<double>(m) +
+              static_cast<double>(first + count) / static_cast<double>(leaves.size())) /
+                 static_cast<double>(matches.size()));
     }
     if (added > 0) {
       ++result.matchedLeaves;

@@ -5,6 +5,7 @@
 #include <memory>
 #include <optional>
 
+#include "core/common/executor.hpp"
 #include "core/common/progress.hpp"
 #include "core/grid/geometry.hpp"
 #include "core/grid/texture_tile.hpp"
@@ -53,7 +54,15 @@ struct MergeOptions {
   /// Default: defaultUp() of the detail model's root box (the local vertical for ECEF models, +z
   /// otherwise).
   std::optional<Vec3d> up;
+  /// Runs the new bottom patches of a matched leaf in parallel (up to kMergeBatch at a time);
+  /// null: one after the other on the calling thread. The result is the same either way.
+  Executor* executor = nullptr;
 };
+
+/// New patches a merge computes at a time before inserting them (in order) into the target: with
+/// the detail surface each task samples from, a bound on the merge's working set beside the
+/// cache (see mergeModels).
+inline constexpr std::size_t kMergeBatch = 16;
 
 struct MergeResult {
   /// Bottom patches of the target placed on the detail (given new levels, or resampled in place).
@@ -101,6 +110,14 @@ struct MergeResult {
 /// subdivision), else the new patch's own shaded relief (shadedRelief); a new patch above level k
 /// that stays a leaf takes a's texture upsampled, else its shaded relief; every recomputed
 /// overview gets its children's tiles downsampled (ModelEdit::refreshStale).
+///
+/// Memory: the target's and B's patches are read through the cache (charged to its budget, B's
+/// grids pinned only while a task samples them). Beside the cache a merge holds the subdivider of
+/// the current matched leaf (a's vertices in double, 24 B each), per running task one sampler of
+/// the B cells under its new patch (SurfaceSampler clipped to the patch: about 76 B per B vertex
+/// there, e.g. 6 MB for 257 x 257 patches of B at the new level's spacing) and up to kMergeBatch
+/// finished new patches (grid and texture tile, about 1 MB each at 257 x 257) until they are
+/// inserted, in the order a single thread would insert them.
 ///
 /// The target is not published: the caller publishes the edit (or discards it on error).
 ///

@@ -105,7 +105,8 @@ Rect2d UpFrame::footprint(const Box3d& box) const {
 }
 
 SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid>>& grids,
-                               const Vec3d& up, const std::optional<Mat4d>& transform)
+                               const Vec3d& up, const std::optional<Mat4d>& transform,
+                               const std::optional<Clip>& clip)
     : frame_({}, up) {
   // The frame's origin is the centre of B, so projected coordinates stay small (ECEF!).
   Box3d box;
@@ -125,9 +126,22 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   }
   frame_ = UpFrame(box.empty() ? Vec3d{} : box.center(), up);
 
+  // The clip in this frame: the same axes, so only the origin moves.
+  Rect2d clipRect;
+  if (clip) {
+    const UpFrame& f = clip->frame;
+    if (f.up.x != frame_.up.x || f.up.y != frame_.up.y || f.up.z != frame_.up.z) {
+      throw Error(ErrorCode::InvalidArgument, "surface sampler: the clip's frame has another up");
+    }
+    const Vec2d offset = f.project(frame_.origin);
+    clipRect = {{clip->rect.min.u - offset.u, clip->rect.min.v - offset.v},
+                {clip->rect.max.u - offset.u, clip->rect.max.v - offset.v}};
+  }
+
   constexpr std::uint32_t kNone = kNoVertex;
   // Every grid's vertices and cells at most: reserved once (samplers are built per new patch of a
-  // merge, so growing these vectors by doubling cost more than the rest of the construction).
+  // merge, so growing these vectors by doubling cost more than the rest of the construction;
+  // pages a clipped sampler leaves unused are never touched).
   std::size_t vertexBound = 0;
   for (const auto& grid : grids) {
     if (grid) {
@@ -138,55 +152,77 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   projected_.reserve(vertexBound);
   origins_.reserve(vertexBound);
   cells_.reserve(4 * vertexBound);
-  std::vector<std::uint32_t> index;  // grid vertex -> vertices_ index, per grid
+  std::vector<Vec2d> projected;      // per grid vertex: its projection (u NaN when undefined)
+  std::vector<std::uint32_t> index;  // per grid vertex: its vertices_ index, once a cell uses it
   for (std::size_t gridIndex = 0; gridIndex < grids.size(); ++gridIndex) {
     const auto& grid = grids[gridIndex];
     if (!grid) {
       continue;
     }
     const int s = grid->size();
-    index.assign(static_cast<std::size_t>(s) * s, kNone);
+    auto global = [&](int x, int y) {
+      const Vec3d g = grid->global(x, y);
+      return transform ? transform->apply(g) : g;
+    };
+    projected.resize(static_cast<std::size_t>(s) * s);
     for (int y = 0; y < s; ++y) {
       for (int x = 0; x < s; ++x) {
-        if (!grid->defined(x, y)) {
-          continue;
-        }
-        Vec3d g = grid->global(x, y);
-        if (transform) {
-          g = transform->apply(g);
-        }
-        index[static_cast<std::size_t>(y) * s + x] = static_cast<std::uint32_t>(vertices_.size());
-        vertices_.push_back(g);
-        projected_.push_back(frame_.project(g));
+        projected[static_cast<std::size_t>(y) * s + x] =
+            grid->defined(x, y) ? frame_.project(global(x, y))
+                                : Vec2d{std::numeric_limits<double>::quiet_NaN(), 0};
+      }
+    }
+    index.assign(projected.size(), kNone);
+    auto vertex = [&](std::size_t i) {
+      if (index[i] == kNone) {
+        const int x = static_cast<int>(i % s), y = static_cast<int>(i / s);
+        index[i] = static_cast<std::uint32_t>(vertices_.size());
+        vertices_.push_back(global(x, y));
+        projected_.push_back(projected[i]);
         origins_.push_back({static_cast<std::uint32_t>(gridIndex), static_cast<std::uint16_t>(x),
                             static_cast<std::uint16_t>(y)});
       }
-    }
-    auto area2 = [&](std::uint32_t a, std::uint32_t b, std::uint32_t c) {
-      return cross2(sub2(projected_[b], projected_[a]), sub2(projected_[c], projected_[a]));
+      return index[i];
+    };
+    auto area2 = [&](std::size_t a, std::size_t b, std::size_t c) {
+      return cross2(sub2(projected[b], projected[a]), sub2(projected[c], projected[a]));
+    };
+    // Whether a cell with these corners may hold a query projecting into the clip: its projected
+    // rectangle, grown by kBorderTolerance grid units (generously: twice its width and height
+    // for one unit), meets the clip.
+    auto wanted = [&](std::initializer_list<std::size_t> corners) {
+      if (!clip) {
+        return true;
+      }
+      Rect2d r;
+      for (const std::size_t c : corners) {
+        r.extend(projected[c]);
+      }
+      const double margin = 2 * kBorderTolerance * (r.max.u - r.min.u + r.max.v - r.min.v);
+      return r.min.u - margin <= clipRect.max.u && clipRect.min.u <= r.max.u + margin &&
+             r.min.v - margin <= clipRect.max.v && clipRect.min.v <= r.max.v + margin;
     };
     for (int y = 0; y + 1 < s; ++y) {
       for (int x = 0; x + 1 < s; ++x) {
         const std::size_t i = static_cast<std::size_t>(y) * s + x;
-        const std::uint32_t c00 = index[i], c10 = index[i + 1], c01 = index[i + s],
-                            c11 = index[i + s + 1];
-        const int undefinedCorners =
-            (c00 == kNone) + (c10 == kNone) + (c01 == kNone) + (c11 == kNone);
-        if (undefinedCorners == 0) {
+        const std::size_t corners[4] = {i, i + 1, i + s + 1, i + s};  // (0,0) (1,0) (1,1) (0,1)
+        std::size_t rest[4];
+        int n = 0;
+        for (const std::size_t c : corners) {
+          if (!std::isnan(projected[c].u)) {
+            rest[n++] = c;
+          }
+        }
+        if (n == 4) {
           // A cell that projects to a segment (a vertical wall) has no height to give.
-          if (area2(c00, c10, c11) != 0 || area2(c00, c11, c01) != 0) {
-            cells_.insert(cells_.end(), {c00, c10, c11, c01});
+          if ((area2(rest[0], rest[1], rest[2]) != 0 || area2(rest[0], rest[2], rest[3]) != 0) &&
+              wanted({rest[0], rest[1], rest[2], rest[3]})) {
+            cells_.insert(cells_.end(),
+                          {vertex(rest[0]), vertex(rest[1]), vertex(rest[2]), vertex(rest[3])});
           }
-        } else if (undefinedCorners == 1) {
-          std::uint32_t rest[3];
-          int n = 0;
-          for (const std::uint32_t c : {c00, c10, c11, c01}) {
-            if (c != kNone) {
-              rest[n++] = c;
-            }
-          }
-          if (area2(rest[0], rest[1], rest[2]) != 0) {
-            cells_.insert(cells_.end(), {rest[0], rest[1], rest[2], kNoVertex});
+        } else if (n == 3) {
+          if (area2(rest[0], rest[1], rest[2]) != 0 && wanted({rest[0], rest[1], rest[2]})) {
+            cells_.insert(cells_.end(), {vertex(rest[0]), vertex(rest[1]), vertex(rest[2]), kNone});
           }
         }
       }
@@ -388,8 +424,10 @@ std::optional<SurfacePoint> SurfaceSampler::locate(const Vec3d& p) const {
   const int v1 = bucket(q.v + margin, bounds_.min.v, bucketsV_);
 
   // The best hit: inside a cell before within tolerance of one (the nearer cell first), then,
-  // among cells holding q alike (an overhang, or a seam of B's grids), the layer nearest to p.
+  // among cells holding q alike (an overhang, or a seam of B's grids), the layer nearest to p,
+  // then the first cell in grid order (a cell may sit in several buckets: not the first visited).
   std::optional<SurfacePoint> best;
+  std::size_t bestCell = 0;
   double bestOutside = std::numeric_limits<double>::infinity();
   double bestDistance = std::numeric_limits<double>::infinity();
   const double ph = frame_.height(p);
@@ -420,9 +458,11 @@ std::optional<SurfacePoint> SurfaceSampler::locate(const Vec3d& p) const {
         // parameter was clamped onto the cell (a point on or just outside its border).
         hit.position = p + frame_.up * (frame_.height(hit.position) - ph);
         const double distance = std::fabs(frame_.height(hit.position) - ph);
-        if (h->outside < bestOutside || distance < bestDistance) {
+        if (h->outside < bestOutside || distance < bestDistance ||
+            (distance == bestDistance && cell < bestCell)) {
           bestOutside = h->outside;
           bestDistance = distance;
+          bestCell = cell;
           best = hit;
         }
       }

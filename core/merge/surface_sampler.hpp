@@ -104,11 +104,22 @@ class SurfaceSampler {
   /// below half a cell, so a lattice half a sample off B's border is decided by its geometry.
   static constexpr double kBorderTolerance = 1.0 / 32;
 
+  /// Where queries will come from: a rectangle in the plane of `frame`, whose up must be the
+  /// sampler's. Cells farther from it than kBorderTolerance are left out of the index.
+  struct Clip {
+    UpFrame frame;
+    Rect2d rect;
+  };
+
   /// `grids`: B's bottom grids (their vertex data is copied, in double, after `transform` when
   /// given). `up`: the projection direction (normalised here); throws Error(InvalidArgument) when
-  /// it is zero or not finite.
+  /// it is zero or not finite, or when `clip`'s frame has another up. With `clip`, only the cells
+  /// that may hold a point projecting into it are indexed: every query projecting there gets the
+  /// answer the whole sampler gives (the frame's origin is still the centre of all of `grids`, and
+  /// ties between cells go to the first in grid order), for a fraction of the construction.
   SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid>>& grids, const Vec3d& up,
-                 const std::optional<Mat4d>& transform = std::nullopt);
+                 const std::optional<Mat4d>& transform = std::nullopt,
+                 const std::optional<Clip>& clip = std::nullopt);
 
   /// The point of B's surface on the line through `p` along up; nullopt where B has no surface
   /// (outside B by more than kBorderTolerance, in B's holes, or for an undefined `p`). Where

@@ -267,6 +267,8 @@ int runMerge(const std::vector<std::string_view>& args) {
   ConsoleProgress progress(bytesUnder(detailDir));
   MergeOptions options;
   options.progress = &progress;
+  ThreadExecutor executor;
+  options.executor = &executor;
   if (registerFirst) {
     RegistrationOptions registration;
     registration.progress = &progress;

@@ -11,6 +11,7 @@
 #include <random>
 #include <set>
 #include <sstream>
+#include <thread>
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
@@ -307,6 +308,93 @@ TEST(SurfaceSampler, CellWithOneUndefinedCornerKeepsItsOtherTriangle) {
   EXPECT_TRUE(sparse.sample(b.at(2.5, 2.5)).has_value());
 }
 
+TEST(SurfaceSampler, AClippedSamplerAnswersInItsClipAsTheWholeOneDoes) {
+  // B: 2 x 2 grids of 33 x 33 on a rotated lattice, with a hole and a cell missing one corner.
+  const Lattice b{300, 700, 0.8, 0.4};
+  std::vector<std::shared_ptr<const PatchGrid>> grids;
+  for (int y = 0; y < 2; ++y) {
+    for (int x = 0; x < 2; ++x) {
+      auto grid = latticeGrid(b, 33, x * 32, y * 32);
+      if (x == 1 && y == 0) {
+        grid->setUndefined(3, 30);
+        grid->setUndefined(4, 30);
+        grid->setUndefined(20, 7);
+      }
+      grids.push_back(grid);
+    }
+  }
+  const Vec3d up{0.1, -0.05, 1};
+  const SurfaceSampler whole(grids, up);
+  // The clip is given in a frame of the same up around another origin (as a merge's is).
+  const UpFrame frame({250, 760, 40}, up);
+  const Vec2d lo = frame.project(b.at(25, 20)), hi = frame.project(b.at(45, 40));
+  const Rect2d clip{{std::min(lo.u, hi.u), std::min(lo.v, hi.v)},
+                    {std::max(lo.u, hi.u), std::max(lo.v, hi.v)}};
+  const SurfaceSampler clipped(grids, up, std::nullopt, SurfaceSampler::Clip{frame, clip});
+  EXPECT_LT(clipped.cellCount(), whole.cellCount() / 2);
+  EXPECT_GT(clipped.cellCount(), 0u);
+
+  auto at = [&](double u, double v, double h) {
+    return frame.origin + frame.e1 * u + frame.e2 * v + frame.up * h;
+  };
+  auto same = [&](const Vec3d& p) {
+    const auto w = whole.locate(p), c = clipped.locate(p);
+    ASSERT_EQ(w.has_value(), c.has_value()) << p.x << " " << p.y << " " << p.z;
+    if (w) {
+      EXPECT_TRUE(sameBits(w->position, c->position)) << p.x << " " << p.y;
+      EXPECT_EQ(w->grid, c->grid);
+      EXPECT_EQ(w->x, c->x);
+      EXPECT_EQ(w->y, c->y);
+    }
+  };
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<double> u(clip.min.u, clip.max.u), v(clip.min.v, clip.max.v);
+  for (int n = 0; n < 20000; ++n) {
+    same(at(u(rng), v(rng), n % 2 ? 60.0 : -60.0));
+  }
+  // The clip's border, and B's samples in it approached from just outside their cells (the hole,
+  // the seams between the grids) within and beyond the border tolerance.
+  for (int n = 0; n <= 400; ++n) {
+    const double f = n / 400.0;
+    same(at(clip.min.u + f * (clip.max.u - clip.min.u), clip.min.v, 0));
+    same(at(clip.min.u + f * (clip.max.u - clip.min.u), clip.max.v, 0));
+    same(at(clip.min.u, clip.min.v + f * (clip.max.v - clip.min.v), 0));
+    same(at(clip.max.u, clip.min.v + f * (clip.max.v - clip.min.v), 0));
+  }
+  int nearSamples = 0;
+  for (int i = 20; i <= 50; ++i) {
+    for (int j = 15; j <= 45; ++j) {
+      for (const double offset : {0.0, 0.02, 0.5 * SurfaceSampler::kBorderTolerance, 0.04}) {
+        for (const Vec3d& p : {b.at(i + offset, j - offset), b.at(i - offset, j + offset)}) {
+          const Vec2d q = frame.project(p);
+          if (q.u >= clip.min.u && q.u <= clip.max.u && q.v >= clip.min.v && q.v <= clip.max.v) {
+            same(p);
+            ++nearSamples;
+          }
+        }
+      }
+    }
+  }
+  EXPECT_GT(nearSamples, 1000);
+
+  // A clip just outside B's border, within the tolerance of its cells: they are kept for it.
+  const Lattice square{0, 0, 1, 0};
+  const std::vector<std::shared_ptr<const PatchGrid>> one{latticeGrid(square, 17, 0, 0)};
+  const UpFrame plain({0, 0, 0}, {0, 0, 1});
+  const SurfaceSampler all(one, {0, 0, 1});
+  const SurfaceSampler strip(one, {0, 0, 1}, std::nullopt,
+                             SurfaceSampler::Clip{plain, {{-0.5, 2}, {-0.01, 10}}});
+  EXPECT_LT(strip.cellCount(), all.cellCount() / 4);
+  for (double v = 2; v <= 10; v += 0.25) {
+    const auto w = all.locate({-0.01, v, 0}), c = strip.locate({-0.01, v, 0});
+    ASSERT_TRUE(w.has_value()) << v;
+    ASSERT_TRUE(c.has_value()) << v;
+    EXPECT_TRUE(sameBits(w->position, c->position)) << v;
+  }
+  EXPECT_THROW(SurfaceSampler(grids, {0, 0, 1}, std::nullopt, SurfaceSampler::Clip{frame, clip}),
+               Error);
+}
+
 TEST(SurfaceSampler, WorksInEarthCentredCoordinatesAlongTheLocalVertical) {
   // A small patch of a sphere of the earth's radius: heights along the radial direction.
   const double radius = 6378137.0;
@@ -575,6 +663,53 @@ TEST(Merge, PlacesDetailWithinTheBoundAndKeepsTheModelConsistent) {
 // placed on it in place, the tree does not deepen, and the surface stays where the first merge
 // put it (before, each merge added a level under every such leaf: 486, 806, then 1886 patches for
 // the same Jacksboro scan merged into PRISM three times).
+/// Runs each batch on as many threads as it has tasks (the CLI's executor, in short).
+class ThreadsExecutor final : public Executor {
+ public:
+  void runAll(std::vector<std::function<void()>> tasks) override {
+    std::vector<std::exception_ptr> errors(tasks.size());
+    {
+      std::vector<std::jthread> threads;
+      for (std::size_t i = 0; i < tasks.size(); ++i) {
+        threads.emplace_back([&, i] {
+          try {
+            tasks[i]();
+          } catch (...) {
+            errors[i] = std::current_exception();
+          }
+        });
+      }
+    }
+    ++batches;
+    for (const auto& error : errors) {
+      if (error) {
+        std::rethrow_exception(error);
+      }
+    }
+  }
+  int batches = 0;
+};
+
+TEST(Merge, NewPatchesComputedInParallelGiveTheModelOneThreadGives) {
+  SyntheticMerge serial, parallel;
+  ModelAccess serialTarget(*serial.a), serialDetail(*serial.b);
+  const MergeResult one = mergeModels(serialTarget, serialDetail);
+  ThreadsExecutor executor;
+  MergeOptions options;
+  options.executor = &executor;
+  ModelAccess parallelTarget(*parallel.a), parallelDetail(*parallel.b);
+  const MergeResult many = mergeModels(parallelTarget, parallelDetail, options);
+  EXPECT_GT(executor.batches, 0);
+  EXPECT_EQ(many.newPatches, one.newPatches);
+  EXPECT_EQ(many.verticesFromDetail, one.verticesFromDetail);
+  ASSERT_EQ(parallel.a->patchCount(), serial.a->patchCount());
+  for (const auto& [key, info] : serial.a->patches()) {
+    const PatchInfo* other = parallel.a->find(key);
+    ASSERT_NE(other, nullptr) << key.toString();
+    EXPECT_TRUE(*other->grid == *info.grid) << key.toString();
+  }
+}
+
 TEST(Merge, MergingTheSameDetailAgainResamplesInPlace) {
   SyntheticMerge data;
   ModelAccess target(*data.a), detail(*data.b);
