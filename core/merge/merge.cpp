@@ -75,15 +75,18 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
                                                 const PatchGrid& grid, const TextureTile* aTile,
                                                 const SurfaceSampler* detail,
                                                 const std::vector<const TextureTile*>& bTiles) {
-  auto tile = std::make_shared<TextureTile>(shadedRelief(grid));
-  const int size = tile->size();
-  const double scale = std::ldexp(1.0, level);
   const bool fromDetail =
       detail != nullptr && level == subdivider.k() &&
       std::any_of(bTiles.begin(), bTiles.end(), [](const TextureTile* t) { return t != nullptr; });
   if (aTile == nullptr && !fromDetail) {
-    return tile;
+    return std::make_shared<TextureTile>(shadedRelief(grid));
   }
+  // The shaded relief is made only when some texel is left without colour (rarely, where B's
+  // texture covers the patch).
+  auto tile = std::make_shared<TextureTile>(textureTileSize(grid.size()));
+  bool uncoloured = false;
+  const int size = tile->size();
+  const double scale = std::ldexp(1.0, level);
   // Texel (p, q) covers the quad between union vertices (u, v) and (u + 1, v + 1) of level k.
   const std::int64_t u0 = std::int64_t{i} * size;
   const std::int64_t v0 = std::int64_t{j} * size;
@@ -119,6 +122,18 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
       }
       if (colour[3] != 0) {
         std::copy(colour.begin(), colour.end(), tile->at(p, q));
+      } else {
+        uncoloured = true;
+      }
+    }
+  }
+  if (uncoloured) {
+    const TextureTile relief = shadedRelief(grid);
+    for (int q = 0; q < size; ++q) {
+      for (int p = 0; p < size; ++p) {
+        if (tile->at(p, q)[3] == 0) {
+          std::copy(relief.at(p, q), relief.at(p, q) + 4, tile->at(p, q));
+        }
       }
     }
   }
@@ -136,7 +151,7 @@ double planeResolution(const PatchGrid& grid, const UpFrame& frame) {
     if (grid.defined(x0, y0) && grid.defined(x1, y1)) {
       const Vec2d a = frame.project(grid.global(x0, y0));
       const Vec2d b = frame.project(grid.global(x1, y1));
-      sum += std::hypot(b.u - a.u, b.v - a.v);
+      sum += std::sqrt((b.u - a.u) * (b.u - a.u) + (b.v - a.v) * (b.v - a.v));
       ++count;
     }
   };

@@ -48,11 +48,6 @@ bool inside(const std::array<double, 3>& l) {
 
 }  // namespace
 
-void Rect2d::extend(const Vec2d& p) {
-  min = {std::min(min.u, p.u), std::min(min.v, p.v)};
-  max = {std::max(max.u, p.u), std::max(max.v, p.v)};
-}
-
 bool Rect2d::intersects(const Rect2d& r) const {
   if (empty() || r.empty()) {
     return false;
@@ -231,7 +226,8 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
 
   // Bucket size: the mean projected extent of a cell, so a query scans a handful of them.
   const std::size_t count = cellCount();
-  std::vector<Rect2d> rects(count);
+  cellRects_.assign(count, Rect2d{});
+  std::vector<Rect2d>& rects = cellRects_;
   double extentSum = 0;
   double maxEdge2 = 0;
   for (std::size_t t = 0; t < count; ++t) {
@@ -305,16 +301,6 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   }
 }
 
-Rect2d SurfaceSampler::cellRect(std::size_t cell) const {
-  Rect2d r;
-  for (int c = 0; c < 4; ++c) {
-    if (cells_[4 * cell + c] != kNoVertex) {
-      r.extend(projected_[cells_[4 * cell + c]]);
-    }
-  }
-  return r;
-}
-
 std::optional<SurfaceSampler::CellHit> SurfaceSampler::onTriangle(const std::uint32_t* t,
                                                                   const Vec2d& q) const {
   const auto l = barycentric(projected_[t[0]], projected_[t[1]], projected_[t[2]], q);
@@ -384,7 +370,7 @@ std::optional<SurfaceSampler::CellHit> SurfaceSampler::onQuad(const std::uint32_
   }
   const double cs = std::clamp(s, 0.0, 1.0);
   const double ct = std::clamp(t, 0.0, 1.0);
-  const double outside = std::hypot(s - cs, t - ct);
+  const double outside = s == cs && t == ct ? 0.0 : std::hypot(s - cs, t - ct);
   if (!converged || !(outside <= kBorderTolerance)) {
     // A strongly distorted (non-convex) cell, or a point outside it: fall back to its triangles,
     // the nearer one.
@@ -436,7 +422,7 @@ std::optional<SurfacePoint> SurfaceSampler::locate(const Vec3d& p) const {
       const std::size_t b = static_cast<std::size_t>(v) * bucketsU_ + u;
       for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
         const std::size_t cell = bucketItems_[i];
-        const Rect2d rect = cellRect(cell);
+        const Rect2d& rect = cellRects_[cell];
         if (q.u < rect.min.u - margin || q.u > rect.max.u + margin || q.v < rect.min.v - margin ||
             q.v > rect.max.v + margin) {
           continue;
@@ -499,7 +485,7 @@ bool SurfaceSampler::covers(const Rect2d& query) const {
     for (int u = u0; u <= u1; ++u) {
       const std::size_t b = static_cast<std::size_t>(v) * bucketsU_ + u;
       for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
-        if (cellRect(bucketItems_[i]).intersects(rect)) {
+        if (cellRects_[bucketItems_[i]].intersects(rect)) {
           return true;
         }
       }
@@ -512,7 +498,8 @@ std::size_t SurfaceSampler::bytes() const {
   return vertices_.capacity() * sizeof(Vec3d) + projected_.capacity() * sizeof(Vec2d) +
          origins_.capacity() * sizeof(VertexOrigin) +
          (cells_.capacity() + bucketStart_.capacity() + bucketItems_.capacity()) *
-             sizeof(std::uint32_t);
+             sizeof(std::uint32_t) +
+         cellRects_.capacity() * sizeof(Rect2d);
 }
 
 }  // namespace vsm::core

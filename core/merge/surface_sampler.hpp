@@ -1,5 +1,6 @@
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <cstddef>
 #include <cstdint>
@@ -24,7 +25,10 @@ struct Rect2d {
   Vec2d max{-kInf, -kInf};
 
   bool empty() const { return min.u > max.u || min.v > max.v; }
-  void extend(const Vec2d& p);
+  void extend(const Vec2d& p) {  // inline: the sampler's inner loops call it per cell corner
+    min = {std::min(min.u, p.u), std::min(min.v, p.v)};
+    max = {std::max(max.u, p.u), std::max(max.v, p.v)};
+  }
   bool intersects(const Rect2d& r) const;
   /// True when `r` lies inside this rectangle, allowing `tolerance` on every side.
   bool contains(const Rect2d& r, double tolerance = 0) const;
@@ -154,8 +158,6 @@ class SurfaceSampler {
   /// The hit when q lies within kBorderTolerance grid units of the cell.
   std::optional<CellHit> onTriangle(const std::uint32_t* corners, const Vec2d& q) const;
   std::optional<CellHit> onQuad(const std::uint32_t* corners, const Vec2d& q) const;
-  /// A cell's projected bounding rectangle.
-  Rect2d cellRect(std::size_t cell) const;
 
   /// Where a vertex came from: its grid and its index there.
   struct VertexOrigin {
@@ -170,6 +172,7 @@ class SurfaceSampler {
   // 4 vertex indices per cell: (0,0), (1,0), (1,1), (0,1) of a full quad, or a triangle's three
   // corners and kNoVertex.
   std::vector<std::uint32_t> cells_;
+  std::vector<Rect2d> cellRects_;  // each cell's projected bounding rectangle
   Rect2d bounds_;
   double maxEdge_ = 0;
   // Uniform bucket grid over bounds_: bucket (bx, by) holds the cells whose projected
