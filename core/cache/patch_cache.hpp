@@ -204,7 +204,9 @@ class PatchCache {
   /// Error(ResourceExhausted) when its bytes or its handles do not fit beside what is pinned.
   Pin put(ModelId model, const ObjectId& id, CacheValue value, bool dirty);
 
-  /// Writes back every dirty entry of the model (they stay resident, now clean).
+  /// Writes back every dirty entry of the model (they stay resident, now clean). Safe to call
+  /// from several threads at once: each writes back entries no other is writing, and each
+  /// returns when all are written (or rethrows its own write-back's error).
   void flush(ModelId model);
   /// Forgets an entry without writing it back (its data is obsolete). Precondition: not pinned.
   void drop(ModelId model, const ObjectId& id);

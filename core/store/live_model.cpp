@@ -765,7 +765,14 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   }
   LiveModel::Store& store = *live_.store_;
   // 1. Every changed patch into its new folder (evicted ones were written already), durable.
-  store.cache().flush(store.id());
+  // Flushers take distinct dirty entries, so several run side by side.
+  if (options.executor != nullptr) {
+    std::vector<std::function<void()>> writers(kPublishWriters,
+                                               [&] { store.cache().flush(store.id()); });
+    options.executor->runAll(std::move(writers));
+  } else {
+    store.cache().flush(store.id());
+  }
   sync_.sync();
   if (cancel != nullptr) {
     cancel->throwIfCancelled();

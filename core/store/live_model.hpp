@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "core/cache/patch_cache.hpp"
+#include "core/common/executor.hpp"
 #include "core/common/progress.hpp"
 #include "core/durable/durable_io.hpp"
 #include "core/durable/writer_lock.hpp"
@@ -69,7 +70,13 @@ struct PublishOptions {
   unsigned keepRevisions = kDefaultKeepRevisions;
   /// The revision whose content this one restores (0: none).
   std::uint64_t restoredFrom = 0;
+  /// Writes the changed patches' files from kPublishWriters tasks on this executor at once
+  /// (encoding and writing overlap); null: on the calling thread.
+  Executor* executor = nullptr;
 };
+
+/// Write-backs a publish runs at once when it has an executor.
+inline constexpr int kPublishWriters = 4;
 
 /// An open model: its OPC directory, the published metadata, and its patch data in the shared
 /// cache. Readers work on snapshots; one edit at a time prepares the next version copy-on-write

@@ -282,6 +282,7 @@ int runMerge(const std::vector<std::string_view>& args) {
                   m[row * 4 + 3]);
     }
   }
+  publish.executor = &executor;
   auto edit = live->beginEdit();
   const MergeResult result = mergeModels(*edit, *detail, options);
   progress.report("publishing", 0.0);

@@ -1,6 +1,8 @@
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <atomic>
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <map>
@@ -65,6 +67,7 @@ class FakeStore final : public PatchStore {
     if (failWrites_) {
       throw Error(ErrorCode::Io, "disk full");
     }
+    std::this_thread::sleep_for(writeTime_);  // a write's duration, so that flushers overlap
     std::lock_guard lock(mutex_);
     disk_[k] = value.object.as<Blob>()->front();
     ++writes_;
@@ -83,7 +86,13 @@ class FakeStore final : public PatchStore {
     return writes_;
   }
   bool overlapped() const { return overlapped_.load(); }
+  /// The most keys loaded or written at the same time.
+  std::size_t mostBusy() {
+    std::lock_guard lock(mutex_);
+    return mostBusy_;
+  }
   std::atomic<bool> failWrites_{false};
+  std::chrono::microseconds writeTime_{0};
 
  private:
   struct Busy {
@@ -92,6 +101,7 @@ class FakeStore final : public PatchStore {
       if (!store.busy_.insert({key.x, key.y}).second) {
         store.overlapped_ = true;
       }
+      store.mostBusy_ = std::max(store.mostBusy_, store.busy_.size());
     }
     ~Busy() {
       std::lock_guard lock(store.mutex_);
@@ -107,6 +117,7 @@ class FakeStore final : public PatchStore {
   std::set<std::pair<std::uint32_t, std::uint32_t>> busy_;
   int loads_ = 0;
   int writes_ = 0;
+  std::size_t mostBusy_ = 0;
   std::atomic<bool> overlapped_{false};
 };
 
@@ -256,6 +267,42 @@ TEST(PatchCache, AFailedWriteBackKeepsThePatchDirtyAndResident) {
   store.failWrites_ = false;
   EXPECT_NO_THROW(cache.get(model, FakeStore::id(1)));
   EXPECT_EQ(store.stored(FakeStore::key(0)), 5u);
+  cache.removeModel(model);
+}
+
+TEST(PatchCache, SeveralFlushersWriteEveryDirtyEntryOnceBetweenThem) {
+  // A publish's parallel write-back: four threads flush the same model at once.
+  constexpr int kPatches = 64;
+  FakeStore store(kPatches, 64 * 1024);
+  store.writeTime_ = std::chrono::milliseconds(2);
+  PatchCache cache(16 * kMiB);
+  const auto model = cache.addModel("m", store);
+  for (int i = 0; i < kPatches; ++i) {
+    cache.put(model, FakeStore::id(i), {makeBlob(64 * 1024, 100 + i), 64 * 1024}, true);
+  }
+  {
+    std::vector<std::jthread> flushers;
+    for (int t = 0; t < 4; ++t) {
+      flushers.emplace_back([&] { cache.flush(model); });
+    }
+  }
+  EXPECT_EQ(store.writes(), kPatches);  // each once
+  EXPECT_FALSE(store.overlapped());     // never one entry by two flushers
+  EXPECT_GT(store.mostBusy(), 1u);      // they did write side by side
+  EXPECT_EQ(cache.stats().writeBacks, static_cast<std::uint64_t>(kPatches));
+  for (int i = 0; i < kPatches; ++i) {
+    EXPECT_EQ(store.stored(FakeStore::key(i)), static_cast<std::uint64_t>(100 + i));
+  }
+  cache.flush(model);  // nothing is dirty any more
+  EXPECT_EQ(store.writes(), kPatches);
+
+  // A failing write-back reaches the flusher that ran it; the entry stays dirty for a retry.
+  cache.put(model, FakeStore::id(0), {makeBlob(64 * 1024, 7), 64 * 1024}, true);
+  store.failWrites_ = true;
+  EXPECT_THROW(cache.flush(model), Error);
+  store.failWrites_ = false;
+  cache.flush(model);
+  EXPECT_EQ(store.stored(FakeStore::key(0)), 7u);
   cache.removeModel(model);
 }
 
