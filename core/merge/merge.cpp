@@ -43,6 +43,17 @@ void checkCancelled(const MergeOptions& options) {
   }
 }
 
+/// Runs `tasks` on the options' executor, or one after the other without one.
+void runTasks(const MergeOptions& options, std::vector<std::function<void()>> tasks) {
+  if (options.executor != nullptr && tasks.size() > 1) {
+    options.executor->runAll(std::move(tasks));
+  } else {
+    for (const auto& task : tasks) {
+      task();
+    }
+  }
+}
+
 /// The smallest k >= 0 with 2^k >= ratio.
 int levelsFor(double ratio) {
   int k = 0;
@@ -234,8 +245,6 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
   std::vector<Match> matches;
   std::vector<PatchKey> pending{PatchKey::root()};
   std::vector<bool> bUsed(bLeaves.size(), false);
-  // planeResolution of each B leaf, computed when a target leaf first meets it (-1 before).
-  std::vector<double> bResolution(bLeaves.size(), -1);
   while (!pending.empty()) {
     const PatchKey key = pending.back();
     pending.pop_back();
@@ -251,36 +260,51 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       continue;
     }
     Match match{key, {}, 1};
-    double resolutionSum = 0;
-    std::size_t resolutionCount = 0;
     for (std::size_t i = 0; i < bLeaves.size(); ++i) {
       if (bLeaves[i].second.intersects(foot)) {
         match.detail.push_back(i);
         bUsed[i] = true;
-        if (bResolution[i] < 0) {
-          bResolution[i] = planeResolution(*detail.positions(bLeaves[i].first), frame);
-        }
-        if (bResolution[i] > 0) {
-          resolutionSum += bResolution[i];
-          ++resolutionCount;
-        }
       }
     }
-    if (match.detail.empty()) {
-      continue;
+    if (!match.detail.empty()) {
+      matches.push_back(std::move(match));
     }
-    const double aResolution = planeResolution(*target.positions(key), frame);
+  }
+  // planeResolution of each B leaf a target leaf meets (reading it is most of the matching's
+  // time), in parallel on the executor.
+  std::vector<double> bResolution(bLeaves.size(), 0);
+  {
+    std::vector<std::function<void()>> tasks;
+    for (std::size_t i = 0; i < bLeaves.size(); ++i) {
+      if (bUsed[i]) {
+        tasks.emplace_back([&, i] {
+          checkCancelled(options);
+          bResolution[i] = planeResolution(*detail.positions(bLeaves[i].first), frame);
+        });
+      }
+    }
+    runTasks(options, std::move(tasks));
+  }
+  for (Match& match : matches) {
+    double resolutionSum = 0;
+    std::size_t resolutionCount = 0;
+    for (const std::size_t i : match.detail) {
+      if (bResolution[i] > 0) {
+        resolutionSum += bResolution[i];
+        ++resolutionCount;
+      }
+    }
+    const double aResolution = planeResolution(*target.positions(match.target), frame);
     const double ratio = resolutionCount > 0 && aResolution > 0
                              ? aResolution / (resolutionSum / resolutionCount)
                              : 2.0;  // unknown: one level
     match.levels = levelsFor(ratio);
-    if (match.levels > kMaxNewLevels || key.depth + match.levels > PatchKey::kMaxDepth) {
+    if (match.levels > kMaxNewLevels || match.target.depth + match.levels > PatchKey::kMaxDepth) {
       throw Error(ErrorCode::InvalidArgument,
-                  "merge: patch " + key.toString() + " would need more than " +
+                  "merge: patch " + match.target.toString() + " would need more than " +
                       std::to_string(kMaxNewLevels) + " new levels (resolution ratio " +
                       std::to_string(ratio) + ")");
     }
-    matches.push_back(std::move(match));
   }
   if (matches.empty()) {
     throw Error(ErrorCode::InvalidArgument, "detail model lies outside the target");
@@ -446,13 +470,7 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       for (std::size_t t = 0; t < count; ++t) {
         tasks.emplace_back([&, t] { compute(leaves[first + t], computed[t]); });
       }
-      if (options.executor != nullptr && count > 1) {
-        options.executor->runAll(std::move(tasks));
-      } else {
-        for (const auto& task : tasks) {
-          task();
-        }
-      }
+      runTasks(options, std::move(tasks));
       for (std::size_t t = 0; t < count; ++t) {
         if (computed[t].grid) {
           insert(leaves[first + t], computed[t]);
