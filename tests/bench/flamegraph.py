@@ -1,32 +1,24 @@
 #!/usr/bin/python3
-"""Turn `perf script` output into a flame graph SVG (standard library only).
+"""Turn `perf script` output into a flame graph SVG (Python 3 standard library only).
 
 Usage:
     perf script -i perf.data | tests/bench/flamegraph.py --title "vsm merge (b)" \\
         --out merge.svg [--collapsed merge.folded] [--top 25 --top-out top.txt]
 
-Input is perf script's default output of a recording made with call graphs
-(`perf record -g` or `--call-graph dwarf`): a header line per sample (comm,
-pid[/tid], [cpu], time, period, event) followed by indented frame lines
-`<addr> <symbol+0xoff> (<dso>)`, leaf first, and a blank line between samples.
-A sample without a call graph may carry its single frame on the header line.
+Reads perf script's default output (from stdin, or a file given as argument) of a
+recording with call graphs (`perf record -g` or `--call-graph dwarf`): per sample a
+header line (comm pid[/tid] [cpu] time: period event:) and tab-indented frame lines
+`addr symbol+0xoff (dso)`, leaf first.  Stacks are rooted at the comm (thread name)
+and identical stacks are merged.  Symbols lose their offset, argument lists and long
+template arguments (`<...>`); lambdas read `f::{lambda#N}`; unknown symbols show as
+`[dso-basename]`.
 
-Each stack is rooted at the comm (thread name); identical stacks are merged.
-Symbols lose their `+0x...` offset and are shortened: argument lists in
-parentheses are dropped, long template argument lists become `<...>`, and
-lambdas read `f::{lambda#N}`.  Frames without a symbol are shown as
-`[dso-basename]`.  Outputs:
-  --out FILE        SVG flame graph, 1200 px wide, root at the bottom, frames
-                    sorted alphabetically per level, frames < 0.1 % omitted.
-  --collapsed FILE  folded stacks, `root;caller;...;leaf count` per line.
-  --top N           tables of the N functions with the most self samples
-  --top-out FILE    (function containing the sampled IP; inlined callees count
-                    toward it, as in `perf report --no-children`) and the most
-                    inclusive samples (counted once per stack, comm excluded).
-                    Without --top-out the tables go to stdout.
-An optional positional argument reads perf script text from a file instead of
-stdin.  Exit status: 0 on success, 2 on unreadable input, zero samples or
-unwritable output.
+  --out FILE        SVG, 1200 px wide, root at the bottom, frames < 0.1 % omitted
+  --collapsed FILE  folded stacks, `comm;caller;...;leaf count` per line
+  --top N           top-N tables (default 25) of self samples (the function holding
+  --top-out FILE    the sampled IP, like `perf report --no-children`) and inclusive
+                    samples (once per stack, comm excluded); '-' or none: stdout
+Exit status 2 on unreadable input, zero samples or unwritable output.
 """
 
 import argparse
@@ -43,15 +35,11 @@ HEADER_RE = re.compile(r'^(?P<comm>\S.*?)\s+-?\d+(?:/-?\d+)?\s+(?:\[\d+\]\s+)?'
 # frame: ip symbol[+0xoff] (dso); the dso is the last parenthesised group
 _SYM_DSO = r'(?P<sym>.+?)\s+\((?P<dso>[^()]*(?: \(deleted\))?)\)\s*$'
 FRAME_RE = re.compile(r'^\s*(?P<addr>[0-9a-fA-F]+)\s+' + _SYM_DSO)
-HEADER_FRAME_RE = re.compile(r':\s+[0-9a-fA-F]+\s+' + _SYM_DSO)
-# Names whose brackets are not argument or template lists.
-PROTECT = [('(anonymous namespace)', '\x01'), ('operator()', 'operator\x02'),
-           ('operator<<=', 'operator\x03'), ('operator>>=', 'operator\x04'),
-           ('operator<=>', 'operator\x05'), ('operator<<', 'operator\x06'),
-           ('operator>>', 'operator\x07'), ('operator<=', 'operator\x0e'),
-           ('operator>=', 'operator\x0f'), ('operator->*', 'operator\x10'),
-           ('operator->', 'operator\x11'), ('operator<', 'operator\x12'),
-           ('operator>', 'operator\x13')]
+HEADER_FRAME_RE = re.compile(r':\s+(?P<addr>[0-9a-fA-F]+)\s+' + _SYM_DSO)
+# Names whose brackets are not argument or template lists (longest operators first).
+PROTECT = [('(anonymous namespace)', '\x01')] + [
+    ('operator' + op, 'operator' + chr(0xE000 + i)) for i, op in
+    enumerate(['()', '<<=', '>>=', '<=>', '<<', '>>', '<=', '>=', '->*', '->', '<', '>'])]
 MAX_TEMPLATE = 24      # template argument lists longer than this become <...>
 WIDTH, FRAME_H, FONT, CHAR_W, PAD = 1200, 16, 12, 7, 10
 MIN_FRACTION = 0.001   # frames narrower than 0.1 % of all samples are omitted
@@ -99,7 +87,7 @@ def shorten(sym):
         s = _strip(s, 0, '')[0]
     except ValueError:
         return sym
-    for text, mark in reversed(PROTECT):
+    for text, mark in PROTECT:
         s = s.replace(mark, text)
     return s.replace('(anonymous namespace)', '(anon)').strip() or sym
 
@@ -116,53 +104,50 @@ def clean(name):
     return re.sub(r'[\x00-\x1f;]', '_', name)
 
 
-def parse(lines):
-    """Yield (stack root-first, self function) per sample.
-
-    The self function is the one containing the sampled IP: among the leading frames
-    that share the leaf's address (inlined frames first), the first one that is not
-    inlined, else the outermost inlined one.
-    """
-    comm, frames, self_fn, header_frame, self_open = None, [], None, None, False
-
-    def finish():
-        stack = frames or ([header_frame] if header_frame else [])
-        own = self_fn or (stack[0] if stack else comm)
-        return [clean(comm)] + [clean(f) for f in reversed(stack)], clean(own)
-
+def blocks(lines):
+    """Group perf script lines into (header line, [frame lines]) per sample."""
+    header, frames = None, []
     for line in lines:
         line = line.rstrip('\n')
-        if not line.strip():
-            if comm is not None:
-                yield finish()
-            comm = None
-            continue
         if line.startswith('#'):
             continue
-        # Frames are tab-indented; headers may be space-padded (comm is right-aligned
-        # when perf script prints no call graph).
-        m = None if line[0] == '\t' else HEADER_RE.match(line.lstrip())
-        if m is None and line[0] in ' \t':
-            f = FRAME_RE.match(line)
-            if comm is not None and f:
-                name = frame_name(f.group('sym'), f.group('dso'))
-                if not frames:
-                    leaf_addr = f.group('addr')
-                if self_open and f.group('addr') == leaf_addr:
-                    self_fn, self_open = name, f.group('dso') == 'inlined'
-                else:
-                    self_open = False
-                frames.append(name)
+        # Frames are tab-indented; headers may be space-padded (perf right-aligns the
+        # comm when it prints no call graph).
+        if line[:1] == '\t' or (line[:1] == ' ' and line.strip()
+                                and not HEADER_RE.match(line.lstrip())):
+            if header is not None:
+                frames.append(line)
             continue
-        if comm is not None:        # header directly after a sample without blank line
-            yield finish()
-        comm = m.group('comm') if m else line.split()[0]
-        frames, self_fn, header_frame, self_open = [], None, None, True
-        hf = HEADER_FRAME_RE.search(m.group('rest')) if m else None
-        if hf:
-            header_frame = frame_name(hf.group('sym'), hf.group('dso'))
-    if comm is not None:
-        yield finish()
+        if header is not None:
+            yield header, frames
+        header, frames = (line if line.strip() else None), []
+    if header is not None:
+        yield header, frames
+
+
+def parse_sample(header, lines):
+    """Return (stack root-first, self function) for one sample, or None.
+
+    The self function is the one containing the sampled IP: among the leading frames
+    sharing the leaf's address (inlined ones come first), the first that is not
+    inlined, else the outermost inlined one.  This matches perf report's symbol.
+    """
+    m = HEADER_RE.match(header.lstrip())
+    comm = m.group('comm') if m else header.split()[0]
+    frames = [f for f in map(FRAME_RE.match, lines) if f]
+    if not frames and m:                # no call graph: the frame is on the header
+        frames = [f for f in [HEADER_FRAME_RE.search(m.group('rest'))] if f]
+    if not frames and not m:            # unrecognised line without frames: skip
+        return None
+    names = [frame_name(f.group('sym'), f.group('dso')) for f in frames]
+    own = comm
+    for f, name in zip(frames, names):
+        if f.group('addr') != frames[0].group('addr'):
+            break
+        own = name
+        if f.group('dso') != 'inlined':
+            break
+    return [clean(n) for n in [comm] + names[::-1]], clean(own)
 
 
 def color(name):
@@ -270,13 +255,16 @@ def main():
     stacks, selfs = collections.Counter(), collections.Counter()
     try:
         if args.input == '-':
+            if sys.stdin.isatty():
+                die('no input: pipe `perf script` output in or name a file')
             src = io.TextIOWrapper(sys.stdin.buffer, encoding='utf-8', errors='replace')
         else:
             src = open(args.input, encoding='utf-8', errors='replace')
         with src:
-            for stack, own in parse(src):
-                stacks[tuple(stack)] += 1
-                selfs[own] += 1
+            for sample in (parse_sample(h, f) for h, f in blocks(src)):
+                if sample:
+                    stacks[tuple(sample[0])] += 1
+                    selfs[sample[1]] += 1
     except OSError as e:
         die('cannot read %s: %s' % (args.input, e.strerror or e))
     total = sum(stacks.values())
