@@ -645,40 +645,13 @@ TEST(PyramidBuilder, TheReturnedModelIsTheOneOnDisk) {
   }
 }
 
-/// Runs each task on its own thread, as a caller lending threads would.
-class ThreadPerTask final : public Executor {
- public:
-  void runAll(std::vector<std::function<void()>> tasks) override {
-    std::vector<std::exception_ptr> errors(tasks.size());
-    {
-      std::vector<std::jthread> threads;
-      for (std::size_t i = 0; i < tasks.size(); ++i) {
-        threads.emplace_back([&, i] {
-          try {
-            tasks[i]();
-          } catch (...) {
-            errors[i] = std::current_exception();
-          }
-        });
-      }
-    }
-    ++batches;
-    for (const auto& e : errors) {
-      if (e) {
-        std::rethrow_exception(e);
-      }
-    }
-  }
-  int batches = 0;
-};
-
 TEST(PyramidBuilder, QuartersBuiltConcurrentlyWriteTheSameFilesAsASerialBuild) {
   TempDir dir;
   auto defined = [](int c, int r) { return (c / 40 + r / 40) % 3 != 0; };
   SyntheticSource serialSource(300, 200, defined);
   const Model serial = buildOpc(serialSource, dir / "serial", withPatchSize(33));
   SyntheticSource parallelSource(300, 200, defined);
-  ThreadPerTask executor;
+  test::ThreadPerTask executor;
   ImportOptions options = withPatchSize(33);
   options.executor = &executor;
   const Model parallel = buildOpc(parallelSource, dir / "parallel", options);
@@ -699,7 +672,7 @@ TEST(PyramidBuilder, AFailingQuarterFailsAConcurrentImportAndLeavesNothing) {
   TempDir dir;
   SyntheticSource source(300, 200);
   source.failAfter = 7;
-  ThreadPerTask executor;
+  test::ThreadPerTask executor;
   ImportOptions options = withPatchSize(33);
   options.executor = &executor;
   EXPECT_EQ(codeOf([&] { buildOpc(source, dir / "opc", options); }), ErrorCode::Io);
@@ -784,7 +757,7 @@ TEST(PyramidBuilder, SamplesTooSparseForTheirOverviewAreLeftOutWithTheirSubtree)
   // The same when the subtrees are built concurrently: the same files, nothing of the dropped
   // subtree left behind.
   SyntheticSource parallelSource(300, 200, defined);
-  ThreadPerTask executor;
+  test::ThreadPerTask executor;
   ImportOptions options = withPatchSize(33);
   options.executor = &executor;
   buildOpc(parallelSource, dir / "parallel", options);

@@ -659,42 +659,11 @@ TEST(Merge, PlacesDetailWithinTheBoundAndKeepsTheModelConsistent) {
   EXPECT_GT(untouched, 0u);
 }
 
-// A scan merged again lands where the first merge already reached its resolution: its leaves are
-// placed on it in place, the tree does not deepen, and the surface stays where the first merge
-// put it (before, each merge added a level under every such leaf: 486, 806, then 1886 patches for
-// the same Jacksboro scan merged into PRISM three times).
-/// Runs each batch on as many threads as it has tasks (the CLI's executor, in short).
-class ThreadsExecutor final : public Executor {
- public:
-  void runAll(std::vector<std::function<void()>> tasks) override {
-    std::vector<std::exception_ptr> errors(tasks.size());
-    {
-      std::vector<std::jthread> threads;
-      for (std::size_t i = 0; i < tasks.size(); ++i) {
-        threads.emplace_back([&, i] {
-          try {
-            tasks[i]();
-          } catch (...) {
-            errors[i] = std::current_exception();
-          }
-        });
-      }
-    }
-    ++batches;
-    for (const auto& error : errors) {
-      if (error) {
-        std::rethrow_exception(error);
-      }
-    }
-  }
-  int batches = 0;
-};
-
 TEST(Merge, NewPatchesComputedInParallelGiveTheModelOneThreadGives) {
   SyntheticMerge serial, parallel;
   ModelAccess serialTarget(*serial.a), serialDetail(*serial.b);
   const MergeResult one = mergeModels(serialTarget, serialDetail);
-  ThreadsExecutor executor;
+  test::ThreadPerTask executor;
   MergeOptions options;
   options.executor = &executor;
   ModelAccess parallelTarget(*parallel.a), parallelDetail(*parallel.b);
@@ -710,6 +679,10 @@ TEST(Merge, NewPatchesComputedInParallelGiveTheModelOneThreadGives) {
   }
 }
 
+// A scan merged again lands where the first merge already reached its resolution: its leaves are
+// placed on it in place, the tree does not deepen, and the surface stays where the first merge
+// put it (before, each merge added a level under every such leaf: 486, 806, then 1886 patches for
+// the same Jacksboro scan merged into PRISM three times).
 TEST(Merge, MergingTheSameDetailAgainResamplesInPlace) {
   SyntheticMerge data;
   ModelAccess target(*data.a), detail(*data.b);

@@ -1,17 +1,22 @@
 #pragma once
 
-// Helpers shared by the unit tests: what an operation threw, and the files under a directory.
+// Helpers shared by the unit tests: what an operation threw, the files under a directory, and an
+// executor lending one thread per task.
 
 #include <gtest/gtest.h>
 
+#include <exception>
 #include <filesystem>
 #include <fstream>
 #include <functional>
 #include <map>
 #include <sstream>
 #include <string>
+#include <thread>
+#include <vector>
 
 #include "core/common/error.hpp"
+#include "core/common/executor.hpp"
 
 namespace vsm::core::test {
 
@@ -51,5 +56,32 @@ inline std::map<std::string, std::string> filesUnder(const std::filesystem::path
   }
   return files;
 }
+
+/// Runs each task on its own thread, as a caller lending threads would.
+class ThreadPerTask final : public Executor {
+ public:
+  void runAll(std::vector<std::function<void()>> tasks) override {
+    std::vector<std::exception_ptr> errors(tasks.size());
+    {
+      std::vector<std::jthread> threads;
+      for (std::size_t i = 0; i < tasks.size(); ++i) {
+        threads.emplace_back([&, i] {
+          try {
+            tasks[i]();
+          } catch (...) {
+            errors[i] = std::current_exception();
+          }
+        });
+      }
+    }
+    ++batches;
+    for (const auto& e : errors) {
+      if (e) {
+        std::rethrow_exception(e);
+      }
+    }
+  }
+  int batches = 0;
+};
 
 }  // namespace vsm::core::test
