@@ -399,10 +399,10 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
     // B leaves meeting it, read and pinned by this task only, in a sampler clipped to the
     // patch) and its texture; no grid when it is empty.
     struct Computed {
-      std::vector<Vec3d> positions;
       std::shared_ptr<const PatchGrid> grid;
       std::shared_ptr<const TextureTile> texture;
       std::size_t taken = 0;
+      Vec3d firstDefined;  // for a placeholder parent without any defined vertex
     };
     auto compute = [&](const NewLeaf& leaf, Computed& out) {
       checkCancelled(options);
@@ -423,12 +423,15 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
         }
       }
       const SurfaceSampler* surface = sampler ? &*sampler : nullptr;
-      out.positions = subdivider->positions(leaf.level, leaf.i, leaf.j, surface, &out.taken);
-      if (std::none_of(out.positions.begin(), out.positions.end(),
-                       [](const Vec3d& p) { return p.finite(); })) {
+      const std::vector<Vec3d> positions =
+          subdivider->positions(leaf.level, leaf.i, leaf.j, surface, &out.taken);
+      const auto first = std::find_if(positions.begin(), positions.end(),
+                                      [](const Vec3d& p) { return p.finite(); });
+      if (first == positions.end()) {
         return;  // an empty patch is omitted
       }
-      out.grid = std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), out.positions));
+      out.firstDefined = *first;
+      out.grid = std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions));
       out.texture = placeTexture(*subdivider, leaf.level, leaf.i, leaf.j, *out.grid, aTexture.get(),
                                  surface, tiles);
     };
@@ -448,9 +451,7 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
         if (!placeholder.anyDefined()) {
           // Only possible when k exceeds the grid's own levels: any defined vertex will do, the
           // placeholder never outlives the reducing stage (it is stale from now on).
-          const auto first = std::find_if(computed.positions.begin(), computed.positions.end(),
-                                          [](const Vec3d& p) { return p.finite(); });
-          placeholder.setGlobal(0, 0, *first);
+          placeholder.setGlobal(0, 0, computed.firstDefined);
         }
         target.setPositions(parent, std::make_shared<const PatchGrid>(std::move(placeholder)),
                             nullptr);
