@@ -43,17 +43,6 @@ void checkCancelled(const MergeOptions& options) {
   }
 }
 
-/// Runs `tasks` on the options' executor, or one after the other without one.
-void runTasks(const MergeOptions& options, std::vector<std::function<void()>> tasks) {
-  if (options.executor != nullptr && tasks.size() > 1) {
-    options.executor->runAll(std::move(tasks));
-  } else {
-    for (const auto& task : tasks) {
-      task();
-    }
-  }
-}
-
 /// The smallest k >= 0 with 2^k >= ratio.
 int levelsFor(double ratio) {
   int k = 0;
@@ -283,7 +272,7 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
         });
       }
     }
-    runTasks(options, std::move(tasks));
+    runTasks(options.executor, std::move(tasks));
   }
   for (Match& match : matches) {
     double resolutionSum = 0;
@@ -471,7 +460,7 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       for (std::size_t t = 0; t < count; ++t) {
         tasks.emplace_back([&, t] { compute(leaves[first + t], computed[t]); });
       }
-      runTasks(options, std::move(tasks));
+      runTasks(options.executor, std::move(tasks));
       for (std::size_t t = 0; t < count; ++t) {
         if (computed[t].grid) {
           insert(leaves[first + t], computed[t]);

@@ -54,8 +54,9 @@ struct MergeOptions {
   /// Default: defaultUp() of the detail model's root box (the local vertical for ECEF models, +z
   /// otherwise).
   std::optional<Vec3d> up;
-  /// Runs the new bottom patches of a matched leaf in parallel (up to kMergeBatch at a time);
-  /// null: one after the other on the calling thread. The result is the same either way.
+  /// Reads B's matched leaves and computes the new patches of a matched leaf (up to kMergeBatch
+  /// at a time) in parallel; null: one after the other on the calling thread. The result is the
+  /// same either way.
   Executor* executor = nullptr;
 };
 

@@ -766,13 +766,9 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   LiveModel::Store& store = *live_.store_;
   // 1. Every changed patch into its new folder (evicted ones were written already), durable.
   // Flushers take distinct dirty entries, so several run side by side.
-  if (options.executor != nullptr) {
-    std::vector<std::function<void()>> writers(kPublishWriters,
-                                               [&] { store.cache().flush(store.id()); });
-    options.executor->runAll(std::move(writers));
-  } else {
-    store.cache().flush(store.id());
-  }
+  runTasks(options.executor,
+           std::vector<std::function<void()>>(options.executor != nullptr ? kPublishWriters : 1,
+                                              [&] { store.cache().flush(store.id()); }));
   sync_.sync();
   if (cancel != nullptr) {
     cancel->throwIfCancelled();
