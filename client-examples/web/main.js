@@ -37,11 +37,11 @@
 // queued, downloading or parsing), `version` (the model version drawn),
 // `revision` (the revision picked, null for the latest), `revisions` (the kept ones listed),
 // `changes` (from, to, range in metres, patches of the diff, or error), `shown[].change` (in
-// changes mode, the displacement a drawn tile is coloured by),
-// `reloads`, `shown` (key, depth and ECEF box of each tile drawn), `legend`, `jobs`, `published`,
-// `overlays` (screen rectangles of the panel and legend) and `camera`: the matrices of the last
-// frame drawn (column-major, as three.js keeps them) and the canvas size in CSS pixels, so that a
-// script can project a point to the screen.
+// changes mode, the displacement a drawn tile is coloured by), `reloads`, `frames` (frames
+// drawn: the page draws only when what it shows changed), `shown` (key, depth and ECEF box of
+// each tile drawn), `legend`, `jobs`, `published`, `overlays` (screen rectangles of the panel
+// and legend) and `camera`: the matrices of the last frame drawn (column-major, as three.js keeps
+// them) and the canvas size in CSS pixels, so that a script can project a point to the screen.
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
@@ -201,6 +201,16 @@ const camera = new THREE.PerspectiveCamera(45, window.innerWidth / window.innerH
 const controls = new OrbitControls(camera, canvas);
 controls.enableDamping = false;
 
+/// The page draws a frame only when what it shows changed: a tile came, went or changed
+/// visibility, the camera moved, or a control changed the materials or the shapes. Each of those
+/// calls invalidate(); frame() also compares the camera with the one last drawn. An idle page then
+/// costs no rendering (with a software renderer a frame of fine tiles takes about a second).
+let needsFrame = true;
+function invalidate() {
+  needsFrame = true;
+}
+controls.addEventListener('change', invalidate);
+
 const errorTarget = Number(params.get('error'));
 const tilesetBase = params.get('tileset') ||
   new URL(`/v1/models/${encodeURIComponent(modelId)}/3dtiles/tileset.json`,
@@ -213,6 +223,7 @@ const sunUniform = { value: new THREE.Vector2() };
 function setSun(azimuth, altitude) {
   sunUniform.value.set(THREE.MathUtils.degToRad(azimuth), THREE.MathUtils.degToRad(altitude));
   state.sun = { azimuth, altitude };
+  invalidate();
 }
 setSun(sun[0], sun[1]);
 
@@ -379,6 +390,7 @@ function recolour() {
     }
   });
   setParam('lit', lit ? '1' : '0', '0');
+  invalidate();
 }
 
 function setMode(next) {
@@ -489,6 +501,7 @@ function setExaggeration(k) {
     }
   });
   setParam('exaggeration', String(exaggeration), '1');
+  invalidate();
 }
 
 // ---- tilesets ---------------------------------------------------------------------------------
@@ -531,6 +544,10 @@ function makeTiles(url) {
   const counts = newCounts();
   t.vsmCounts = counts;
   t.vsmShown = new Map();
+  for (const type of ['needs-render', 'needs-update', 'load-model', 'dispose-model',
+    'tile-visibility-change']) {
+    t.addEventListener(type, invalidate);
+  }
   t.addEventListener('tile-download-start', () => {
     counts.requested++;
   });
@@ -612,6 +629,7 @@ function reloadTileset(version) {
   tiles.dispose();
   tiles = makeTiles(tilesetUrl(version));
   scene.add(tiles.group);
+  invalidate();
   state.version = revision !== null ? revision : version;
   state.reloads++;
   state.idle = false;
@@ -890,6 +908,7 @@ function onResize() {
   camera.updateProjectionMatrix();
   renderer.setSize(window.innerWidth, window.innerHeight, false);
   tiles.setResolutionFromRenderer(camera, renderer);
+  invalidate();
 }
 window.addEventListener('resize', onResize);
 
@@ -897,6 +916,9 @@ function rect(element) {
   const r = element.getBoundingClientRect();
   return { x: r.x, y: r.y, width: r.width, height: r.height };
 }
+
+const drawnView = new THREE.Matrix4();
+const drawnProjection = new THREE.Matrix4();
 
 function frame() {
   requestAnimationFrame(frame);
@@ -909,7 +931,14 @@ function frame() {
   }
   camera.updateMatrixWorld();
   tiles.update();
-  renderer.render(scene, camera);
+  if (needsFrame || !drawnView.equals(camera.matrixWorld) ||
+      !drawnProjection.equals(camera.projectionMatrix)) {
+    needsFrame = false;
+    drawnView.copy(camera.matrixWorld);
+    drawnProjection.copy(camera.projectionMatrix);
+    renderer.render(scene, camera);
+    state.frames++;
+  }
   state.camera = {
     projection: camera.projectionMatrix.toArray(),
     view: camera.matrixWorldInverse.toArray(),
@@ -926,7 +955,6 @@ function frame() {
   state.pending = stats.queued + stats.downloading + stats.parsing;
   state.idle = placed && state.pending === 0 && !tiles.isLoading && flyPending === null;
   state.overlays = [rect($('panel')), rect($('legend'))];
-  state.frames++;
   showStatus(`${MODE_NAMES[mode]}${lit || mode === 'relief' ? ', sun' : ''}: ` +
     `${state.loaded} tiles` +
     (state.pending ? `, ${state.pending} loading` : '') +
