@@ -85,7 +85,7 @@ async function main() {
       }
     };
     out.state = await settle(null, started);
-    await page.screenshot({ path: screenshot, timeout: 30000 });
+    await page.screenshot({ path: screenshot, timeout });
     out.screenshot = screenshot;
     if (stepsFile && !out.timedOut) {
       out.steps = [];
@@ -96,7 +96,7 @@ async function main() {
         } else if (step.until) {
           done.state = await settle(step.until, Date.now());
         } else if (step.screenshot) {
-          await page.screenshot({ path: step.screenshot, timeout: 30000 });
+          await page.screenshot({ path: step.screenshot, timeout });
           done.value = step.screenshot;
         }
         done.state = done.state || await page.evaluate(
