@@ -1,5 +1,6 @@
 #include "core/io/gdal_support.hpp"
 
+#include <cpl_conv.h>
 #include <cpl_error.h>
 #include <gdal_priv.h>
 
@@ -20,7 +21,28 @@ void CPL_STDCALL logGdalMessage(CPLErr level, CPLErrorNum /*number*/, const char
 
 void registerGdal() {
   static std::once_flag once;
-  std::call_once(once, [] { GDALAllRegister(); });
+  std::call_once(once, [] {
+    GDALAllRegister();
+    if (CPLGetConfigOption("GDAL_CACHEMAX", nullptr) == nullptr) {
+      GDALSetCacheMax64(kGdalBlockCacheBytes);
+    }
+  });
+}
+
+namespace {
+constexpr const char* kDirectIo = "GTIFF_DIRECT_IO";
+}
+
+DirectIo::DirectIo() {
+  if (const char* value = CPLGetThreadLocalConfigOption(kDirectIo, nullptr)) {
+    previous_ = value;
+    hadPrevious_ = true;
+  }
+  CPLSetThreadLocalConfigOption(kDirectIo, "YES");
+}
+
+DirectIo::~DirectIo() {
+  CPLSetThreadLocalConfigOption(kDirectIo, hadPrevious_ ? previous_.c_str() : nullptr);
 }
 
 GdalMessagesToLog::GdalMessagesToLog() {

@@ -21,6 +21,7 @@
 namespace vsm::core {
 namespace {
 
+using detail::DirectIo;
 using detail::GdalMessagesToLog;
 using detail::lastGdalMessage;
 using detail::registerGdal;
@@ -31,6 +32,9 @@ constexpr double kFlattening = 1.0 / 298.257223563;
 constexpr double kEccentricity2 = kFlattening * (2.0 - kFlattening);
 constexpr double kDegree = std::numbers::pi / 180.0;
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+/// Samples per side of the blocks read whole (see RasterSource::block_).
+constexpr int kBlockSamples = 1024;
 
 std::string quoted(const std::filesystem::path& path) {
   return "'" + path.string() + "'";
@@ -119,6 +123,10 @@ class RasterSource final : public GridSource {
     }
     GdalMessagesToLog quiet;
     CPLErrorReset();
+    // The builder reads 257-row windows in quadtree order: through the block cache a striped
+    // raster's full-width rows would either stay cached (memory growing with the raster) or be
+    // read again for every window.
+    const DirectIo direct;
     dataset_.reset(
         GDALDataset::Open(name.c_str(), GDAL_OF_RASTER | GDAL_OF_READONLY | GDAL_OF_VERBOSE_ERROR));
     if (!dataset_) {
@@ -224,9 +232,9 @@ class RasterSource final : public GridSource {
     if (count == 0) {
       return;
     }
-    readHeights(x0, y0, w, h);
+    const std::span<const double> heights = heightsOf(x0, y0, w, h);
     if (transform_) {
-      readTransformed(x0, y0, w, h, out);
+      readTransformed(x0, y0, w, h, heights, out);
       return;
     }
     const Vec3d undefined{kNaN, kNaN, kNaN};
@@ -234,10 +242,10 @@ class RasterSource final : public GridSource {
     const double* sinLon = sinLon_.data() + x0;
     for (int r = 0; r < h; ++r) {
       const LatitudeTerms& t = latitudes_[static_cast<std::size_t>(y0 + r)];
-      const double* heights = heights_.data() + static_cast<std::size_t>(r) * w;
+      const double* rowHeights = heights.data() + static_cast<std::size_t>(r) * w;
       Vec3d* row = out.data() + static_cast<std::size_t>(r) * w;
       for (int c = 0; c < w; ++c) {
-        const double height = heights[c];
+        const double height = rowHeights[c];
         if (std::isnan(height)) {
           row[c] = undefined;
           continue;
@@ -249,26 +257,62 @@ class RasterSource final : public GridSource {
   }
 
  private:
-  /// Reads band values of the window into heights_ as metres, NaN where undefined.
-  void readHeights(int x0, int y0, int w, int h) {
+  /// The window's heights in metres, NaN where undefined, row after row: copied from the block
+  /// that holds it (read first if it is not the last one read), or read alone when larger than a
+  /// block.
+  std::span<const double> heightsOf(int x0, int y0, int w, int h) {
     const std::size_t count = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
     heights_.resize(count);
+    if (w > kBlockSamples || h > kBlockSamples) {
+      readHeights(x0, y0, w, h, heights_.data());
+      return heights_;
+    }
+    const auto inside = [&] {
+      return x0 >= block_.x0 && y0 >= block_.y0 && x0 + w <= block_.x0 + block_.w &&
+             y0 + h <= block_.y0 + block_.h;
+    };
+    if (!inside()) {
+      // The aligned block of the window's corner, widened by the window's size so that every
+      // window of that size starting in the block lies inside it.
+      const int bx = x0 / kBlockSamples * kBlockSamples;
+      const int by = y0 / kBlockSamples * kBlockSamples;
+      const int bw = std::min(width_ - bx, kBlockSamples + w);
+      const int bh = std::min(height_ - by, kBlockSamples + h);
+      block_.w = block_.h = 0;  // nothing until the read succeeds
+      block_.heights.resize(static_cast<std::size_t>(bw) * static_cast<std::size_t>(bh));
+      readHeights(bx, by, bw, bh, block_.heights.data());
+      block_.x0 = bx;
+      block_.y0 = by;
+      block_.w = bw;
+      block_.h = bh;
+    }
+    for (int r = 0; r < h; ++r) {
+      const double* from = block_.heights.data() +
+                           static_cast<std::size_t>(y0 - block_.y0 + r) * block_.w +
+                           (x0 - block_.x0);
+      std::copy_n(from, w, heights_.data() + static_cast<std::size_t>(r) * w);
+    }
+    return heights_;
+  }
+
+  /// Reads band values of a window into `out` as metres, NaN where undefined.
+  void readHeights(int x0, int y0, int w, int h, double* out) {
+    const std::size_t count = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
     GdalMessagesToLog quiet;
     CPLErrorReset();
-    if (band_->RasterIO(GF_Read, x0, y0, w, h, heights_.data(), w, h, GDT_Float64, 0, 0, nullptr) !=
-        CE_None) {
+    if (band_->RasterIO(GF_Read, x0, y0, w, h, out, w, h, GDT_Float64, 0, 0, nullptr) != CE_None) {
       throw Error(CPLGetLastErrorNo() == CPLE_FileIO ? ErrorCode::Io : ErrorCode::Corrupt,
                   "cannot read raster " + quoted(path_) + ": " + lastGdalMessage());
     }
-    double* values = heights_.data();
     for (std::size_t i = 0; i < count; ++i) {
-      const double v = values[i];
-      values[i] = (!std::isfinite(v) || (hasNoData_ && v == noData_)) ? kNaN : v * scale_ + offset_;
+      const double v = out[i];
+      out[i] = (!std::isfinite(v) || (hasNoData_ && v == noData_)) ? kNaN : v * scale_ + offset_;
     }
   }
 
   /// Pixel centres through OGR to WGS 84 lon/lat, one batch per row, then the ECEF formulas.
-  void readTransformed(int x0, int y0, int w, int h, std::span<Vec3d> out) {
+  void readTransformed(int x0, int y0, int w, int h, std::span<const double> heights,
+                       std::span<Vec3d> out) {
     const auto n = static_cast<std::size_t>(w);
     xs_.resize(n);
     ys_.resize(n);
@@ -281,10 +325,10 @@ class RasterSource final : public GridSource {
         ys_[static_cast<std::size_t>(c)] = y;
       }
       transform_->Transform(w, xs_.data(), ys_.data(), nullptr, ok_.data());
-      const double* heights = heights_.data() + static_cast<std::size_t>(r) * n;
+      const double* rowHeights = heights.data() + static_cast<std::size_t>(r) * n;
       Vec3d* row = out.data() + static_cast<std::size_t>(r) * n;
       for (std::size_t c = 0; c < n; ++c) {
-        const double height = heights[c];
+        const double height = rowHeights[c];
         const LatitudeTerms t = LatitudeTerms::at(ys_[c]);
         const double lon = xs_[c] * kDegree;
         if (ok_[c] == 0 || std::isnan(height) || std::isnan(t.cosLat) || !std::isfinite(lon)) {
@@ -316,6 +360,18 @@ class RasterSource final : public GridSource {
   std::vector<LatitudeTerms> latitudes_;
   // Every other CRS: pixel centres go through OGR/PROJ.
   TransformationPtr transform_;
+
+  // The builder asks for patch windows in quadtree order, so the windows of one aligned block of
+  // kBlockSamples^2 samples come one after the other: reading the block once costs one read per
+  // row of it (direct I/O reads row by row) where its windows would cost one per row of each.
+  struct Block {
+    int x0 = 0;
+    int y0 = 0;
+    int w = 0;  // 0: nothing read
+    int h = 0;
+    std::vector<double> heights;
+  };
+  Block block_;
 
   // Buffers reused across reads.
   std::vector<double> heights_;

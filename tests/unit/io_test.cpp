@@ -27,6 +27,7 @@
 
 #include "core/common/error.hpp"
 #include "core/grid/texture_tile.hpp"
+#include "core/io/gdal_support.hpp"
 #include "core/io/grid_source.hpp"
 #include "core/io/texture_source.hpp"
 #include "core/opc/aara.hpp"
@@ -232,6 +233,72 @@ TEST(RasterSource, AWindowReadsTheSameAsTheWholeRaster) {
       EXPECT_EQ(window[r * 4 + c], all[(2 + r) * 9 + 5 + c]);
     }
   }
+}
+
+// Windows are served from blocks of 1024^2 samples read whole (raster_source.cpp): windows in
+// quadtree order, across block edges, at the raster's edges, larger than a block and back in an
+// earlier block all equal the same samples of one read of the whole raster (larger than a block,
+// so read directly), and a sample equals the WGS 84 formula.
+TEST(RasterSource, WindowsServedFromBlocksEqualTheWholeRaster) {
+  TempDir dir;
+  const int width = 2600;
+  const int height = 1500;
+  RasterSpec spec{width, height, {8.0, 1.0 / 3600, 0, 47.0, 0, -1.0 / 3600}};
+  spec.noData = -9999;
+  std::vector<double> heights;
+  for (int row = 0; row < height; ++row) {
+    for (int col = 0; col < width; ++col) {
+      heights.push_back((row * 131 + col * 17) % 977 == 0 ? -9999.0
+                                                          : 300.0 + (row * 7 + col * 3) % 1000);
+    }
+  }
+  makeRaster(dir / "big.tif", spec, heights);
+  auto source = openRasterSource(dir / "big.tif");
+  const auto all = readAll(*source);
+  struct Window {
+    int x0, y0, w, h;
+  };
+  std::vector<Window> windows;
+  for (const int y : {0, 256}) {  // a quadtree block of 257-sample windows, then the next
+    for (const int x : {0, 256, 512, 768, 1024, 1280}) {
+      windows.push_back({x, y, 257, 257});
+    }
+  }
+  windows.push_back({1000, 900, 300, 200});                  // across both block edges
+  windows.push_back({width - 257, height - 257, 257, 257});  // the last samples
+  windows.push_back({0, 1024, 1100, 20});                    // wider than a block
+  windows.push_back({3, 5, 1, 1});                           // back in the first block
+  windows.push_back({2047, 1023, 2, 2});                     // four blocks' corner
+  for (const Window& win : windows) {
+    std::vector<Vec3d> out(static_cast<std::size_t>(win.w) * win.h);
+    source->read(win.x0, win.y0, win.w, win.h, out);
+    for (int r = 0; r < win.h; ++r) {
+      for (int c = 0; c < win.w; ++c) {
+        const Vec3d& got = out[static_cast<std::size_t>(r) * win.w + c];
+        const Vec3d& want = all[static_cast<std::size_t>(win.y0 + r) * width + win.x0 + c];
+        if (std::isnan(want.x)) {
+          ASSERT_TRUE(std::isnan(got.x)) << win.x0 << "," << win.y0 << " +" << c << "," << r;
+        } else {
+          ASSERT_EQ(got, want) << win.x0 << "," << win.y0 << " +" << c << "," << r;
+        }
+      }
+    }
+  }
+  const int col = 2599, row = 1499;
+  std::vector<Vec3d> one(1);
+  source->read(col, row, 1, 1, one);
+  const double h = heights[static_cast<std::size_t>(row) * width + col];
+  EXPECT_LT(distance(one[0], ecef(8.0 + (col + 0.5) / 3600, 47.0 - (row + 0.5) / 3600, h)), 1e-6);
+}
+
+// GDAL's block cache is held to its stated bound (GDAL's default, 5 % of RAM, would let an
+// import's memory grow with its raster), unless the user set GDAL_CACHEMAX.
+TEST(RasterSource, GdalsBlockCacheIsBounded) {
+  ASSERT_EQ(std::getenv("GDAL_CACHEMAX"), nullptr) << "the test needs GDAL's default";
+  TempDir dir;
+  makeRaster(dir / "c.tif", RasterSpec{}, std::vector<double>(12, 1.0));
+  openRasterSource(dir / "c.tif");
+  EXPECT_EQ(GDALGetCacheMax64(), detail::kGdalBlockCacheBytes);
 }
 
 TEST(RasterSource, ARotatedGeotransformIsRejected) {
