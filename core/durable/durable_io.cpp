@@ -105,6 +105,13 @@ int writeDirect(int fd, std::span<const std::byte> bytes, bool& refused) {
   return writeAll(fd, bytes.subspan(done));
 }
 
+/// Removes what has the name of a draft file about to be written or linked (nothing, usually).
+void unlinkDraft(const fs::path& file) {
+  if (::unlink(file.c_str()) != 0 && errno != ENOENT) {
+    throwIoError("cannot replace", file.string(), errno);
+  }
+}
+
 void syncPath(const fs::path& path, bool directory) {
   Descriptor fd(::open(path.c_str(), (directory ? O_RDONLY | O_DIRECTORY : O_RDONLY) | O_CLOEXEC));
   if (fd.get() < 0) {
@@ -227,11 +234,12 @@ void DraftWriter::write(const fs::path& file, std::span<const std::byte> bytes) 
   // Large files go to the device directly: that saves copying them into the page cache and
   // writing them back from there, and leaves the cache to what others read.
   const bool direct = bytes.size() >= kDirectMinimum && direct_.load();
+  unlinkDraft(file);
   Descriptor fd(::open(file.c_str(),
-                       O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC | (direct ? O_DIRECT : 0), 0644));
+                       O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC | (direct ? O_DIRECT : 0), 0644));
   if (fd.get() < 0 && direct && errno == EINVAL) {  // no O_DIRECT on this file system (tmpfs)
     direct_ = false;
-    fd.reset(::open(file.c_str(), O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644));
+    fd.reset(::open(file.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644));
   }
   if (fd.get() < 0) {
     throwIoError("cannot create", file.string(), errno);
@@ -252,6 +260,19 @@ void DraftWriter::write(const fs::path& file, std::span<const std::byte> bytes) 
   if (errnum != 0) {
     throwIoError("cannot write", file.string(), errnum);
   }
+}
+
+bool DraftWriter::link(const fs::path& existing, const fs::path& file) {
+  unlinkDraft(file);
+  if (::link(existing.c_str(), file.c_str()) == 0) {
+    return true;
+  }
+  const int errnum = errno;
+  if (errnum == EMLINK || errnum == EXDEV || errnum == EPERM || errnum == EOPNOTSUPP ||
+      errnum == ENOENT) {
+    return false;
+  }
+  throwIoError("cannot link", file.string(), errnum);
 }
 
 // ---- FileSystemSync --------------------------------------------------------------------------

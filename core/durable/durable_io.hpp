@@ -73,7 +73,17 @@ void syncFile(const std::filesystem::path& file);
 /// Thread-safe: write() may run concurrently for different files.
 class DraftWriter {
  public:
+  /// Writes `file` as a new file: whatever had its name (an earlier write, or a link()) is
+  /// unlinked first, never truncated, since truncating a hard link would change every name of it.
   void write(const std::filesystem::path& file, std::span<const std::byte> bytes);
+
+  /// Makes `file` another name (a hard link) of `existing`, a file that is never written again
+  /// (written once by writeFileAtomically): a draft file whose bytes are already on disk costs no
+  /// write. Whatever had the name is unlinked first. Returns false where the file system refuses
+  /// the link (too many links to `existing`, no hard links, another file system) or `existing` is
+  /// gone: the caller writes the bytes instead. Throws Error(Io) for any other failure, naming
+  /// `file`.
+  bool link(const std::filesystem::path& existing, const std::filesystem::path& file);
 
   /// A buffer of at least `bytes`, aligned for direct I/O, owned by the calling thread and reused
   /// by its next call (a writer can build a file's bytes in it so write() sends them without a

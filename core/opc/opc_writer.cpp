@@ -7,7 +7,10 @@
 #include <cerrno>
 #include <cstdint>
 #include <cstring>
+#include <fstream>
+#include <iterator>
 #include <limits>
+#include <optional>
 #include <pugixml.hpp>
 #include <sstream>
 #include <vector>
@@ -175,15 +178,8 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
   info.coordinatesFile.clear();
   if (!info.textureFile.empty()) {
     // Texture coordinates of the stored vertices, before the Patch.xml naming them.
-    AaraArray coordinates;
-    coordinates.type = AaraType::V2f;
-    coordinates.sizes = {r.width(), r.height()};
-    const std::vector<float> uvs =
-        textureCoordinates(grid.size(), r.x0, r.y0, r.width(), r.height());
-    coordinates.data.resize(uvs.size() * sizeof(float));
-    std::memcpy(coordinates.data.data(), uvs.data(), coordinates.data.size());
     info.coordinatesFile = "Coordinates.aara";
-    writeFile(folderDir / info.coordinatesFile, encodeAara(coordinates));
+    writeCoordinates(folderDir / info.coordinatesFile, grid.size(), r);
   }
 
   pugi::xml_document doc;
@@ -305,6 +301,63 @@ void OpcWriter::writeHierarchy(const Model& model) {
     finishHierarchy(dir_.parent_path());
   } else {
     writeFile(dir_ / "patchhierarchy.xml", bytesOf(hierarchyXml(model, nullptr)));
+  }
+}
+
+namespace {
+
+/// Coordinates.aara of a patch of `gridSize` storing `stored`: V2f per stored vertex.
+std::vector<std::byte> coordinatesAara(int gridSize, const GridRect& stored) {
+  AaraArray coordinates;
+  coordinates.type = AaraType::V2f;
+  coordinates.sizes = {stored.width(), stored.height()};
+  const std::vector<float> uvs =
+      textureCoordinates(gridSize, stored.x0, stored.y0, stored.width(), stored.height());
+  coordinates.data.resize(uvs.size() * sizeof(float));
+  std::memcpy(coordinates.data.data(), uvs.data(), coordinates.data.size());
+  return encodeAara(coordinates);
+}
+
+/// The whole of `file`, or nothing when it cannot be read.
+std::optional<std::vector<std::byte>> readWhole(const fs::path& file) {
+  std::ifstream in(file, std::ios::binary);
+  if (!in) {
+    return std::nullopt;
+  }
+  std::vector<char> text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (in.bad()) {
+    return std::nullopt;
+  }
+  std::vector<std::byte> bytes(text.size());
+  std::memcpy(bytes.data(), text.data(), text.size());
+  return bytes;
+}
+
+}  // namespace
+
+void OpcWriter::writeCoordinates(const fs::path& file, int gridSize, const GridRect& stored) {
+  if (durability_ == Durability::EachFile || stored != GridRect{0, 0, gridSize, gridSize}) {
+    writeFile(file, coordinatesAara(gridSize, stored));
+    return;
+  }
+  const fs::path sharedDir = dir_.parent_path() / ".vsm-shared";
+  const std::string name = "coordinates-" + std::to_string(gridSize) + ".aara";
+  const fs::path shared = sharedDir / name;
+  {
+    std::lock_guard lock(sharedMutex_);
+    if (sharedFiles_.count(name) == 0) {
+      // Left by an earlier writer: used when it holds exactly these bytes, else replaced (the
+      // patches linked to the old one keep it).
+      const std::vector<std::byte> bytes = coordinatesAara(gridSize, stored);
+      if (readWhole(shared) != bytes) {
+        durable::createDirectory(sharedDir, true);
+        durable::writeFileAtomically(shared, bytes);
+      }
+      sharedFiles_.insert(name);
+    }
+  }
+  if (!drafts_.link(shared, file)) {
+    drafts_.write(file, coordinatesAara(gridSize, stored));
   }
 }
 

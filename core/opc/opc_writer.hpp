@@ -3,6 +3,7 @@
 #include <filesystem>
 #include <memory>
 #include <mutex>
+#include <set>
 #include <span>
 #include <string>
 #include <string_view>
@@ -62,6 +63,12 @@ class OpcWriter {
  private:
   /// Writes one file as the durability says.
   void writeFile(const std::filesystem::path& file, std::span<const std::byte> bytes);
+  /// Writes the texture coordinates of a patch of `gridSize` storing `stored` to `file`. With
+  /// deferred durability, a patch stored whole (nearly all of them) gets a hard link to the OPC's
+  /// one file of those coordinates, `.vsm-shared/coordinates-<size>.aara` at its root (written
+  /// once, atomically, and never again): an import writes them once, not once per patch. Cropped
+  /// patches, whose rectangles vary, get their own file.
+  void writeCoordinates(const std::filesystem::path& file, int gridSize, const GridRect& stored);
   /// Images/<layer>/, created (once, under imagesMutex_) on first use.
   std::filesystem::path imagesLayerDir();
 
@@ -70,6 +77,8 @@ class OpcWriter {
   durable::DraftWriter drafts_;  // Deferred durability
   std::mutex imagesMutex_;       // guards imagesCreated_ (writePatch runs concurrently)
   bool imagesCreated_ = false;
+  std::mutex sharedMutex_;             // guards sharedFiles_
+  std::set<std::string> sharedFiles_;  // the shared files known to hold what their names say
 };
 
 /// The hierarchy of the OPC at `dir` written and fsynced under a temporary name beside

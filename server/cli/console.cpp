@@ -1,12 +1,15 @@
 #include "server/cli/console.hpp"
 
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cstdio>
 #include <filesystem>
 #include <iostream>
 #include <new>
+#include <set>
 #include <string>
+#include <utility>
 
 #include "core/common/error.hpp"
 
@@ -124,20 +127,26 @@ std::string formatBytes(std::uintmax_t bytes) {
   return text;
 }
 
-std::uintmax_t bytesUnder(const std::filesystem::path& path) {
+std::uintmax_t bytesUnder(const std::filesystem::path& path, Links links) {
+  std::set<std::pair<dev_t, ino_t>> seen;  // files with several names, Links::Once
+  const auto bytesOf = [&](const std::filesystem::path& file) -> std::uintmax_t {
+    struct stat st {};
+    if (::stat(file.c_str(), &st) != 0 || !S_ISREG(st.st_mode)) {
+      return 0;
+    }
+    if (links == Links::Once && st.st_nlink > 1 && !seen.emplace(st.st_dev, st.st_ino).second) {
+      return 0;
+    }
+    return static_cast<std::uintmax_t>(st.st_size);
+  };
   std::error_code ec;
   if (!std::filesystem::is_directory(path, ec)) {
-    const std::uintmax_t size = std::filesystem::file_size(path, ec);
-    return ec ? 0 : size;
+    return bytesOf(path);
   }
   std::uintmax_t total = 0;
   for (std::filesystem::recursive_directory_iterator it(path, ec), end; !ec && it != end;
        it.increment(ec)) {
-    if (it->is_regular_file(ec)) {
-      const std::uintmax_t size = it->file_size(ec);
-      total += ec ? 0 : size;
-      ec.clear();
-    }
+    total += bytesOf(it->path());
   }
   return total;
 }

@@ -53,9 +53,13 @@ class ConsoleProgress final : public core::Progress {
 /// `bytes` in B, KiB, MiB, GiB or TiB, like "1.5 MiB".
 std::string formatBytes(std::uintmax_t bytes);
 
+/// How bytesUnder counts a file with several names (hard links, as an OPC's shared
+/// Coordinates.aara): per name, as a reader reads them, or once, as the disk holds them.
+enum class Links { PerName, Once };
+
 /// The bytes of every regular file under `path` (or of the file `path`); what cannot be read
 /// counts 0 (the command itself reports it).
-std::uintmax_t bytesUnder(const std::filesystem::path& path);
+std::uintmax_t bytesUnder(const std::filesystem::path& path, Links links = Links::PerName);
 
 /// Runs `command` and returns its exit code; the one catch point of both binaries: UsageError is
 /// printed with the usage text (2), core::Error, filesystem errors and std::bad_alloc as one line

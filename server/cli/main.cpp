@@ -58,7 +58,8 @@ int runInfo(const std::vector<std::string_view>& args) {
   std::printf("depth       %d (%zu levels)\n", model.maxDepth(), levels.size());
   std::printf("patches     %zu (%zu leaves)\n", model.patchCount(), leaves);
   std::printf("bounds      %s\n", formatBox(root.globalBox).c_str());
-  std::printf("bytes       %s on disk\n", vsm::cli::formatBytes(vsm::cli::bytesUnder(dir)).c_str());
+  std::printf("bytes       %s on disk\n",
+              vsm::cli::formatBytes(vsm::cli::bytesUnder(dir, vsm::cli::Links::Once)).c_str());
   std::printf("\n%5s %8s %8s %14s  %s\n", "depth", "patches", "leaves", "resolution m", "bounds");
   for (const auto& level : levels) {
     std::printf("%5d %8zu %8zu %14.3f  %s\n", level.depth, level.patches, level.leaves,

@@ -10,6 +10,7 @@
 //   mkdir   mkdir, mkdirat
 //   create  open, open64, openat, openat64, creat with O_CREAT
 //   unlink  unlink, unlinkat, rmdir, remove
+//   link    link, linkat (the path of the new name counts)
 //
 // Environment:
 //   VSM_FAULT_PREFIX  absolute directory; nothing happens without it
@@ -35,9 +36,9 @@
 #include <sys/uio.h>
 #include <unistd.h>
 
-enum { kWrite, kSync, kRename, kMkdir, kCreate, kUnlink, kClasses };
-static const char* const kClassNames[kClasses] = {"write", "sync",   "rename",
-                                                  "mkdir", "create", "unlink"};
+enum { kWrite, kSync, kRename, kMkdir, kCreate, kUnlink, kLink, kClasses };
+static const char* const kClassNames[kClasses] = {"write",  "sync",   "rename", "mkdir",
+                                                  "create", "unlink", "link"};
 
 static char prefix[PATH_MAX];
 static size_t prefixLength;
@@ -246,6 +247,20 @@ int renameat2(int fromDir, const char* from, int toDir, const char* to, unsigned
     return -1;
   }
   return NEXT(renameat2)(fromDir, from, toDir, to, flags);
+}
+
+int link(const char* from, const char* to) {
+  if (faultAt(kLink, AT_FDCWD, to)) {
+    return -1;
+  }
+  return NEXT(link)(from, to);
+}
+
+int linkat(int fromDir, const char* from, int toDir, const char* to, int flags) {
+  if (faultAt(kLink, toDir, to)) {
+    return -1;
+  }
+  return NEXT(linkat)(fromDir, from, toDir, to, flags);
 }
 
 int mkdir(const char* path, mode_t mode) {

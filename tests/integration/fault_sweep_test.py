@@ -14,7 +14,7 @@ Jacksboro DEM as the detail, 17 x 17 patches):
 
 For each: one run without a fault records every counted call (class, index, path) and the commit
 point (the rename of the new hierarchy, or of the import's staging directory). Then a run per
-chosen N for each class (write, sync, rename, mkdir, create, unlink): every N within
+chosen N for each class (write, sync, rename, mkdir, create, unlink, link): every N within
 --window calls (in the order of all classes) of the commit point, and --samples evenly spread
 over the rest, alternating EIO and ENOSPC. Each run must:
 - end with a clear error (exit 1 with one "vsm: error:" line, or the job failed with a message)
@@ -49,7 +49,7 @@ from model_states import (  # noqa: E402
                           make_outside_model, version_of, which)
 
 
-CLASSES = ["write", "sync", "rename", "mkdir", "create", "unlink"]
+CLASSES = ["write", "sync", "rename", "mkdir", "create", "unlink", "link"]
 PATCH = 17
 TIMEOUT = 120
 

@@ -135,6 +135,68 @@ TEST_F(DurableTest, DraftsAreWrittenWholeSmallAndLargeAndSyncSucceeds) {
   EXPECT_EQ(read(dir_ / "large"), large);
 }
 
+// A draft rewritten over a hard link of a shared file gets its own new file: the shared file
+// and its other names keep their bytes, small (page cache) and large (direct I/O) alike.
+TEST_F(DurableTest, ADraftWrittenOverALinkLeavesTheLinkedFileAlone) {
+  DraftWriter drafts;
+  const std::string large(200 * 1024, 'L');
+  for (const std::string& content : {std::string("shared"), large}) {
+    writeFileAtomically(dir_ / "shared", bytes(content));
+    ASSERT_TRUE(drafts.link(dir_ / "shared", dir_ / "a"));
+    ASSERT_TRUE(drafts.link(dir_ / "shared", dir_ / "b"));
+    EXPECT_EQ(fs::hard_link_count(dir_ / "shared"), 3u);
+    drafts.write(dir_ / "a", bytes(content + " changed"));
+    EXPECT_EQ(read(dir_ / "a"), content + " changed");
+    EXPECT_EQ(read(dir_ / "shared"), content);
+    EXPECT_EQ(read(dir_ / "b"), content);
+    EXPECT_EQ(fs::hard_link_count(dir_ / "shared"), 2u);
+    fs::remove(dir_ / "a");
+    fs::remove(dir_ / "b");
+  }
+}
+
+// link() replaces what had the name (a file, or a link to another shared file) and says false
+// when the source is gone or the name's folder is missing: the caller then writes the bytes, and
+// that write reports a missing folder.
+TEST_F(DurableTest, ALinkReplacesItsNameAndReportsWhatItCannotDo) {
+  DraftWriter drafts;
+  writeFileAtomically(dir_ / "one", bytes("one"));
+  writeFileAtomically(dir_ / "two", bytes("two"));
+  drafts.write(dir_ / "x", bytes("old"));
+  ASSERT_TRUE(drafts.link(dir_ / "one", dir_ / "x"));
+  EXPECT_EQ(read(dir_ / "x"), "one");
+  ASSERT_TRUE(drafts.link(dir_ / "two", dir_ / "x"));
+  EXPECT_EQ(read(dir_ / "x"), "two");
+  EXPECT_EQ(read(dir_ / "one"), "one");
+  EXPECT_FALSE(drafts.link(dir_ / "gone", dir_ / "y"));
+  EXPECT_FALSE(fs::exists(dir_ / "y"));
+  EXPECT_FALSE(drafts.link(dir_ / "one", dir_ / "no-folder" / "z"));
+  EXPECT_EQ(codeOf([&] { drafts.write(dir_ / "no-folder" / "z", bytes("z")); }), ErrorCode::Io);
+}
+
+// At the file system's limit of names per file (65000 on ext4) link() says false, so the caller
+// writes the bytes instead; the names made before stay. Skipped where there is no such limit
+// within 70000 names (tmpfs, btrfs count far higher).
+TEST_F(DurableTest, ALinkAtTheFileSystemsLimitOfNamesIsRefusedNotAnError) {
+  DraftWriter drafts;
+  writeFileAtomically(dir_ / "shared", bytes("shared"));
+  fs::create_directory(dir_ / "names");
+  int made = 0;
+  bool refused = false;
+  for (; made < 70000; ++made) {
+    if (!drafts.link(dir_ / "shared", dir_ / "names" / std::to_string(made))) {
+      refused = true;
+      break;
+    }
+  }
+  if (!refused) {
+    GTEST_SKIP() << "no limit of names per file within 70000 here";
+  }
+  EXPECT_EQ(fs::hard_link_count(dir_ / "shared"), static_cast<std::uintmax_t>(made) + 1);
+  EXPECT_FALSE(fs::exists(dir_ / "names" / std::to_string(made)));
+  EXPECT_EQ(read(dir_ / "names" / "0"), "shared");
+}
+
 TEST_F(DurableTest, ASecondWriterIsRefusedWithTheHoldersNameAndPid) {
   const auto lock = WriterLock::acquire(dir_);
   // Another open of the lock file, even in this process, is another writer.

@@ -466,6 +466,78 @@ TEST_F(OpcStoreTest, ReadBackIsWhatWasWritten) {
   }
 }
 
+// A textured model written with deferred durability (an import, an edit's drafts) stores the
+// texture coordinates of a whole patch once, in .vsm-shared/ at the OPC's root, and gives every
+// patch stored whole a hard link to it; a cropped patch gets its own file. The coordinates read
+// back as V2f of the patch's stored vertices. Rewriting a patch replaces its link (the others
+// keep their bytes), and a shared file an earlier writer left with other bytes is replaced, not
+// used.
+TEST_F(OpcStoreTest, TheCoordinatesOfWholePatchesAreOneSharedFile) {
+  const fs::path out = dir_ / "textured";
+  Model model = makeModel();
+  const auto writeAll = [&](OpcWriter& writer) {
+    std::vector<PatchKey> keys;
+    for (const auto& [key, info] : model.patches()) {
+      keys.push_back(key);
+    }
+    for (auto it = keys.rbegin(); it != keys.rend(); ++it) {
+      PatchInfo& info = model.at(*it);
+      writer.writeTexture(info, TextureTile(textureTileSize(kSize)));
+      writer.writePatch(info, *info.grid, model.childrenBox(*it));
+    }
+    writer.writeHierarchy(model);
+  };
+  {
+    OpcWriter writer(out, OpcWriter::Durability::Deferred);
+    writeAll(writer);
+  }
+  const fs::path shared = out / ".vsm-shared" / ("coordinates-" + std::to_string(kSize) + ".aara");
+  const PatchInfo& nw = model.at(PatchKey::root().child(Quadrant::NW));  // stored cropped
+  const PatchInfo& ne = model.at(PatchKey::root().child(Quadrant::NE));
+  ASSERT_NE(nw.stored, ne.stored);
+  const Model read = readOpcModel(out);
+  for (const auto& [key, info] : read.patches()) {
+    const fs::path file = out / "Patches" / info.folder / "Coordinates.aara";
+    ASSERT_EQ(info.coordinatesFile, "Coordinates.aara");
+    const bool whole = info.stored == GridRect{0, 0, kSize, kSize};
+    EXPECT_EQ(fs::equivalent(file, shared), whole) << key.toString();
+    EXPECT_EQ(fs::hard_link_count(file), whole ? fs::hard_link_count(shared) : 1u);
+    const AaraArray coordinates = decodeAara(readPatchCoordinates(out, info), "c");
+    ASSERT_EQ(coordinates.sizes, (std::vector<int>{info.stored.width(), info.stored.height()}));
+    // The first stored vertex's (u, v): its grid position over the grid's extent.
+    float uv[2];
+    std::memcpy(uv, coordinates.data.data(), sizeof uv);
+    EXPECT_FLOAT_EQ(uv[0], static_cast<float>(info.stored.x0) / (kSize - 1)) << key.toString();
+  }
+  ASSERT_EQ(ne.stored, (GridRect{0, 0, kSize, kSize}));
+  std::uintmax_t whole = 1;  // the shared file's own name
+  for (const auto& [key, info] : read.patches()) {
+    whole += info.stored == ne.stored ? 1 : 0;
+  }
+  EXPECT_GE(whole, 3u);  // NE and the root at least
+  EXPECT_EQ(fs::hard_link_count(shared), whole);
+  EXPECT_TRUE(validateOpc(out).empty());
+
+  // Another writer finds the shared file holding other bytes: it writes a new one and links NE to
+  // it; the root keeps the old file, and rewriting NE left it alone.
+  const fs::path rootFile =
+      out / "Patches" / model.at(PatchKey::root()).folder / "Coordinates.aara";
+  const std::string before = readText(rootFile);
+  const fs::path damaged = out / "damaged";
+  writeText(damaged, "not coordinates");
+  fs::rename(damaged, shared);
+  {
+    OpcWriter writer(out, OpcWriter::Durability::Deferred);
+    PatchInfo& info = model.at(ne.key);
+    writer.writeTexture(info, TextureTile(textureTileSize(kSize)));
+    writer.writePatch(info, *info.grid, model.childrenBox(ne.key));
+  }
+  EXPECT_EQ(readText(rootFile), before);
+  EXPECT_FALSE(fs::equivalent(rootFile, shared));
+  EXPECT_EQ(readText(out / "Patches" / ne.folder / "Coordinates.aara"), before);
+  EXPECT_TRUE(fs::equivalent(out / "Patches" / ne.folder / "Coordinates.aara", shared));
+}
+
 TEST_F(OpcStoreTest, UndefinedBordersAreCroppedAndTheCropRecorded) {
   const PatchInfo& nw = model_->at(PatchKey::root().child(Quadrant::NW));
   EXPECT_EQ(nw.stored, (GridRect{0, 1, kSize, kSize}));

@@ -622,8 +622,15 @@ TEST_F(TexturedStoreTest, EditCarriesTexturesIntoNewTilesAndOverviewsAndDropsThe
             (std::array<std::uint8_t, 4>{250, 0, 0, 255}));
 }
 
+// (The edit's drafts may leave .vsm-shared/, the one Coordinates.aara of whole patches that any
+// later writer links to: a file no version names.)
 TEST_F(TexturedStoreTest, DiscardedEditAndWrongTileSizeLeaveTheTilesAsTheyWere) {
-  const auto before = filesUnder(dir_);
+  const auto modelFiles = [&] {
+    auto files = filesUnder(dir_);
+    std::erase_if(files, [](const auto& file) { return file.first.starts_with(".vsm-shared/"); });
+    return files;
+  };
+  const auto before = modelFiles();
   PatchCache cache(6 * 4096);
   auto live = LiveModel::open(dir_, "m", cache);
   {
@@ -637,7 +644,7 @@ TEST_F(TexturedStoreTest, DiscardedEditAndWrongTileSizeLeaveTheTilesAsTheyWere) 
               }),
               ErrorCode::InvalidArgument);
   }  // discarded
-  EXPECT_EQ(filesUnder(dir_), before);
+  EXPECT_EQ(modelFiles(), before);
 }
 
 TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
