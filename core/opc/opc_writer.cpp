@@ -7,10 +7,7 @@
 #include <cerrno>
 #include <cstdint>
 #include <cstring>
-#include <fstream>
-#include <iterator>
 #include <limits>
-#include <optional>
 #include <pugixml.hpp>
 #include <sstream>
 #include <vector>
@@ -318,21 +315,6 @@ std::vector<std::byte> coordinatesAara(int gridSize, const GridRect& stored) {
   return encodeAara(coordinates);
 }
 
-/// The whole of `file`, or nothing when it cannot be read.
-std::optional<std::vector<std::byte>> readWhole(const fs::path& file) {
-  std::ifstream in(file, std::ios::binary);
-  if (!in) {
-    return std::nullopt;
-  }
-  std::vector<char> text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  if (in.bad()) {
-    return std::nullopt;
-  }
-  std::vector<std::byte> bytes(text.size());
-  std::memcpy(bytes.data(), text.data(), text.size());
-  return bytes;
-}
-
 }  // namespace
 
 void OpcWriter::writeCoordinates(const fs::path& file, int gridSize, const GridRect& stored) {
@@ -349,7 +331,13 @@ void OpcWriter::writeCoordinates(const fs::path& file, int gridSize, const GridR
       // Left by an earlier writer: used when it holds exactly these bytes, else replaced (the
       // patches linked to the old one keep it).
       const std::vector<std::byte> bytes = coordinatesAara(gridSize, stored);
-      if (readWhole(shared) != bytes) {
+      std::vector<std::byte> existing;
+      try {
+        existing = detail::readFile(shared, bytes.size() + 1);
+      } catch (const Error&) {
+        // Missing or unreadable: written anew below.
+      }
+      if (existing != bytes) {
         durable::createDirectory(sharedDir, true);
         durable::writeFileAtomically(shared, bytes);
       }
