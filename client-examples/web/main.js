@@ -201,15 +201,15 @@ const camera = new THREE.PerspectiveCamera(45, window.innerWidth / window.innerH
 const controls = new OrbitControls(camera, canvas);
 controls.enableDamping = false;
 
-/// The page draws a frame only when what it shows changed: a tile came, went or changed
-/// visibility, the camera moved, or a control changed the materials or the shapes. Each of those
-/// calls invalidate(); frame() also compares the camera with the one last drawn. An idle page then
-/// costs no rendering (with a software renderer a frame of fine tiles takes about a second).
+/// The page draws a frame only when what it shows changed: frame() compares the camera with the
+/// one last drawn (orbit controls, fly-to), and whatever else changes the picture (a tile came,
+/// went or changed visibility, a control changed the materials or the shapes, a resize) calls
+/// invalidate(). An idle page then costs no rendering (with a software renderer a frame of fine
+/// tiles takes about a second).
 let needsFrame = true;
 function invalidate() {
   needsFrame = true;
 }
-controls.addEventListener('change', invalidate);
 
 const errorTarget = Number(params.get('error'));
 const tilesetBase = params.get('tileset') ||

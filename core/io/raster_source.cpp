@@ -232,7 +232,7 @@ class RasterSource final : public GridSource {
     if (count == 0) {
       return;
     }
-    const std::span<const double> heights = heightsOf(x0, y0, w, h);
+    const Heights heights = heightsOf(x0, y0, w, h);
     if (transform_) {
       readTransformed(x0, y0, w, h, heights, out);
       return;
@@ -242,7 +242,7 @@ class RasterSource final : public GridSource {
     const double* sinLon = sinLon_.data() + x0;
     for (int r = 0; r < h; ++r) {
       const LatitudeTerms& t = latitudes_[static_cast<std::size_t>(y0 + r)];
-      const double* rowHeights = heights.data() + static_cast<std::size_t>(r) * w;
+      const double* rowHeights = heights.row(r);
       Vec3d* row = out.data() + static_cast<std::size_t>(r) * w;
       for (int c = 0; c < w; ++c) {
         const double height = rowHeights[c];
@@ -257,21 +257,24 @@ class RasterSource final : public GridSource {
   }
 
  private:
-  /// The window's heights in metres, NaN where undefined, row after row: copied from the block
-  /// that holds it (read first if it is not the last one read), or read alone when larger than a
-  /// block.
-  std::span<const double> heightsOf(int x0, int y0, int w, int h) {
-    const std::size_t count = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
-    heights_.resize(count);
+  /// A window's heights: row r starts at first + r * stride.
+  struct Heights {
+    const double* first;
+    std::size_t stride;
+    const double* row(int r) const { return first + static_cast<std::size_t>(r) * stride; }
+  };
+
+  /// The window's heights in metres, NaN where undefined: inside the block that holds it (read
+  /// first if it is not the last one read), or read alone when larger than a block.
+  Heights heightsOf(int x0, int y0, int w, int h) {
     if (w > kBlockSamples || h > kBlockSamples) {
+      heights_.resize(static_cast<std::size_t>(w) * static_cast<std::size_t>(h));
       readHeights(x0, y0, w, h, heights_.data());
-      return heights_;
+      return {heights_.data(), static_cast<std::size_t>(w)};
     }
-    const auto inside = [&] {
-      return x0 >= block_.x0 && y0 >= block_.y0 && x0 + w <= block_.x0 + block_.w &&
-             y0 + h <= block_.y0 + block_.h;
-    };
-    if (!inside()) {
+    const bool inside = x0 >= block_.x0 && y0 >= block_.y0 && x0 + w <= block_.x0 + block_.w &&
+                        y0 + h <= block_.y0 + block_.h;
+    if (!inside) {
       // The aligned block of the window's corner, widened by the window's size so that every
       // window of that size starting in the block lies inside it.
       const int bx = x0 / kBlockSamples * kBlockSamples;
@@ -286,13 +289,10 @@ class RasterSource final : public GridSource {
       block_.w = bw;
       block_.h = bh;
     }
-    for (int r = 0; r < h; ++r) {
-      const double* from = block_.heights.data() +
-                           static_cast<std::size_t>(y0 - block_.y0 + r) * block_.w +
-                           (x0 - block_.x0);
-      std::copy_n(from, w, heights_.data() + static_cast<std::size_t>(r) * w);
-    }
-    return heights_;
+    const auto stride = static_cast<std::size_t>(block_.w);
+    return {block_.heights.data() + static_cast<std::size_t>(y0 - block_.y0) * stride +
+                (x0 - block_.x0),
+            stride};
   }
 
   /// Reads band values of a window into `out` as metres, NaN where undefined.
@@ -311,8 +311,7 @@ class RasterSource final : public GridSource {
   }
 
   /// Pixel centres through OGR to WGS 84 lon/lat, one batch per row, then the ECEF formulas.
-  void readTransformed(int x0, int y0, int w, int h, std::span<const double> heights,
-                       std::span<Vec3d> out) {
+  void readTransformed(int x0, int y0, int w, int h, const Heights& heights, std::span<Vec3d> out) {
     const auto n = static_cast<std::size_t>(w);
     xs_.resize(n);
     ys_.resize(n);
@@ -325,7 +324,7 @@ class RasterSource final : public GridSource {
         ys_[static_cast<std::size_t>(c)] = y;
       }
       transform_->Transform(w, xs_.data(), ys_.data(), nullptr, ok_.data());
-      const double* rowHeights = heights.data() + static_cast<std::size_t>(r) * n;
+      const double* rowHeights = heights.row(r);
       Vec3d* row = out.data() + static_cast<std::size_t>(r) * n;
       for (std::size_t c = 0; c < n; ++c) {
         const double height = rowHeights[c];
@@ -373,7 +372,7 @@ class RasterSource final : public GridSource {
   };
   Block block_;
 
-  // Buffers reused across reads.
+  // Buffers reused across reads (heights_: windows larger than a block).
   std::vector<double> heights_;
   std::vector<double> xs_;
   std::vector<double> ys_;
