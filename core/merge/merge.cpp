@@ -259,16 +259,19 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       matches.push_back(std::move(match));
     }
   }
-  // planeResolution of each B leaf a target leaf meets (reading it is most of the matching's
-  // time), in parallel on the executor.
+  // planeResolution and the block footprints (for the samplers below) of each B leaf a target
+  // leaf meets (reading it is most of the matching's time), in parallel on the executor.
   std::vector<double> bResolution(bLeaves.size(), 0);
+  std::vector<std::vector<Rect2d>> bBlocks(bLeaves.size());
   {
     std::vector<std::function<void()>> tasks;
     for (std::size_t i = 0; i < bLeaves.size(); ++i) {
       if (bUsed[i]) {
         tasks.emplace_back([&, i] {
           checkCancelled(options);
-          bResolution[i] = planeResolution(*detail.positions(bLeaves[i].first), frame);
+          const std::shared_ptr<const PatchGrid> grid = detail.positions(bLeaves[i].first);
+          bResolution[i] = planeResolution(*grid, frame);
+          bBlocks[i] = SurfaceSampler::blockFootprints(*grid, frame, options.transform);
         });
       }
     }
@@ -336,15 +339,15 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
     if (!aFootprint.intersects(nearFoot)) {
       continue;
     }
-    // B's leaves whose footprint meets `rect`.
+    // B's leaves whose footprint meets `rect` (indices into bLeaves).
     auto detailUnder = [&](const Rect2d& rect) {
-      std::vector<PatchKey> keys;
+      std::vector<std::size_t> under;
       for (const std::size_t i : match.detail) {
         if (bLeaves[i].second.intersects(rect)) {
-          keys.push_back(bLeaves[i].first);
+          under.push_back(i);
         }
       }
-      return keys;
+      return under;
     };
     const std::shared_ptr<const TextureTile> aTexture = textureOf(target, match.target);
     const PatchKey& top = match.target;
@@ -399,16 +402,18 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       std::vector<std::shared_ptr<const TextureTile>> textures;
       std::vector<const TextureTile*> tiles;
       if (leaf.level == k) {
-        const std::vector<PatchKey> keys = detailUnder(leaf.foot);
-        if (!keys.empty()) {
+        const std::vector<std::size_t> under = detailUnder(leaf.foot);
+        if (!under.empty()) {
           std::vector<std::shared_ptr<const PatchGrid>> grids;
-          grids.reserve(keys.size());
-          for (const PatchKey& key : keys) {
-            grids.push_back(detail.positions(key));
-            textures.push_back(textureOf(detail, key));
+          SurfaceSampler::Clip clip{frame, leaf.foot};
+          grids.reserve(under.size());
+          for (const std::size_t i : under) {
+            grids.push_back(detail.positions(bLeaves[i].first));
+            textures.push_back(textureOf(detail, bLeaves[i].first));
             tiles.push_back(textures.back().get());
+            clip.blocks.emplace_back(bBlocks[i]);
           }
-          sampler.emplace(grids, up, options.transform, SurfaceSampler::Clip{frame, leaf.foot});
+          sampler.emplace(grids, up, options.transform, std::move(clip));
         }
       }
       const SurfaceSampler* surface = sampler ? &*sampler : nullptr;

@@ -123,32 +123,74 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
 
   // The clip in this frame: the same axes, so only the origin moves.
   Rect2d clipRect;
+  Vec2d offset;
   if (clip) {
     const UpFrame& f = clip->frame;
     if (f.up.x != frame_.up.x || f.up.y != frame_.up.y || f.up.z != frame_.up.z) {
       throw Error(ErrorCode::InvalidArgument, "surface sampler: the clip's frame has another up");
     }
-    const Vec2d offset = f.project(frame_.origin);
+    offset = f.project(frame_.origin);
     clipRect = {{clip->rect.min.u - offset.u, clip->rect.min.v - offset.v},
                 {clip->rect.max.u - offset.u, clip->rect.max.v - offset.v}};
   }
 
   constexpr std::uint32_t kNone = kNoVertex;
-  // Every grid's vertices and cells at most: reserved once (samplers are built per new patch of a
-  // merge, so growing these vectors by doubling cost more than the rest of the construction;
-  // pages a clipped sampler leaves unused are never touched).
+  // With a grid's block footprints, only the blocks that may hold a wanted cell (see `wanted`
+  // below) are looked at: a block farther from the clip than the largest margin of a cell in it
+  // (plus the rounding of projecting around another origin) holds none. Per grid: its blocks'
+  // verdicts (empty: every block).
+  if (clip && !clip->blocks.empty() && clip->blocks.size() != grids.size()) {
+    throw Error(ErrorCode::InvalidArgument,
+                "surface sampler: the clip's block footprints do not match the grids");
+  }
+  std::vector<std::vector<char>> blockWanted(grids.size());
+  // The vertices (and so cells) the wanted blocks hold at most: reserved once (samplers are built
+  // per new patch of a merge, so growing these vectors by doubling cost more than the rest of the
+  // construction).
   std::size_t vertexBound = 0;
-  for (const auto& grid : grids) {
-    if (grid) {
-      vertexBound += static_cast<std::size_t>(grid->size()) * grid->size();
+  for (std::size_t g = 0; g < grids.size(); ++g) {
+    if (!grids[g]) {
+      continue;
+    }
+    const int s = grids[g]->size();
+    const int blocksPerSide = (s - 1 + kBlockCells - 1) / kBlockCells;
+    if (!clip || clip->blocks.empty()) {
+      vertexBound += static_cast<std::size_t>(s) * s;
+      continue;
+    }
+    const std::span<const Rect2d> blocks = clip->blocks[g];
+    if (blocks.size() != static_cast<std::size_t>(blocksPerSide) * blocksPerSide) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "surface sampler: the clip's block footprints do not match the grids");
+    }
+    const Rect2d& c = clip->rect;
+    blockWanted[g].assign(blocks.size(), 0);
+    for (std::size_t b = 0; b < blocks.size(); ++b) {
+      const Rect2d& r = blocks[b];
+      if (r.empty()) {
+        continue;  // no defined vertex, so no cell
+      }
+      const double rounding = 1e-9 * (std::fabs(r.min.u) + std::fabs(r.max.u) + std::fabs(r.min.v) +
+                                      std::fabs(r.max.v) + std::fabs(c.min.u) + std::fabs(c.max.u) +
+                                      std::fabs(c.min.v) + std::fabs(c.max.v) +
+                                      std::fabs(offset.u) + std::fabs(offset.v));
+      const double margin =
+          2 * kBorderTolerance * (r.max.u - r.min.u + r.max.v - r.min.v) + rounding;
+      if (r.min.u - margin <= c.max.u && c.min.u <= r.max.u + margin &&
+          r.min.v - margin <= c.max.v && c.min.v <= r.max.v + margin) {
+        blockWanted[g][b] = 1;
+        vertexBound += (kBlockCells + 1) * (kBlockCells + 1);
+      }
     }
   }
   vertices_.reserve(vertexBound);
   projected_.reserve(vertexBound);
   origins_.reserve(vertexBound);
   cells_.reserve(4 * vertexBound);
-  std::vector<Vec2d> projected;      // per grid vertex: its projection (u NaN when undefined)
-  std::vector<std::uint32_t> index;  // per grid vertex: its vertices_ index, once a cell uses it
+  // Per grid vertex, set only in the blocks looked at: its projection (u NaN when undefined), and
+  // its vertices_ index once a cell uses it.
+  std::vector<Vec2d> projected;
+  std::vector<std::uint32_t> index;
   for (std::size_t gridIndex = 0; gridIndex < grids.size(); ++gridIndex) {
     const auto& grid = grids[gridIndex];
     if (!grid) {
@@ -159,15 +201,36 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
       const Vec3d g = grid->global(x, y);
       return transform ? transform->apply(g) : g;
     };
+    const int blocksPerSide = (s - 1 + kBlockCells - 1) / kBlockCells;
+    const std::vector<char>& wantedBlocks = blockWanted[gridIndex];
+    auto blockOf = [&](int x, int y) {
+      return static_cast<std::size_t>(y / kBlockCells) * blocksPerSide + x / kBlockCells;
+    };
     projected.resize(static_cast<std::size_t>(s) * s);
-    for (int y = 0; y < s; ++y) {
-      for (int x = 0; x < s; ++x) {
-        projected[static_cast<std::size_t>(y) * s + x] =
-            grid->defined(x, y) ? frame_.project(global(x, y))
-                                : Vec2d{std::numeric_limits<double>::quiet_NaN(), 0};
+    index.resize(projected.size());
+    auto projectRange = [&](int x0, int y0, int x1, int y1) {  // vertices [x0, x1] x [y0, y1]
+      for (int y = y0; y <= y1; ++y) {
+        for (int x = x0; x <= x1; ++x) {
+          const std::size_t i = static_cast<std::size_t>(y) * s + x;
+          projected[i] = grid->defined(x, y) ? frame_.project(global(x, y))
+                                             : Vec2d{std::numeric_limits<double>::quiet_NaN(), 0};
+          index[i] = kNone;
+        }
+      }
+    };
+    if (wantedBlocks.empty()) {
+      projectRange(0, 0, s - 1, s - 1);
+    } else {
+      for (int by = 0; by < blocksPerSide; ++by) {
+        for (int bx = 0; bx < blocksPerSide; ++bx) {
+          if (wantedBlocks[static_cast<std::size_t>(by) * blocksPerSide + bx]) {
+            projectRange(bx * kBlockCells, by * kBlockCells,
+                         std::min((bx + 1) * kBlockCells, s - 1),
+                         std::min((by + 1) * kBlockCells, s - 1));
+          }
+        }
       }
     }
-    index.assign(projected.size(), kNone);
     auto vertex = [&](std::size_t i) {
       if (index[i] == kNone) {
         const int x = static_cast<int>(i % s), y = static_cast<int>(i / s);
@@ -199,6 +262,9 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
     };
     for (int y = 0; y + 1 < s; ++y) {
       for (int x = 0; x + 1 < s; ++x) {
+        if (!wantedBlocks.empty() && !wantedBlocks[blockOf(x, y)]) {
+          continue;
+        }
         const std::size_t i = static_cast<std::size_t>(y) * s + x;
         const std::size_t corners[4] = {i, i + 1, i + s + 1, i + s};  // (0,0) (1,0) (1,1) (0,1)
         std::size_t rest[4];
@@ -262,8 +328,12 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   }
   bucketsU_ = static_cast<int>(std::floor(width / bucketSize_)) + 1;
   bucketsV_ = static_cast<int>(std::floor(height / bucketSize_)) + 1;
+  margin_ = kBorderTolerance * maxEdge_ + bucketSize_ * 1e-9;
+  // A cell goes into every bucket its rectangle grown by margin_ meets, so that the one bucket
+  // holding a query's projection lists every cell that may hold the query (see locate).
   auto bucketRange = [&](std::size_t t, int& u0, int& v0, int& u1, int& v1) {
-    const Rect2d& r = rects[t];
+    const Rect2d r{{rects[t].min.u - margin_, rects[t].min.v - margin_},
+                   {rects[t].max.u + margin_, rects[t].max.v + margin_}};
     u0 = std::clamp(static_cast<int>(std::floor((r.min.u - bounds_.min.u) / bucketSize_)), 0,
                     bucketsU_ - 1);
     u1 = std::clamp(static_cast<int>(std::floor((r.max.u - bounds_.min.u) / bucketSize_)), 0,
@@ -301,9 +371,38 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   }
 }
 
+std::vector<Rect2d> SurfaceSampler::blockFootprints(const PatchGrid& grid, const UpFrame& frame,
+                                                    const std::optional<Mat4d>& transform) {
+  const int s = grid.size();
+  const int blocksPerSide = (s - 1 + kBlockCells - 1) / kBlockCells;
+  std::vector<Rect2d> blocks(static_cast<std::size_t>(blocksPerSide) * blocksPerSide);
+  for (int y = 0; y < s; ++y) {
+    for (int x = 0; x < s; ++x) {
+      if (!grid.defined(x, y)) {
+        continue;
+      }
+      const Vec3d g = grid.global(x, y);
+      const Vec2d p = frame.project(transform ? transform->apply(g) : g);
+      // A vertex on a block's border is a corner of the cells on both sides.
+      for (int by = std::max(0, (y - 1) / kBlockCells); by <= std::min(y, s - 2) / kBlockCells;
+           ++by) {
+        for (int bx = std::max(0, (x - 1) / kBlockCells); bx <= std::min(x, s - 2) / kBlockCells;
+             ++bx) {
+          blocks[static_cast<std::size_t>(by) * blocksPerSide + bx].extend(p);
+        }
+      }
+    }
+  }
+  return blocks;
+}
+
 std::optional<SurfaceSampler::CellHit> SurfaceSampler::onTriangle(const std::uint32_t* t,
                                                                   const Vec2d& q) const {
-  const auto l = barycentric(projected_[t[0]], projected_[t[1]], projected_[t[2]], q);
+  return onTriangle(t, barycentric(projected_[t[0]], projected_[t[1]], projected_[t[2]], q));
+}
+
+std::optional<SurfaceSampler::CellHit> SurfaceSampler::onTriangle(
+    const std::uint32_t* t, const std::array<double, 3>& l) const {
   if (!std::isfinite(l[0]) || !std::isfinite(l[1]) || !std::isfinite(l[2])) {
     return std::nullopt;
   }
@@ -376,8 +475,8 @@ std::optional<SurfaceSampler::CellHit> SurfaceSampler::onQuad(const std::uint32_
     // the nearer one.
     const std::uint32_t first[3] = {c[0], c[1], c[2]};
     const std::uint32_t second[3] = {c[0], c[2], c[3]};
-    std::optional<CellHit> a = onTriangle(first, q);
-    std::optional<CellHit> b = onTriangle(second, q);
+    std::optional<CellHit> a = onTriangle(first, l1);
+    std::optional<CellHit> b = onTriangle(second, l2);
     if (a && (!b || a->outside <= b->outside)) {
       return CellHit{{a->weights[0], a->weights[1], a->weights[2], 0}, a->outside};
     }
@@ -395,63 +494,60 @@ std::optional<SurfacePoint> SurfaceSampler::locate(const Vec3d& p) const {
     return std::nullopt;
   }
   const Vec2d q = frame_.project(p);
-  // Cells within kBorderTolerance of q (in grid units) lie within this much of it projected.
-  const double margin = kBorderTolerance * maxEdge_ + bucketSize_ * 1e-9;
+  // Cells within kBorderTolerance of q (in grid units) lie within margin_ of it projected.
+  const double margin = margin_;
   if (q.u < bounds_.min.u - margin || q.u > bounds_.max.u + margin ||
       q.v < bounds_.min.v - margin || q.v > bounds_.max.v + margin) {
     return std::nullopt;
   }
+  // The bucket of q lists every such cell (each cell is in the buckets its rectangle grown by
+  // margin_ meets; floor((x - origin) / size) grows with x, so the index of q lies in the range).
   auto bucket = [&](double value, double origin, int count) {
     return std::clamp(static_cast<int>(std::floor((value - origin) / bucketSize_)), 0, count - 1);
   };
-  const int u0 = bucket(q.u - margin, bounds_.min.u, bucketsU_);
-  const int u1 = bucket(q.u + margin, bounds_.min.u, bucketsU_);
-  const int v0 = bucket(q.v - margin, bounds_.min.v, bucketsV_);
-  const int v1 = bucket(q.v + margin, bounds_.min.v, bucketsV_);
+  const std::size_t b =
+      static_cast<std::size_t>(bucket(q.v, bounds_.min.v, bucketsV_)) * bucketsU_ +
+      bucket(q.u, bounds_.min.u, bucketsU_);
 
   // The best hit: inside a cell before within tolerance of one (the nearer cell first), then,
   // among cells holding q alike (an overhang, or a seam of B's grids), the layer nearest to p,
-  // then the first cell in grid order (a cell may sit in several buckets: not the first visited).
+  // then the first cell in grid order: the smallest (outside, distance, cell), whatever the order
+  // the bucket lists them in.
   std::optional<SurfacePoint> best;
   std::size_t bestCell = 0;
   double bestOutside = std::numeric_limits<double>::infinity();
   double bestDistance = std::numeric_limits<double>::infinity();
   const double ph = frame_.height(p);
-  for (int v = v0; v <= v1; ++v) {
-    for (int u = u0; u <= u1; ++u) {
-      const std::size_t b = static_cast<std::size_t>(v) * bucketsU_ + u;
-      for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
-        const std::size_t cell = bucketItems_[i];
-        const Rect2d& rect = cellRects_[cell];
-        if (q.u < rect.min.u - margin || q.u > rect.max.u + margin || q.v < rect.min.v - margin ||
-            q.v > rect.max.v + margin) {
-          continue;
-        }
-        const std::uint32_t* c = &cells_[4 * cell];
-        const std::optional<CellHit> h = c[3] == kNoVertex ? onTriangle(c, q) : onQuad(c, q);
-        if (!h || h->outside > bestOutside) {
-          continue;
-        }
-        SurfacePoint hit{{0, 0, 0}, origins_[c[0]].grid, 0, 0};
-        for (int k = 0; k < 4; ++k) {
-          if (h->weights[k] != 0) {
-            hit.position = hit.position + vertices_[c[k]] * h->weights[k];
-            hit.x += origins_[c[k]].x * h->weights[k];
-            hit.y += origins_[c[k]].y * h->weights[k];
-          }
-        }
-        // The height there, at p's own projection: only p's height changes, also where the
-        // parameter was clamped onto the cell (a point on or just outside its border).
-        hit.position = p + frame_.up * (frame_.height(hit.position) - ph);
-        const double distance = std::fabs(frame_.height(hit.position) - ph);
-        if (h->outside < bestOutside || distance < bestDistance ||
-            (distance == bestDistance && cell < bestCell)) {
-          bestOutside = h->outside;
-          bestDistance = distance;
-          bestCell = cell;
-          best = hit;
-        }
+  for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
+    const std::size_t cell = bucketItems_[i];
+    const Rect2d& rect = cellRects_[cell];
+    if (q.u < rect.min.u - margin || q.u > rect.max.u + margin || q.v < rect.min.v - margin ||
+        q.v > rect.max.v + margin) {
+      continue;
+    }
+    const std::uint32_t* c = &cells_[4 * cell];
+    const std::optional<CellHit> h = c[3] == kNoVertex ? onTriangle(c, q) : onQuad(c, q);
+    if (!h || h->outside > bestOutside) {
+      continue;
+    }
+    SurfacePoint hit{{0, 0, 0}, origins_[c[0]].grid, 0, 0};
+    for (int k = 0; k < 4; ++k) {
+      if (h->weights[k] != 0) {
+        hit.position = hit.position + vertices_[c[k]] * h->weights[k];
+        hit.x += origins_[c[k]].x * h->weights[k];
+        hit.y += origins_[c[k]].y * h->weights[k];
       }
+    }
+    // The height there, at p's own projection: only p's height changes, also where the
+    // parameter was clamped onto the cell (a point on or just outside its border).
+    hit.position = p + frame_.up * (frame_.height(hit.position) - ph);
+    const double distance = std::fabs(frame_.height(hit.position) - ph);
+    if (h->outside < bestOutside || distance < bestDistance ||
+        (distance == bestDistance && cell < bestCell)) {
+      bestOutside = h->outside;
+      bestDistance = distance;
+      bestCell = cell;
+      best = hit;
     }
   }
   return best;

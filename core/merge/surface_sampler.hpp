@@ -6,6 +6,7 @@
 #include <cstdint>
 #include <memory>
 #include <optional>
+#include <span>
 #include <vector>
 
 #include "core/grid/geometry.hpp"
@@ -108,11 +109,25 @@ class SurfaceSampler {
   /// below half a cell, so a lattice half a sample off B's border is decided by its geometry.
   static constexpr double kBorderTolerance = 1.0 / 32;
 
+  /// Cells per side of the blocks blockFootprints() describes.
+  static constexpr int kBlockCells = 16;
+
+  /// Footprints (in `frame`) of `grid`'s blocks of kBlockCells x kBlockCells cells (the last
+  /// ones in a row or column may be smaller), row by row: the rectangle of the projections of
+  /// each block's defined vertices (after `transform` when given), empty when it has none. A
+  /// merge computes them once per grid of B, so that the many clipped samplers it builds over the
+  /// same grids need not project the vertices that lie far from their clips.
+  static std::vector<Rect2d> blockFootprints(const PatchGrid& grid, const UpFrame& frame,
+                                             const std::optional<Mat4d>& transform);
+
   /// Where queries will come from: a rectangle in the plane of `frame`, whose up must be the
   /// sampler's. Cells farther from it than kBorderTolerance are left out of the index.
   struct Clip {
     UpFrame frame;
     Rect2d rect;
+    /// Per grid (empty, or one per grid): its blockFootprints() in `frame`. Blocks far from
+    /// `rect` are then skipped whole; the cells indexed, and so every answer, are the same.
+    std::vector<std::span<const Rect2d>> blocks = {};
   };
 
   /// `grids`: B's bottom grids (their vertex data is copied, in double, after `transform` when
@@ -157,6 +172,9 @@ class SurfaceSampler {
   };
   /// The hit when q lies within kBorderTolerance grid units of the cell.
   std::optional<CellHit> onTriangle(const std::uint32_t* corners, const Vec2d& q) const;
+  /// onTriangle with q's barycentric coordinates in the projected triangle.
+  std::optional<CellHit> onTriangle(const std::uint32_t* corners,
+                                    const std::array<double, 3>& barycentric) const;
   std::optional<CellHit> onQuad(const std::uint32_t* corners, const Vec2d& q) const;
 
   /// Where a vertex came from: its grid and its index there.
@@ -178,6 +196,7 @@ class SurfaceSampler {
   // Uniform bucket grid over bounds_: bucket (bx, by) holds the cells whose projected
   // bounding rectangle meets it, as bucketItems_[bucketStart_[b] .. bucketStart_[b + 1]).
   double bucketSize_ = 1;
+  double margin_ = 0;  // kBorderTolerance * maxEdge_, and a little for rounding
   int bucketsU_ = 0, bucketsV_ = 0;
   std::vector<std::uint32_t> bucketStart_;
   std::vector<std::uint32_t> bucketItems_;
