@@ -551,13 +551,21 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
 }
 
 void PatchCache::flush(ModelId model) {
+  flushEntries(model, nullptr);
+}
+
+void PatchCache::flush(ModelId model, const ObjectId& object) {
+  flushEntries(model, &object);
+}
+
+void PatchCache::flushEntries(ModelId model, const ObjectId* only) {
   std::unique_lock lock(impl_->mutex);
   PatchStore* store = impl_->slot(model).store;
   for (;;) {
     Entry* target = nullptr;
     bool waiting = false;
     for (Entry* e : impl_->ring) {
-      if (e->id.model != model || !e->dirty) {
+      if (e->id.model != model || !e->dirty || (only != nullptr && !(e->id.object == *only))) {
         continue;
       }
       if (e->state != State::Resident) {

@@ -208,6 +208,9 @@ class PatchCache {
   /// from several threads at once: each writes back entries no other is writing, and each
   /// returns when all are written (or rethrows its own write-back's error).
   void flush(ModelId model);
+  /// flush() of one entry: writes it back when it is dirty (waiting while another thread writes
+  /// it); nothing when it is clean or not resident.
+  void flush(ModelId model, const ObjectId& object);
   /// Forgets an entry without writing it back (its data is obsolete). Precondition: not pinned.
   void drop(ModelId model, const ObjectId& id);
   /// Forgets an entry whose stored data was replaced behind the cache (a published new version):
@@ -227,6 +230,7 @@ class PatchCache {
  private:
   struct Impl;  // the table, the policy state and the counters; defined in the .cpp
   void unpin(void* entry);
+  void flushEntries(ModelId model, const ObjectId* only);  // only: null for every entry
 
   std::size_t budget_;
   EvictionPolicy policy_;

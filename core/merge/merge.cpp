@@ -308,6 +308,9 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
 
   // ---- placing -------------------------------------------------------------------------------
   report(options, "placing", 0);
+  // The new leaves of the last batch: final once inserted (only placeholders and overviews change
+  // later, by reduction), so the next batch's tasks store them while it computes.
+  std::vector<PatchKey> finished;
   for (std::size_t m = 0; m < matches.size(); ++m) {
     checkCancelled(options);
     const Match& match = matches[m];
@@ -453,6 +456,7 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       }
       target.setPositions(keyOf(leaf.level, leaf.i, leaf.j), std::move(computed.grid),
                           std::move(computed.texture));
+      finished.push_back(keyOf(leaf.level, leaf.i, leaf.j));
       ++added;
       result.verticesFromDetail += computed.taken;
     };
@@ -461,7 +465,11 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       const std::size_t count = std::min(kMergeBatch, leaves.size() - first);
       std::vector<Computed> computed(count);
       std::vector<std::function<void()>> tasks;
-      tasks.reserve(count);
+      tasks.reserve(finished.size() + count);
+      for (const PatchKey& key : finished) {
+        tasks.emplace_back([&target, key] { target.writeEarly(key); });
+      }
+      finished.clear();
       for (std::size_t t = 0; t < count; ++t) {
         tasks.emplace_back([&, t] { compute(leaves[first + t], computed[t]); });
       }

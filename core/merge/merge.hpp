@@ -39,6 +39,10 @@ class MergeTarget : public PatchSource {
                             std::shared_ptr<const TextureTile> texture) = 0;
   /// Recomputes every stale overview bottom-up by reduction, textures by downsampling.
   virtual void refreshStale(const CancelToken* cancel) = 0;
+  /// Stores a patch set before, which the merge will not change again, now rather than at the
+  /// end (ModelEdit::writeEarly); called from executor tasks, for distinct keys, while no
+  /// setPositions runs. Default: nothing (a target without storage).
+  virtual void writeEarly(const PatchKey& /*key*/) {}
 };
 
 struct MergeOptions {

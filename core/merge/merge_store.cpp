@@ -36,6 +36,7 @@ class EditTarget final : public MergeTarget {
     edit_.setPositions(key, std::move(grid), std::move(texture));
   }
   void refreshStale(const CancelToken* cancel) override { edit_.refreshStale(cancel); }
+  void writeEarly(const PatchKey& key) override { edit_.writeEarly(key); }
 
  private:
   ModelEdit& edit_;

@@ -626,6 +626,15 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
   }
 }
 
+void ModelEdit::writeEarly(const PatchKey& key) {
+  // Only the cache and the store's own (locked) table are touched: setPositions of other keys may
+  // run meanwhile.
+  const ObjectId id = draftId(key);
+  LiveModel::Store& store = *live_.store_;
+  store.cache().flush(store.id(), id);
+  store.cache().flush(store.id(), {key, id.version, MemoryCategory::Textures});
+}
+
 void ModelEdit::refreshStale(const CancelToken* cancel) {
   std::vector<PatchKey> stale;
   for (const auto& [key, info] : model_->patches()) {

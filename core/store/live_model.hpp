@@ -245,6 +245,14 @@ class ModelEdit {
   void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid,
                     std::shared_ptr<const TextureTile> texture = nullptr);
 
+  /// Writes a changed patch's data (positions and texture tile) into its draft folder now rather
+  /// than at publish, for a patch this edit will not change again: the write overlaps the edit's
+  /// further work, and the data becomes evictable without a write-back. Nothing for a patch
+  /// whose data is not changed or already written. Thread-safe for distinct keys, beside
+  /// setPositions of other keys. Throws Error(Io) as publish would; the edit is then only fit to
+  /// be discarded.
+  void writeEarly(const PatchKey& key);
+
   /// Recomputes every stale overview bottom-up by reduction, holding one parent's children at a
   /// time; its texture tile is downsampled from the children's (downsampleQuadrants), a child
   /// without a tile of its own size (none, or a foreign one of another size) counting with its

@@ -306,6 +306,33 @@ TEST(PatchCache, SeveralFlushersWriteEveryDirtyEntryOnceBetweenThem) {
   cache.removeModel(model);
 }
 
+TEST(PatchCache, FlushingOneEntryWritesItAloneAndLeavesTheOthersDirty) {
+  // A merge stores each finished patch while it computes the next ones.
+  FakeStore store(3, kMiB);
+  PatchCache cache(8 * kMiB);
+  const auto model = cache.addModel("m", store);
+  for (int i = 0; i < 3; ++i) {
+    cache.put(model, FakeStore::id(i), {makeBlob(kMiB, 20 + i), kMiB}, true);
+  }
+  cache.flush(model, FakeStore::id(1));
+  EXPECT_EQ(store.writes(), 1);
+  EXPECT_EQ(store.stored(FakeStore::key(1)), 21u);
+  cache.flush(model, FakeStore::id(1));  // clean now: no second write
+  cache.flush(model, FakeStore::id(7));  // not resident: nothing
+  EXPECT_EQ(store.writes(), 1);
+  // A failure reaches the caller and leaves the entry dirty; the model's flush writes the rest.
+  cache.put(model, FakeStore::id(1), {makeBlob(kMiB, 31), kMiB}, true);
+  store.failWrites_ = true;
+  EXPECT_THROW(cache.flush(model, FakeStore::id(1)), Error);
+  store.failWrites_ = false;
+  cache.flush(model);
+  EXPECT_EQ(store.writes(), 4);
+  EXPECT_EQ(store.stored(FakeStore::key(0)), 20u);
+  EXPECT_EQ(store.stored(FakeStore::key(1)), 31u);
+  EXPECT_EQ(store.stored(FakeStore::key(2)), 22u);
+  cache.removeModel(model);
+}
+
 TEST(PatchCache, InvalidateServesNewDataWhileOldPinsKeepTheirs) {
   FakeStore store(2, kMiB);
   PatchCache cache(4 * kMiB);

@@ -484,6 +484,38 @@ TEST_F(StoreTest, ADiscardedEditLeavesEveryFileAsItWas) {
   EXPECT_EQ(filesUnder(dir_), before);
 }
 
+TEST_F(StoreTest, APatchWrittenEarlyIsOnDiskBeforePublishAndPublishedUnchanged) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  auto edit = live->beginEdit();
+  const PatchKey early{2, 1, 1}, late{2, 2, 1};
+  edit->setPositions(early, leafGrid(1, 1, 4.0));
+  edit->setPositions(late, leafGrid(2, 1, 5.0));
+  const fs::path earlyFile = dir_ / "Patches" / edit->model().at(early).folder / "Positions.aara";
+  const fs::path lateFile = dir_ / "Patches" / edit->model().at(late).folder / "Positions.aara";
+  EXPECT_FALSE(fs::exists(earlyFile));
+  edit->writeEarly(early);
+  EXPECT_TRUE(fs::exists(earlyFile));
+  EXPECT_FALSE(fs::exists(lateFile));
+  EXPECT_EQ(cache.stats().writeBacks, 1u);
+  edit->writeEarly(early);      // already written: nothing
+  edit->writeEarly({2, 3, 3});  // unchanged by the edit: nothing
+  EXPECT_EQ(cache.stats().writeBacks, 1u);
+  edit->publish();
+  EXPECT_TRUE(fs::exists(lateFile));
+  PatchCache fresh(64 << 20);
+  auto reopened = LiveModel::open(dir_, "m2", fresh, LiveModel::Access::Read);
+  const auto snapshot = reopened->snapshot();
+  for (const auto& [key, height] : {std::pair{early, 4.0}, std::pair{late, 5.0}}) {
+    const PatchGrid expected = *leafGrid(key.x, key.y, height);
+    const PatchCache::Pin grid = reopened->positions(*snapshot, key);
+    ASSERT_EQ(grid.get<PatchGrid>()->positions().size(), expected.positions().size());
+    EXPECT_TRUE(std::equal(expected.positions().begin(), expected.positions().end(),
+                           grid.get<PatchGrid>()->positions().begin()))
+        << key.toString();
+  }
+}
+
 TEST_F(StoreTest, OnlyOneEditAtATime) {
   PatchCache cache(64 << 20);
   auto live = LiveModel::open(dir_, "m", cache);
