@@ -1,8 +1,5 @@
-// Texture tiles through OpenImageIO (kept out of every public header).
+// Texture tiles through OpenImageIO, in its own module (image_codec.hpp).
 #include "core/opc/texture_file.hpp"
-
-#include <OpenImageIO/filesystem.h>
-#include <OpenImageIO/imageio.h>
 
 #include <algorithm>
 #include <cctype>
@@ -15,6 +12,7 @@
 
 #include "core/common/error.hpp"
 #include "core/opc/aara.hpp"
+#include "core/opc/image_codec.hpp"
 #include "core/opc/opc_detail.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
@@ -25,47 +23,26 @@ namespace vsm::core {
 namespace fs = std::filesystem;
 namespace {
 
-/// Encodes `pixels` (width x height x channels bytes) in the format of `name`'s extension, in
-/// memory (OpenImageIO's IOVecOutput proxy).
+/// Encodes `pixels` (width x height x channels bytes) in the format of `name`'s extension.
 std::vector<std::byte> encodeImage(
     const char* name, const std::uint8_t* pixels, int width, int height, int channels,
     const char* compression, const std::vector<std::pair<std::string, std::string>>& text = {}) {
-  std::vector<unsigned char> buffer;
-  OIIO::Filesystem::IOVecOutput proxy(buffer);
-  std::unique_ptr<OIIO::ImageOutput> out = OIIO::ImageOutput::create(name);
-  if (!out || !out->supports("ioproxy")) {
-    throw Error(ErrorCode::Internal, std::string("OpenImageIO cannot write ") + name +
-                                         " to memory: " + OIIO::geterror());
+  std::vector<std::byte> bytes;
+  std::string error;
+  switch (image::codec().encode(name, pixels, width, height, channels, compression, text, bytes,
+                                error)) {
+    case image::Codec::Status::Ok:
+      return bytes;
+    case image::Codec::Status::NoWriter:
+      throw Error(ErrorCode::InvalidArgument,
+                  std::string("OpenImageIO cannot write the format of '") + name + "': " + error);
+    default:
+      throw Error(ErrorCode::Internal,
+                  std::string("OpenImageIO cannot encode ") + name + ": " + error);
   }
-  OIIO::ImageSpec spec(width, height, channels, OIIO::TypeDesc::UINT8);
-  if (compression != nullptr) {
-    spec.attribute("compression", compression);
-  }
-  // OpenImageIO stamps a TIFF with the time it is written unless told a time: the same texels must
-  // give the same bytes (imports in parallel, re-imports, a restore compared with its revision).
-  spec.attribute("DateTime", "");
-  for (const auto& [keyword, value] : text) {
-    spec.attribute(keyword, value);
-  }
-  out->set_ioproxy(&proxy);
-  if (!out->open(name, spec) || !out->write_image(OIIO::TypeDesc::UINT8, pixels) || !out->close()) {
-    throw Error(ErrorCode::Internal,
-                std::string("OpenImageIO cannot encode ") + name + ": " + out->geterror());
-  }
-  std::vector<std::byte> bytes(buffer.size());
-  std::memcpy(bytes.data(), buffer.data(), buffer.size());
-  return bytes;
 }
 
-/// The first subimage of a texture file as 8-bit pixels, at most 4 channels of it.
-struct Image {
-  int width = 0;
-  int height = 0;
-  /// Channels in `pixels`: min(fileChannels, 4).
-  int channels = 0;
-  int fileChannels = 0;
-  std::vector<std::uint8_t> pixels;
-};
+using image::Image;
 
 // Texture files are opened only with the readers of the formats OPC textures come in (TIFF and
 // DDS as OPC.md names them, PNG and JPEG from other producers), each chosen by name: never
@@ -118,90 +95,70 @@ const char* readerForContent(const fs::path& file) {
   return nullptr;
 }
 
-/// `file` opened with OpenImageIO's reader `reader`; null, with the reader's message in `error`,
-/// when that reader cannot open it.
-std::unique_ptr<OIIO::ImageInput> openWith(const char* reader, const fs::path& file,
-                                           std::string& error) {
-  std::unique_ptr<OIIO::ImageInput> in = OIIO::ImageInput::create(reader);
-  if (!in) {
-    throw Error(ErrorCode::Internal,
-                std::string("OpenImageIO has no ") + reader + " reader: " + OIIO::geterror());
-  }
-  OIIO::ImageSpec spec;
-  if (!in->open(file.string(), spec)) {
-    error = in->geterror();
-    return nullptr;
-  }
-  return in;
-}
-
-/// `file` opened with the reader its extension implies, else with the one its first bytes name.
-/// Throws Error(Corrupt) when neither opens it.
-std::unique_ptr<OIIO::ImageInput> openTexture(const fs::path& file) {
-  std::string error;
-  const char* byExtension = readerForExtension(file);
-  if (byExtension != nullptr) {
-    if (auto in = openWith(byExtension, file, error)) {
-      return in;
-    }
-  }
-  const char* byContent = readerForContent(file);
-  if (byContent == nullptr) {
-    throw Error(ErrorCode::Corrupt, "texture '" + file.string() +
-                                        "' is not a TIFF, DDS, PNG or JPEG image, the formats "
-                                        "accepted for textures");
-  }
-  if (byExtension == nullptr || std::strcmp(byContent, byExtension) != 0) {
-    if (auto in = openWith(byContent, file, error)) {
-      return in;
-    }
-  }
-  throw Error(ErrorCode::Corrupt, "cannot read texture '" + file.string() + "': " + error);
-}
-
-/// Reads `file`, refusing before any allocation an image of more than `maxPixels` pixels.
+/// `file` read with the reader its extension implies, else with the one its first bytes name,
+/// refusing before any allocation an image of more than `maxPixels` pixels. Throws
+/// Error(NotFound) when it does not exist, Error(Corrupt) when neither reader opens it or it is
+/// unusable, too large or does not decode.
 Image readImage(const fs::path& file, std::uint64_t maxPixels) {
   std::error_code ec;
   if (!fs::exists(file, ec)) {
     throw Error(ErrorCode::NotFound, "texture '" + file.string() + "' does not exist");
   }
-  const std::unique_ptr<OIIO::ImageInput> in = openTexture(file);
-  const OIIO::ImageSpec& spec = in->spec();
+  const image::Codec& codec = image::codec();
   Image image;
-  image.width = spec.width;
-  image.height = spec.height;
-  image.fileChannels = spec.nchannels;
-  image.channels = std::min(spec.nchannels, 4);
-  if (image.width < 1 || image.height < 1 || image.channels < 1) {
-    throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has unusable dimensions " +
-                                        std::to_string(image.width) + " x " +
-                                        std::to_string(image.height) + " x " +
-                                        std::to_string(image.fileChannels) + " channels");
+  std::string error;
+  auto readWith = [&](const char* reader) {
+    image = Image{};
+    return codec.read(reader, file.string(), maxPixels, image, error);
+  };
+  using Status = image::Codec::Status;
+  const char* byExtension = readerForExtension(file);
+  Status status = byExtension != nullptr ? readWith(byExtension) : Status::CannotOpen;
+  if (status == Status::CannotOpen) {
+    const char* byContent = readerForContent(file);
+    if (byContent == nullptr) {
+      throw Error(ErrorCode::Corrupt, "texture '" + file.string() +
+                                          "' is not a TIFF, DDS, PNG or JPEG image, the formats "
+                                          "accepted for textures");
+    }
+    if (byExtension == nullptr || std::strcmp(byContent, byExtension) != 0) {
+      status = readWith(byContent);
+    }
   }
-  const std::uint64_t pixels = static_cast<std::uint64_t>(image.width) * image.height;
-  if (pixels > maxPixels) {
-    throw Error(ErrorCode::Corrupt,
-                "texture '" + file.string() + "' is " + std::to_string(image.width) + " x " +
-                    std::to_string(image.height) + " pixels, more than limits.texture_pixels (" +
-                    std::to_string(maxPixels) + ")");
+  switch (status) {
+    case Status::Ok:
+      return image;
+    case Status::Unusable:
+      throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has unusable dimensions " +
+                                          std::to_string(image.width) + " x " +
+                                          std::to_string(image.height) + " x " +
+                                          std::to_string(image.fileChannels) + " channels");
+    case Status::TooLarge:
+      throw Error(ErrorCode::Corrupt,
+                  "texture '" + file.string() + "' is " + std::to_string(image.width) + " x " +
+                      std::to_string(image.height) + " pixels, more than limits.texture_pixels (" +
+                      std::to_string(maxPixels) + ")");
+    case Status::CannotDecode:
+      throw Error(ErrorCode::Corrupt, "cannot decode texture '" + file.string() + "': " + error);
+    default:
+      throw Error(ErrorCode::Corrupt, "cannot read texture '" + file.string() + "': " + error);
   }
-  image.pixels.resize(static_cast<std::size_t>(pixels) * image.channels);
-  // An 8-bit file is read as it is (TypeDesc::UNKNOWN): OpenImageIO 2.4 converts any other
-  // request through a buffer of about 64 MB, whatever the image's size.
-  const bool eightBit = spec.format == OIIO::TypeDesc::UINT8 && spec.channelformats.empty();
-  const OIIO::TypeDesc format = eightBit ? OIIO::TypeDesc::UNKNOWN : OIIO::TypeDesc::UINT8;
-  if (!in->read_image(0, 0, 0, image.channels, format, image.pixels.data())) {
-    throw Error(ErrorCode::Corrupt,
-                "cannot decode texture '" + file.string() + "': " + in->geterror());
-  }
-  return image;
 }
 
 }  // namespace
 
+void loadImageCodec() {
+  image::codec();
+}
+
 std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
   return encodeImage("tile.tif", tile.texels().data(), tile.size(), tile.size(),
                      TextureTile::kChannels, "zip:1");
+}
+
+std::vector<std::byte> encodeImageFile(const std::string& name, const std::uint8_t* rgba, int width,
+                                       int height) {
+  return encodeImage(name.c_str(), rgba, width, height, 4, nullptr);
 }
 
 std::vector<std::byte> encodePng(const std::uint8_t* rgba, int width, int height,

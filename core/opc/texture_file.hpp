@@ -17,6 +17,11 @@ namespace vsm::core {
 /// The layer (folder under Images/) of the texture tiles vsm writes.
 inline constexpr std::string_view kTextureLayer = "Diffuse";
 
+/// Loads OpenImageIO's module (core/opc/image_codec.hpp) now; otherwise the first texture file
+/// read or written loads it, which takes ~0.45 s. For a caller that will need it and can load it
+/// on a thread of its own meanwhile. Throws Error(Internal) when it cannot be loaded.
+void loadImageCodec();
+
 /// A tile as an RGBA 8-bit TIFF file (deflate-compressed, through OpenImageIO).
 /// Throws Error(Internal) when OpenImageIO cannot encode it.
 std::vector<std::byte> encodeTextureTiff(const TextureTile& tile);
@@ -25,6 +30,12 @@ std::vector<std::byte> encodeTextureTiff(const TextureTile& tile);
 /// as (keyword, value) text chunks. Throws Error(Internal) when OpenImageIO cannot encode it.
 std::vector<std::byte> encodePng(const std::uint8_t* rgba, int width, int height,
                                  const std::vector<std::pair<std::string, std::string>>& text = {});
+
+/// An RGBA 8-bit image (as encodePng) as a file of the format `name`'s extension names (".png",
+/// ".tif", ".jpg": any OpenImageIO writes to memory). Throws Error(InvalidArgument) when it writes
+/// no such format, Error(Internal) when encoding fails.
+std::vector<std::byte> encodeImageFile(const std::string& name, const std::uint8_t* rgba, int width,
+                                       int height);
 
 /// The default bound on the pixels of a texture file a reader decodes (16384 x 16384), the
 /// configuration's limits.texture_pixels: a file's header may claim any size.

@@ -21,8 +21,6 @@
 #include <thread>
 #include <vector>
 
-#include <OpenImageIO/imageio.h>
-
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
@@ -34,6 +32,7 @@
 #include "core/merge/register.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
+#include "core/opc/texture_file.hpp"
 #include "core/store/live_model.hpp"
 #include "core/tiles/lod_render.hpp"
 #include "server/cli/console.hpp"
@@ -83,6 +82,23 @@ class ThreadExecutor final : public Executor {
   }
 };
 
+/// Loads OpenImageIO's module (loadImageCodec, ~0.45 s) on a thread of its own while the command
+/// opens its inputs, for commands that will read or write texture tiles; joined at the end of the
+/// scope. A failure is left to the first texture operation, which tries again and reports it.
+class ImageCodecPreload {
+ public:
+  ImageCodecPreload()
+      : thread_([] {
+          try {
+            loadImageCodec();
+          } catch (const Error&) {
+          }
+        }) {}
+
+ private:
+  std::jthread thread_;
+};
+
 int runImport(const std::vector<std::string_view>& args) {
   std::vector<std::string_view> positional;
   ImportOptions options;
@@ -121,6 +137,10 @@ int runImport(const std::vector<std::string_view>& args) {
     std::fprintf(stderr,
                  "vsm: warning: --texture none: the model gets no Images/ and no texture "
                  "coordinates, so PRo3D will not open it\n");
+  }
+  std::optional<ImageCodecPreload> preload;
+  if (options.drape != ImportOptions::Drape::None) {
+    preload.emplace();  // the texture tiles
   }
   ConsoleProgress progress(bytesUnder(fs::path(positional[0])));
   options.progress = &progress;
@@ -249,6 +269,7 @@ int runMerge(const std::vector<std::string_view>& args) {
   const fs::path target(positional[0]);
   const fs::path detailDir(positional[1]);
   const auto start = std::chrono::steady_clock::now();
+  const ImageCodecPreload preload;  // the models' texture tiles
   PatchCache cache(budget);
   // In place, the target's writer lock comes first: a model another writer (vsmd, another vsm
   // merge) holds fails at once, naming the holder. The detail model is only read (no lock). With
@@ -351,26 +372,10 @@ int runRenderLod(const std::vector<std::string_view>& args) {
       },
       options);
 
-  // Written under a temporary name in the same directory (ending in the extension, which picks
-  // the format), then renamed: a reader never sees half a picture.
-  const fs::path temporary =
-      out.parent_path() / ("." + out.filename().string() + ".tmp-" + std::to_string(::getpid()) +
-                           out.extension().string());
-  const auto output = OIIO::ImageOutput::create(temporary.string());
-  if (!output) {
-    throw Error(ErrorCode::InvalidArgument,
-                "cannot write '" + out.string() + "': " + OIIO::geterror());
-  }
-  const OIIO::ImageSpec spec(image.width, image.height, 4, OIIO::TypeDesc::UINT8);
-  if (!output->open(temporary.string(), spec) ||
-      !output->write_image(OIIO::TypeDesc::UINT8, image.rgba.data()) || !output->close()) {
-    const std::string message = output->geterror();
-    std::error_code ignored;
-    fs::remove(temporary, ignored);
-    throw Error(ErrorCode::Io, "cannot write '" + out.string() + "': " + message);
-  }
-  durable::syncFile(temporary);
-  durable::replaceFile(temporary, out);
+  // The format is the one the extension names; replaced atomically: a reader never sees half a
+  // picture.
+  durable::writeFileAtomically(
+      out, encodeImageFile(out.filename().string(), image.rgba.data(), image.width, image.height));
   writeWorldFile(out, image.x0, image.y0, image.dx, image.dy);
 
   std::printf("%s: %d x %d pixels, %s x %.10g .. %.10g, y %.10g .. %.10g\n", out.string().c_str(),

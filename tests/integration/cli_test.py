@@ -186,6 +186,49 @@ class StartUp(unittest.TestCase):
             self.assertLessEqual(len(libraries), 10, "vsm %s loads %s" % (args[0], libraries))
 
 
+class ImageModule(unittest.TestCase):
+    """OpenImageIO is linked by no binary: libvsm_image.so is loaded on the first texture image
+    (core/opc/image_codec.hpp), so it costs only the commands that read or write one."""
+
+    def test_no_binary_links_openimageio(self):
+        heavy = os.path.join(os.path.dirname(ARGS.vsm), "vsm-heavy")
+        for binary in (ARGS.vsm, heavy):
+            result = subprocess.run(["ldd", binary], capture_output=True, text=True, timeout=60)
+            self.assertEqual(result.returncode, 0, result.stderr)
+            self.assertNotIn("libOpenImageIO", result.stdout, binary)
+
+    def test_a_textured_import_loads_the_module_and_an_untextured_one_does_not(self):
+        raster = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
+        for texture, expected in ((None, True), ("none", False)):
+            out = work("module-%s" % texture)
+            extra = ["--texture", texture] if texture else []
+            result = subprocess.run(
+                [ARGS.vsm, "import", raster, out, "--patch-size", "65", *extra],
+                capture_output=True, text=True, timeout=600,
+                env=dict(os.environ, LD_DEBUG="files"))
+            self.assertEqual(result.returncode, 0, result.stderr[-2000:])
+            loaded = re.findall(r"file=(\S+) \[\d+\];\s+generating link map", result.stderr)
+            self.assertEqual(any("libvsm_image.so" in name for name in loaded), expected, texture)
+            self.assertEqual(any("libOpenImageIO" in name for name in loaded), expected, texture)
+
+    def test_a_missing_module_is_one_line_naming_it_and_writes_nothing(self):
+        out = work("module-missing")
+        missing = work("no-such-dir") + "/libvsm_image.so"
+        result = subprocess.run(
+            [ARGS.vsm, "import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), out,
+             "--patch-size", "65"],
+            capture_output=True, text=True, timeout=600,
+            env=dict(os.environ, VSM_IMAGE_MODULE=missing))
+        self.assertEqual(result.returncode, 1, result.stderr)
+        # Progress lines, then one error line.
+        lines = result.stderr.strip().splitlines()
+        errors = [line for line in lines if line.startswith("vsm: error: ")]
+        self.assertEqual(errors, lines[-1:], result.stderr)
+        self.assertIn(missing, errors[0])
+        self.assertIn("VSM_IMAGE_MODULE", errors[0])
+        self.assertFalse(os.path.exists(out))
+
+
 class ValidateFindsEachBreak(unittest.TestCase):
     @classmethod
     def setUpClass(cls):
