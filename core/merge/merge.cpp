@@ -68,13 +68,14 @@ std::shared_ptr<const TextureTile> textureOf(PatchSource& source, const PatchKey
 
 /// The texture of new patch (i, j) of `level` below a's leaf, whose vertices are `grid`: per
 /// texel, B's texture where a textured part of B lies under the texel's centre (level k only,
-/// `detail` given), else a's tile upsampled (`aTile`, may be null), else the patch's own shaded
-/// relief (so every patch a merge writes has a tile, whichever model had none).
-std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, int level,
-                                                std::uint32_t i, std::uint32_t j,
-                                                const PatchGrid& grid, const TextureTile* aTile,
-                                                const SurfaceSampler* detail,
-                                                const std::vector<const TextureTile*>& bTiles) {
+/// `detail` given, with `onDetail`: where on B positions() placed each vertex of the patch), else
+/// a's tile upsampled (`aTile`, may be null), else the patch's own shaded relief (so every patch a
+/// merge writes has a tile, whichever model had none).
+std::shared_ptr<const TextureTile> placeTexture(
+    const Subdivider& subdivider, int level, std::uint32_t i, std::uint32_t j,
+    const PatchGrid& grid, const TextureTile* aTile, const SurfaceSampler* detail,
+    const std::vector<std::optional<SurfacePoint>>& onDetail,
+    const std::vector<const TextureTile*>& bTiles) {
   const bool fromDetail =
       detail != nullptr && level == subdivider.k() &&
       std::any_of(bTiles.begin(), bTiles.end(), [](const TextureTile* t) { return t != nullptr; });
@@ -86,35 +87,55 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
   auto tile = std::make_shared<TextureTile>(textureTileSize(grid.size()));
   bool uncoloured = false;
   const int size = tile->size();
+  const auto n = static_cast<std::size_t>(grid.size());
   const double scale = std::ldexp(1.0, level);
-  // Texel (p, q) covers the quad between union vertices (u, v) and (u + 1, v + 1) of level k.
+  // Texel (p, q) covers the quad between vertices (p, q) and (p + 1, q + 1) of the patch, union
+  // vertices (u0 + p, v0 + q) and (u0 + p + 1, v0 + q + 1) of level k.
   const std::int64_t u0 = std::int64_t{i} * size;
   const std::int64_t v0 = std::int64_t{j} * size;
-  std::vector<Vec3d> top(static_cast<std::size_t>(size) + 1), bottom(top.size());
-  auto row = [&](std::int64_t v, std::vector<Vec3d>& out) {
-    for (int p = 0; p <= size; ++p) {
-      out[p] = subdivider.interpolate(u0 + p, v);
+  // B's colour under the texel's centre. Where the four corners lie on one grid of B, its
+  // parameter there is the mean of theirs (exact where B's cells and the quad are parallelograms,
+  // otherwise off by the second order of the texel's size: a fraction of a texel far below what
+  // rounding the colour keeps). Elsewhere (B's border, the seams between its grids) the centre
+  // of the quad on a's surface (it lies in one cell of a, so the mean of its corners is its
+  // bilinear centre) is located on B by its projection.
+  auto detailColour = [&](int p, int q) -> std::array<std::uint8_t, 4> {
+    const std::size_t corner = static_cast<std::size_t>(q) * n + static_cast<std::size_t>(p);
+    const std::optional<SurfacePoint>* c[4] = {&onDetail[corner], &onDetail[corner + 1],
+                                               &onDetail[corner + n], &onDetail[corner + n + 1]};
+    std::uint32_t b = 0;
+    double x = 0, y = 0;
+    if (std::all_of(std::begin(c), std::end(c),
+                    [&](const auto* h) { return h->has_value() && (*h)->grid == (*c[0])->grid; })) {
+      b = (*c[0])->grid;
+      for (const auto* h : c) {
+        x += (*h)->x * 0.25;
+        y += (*h)->y * 0.25;
+      }
+    } else {
+      const Vec3d centre =
+          (subdivider.interpolate(u0 + p, v0 + q) + subdivider.interpolate(u0 + p + 1, v0 + q) +
+           subdivider.interpolate(u0 + p, v0 + q + 1) +
+           subdivider.interpolate(u0 + p + 1, v0 + q + 1)) *
+          0.25;
+      const std::optional<SurfacePoint> hit = detail->locate(centre);
+      if (!hit) {
+        return {0, 0, 0, 0};
+      }
+      b = hit->grid;
+      x = hit->x;
+      y = hit->y;
     }
+    if (const TextureTile* t = bTiles[b]) {
+      return sampleBilinear(*t, x - 0.5, y - 0.5);
+    }
+    return {0, 0, 0, 0};
   };
-  if (fromDetail) {
-    row(v0, bottom);
-  }
   for (int q = 0; q < size; ++q) {
-    if (fromDetail) {
-      std::swap(top, bottom);
-      row(v0 + q + 1, bottom);
-    }
     for (int p = 0; p < size; ++p) {
       std::array<std::uint8_t, 4> colour{0, 0, 0, 0};
       if (fromDetail) {
-        // The centre of the texel's quad on a's surface (the quad lies in one cell of a, so the
-        // mean of its corners is its bilinear centre), located on B by its projection.
-        const Vec3d centre = (top[p] + top[p + 1] + bottom[p] + bottom[p + 1]) * 0.25;
-        if (const std::optional<SurfacePoint> hit = detail->locate(centre)) {
-          if (const TextureTile* b = bTiles[hit->grid]) {
-            colour = sampleBilinear(*b, hit->x - 0.5, hit->y - 0.5);
-          }
-        }
+        colour = detailColour(p, q);
       }
       if (colour[3] == 0 && aTile != nullptr) {
         colour = sampleBilinear(*aTile, (static_cast<double>(u0 + p) + 0.5) / scale - 0.5,
@@ -420,8 +441,9 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
         }
       }
       const SurfaceSampler* surface = sampler ? &*sampler : nullptr;
+      std::vector<std::optional<SurfacePoint>> onDetail;
       const std::vector<Vec3d> positions =
-          subdivider->positions(leaf.level, leaf.i, leaf.j, surface, &out.taken);
+          subdivider->positions(leaf.level, leaf.i, leaf.j, surface, &out.taken, &onDetail);
       const auto first = std::find_if(positions.begin(), positions.end(),
                                       [](const Vec3d& p) { return p.finite(); });
       if (first == positions.end()) {
@@ -430,7 +452,7 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
       out.firstDefined = *first;
       out.grid = std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions));
       out.texture = placeTexture(*subdivider, leaf.level, leaf.i, leaf.j, *out.grid, aTexture.get(),
-                                 surface, tiles);
+                                 surface, onDetail, tiles);
     };
 
     // Inserted in plan order; a refined patch goes in, as a placeholder (a's surface subdivided

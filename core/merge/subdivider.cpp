@@ -59,27 +59,34 @@ Vec3d Subdivider::interpolate(std::int64_t u, std::int64_t v) const {
 }
 
 std::vector<Vec3d> Subdivider::positions(int level, std::uint32_t i, std::uint32_t j,
-                                         const SurfaceSampler* detail,
-                                         std::size_t* fromDetail) const {
+                                         const SurfaceSampler* detail, std::size_t* fromDetail,
+                                         std::vector<std::optional<SurfacePoint>>* onDetail) const {
   if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
     throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
   }
   const std::int64_t stride = std::int64_t{1} << (k_ - level);
   const std::int64_t cells = size_ - 1;
   std::vector<Vec3d> out(static_cast<std::size_t>(size_) * size_);
+  if (onDetail != nullptr) {
+    onDetail->assign(out.size(), std::nullopt);
+  }
   std::size_t taken = 0;
   for (int y = 0; y < size_; ++y) {
     const std::int64_t v = (static_cast<std::int64_t>(j) * cells + y) * stride;
     for (int x = 0; x < size_; ++x) {
       const std::int64_t u = (static_cast<std::int64_t>(i) * cells + x) * stride;
+      const std::size_t index = static_cast<std::size_t>(y) * size_ + x;
       Vec3d p = interpolate(u, v);
       if (detail != nullptr && p.finite()) {
-        if (const auto s = detail->sample(p)) {
-          p = *s;
+        if (std::optional<SurfacePoint> hit = detail->locate(p)) {
+          p = hit->position;
           ++taken;
+          if (onDetail != nullptr) {
+            (*onDetail)[index] = std::move(hit);
+          }
         }
       }
-      out[static_cast<std::size_t>(y) * size_ + x] = p;
+      out[index] = p;
     }
   }
   if (fromDetail != nullptr) {

@@ -2,6 +2,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <vector>
 
 #include "core/grid/patch_grid.hpp"
@@ -9,6 +10,7 @@
 namespace vsm::core {
 
 class SurfaceSampler;
+struct SurfacePoint;
 struct Rect2d;
 struct UpFrame;
 
@@ -45,10 +47,12 @@ class Subdivider {
 
   /// Global positions (row-major, size x size, NaN = undefined) of patch (i, j) of level `level`
   /// (0..k; 0 <= i, j < 2^level), placed on `detail` where it has surface (detail may be null).
-  /// `fromDetail`, when given, receives how many vertices were taken from `detail`.
+  /// `fromDetail`, when given, receives how many vertices were taken from `detail`; `onDetail`,
+  /// when given, where on `detail` each vertex was placed (row-major as the positions; nullopt
+  /// for a vertex not taken from it).
   std::vector<Vec3d> positions(int level, std::uint32_t i, std::uint32_t j,
-                               const SurfaceSampler* detail,
-                               std::size_t* fromDetail = nullptr) const;
+                               const SurfaceSampler* detail, std::size_t* fromDetail = nullptr,
+                               std::vector<std::optional<SurfacePoint>>* onDetail = nullptr) const;
 
   /// The projection (in `frame`) of the bounding rectangle of a's defined vertices around the
   /// cells patch (i, j) of `level` covers: every position interpolated there lies inside it.
