@@ -15,6 +15,7 @@
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "core/durable/durable_io.hpp"
+#include "core/opc/texture_file.hpp"
 #include "server/api/event_routes.hpp"
 #include "server/api/model_routes.hpp"
 #include "server/api/static_routes.hpp"
@@ -294,6 +295,16 @@ void Application::start() {
   events_->start();
   server_->start();
   log::info("listening on " + server_->address());
+  // OpenImageIO's module (~0.45 s to load, core/opc/image_codec.hpp) on a handler thread now,
+  // rather than in the first request or merge that reads or writes a texture tile. A failure is
+  // left to that first use, which tries again and answers with the error.
+  cpuPool_->post([] {
+    try {
+      core::loadImageCodec();
+    } catch (const core::Error& e) {
+      log::warn(std::string("texture images: ") + e.what());
+    }
+  });
   if (coordinator_ != nullptr) {
     std::string advertise = config_.cluster.advertise;
     if (advertise.empty()) {
