@@ -455,8 +455,10 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
                                  surface, onDetail, tiles);
     };
 
-    // Inserted in plan order; a refined patch goes in, as a placeholder (a's surface subdivided
-    // to its level), just before its first non-empty descendant.
+    // Inserted in plan order; a refined patch goes in, as a placeholder, just before its first
+    // non-empty descendant. Reduction recomputes it from its children (inserting them marks it
+    // stale), and nothing reads it before: one defined vertex, that descendant's first, will do
+    // (a's surface subdivided there cost the single thread that inserts a few ms per patch).
     std::size_t added = 0;
     auto insert = [&](const NewLeaf& leaf, Computed& computed) {
       for (int level = 1; level < leaf.level; ++level) {
@@ -466,12 +468,8 @@ MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOpt
         if (target.model().find(parent) != nullptr) {
           continue;
         }
-        PatchGrid placeholder = subdivider->patch(level, i, j, nullptr);
-        if (!placeholder.anyDefined()) {
-          // Only possible when k exceeds the grid's own levels: any defined vertex will do, the
-          // placeholder never outlives the reducing stage (it is stale from now on).
-          placeholder.setGlobal(0, 0, computed.firstDefined);
-        }
+        PatchGrid placeholder(a.gridSize(), Mat4d::translation(computed.firstDefined));
+        placeholder.setGlobal(0, 0, computed.firstDefined);
         target.setPositions(parent, std::make_shared<const PatchGrid>(std::move(placeholder)),
                             nullptr);
         ++added;
