@@ -126,11 +126,6 @@ Rect2d Subdivider::footprint(int level, std::uint32_t i, std::uint32_t j,
   return rect;
 }
 
-PatchGrid Subdivider::patch(int level, std::uint32_t i, std::uint32_t j,
-                            const SurfaceSampler* detail, std::size_t* fromDetail) const {
-  return gridFromGlobal(size_, positions(level, i, j, detail, fromDetail));
-}
-
 PatchGrid gridFromGlobal(int size, const std::vector<Vec3d>& global) {
   Box3d box;
   for (const Vec3d& p : global) {

@@ -58,10 +58,6 @@ class Subdivider {
   /// cells patch (i, j) of `level` covers: every position interpolated there lies inside it.
   Rect2d footprint(int level, std::uint32_t i, std::uint32_t j, const UpFrame& frame) const;
 
-  /// positions() stored as a grid with its own origin, originFor(its global box).
-  PatchGrid patch(int level, std::uint32_t i, std::uint32_t j, const SurfaceSampler* detail,
-                  std::size_t* fromDetail = nullptr) const;
-
  private:
   int k_;
   int size_;

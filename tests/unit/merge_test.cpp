@@ -558,7 +558,7 @@ TEST(Subdivider, LatticePositionsReproduceTheCoarsePatchAndReduceBackToIt) {
     for (const Quadrant q2 : kQuadrants) {
       const int q2i = static_cast<int>(q2);
       const std::uint32_t i = 2 * (q1i & 1) + (q2i & 1), j = 2 * (q1i >> 1) + (q2i >> 1);
-      kids[q2i] = std::make_unique<PatchGrid>(sub.patch(2, i, j, nullptr));
+      kids[q2i] = std::make_unique<PatchGrid>(gridFromGlobal(17, sub.positions(2, i, j, nullptr)));
       children[q2i] = kids[q2i].get();
     }
     level1[q1i] = std::make_shared<PatchGrid>(reduce(children));
