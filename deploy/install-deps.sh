@@ -11,7 +11,7 @@ fi
 PACKAGES=(
   build-essential cmake ninja-build pkg-config git
   libboost-dev libeigen3-dev libpcl-dev libpugixml-dev libopenimageio-dev nlohmann-json3-dev
-  libgtest-dev libgdal-dev zlib1g-dev
+  libgtest-dev libgdal-dev zlib1g-dev libtiff-dev
   # the 3D Tiles GLBs' EXT_meshopt_compression codecs (encoder in vsmd, decoder in the unit tests)
   libmeshoptimizer-dev
   # tests: gdaladdo (benchmark), GDAL's Python bindings for the independent import checker,

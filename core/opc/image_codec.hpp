@@ -45,11 +45,10 @@ class Codec {
   };
 
   /// Encodes `pixels` (width x height x channels bytes, top row first) in the format of `name`'s
-  /// extension ("tile.tif", "image.png"), in memory, with `compression` (OpenImageIO's name; null:
-  /// the format's default) and (keyword, value) metadata, into `out`.
+  /// extension ("image.png", "lod.tif"), in memory, in the format's default compression, with
+  /// (keyword, value) metadata, into `out`.
   virtual Status encode(const char* name, const std::uint8_t* pixels, int width, int height,
-                        int channels, const char* compression,
-                        const std::vector<std::pair<std::string, std::string>>& text,
+                        int channels, const std::vector<std::pair<std::string, std::string>>& text,
                         std::vector<std::byte>& out, std::string& error) const = 0;
 
   /// Reads `file` with OpenImageIO's reader `reader` alone ("tiff", "dds", "png", "jpeg"; never

@@ -15,7 +15,6 @@ namespace {
 class OiioCodec final : public Codec {
  public:
   Status encode(const char* name, const std::uint8_t* pixels, int width, int height, int channels,
-                const char* compression,
                 const std::vector<std::pair<std::string, std::string>>& text,
                 std::vector<std::byte>& out, std::string& error) const override {
     std::vector<unsigned char> buffer;
@@ -26,9 +25,6 @@ class OiioCodec final : public Codec {
       return Status::NoWriter;
     }
     OIIO::ImageSpec spec(width, height, channels, OIIO::TypeDesc::UINT8);
-    if (compression != nullptr) {
-      spec.attribute("compression", compression);
-    }
     // OpenImageIO stamps a TIFF with the time it is written unless told a time: the same texels
     // must give the same bytes (imports in parallel, re-imports, a restore compared with its
     // revision).

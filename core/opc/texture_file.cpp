@@ -26,11 +26,10 @@ namespace {
 /// Encodes `pixels` (width x height x channels bytes) in the format of `name`'s extension.
 std::vector<std::byte> encodeImage(
     const char* name, const std::uint8_t* pixels, int width, int height, int channels,
-    const char* compression, const std::vector<std::pair<std::string, std::string>>& text = {}) {
+    const std::vector<std::pair<std::string, std::string>>& text = {}) {
   std::vector<std::byte> bytes;
   std::string error;
-  switch (image::codec().encode(name, pixels, width, height, channels, compression, text, bytes,
-                                error)) {
+  switch (image::codec().encode(name, pixels, width, height, channels, text, bytes, error)) {
     case image::Codec::Status::Ok:
       return bytes;
     case image::Codec::Status::NoWriter:
@@ -151,19 +150,14 @@ void loadImageCodec() {
   image::codec();
 }
 
-std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
-  return encodeImage("tile.tif", tile.texels().data(), tile.size(), tile.size(),
-                     TextureTile::kChannels, "zip:1");
-}
-
 std::vector<std::byte> encodeImageFile(const std::string& name, const std::uint8_t* rgba, int width,
                                        int height) {
-  return encodeImage(name.c_str(), rgba, width, height, 4, nullptr);
+  return encodeImage(name.c_str(), rgba, width, height, 4);
 }
 
 std::vector<std::byte> encodePng(const std::uint8_t* rgba, int width, int height,
                                  const std::vector<std::pair<std::string, std::string>>& text) {
-  return encodeImage("image.png", rgba, width, height, 4, nullptr, text);
+  return encodeImage("image.png", rgba, width, height, 4, text);
 }
 
 TextureTile readTextureTile(const fs::path& file, std::uint64_t maxPixels) {
@@ -218,8 +212,7 @@ std::vector<std::byte> readPatchTexturePng(const fs::path& dir, const PatchInfo&
     throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has more than 4 channels");
   }
   // PNG holds 1 to 4 channels of 8 bits: the image as it is.
-  return encodeImage("tile.png", image.pixels.data(), image.width, image.height, image.channels,
-                     nullptr);
+  return encodeImage("tile.png", image.pixels.data(), image.width, image.height, image.channels);
 }
 
 std::vector<std::byte> readPatchCoordinates(const fs::path& dir, const PatchInfo& info) {

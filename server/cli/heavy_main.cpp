@@ -83,7 +83,7 @@ class ThreadExecutor final : public Executor {
 };
 
 /// Loads OpenImageIO's module (loadImageCodec, ~0.45 s) on a thread of its own while the command
-/// opens its inputs, for commands that will read or write texture tiles; joined at the end of the
+/// opens its inputs, for commands that will read texture tiles; joined at the end of the
 /// scope. A failure is left to the first texture operation, which tries again and reports it.
 class ImageCodecPreload {
  public:
@@ -137,10 +137,6 @@ int runImport(const std::vector<std::string_view>& args) {
     std::fprintf(stderr,
                  "vsm: warning: --texture none: the model gets no Images/ and no texture "
                  "coordinates, so PRo3D will not open it\n");
-  }
-  std::optional<ImageCodecPreload> preload;
-  if (options.drape != ImportOptions::Drape::None) {
-    preload.emplace();  // the texture tiles
   }
   ConsoleProgress progress(bytesUnder(fs::path(positional[0])));
   options.progress = &progress;

@@ -5,6 +5,7 @@
 Run by ctest with Debian's python3 (python3-gdal for making test rasters)."""
 
 import argparse
+import glob
 import os
 import pty
 import re
@@ -197,36 +198,52 @@ class ImageModule(unittest.TestCase):
             self.assertEqual(result.returncode, 0, result.stderr)
             self.assertNotIn("libOpenImageIO", result.stdout, binary)
 
-    def test_a_textured_import_loads_the_module_and_an_untextured_one_does_not(self):
+    def loaded_libraries(self, *args, env=None):
+        result = subprocess.run(
+            [ARGS.vsm, *args], capture_output=True, text=True, timeout=600,
+            env=dict(env or os.environ, LD_DEBUG="files"))
+        self.assertEqual(result.returncode, 0, result.stderr[-2000:])
+        return re.findall(r"file=(\S+) \[\d+\];\s+generating link map", result.stderr)
+
+    def test_an_import_writes_its_tiles_without_it_and_a_rendering_loads_it(self):
         raster = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
-        for texture, expected in ((None, True), ("none", False)):
-            out = work("module-%s" % texture)
+        models = {}
+        for texture in (None, "none"):
+            out = models[texture] = work("module-%s" % texture)
             extra = ["--texture", texture] if texture else []
-            result = subprocess.run(
-                [ARGS.vsm, "import", raster, out, "--patch-size", "65", *extra],
-                capture_output=True, text=True, timeout=600,
-                env=dict(os.environ, LD_DEBUG="files"))
-            self.assertEqual(result.returncode, 0, result.stderr[-2000:])
-            loaded = re.findall(r"file=(\S+) \[\d+\];\s+generating link map", result.stderr)
-            self.assertEqual(any("libvsm_image.so" in name for name in loaded), expected, texture)
-            self.assertEqual(any("libOpenImageIO" in name for name in loaded), expected, texture)
+            loaded = self.loaded_libraries("import", raster, out, "--patch-size", "65", *extra)
+            self.assertFalse(any("libvsm_image.so" in name for name in loaded), texture)
+            self.assertFalse(any("libOpenImageIO" in name for name in loaded), texture)
+            # Tiles are TIFFs written with libtiff (core/opc/tiff_tile.cpp): one per patch.
+            tiles = glob.glob(os.path.join(out, "Images", "Diffuse", "*.tif"))
+            self.assertEqual(len(tiles) > 0, texture is None, texture)
+        # Reading the tiles back (to render them) is what loads the module.
+        picture = os.path.join(work("module-lod"), "lod.png")
+        os.makedirs(os.path.dirname(picture))
+        loaded = self.loaded_libraries("render-lod", models[None], picture, "--size", "64")
+        self.assertTrue(any("libvsm_image.so" in name for name in loaded))
+        self.assertTrue(any("libOpenImageIO" in name for name in loaded))
+        self.assertTrue(os.path.getsize(picture) > 0)
 
     def test_a_missing_module_is_one_line_naming_it_and_writes_nothing(self):
-        out = work("module-missing")
+        model = work("module-missing-model")
+        imported = vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), model,
+                       "--patch-size", "65")
+        self.assertEqual(imported.returncode, 0, imported.stderr)
+        picture = os.path.join(work("module-missing"), "lod.png")
+        os.makedirs(os.path.dirname(picture))
         missing = work("no-such-dir") + "/libvsm_image.so"
         result = subprocess.run(
-            [ARGS.vsm, "import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), out,
-             "--patch-size", "65"],
+            [ARGS.vsm, "render-lod", model, picture, "--size", "64"],
             capture_output=True, text=True, timeout=600,
             env=dict(os.environ, VSM_IMAGE_MODULE=missing))
         self.assertEqual(result.returncode, 1, result.stderr)
-        # Progress lines, then one error line.
         lines = result.stderr.strip().splitlines()
         errors = [line for line in lines if line.startswith("vsm: error: ")]
         self.assertEqual(errors, lines[-1:], result.stderr)
         self.assertIn(missing, errors[0])
         self.assertIn("VSM_IMAGE_MODULE", errors[0])
-        self.assertFalse(os.path.exists(out))
+        self.assertFalse(os.path.exists(picture))
 
 
 class ValidateFindsEachBreak(unittest.TestCase):

@@ -302,6 +302,26 @@ TEST_F(TextureFileTest, ATiffReadsUnderItsOwnExtensionInAnyCaseOrUnderAnother) {
   }
 }
 
+TEST_F(TextureFileTest, AWholeTileWithTransparentTexelsReadsBackAsWrittenAndIsLeftAsItWas) {
+  // 256 texels a side: 8 strips of 32 rows, each compressed apart; the left quarter is
+  // transparent (premultiplied: colour 0), the rest a pattern the predictor cannot flatten.
+  TextureTile tile(256);
+  for (int y = 0; y < 256; ++y) {
+    for (int x = 0; x < 256; ++x) {
+      std::uint8_t* t = tile.at(x, y);
+      const bool opaque = x >= 64;
+      t[0] = opaque ? static_cast<std::uint8_t>(x * 7 + y) : 0;
+      t[1] = opaque ? static_cast<std::uint8_t>((x * y) >> 3) : 0;
+      t[2] = opaque ? static_cast<std::uint8_t>(255 - y) : 0;
+      t[3] = opaque ? 255 : 0;
+    }
+  }
+  const std::vector<std::uint8_t> before = texelsOf(tile);
+  const fs::path path = writeBytes(file("whole.tif"), encodeTextureTiff(tile));
+  EXPECT_EQ(texelsOf(tile), before);  // the predictor worked on a copy
+  EXPECT_EQ(texelsOf(readTextureTile(path)), before);
+}
+
 TEST_F(TextureFileTest, APngNamedTifReadsByItsFirstBytes) {
   const TextureTile tile = sampleTile();
   const std::vector<std::byte> png = pngOf(tile);
