@@ -96,7 +96,7 @@ Box3d transformBox(const Mat4d& m, const Box3d& box) {
 
 Vec3d upAt(const Vec3d& p) {
   const double norm = p.norm();
-  if (norm > 1e5) {
+  if (norm > kBodyCentredRadius) {
     return p * (1.0 / norm);
   }
   return {0, 0, 1};

@@ -60,9 +60,12 @@ struct Mat4d {
   friend bool operator==(const Mat4d&, const Mat4d&) = default;
 };
 
+/// Points farther than this from the origin (metres) are in body-centred coordinates (upAt).
+inline constexpr double kBodyCentredRadius = 1e5;
+
 /// The up direction vsm uses at global point `p`: for body-centred coordinates (ECEF; `p` farther
-/// than 100 km from the origin) the normalised position, i.e. the local vertical of a sphere
-/// around the origin (any planet); otherwise +z (a local Cartesian frame).
+/// than kBodyCentredRadius from the origin) the normalised position, i.e. the local vertical of a
+/// sphere around the origin (any planet); otherwise +z (a local Cartesian frame).
 Vec3d upAt(const Vec3d& p);
 
 /// upAt() of the centre of `box` (+z for an empty box): the up direction of a whole model.
