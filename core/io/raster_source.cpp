@@ -275,12 +275,16 @@ class RasterSource final : public GridSource {
     const bool inside = x0 >= block_.x0 && y0 >= block_.y0 && x0 + w <= block_.x0 + block_.w &&
                         y0 + h <= block_.y0 + block_.h;
     if (!inside) {
-      // The aligned block of the window's corner, widened by the window's size so that every
-      // window of that size starting in the block lies inside it.
+      // The aligned block of the window's corner, one sample wider and taller than
+      // kBlockSamples: the builder's windows start at multiples of their size - 1, a power of 2
+      // up to kBlockSamples, so each of them lies inside the block of its corner. (Widening by
+      // the window's size, for windows starting anywhere, read 1281^2 samples a block for
+      // 1025^2 of 257^2-sample windows: half as much again.) Any other window gets a block that
+      // holds at least itself.
       const int bx = x0 / kBlockSamples * kBlockSamples;
       const int by = y0 / kBlockSamples * kBlockSamples;
-      const int bw = std::min(width_ - bx, kBlockSamples + w);
-      const int bh = std::min(height_ - by, kBlockSamples + h);
+      const int bw = std::min(width_ - bx, std::max(kBlockSamples + 1, x0 - bx + w));
+      const int bh = std::min(height_ - by, std::max(kBlockSamples + 1, y0 - by + h));
       block_.w = block_.h = 0;  // nothing until the read succeeds
       block_.heights.resize(static_cast<std::size_t>(bw) * static_cast<std::size_t>(bh));
       readHeights(bx, by, bw, bh, block_.heights.data());
