@@ -454,6 +454,10 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
         subtrees[i].emplace(shared, handles.take());
         results[i] = subtrees[i]->build(tops[i]);
         handles.give(subtrees[i]->releaseSource());
+        // What the subtree wrote goes to disk while the other tasks compute: syncfs blocks this
+        // thread only, and leaves the commit's syncfs below next to nothing (it took 0.3-0.6 s,
+        // mostly the metadata of ~5,000 new files, with the cores idle).
+        sync.sync();
       });
     }
     options.executor->runAll(std::move(tasks));
