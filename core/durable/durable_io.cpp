@@ -234,12 +234,21 @@ void DraftWriter::write(const fs::path& file, std::span<const std::byte> bytes) 
   // Large files go to the device directly: that saves copying them into the page cache and
   // writing them back from there, and leaves the cache to what others read.
   const bool direct = bytes.size() >= kDirectMinimum && direct_.load();
-  unlinkDraft(file);
-  Descriptor fd(::open(file.c_str(),
-                       O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC | (direct ? O_DIRECT : 0), 0644));
+  // Most drafts are new files (an import writes nothing else): create first, and unlink only
+  // what had the name when that fails, which saves an unlink call a file.
+  const auto create = [&file](bool withDirect) {
+    return ::open(file.c_str(),
+                  O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC | (withDirect ? O_DIRECT : 0), 0644);
+  };
+  Descriptor fd(create(direct));
+  if (fd.get() < 0 && errno == EEXIST) {
+    unlinkDraft(file);
+    fd.reset(create(direct));
+  }
   if (fd.get() < 0 && direct && errno == EINVAL) {  // no O_DIRECT on this file system (tmpfs)
     direct_ = false;
-    fd.reset(::open(file.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644));
+    unlinkDraft(file);  // the refused open may have created it
+    fd.reset(create(false));
   }
   if (fd.get() < 0) {
     throwIoError("cannot create", file.string(), errno);
