@@ -12,7 +12,6 @@
 #include <cstring>
 #include <memory>
 #include <string>
-#include <vector>
 
 #include "core/common/error.hpp"
 #include "core/opc/texture_file.hpp"
@@ -109,23 +108,13 @@ std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
     throw fail();
   }
   const int size = tile.size();
-  const std::uint8_t* texels = tile.texels().data();
-  const std::size_t count = static_cast<std::size_t>(size) * static_cast<std::size_t>(size);
-  // An opaque tile (every relief tile of a full raster, an image's tiles inside it) is written as
-  // RGB: a quarter less to compress, and the reader fills alpha in.
-  bool opaque = true;
-  for (std::size_t i = 0; i < count && opaque; ++i) {
-    opaque = texels[4 * i + 3] == 255;
-  }
-  const int channels = opaque ? 3 : TextureTile::kChannels;
   const std::uint16_t extra[] = {EXTRASAMPLE_ASSOCALPHA};
-  const std::size_t rowBytes = static_cast<std::size_t>(size) * static_cast<std::size_t>(channels);
-  file.bytes.reserve(rowBytes * static_cast<std::size_t>(size) / 4);
+  const std::size_t rowBytes = static_cast<std::size_t>(size) * TextureTile::kChannels;
   bool ok = TIFFSetField(tiff, TIFFTAG_IMAGEWIDTH, size) == 1 &&
             TIFFSetField(tiff, TIFFTAG_IMAGELENGTH, size) == 1 &&
             TIFFSetField(tiff, TIFFTAG_BITSPERSAMPLE, 8) == 1 &&
-            TIFFSetField(tiff, TIFFTAG_SAMPLESPERPIXEL, channels) == 1 &&
-            (opaque || TIFFSetField(tiff, TIFFTAG_EXTRASAMPLES, 1, extra) == 1) &&
+            TIFFSetField(tiff, TIFFTAG_SAMPLESPERPIXEL, TextureTile::kChannels) == 1 &&
+            TIFFSetField(tiff, TIFFTAG_EXTRASAMPLES, 1, extra) == 1 &&
             TIFFSetField(tiff, TIFFTAG_SAMPLEFORMAT, SAMPLEFORMAT_UINT) == 1 &&
             TIFFSetField(tiff, TIFFTAG_PHOTOMETRIC, PHOTOMETRIC_RGB) == 1 &&
             TIFFSetField(tiff, TIFFTAG_PLANARCONFIG, PLANARCONFIG_CONTIG) == 1 &&
@@ -135,20 +124,13 @@ std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
             TIFFSetField(tiff, TIFFTAG_ZIPQUALITY, 1) == 1 &&
             TIFFSetField(tiff, TIFFTAG_PREDICTOR, PREDICTOR_HORIZONTAL) == 1;
   // One call per whole strip, which is what makes libtiff use libdeflate. The predictor works on
-  // a copy (and RGB strips are packed into one): the tile is left as it is.
-  std::vector<std::uint8_t> packed(opaque ? rowBytes * kRowsPerStrip : 0);
+  // a copy: the tile is left as it is.
+  const std::uint8_t* texels = tile.texels().data();
   for (int row = 0, strip = 0; ok && row < size; row += kRowsPerStrip, ++strip) {
     const int rows = std::min(kRowsPerStrip, size - row);
-    const std::uint8_t* rgba = texels + static_cast<std::size_t>(size) * 4 * row;
-    const std::size_t stripTexels = static_cast<std::size_t>(size) * rows;
-    if (opaque) {
-      for (std::size_t i = 0; i < stripTexels; ++i) {
-        std::memcpy(&packed[3 * i], rgba + 4 * i, 3);
-      }
-    }
     ok = TIFFWriteEncodedStrip(tiff, static_cast<std::uint32_t>(strip),
-                               opaque ? packed.data() : const_cast<std::uint8_t*>(rgba),
-                               static_cast<tmsize_t>(stripTexels * channels)) >= 0;
+                               const_cast<std::uint8_t*>(texels + rowBytes * row),
+                               static_cast<tmsize_t>(rowBytes * rows)) >= 0;
   }
   ok = ok && TIFFWriteDirectory(tiff) == 1;
   TIFFClose(tiff);

@@ -322,40 +322,6 @@ TEST_F(TextureFileTest, AWholeTileWithTransparentTexelsReadsBackAsWrittenAndIsLe
   EXPECT_EQ(texelsOf(readTextureTile(path)), before);
 }
 
-/// The SamplesPerPixel tag (277) of a little-endian TIFF's first directory, read from its bytes.
-int samplesPerPixel(const std::vector<std::byte>& tiff) {
-  const auto u16 = [&](std::size_t at) {
-    return static_cast<int>(tiff.at(at)) | static_cast<int>(tiff.at(at + 1)) << 8;
-  };
-  const auto u32 = [&](std::size_t at) {
-    return static_cast<std::size_t>(u16(at)) | static_cast<std::size_t>(u16(at + 2)) << 16;
-  };
-  EXPECT_EQ(u16(0), 0x4949);  // "II"
-  const std::size_t directory = u32(4);
-  for (int i = 0; i < u16(directory); ++i) {
-    const std::size_t entry = directory + 2 + 12 * static_cast<std::size_t>(i);
-    if (u16(entry) == 277) {
-      return u16(entry + 8);
-    }
-  }
-  return 0;
-}
-
-TEST_F(TextureFileTest, AnOpaqueTileIsStoredAsRgbAndReadsBackOpaque) {
-  TextureTile tile(64);
-  for (std::size_t i = 0; i < tile.texels().size(); ++i) {
-    tile.texels()[i] = i % 4 == 3 ? 255 : static_cast<std::uint8_t>(i * 7 % 251);
-  }
-  const std::vector<std::byte> opaque = encodeTextureTiff(tile);
-  EXPECT_EQ(samplesPerPixel(opaque), 3);
-  EXPECT_EQ(texelsOf(readTextureTile(writeBytes(file("opaque.tif"), opaque))), texelsOf(tile));
-  tile.at(63, 63)[3] = 254;  // one texel not quite opaque: RGBA
-  const std::vector<std::byte> translucent = encodeTextureTiff(tile);
-  EXPECT_EQ(samplesPerPixel(translucent), 4);
-  EXPECT_EQ(texelsOf(readTextureTile(writeBytes(file("translucent.tif"), translucent))),
-            texelsOf(tile));
-}
-
 TEST_F(TextureFileTest, APngNamedTifReadsByItsFirstBytes) {
   const TextureTile tile = sampleTile();
   const std::vector<std::byte> png = pngOf(tile);
