@@ -1,6 +1,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstring>
 
 #include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
@@ -300,6 +301,46 @@ TEST(ShadedRelief, UsesTheLocalVerticalOfEarthCentredCoordinates) {
   m.m = {-1, 0, 0, 0, 0, 0, 1, 6378137, 0, 1, 0, 0, 0, 0, 0, 1};
   EXPECT_NEAR(shadedRelief(plane(0.5, 0, m)).at(2, 2)[0], lambert(0.5, 0), 0.5);
   EXPECT_NEAR(shadedRelief(plane(0, 0.5, m)).at(2, 2)[0], lambert(0, 0.5), 0.5);
+}
+
+TEST(ShadedRelief, UsesTheLocalVerticalOfAGridStoredAsATranslation) {
+  // The plane of the test above as vsm's importers store ECEF grids: axes as ECEF, local2global
+  // a translation (the whole-row path of shadedRelief).
+  for (const auto& [a, b] : {std::pair{0.5, 0.0}, {0.0, 0.5}, {-0.3, 0.7}}) {
+    PatchGrid grid(5, Mat4d::translation({0, 6378137, 0}));
+    for (int y = 0; y < 5; ++y) {
+      for (int x = 0; x < 5; ++x) {
+        grid.setLocal(x, y, {float(-x), float(a * x + b * y), float(y)});
+      }
+    }
+    EXPECT_NEAR(shadedRelief(grid).at(2, 2)[0], lambert(a, b), 0.5) << a << " " << b;
+  }
+}
+
+TEST(ShadedRelief, AQuadsGreyDependsOnItsOwnCornersOnly) {
+  // Rows with a hole take another path through shadedRelief than whole rows: the quads away from
+  // the hole must come out byte for byte the same, in a local and in an ECEF frame.
+  for (const Mat4d& frame : {Mat4d::identity(), Mat4d::translation({4.1e6, 7.3e5, 4.8e6})}) {
+    PatchGrid whole(9, frame);
+    for (int y = 0; y < 9; ++y) {
+      for (int x = 0; x < 9; ++x) {
+        // A bumpy surface, so that every quad has a grey of its own.
+        whole.setLocal(x, y,
+                       {float(3 * x + 0.2 * y), float(3 * y - 0.1 * x),
+                        float(std::sin(x * 1.3) * 2 + std::cos(y * 0.7) * 3)});
+      }
+    }
+    PatchGrid holed = whole;
+    holed.setUndefined(0, 4);  // quads (0, 3) and (0, 4) become triangles
+    const TextureTile a = shadedRelief(whole);
+    const TextureTile b = shadedRelief(holed);
+    for (int j = 0; j < 8; ++j) {
+      for (int i = j == 3 || j == 4 ? 1 : 0; i < 8; ++i) {
+        EXPECT_EQ(std::memcmp(a.at(i, j), b.at(i, j), 4), 0) << i << " " << j;
+      }
+    }
+    EXPECT_EQ(b.at(0, 3)[3], 255);  // the triangles are shaded too
+  }
 }
 
 TEST(ShadedRelief, QuadsWithFewerThanThreeCornersAreTransparent) {
