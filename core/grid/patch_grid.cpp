@@ -6,10 +6,70 @@
 #include <cstring>
 #include <limits>
 #include <string>
+#include <vector>
 
 #include "core/common/error.hpp"
+#include "core/common/vectorised.hpp"
 
 namespace vsm::core {
+
+namespace {
+
+/// out[x] = |b_x - a_x| in float32 for the vertices a_x, b_x (x < n) of two vertex arrays: the
+/// distances between horizontal (b = a + 1 vertex) or vertical neighbours of a grid stored as a
+/// translation. NaN where either end is undefined. A loop that vectorises.
+VSM_VECTORISED void distances(const float* __restrict a, const float* __restrict b, int n,
+                              float* __restrict out) {
+  for (int x = 0; x < n; ++x) {
+    const float dx = b[3 * x] - a[3 * x];
+    const float dy = b[3 * x + 1] - a[3 * x + 1];
+    const float dz = b[3 * x + 2] - a[3 * x + 2];
+    out[x] = std::sqrt(dx * dx + dy * dy + dz * dz);
+  }
+}
+
+/// Widens lo and hi (x, y, z) by the defined vertices (all three coordinates numbers) of a row of
+/// n. In eight lanes, each with extremes of its own, combined at the end: a loop that vectorises
+/// (GCC does not vectorise a min or max reduction of floats that may be NaN).
+VSM_VECTORISED void extendBox(const float* __restrict row, int n, float* __restrict lo,
+                              float* __restrict hi) {
+  constexpr int kLanes = 8;
+  const auto extend = [](const float* p, float& loX, float& loY, float& loZ, float& hiX, float& hiY,
+                         float& hiZ) {
+    const float px = p[0], py = p[1], pz = p[2];
+    const bool defined = (px == px) & (py == py) & (pz == pz);
+    loX = (defined & (px < loX)) ? px : loX;
+    loY = (defined & (py < loY)) ? py : loY;
+    loZ = (defined & (pz < loZ)) ? pz : loZ;
+    hiX = (defined & (hiX < px)) ? px : hiX;
+    hiY = (defined & (hiY < py)) ? py : hiY;
+    hiZ = (defined & (hiZ < pz)) ? pz : hiZ;
+  };
+  float loX[kLanes], loY[kLanes], loZ[kLanes], hiX[kLanes], hiY[kLanes], hiZ[kLanes];
+  for (int l = 0; l < kLanes; ++l) {
+    loX[l] = lo[0], loY[l] = lo[1], loZ[l] = lo[2];
+    hiX[l] = hi[0], hiY[l] = hi[1], hiZ[l] = hi[2];
+  }
+  int x = 0;
+  for (; x + kLanes <= n; x += kLanes) {
+    for (int l = 0; l < kLanes; ++l) {
+      extend(row + 3 * (x + l), loX[l], loY[l], loZ[l], hiX[l], hiY[l], hiZ[l]);
+    }
+  }
+  for (; x < n; ++x) {
+    extend(row + 3 * x, loX[0], loY[0], loZ[0], hiX[0], hiY[0], hiZ[0]);
+  }
+  for (int l = 0; l < kLanes; ++l) {
+    lo[0] = loX[l] < lo[0] ? loX[l] : lo[0];
+    lo[1] = loY[l] < lo[1] ? loY[l] : lo[1];
+    lo[2] = loZ[l] < lo[2] ? loZ[l] : lo[2];
+    hi[0] = hi[0] < hiX[l] ? hiX[l] : hi[0];
+    hi[1] = hi[1] < hiY[l] ? hiY[l] : hi[1];
+    hi[2] = hi[2] < hiZ[l] ? hiZ[l] : hi[2];
+  }
+}
+
+}  // namespace
 
 PatchGrid::PatchGrid(int size, const Mat4d& local2global)
     : size_(size), local2global_(local2global) {
@@ -60,17 +120,11 @@ std::size_t PatchGrid::definedCount() const {
 }
 
 Box3d PatchGrid::localBox() const {
-  float lo[3] = {std::numeric_limits<float>::infinity(), std::numeric_limits<float>::infinity(),
-                 std::numeric_limits<float>::infinity()};
-  float hi[3] = {-lo[0], -lo[0], -lo[0]};
-  const float* p = positions_.data();
-  for (std::size_t i = 0, n = vertexCount(); i < n; ++i, p += 3) {
-    if (p[0] == p[0] && p[1] == p[1] && p[2] == p[2]) {
-      for (int c = 0; c < 3; ++c) {
-        lo[c] = p[c] < lo[c] ? p[c] : lo[c];
-        hi[c] = p[c] > hi[c] ? p[c] : hi[c];
-      }
-    }
+  constexpr float kInf = std::numeric_limits<float>::infinity();
+  float lo[3] = {kInf, kInf, kInf};
+  float hi[3] = {-kInf, -kInf, -kInf};
+  for (int y = 0; y < size_; ++y) {
+    extendBox(positions_.data() + static_cast<std::size_t>(y) * size_ * 3, size_, lo, hi);
   }
   if (lo[0] > hi[0]) {
     return {};
@@ -102,8 +156,8 @@ Box3d PatchGrid::globalBox() const {
 
 PatchGrid::Summary PatchGrid::summarize() const {
   constexpr float kInf = std::numeric_limits<float>::infinity();
-  float loX = kInf, loY = kInf, loZ = kInf;
-  float hiX = -kInf, hiY = -kInf, hiZ = -kInf;
+  float lo[3] = {kInf, kInf, kInf};
+  float hi[3] = {-kInf, -kInf, -kInf};
   GridRect rect{size_, size_, 0, 0};
   // Distances from local differences: the translation cancels, the linear part (identity for
   // grids vsm writes) applies to the difference. Neighbours' coordinates are close, so their
@@ -111,71 +165,72 @@ PatchGrid::Summary PatchGrid::summarize() const {
   // which is how pairs with one are left out (no test per vertex).
   const bool identity = local2global_.isTranslation();
   const auto& m = local2global_.m;
-  auto length = [&](const float* a, const float* b) -> float {
-    const float dx = b[0] - a[0];
-    const float dy = b[1] - a[1];
-    const float dz = b[2] - a[2];
+  std::vector<float> across(static_cast<std::size_t>(size_));
+  std::vector<float> down(across.size());
+  const auto distancesOf = [&](const float* a, const float* b, int n, float* out) {
     if (identity) {
-      return std::sqrt(dx * dx + dy * dy + dz * dz);
+      distances(a, b, n, out);
+      return;
     }
-    const double gx = m[0] * dx + m[1] * dy + m[2] * dz;
-    const double gy = m[4] * dx + m[5] * dy + m[6] * dz;
-    const double gz = m[8] * dx + m[9] * dy + m[10] * dz;
-    return static_cast<float>(std::sqrt(gx * gx + gy * gy + gz * gz));
+    for (int x = 0; x < n; ++x, a += 3, b += 3) {
+      const float dx = b[0] - a[0];
+      const float dy = b[1] - a[1];
+      const float dz = b[2] - a[2];
+      const double gx = m[0] * dx + m[1] * dy + m[2] * dz;
+      const double gy = m[4] * dx + m[5] * dy + m[6] * dz;
+      const double gz = m[8] * dx + m[9] * dy + m[10] * dz;
+      out[x] = static_cast<float>(std::sqrt(gx * gx + gy * gy + gz * gz));
+    }
+  };
+  const auto isDefined = [](const float* p) {
+    return p[0] == p[0] && p[1] == p[1] && p[2] == p[2];
   };
   double sum = 0;
   std::size_t count = 0;
   const std::size_t stride = static_cast<std::size_t>(size_) * 3;
   for (int y = 0; y < size_; ++y) {
     const float* row = positions_.data() + static_cast<std::size_t>(y) * stride;
-    int first = size_, last = -1;
-    for (int x = 0; x < size_; ++x) {
-      const float* p = row + 3 * x;
-      if (!(p[0] == p[0] && p[1] == p[1] && p[2] == p[2])) {
-        continue;
-      }
-      first = std::min(first, x);
-      last = x;
-      // Six running extremes in registers (an indexed array kept them in memory: a third of the
-      // function's time).
-      loX = std::min(loX, p[0]);
-      loY = std::min(loY, p[1]);
-      loZ = std::min(loZ, p[2]);
-      hiX = std::max(hiX, p[0]);
-      hiY = std::max(hiY, p[1]);
-      hiZ = std::max(hiZ, p[2]);
+    int first = 0, last = size_ - 1;
+    while (first < size_ && !isDefined(row + 3 * first)) {
+      ++first;
     }
-    if (last < 0) {
+    if (first == size_) {
       continue;  // no defined vertex: no distance from this row either
     }
+    while (!isDefined(row + 3 * last)) {
+      --last;
+    }
+    extendBox(row + 3 * first, last + 1 - first, lo, hi);
     rect.x0 = std::min(rect.x0, first);
     rect.x1 = std::max(rect.x1, last + 1);
     rect.y0 = std::min(rect.y0, y);
     rect.y1 = y + 1;
     // Horizontal and vertical distances in sums of their own: two independent chains of
     // additions, and no branch (an undefined end adds 0 and counts nothing).
-    double across = 0, down = 0;
+    double acrossSum = 0, downSum = 0;
     int rowCount = 0;
     const auto add = [&rowCount](double& to, float d) {
       const bool defined = d == d;
       to += defined ? d : 0.0f;
       rowCount += defined;
     };
-    for (int x = first; x < last; ++x) {
-      add(across, length(row + 3 * x, row + 3 * x + 3));
+    const float* begin = row + 3 * first;
+    distancesOf(begin, begin + 3, last - first, across.data());
+    for (int x = 0; x < last - first; ++x) {
+      add(acrossSum, across[x]);
     }
     if (y + 1 < size_) {
-      const float* below = row + stride;
-      for (int x = first; x <= last; ++x) {
-        add(down, length(row + 3 * x, below + 3 * x));
+      distancesOf(begin, begin + stride, last + 1 - first, down.data());
+      for (int x = 0; x <= last - first; ++x) {
+        add(downSum, down[x]);
       }
     }
-    sum += across + down;
+    sum += acrossSum + downSum;
     count += static_cast<std::size_t>(rowCount);
   }
   Summary summary;
-  if (loX <= hiX) {
-    summary.localBox = {{loX, loY, loZ}, {hiX, hiY, hiZ}};
+  if (lo[0] <= hi[0]) {
+    summary.localBox = {{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
     summary.definedRect = rect;
   }
   summary.resolution = count == 0 ? 0.0 : sum / static_cast<double>(count);

@@ -171,7 +171,7 @@ VSM_VECTORISED void shadeBodyCentred(const Vec3d& sun, int n, const double* __re
         (sun.x * east * r + sun.y * north + sun.z * up * rho) / (r * rho * std::sqrt(length2));
     const double shade = up < 0 ? -lit : lit;
     grey[i] = 255.0 * std::min(std::max(shade, 0.0), 1.0) + 0.5;
-    plain[i] = (length2 > 0) & (r2 > kRadius2) & (rho2 > 1e-24 * r2) ? 1.0 : 0.0;
+    plain[i] = ((length2 > 0) & (r2 > kRadius2) & (rho2 > 1e-24 * r2)) ? 1.0 : 0.0;
   }
 }
 
@@ -188,7 +188,7 @@ VSM_VECTORISED void shadeLocal(const Vec3d& sun, int n, const double* __restrict
     const double lit = (sun.x * nx + sun.y * ny + sun.z * nz) / std::sqrt(length2);
     const double shade = nz < 0 ? -lit : lit;
     grey[i] = 255.0 * std::min(std::max(shade, 0.0), 1.0) + 0.5;
-    plain[i] = (length2 > 0) & !(r2 > kRadius2) ? 1.0 : 0.0;
+    plain[i] = ((length2 > 0) & !(r2 > kRadius2)) ? 1.0 : 0.0;
   }
 }
 

@@ -77,6 +77,40 @@ TEST(PatchGrid, DefinedRectAndBoxesCoverOnlyDefinedVertices) {
   EXPECT_EQ(grid.definedCount(), 2u);
 }
 
+TEST(PatchGrid, BoxesAndResolutionOfRowsWiderThanTheVectorLanes) {
+  // summarize and localBox take rows in lanes of eight and a tail: extremes in the middle of a
+  // lane, in the tail, and a vertex with one coordinate NaN (undefined: left out of the box).
+  PatchGrid grid(37, Mat4d::translation({500, 500, 0}));
+  for (int y = 0; y < 37; ++y) {
+    for (int x = 0; x < 37; ++x) {
+      grid.setLocal(x, y, {float(2 * x), float(2 * y), 0});
+    }
+  }
+  grid.setUndefined(0, 0);
+  grid.setUndefined(1, 0);
+  EXPECT_DOUBLE_EQ(grid.resolution(), 2.0);  // every pair 2 apart, those with a hole left out
+  grid.setLocal(13, 5, {26, 10, 7});
+  grid.setLocal(35, 20, {70, 40, -4});
+  grid.positions()[(30 * 37 + 9) * 3] = 1000;  // x of vertex (9, 30)
+  grid.positions()[(30 * 37 + 9) * 3 + 1] = NAN;
+  const PatchGrid::Summary summary = grid.summarize();
+  EXPECT_EQ(summary.localBox.min, (Vec3d{0, 0, -4}));
+  EXPECT_EQ(summary.localBox.max, (Vec3d{72, 72, 7}));
+  EXPECT_EQ(grid.localBox().min, summary.localBox.min);
+  EXPECT_EQ(grid.localBox().max, summary.localBox.max);
+  EXPECT_EQ(summary.definedRect, (GridRect{0, 0, 37, 37}));
+  // Defined only in columns 3..29 of rows 4..35.
+  PatchGrid holed(37, Mat4d::identity());
+  for (int y = 4; y < 36; ++y) {
+    for (int x = 3; x < 30; ++x) {
+      holed.setLocal(x, y, {float(x), float(y), float(x % 8 == 5 ? -1 : 1)});
+    }
+  }
+  EXPECT_EQ(holed.definedRect(), (GridRect{3, 4, 30, 36}));
+  EXPECT_EQ(holed.summarize().localBox.min, (Vec3d{3, 4, -1}));
+  EXPECT_EQ(holed.summarize().localBox.max, (Vec3d{29, 35, 1}));
+}
+
 TEST(PatchGrid, ResolutionIsTheMeanDistanceBetweenDefinedNeighbours) {
   PatchGrid grid(3, Mat4d::identity());
   // Row 0: spacing 2 in x; vertex (0,1) 3 below (0,0). Pairs: (0,0)-(1,0)=2, (1,0)-(2,0)=2,
