@@ -4,6 +4,26 @@
 #include "core/pyramid/patch_key.hpp"
 
 namespace vsm::core {
+namespace {
+
+/// parent[k] = child[2k] for k < n where child vertex 2k is defined, as setGlobal(global(...))
+/// computes it when the child's local2global is a translation by `shift` and the parent's
+/// global2local one by `back`: float((child + shift) + back).
+void takeEverySecond(const float* __restrict child, int n, Vec3d shift, Vec3d back,
+                     float* __restrict parent) {
+  for (int k = 0; k < n; ++k) {
+    const float x = child[6 * k], y = child[6 * k + 1], z = child[6 * k + 2];
+    const bool defined = (x == x) & (y == y) & (z == z);
+    const auto local = [](float v, double shift, double back) {
+      return static_cast<float>((static_cast<double>(v) + shift) + back);
+    };
+    parent[3 * k] = defined ? local(x, shift.x, back.x) : parent[3 * k];
+    parent[3 * k + 1] = defined ? local(y, shift.y, back.y) : parent[3 * k + 1];
+    parent[3 * k + 2] = defined ? local(z, shift.z, back.z) : parent[3 * k + 2];
+  }
+}
+
+}  // namespace
 
 PatchGrid reduce(const std::array<const PatchGrid*, 4>& children) {
   int size = 0;
@@ -47,6 +67,32 @@ PatchGrid reduce(const std::array<const PatchGrid*, 4>& children) {
     }
   }
   PatchGrid parent(size, originFor(translations ? origins : box));
+  if (translations) {
+    // Every grid vsm builds: each parent row from its children's rows, the quadrants in reverse
+    // order so that the first defined candidate (below) is the one that stays.
+    const Vec3d back = parent.local2global().inverse().translationPart();
+    const std::size_t stride = static_cast<std::size_t>(size) * 3;
+    for (int j = 0; j < size; ++j) {
+      for (int q = 3; q >= 0; --q) {
+        const int qx = q & 1;
+        const int qy = q >> 1;
+        const PatchGrid* child = children[q];
+        const int cy = 2 * j - qy * half;
+        if (child == nullptr || cy < 0 || cy > half) {
+          continue;
+        }
+        // Parent columns i with 0 <= 2i - qx * half <= half.
+        const int first = (qx * half + 1) / 2;
+        const int last = (half + qx * half) / 2;
+        takeEverySecond(child->positions().data() + static_cast<std::size_t>(cy) * stride +
+                            static_cast<std::size_t>(2 * first - qx * half) * 3,
+                        last - first + 1, child->local2global().translationPart(), back,
+                        parent.positions().data() + static_cast<std::size_t>(j) * stride +
+                            static_cast<std::size_t>(first) * 3);
+      }
+    }
+    return parent;
+  }
   for (int j = 0; j < size; ++j) {
     const int v = 2 * j;  // row in the children's union
     for (int i = 0; i < size; ++i) {

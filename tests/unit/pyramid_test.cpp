@@ -101,6 +101,40 @@ TEST(Reduce, AMissingChildLeavesItsAreaUndefinedButKeepsTheSharedBorder) {
   }
 }
 
+TEST(Reduce, ABorderVertexComesFromTheFirstChildThatDefinesIt) {
+  // NW and NE share their border column; where they disagree NW (the first quadrant) wins, and
+  // where NW's vertex is undefined NE's is taken. Stored as translations (every grid vsm builds)
+  // and with a rotation (the general path), the same globals.
+  for (const bool rotated : {false, true}) {
+    auto nw = sampled(5, 0, 0);
+    auto ne = sampled(5, 4, 0);
+    ne->setGlobal(0, 0, {7, 7, 7});  // disagrees with nw (4, 0)
+    nw->setUndefined(4, 2);
+    if (rotated) {
+      Mat4d quarterTurn;  // x -> y, y -> -x, then nw's translation
+      quarterTurn.m = {0, -1, 0, 1000, 1, 0, 0, 2000, 0, 0, 1, 0, 0, 0, 0, 1};
+      auto turned = std::make_shared<PatchGrid>(5, quarterTurn);
+      for (int y = 0; y < 5; ++y) {
+        for (int x = 0; x < 5; ++x) {
+          if (nw->defined(x, y)) {
+            turned->setGlobal(x, y, nw->global(x, y));
+          }
+        }
+      }
+      nw = turned;
+    }
+    const PatchGrid parent = reduce({nw.get(), ne.get(), nullptr, nullptr});
+    const auto near = [](const Vec3d& a, const Vec3d& b) {
+      return std::abs(a.x - b.x) < 1e-3 && std::abs(a.y - b.y) < 1e-3 && std::abs(a.z - b.z) < 1e-3;
+    };
+    EXPECT_TRUE(near(parent.global(2, 0), surface(4, 0))) << rotated;
+    EXPECT_TRUE(near(parent.global(2, 1), surface(4, 2))) << rotated;  // from NE
+    EXPECT_TRUE(near(parent.global(4, 1), surface(8, 2))) << rotated;
+    EXPECT_TRUE(near(parent.global(0, 2), surface(0, 4))) << rotated;
+    EXPECT_FALSE(parent.defined(0, 3)) << rotated;  // below both
+  }
+}
+
 TEST(Reduce, RejectsChildrenOfDifferentSizes) {
   auto a = sampled(5, 0, 0);
   auto b = sampled(9, 4, 0);
