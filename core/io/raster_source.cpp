@@ -15,6 +15,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/common/vectorised.hpp"
 #include "core/io/gdal_support.hpp"
 #include "core/io/grid_source.hpp"
 
@@ -109,6 +110,21 @@ struct LatitudeTerms {
     return {n * c, c, n * (1.0 - kEccentricity2) * s, s};
   }
 };
+
+/// ECEF points of a row of n samples of a WGS 84 geographic raster at the latitude of `t`:
+/// (N + h) cos(lat) (cos(lon), sin(lon)), (N (1 - e^2) + h) sin(lat). A NaN height (or NaN
+/// terms: a latitude outside +-90) gives NaN coordinates without a test. A loop that
+/// vectorises.
+VSM_VECTORISED void geographicRow(const LatitudeTerms& terms, const double* __restrict heights,
+                                  const double* __restrict cosLon, const double* __restrict sinLon,
+                                  int n, Vec3d* __restrict out) {
+  const LatitudeTerms t = terms;
+  for (int c = 0; c < n; ++c) {
+    const double height = heights[c];
+    const double radial = t.nCos + height * t.cosLat;  // (N + h) cos(lat)
+    out[c] = {radial * cosLon[c], radial * sinLon[c], t.nSin + height * t.sinLat};
+  }
+}
 
 class RasterSource final : public GridSource {
  public:
@@ -237,22 +253,10 @@ class RasterSource final : public GridSource {
       readTransformed(x0, y0, w, h, heights, out);
       return;
     }
-    const Vec3d undefined{kNaN, kNaN, kNaN};
-    const double* cosLon = cosLon_.data() + x0;
-    const double* sinLon = sinLon_.data() + x0;
     for (int r = 0; r < h; ++r) {
-      const LatitudeTerms& t = latitudes_[static_cast<std::size_t>(y0 + r)];
-      const double* rowHeights = heights.row(r);
-      Vec3d* row = out.data() + static_cast<std::size_t>(r) * w;
-      for (int c = 0; c < w; ++c) {
-        const double height = rowHeights[c];
-        if (std::isnan(height)) {
-          row[c] = undefined;
-          continue;
-        }
-        const double radial = t.nCos + height * t.cosLat;  // (N + h) cos(lat)
-        row[c] = {radial * cosLon[c], radial * sinLon[c], t.nSin + height * t.sinLat};
-      }
+      geographicRow(latitudes_[static_cast<std::size_t>(y0 + r)], heights.row(r),
+                    cosLon_.data() + x0, sinLon_.data() + x0, w,
+                    out.data() + static_cast<std::size_t>(r) * w);
     }
   }
 
