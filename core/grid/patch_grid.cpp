@@ -29,44 +29,19 @@ VSM_VECTORISED void distances(const float* __restrict a, const float* __restrict
 }
 
 /// Widens lo and hi (x, y, z) by the defined vertices (all three coordinates numbers) of a row of
-/// n. In eight lanes, each with extremes of its own, combined at the end: a loop that vectorises
-/// (GCC does not vectorise a min or max reduction of floats that may be NaN).
+/// n.
 VSM_VECTORISED void extendBox(const float* __restrict row, int n, float* __restrict lo,
                               float* __restrict hi) {
-  constexpr int kLanes = 8;
-  const auto extend = [](const float* p, float& loX, float& loY, float& loZ, float& hiX, float& hiY,
-                         float& hiZ) {
-    const float px = p[0], py = p[1], pz = p[2];
-    const bool defined = (px == px) & (py == py) & (pz == pz);
-    loX = (defined & (px < loX)) ? px : loX;
-    loY = (defined & (py < loY)) ? py : loY;
-    loZ = (defined & (pz < loZ)) ? pz : loZ;
-    hiX = (defined & (hiX < px)) ? px : hiX;
-    hiY = (defined & (hiY < py)) ? py : hiY;
-    hiZ = (defined & (hiZ < pz)) ? pz : hiZ;
-  };
-  float loX[kLanes], loY[kLanes], loZ[kLanes], hiX[kLanes], hiY[kLanes], hiZ[kLanes];
-  for (int l = 0; l < kLanes; ++l) {
-    loX[l] = lo[0], loY[l] = lo[1], loZ[l] = lo[2];
-    hiX[l] = hi[0], hiY[l] = hi[1], hiZ[l] = hi[2];
-  }
-  int x = 0;
-  for (; x + kLanes <= n; x += kLanes) {
-    for (int l = 0; l < kLanes; ++l) {
-      extend(row + 3 * (x + l), loX[l], loY[l], loZ[l], hiX[l], hiY[l], hiZ[l]);
-    }
-  }
-  for (; x < n; ++x) {
-    extend(row + 3 * x, loX[0], loY[0], loZ[0], hiX[0], hiY[0], hiZ[0]);
-  }
-  for (int l = 0; l < kLanes; ++l) {
-    lo[0] = loX[l] < lo[0] ? loX[l] : lo[0];
-    lo[1] = loY[l] < lo[1] ? loY[l] : lo[1];
-    lo[2] = loZ[l] < lo[2] ? loZ[l] : lo[2];
-    hi[0] = hi[0] < hiX[l] ? hiX[l] : hi[0];
-    hi[1] = hi[1] < hiY[l] ? hiY[l] : hi[1];
-    hi[2] = hi[2] < hiZ[l] ? hiZ[l] : hi[2];
-  }
+  widenBoxInLanes<float>(
+      static_cast<std::size_t>(n),
+      [row](std::size_t i) {
+        return std::array<float, 3>{row[3 * i], row[3 * i + 1], row[3 * i + 2]};
+      },
+      [](const std::array<float, 3>& p) {
+        const float x = p[0], y = p[1], z = p[2];
+        return (x == x) & (y == y) & (z == z);
+      },
+      lo, hi);
 }
 
 }  // namespace

@@ -149,46 +149,40 @@ VSM_VECTORISED void fullQuadRow(const double* __restrict sx, const double* __res
   }
 }
 
-/// Sun::grey's body-centred case for a whole row (QuadRow::quads' block), without branches so that
-/// it vectorises (four texels an instruction with AVX2): the same operations in the same order, so
-/// the same bytes.
-VSM_VECTORISED void shadeBodyCentred(const Vec3d& sun, int n, const double* __restrict quads,
-                                     double* __restrict grey, double* __restrict plain) {
+/// Sun::grey for a whole row (QuadRow::quads' block), in its body-centred or its local Cartesian
+/// (up = +z) case, without branches so that it vectorises (four texels an instruction with AVX2):
+/// the same operations in the same order, so the same bytes.
+template <bool kBodyCentred>
+VSM_VECTORISED void shadeRow(const Vec3d& sun, int n, const double* __restrict quads,
+                             double* __restrict grey, double* __restrict plain) {
   constexpr double kRadius2 = kBodyCentredRadius * kBodyCentredRadius;
   const std::size_t m = static_cast<std::size_t>(n);
   for (std::size_t i = 0; i < m; ++i) {
     const double nx = quads[i], ny = quads[m + i], nz = quads[2 * m + i];
     const double cx = quads[3 * m + i], cy = quads[4 * m + i], cz = quads[5 * m + i];
     const double length2 = nx * nx + ny * ny + nz * nz;
-    const double rho2 = cx * cx + cy * cy;
-    const double r2 = rho2 + cz * cz;
-    const double horizontal = nx * cx + ny * cy;
-    const double up = horizontal + nz * cz;
-    const double east = ny * cx - nx * cy;
-    const double north = rho2 * nz - cz * horizontal;
-    const double r = std::sqrt(r2), rho = std::sqrt(rho2);
-    const double lit =
-        (sun.x * east * r + sun.y * north + sun.z * up * rho) / (r * rho * std::sqrt(length2));
-    const double shade = up < 0 ? -lit : lit;
+    double shade;  // lit, n turned to point up
+    bool plainCase;
+    if constexpr (kBodyCentred) {
+      const double rho2 = cx * cx + cy * cy;
+      const double r2 = rho2 + cz * cz;
+      const double horizontal = nx * cx + ny * cy;
+      const double up = horizontal + nz * cz;
+      const double east = ny * cx - nx * cy;
+      const double north = rho2 * nz - cz * horizontal;
+      const double r = std::sqrt(r2), rho = std::sqrt(rho2);
+      const double lit =
+          (sun.x * east * r + sun.y * north + sun.z * up * rho) / (r * rho * std::sqrt(length2));
+      shade = up < 0 ? -lit : lit;
+      plainCase = (length2 > 0) & (r2 > kRadius2) & (rho2 > 1e-24 * r2);
+    } else {
+      const double r2 = (cx * cx + cy * cy) + cz * cz;
+      const double lit = (sun.x * nx + sun.y * ny + sun.z * nz) / std::sqrt(length2);
+      shade = nz < 0 ? -lit : lit;
+      plainCase = (length2 > 0) & !(r2 > kRadius2);
+    }
     grey[i] = 255.0 * std::min(std::max(shade, 0.0), 1.0) + 0.5;
-    plain[i] = ((length2 > 0) & (r2 > kRadius2) & (rho2 > 1e-24 * r2)) ? 1.0 : 0.0;
-  }
-}
-
-/// Sun::grey's local Cartesian case (up = +z) for a whole row, likewise.
-VSM_VECTORISED void shadeLocal(const Vec3d& sun, int n, const double* __restrict quads,
-                               double* __restrict grey, double* __restrict plain) {
-  constexpr double kRadius2 = kBodyCentredRadius * kBodyCentredRadius;
-  const std::size_t m = static_cast<std::size_t>(n);
-  for (std::size_t i = 0; i < m; ++i) {
-    const double nx = quads[i], ny = quads[m + i], nz = quads[2 * m + i];
-    const double cx = quads[3 * m + i], cy = quads[4 * m + i], cz = quads[5 * m + i];
-    const double length2 = nx * nx + ny * ny + nz * nz;
-    const double r2 = (cx * cx + cy * cy) + cz * cz;
-    const double lit = (sun.x * nx + sun.y * ny + sun.z * nz) / std::sqrt(length2);
-    const double shade = nz < 0 ? -lit : lit;
-    grey[i] = 255.0 * std::min(std::max(shade, 0.0), 1.0) + 0.5;
-    plain[i] = ((length2 > 0) & !(r2 > kRadius2)) ? 1.0 : 0.0;
+    plain[i] = plainCase ? 1.0 : 0.0;
   }
 }
 
@@ -221,8 +215,10 @@ TextureTile shadedRelief(const PatchGrid& grid) {
   // of frame fall to Sun::grey).
   const auto shade = [&](int j, int first) {
     const Vec3d c = row.centre(first);
-    (dot(c, c) > kBodyCentredRadius * kBodyCentredRadius ? shadeBodyCentred : shadeLocal)(
-        sun.direction(), size, row.quads.values.data(), row.grey.data(), row.plain.data());
+    (dot(c, c) > kBodyCentredRadius * kBodyCentredRadius
+         ? shadeRow<true>
+         : shadeRow<false>)(sun.direction(), size, row.quads.values.data(), row.grey.data(),
+                            row.plain.data());
     std::uint8_t* texel = tile.at(0, j);
     for (int i = 0; i < size; ++i, texel += TextureTile::kChannels) {
       if (row.defined[i] == 0) {

@@ -51,46 +51,22 @@ inline bool isFinite(const Vec3d& g) {
 }
 
 /// The box of the finite points of `points` (n): lo and hi, each x, y, z; lo above hi when there
-/// is none. In eight lanes, each with extremes of its own, combined at the end: a loop that
-/// vectorises (GCC does not vectorise a min or max reduction that may see NaN).
+/// is none.
 VSM_VECTORISED void finiteBox(const Vec3d* __restrict points, std::size_t n, double* __restrict lo,
                               double* __restrict hi) {
-  constexpr std::size_t kLanes = 8;
   constexpr double kInf = std::numeric_limits<double>::infinity();
-  double loX[kLanes], loY[kLanes], loZ[kLanes], hiX[kLanes], hiY[kLanes], hiZ[kLanes];
-  for (std::size_t l = 0; l < kLanes; ++l) {
-    loX[l] = loY[l] = loZ[l] = kInf;
-    hiX[l] = hiY[l] = hiZ[l] = -kInf;
-  }
-  const auto extend = [](const Vec3d& g, double& loX, double& loY, double& loZ, double& hiX,
-                         double& hiY, double& hiZ) {
-    const bool finite = isFinite(g);
-    loX = (finite & (g.x < loX)) ? g.x : loX;
-    loY = (finite & (g.y < loY)) ? g.y : loY;
-    loZ = (finite & (g.z < loZ)) ? g.z : loZ;
-    hiX = (finite & (hiX < g.x)) ? g.x : hiX;
-    hiY = (finite & (hiY < g.y)) ? g.y : hiY;
-    hiZ = (finite & (hiZ < g.z)) ? g.z : hiZ;
-  };
-  std::size_t i = 0;
-  for (; i + kLanes <= n; i += kLanes) {
-    for (std::size_t l = 0; l < kLanes; ++l) {
-      extend(points[i + l], loX[l], loY[l], loZ[l], hiX[l], hiY[l], hiZ[l]);
-    }
-  }
-  for (; i < n; ++i) {
-    extend(points[i], loX[0], loY[0], loZ[0], hiX[0], hiY[0], hiZ[0]);
-  }
   lo[0] = lo[1] = lo[2] = kInf;
   hi[0] = hi[1] = hi[2] = -kInf;
-  for (std::size_t l = 0; l < kLanes; ++l) {
-    lo[0] = loX[l] < lo[0] ? loX[l] : lo[0];
-    lo[1] = loY[l] < lo[1] ? loY[l] : lo[1];
-    lo[2] = loZ[l] < lo[2] ? loZ[l] : lo[2];
-    hi[0] = hi[0] < hiX[l] ? hiX[l] : hi[0];
-    hi[1] = hi[1] < hiY[l] ? hiY[l] : hi[1];
-    hi[2] = hi[2] < hiZ[l] ? hiZ[l] : hi[2];
-  }
+  widenBoxInLanes<double>(
+      n,
+      [points](std::size_t i) {
+        const Vec3d& g = points[i];
+        return std::array<double, 3>{g.x, g.y, g.z};
+      },
+      [](const std::array<double, 3>& p) {
+        return isFinite({p[0], p[1], p[2]});
+      },
+      lo, hi);
 }
 
 /// out = float(g - origin) for the n points g of a row, NaN (all three) where g is not finite.
