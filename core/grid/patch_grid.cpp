@@ -157,22 +157,19 @@ PatchGrid::Summary PatchGrid::summarize() const {
       out[x] = static_cast<float>(std::sqrt(gx * gx + gy * gy + gz * gz));
     }
   };
-  const auto isDefined = [](const float* p) {
-    return p[0] == p[0] && p[1] == p[1] && p[2] == p[2];
-  };
   double sum = 0;
   std::size_t count = 0;
   const std::size_t stride = static_cast<std::size_t>(size_) * 3;
   for (int y = 0; y < size_; ++y) {
     const float* row = positions_.data() + static_cast<std::size_t>(y) * stride;
     int first = 0, last = size_ - 1;
-    while (first < size_ && !isDefined(row + 3 * first)) {
+    while (first < size_ && !defined(first, y)) {
       ++first;
     }
     if (first == size_) {
       continue;  // no defined vertex: no distance from this row either
     }
-    while (!isDefined(row + 3 * last)) {
+    while (!defined(last, y)) {
       --last;
     }
     extendBox(row + 3 * first, last + 1 - first, lo, hi);

@@ -111,7 +111,7 @@ struct LatitudeTerms {
   }
 };
 
-/// ECEF points of a row of n samples of a WGS 84 geographic raster at the latitude of `t`:
+/// ECEF points of a row of n samples of a WGS 84 geographic raster at the latitude of `terms`:
 /// (N + h) cos(lat) (cos(lon), sin(lon)), (N (1 - e^2) + h) sin(lat). A NaN height (or NaN
 /// terms: a latitude outside +-90) gives NaN coordinates without a test. A loop that
 /// vectorises.
