@@ -374,6 +374,10 @@ ParsedHierarchy parseHierarchy(const fs::path& file) {
     record.changed = revisionNumber(file, revision, "Changed");
     record.removed = revisionNumber(file, revision, "Removed");
     record.restoredFrom = revisionNumber(file, revision, "RestoredFrom");
+    record.nonce = textOf(childCi(revision, "Nonce"));
+    if (record.nonce.size() > 64) {
+      corrupt(file, "<Nonce> is longer than 64 characters");
+    }
     parsed.revision = std::move(record);
   }
   return parsed;

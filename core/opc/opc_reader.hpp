@@ -33,6 +33,10 @@ struct RevisionRecord {
   std::uint64_t changed = 0;
   std::uint64_t removed = 0;
   std::uint64_t restoredFrom = 0;  // the revision whose content it restored; 0: none
+  /// Random per publish (8 hex digits; empty in records written before it existed): the same
+  /// number published twice (the first lost in a power cut after it was served) never has the
+  /// same record, so tags derived from it never repeat.
+  std::string nonce;
 };
 
 /// How many revisions a publish keeps by default, the new one included (core/store).

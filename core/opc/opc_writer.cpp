@@ -268,6 +268,9 @@ std::string hierarchyXml(const Model& model, const RevisionRecord* revision) {
     if (revision->restoredFrom != 0) {
       addText(node, "RestoredFrom", std::to_string(revision->restoredFrom));
     }
+    if (!revision->nonce.empty()) {
+      addText(node, "Nonce", revision->nonce);
+    }
   }
   return xmlText(doc);
 }

@@ -61,23 +61,6 @@ struct RevisionSummary {
   bool latest = false;
 };
 
-/// What publish() records and keeps.
-struct PublishOptions {
-  /// The job that made the revision (empty: none, e.g. the CLI).
-  std::string job;
-  /// Revisions kept after the publish, the new one included: at least 2 (the previous revision
-  /// stays while replicas in other processes follow the new one).
-  unsigned keepRevisions = kDefaultKeepRevisions;
-  /// The revision whose content this one restores (0: none).
-  std::uint64_t restoredFrom = 0;
-  /// Writes the changed patches' files from kPublishWriters tasks on this executor at once
-  /// (encoding and writing overlap); null: on the calling thread.
-  Executor* executor = nullptr;
-};
-
-/// Write-backs a publish runs at once when it has an executor.
-inline constexpr int kPublishWriters = 4;
-
 /// An open model: its OPC directory, the published metadata, and its patch data in the shared
 /// cache. Readers work on snapshots; one edit at a time prepares the next version copy-on-write
 /// (changed patches go to new folders) and publishes it by replacing the hierarchy atomically, so
@@ -109,10 +92,12 @@ class LiveModel {
                                          PatchCache& cache, Access access = Access::Write,
                                          std::uint64_t texturePixels = kDefaultTexturePixels);
 
-  /// A new opening of the same directory, read again from disk, with this one's writer lock
-  /// passed on (both share it): after a failed write nothing this opening holds in memory is
-  /// trusted. It does not remove leftovers (readers of this opening may still read the old
-  /// version's folders); the next open() does. Throws as open().
+  /// A new opening of the same directory, read again from disk, sharing this one's writer state:
+  /// the lock, the one edit of the model and the revisions readers hold. After a failed write
+  /// nothing this opening holds in memory is trusted. From then on only the new opening can begin
+  /// an edit (this one answers Conflict); readers of this one finish on it, and the revisions they
+  /// hold are kept as snapshots are. It does not remove leftovers (readers of this opening may
+  /// still read the old version's folders); the next open() does. Throws as open().
   std::unique_ptr<LiveModel> reopen() const;
   /// Precondition: no edit open.
   ~LiveModel();
@@ -121,7 +106,7 @@ class LiveModel {
 
   const std::string& name() const { return name_; }
   /// False when opened for reading only; readOnlyReason() then says why (empty for Access::Read).
-  bool writable() const { return lock_ != nullptr; }
+  bool writable() const { return writer_ != nullptr; }
   const std::string& readOnlyReason() const { return readOnlyReason_; }
   /// True when the directory's hierarchy file is no longer the one this opening read: another
   /// writer published a new version (or removed the model). For an opening for reading only,
@@ -158,9 +143,12 @@ class LiveModel {
   /// does not decode.
   PatchCache::Pin texture(const ModelSnapshot& snapshot, const PatchKey& key);
 
-  /// Starts the one edit of this model. Throws Error(Conflict) while another edit is open or when
-  /// the model was opened for reading only; Error(Io) when the file system cannot be opened for
-  /// syncing.
+  /// Starts the one edit of this model, whatever the opening (model_edit.hpp). Throws
+  /// Error(Conflict) when the model was opened for reading only, while another edit of it is open
+  /// (through any opening sharing the writer state), when a later reopen() replaced this opening,
+  /// or when the hierarchy on disk is not the one this opening last read or published (another
+  /// writer changed it: optimistic concurrency on the hierarchy's stamp); Error(Io) when the file
+  /// system cannot be opened for syncing.
   std::unique_ptr<ModelEdit> beginEdit();
 
   /// Patch versions a publish replaced (or removed): (key, old version).
@@ -178,29 +166,34 @@ class LiveModel {
       std::function<void(std::uint64_t version, const std::set<PatchKey>& changed)>;
   void onNewVersion(NewVersionObserver observer);
 
-  class Store;  // the PatchStore over the directory; defined in the .cpp
+  class Store;    // the PatchStore over the directory (model_store.hpp)
+  struct Writer;  // what the openings of a model that may write share (below)
 
  private:
   friend class ModelEdit;
   LiveModel(std::filesystem::path dir, std::string name, std::shared_ptr<Store> store,
-            std::shared_ptr<ModelSnapshot> snapshot,
-            std::shared_ptr<const durable::WriterLock> lock);
+            std::shared_ptr<ModelSnapshot> snapshot, std::shared_ptr<Writer> writer);
+  /// Throws Error(Conflict) unless this opening is its writer's current one and the hierarchy on
+  /// disk is the one it last read or published. Called with writer_->mutex held.
+  void checkCurrent() const;
+  /// Hands `removal` to every snapshot of `revision` held through this opening (it runs when the
+  /// last of them, and of the other openings', is released), and forgets the revision.
+  void holdRemoval(std::uint64_t revision, const std::shared_ptr<const void>& removal);
   /// Step 5 of ModelEdit::publish: drops the oldest kept revisions until `keep` remain with the
   /// current one (`current`, whose model is `latest`). Failures are logged, not thrown.
   void dropRevisions(std::uint64_t current, const Model& latest, unsigned keep);
   static std::unique_ptr<LiveModel> load(const std::filesystem::path& dir, std::string name,
-                                         PatchCache& cache,
-                                         std::shared_ptr<const durable::WriterLock> lock,
+                                         PatchCache& cache, std::shared_ptr<Writer> writer,
                                          bool sweep, std::uint64_t texturePixels);
 
   std::filesystem::path dir_;
   std::string name_;
   std::shared_ptr<Store> store_;
-  mutable std::mutex mutex_;  // guards snapshot_ (the pointer, not the snapshot)
+  /// Lock order: writer_->mutex, then mutex_.
+  mutable std::mutex mutex_;  // guards snapshot_ (the pointer, not the snapshot), readStamp_
   std::shared_ptr<ModelSnapshot> snapshot_;
-  std::atomic<bool> editing_{false};
   /// Null when opened for reading.
-  std::shared_ptr<const durable::WriterLock> lock_;
+  std::shared_ptr<Writer> writer_;
   std::string readOnlyReason_;
   /// Every snapshot of a revision this opening made that may still be held (guarded by mutex_):
   /// a publish that drops a revision hands its folder removal to it.
@@ -208,108 +201,24 @@ class LiveModel {
   /// The last old revisions read by snapshotAt, held so that the next request for them does not
   /// read their metadata again (guarded by mutex_; dropped with their revision).
   std::deque<std::shared_ptr<ModelSnapshot>> recentRevisions_;
-  /// The hierarchy file as it was just before this opening read it.
+  /// The hierarchy file as it was just before this opening read it, or as its last publish made
+  /// it.
   std::optional<HierarchyStamp> readStamp_;
   std::function<void(const ReplacedVersions&)> onPublish_;  // guarded by mutex_
   NewVersionObserver onNewVersion_;                         // guarded by mutex_
 };
 
-/// The next version of a LiveModel, invisible to readers until publish(). A changed patch gets
-/// version (published version + 1) and a new folder; its data lives in the cache as dirty and is
-/// written there when evicted or at publish. Destroying an unpublished edit discards it: its
-/// cache entries are dropped and its folders removed.
-///
-/// Not thread-safe: one thread drives an edit. Pins it returns must be released before publish()
-/// or destruction.
-class ModelEdit {
- public:
-  ~ModelEdit();
-  ModelEdit(const ModelEdit&) = delete;
-  ModelEdit& operator=(const ModelEdit&) = delete;
-
-  /// The working metadata (structure, boxes, states) of the next version.
-  const Model& model() const { return *model_; }
-  /// The version this edit was started from.
-  const ModelSnapshot& base() const { return *base_; }
-
-  /// Current data of a patch in this edit: its new data if changed, else the published data.
-  /// Throws Error(NotFound) for a key not in the model.
-  PatchCache::Pin positions(const PatchKey& key);
-  /// Current texture tile of a patch (as positions()); an empty Pin when it has none.
-  PatchCache::Pin texture(const PatchKey& key);
-
-  /// Adds a patch (its parent must exist already) or replaces a patch's data, with its texture
-  /// tile or without one (null). Marks the patch changed and every ancestor stale. Throws
-  /// Error(InvalidArgument) for a wrong grid or tile size or a missing parent,
-  /// Error(ResourceExhausted) when the budget is full of pinned data.
-  void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid,
-                    std::shared_ptr<const TextureTile> texture = nullptr);
-
-  /// Writes a changed patch's data (positions and texture tile) into its draft folder now rather
-  /// than at publish, for a patch this edit will not change again: the write overlaps the edit's
-  /// further work, and the data becomes evictable without a write-back. Nothing for a patch
-  /// whose data is not changed or already written. Thread-safe for distinct keys, beside
-  /// setPositions of other keys. Throws Error(Io) as publish would; the edit is then only fit to
-  /// be discarded.
-  void writeEarly(const PatchKey& key);
-
-  /// Recomputes every stale overview bottom-up by reduction, holding one parent's children at a
-  /// time; its texture tile is downsampled from the children's (downsampleQuadrants), a child
-  /// without a tile of its own size (none, or a foreign one of another size) counting with its
-  /// shaded relief (shadedRelief), so every overview an edit writes has a tile.
-  void refreshStale(const CancelToken* cancel = nullptr);
-
-  /// Makes this edit's content that of `from`, a kept revision of the same model
-  /// (LiveModel::snapshotAt): each patch it holds in another version than the edit gets its data
-  /// and texture tile again in a new folder (copy-on-write, so the model version still rises),
-  /// and each patch it does not hold is removed. Published, the surface is `from`'s, patch for
-  /// patch. Call it on a fresh edit. Throws as setPositions, and Error(InvalidArgument) for a
-  /// snapshot of another patch size.
-  void restore(const ModelSnapshot& from, const CancelToken* cancel = nullptr);
-
-  /// Publishes the edit as the model's next version:
-  ///
-  /// 1. refreshes stale overviews, writes every changed patch that is still in the cache, and
-  ///    makes all draft files durable with the edit's FileSystemSync (its descriptor was opened
-  ///    when the edit began, so no write-back error since is missed);
-  /// 2. keeps the base revision's hierarchy as Patches/vsm-revision-<base>.xml (when not kept
-  ///    yet), and writes the new hierarchy, recording the revision (`options`), under a temporary
-  ///    name and fsyncs it;
-  /// 3. **the commit point**: renames it over Patches/patchhierarchy.xml. snapshot() is the new
-  ///    version from here on;
-  /// 4. syncs Patches/ and removes a stale hierarchy.cache (OpcWriter::finishHierarchy);
-  /// 5. drops the oldest revisions beyond options.keepRevisions: first its hierarchy file, then
-  ///    the folders (and tiles) no later revision names, once no snapshot of it is held here.
-  ///
-  /// A failure before 3 throws and leaves the old version: the edit is then only fit to be
-  /// discarded (its drafts are removed; a failed sync is never retried on the same pages).
-  /// Cancellation is honoured up to 3. A failure in 4 throws Error(Io) saying the version is
-  /// published: it is not undone, and the next open() retries step 4. A removal in 5 that fails is
-  /// logged and left to the next open. Throws Error(InvalidArgument) first when keepRevisions < 2
-  /// or the edit changes nothing.
-  void publish(const CancelToken* cancel = nullptr, const PublishOptions& options = {});
-
-  /// True from the commit point of publish() on.
-  bool published() const { return published_; }
-
-  /// Keys changed (added or replaced) in this edit.
-  const std::set<PatchKey>& changed() const { return changed_; }
-  /// Keys of the base this edit removed.
-  const std::set<PatchKey>& removed() const { return removed_; }
-
- private:
-  friend class LiveModel;
-  ModelEdit(LiveModel& live, std::shared_ptr<const ModelSnapshot> base);
-  ObjectId draftId(const PatchKey& key) const;
-
-  LiveModel& live_;
-  /// Opened when the edit begins: syncfs on it reports every write-back error since.
-  durable::FileSystemSync sync_;
-  std::shared_ptr<const ModelSnapshot> base_;
-  std::unique_ptr<Model> model_;
-  std::set<PatchKey> changed_;
-  std::set<PatchKey> removed_;
-  bool published_ = false;
+/// What every opening of one model in this process that may write shares (open() makes it,
+/// reopen() passes it on): the writer lock, the flag of the one edit, the opening that may begin
+/// it, and every opening, so that a publish through one keeps what readers of the others hold.
+struct LiveModel::Writer {
+  std::shared_ptr<const durable::WriterLock> lock;
+  std::mutex mutex;  // guards everything below
+  bool editing = false;
+  /// The newest opening: the only one that may begin an edit.
+  const LiveModel* current = nullptr;
+  /// Every live opening (each adds itself when made and removes itself when destroyed).
+  std::vector<LiveModel*> openings;
 };
 
 }  // namespace vsm::core

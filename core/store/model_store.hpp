@@ -1,0 +1,58 @@
+#pragma once
+
+// Internal to core/store: the cache's store adapter of one LiveModel. Not included outside
+// core/store.
+
+#include <cstdint>
+#include <filesystem>
+#include <map>
+#include <mutex>
+#include <set>
+#include <string>
+#include <utility>
+
+#include "core/cache/patch_cache.hpp"
+#include "core/store/live_model.hpp"
+
+namespace vsm::core {
+
+/// The PatchStore of one LiveModel: knows where every live version of every patch is stored
+/// (published, kept revisions read, and an edit's drafts), and loads and writes them for the
+/// cache. Registered with the cache for its life. Thread-safe.
+class LiveModel::Store final : public PatchStore {
+ public:
+  Store(std::filesystem::path dir, PatchCache& cache, const std::string& name, int gridSize,
+        std::uint64_t texturePixels);
+  ~Store() override;
+
+  PatchCache& cache() { return cache_; }
+  std::uint64_t texturePixels() const { return texturePixels_; }
+  PatchCache::ModelId id() const { return id_; }
+  const std::filesystem::path& dir() const { return dir_; }
+
+  /// Makes a version loadable (published or draft).
+  void add(const PatchInfo& info);
+  void forget(const PatchKey& key, std::uint64_t version);
+  /// Forgets every version stored in one of `folders` and drops its cached data.
+  void forgetFolders(const std::set<std::string>& folders);
+
+  std::size_t expectedBytes(const ObjectId& id) const override;
+  CacheValue load(const ObjectId& id) override;
+  /// Only drafts are ever dirty: written without a sync of their own (the edit's FileSystemSync
+  /// makes them durable before the hierarchy names them).
+  void writeBack(const ObjectId& id, const CacheValue& value) override;
+
+ private:
+  PatchInfo lookup(const ObjectId& id) const;
+
+  std::filesystem::path dir_;
+  PatchCache& cache_;
+  PatchCache::ModelId id_ = 0;
+  /// An empty model of the right patch size: what readPatchGrid needs to know of the model.
+  const Model shape_;
+  mutable std::mutex mutex_;  // guards versions_
+  std::map<std::pair<PatchKey, std::uint64_t>, PatchInfo> versions_;
+  const std::uint64_t texturePixels_;
+};
+
+}  // namespace vsm::core

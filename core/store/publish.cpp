@@ -1,0 +1,147 @@
+#include <exception>
+#include <utility>
+#include <vector>
+
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/opc_writer.hpp"
+#include "core/store/model_edit.hpp"
+#include "core/store/model_store.hpp"
+#include "core/store/store_files.hpp"
+
+// ModelEdit::publish: the protocol that makes an edit the model's next version, with one commit
+// point (model_edit.hpp lists the steps).
+
+namespace fs = std::filesystem;
+
+namespace vsm::core {
+
+using namespace store;
+
+namespace {
+
+/// Calls an observer of a publish, containing what it throws: the version is published and
+/// durable whatever an observer does, so its failure is logged, never the job's.
+template <typename Call>
+void tellObserver(const std::string& model, const char* what, Call&& call) {
+  try {
+    call();
+  } catch (const std::exception& e) {
+    log::error("model=" + model + " " + what + " of a published version failed: " + e.what());
+  } catch (...) {
+    log::error("model=" + model + " " + what + " of a published version failed");
+  }
+}
+
+}  // namespace
+
+void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options) {
+  if (published_) {
+    throw Error(ErrorCode::Conflict, "edit already published");
+  }
+  if (options.keepRevisions < 2) {
+    throw Error(ErrorCode::InvalidArgument,
+                "at least 2 revisions are kept (the previous one while replicas follow), not " +
+                    std::to_string(options.keepRevisions));
+  }
+  if (changed_.empty() && removed_.empty()) {
+    throw Error(ErrorCode::InvalidArgument, "the edit changes nothing: no new revision");
+  }
+  refreshStale(cancel);
+  if (cancel != nullptr) {
+    cancel->throwIfCancelled();
+  }
+  LiveModel::Store& store = *live_.store_;
+  // 1. Every changed patch into its new folder (evicted ones were written already), durable.
+  // Flushers take distinct dirty entries, so several run side by side.
+  runTasks(options.executor,
+           std::vector<std::function<void()>>(options.executor != nullptr ? kPublishWriters : 1,
+                                              [&] { store.cache().flush(store.id()); }));
+  sync_.sync();
+  if (cancel != nullptr) {
+    cancel->throwIfCancelled();
+  }
+  // 2. The base revision's hierarchy kept under its own name (once), durable before the commit
+  // point: from then on its folders are named by a kept revision. Then the new hierarchy naming
+  // the new folders, fsynced under a temporary name, and everything the switch to the new version
+  // needs, prepared so that nothing after the commit point can fail but its durability.
+  const fs::path patches = patchesDirOf(live_.dir_);
+  const std::string baseName = revisionFileName(base_->version);
+  if (!fs::exists(patches / baseName)) {
+    stageHierarchy(live_.dir_, *base_->model, &base_->revision, baseName)->commit();
+    durable::syncDirectory(patches);
+  }
+  const std::uint64_t version = base_->version + 1;
+  auto next = std::make_shared<Model>(*model_);
+  auto snapshot = std::make_shared<ModelSnapshot>();
+  snapshot->revision = {base_->version,  utcNow(),        options.job,
+                        changed_.size(), removed_.size(), options.restoredFrom,
+                        nonce_};
+  const std::unique_ptr<durable::PendingFile> hierarchy =
+      stageHierarchy(live_.dir_, *next, &snapshot->revision);
+  snapshot->model = std::move(next);
+  snapshot->version = version;
+
+  // 3. The commit point, fenced: this opening is still the model's and the hierarchy on disk is
+  // still the base (no other writer published meanwhile), and the caller's fence (a cluster
+  // node's lease) still holds. From the rename on, the new version is the model's.
+  if (cancel != nullptr) {
+    cancel->throwIfCancelled();
+  }
+  {
+    std::lock_guard lock(live_.writer_->mutex);
+    live_.checkCurrent();
+  }
+  if (options.fence) {
+    options.fence();
+  }
+  hierarchy->commit();
+  published_ = true;
+  const std::optional<HierarchyStamp> stamp = hierarchyStamp(live_.dir_);
+  {
+    std::lock_guard lock(live_.mutex_);
+    live_.snapshot_ = snapshot;
+    live_.revisionSnapshots_[version] = snapshot;
+    live_.readStamp_ = stamp;
+  }
+
+  // 4. Durable before announced: a failure is reported, never undone (the next open retries it),
+  // and the version is not announced (the caller reads the model again).
+  try {
+    finishHierarchy(live_.dir_);
+  } catch (const Error& e) {
+    throw Error(ErrorCode::Io, "version " + std::to_string(version) + " of model '" + live_.name_ +
+                                   "' is published, but " + e.what() +
+                                   " (retried at the next open)");
+  }
+
+  // 5. Announced: what others derived from the replaced versions may go (LiveModel::onPublish),
+  // and listeners hear of the new version. Observers cannot fail the publish.
+  std::function<void(const LiveModel::ReplacedVersions&)> observer;
+  LiveModel::NewVersionObserver announce;
+  {
+    std::lock_guard lock(live_.mutex_);
+    observer = live_.onPublish_;
+    announce = live_.onNewVersion_;
+  }
+  if (observer) {
+    LiveModel::ReplacedVersions replaced;
+    for (const PatchKey& key : changed_) {
+      if (const PatchInfo* old = base_->model->find(key)) {
+        replaced.emplace_back(key, old->version);
+      }
+    }
+    for (const PatchKey& key : removed_) {
+      replaced.emplace_back(key, base_->model->at(key).version);
+    }
+    tellObserver(live_.name_, "dropping derived data", [&] { observer(replaced); });
+  }
+  if (announce) {
+    tellObserver(live_.name_, "the announcement", [&] { announce(version, changed_); });
+  }
+  // 6. Revisions beyond the count go, oldest first.
+  live_.dropRevisions(version, *snapshot->model, options.keepRevisions);
+}
+
+}  // namespace vsm::core

@@ -1,0 +1,143 @@
+#include "core/store/store_files.hpp"
+
+#include <sys/stat.h>
+
+#include <algorithm>
+#include <cctype>
+#include <cstdio>
+#include <ctime>
+#include <mutex>
+#include <random>
+#include <regex>
+#include <utility>
+
+#include "core/common/log.hpp"
+#include "core/opc/texture_file.hpp"
+#include "core/store/live_model.hpp"
+
+namespace fs = std::filesystem;
+
+namespace vsm::core::store {
+
+namespace {
+
+std::string isoTime(std::time_t time) {
+  std::tm utc{};
+  gmtime_r(&time, &utc);
+  char text[32];
+  std::strftime(text, sizeof text, "%Y-%m-%dT%H:%M:%SZ", &utc);
+  return text;
+}
+
+/// The revision a kept hierarchy file holds, from its name ("vsm-revision-<n>.xml").
+std::optional<std::uint64_t> revisionOfFile(const std::string& name) {
+  static const std::regex pattern("vsm-revision-([0-9]{1,19})\\.xml");
+  std::smatch match;
+  if (!std::regex_match(name, match, pattern)) {
+    return std::nullopt;
+  }
+  return std::stoull(match[1].str());
+}
+
+}  // namespace
+
+std::string draftFolder(const PatchKey& key, std::uint64_t version, std::string_view nonce) {
+  return key.toString() + "-v" + std::to_string(version) + "-" + std::string(nonce);
+}
+
+std::string newNonce() {
+  static std::mutex mutex;
+  static std::random_device device;
+  std::uint32_t value = 0;
+  {
+    std::lock_guard lock(mutex);
+    value = device();
+  }
+  char text[9];
+  std::snprintf(text, sizeof text, "%08x", value);
+  return text;
+}
+
+bool isOurFolderName(const std::string& name) {
+  // Without a nonce: folders of edits made before nonces, still named by kept revisions.
+  static const std::regex pattern("[0-9]+_[0-9]+_[0-9]+(-v[0-9]+(-[0-9a-f]{8})?)?");
+  return std::regex_match(name, pattern);
+}
+
+bool isOurTileName(const std::string& name) {
+  return name.size() > 4 && name.ends_with(".tif") &&
+         isOurFolderName(name.substr(0, name.size() - 4));
+}
+
+fs::path ourTileFile(const fs::path& dir, const std::string& folder) {
+  return dir / "Images" / std::string(kTextureLayer) / (folder + ".tif");
+}
+
+std::map<std::uint64_t, fs::path> revisionFiles(const fs::path& patches) {
+  std::map<std::uint64_t, fs::path> files;
+  for (const auto& entry : fs::directory_iterator(patches)) {
+    if (const auto n = revisionOfFile(entry.path().filename().string());
+        n && entry.is_regular_file()) {
+      files.emplace(*n, entry.path());
+    }
+  }
+  return files;
+}
+
+std::string utcNow() {
+  return isoTime(std::time(nullptr));
+}
+
+std::string fileTime(const fs::path& file) {
+  struct stat st {};
+  if (::stat(file.c_str(), &st) != 0) {
+    return {};
+  }
+  return isoTime(st.st_mtim.tv_sec);
+}
+
+std::shared_ptr<ModelSnapshot> snapshotOf(OpcRevision read, const fs::path& hierarchyFile) {
+  auto snapshot = std::make_shared<ModelSnapshot>();
+  // The published version is the newest patch version: every publish gives the patches it changes
+  // version (published + 1), so every process reading the directory, and every opening after a
+  // restart, names the same content by the same version.
+  for (const auto& [key, info] : read.model.patches()) {
+    snapshot->version = std::max(snapshot->version, info.version);
+  }
+  if (read.record) {
+    snapshot->revision = std::move(*read.record);
+  } else {
+    snapshot->revision.time = fileTime(hierarchyFile);
+    for (const auto& [key, info] : read.model.patches()) {
+      snapshot->revision.changed += info.version == snapshot->version ? 1 : 0;
+    }
+  }
+  snapshot->model = std::make_shared<const Model>(std::move(read.model));
+  return snapshot;
+}
+
+void removeFolders(const fs::path& dir, const std::set<std::string>& folders) {
+  const fs::path patches = patchesDirOf(dir);
+  for (const std::string& folder : folders) {
+    std::error_code ec;
+    fs::remove_all(patches / folder, ec);
+    // Only a tile vsm named for one of its folders is the folder's own (foreign OPCs may share
+    // one).
+    if (!ec && isOurFolderName(folder)) {
+      fs::remove(ourTileFile(dir, folder), ec);
+    }
+    if (ec) {
+      log::warn("cannot remove " + folder + " of a dropped revision: " + ec.message() +
+                " (the next open removes it)");
+    }
+  }
+}
+
+std::string normalisedEntry(std::string entry) {
+  for (char& c : entry) {
+    c = c == '/' ? '\\' : static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  }
+  return entry;
+}
+
+}  // namespace vsm::core::store

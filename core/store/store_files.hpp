@@ -1,0 +1,63 @@
+#pragma once
+
+// Internal to core/store: how a model's files are named and found on disk, shared by the opening
+// (leftover sweep), the revisions and the edit. Not installed, not included outside core/store.
+
+#include <cstdint>
+#include <filesystem>
+#include <map>
+#include <memory>
+#include <optional>
+#include <set>
+#include <string>
+
+#include "core/opc/opc_reader.hpp"
+#include "core/pyramid/patch_key.hpp"
+
+namespace vsm::core {
+
+struct ModelSnapshot;
+
+namespace store {
+
+/// Folder of a patch version written by an edit: "d_x_y-v<version>-<nonce>". Never the name of an
+/// imported patch, so a crash leftover is recognisable (and removable) by its name alone; the
+/// edit's nonce makes it differ from every folder an earlier edit of the same version wrote (one
+/// lost in a power cut after it was served), so names and the tags made from them never repeat.
+std::string draftFolder(const PatchKey& key, std::uint64_t version, std::string_view nonce);
+
+/// A new random nonce for an edit: 8 lowercase hex digits.
+std::string newNonce();
+
+/// Folders vsm names: "d_x_y" as an import writes them, "d_x_y-vN[-nonce]" as an edit does.
+bool isOurFolderName(const std::string& name);
+
+/// Texture tiles vsm names: "<one of our folder names>.tif" in Images/Diffuse/.
+bool isOurTileName(const std::string& name);
+
+/// The file of a tile OpcWriter::writeTexture wrote for `folder` under the model at `dir`.
+std::filesystem::path ourTileFile(const std::filesystem::path& dir, const std::string& folder);
+
+/// The kept revision files under `patches` by revision number ("vsm-revision-<n>.xml").
+std::map<std::uint64_t, std::filesystem::path> revisionFiles(const std::filesystem::path& patches);
+
+/// Now, UTC, ISO 8601 to the second.
+std::string utcNow();
+
+/// The modification time of `file`, UTC, ISO 8601; empty when it cannot be read.
+std::string fileTime(const std::filesystem::path& file);
+
+/// A snapshot of one revision read from its hierarchy (the current one or a kept file).
+std::shared_ptr<ModelSnapshot> snapshotOf(OpcRevision read,
+                                          const std::filesystem::path& hierarchyFile);
+
+/// Removes patch folders (and the tiles vsm named for them) that no kept revision names any more.
+/// Failures are logged (the next open removes what is left).
+void removeFolders(const std::filesystem::path& dir, const std::set<std::string>& folders);
+
+/// A texture entry as readers resolve it: either slash, any letter case ("Diffuse/2_0_1.TIF" and
+/// "diffuse\\2_0_1.tif" name the same file).
+std::string normalisedEntry(std::string entry);
+
+}  // namespace store
+}  // namespace vsm::core
