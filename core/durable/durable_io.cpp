@@ -15,6 +15,7 @@
 #include <utility>
 
 #include "core/common/error.hpp"
+#include "core/common/log.hpp"
 
 namespace vsm::core::durable {
 namespace fs = std::filesystem;
@@ -186,8 +187,21 @@ PendingFile::~PendingFile() {
 }
 
 void PendingFile::commit() {
+  struct stat staged {};
+  const bool stagedKnown = ::stat(temp_.c_str(), &staged) == 0;
   if (::rename(temp_.c_str(), target_.c_str()) != 0) {
     const int errnum = errno;
+    // An error does not prove the rename was not applied: over NFS a retransmitted rename that
+    // the server applied the first time reports ENOENT. Decided by looking: when the target is
+    // the staged file (same device and inode) and the temporary name is gone, it committed.
+    struct stat target {};
+    if (stagedKnown && ::stat(target_.c_str(), &target) == 0 && target.st_dev == staged.st_dev &&
+        target.st_ino == staged.st_ino && ::access(temp_.c_str(), F_OK) != 0 && errno == ENOENT) {
+      log::warn("rename into " + target_.string() + " reported " + std::strerror(errnum) +
+                " but was applied (the target is the renamed file): committed");
+      committed_ = true;
+      return;
+    }
     ::unlink(temp_.c_str());
     committed_ = true;  // nothing left to remove
     throwIoError("cannot rename into", target_.string(), errnum);

@@ -45,7 +45,10 @@ class PendingFile {
   PendingFile& operator=(const PendingFile&) = delete;
 
   /// Renames the temporary file to the target. Throws Error(Io) when the rename fails (the target
-  /// is unchanged and the temporary file removed). Does not sync the directory.
+  /// is unchanged and the temporary file removed). A rename that reports an error but was applied
+  /// (over NFS, a retransmitted rename reports ENOENT) is told by looking: the target is the
+  /// staged file and its temporary name is gone; it returns as committed then (logged). Does not
+  /// sync the directory.
   void commit();
 
   const std::filesystem::path& target() const { return target_; }

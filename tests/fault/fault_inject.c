@@ -17,7 +17,10 @@
 //   VSM_FAULT_TRACE   file: every counted call is appended as "<seq> <class> <n> <path>", where
 //                     <seq> counts all classes and <n> this class, both from 1
 //   VSM_FAULT_CLASS   the class whose VSM_FAULT_N-th call fails (once) with VSM_FAULT_ERRNO
-//                     ("EIO" or "ENOSPC"; default EIO); the call is not made
+//                     ("EIO", "ENOSPC" or "ENOENT"; default EIO); the call is not made
+//   VSM_FAULT_APPLIED "1": for the rename class, the failing call is made first and then reported
+//                     failed (as a retransmitted rename over NFS reports ENOENT after the server
+//                     applied it)
 //   VSM_FAULT_REPORT  file: the injected fault is appended as "<class> <n> <errno> <path>"
 //
 // Written in C with raw syscalls for its own output, so it never recurses into itself.
@@ -47,6 +50,7 @@ static char reportPath[PATH_MAX];
 static int faultClass = -1;
 static long faultN;
 static int faultErrno = EIO;
+static int faultApplied;
 static unsigned long counts[kClasses];
 static unsigned long sequence;
 static pthread_mutex_t mutex = PTHREAD_MUTEX_INITIALIZER;  // guards counts, sequence, output
@@ -83,6 +87,11 @@ __attribute__((constructor)) static void setup(void) {
   if (e != NULL && strcmp(e, "ENOSPC") == 0) {
     faultErrno = ENOSPC;
   }
+  if (e != NULL && strcmp(e, "ENOENT") == 0) {
+    faultErrno = ENOENT;
+  }
+  const char* a = getenv("VSM_FAULT_APPLIED");
+  faultApplied = a != NULL && strcmp(a, "1") == 0;
 }
 
 static void appendLine(const char* file, const char* line) {
@@ -142,7 +151,10 @@ static int fault(int c, const char* path) {
   }
   if (inject && reportPath[0] != '\0') {
     snprintf(line, sizeof line, "%s %lu %s %s\n", kClassNames[c], n,
-             faultErrno == ENOSPC ? "ENOSPC" : "EIO", path);
+             faultErrno == ENOSPC   ? "ENOSPC"
+             : faultErrno == ENOENT ? "ENOENT"
+                                    : "EIO",
+             path);
     appendLine(reportPath, line);
   }
   pthread_mutex_unlock(&mutex);
@@ -230,6 +242,11 @@ int syncfs(int fd) {
 
 int rename(const char* from, const char* to) {
   if (faultAt(kRename, AT_FDCWD, to)) {
+    if (faultApplied) {
+      const int reported = errno;
+      NEXT(rename)(from, to);
+      errno = reported;
+    }
     return -1;
   }
   return NEXT(rename)(from, to);
@@ -237,6 +254,11 @@ int rename(const char* from, const char* to) {
 
 int renameat(int fromDir, const char* from, int toDir, const char* to) {
   if (faultAt(kRename, toDir, to)) {
+    if (faultApplied) {
+      const int reported = errno;
+      NEXT(renameat)(fromDir, from, toDir, to);
+      errno = reported;
+    }
     return -1;
   }
   return NEXT(renameat)(fromDir, from, toDir, to);
@@ -244,6 +266,11 @@ int renameat(int fromDir, const char* from, int toDir, const char* to) {
 
 int renameat2(int fromDir, const char* from, int toDir, const char* to, unsigned int flags) {
   if (faultAt(kRename, toDir, to)) {
+    if (faultApplied) {
+      const int reported = errno;
+      NEXT(renameat2)(fromDir, from, toDir, to, flags);
+      errno = reported;
+    }
     return -1;
   }
   return NEXT(renameat2)(fromDir, from, toDir, to, flags);
