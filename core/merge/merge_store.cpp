@@ -4,6 +4,7 @@
 
 #include "core/merge/merge.hpp"
 #include "core/store/live_model.hpp"
+#include "core/store/model_edit.hpp"
 
 namespace vsm::core {
 

@@ -29,11 +29,13 @@
 #include "core/io/geotiff.hpp"
 #include "core/io/grid_source.hpp"
 #include "core/merge/merge.hpp"
+#include "core/merge/merge_into.hpp"
 #include "core/merge/register.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/opc/texture_file.hpp"
 #include "core/store/live_model.hpp"
+#include "core/store/model_edit.hpp"
 #include "core/tiles/lod_render.hpp"
 #include "server/cli/console.hpp"
 #include "server/config/config.hpp"
@@ -283,30 +285,24 @@ int runMerge(const std::vector<std::string_view>& args) {
     live = LiveModel::open(copy->path(), "target", cache);
   }
   ConsoleProgress progress(bytesUnder(detailDir));
-  MergeOptions options;
-  options.progress = &progress;
   ThreadExecutor executor;
-  options.executor = &executor;
-  if (registerFirst) {
-    RegistrationOptions registration;
-    registration.progress = &progress;
-    const RegistrationResult r = registerModels(*live, *detail, registration);
-    options.transform = r.transform;
-    std::printf("registration: fitness %.6g m^2, rms %.4g m, %s, %d stages, %.2f s\n", r.fitness,
-                r.rms, r.converged ? "converged" : "NOT converged", r.stages, r.seconds);
+  MergeIntoOptions options;
+  options.registerFirst = registerFirst;
+  options.progress = &progress;
+  options.merge.executor = &executor;
+  options.publish = publish;
+  options.publish.executor = &executor;
+  const MergeIntoResult merged = mergeInto(*live, *detail, options);
+  if (const auto& r = merged.registration) {
+    std::printf("registration: fitness %.6g m^2, rms %.4g m, %s, %d stages, %.2f s\n", r->fitness,
+                r->rms, r->converged ? "converged" : "NOT converged", r->stages, r->seconds);
     for (int row = 0; row < 3; ++row) {
-      const auto& m = r.transform.m;
+      const auto& m = r->transform.m;
       std::printf("  [%.9f %.9f %.9f %.4f]\n", m[row * 4], m[row * 4 + 1], m[row * 4 + 2],
                   m[row * 4 + 3]);
     }
   }
-  publish.executor = &executor;
-  auto edit = live->beginEdit();
-  const MergeResult result = mergeModels(*edit, *detail, options);
-  progress.report("publishing", 0.0);
-  edit->publish(nullptr, publish);
-  progress.report("publishing", 1.0);
-  edit.reset();
+  const MergeResult& result = merged.merge;
   live.reset();
   if (copy) {
     copy->publish();
