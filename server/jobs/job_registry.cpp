@@ -96,6 +96,7 @@ struct JobRegistry::Job {
   JobStatus status;
   JobWork work;
   std::unique_ptr<JobContext> context;
+  std::string lane;  // empty: none
 };
 
 JobRegistry::JobRegistry(exec::WorkPool& pool, JobLimits limits)
@@ -106,9 +107,11 @@ JobRegistry::JobRegistry(exec::WorkPool& pool, JobLimits limits)
 
 JobRegistry::~JobRegistry() = default;
 
-JobStatus JobRegistry::submit(std::string type, json params, JobContext::Plan plan, JobWork work) {
+JobStatus JobRegistry::submit(std::string type, json params, JobContext::Plan plan, JobWork work,
+                              std::string lane) {
   auto job = std::make_shared<Job>();
   job->work = std::move(work);
+  job->lane = std::move(lane);
   Job* raw = job.get();
   job->context.reset(new JobContext([this, raw](std::string_view stage, double overall) {
     std::optional<JobStatus> changed;
@@ -134,6 +137,7 @@ JobStatus JobRegistry::submit(std::string type, json params, JobContext::Plan pl
   job->status.params = std::move(params);
   job->status.created = std::chrono::system_clock::now();
   JobStatus out;
+  bool post = true;
   {
     const std::lock_guard lock(mutex_);
     if (closed_) {
@@ -153,26 +157,59 @@ JobStatus JobRegistry::submit(std::string type, json params, JobContext::Plan pl
     jobs_.emplace(job->status.id, job);
     order_.push_back(job->status.id);
     out = job->status;
+    if (!job->lane.empty()) {
+      auto& waiting = lanes_[job->lane];
+      waiting.push_back(job);
+      post = waiting.size() == 1;
+    }
   }
   log::info("job=" + out.id + " queued: " + out.type + " " + out.params.dump());
   tell(out);
-  pool_.post([this, job] { run(job); });
+  if (post) {
+    pool_.post([this, job] { run(job); });
+  }
   return out;
+}
+
+void JobRegistry::advance(const std::string& lane) {
+  std::shared_ptr<Job> next;
+  {
+    const std::lock_guard lock(mutex_);
+    const auto it = lanes_.find(lane);
+    if (it == lanes_.end()) {
+      return;
+    }
+    it->second.pop_front();
+    if (it->second.empty()) {
+      lanes_.erase(it);
+      return;
+    }
+    next = it->second.front();
+  }
+  pool_.post([this, next] { run(next); });
 }
 
 void JobRegistry::run(const std::shared_ptr<Job>& job) {
   JobWork work;
   JobStatus running;
+  bool cancelledWhileQueued = false;
   {
     const std::lock_guard lock(mutex_);
     if (job->status.state != JobState::Queued) {
-      return;  // cancelled while queued
+      cancelledWhileQueued = true;
+    } else {
+      job->status.state = JobState::Running;
+      job->status.stage = "starting";
+      job->status.started = std::chrono::system_clock::now();
+      work = std::move(job->work);
+      running = job->status;
     }
-    job->status.state = JobState::Running;
-    job->status.stage = "starting";
-    job->status.started = std::chrono::system_clock::now();
-    work = std::move(job->work);
-    running = job->status;
+  }
+  if (cancelledWhileQueued) {
+    if (!job->lane.empty()) {
+      advance(job->lane);
+    }
+    return;
   }
   log::info("job=" + running.id + " running");
   tell(running);
@@ -200,6 +237,9 @@ void JobRegistry::run(const std::shared_ptr<Job>& job) {
   // final: a client seeing "succeeded" or "cancelled" may close the model at once.
   work = nullptr;
   finish(*job, state, std::move(result), code, std::move(message));
+  if (!job->lane.empty()) {
+    advance(job->lane);
+  }
 }
 
 void JobRegistry::finish(Job& job, JobState state, json result, std::optional<ErrorCode> code,

@@ -115,9 +115,12 @@ class JobRegistry {
   JobRegistry(const JobRegistry&) = delete;
   JobRegistry& operator=(const JobRegistry&) = delete;
 
-  /// Queues `work`. Returns its status (queued). Throws core::Error(Unavailable) when the active
-  /// cap is reached or the registry is shutting down.
-  JobStatus submit(std::string type, nlohmann::json params, JobContext::Plan plan, JobWork work);
+  /// Queues `work`. Jobs given the same non-empty `lane` (the model they write) run one at a time,
+  /// in submission order; other jobs run as the pool has threads. Returns its status (queued).
+  /// Throws core::Error(Unavailable) when the active cap is reached or the registry is shutting
+  /// down.
+  JobStatus submit(std::string type, nlohmann::json params, JobContext::Plan plan, JobWork work,
+                   std::string lane = {});
 
   /// Every remembered job, oldest first.
   std::vector<JobStatus> list() const;
@@ -141,6 +144,8 @@ class JobRegistry {
  private:
   struct Job;
   void run(const std::shared_ptr<Job>& job);
+  /// After the job at the head of `lane` ended (or was found cancelled): posts the next one.
+  void advance(const std::string& lane);
   void finish(Job& job, JobState state, nlohmann::json result, std::optional<core::ErrorCode> code,
               std::string message);
   void forgetOldFinished();
@@ -156,6 +161,8 @@ class JobRegistry {
   bool closed_ = false;
   std::map<std::string, std::shared_ptr<Job>, std::less<>> jobs_;
   std::deque<std::string> order_;  // ids, oldest first
+  /// Lane -> its jobs not yet ended, in submission order; the first one is posted to the pool.
+  std::map<std::string, std::deque<std::shared_ptr<Job>>, std::less<>> lanes_;
 };
 
 /// A job's status as JSON (proto/examples/job.json).

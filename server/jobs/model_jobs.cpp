@@ -5,9 +5,9 @@
 
 #include "core/common/error.hpp"
 #include "core/io/grid_source.hpp"
-#include "core/merge/merge.hpp"
-#include "core/merge/register.hpp"
+#include "core/merge/merge_into.hpp"
 #include "core/store/live_model.hpp"
+#include "core/store/model_edit.hpp"
 
 namespace vsm::server::jobs {
 
@@ -20,6 +20,40 @@ namespace {
 
 json matrixJson(const core::Mat4d& m) {
   return json(m.m);
+}
+
+/// The lane of the jobs that write model `id`: they run one at a time, in submission order.
+std::string writerLane(const std::string& id) {
+  return "model:" + id;
+}
+
+/// The opening of model `id` a writing job uses, resolved when the job starts (a failed write
+/// before it may have replaced the opening its submission saw). Throws core::Error(Conflict) for
+/// a model this process only reads (in a cluster the writer may have moved meanwhile).
+std::shared_ptr<core::LiveModel> writableModel(models::ModelRegistry& models,
+                                               const std::string& id) {
+  std::shared_ptr<core::LiveModel> live = models.get(id);
+  if (!live->writable()) {
+    // A second writer over HTTP: 409, naming the holder.
+    throw Error(ErrorCode::Conflict,
+                "model '" + id + "' is open for reading only: " + live->readOnlyReason());
+  }
+  return live;
+}
+
+/// Runs `write` (an edit of model `id` up to its publish); on an I/O error (a failed write or
+/// sync) the model is read again from disk, as the old version, or the new one when only a step
+/// after the commit point failed: nothing the opening holds in memory is trusted then. Rethrows.
+template <typename Write>
+json writingModel(models::ModelRegistry& models, const std::string& id, Write&& write) {
+  try {
+    return write();
+  } catch (const Error& e) {
+    if (e.code() == ErrorCode::Io) {
+      models.reopen(id);
+    }
+    throw;
+  }
 }
 
 }  // namespace
@@ -81,13 +115,7 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
   }
   auto targetLease = std::make_shared<models::ModelRegistry::Lease>(models.lease(target));
   auto sourceLease = std::make_shared<models::ModelRegistry::Lease>(models.lease(source));
-  std::shared_ptr<core::LiveModel> targetModel = models.get(target);
-  std::shared_ptr<core::LiveModel> sourceModel = models.get(source);
-  if (!targetModel->writable()) {
-    // A second writer over HTTP: 409 at once, naming the holder.
-    throw Error(ErrorCode::Conflict, "model '" + target + "' is open for reading only: " +
-                                         targetModel->readOnlyReason());
-  }
+  writableModel(models, target);  // 409 at once rather than a failed job
   json params = {{"target", target}, {"source", source}, {"register", registerFirst}};
   JobContext::Plan plan;
   if (registerFirst) {
@@ -97,75 +125,55 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
               {{"matching", 0.05}, {"placing", 0.55}, {"reducing", 0.15}, {"publishing", 0.05}});
   return jobs.submit(
       "merge", std::move(params), std::move(plan),
-      [&models, target, targetLease, sourceLease, targetModel, sourceModel,
-       registerFirst](JobContext& context) {
-        json result = json::object();
-        // The one edit of the target; another job editing it makes this one fail (Conflict).
-        std::unique_ptr<core::ModelEdit> edit = targetModel->beginEdit();
-        try {
-          result["base_version"] = edit->base().version;
-          core::MergeOptions options;
+      [&models, target, source, targetLease, sourceLease, registerFirst](JobContext& context) {
+        return writingModel(models, target, [&] {
+          const std::shared_ptr<core::LiveModel> targetModel = writableModel(models, target);
+          const std::shared_ptr<core::LiveModel> sourceModel = models.get(source);
+          core::MergeIntoOptions options;
+          options.registerFirst = registerFirst;
           options.progress = &context;
           options.cancel = &context.cancelToken();
-          if (registerFirst) {
-            core::RegistrationOptions registration;
-            registration.progress = &context;
-            registration.cancel = &context.cancelToken();
-            const core::RegistrationResult registered =
-                core::registerModels(*targetModel, *sourceModel, registration);
-            options.transform = registered.transform;
-            result["registration"] = {{"transform", matrixJson(registered.transform)},
-                                      {"fitness", registered.fitness},
-                                      {"converged", registered.converged},
-                                      {"stages", registered.stages},
-                                      {"seconds", registered.seconds}};
+          options.publish.job = context.id();
+          options.publish.keepRevisions = models.keepRevisions();
+          const core::MergeIntoResult merged = core::mergeInto(*targetModel, *sourceModel, options);
+          json result = {{"base_version", merged.baseVersion}, {"version", merged.version}};
+          if (const auto& registered = merged.registration) {
+            result["registration"] = {{"transform", matrixJson(registered->transform)},
+                                      {"fitness", registered->fitness},
+                                      {"converged", registered->converged},
+                                      {"stages", registered->stages},
+                                      {"seconds", registered->seconds}};
           }
-          const core::MergeResult merged = core::mergeModels(*edit, *sourceModel, options);
-          context.report("publishing", 0);
-          // Cancellation is honoured up to the commit point; after it the new version is the
-          // model's and the job has succeeded.
-          edit->publish(&context.cancelToken(), {context.id(), models.keepRevisions()});
-          result["version"] = targetModel->snapshot()->version;
-          edit.reset();
-          context.report("publishing", 1);
-          result["matched_leaves"] = merged.matchedLeaves;
-          result["detail_leaves"] = merged.detailLeaves;
-          result["new_patches"] = merged.newPatches;
-          result["resampled_leaves"] = merged.resampledLeaves;
-          result["vertices_from_detail"] = merged.verticesFromDetail;
-          result["max_levels"] = merged.maxLevels;
-          result["merge_seconds"] = merged.seconds;
+          result["matched_leaves"] = merged.merge.matchedLeaves;
+          result["detail_leaves"] = merged.merge.detailLeaves;
+          result["new_patches"] = merged.merge.newPatches;
+          result["resampled_leaves"] = merged.merge.resampledLeaves;
+          result["vertices_from_detail"] = merged.merge.verticesFromDetail;
+          result["max_levels"] = merged.merge.maxLevels;
+          result["merge_seconds"] = merged.merge.seconds;
           return result;
-        } catch (const Error& e) {
-          if (e.code() == ErrorCode::Io) {
-            // A failed write or sync: the drafts go, and the model is read again from disk (as
-            // the old version, or the new one when only a step after the commit point failed).
-            edit.reset();
-            models.reopen(target);
-          }
-          throw;
-        }
-      });
+        });
+      },
+      writerLane(target));
 }
 
 JobStatus submitRestore(JobRegistry& jobs, models::ModelRegistry& models, const std::string& id,
                         std::uint64_t revision) {
   models::checkModelId(id);
   auto lease = std::make_shared<models::ModelRegistry::Lease>(models.lease(id));
-  std::shared_ptr<core::LiveModel> model = models.get(id);
-  if (!model->writable()) {
-    throw Error(ErrorCode::Conflict,
-                "model '" + id + "' is open for reading only: " + model->readOnlyReason());
-  }
-  // NotFound for a revision not kept, before a job is queued.
-  std::shared_ptr<const core::ModelSnapshot> from = model->snapshotAt(revision);
+  // NotFound for a revision not kept, Conflict for a model only read, before a job is queued.
+  writableModel(models, id)->snapshotAt(revision);
   json params = {{"model", id}, {"revision", revision}};
   JobContext::Plan plan = {{"restoring", 0.8}, {"publishing", 0.2}};
   return jobs.submit(
       "restore", std::move(params), std::move(plan),
-      [&models, id, lease, model, from, revision](JobContext& context) mutable {
-        std::unique_ptr<core::ModelEdit> edit = model->beginEdit();
-        try {
+      [&models, id, lease, revision](JobContext& context) {
+        return writingModel(models, id, [&] {
+          const std::shared_ptr<core::LiveModel> model = writableModel(models, id);
+          std::unique_ptr<core::ModelEdit> edit = model->beginEdit();
+          // The revision as the current opening reads it (a merge queued before may have dropped
+          // it meanwhile: NotFound then).
+          std::shared_ptr<const core::ModelSnapshot> from = model->snapshotAt(revision);
           json result = {
               {"model", id}, {"restored", revision}, {"base_version", edit->base().version}};
           context.report("restoring", 0);
@@ -174,20 +182,18 @@ JobStatus submitRestore(JobRegistry& jobs, models::ModelRegistry& models, const 
           result["removed_patches"] = edit->removed().size();
           from.reset();
           context.report("publishing", 0);
-          core::PublishOptions options{context.id(), models.keepRevisions(), revision};
+          core::PublishOptions options;
+          options.job = context.id();
+          options.keepRevisions = models.keepRevisions();
+          options.restoredFrom = revision;
           edit->publish(&context.cancelToken(), options);
           result["version"] = model->snapshot()->version;
           edit.reset();
           context.report("publishing", 1);
           return result;
-        } catch (const Error& e) {
-          if (e.code() == ErrorCode::Io) {
-            edit.reset();
-            models.reopen(id);
-          }
-          throw;
-        }
-      });
+        });
+      },
+      writerLane(id));
 }
 
 }  // namespace vsm::server::jobs

@@ -25,10 +25,11 @@ JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const s
 /// (DESIGN.md section 3): target->beginEdit(), registerModels() when `registerFirst`,
 /// mergeModels(), publish(). Readers see the old version until publish() returns and the new one
 /// after; on error or cancellation the edit is discarded. Both models are leased (cannot be
-/// closed) until the job ends.
+/// closed) until the job ends. Jobs writing one model (merges into it, restores of it) run one
+/// at a time in submission order, each on the model's opening current when it starts.
 ///
 /// Throws core::Error(InvalidArgument) when target == source, NotFound for a model that is not
-/// open, Unavailable when the job queue is full.
+/// open, Conflict for a target open for reading only, Unavailable when the job queue is full.
 JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const std::string& target,
                       const std::string& source, bool registerFirst);
 
