@@ -31,6 +31,7 @@ Exit 0 printing a summary; exit 1 listing the failures.
 import argparse
 import hashlib
 import os
+import re
 import subprocess
 import sys
 import time
@@ -136,14 +137,24 @@ def load(opc, n, failures):
     return patches_dir, patches, children_of, n
 
 
-def folder_digest(directory):
-    """{file name: sha256} of every file in a patch folder (recursively, relative names)."""
+# An edit's folders carry its random nonce ("2_1_0-v3-1a2b3c4d"): two runs of the same write name
+# them differently, so versions are compared with the nonces left out.
+NONCE = re.compile(rb"(-v[0-9]+)-[0-9a-f]{8}")
+
+
+def folder_digest(directory, without_nonces=False):
+    """{file name: sha256} of every file in a patch folder (recursively, relative names); with
+    `without_nonces`, the nonces an edit writes into XML files (the tile a Patch.xml names) left
+    out."""
     digest = {}
     for base, _, files in os.walk(directory):
         for name in files:
             path = os.path.join(base, name)
             with open(path, "rb") as f:
-                digest[os.path.relpath(path, directory)] = hashlib.sha256(f.read()).hexdigest()
+                data = f.read()
+            if without_nonces and name.lower().endswith(".xml"):
+                data = NONCE.sub(rb"\1", data)
+            digest[os.path.relpath(path, directory)] = hashlib.sha256(data).hexdigest()
     return digest
 
 

@@ -56,7 +56,7 @@ import urllib.request
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from model_states import crop, make_outside_model, version_of, which  # noqa: E402
 
-DRAFT = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v[0-9]+")
+DRAFT = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v[0-9]+-[0-9a-f]{8}")
 MAX_EXTRA = 30
 MIN_KILLS = 20
 

@@ -10,7 +10,7 @@ import numpy as np
 from osgeo import gdal, osr
 
 from check_import import find_ci, read_hierarchy
-from merge_check import folder_digest
+from merge_check import NONCE, folder_digest
 
 gdal.UseExceptions()
 
@@ -19,7 +19,7 @@ TEMP = re.compile(r"\..+\.tmp-[0-9]+-[0-9]+")
 # hierarchy: when and by which job differ between two runs of the same write.
 REVISION_FILE = re.compile(r"vsm-revision-([0-9]+)\.xml")
 PARENT = re.compile(rb"<Revision>\s*<Parent>([0-9]+)</Parent>")
-VERSIONED = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v([0-9]+)")
+VERSIONED = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v([0-9]+)(?:-[0-9a-f]{8})?")
 REVISION_RECORD = re.compile(rb"<Revision>.*?</Revision>", re.S)
 LOCK = ".vsm-writer.lock"
 
@@ -78,12 +78,14 @@ def version_of(opc):
     with open(find_ci(patches_dir, "patchhierarchy.xml"), "rb") as f:
         text = f.read()
     reachable = reachable_folders(opc)
-    hierarchy = (REVISION_RECORD.sub(b"", text), revision_list(patches_dir, text, reachable))
+    hierarchy = (NONCE.sub(rb"\1", REVISION_RECORD.sub(b"", text)),
+                 revision_list(patches_dir, text, reachable))
     kept = set()
     for name in os.listdir(patches_dir):
         if REVISION_FILE.fullmatch(name):
             kept |= reachable_folders(opc, name)
-    folders = {folder: folder_digest(os.path.join(patches_dir, folder)) for folder in reachable}
+    folders = {without_nonce(folder): folder_digest(os.path.join(patches_dir, folder), True)
+               for folder in reachable}
     orphans = sorted(e for e in os.listdir(patches_dir)
                      if e not in reachable | kept and e.lower() != "patchhierarchy.xml"
                      and not REVISION_FILE.fullmatch(e))
@@ -93,6 +95,11 @@ def version_of(opc):
                     if t[:-4] not in reachable | kept]
     orphans += [e for e in os.listdir(opc) if TEMP.fullmatch(e)]
     return hierarchy, folders, orphans
+
+
+def without_nonce(name):
+    """A folder or file name with an edit's nonce left out."""
+    return NONCE.sub(rb"\1", name.encode()).decode()
 
 
 def which(version, old, new):

@@ -33,8 +33,9 @@ HEADER_TIMEOUT = 1.5  # the main daemon's limits.header_timeout, seconds
 class Daemon:
     """One vsmd process on 127.0.0.1:0 with its own data root; the port comes from --port-file."""
 
-    def __init__(self, *flags, config=None, prepare=None, root=None):
-        """`prepare(dir)` fills the data root before the daemon starts; `root` reuses one."""
+    def __init__(self, *flags, config=None, prepare=None, root=None, env=None):
+        """`prepare(dir)` fills the data root before the daemon starts; `root` reuses one; `env`
+        is the daemon's environment (default: this process's)."""
         self.dir = root or tempfile.mkdtemp(prefix="vsmd-test-")
         if prepare is not None:
             prepare(self.dir)
@@ -49,7 +50,7 @@ class Daemon:
             args += ["--config", path]
         with open(self.log_path, "wb") as log:
             self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log,
-                                         stderr=subprocess.STDOUT)
+                                         stderr=subprocess.STDOUT, env=env)
         deadline = time.monotonic() + 15
         while not os.path.exists(self.port_file):
             if self.proc.poll() is not None:

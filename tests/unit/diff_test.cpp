@@ -10,6 +10,7 @@
 #include "core/diff/revision_diff.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/store/live_model.hpp"
+#include "core/store/model_edit.hpp"
 #include "tests/unit/test_support.hpp"
 
 namespace fs = std::filesystem;

@@ -25,6 +25,7 @@
 #include "core/pyramid/model.hpp"
 #include "core/pyramid/reduce.hpp"
 #include "core/store/live_model.hpp"
+#include "core/store/model_edit.hpp"
 #include "tests/unit/test_support.hpp"
 
 namespace vsm::core {

@@ -26,6 +26,7 @@
 #include "core/opc/stored_file.hpp"
 #include "core/opc/validate.hpp"
 #include "core/store/live_model.hpp"
+#include "core/store/model_edit.hpp"
 #include "server/api/model_routes.hpp"
 #include "server/exec/work_pool.hpp"
 #include "server/http/pipeline.hpp"

@@ -12,12 +12,22 @@
 #include "core/opc/validate.hpp"
 #include "core/pyramid/reduce.hpp"
 #include "core/store/live_model.hpp"
+#include "core/store/model_edit.hpp"
 #include "tests/unit/test_support.hpp"
 
 namespace fs = std::filesystem;
 
 namespace vsm::core {
 namespace {
+
+/// What a publish records: its job, revisions kept, the revision restored.
+PublishOptions publishing(std::string job, unsigned keep, std::uint64_t restoredFrom = 0) {
+  PublishOptions options;
+  options.job = std::move(job);
+  options.keepRevisions = keep;
+  options.restoredFrom = restoredFrom;
+  return options;
+}
 
 using test::codeOf;
 using test::filesUnder;
@@ -206,7 +216,7 @@ void publishLeaf(LiveModel& live, const PatchKey& key, double bump, unsigned kee
                  const std::string& job = "j") {
   auto edit = live.beginEdit();
   edit->setPositions(key, leafGrid(key.x, key.y, bump));
-  edit->publish(nullptr, {job, keep});
+  edit->publish(nullptr, publishing(job, keep));
 }
 
 std::vector<std::uint64_t> revisionNumbers(const LiveModel& live) {
@@ -308,7 +318,7 @@ TEST_F(StoreTest, RestoreMakesANewRevisionWithTheOldSurfacePatchForPatch) {
     auto edit = live->beginEdit();
     edit->setPositions({2, 1, 1}, leafGrid(1, 1, 3.0));
     edit->setPositions({3, 6, 6}, leafGrid(3, 3, 1.0));
-    edit->publish(nullptr, {"merge", 8});
+    edit->publish(nullptr, publishing("merge", 8));
   }
   ASSERT_NE(live->snapshot()->model->find({3, 6, 6}), nullptr);
   const auto one = live->snapshotAt(v);
@@ -316,7 +326,7 @@ TEST_F(StoreTest, RestoreMakesANewRevisionWithTheOldSurfacePatchForPatch) {
     auto edit = live->beginEdit();
     edit->restore(*one);
     EXPECT_EQ(edit->removed(), (std::set<PatchKey>{{3, 6, 6}}));
-    edit->publish(nullptr, {"restore", 8, v});
+    edit->publish(nullptr, publishing("restore", 8, v));
   }
   const auto three = live->snapshot();
   EXPECT_EQ(three->version, v + 2);
@@ -344,7 +354,7 @@ TEST_F(StoreTest, RestoreMakesANewRevisionWithTheOldSurfacePatchForPatch) {
   {
     auto edit = live->beginEdit();
     edit->restore(*two);
-    edit->publish(nullptr, {"restore", 8, v + 1});
+    edit->publish(nullptr, publishing("restore", 8, v + 1));
   }
   const auto four = live->snapshot();
   ASSERT_EQ(four->model->patchCount(), two->model->patchCount());
@@ -397,7 +407,8 @@ TEST_F(StoreTest, APublishThatChangesNothingOrKeepsTooFewIsRefused) {
   {
     auto edit = live->beginEdit();
     edit->setPositions({2, 0, 0}, leafGrid(0, 0, 1.0));
-    EXPECT_EQ(codeOf([&] { edit->publish(nullptr, {"", 1}); }), ErrorCode::InvalidArgument);
+    EXPECT_EQ(codeOf([&] { edit->publish(nullptr, publishing("", 1)); }),
+              ErrorCode::InvalidArgument);
   }
   EXPECT_EQ(filesUnder(dir_), before);
   EXPECT_EQ(revisionNumbers(*live).size(), 1u);
@@ -530,6 +541,130 @@ TEST_F(StoreTest, OnlyOneEditAtATime) {
   EXPECT_NO_THROW(live->beginEdit());
 }
 
+// Issue 32, finding 1: a reopening shares the one edit, and only the newest opening may edit.
+TEST_F(StoreTest, OneEditPerModelWhateverTheOpeningAndOnlyTheNewestOpeningEdits) {
+  PatchCache cache(64 << 20);
+  std::shared_ptr<LiveModel> old = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v = old->snapshot()->version;
+  auto edit = old->beginEdit();
+  std::shared_ptr<LiveModel> fresh = old->reopen();
+  EXPECT_EQ(codeOf([&] { fresh->beginEdit(); }), ErrorCode::Conflict)
+      << "two edits of one model through two openings";
+  edit.reset();
+  // The replaced opening edits no more: its edits would publish where nothing serves them.
+  EXPECT_NE(messageOf([&] { old->beginEdit(); }).find("read again"), std::string::npos);
+  publishLeaf(*fresh, {2, 0, 0}, 5.0, 8);
+  EXPECT_EQ(codeOf([&] { old->beginEdit(); }), ErrorCode::Conflict);
+  publishLeaf(*fresh, {2, 1, 0}, 6.0, 8);
+  EXPECT_EQ(fresh->snapshot()->version, v + 2);
+  EXPECT_EQ(revisionNumbers(*fresh), (std::vector<std::uint64_t>{v, v + 1, v + 2}));
+  // A newer opening dropped unused hands the edit back to the one before it.
+  { auto unused = fresh->reopen(); }
+  EXPECT_NO_THROW(fresh->beginEdit());
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+// Issue 32, finding 1: optimistic concurrency on the hierarchy's stamp.
+TEST_F(StoreTest, AnEditOrPublishOnAHierarchyAnotherWriterReplacedIsRefused) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const fs::path hierarchy = dir_ / "Patches" / "patchhierarchy.xml";
+  // Another writer (one that ignores the lock, or on a file system where it does not hold)
+  // replaces the hierarchy, here with the same bytes under a new inode.
+  auto replaceHierarchy = [&] {
+    fs::copy_file(hierarchy, dir_ / "Patches" / "other.xml");
+    fs::rename(dir_ / "Patches" / "other.xml", hierarchy);
+  };
+  auto edit = live->beginEdit();
+  edit->setPositions({2, 0, 0}, leafGrid(0, 0, 5.0));
+  replaceHierarchy();
+  const std::string before = test::readFile(hierarchy);
+  EXPECT_NE(messageOf([&] { edit->publish(nullptr, publishing("j", 8)); }).find("another writer"),
+            std::string::npos);
+  EXPECT_FALSE(edit->published());
+  edit.reset();
+  EXPECT_EQ(test::readFile(hierarchy), before) << "the refused publish changed the hierarchy";
+  EXPECT_EQ(codeOf([&] { live->beginEdit(); }), ErrorCode::Conflict);
+  auto again = live->reopen();
+  live.reset();
+  EXPECT_NO_THROW(publishLeaf(*again, {2, 0, 0}, 5.0, 8));
+}
+
+// Issue 32, finding 3: a publish through one opening keeps the revisions readers of another
+// opening of the process hold.
+TEST_F(StoreTest, ARevisionReadThroughAnOlderOpeningStaysUntilItsReaderLetsGo) {
+  PatchCache cache(64 << 20);
+  std::shared_ptr<LiveModel> old = LiveModel::open(dir_, "m", cache);
+  auto pinned = old->snapshot();
+  const std::string folder = pinned->model->at({2, 0, 0}).folder;
+  std::shared_ptr<LiveModel> fresh = old->reopen();
+  publishLeaf(*fresh, {2, 0, 0}, 5.0, 2);
+  publishLeaf(*fresh, {2, 0, 0}, 6.0, 2);  // drops the revision `pinned` reads
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / folder));
+  EXPECT_NEAR(leafZ(*old, *pinned, {2, 0, 0}), height(3, 3, 0), 1e-3) << "read from disk";
+  pinned.reset();
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / folder)) << "the older opening still serves it";
+  old.reset();
+  EXPECT_FALSE(fs::exists(dir_ / "Patches" / folder));
+}
+
+// Issue 32, finding 4: observers hear of a version once it is durable, and cannot fail it.
+TEST_F(StoreTest, ObserversRunAfterTheVersionIsDurableAndTheirFailuresAreContained) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  // A stale hierarchy.cache is removed in the step that syncs Patches/ (finishHierarchy):
+  // observers that still see it were told before the version was durable.
+  const fs::path staleCache = dir_ / "Patches" / "hierarchy.cache";
+  int told = 0;
+  bool sawStaleCache = false;
+  live->onPublish([&](const LiveModel::ReplacedVersions&) {
+    ++told;
+    sawStaleCache = sawStaleCache || fs::exists(staleCache);
+    throw std::runtime_error("an observer's own failure");
+  });
+  live->onNewVersion([&](std::uint64_t, const std::set<PatchKey>&) {
+    ++told;
+    sawStaleCache = sawStaleCache || fs::exists(staleCache);
+    throw 42;  // not even an exception
+  });
+  for (int i = 0; i < 3; ++i) {  // with keep 2, the later publishes drop revisions
+    std::ofstream(staleCache) << "stale";
+    EXPECT_NO_THROW(publishLeaf(*live, {2, 0, 0}, 5.0 + i, 2));
+  }
+  EXPECT_EQ(told, 6);
+  EXPECT_FALSE(sawStaleCache) << "announced before durable";
+  EXPECT_EQ(live->revisions().size(), 2u) << "a throwing observer skipped the revision drop";
+}
+
+// Issue 32, finding 4: a version number published again (the first lost in a power cut after
+// readers saw it) never reuses the lost one's folder names or record.
+TEST_F(StoreTest, AVersionPublishedAgainAfterALostPublishHasOtherFoldersAndNonce) {
+  PatchCache cache(64 << 20);
+  const fs::path hierarchy = dir_ / "Patches" / "patchhierarchy.xml";
+  const std::string imported = test::readFile(hierarchy);
+  std::string lostFolder;
+  std::string lostNonce;
+  std::uint64_t lostVersion = 0;
+  {
+    auto live = LiveModel::open(dir_, "m", cache);
+    publishLeaf(*live, {2, 0, 0}, 5.0, 8);
+    lostVersion = live->snapshot()->version;
+    lostFolder = live->snapshot()->model->at({2, 0, 0}).folder;
+    lostNonce = live->snapshot()->revision.nonce;
+  }
+  // The power cut: the rename of the hierarchy never reached the disk.
+  std::ofstream(hierarchy, std::ios::trunc) << imported;
+  auto live = LiveModel::open(dir_, "m", cache);
+  publishLeaf(*live, {2, 0, 0}, 7.0, 8);
+  const auto now = live->snapshot();
+  EXPECT_EQ(now->version, lostVersion);
+  EXPECT_NE(now->model->at({2, 0, 0}).folder, lostFolder);
+  EXPECT_EQ(now->revision.nonce.size(), 8u);
+  EXPECT_NE(now->revision.nonce, lostNonce);
+  EXPECT_EQ(readRevisionRecord(hierarchy)->nonce, now->revision.nonce) << "recorded on disk";
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
 TEST_F(StoreTest, AnEditLargerThanTheBudgetStaysWithinIt) {
   // 4 patches of budget; the edit rewrites all 16 leaves and the 5 overviews above them.
   const std::size_t budget = 4 * kSize * kSize * 12;
@@ -641,7 +776,7 @@ TEST_F(TexturedStoreTest, EditCarriesTexturesIntoNewTilesAndOverviewsAndDropsThe
   {
     auto edit = live->beginEdit();
     edit->setPositions({2, 0, 0}, leafGrid(0, 0, 3.0), uniformTile(0, 250, 0));
-    edit->publish(nullptr, {"", 2});
+    edit->publish(nullptr, publishing("", 2));
   }
   const std::set<std::string> latest = namedTiles(*live->snapshot()->model);
   named.insert(latest.begin(), latest.end());
@@ -686,7 +821,7 @@ TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
     auto edit = live->beginEdit();
     edit->setPositions({2, 0, 0}, leafGrid(0, 0, 1.0), uniformTile(1, 2, 3));
     edit->setPositions({2, 0, 0}, leafGrid(0, 0, 1.0));  // replaced, untextured
-    edit->publish(nullptr, {"", 2});
+    edit->publish(nullptr, publishing("", 2));
   }
   auto after = live->snapshot();
   EXPECT_TRUE(after->model->at({2, 0, 0}).textureFile.empty());
@@ -716,7 +851,7 @@ TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
   {
     auto edit = live->beginEdit();
     edit->setPositions({2, 3, 3}, leafGrid(3, 3, 1.0));
-    edit->publish(nullptr, {"", 2});
+    edit->publish(nullptr, publishing("", 2));
   }
   const std::shared_ptr<const Model> third = live->snapshot()->model;
   live.reset();

@@ -42,16 +42,21 @@ inline std::string messageOf(const std::function<void()>& f) {
   return {};
 }
 
+/// The bytes of `file`.
+inline std::string readFile(const std::filesystem::path& file) {
+  std::ifstream in(file, std::ios::binary);
+  std::stringstream text;
+  text << in.rdbuf();
+  return text.str();
+}
+
 /// Relative path -> content of every regular file under `dir`.
 inline std::map<std::string, std::string> filesUnder(const std::filesystem::path& dir) {
   std::map<std::string, std::string> files;
   for (const auto& entry : std::filesystem::recursive_directory_iterator(dir)) {
     // The writer lock names its holder, not model content.
     if (entry.is_regular_file() && entry.path().filename() != ".vsm-writer.lock") {
-      std::ifstream in(entry.path(), std::ios::binary);
-      std::stringstream text;
-      text << in.rdbuf();
-      files[std::filesystem::relative(entry.path(), dir).string()] = text.str();
+      files[std::filesystem::relative(entry.path(), dir).string()] = readFile(entry.path());
     }
   }
   return files;
