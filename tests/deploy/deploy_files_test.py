@@ -44,6 +44,9 @@ import unittest
 import yaml  # Debian python3-yaml (deploy/install-deps.sh)
 
 ARGS = None
+# How long a process may take to start (port file, health): a bound that only ends a hang, far
+# above what a loaded machine or a sanitizer build needs.
+START_DEADLINE = 120
 
 # The memory limit must exceed memory_budget by this factor: the budget counts patch data and
 # encoded responses, not connection buffers, thread stacks, imports' GDAL/PCL memory or allocator
@@ -161,7 +164,7 @@ class Daemon(Process):
         with open(self.log_path, "wb") as log:
             self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log,
                                          stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 15
+        deadline = time.monotonic() + START_DEADLINE
         while not os.path.exists(self.port_file):
             if self.proc.poll() is not None:
                 self.close()
@@ -169,7 +172,7 @@ class Daemon(Process):
                                      % (shlex.join(flags), self.proc.returncode, self.log))
             if time.monotonic() > deadline:
                 self.close()
-                raise AssertionError("vsmd wrote no port file within 15 s:\n" + self.log)
+                raise AssertionError("vsmd wrote no port file within %d s:\n" % START_DEADLINE + self.log)
             time.sleep(0.02)
         with open(self.port_file) as f:
             self.port = int(f.read())
@@ -184,7 +187,7 @@ class Daemon(Process):
         finally:
             conn.close()
 
-    def get_until_200(self, target, timeout=15):
+    def get_until_200(self, target, timeout=START_DEADLINE):
         """/readyz may answer 503 for a moment while vsmd starts."""
         deadline = time.monotonic() + timeout
         while True:
@@ -216,7 +219,7 @@ class Etcd(Process):
                  "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer,
                  "--initial-cluster", "deploy-test=" + peer],
                 stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 20
+        deadline = time.monotonic() + START_DEADLINE
         while not self.healthy():
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 self.close()

@@ -1,5 +1,7 @@
 // An LD_PRELOAD library that fails one chosen file-system call of a process, for the fault sweep
-// (tests/integration/fault_sweep_test.py). Only calls on paths below VSM_FAULT_PREFIX count (for
+// (tests/integration/fault_sweep_test.py), or holds a process at a chosen call until the test lets
+// it go on (tests/integration/hold.py), so that a test sees a job mid-way whatever the machine's
+// speed. Only calls on paths below VSM_FAULT_PREFIX count (for
 // calls on a descriptor: the path the descriptor was opened with, read from /proc/self/fd), so the
 // process's sockets, logs and libraries are never touched.
 //
@@ -22,6 +24,14 @@
 //                     failed (as a retransmitted rename over NFS reports ENOENT after the server
 //                     applied it)
 //   VSM_FAULT_REPORT  file: the injected fault is appended as "<class> <n> <errno> <path>"
+//   VSM_FAULT_HOLD    a class whose calls can be held, so that a test stops a writer at a chosen
+//   VSM_FAULT_GATE    point, looks at it there, and lets it go on (with or without a fault):
+//                     call n of the class waits, before it is made, while the file
+//                     VSM_FAULT_GATE exists and holds a number below n (the calls let through;
+//                     a file without a number counts as 0). While it waits,
+//                     "<VSM_FAULT_GATE>.held-<n>" exists and holds the call's path. The test
+//                     replaces the gate (rename) with a larger number, or removes it, to let
+//                     calls through. Without a gate file no call waits.
 //
 // Written in C with raw syscalls for its own output, so it never recurses into itself.
 #define _GNU_SOURCE
@@ -37,6 +47,7 @@
 #include <sys/stat.h>
 #include <sys/syscall.h>
 #include <sys/uio.h>
+#include <time.h>
 #include <unistd.h>
 
 enum { kWrite, kSync, kRename, kMkdir, kCreate, kUnlink, kLink, kClasses };
@@ -51,6 +62,8 @@ static int faultClass = -1;
 static long faultN;
 static int faultErrno = EIO;
 static int faultApplied;
+static char gatePath[PATH_MAX - 32];
+static int holdClass = -1;
 static unsigned long counts[kClasses];
 static unsigned long sequence;
 static pthread_mutex_t mutex = PTHREAD_MUTEX_INITIALIZER;  // guards counts, sequence, output
@@ -82,6 +95,16 @@ __attribute__((constructor)) static void setup(void) {
       }
     }
     faultN = strtol(n, NULL, 10);
+  }
+  const char* h = getenv("VSM_FAULT_HOLD");
+  const char* g = getenv("VSM_FAULT_GATE");
+  if (h != NULL && g != NULL && g[0] != '\0' && strlen(g) < sizeof gatePath) {
+    for (int i = 0; i < kClasses; ++i) {
+      if (strcmp(h, kClassNames[i]) == 0) {
+        holdClass = i;
+      }
+    }
+    strcpy(gatePath, g);
   }
   const char* e = getenv("VSM_FAULT_ERRNO");
   if (e != NULL && strcmp(e, "ENOSPC") == 0) {
@@ -135,7 +158,48 @@ static void pathOfFd(int fd, char* out, size_t size) {
   out[n > 0 ? n : 0] = '\0';
 }
 
-/// Counts a call on `path` of class `c`; true when this call is the one to fail (errno is set).
+/// The number of calls the gate lets through; -1 when there is no gate file.
+static long gateAllows(void) {
+  const int fd = (int)syscall(SYS_openat, AT_FDCWD, gatePath, O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    return -1;
+  }
+  char text[32];
+  const long n = (long)syscall(SYS_read, fd, text, sizeof text - 1);
+  syscall(SYS_close, fd);
+  text[n > 0 ? n : 0] = '\0';
+  return strtol(text, NULL, 10);
+}
+
+/// Waits while the gate holds call `n` (see VSM_FAULT_GATE), showing it in "<gate>.held-<n>".
+static void hold(unsigned long n, const char* path) {
+  const long allows = gateAllows();
+  if (allows < 0 || (unsigned long)allows >= n) {
+    return;
+  }
+  char held[PATH_MAX];
+  snprintf(held, sizeof held, "%s.held-%lu", gatePath, n);
+  char line[PATH_MAX + 1];
+  snprintf(line, sizeof line, "%s\n", path);
+  const int fd =
+      (int)syscall(SYS_openat, AT_FDCWD, held, O_WRONLY | O_CREAT | O_TRUNC | O_CLOEXEC, 0644);
+  if (fd >= 0) {
+    syscall(SYS_write, fd, line, strlen(line));
+    syscall(SYS_close, fd);
+  }
+  for (;;) {
+    const struct timespec pause = {0, 2 * 1000 * 1000};
+    nanosleep(&pause, NULL);
+    const long now = gateAllows();
+    if (now < 0 || (unsigned long)now >= n) {
+      break;
+    }
+  }
+  syscall(SYS_unlinkat, AT_FDCWD, held, 0);
+}
+
+/// Counts a call on `path` of class `c` (held first when the gate says so, see VSM_FAULT_GATE);
+/// true when this call is the one to fail (errno is set).
 static int fault(int c, const char* path) {
   if (prefixLength == 0 || !below(path)) {
     return 0;
@@ -158,6 +222,9 @@ static int fault(int c, const char* path) {
     appendLine(reportPath, line);
   }
   pthread_mutex_unlock(&mutex);
+  if (c == holdClass) {
+    hold(n, path);  // not under the mutex: the process's other calls go on
+  }
   if (inject) {
     errno = faultErrno;
   }

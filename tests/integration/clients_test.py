@@ -3,9 +3,13 @@
 over a data root holding PRISM (target) and Jacksboro (detail) imported by `vsm import` at 65 x 65,
 and a copy of PRISM for the curl walk-through's merge. Runs client-examples/curl.sh, the Python
 client (with the real-data merge PRISM + Jacksboro as a job, its printed progress rising to 1) and
-the C++ client, and checks what they print against the daemon's own answers. Run by ctest:
+the C++ client, and checks what they print against the daemon's own answers. The Python client's
+merge is held mid-way (its file creations under PRISM wait at a gate of the LD_PRELOAD library
+tests/fault/fault_inject.c, hold.py) until the client has printed progress between 0 and 1, so
+that it does on any machine. Run by ctest:
     clients_test.py --vsmd build/server/vsmd --vsm build/server/cli/vsm --data ../shared/data \\
-        --proto proto --clients client-examples --cpp-client build/.../vsm_client_example"""
+        --proto proto --clients client-examples --cpp-client build/.../vsm_client_example \\
+        --lib build/tests/fault/libvsm_fault_inject.so"""
 
 import argparse
 import os
@@ -14,10 +18,13 @@ import shutil
 import struct
 import subprocess
 import sys
+import tempfile
+import threading
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import server_test as base  # noqa: E402  (the Daemon harness)
+from hold import Hold, poll  # noqa: E402
 from server_test import Daemon  # noqa: E402
 
 TOKEN = "clients-token-0123456789"
@@ -40,7 +47,13 @@ class Clients(unittest.TestCase):
             import_opc("jacksboro_fault_dem.tif", os.path.join(root, "jacksboro"))
             shutil.copytree(os.path.join(root, "prism"), os.path.join(root, "prism-curl"))
 
-        cls.daemon = Daemon("--token", TOKEN, "--memory-budget", "256MiB", prepare=prepare)
+        root = tempfile.mkdtemp(prefix="vsmd-test-")
+        prepare(root)
+        cls.gate = tempfile.mkdtemp(prefix="vsmd-gate-")
+        cls.hold = Hold(ARGS.lib, os.path.join(root, "prism"), "create",
+                        os.path.join(cls.gate, "gate"))
+        cls.daemon = Daemon("--token", TOKEN, "--memory-budget", "256MiB", root=root,
+                            env=cls.hold.env())
         cls.url = "http://127.0.0.1:%d" % cls.daemon.port
 
     @classmethod
@@ -48,6 +61,8 @@ class Clients(unittest.TestCase):
         if cls.daemon is None:
             return
         try:
+            cls.hold.release()
+            shutil.rmtree(cls.gate, ignore_errors=True)
             code = cls.daemon.stop()
             if code != 0:
                 raise AssertionError("vsmd exited %d:\n%s" % (code, cls.daemon.log()))
@@ -61,6 +76,56 @@ class Clients(unittest.TestCase):
                          "%s exited %d\nstdout:\n%s\nstderr:\n%s"
                          % (args[0], result.returncode, result.stdout, result.stderr))
         return result.stdout
+
+    def merge_held_mid_way(self, args):
+        """Runs the client's merge (`args`) with the merge held at a file creation where its
+        progress is between 0 and 1 until the client has printed such progress; its stdout."""
+        hold = self.hold
+        allowed = hold.let_through(hold.calls())  # the merge's next creation waits
+        proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        lines = []
+        reader = threading.Thread(target=lambda: lines.extend(iter(proc.stdout.readline, "")))
+        reader.start()
+
+        def printed_progress():
+            return [float(p) for p in re.findall(r"^progress ([0-9.]+) ", "".join(list(lines)),
+                                                  re.M)]
+
+        try:
+            submitted = poll(lambda: next((m for m in (re.match(r"job (\S+) submitted", line)
+                                                        for line in list(lines)) if m), None)
+                             or proc.poll() is not None)
+            self.assertTrue(submitted is not None and submitted is not True, "".join(lines))
+            job_id = submitted.group(1)
+
+            def ended():
+                job = self.daemon.get_json("/v1/jobs/" + job_id)[2]
+                return job["state"] not in ("queued", "running")
+
+            while True:
+                self.assertIsNotNone(hold.wait_held(allowed + 1, ended=ended),
+                                     "the merge ended before it was seen mid-way")
+                job = self.daemon.get_json("/v1/jobs/" + job_id)[2]
+                if job["state"] == "running" and 0 < round(job["progress"], 3) < 1:
+                    break
+                allowed = hold.let_through(allowed + 8)
+            # The client prints it once the daemon's event (held back at most 250 ms) reaches it.
+            self.assertTrue(poll(lambda: any(0 < p < 1 for p in printed_progress())),
+                            "the client printed no progress of the held merge (%.3f):\n%s"
+                            % (job["progress"], "".join(lines)))
+        finally:
+            hold.release()
+            try:
+                proc.wait(timeout=900)
+            finally:
+                proc.kill()
+                reader.join()
+        err = proc.stderr.read()
+        proc.stdout.close()
+        proc.stderr.close()
+        self.assertEqual(proc.returncode, 0, "%s exited %d\nstdout:\n%s\nstderr:\n%s"
+                         % (args[0], proc.returncode, "".join(lines), err))
+        return "".join(lines)
 
     def test_cpp_client_lists_models_and_decodes_a_patch(self):
         out = self.run_client([ARGS.cpp_client, "--port", str(self.daemon.port), "jacksboro"])
@@ -123,7 +188,7 @@ class Clients(unittest.TestCase):
             self.assertEqual(f.read(), self.daemon.request(
                 "GET", "/v1/models/prism/patches/0_0_0/positions")[2])
 
-        out = self.run_client(client + ["merge", "prism", "jacksboro"])
+        out = self.merge_held_mid_way(client + ["merge", "prism", "jacksboro"])
         progress = [float(p) for p in re.findall(r"^progress ([0-9.]+) ", out, re.M)]
         self.assertGreater(len(progress), 2, out)
         self.assertEqual(progress, sorted(progress), "progress went down:\n" + out)
@@ -171,6 +236,7 @@ def main():
     parser.add_argument("--proto", required=True)
     parser.add_argument("--clients", required=True)
     parser.add_argument("--cpp-client", required=True)
+    parser.add_argument("--lib", required=True, help="libvsm_fault_inject.so (tests/fault)")
     parser.add_argument("--python", default=sys.executable)
     ARGS, rest = parser.parse_known_args()
     base.ARGS = ARGS

@@ -36,6 +36,9 @@ import unittest
 import urllib.error
 import urllib.request
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from hold import poll  # noqa: E402
+
 ARGS = None
 LEASE_TTL = 5  # seconds; the bound checked is relative to it
 TOKEN = "cluster-test-token"
@@ -232,7 +235,8 @@ class Cluster(unittest.TestCase):
         for t in threads:
             t.start()
         try:
-            time.sleep(0.5)
+            # The readers are under way (counted, not timed: on any machine).
+            self.assertTrue(poll(lambda: reads[0] >= 50), "the readers read nothing")
             job_id, node = self.submit_merge()
             writer = self.writer("prism")
             self.assertTrue(job_id.startswith(writer + "-"), (job_id, writer))
@@ -253,7 +257,15 @@ class Cluster(unittest.TestCase):
                 path = "/v1/models/prism/patches/%s/positions" % key
                 bodies = {name: request(url + path)[2] for name, url in self.nodes.items()}
                 self.assertEqual(len(set(bodies.values())), 1, path)
-            time.sleep(0.5)
+            # And go on until they have read the merged version too (or the deadline).
+            with lock:
+                reads_after = reads[0]
+
+            def read_merged():
+                with lock:
+                    return reads[0] >= reads_after + 50 and str(after) in {v for _, v in seen}
+
+            poll(read_merged)
         finally:
             stop.set()
             for t in threads:

@@ -2,18 +2,22 @@
 """GET /v1/events end to end: the real vsmd on 127.0.0.1:0 and real data (PRISM and Jacksboro
 imported by the real `vsm` at --patch-size 65).
 
-    /usr/bin/python3 events_test.py --vsm <vsm> --vsmd <vsmd> --data <shared/data>
-                                    --clients <client-examples> --work <dir>
+    /usr/bin/python3 events_test.py --vsm <vsm> --vsmd <vsmd> --lib <libvsm_fault_inject.so>
+                                    --data <shared/data> --clients <client-examples> --work <dir>
 
 1. Three subscribers read the stream while a merge of Jacksboro into PRISM runs (POST /v1/jobs).
+   The merge is held at chosen points (its file creations under PRISM wait at a gate of the
+   LD_PRELOAD library tests/fault/fault_inject.c, tests/integration/hold.py) until each
+   subscriber has received the progress the job has there, at HELD_POINTS points of increasing
+   progress; so the progress events checked below exist on any machine, however fast the merge.
    Each sees the job's progress events ("job", coalesced: at most ~4 a second), then "published"
    for PRISM with the job's new version and the changed keys, then the job's "job_end"
    (succeeded), with strictly increasing ids, all three the same events.
 2. A fourth subscriber with a tiny receive buffer never reads while a flood of events is produced
-   (hundreds of import jobs of a file that is no raster, each failing at once): the daemon logs
-   that it dropped it and closes its connection; the three others keep receiving every event
-   (no gap in the ids); the daemon's VmRSS stays below its level before the flood plus
-   RSS_BOUND.
+   (FLOOD_JOBS import jobs of a file that is no raster, each failing at once) and the merge is held
+   at its last point: the daemon logs that it dropped it and closes its connection; the three
+   others keep receiving every event (no gap in the ids); the daemon's VmRSS stays below its level
+   before the flood plus RSS_BOUND.
 3. The Python client's wait() follows a job on the stream and returns its final state.
 4. SIGTERM ends every stream at once: vsmd exits well within its grace period.
 5. With limits.event_subscribers=2 a third subscriber gets 503 with Retry-After, and once one
@@ -34,12 +38,24 @@ import time
 import urllib.error
 import urllib.request
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from hold import Hold, poll  # noqa: E402
+
 MiB = 1024 * 1024
 # What the flood may add to the daemon's resident memory. The never-reading subscriber's share is
 # bounded by its queue (256 events or 256 KiB) plus one write in flight (at most as much again);
 # the rest is slack for allocator noise and the failing imports.
 RSS_BOUND = 48 * MiB
 FLOOD_JOBS = 1500
+# Points of distinct progress at which the merge is held until every subscriber has that progress.
+HELD_POINTS = 3
+# File creations under the target let through between two looks at the held merge (a batch of
+# the merge's placing creates a few dozen; a point whose progress did not move is passed over).
+HOLD_STEP = 8
+# A bound on waits for things a correct daemon does on any machine: only ends a test that hangs.
+DEADLINE = 300
+# limits.shutdown_grace of the daemon that SIGTERM stops with streams open (4.).
+GRACE = 120
 
 
 class Reader(threading.Thread):
@@ -114,7 +130,7 @@ def http(base, method, path, body=None):
 
 
 class Daemon:
-    def __init__(self, vsmd, root, work, name, *extra):
+    def __init__(self, vsmd, root, work, name, *extra, env=None):
         self.port_file = os.path.join(work, name + ".port")
         self.log_path = os.path.join(work, name + ".log")
         if os.path.exists(self.port_file):
@@ -122,7 +138,7 @@ class Daemon:
         self.log = open(self.log_path, "w")
         self.proc = subprocess.Popen([vsmd, "--listen", "127.0.0.1:0", "--data-root", root,
                                       "--port-file", self.port_file] + list(extra),
-                                     stdout=self.log, stderr=subprocess.STDOUT)
+                                     stdout=self.log, stderr=subprocess.STDOUT, env=env)
         deadline = time.monotonic() + 60
         while not os.path.exists(self.port_file):
             if time.monotonic() > deadline or self.proc.poll() is not None:
@@ -149,6 +165,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument("--vsm", required=True)
     parser.add_argument("--vsmd", required=True)
+    parser.add_argument("--lib", required=True, help="libvsm_fault_inject.so (tests/fault)")
     parser.add_argument("--data", required=True)
     parser.add_argument("--clients", required=True)
     parser.add_argument("--work", required=True)
@@ -183,7 +200,11 @@ def main():
     with open(os.path.join(root, junk), "w") as f:
         f.write("not a raster\n")
 
-    daemon = Daemon(args.vsmd, root, work, "vsmd", "--memory-budget", "64MiB")
+    # The merge's file creations under PRISM go through a gate the test opens step by step.
+    hold = Hold(args.lib, os.path.join(root, "prism"), "create", os.path.join(work, "gate"))
+    # A long grace, so that "the streams end at once" (4.) is far from "vsmd waited for it".
+    daemon = Daemon(args.vsmd, root, work, "vsmd", "--memory-budget", "64MiB",
+                    "--set", "limits.shutdown_grace=%ds" % GRACE, env=hold.env())
     try:
         base = daemon.base
         # A texture tile first: the daemon loads OpenImageIO's module (~260 libraries, ~85 MiB
@@ -197,7 +218,7 @@ def main():
         for reader in readers:
             reader.start()
         for reader in readers:
-            reader.opened.wait(10)
+            reader.opened.wait(DEADLINE)
         check(all(r.status == 200 and r.headers.get("content-type") == "text/event-stream"
                   for r in readers), "three subscribers get 200 text/event-stream")
         check(all(r.headers.get("connection", "").lower() == "close" and
@@ -210,14 +231,48 @@ def main():
         stuck.connect(("127.0.0.1", int(base.rsplit(":", 1)[1])))
         stuck.sendall(b"GET /v1/events HTTP/1.1\r\nHost: test\r\n\r\n")
 
-        # 1. A merge seen by the three.
+        # 1. A merge seen by the three, held at points of increasing progress: from now on the
+        # next file creation under PRISM (the merge's first) waits at the gate.
+        allowed = hold.let_through(hold.calls())
         submitted = time.monotonic()
         status, _, job = http(base, "POST", "/v1/jobs",
                               {"type": "merge", "target": "prism", "source": "jacksboro"})
         check(status == 202, "merge submitted (202)")
         job_id = job["id"]
 
-        # 2. The flood, while the merge runs: import jobs that fail at once.
+        def merge_end():
+            return next((e[2] for e in list(readers[0].events)
+                         if e[1] == "job_end" and e[2]["job"] == job_id), None)
+
+        def has_progress(reader, fraction):
+            return any(e[1] == "job" and e[2].get("job") == job_id and
+                       e[2].get("progress") == fraction for e in list(reader.events))
+
+        held = []  # (progress, stage, call) at each point where every subscriber saw it
+        while len(held) < HELD_POINTS:
+            if hold.wait_held(allowed + 1, ended=lambda: merge_end() is not None,
+                              timeout=DEADLINE) is None:
+                break  # the merge made no further creation: it ended
+            # Nothing moves now: the job's progress is what its last report said, and the hub
+            # sends a held-back progress event at the end of its interval.
+            _, _, now = http(base, "GET", "/v1/jobs/" + job_id)
+            fraction = now.get("progress", 0)
+            if now.get("state") == "running" and 0 < fraction < 1 and \
+                    (not held or fraction > held[-1][0]):
+                seen = poll(lambda: all(has_progress(r, fraction) for r in readers), DEADLINE)
+                check(seen, "merge held at creation %d (%s, progress %.4f): every subscriber "
+                      "received that progress" % (allowed + 1, now["stage"], fraction))
+                if not seen:
+                    break
+                held.append((fraction, now["stage"], allowed + 1))
+            if len(held) < HELD_POINTS:
+                allowed = hold.let_through(allowed + HOLD_STEP)
+        check(len(held) == HELD_POINTS, "the merge was held at %d points of increasing progress "
+              "(%s)" % (len(held), ", ".join("%.4f %s" % h[:2] for h in held)))
+
+        # 2. The flood, while the merge stays held at its last point: import jobs that fail at
+        # once. A full job queue (503) is waited out and the same job submitted again, so that
+        # every one of them is submitted on any machine.
         rss_before = rss(daemon.proc.pid)
         peak = [rss_before]
         sampling = threading.Event()
@@ -230,38 +285,24 @@ def main():
         sampler = threading.Thread(target=sample, daemon=True)
         sampler.start()
         flood_ids = set()
+        deadline = time.monotonic() + 4 * DEADLINE
         for i in range(FLOOD_JOBS):
-            status, headers, body = http(base, "POST", "/v1/models",
-                                         {"id": "junk%04d" % i,
-                                          "source": {"import": junk, "patch_size": 65}})
-            if status == 202:
-                flood_ids.add(body["id"])
-            elif status == 503:
-                time.sleep(0.05)  # the job queue is full: the flood waits a little
-        check(len(flood_ids) >= FLOOD_JOBS // 2, "%d failing import jobs submitted" % len(flood_ids))
-
-        # The merge's end, as the stream tells it (the flood pushed it out of GET /v1/jobs's
-        # last 100 finished jobs).
-        deadline = time.monotonic() + 600
-        final = None
-        while time.monotonic() < deadline and final is None:
-            final = next((e[2] for e in list(readers[0].events)
-                          if e[1] == "job_end" and e[2]["job"] == job_id), None)
-            time.sleep(0.05)
-        merge_seconds = time.monotonic() - submitted
-        check(final is not None and final["state"] == "succeeded",
-              "the merge succeeded in %.1f s" % merge_seconds)
-        new_version = final["result"]["version"]
-        status, _, model = http(base, "GET", "/v1/models/prism")
-        check(model.get("version") == new_version, "prism is at version %d" % new_version)
-        # Every flood job ends too.
-        time.sleep(1.0)
-        ended = 0
-        while time.monotonic() < deadline:
-            ended = sum(1 for e in readers[0].events if e[1] == "job_end" and e[2]["job"] in flood_ids)
-            if ended == len(flood_ids):
-                break
-            time.sleep(0.2)
+            while time.monotonic() < deadline:
+                status, headers, body = http(base, "POST", "/v1/models",
+                                             {"id": "junk%04d" % i,
+                                              "source": {"import": junk, "patch_size": 65}})
+                if status == 202:
+                    flood_ids.add(body["id"])
+                if status != 503:
+                    break
+                time.sleep(0.05)  # the job queue is full: a retry's pace, not synchronisation
+        check(len(flood_ids) == FLOOD_JOBS, "%d failing import jobs submitted" % len(flood_ids))
+        # Every flood job ends too (the merge is still held).
+        poll(lambda: sum(1 for e in list(readers[0].events)
+                         if e[1] == "job_end" and e[2]["job"] in flood_ids) == len(flood_ids),
+             DEADLINE)
+        ended = sum(1 for e in list(readers[0].events)
+                    if e[1] == "job_end" and e[2]["job"] in flood_ids)
         sampling.set()
         sampler.join()
         grown = peak[0] - rss_before
@@ -269,6 +310,22 @@ def main():
               % (rss_before / MiB, peak[0] / MiB, grown / MiB, RSS_BOUND // MiB))
         check(grown < RSS_BOUND, "the daemon's VmRSS stays below its level before the flood + %d MiB"
               % (RSS_BOUND // MiB))
+        _, _, now = http(base, "GET", "/v1/jobs/" + job_id)
+        check(now.get("state") == "running" and merge_end() is None,
+              "the merge was running (held) all through the flood")
+
+        # The merge's end, as the stream tells it (the flood pushed it out of GET /v1/jobs's
+        # last 100 finished jobs).
+        hold.release()
+        final = poll(merge_end, 2 * DEADLINE)
+        merge_seconds = time.monotonic() - submitted
+        check(final is not None and final["state"] == "succeeded",
+              "the merge succeeded in %.1f s" % merge_seconds)
+        new_version = final["result"]["version"] if final and "result" in final else -1
+        status, _, model = http(base, "GET", "/v1/models/prism")
+        check(model.get("version") == new_version, "prism is at version %d" % new_version)
+        # Its last events (published, job_end) reached the other two as well.
+        poll(lambda: all(len(r.events) >= len(readers[0].events) for r in readers), DEADLINE)
 
         for reader in readers:
             events = reader.events
@@ -316,7 +373,7 @@ def main():
         dropped_lines = [line for line in log.splitlines() if "dropped: it fell behind" in line]
         check(len(dropped_lines) == 1, "the daemon logs one dropped subscriber: %s"
               % (dropped_lines[0].split(" events: ", 1)[-1] if dropped_lines else "none"))
-        stuck.settimeout(10)
+        stuck.settimeout(60)
         received = b""
         closed = False
         try:
@@ -342,7 +399,7 @@ def main():
         final = client.wait(job["id"], on_progress=seen.append)
         check(final["state"] == "failed" and seen and seen[-1]["state"] == "failed",
               "vsm_client wait() follows a job to its end (%d updates)" % len(seen))
-        stream = client.events(timeout=10)
+        stream = client.events(timeout=60)
         check(next(stream)["event"] == "open", "vsm_client events() opens the stream")
         http(base, "POST", "/v1/models",
              {"id": "junkgen", "source": {"import": junk, "patch_size": 65}})
@@ -354,16 +411,18 @@ def main():
         stream.close()
         check(names[0] == "job" and names[-1] == "job_end", "vsm_client events() yields %s" % names)
 
-        # 4. SIGTERM ends the streams at once.
+        # 4. SIGTERM ends the streams at once: vsmd exits well before the grace period, which
+        # it would wait out if a stream kept it (GRACE is long, so any machine is far from it).
         started = time.monotonic()
         daemon.proc.send_signal(signal.SIGTERM)
-        daemon.proc.wait(30)
+        daemon.proc.wait(2 * GRACE)
         seconds = time.monotonic() - started
-        check(daemon.proc.returncode == 0 and seconds < 5,
-              "SIGTERM with three streams open: exit %d after %.2f s (grace 10 s)"
-              % (daemon.proc.returncode, seconds))
-        check(all(r.ended.wait(5) for r in readers), "every stream ended with the daemon")
+        check(daemon.proc.returncode == 0 and seconds < GRACE / 2,
+              "SIGTERM with three streams open: exit %d after %.2f s (grace %d s)"
+              % (daemon.proc.returncode, seconds, GRACE))
+        check(all(r.ended.wait(DEADLINE) for r in readers), "every stream ended with the daemon")
     finally:
+        hold.release()
         daemon.stop()
 
     # 5. The cap.
@@ -373,20 +432,29 @@ def main():
         first, second = Reader(base, "a"), Reader(base, "b")
         first.start()
         second.start()
-        first.opened.wait(10)
-        second.opened.wait(10)
+        first.opened.wait(DEADLINE)
+        second.opened.wait(DEADLINE)
         third = Reader(base, "c")
         third.start()
-        third.opened.wait(10)
+        third.opened.wait(DEADLINE)
         check(first.status == 200 and second.status == 200 and third.status == 503 and
               third.headers.get("retry-after") == "1",
               "limits.event_subscribers=2: a third subscriber gets 503 with Retry-After: 1")
         first.close()
-        time.sleep(0.5)
-        fourth = Reader(base, "d")
-        fourth.start()
-        fourth.opened.wait(10)
-        check(fourth.status == 200, "once one left, a new subscriber is taken")
+
+        # The daemon notices the close asynchronously: a new subscriber is asked for until one is
+        # taken (each refused one is answered 503 and closed).
+        def subscribe():
+            reader = Reader(base, "d")
+            reader.start()
+            reader.opened.wait(DEADLINE)
+            if reader.status == 200:
+                return reader
+            reader.close()
+            return None
+
+        fourth = poll(subscribe, DEADLINE, interval=0.05)
+        check(fourth is not None, "once one left, a new subscriber is taken")
     finally:
         daemon.stop()
 

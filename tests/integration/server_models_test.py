@@ -3,9 +3,11 @@
 127.0.0.1:0 (see server_test.py for the harness) over a data root holding the Jacksboro DEM
 imported by `vsm import` at 65 x 65, and PRISM imported over HTTP as a job, then merged with
 Jacksboro as a job. Responses are checked against proto/examples and decoded independently
-(the .aara bytes with struct). Run by ctest:
+(the .aara bytes with struct). The merges' file creations under PRISM pass a gate of the
+LD_PRELOAD library tests/fault/fault_inject.c (hold.py), so that the test sees a merge mid-way and
+cancels one before it can end, on any machine. Run by ctest:
     server_models_test.py --vsmd build/server/vsmd --vsm build/server/cli/vsm \\
-        --data ../shared/data --proto proto"""
+        --data ../shared/data --proto proto --lib build/tests/fault/libvsm_fault_inject.so"""
 
 import argparse
 import json
@@ -26,6 +28,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import server_test as base  # noqa: E402  (the Daemon harness and helpers)
 from server_test import Daemon, example, shape  # noqa: E402
 from check_import import Failures, check_pro3d  # noqa: E402
+from hold import Hold  # noqa: E402
 
 TOKEN = "models-token-0123456789"
 AUTH = {"Authorization": "Bearer " + TOKEN}
@@ -113,9 +116,14 @@ class Models(unittest.TestCase):
             os.mkdir(os.path.join(root, "bad.name"))
             os.symlink(cls.outside, os.path.join(root, "escape"))
 
+        root = tempfile.mkdtemp(prefix="vsmd-test-")
+        prepare(root)
+        cls.gate = tempfile.mkdtemp(prefix="vsmd-gate-")
+        cls.hold = Hold(ARGS.lib, os.path.join(root, "prism"), "create",
+                        os.path.join(cls.gate, "gate"))
         cls.daemon = Daemon("--token", TOKEN, "--memory-budget", "256MiB",
                             "--set", "threads.cpu=4", "--set", "limits.body_bytes=4KiB",
-                            prepare=prepare)
+                            root=root, env=cls.hold.env())
         cls.outside_before = cls.snapshot_outside()
 
     @classmethod
@@ -131,6 +139,8 @@ class Models(unittest.TestCase):
     @classmethod
     def tearDownClass(cls):
         try:
+            cls.hold.release()
+            shutil.rmtree(cls.gate, ignore_errors=True)
             if cls.daemon is not None:
                 code = cls.daemon.stop()
                 if code != 0:
@@ -441,22 +451,21 @@ class Models(unittest.TestCase):
         self.assertFalse(os.path.exists(os.path.join(d.dir, "bare", "Images")))
         self.assertIsNone(d.get_json("/v1/models/bare/patches/0_0_0")[2]["texture"])
 
-        # Merge Jacksboro into PRISM; readers hammer PRISM meanwhile.
+        # Merge Jacksboro into PRISM; readers hammer PRISM meanwhile. Its file creations under
+        # PRISM wait at the gate (from the next one on) until the test has looked at it mid-way.
         _, before_headers, before_tree = d.get_json("/v1/models/prism/hierarchy")
         before_count = len(list(walk(before_tree["root"])))
+        hold = self.hold
+        allowed = hold.let_through(hold.calls())
         status, _, job = post_json(d, "/v1/jobs", {"type": "merge", "target": "prism",
                                                    "source": "jacksboro", "register": False})
         self.assertEqual(status, 202, job)
         self.assertEqual(shape(job), shape(example("job.json")))
         self.assertIn(job["state"], ("queued", "running"))
-        if d.get_json("/v1/jobs/" + job["id"])[2]["state"] in ("queued", "running"):
-            # The job holds the target: it cannot be closed under it.
-            status, _, body = d.request("DELETE", "/v1/models/prism", headers=AUTH)
-            if status == 204:  # the job ended between the two requests: open it again
-                self.assertEqual(post_json(d, "/v1/models", {
-                    "id": "prism", "source": {"path": "prism"}})[0], 201)
-            else:
-                self.assert_error(status, body, 409, "conflict")
+        # The job holds the target (it cannot end before the gate opens): it cannot be closed
+        # under it.
+        status, _, body = d.request("DELETE", "/v1/models/prism", headers=AUTH)
+        self.assert_error(status, body, 409, "conflict")
 
         stop = threading.Event()
         failures = []
@@ -489,8 +498,23 @@ class Models(unittest.TestCase):
             t.start()
         seen = []
         try:
+            # Held where it has made progress and has more to make (a few creations at a time).
+            def ended():
+                return d.get_json("/v1/jobs/" + job["id"])[2]["state"] not in ("queued", "running")
+
+            while True:
+                self.assertIsNotNone(hold.wait_held(allowed + 1, ended=ended),
+                                     "the merge ended before it was seen mid-way")
+                _, _, now = d.get_json("/v1/jobs/" + job["id"])
+                if now["state"] == "running" and 0 < now["progress"] < 1:
+                    break
+                allowed = hold.let_through(allowed + 8)
+            seen.append((now["state"], now["stage"], now["progress"]))
+            # Readers meanwhile see the published version whole (checked by reader()).
+            hold.release()
             done = wait_job(d, job["id"], seen=seen)
         finally:
+            hold.release()
             stop.set()
             for t in readers:
                 t.join(timeout=60)
@@ -516,14 +540,19 @@ class Models(unittest.TestCase):
         self.assertEqual(status, 200)
         self.assertIn(job["id"], [j["id"] for j in jobs["jobs"]])
 
-        # Cancel a second merge: the model stays as it is.
+        # Cancel a second merge: the model stays as it is. Held at its first file creation under
+        # PRISM, so that it cannot end before the cancel arrives.
         _, summary_headers, summary = d.get_json("/v1/models/prism")
-        status, _, job = post_json(d, "/v1/jobs", {"type": "merge", "target": "prism",
-                                                   "source": "jacksboro"})
-        self.assertEqual(status, 202, job)
-        status, _, cancelled = d.request("DELETE", "/v1/jobs/" + job["id"], headers=AUTH)
-        self.assertIn(status, (200, 202), cancelled)
-        self.assertTrue(json.loads(cancelled)["cancel_requested"])
+        hold.let_through(hold.calls())
+        try:
+            status, _, job = post_json(d, "/v1/jobs", {"type": "merge", "target": "prism",
+                                                       "source": "jacksboro"})
+            self.assertEqual(status, 202, job)
+            status, _, cancelled = d.request("DELETE", "/v1/jobs/" + job["id"], headers=AUTH)
+            self.assertIn(status, (200, 202), cancelled)
+            self.assertTrue(json.loads(cancelled)["cancel_requested"])
+        finally:
+            hold.release()
         final = wait_job(d, job["id"])
         self.assertEqual(final["state"], "cancelled", final)
         self.assertEqual(final["error"]["code"], "cancelled")
@@ -662,6 +691,7 @@ def main():
     parser.add_argument("--proto", required=True)
     parser.add_argument("--vsm")
     parser.add_argument("--data")
+    parser.add_argument("--lib", required=True, help="libvsm_fault_inject.so (tests/fault)")
     ARGS, rest = parser.parse_known_args()
     base.ARGS = ARGS
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)

@@ -1,12 +1,13 @@
 #!/usr/bin/python3
 """SIGTERM loses nothing: the real vsmd on 127.0.0.1:0 (server_test.py's harness) with a memory
 budget so small that a merge of Jacksboro into PRISM (both imported by `vsm import` at 65 x 65)
-writes dirty patches back to disk before it publishes. SIGTERM while that merge runs, SIGTERM
+writes dirty patches back to disk before it publishes. SIGTERM while that merge runs (held
+mid-way, after write-backs, by the LD_PRELOAD library of tests/fault, so on any machine), SIGTERM
 after it published, and SIGTERM with a patch download in flight: vsmd exits 0 every time, and the
 model reopens (`vsm validate` passes, a fresh daemon serves it) as exactly the old version or the
 new one. Run by ctest:
     shutdown_test.py --vsmd build/server/vsmd --vsm build/server/cli/vsm --data ../shared/data \\
-        --proto proto"""
+        --proto proto --lib build/tests/fault/libvsm_fault_inject.so"""
 
 import argparse
 import json
@@ -24,6 +25,7 @@ import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import server_test as base  # noqa: E402  (the Daemon harness)
+from hold import Hold, poll  # noqa: E402
 from server_test import Daemon  # noqa: E402
 
 TOKEN = "shutdown-token-0123456789"
@@ -73,13 +75,13 @@ class Shutdown(unittest.TestCase):
         for daemon in self.daemons:
             daemon.cleanup()
 
-    def start(self, root=None, *flags, models=("prism", "jacksboro")):
+    def start(self, root=None, *flags, models=("prism", "jacksboro"), env=None):
         def prepare(dir):
             for name in models:
                 shutil.copytree(os.path.join(self.pristine, name), os.path.join(dir, name))
 
         daemon = Daemon("--token", TOKEN, "--memory-budget", BUDGET, *flags,
-                        prepare=None if root else prepare, root=root)
+                        prepare=None if root else prepare, root=root, env=env)
         self.daemons.append(daemon)
         return daemon
 
@@ -134,24 +136,46 @@ class Shutdown(unittest.TestCase):
         return state, log
 
     def test_sigterm_during_a_merge_that_wrote_dirty_patches_reopens_the_old_version(self):
-        daemon = self.start()
+        # The merge's file creations under PRISM wait at a gate the test opens step by step, so
+        # the merge is still running at SIGTERM on any machine, however fast.
+        root = tempfile.mkdtemp(prefix="vsmd-test-")
+        for name in ("prism", "jacksboro"):
+            shutil.copytree(os.path.join(self.pristine, name), os.path.join(root, name))
+        gate = tempfile.mkdtemp(prefix="vsmd-gate-")
+        self.addCleanup(shutil.rmtree, gate, True)
+        hold = Hold(ARGS.lib, os.path.join(root, "prism"), "create", os.path.join(gate, "gate"))
+        self.addCleanup(hold.release)  # also when a check below fails: the daemon can stop
+        daemon = self.start(root, env=hold.env())
         before = self.model_state(daemon)
+        allowed = hold.let_through(hold.calls())
         job_id = self.submit_merge(daemon)
-        # Into the merge far enough that the budget forced dirty patches out to disk.
-        job = self.wait_job(daemon, job_id, lambda j: j["state"] != "queued" and (
-            j["state"] != "running" or daemon.get_json("/v1/stats")[2]["cache"]["write_backs"] > 0))
-        self.assertEqual(job["state"], "running", "the merge ended before SIGTERM: %r" % job)
+
+        def ended():
+            return daemon.get_json("/v1/jobs/" + job_id)[2]["state"] not in ("queued", "running")
+
+        # Held at a creation after the budget forced dirty patches out to disk.
+        while True:
+            self.assertIsNotNone(hold.wait_held(allowed + 1, ended=ended),
+                                 "the merge ended without a write-back")
+            if daemon.get_json("/v1/stats")[2]["cache"]["write_backs"] > 0:
+                break
+            allowed = hold.let_through(allowed + 8)
+        _, _, job = daemon.get_json("/v1/jobs/" + job_id)
+        self.assertEqual(job["state"], "running", job)
         daemon.proc.send_signal(signal.SIGTERM)
+        # The merge goes on once the daemon has asked it to stop: it stops at its next check.
+        self.assertTrue(poll(lambda: "job=%s cancel requested" % job_id in daemon.log()),
+                        daemon.log())
+        hold.release()
         after, log = self.stop_and_reopen(daemon)
         outcome = re.search(r"job=%s (succeeded|cancelled)" % job_id, log)
         self.assertIsNotNone(outcome, log)
-        print("\n  merge at SIGTERM: %s, then %s" % (job["stage"], outcome.group(1)), file=sys.stderr)
-        if outcome.group(1) == "cancelled":
-            self.assertEqual(after, before)
-        else:  # published in the instant before the signal took effect: the new version, whole
-            self.assertGreater(after["patches"], before["patches"])
+        print("\n  merge at SIGTERM: %s %.3f, then %s"
+              % (job["stage"], job["progress"], outcome.group(1)), file=sys.stderr)
+        self.assertEqual(outcome.group(1), "cancelled")
+        self.assertEqual(after, before)
         leftovers = [n for n in os.listdir(os.path.join(daemon.dir, "prism", "Patches"))
-                     if re.search(r"-v2(-[0-9a-f]{8})?$", n)] if outcome.group(1) == "cancelled" else []
+                     if re.search(r"-v2(-[0-9a-f]{8})?$", n)]
         self.assertEqual(leftovers, [], "the cancelled edit left folders")
 
     def test_sigterm_after_a_merge_published_reopens_the_new_version(self):
@@ -258,6 +282,7 @@ def main():
     parser.add_argument("--vsm", required=True)
     parser.add_argument("--data", required=True)
     parser.add_argument("--proto", required=True)
+    parser.add_argument("--lib", required=True, help="libvsm_fault_inject.so (tests/fault)")
     ARGS, rest = parser.parse_known_args()
     base.ARGS = ARGS
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)

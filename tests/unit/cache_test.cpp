@@ -4,6 +4,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <condition_variable>
 #include <cstring>
 #include <map>
 #include <mutex>
@@ -67,6 +68,13 @@ class FakeStore final : public PatchStore {
     if (failWrites_) {
       throw Error(ErrorCode::Io, "disk full");
     }
+    if (firstWriteAwaitsCompany_.exchange(false)) {
+      // Writers that can run side by side do so here, on any machine: the first write waits
+      // until a second one has begun (a bound far above any scheduling delay, for a cache that
+      // serialises them: then it goes on alone and mostBusy() says so).
+      std::unique_lock lock(mutex_);
+      company_.wait_for(lock, std::chrono::seconds(60), [this] { return busy_.size() >= 2; });
+    }
     std::this_thread::sleep_for(writeTime_);  // a write's duration, so that flushers overlap
     std::lock_guard lock(mutex_);
     disk_[k] = value.object.as<Blob>()->front();
@@ -93,6 +101,8 @@ class FakeStore final : public PatchStore {
   }
   std::atomic<bool> failWrites_{false};
   std::chrono::microseconds writeTime_{0};
+  /// The next write waits until another load or write is under way (at most a minute).
+  std::atomic<bool> firstWriteAwaitsCompany_{false};
 
  private:
   struct Busy {
@@ -102,6 +112,7 @@ class FakeStore final : public PatchStore {
         store.overlapped_ = true;
       }
       store.mostBusy_ = std::max(store.mostBusy_, store.busy_.size());
+      store.company_.notify_all();
     }
     ~Busy() {
       std::lock_guard lock(store.mutex_);
@@ -112,7 +123,8 @@ class FakeStore final : public PatchStore {
   };
 
   std::size_t bytesEach_;
-  std::mutex mutex_;  // guards disk_, busy_, loads_, writes_
+  std::mutex mutex_;                 // guards disk_, busy_, loads_, writes_, mostBusy_
+  std::condition_variable company_;  // busy_ grew (with mutex_)
   std::map<PatchKey, std::uint64_t> disk_;
   std::set<std::pair<std::uint32_t, std::uint32_t>> busy_;
   int loads_ = 0;
@@ -275,6 +287,7 @@ TEST(PatchCache, SeveralFlushersWriteEveryDirtyEntryOnceBetweenThem) {
   constexpr int kPatches = 64;
   FakeStore store(kPatches, 64 * 1024);
   store.writeTime_ = std::chrono::milliseconds(2);
+  store.firstWriteAwaitsCompany_ = true;
   PatchCache cache(16 * kMiB);
   const auto model = cache.addModel("m", store);
   for (int i = 0; i < kPatches; ++i) {

@@ -304,8 +304,10 @@ TEST(EventHub, TickerThreadSendsHeldBackProgress) {
   auto a = hub.subscribe();
   hub.progress("j1", "job", {{"progress", 0.1}});
   hub.progress("j1", "job", {{"progress", 0.2}});
+  // Polled until both came, with a bound far above the ticker's 50 ms on any machine.
   std::string text;
-  for (int i = 0; i < 100 && parse(text).size() < 2; ++i) {
+  const auto deadline = std::chrono::steady_clock::now() + 60s;
+  while (parse(text).size() < 2 && std::chrono::steady_clock::now() < deadline) {
     std::this_thread::sleep_for(10ms);
     text += pull(*a).text;
   }

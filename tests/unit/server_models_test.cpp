@@ -382,7 +382,7 @@ class Gate {
 };
 
 jobs::JobStatus waitFinal(const jobs::JobRegistry& registry, const std::string& id) {
-  const auto deadline = std::chrono::steady_clock::now() + 10s;
+  const auto deadline = std::chrono::steady_clock::now() + 120s;  // only ends a hang
   for (;;) {
     jobs::JobStatus status = registry.get(id);
     if (jobs::isFinal(status.state) || std::chrono::steady_clock::now() > deadline) {
