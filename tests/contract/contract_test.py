@@ -28,7 +28,6 @@ bound that only turns a hang into a failure. Every request goes to 127.0.0.1, on
 import argparse
 import base64
 import fcntl
-import http.client
 import json
 import os
 import shutil
@@ -55,12 +54,14 @@ class Recorder:
     def __init__(self):
         self.exchanges = []
 
-    def record(self, step, method, target, status, headers, body, events=None, head=False):
+    def record(self, step, method, target, status, headers, body, events=None):
         path, _, query = target.partition("?")
-        self.exchanges.append({
-            "step": step, "method": method, "path": path, "query": query, "status": status,
-            "headers": headers, "body_b64": base64.b64encode(body).decode("ascii"),
-            **({"events": events} if events is not None else {}), **({"head": True} if head else {})})
+        exchange = {"step": step, "method": method, "path": path, "query": query,
+                    "status": status, "headers": headers,
+                    "body_b64": base64.b64encode(body).decode("ascii")}
+        if events is not None:
+            exchange["events"] = events
+        self.exchanges.append(exchange)
 
     def call(self, daemon, step, method, target, expect, body=None, headers=None):
         """One request on a fresh connection; asserts the status the step means to produce (the
@@ -447,7 +448,8 @@ def main():
     shutil.copytree(os.path.join(main_root, "jacksboro"), os.path.join(main_root, "extra", "jack"))
     rasters = os.path.join(main_root, "rasters")
     os.makedirs(rasters)
-    shutil.copy(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), os.path.join(rasters, "jack.tif"))
+    shutil.copy(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
+                os.path.join(rasters, "jack.tif"))
     shutil.copy(os.path.join(ARGS.data, "PRISMelevation.tif"), os.path.join(rasters, "prism.tif"))
     subprocess.run(["gdal_translate", "-q", "-of", "VRT", "-outsize", "4000%", "4000%",
                     os.path.join(rasters, "prism.tif"), os.path.join(rasters, "big.vrt")],
@@ -496,7 +498,8 @@ def main():
             try:
                 events = stream.finish(recorder)
                 names = sorted({e["event"] for e in events})
-                print("contract_test: %d events (%s) on the stream" % (len(events), ", ".join(names)))
+                print("contract_test: %d events (%s) on the stream" %
+                      (len(events), ", ".join(names)))
                 for want in ("job", "job_end", "published"):
                     if want not in names and failed is None:
                         failed = "the event stream had no %r event" % want

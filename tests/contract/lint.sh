@@ -22,6 +22,7 @@ totals=$("$redocly" lint --config "$here/redocly.yaml" --format json --max-probl
   echo "lint: redocly gave no result" >&2
   exit 1
 }
+# shellcheck disable=SC2086  # two numbers, split on purpose
 set -- $totals
 echo "lint: $1 errors, $2 warnings (Redocly CLI $("$redocly" --version 2>/dev/null), recommended rules)"
 [ "$1" = 0 ] && [ "$2" = 0 ]
