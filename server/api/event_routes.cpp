@@ -14,10 +14,11 @@ using nlohmann::json;
 
 namespace {
 
-/// The models a job works on, from its parameters: an import's id, a merge's target and source.
+/// The models a job works on, from its parameters: an import's id, a merge's target and source,
+/// a restore's model.
 json jobModels(const jobs::JobStatus& status) {
   json models = json::array();
-  for (const char* name : {"id", "target", "source"}) {
+  for (const char* name : {"id", "target", "source", "model"}) {
     if (const auto it = status.params.find(name); it != status.params.end() && it->is_string()) {
       models.push_back(*it);
     }
