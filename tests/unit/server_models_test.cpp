@@ -756,8 +756,11 @@ TEST_F(VersionedReads, AVersionNewerThanTheServedOneIsA404NoCacheKeeps) {
   for (const std::string patch : {"2_1_2", "2_0_0"}) {
     for (const std::string& target : routes(patch, "v=999")) {
       const auto response = get(target);
-      EXPECT_EQ(response.status, 404) << target;
       EXPECT_EQ(*response.header("Cache-Control"), "no-store") << target;
+      if (response.status != 404) {
+        ADD_FAILURE() << target << " answered " << response.status << ", not 404";
+        continue;
+      }
       const json error = json::parse(response.body).at("error");
       EXPECT_EQ(error.at("code"), "not_found") << target;
       const std::string message = error.at("message");
