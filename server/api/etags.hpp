@@ -17,8 +17,9 @@ namespace vsm::server::api {
 
 /// Bumped whenever the GLB encoder or tilesetJson() change what they produce for the same model,
 /// so clients holding the old bytes under an ETag revalidate to the new ones.
-/// t2: textures embedded; t3: meshopt-compressed content by default, per-variant tags.
-inline constexpr std::string_view kTilesFormat = "t3";
+/// t2: textures embedded; t3: meshopt-compressed content by default, per-variant tags; t4: the
+/// tileset names its model version (asset.extras.model_version).
+inline constexpr std::string_view kTilesFormat = "t4";
 
 /// A model's published metadata (summary, hierarchy, LOD cuts): a digest of every patch's key,
 /// version, folder, children and box. Derived from content rather than from the snapshot's
@@ -39,8 +40,9 @@ std::string patchDataEtag(const core::PatchInfo& info, std::string_view suffix);
 std::string tilesetEtag(const core::ModelSnapshot& snapshot, std::string_view variant = {});
 std::string glbEtag(const core::PatchInfo& info, std::string_view variant = {});
 /// Bumped whenever the quantized-mesh encoder (core/tiles/quantized_mesh) or layer.json change
-/// what they produce for the same model.
-inline constexpr std::string_view kTerrainFormat = "q1";
+/// what they produce for the same model. q2: layer.json's tile URLs name the model version
+/// ("?v=12", no longer CesiumJS's "{version}" template, which it filled with "1.0.0").
+inline constexpr std::string_view kTerrainFormat = "q2";
 /// A terrain tile's content version: a digest of the tile, the key and version of every patch it
 /// is sampled from (core::terrainSources), kTerrainFormat and `variant` (the representation:
 /// extensions, the metadata extension's text, and content coding). Also its key in the

@@ -265,7 +265,7 @@ http::Response postModel(const ModelContext& c, const http::Request& request) {
 http::Response getModel(const ModelContext& c, const http::Request& request) {
   const std::string& id = request.param("m");
   const auto live = c.models.get(id);
-  const auto snapshot = requestedSnapshot(*live, request);
+  const auto snapshot = versionedSnapshot(*live, request);
   const std::string etag = modelEtag(*snapshot);
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, http::cache_control::kRevalidate);
@@ -289,7 +289,7 @@ http::Response deleteModel(const ModelContext& c, const http::Request& request) 
 http::Response getHierarchy(const ModelContext& c, const http::Request& request) {
   const std::string& id = request.param("m");
   const auto live = c.models.get(id);
-  const auto snapshot = requestedSnapshot(*live, request);
+  const auto snapshot = versionedSnapshot(*live, request);
   const auto rootText = request.queryParam("root");
   const core::PatchKey root = rootText ? parseKey(*rootText) : core::PatchKey::root();
   const int levels = intQuery(request, "depth", -1, 0, core::PatchKey::kMaxDepth);
@@ -309,13 +309,14 @@ http::Response getPatch(const ModelContext& c, const http::Request& request) {
   const std::string& id = request.param("m");
   const auto live = c.models.get(id);
   const core::PatchKey key = parseKey(request.param("p"));
-  const auto snapshot = requestedSnapshot(*live, request);
-  const core::PatchInfo& info = findPatch(id, *snapshot, key);
+  const VersionedPatch read = *versionedPatch(*live, request, key);
+  const core::ModelSnapshot& snapshot = *read.snapshot;
+  const core::PatchInfo& info = *read.info;
   const std::string etag = patchEtag(info);
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kPatchCacheControl);
   }
-  return withCache(http::jsonResponse(200, patchJson(id, *snapshot, info)), kPatchCacheControl,
+  return withCache(http::jsonResponse(200, patchJson(id, snapshot, info)), kPatchCacheControl,
                    etag);
 }
 
@@ -379,11 +380,13 @@ std::optional<http::Response> positions(const ModelContext& c, const http::Reque
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = c.models.getServed(id);
   const core::PatchKey key = parseKey(request.param("p"));
-  const auto snapshot = requestedSnapshot(*served.live, request, onNetworkThread);
-  if (snapshot == nullptr) {
+  const std::optional<VersionedPatch> read =
+      versionedPatch(*served.live, request, key, onNetworkThread);
+  if (!read) {
     return std::nullopt;
   }
-  const core::PatchInfo& info = findPatch(id, *snapshot, key);
+  const core::ModelSnapshot* snapshot = read->snapshot.get();
+  const core::PatchInfo& info = *read->info;
   std::string etag = patchEtag(info);
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kPatchCacheControl);
@@ -442,11 +445,10 @@ std::string_view textureLayer(std::string_view entry) {
   return slash == std::string_view::npos ? std::string_view() : entry.substr(0, slash);
 }
 
-/// The patch of a texture or coordinates request, 404 unless it has a texture (of the requested
-/// layer, when the route names one).
-const core::PatchInfo& texturedPatch(std::string_view id, const core::ModelSnapshot& snapshot,
+/// `info`, the patch of a texture or coordinates request, 404 unless it has a texture (of the
+/// requested layer, when the route names one).
+const core::PatchInfo& texturedPatch(std::string_view id, const core::PatchInfo& info,
                                      const http::Request& request) {
-  const core::PatchInfo& info = findPatch(id, snapshot, parseKey(request.param("p")));
   if (info.textureFile.empty()) {
     throw Error(ErrorCode::NotFound, "patch " + info.key.toString() + " of model '" +
                                          std::string(id) + "' has no texture");
@@ -485,11 +487,14 @@ std::optional<http::Response> coordinates(const ModelContext& c, const http::Req
                                           bool onNetworkThread) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = c.models.getServed(id);
-  const auto snapshot = requestedSnapshot(*served.live, request, onNetworkThread);
-  if (snapshot == nullptr) {
+  const core::PatchKey key = parseKey(request.param("p"));
+  const std::optional<VersionedPatch> read =
+      versionedPatch(*served.live, request, key, onNetworkThread);
+  if (!read) {
     return std::nullopt;
   }
-  const core::PatchInfo& info = texturedPatch(id, *snapshot, request);
+  const core::ModelSnapshot* snapshot = read->snapshot.get();
+  const core::PatchInfo& info = texturedPatch(id, *read->info, request);
   const std::string etag = patchDataEtag(info, "uv");
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kPatchCacheControl);
@@ -515,11 +520,14 @@ std::optional<http::Response> texture(const ModelContext& c, const http::Request
                                       bool onNetworkThread) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = c.models.getServed(id);
-  const auto snapshot = requestedSnapshot(*served.live, request, onNetworkThread);
-  if (snapshot == nullptr) {
+  const core::PatchKey key = parseKey(request.param("p"));
+  const std::optional<VersionedPatch> read =
+      versionedPatch(*served.live, request, key, onNetworkThread);
+  if (!read) {
     return std::nullopt;
   }
-  const core::PatchInfo& info = texturedPatch(id, *snapshot, request);
+  const core::ModelSnapshot* snapshot = read->snapshot.get();
+  const core::PatchInfo& info = texturedPatch(id, *read->info, request);
   const std::string etag = patchDataEtag(info, "png");
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kPatchCacheControl);
@@ -569,7 +577,7 @@ http::Response getLod(const ModelContext& c, const http::Request& request) {
       byCamera ? std::nullopt : std::optional(parseLodQuery(*boxText, *resolutionText));
   const std::optional<CameraQuery> cameraQuery =
       byCamera ? std::optional(parseCameraQuery(request)) : std::nullopt;
-  const auto snapshot = requestedSnapshot(*live, request);
+  const auto snapshot = versionedSnapshot(*live, request);
   const std::string etag = viewEtag(*snapshot, "l", request.query());
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, http::cache_control::kRevalidate);
@@ -711,6 +719,118 @@ std::shared_ptr<const core::ModelSnapshot> requestedSnapshot(core::LiveModel& li
   }
   const std::uint64_t revision = parseRevision("query parameter 'rev'", *text);
   return onNetworkThread ? live.heldSnapshot(revision) : live.snapshotAt(revision);
+}
+
+std::optional<std::uint64_t> requestedVersion(const http::Request& request) {
+  const auto text = request.queryParam("v");
+  if (!text) {
+    return std::nullopt;
+  }
+  std::uint64_t value = 0;
+  const auto [end, ec] = std::from_chars(text->data(), text->data() + text->size(), value);
+  if (ec != std::errc() || end != text->data() + text->size() || value == 0) {
+    throw Error(ErrorCode::InvalidArgument,
+                "query parameter 'v' must be a model version (an integer >= 1), not '" +
+                    text->substr(0, 32) + "'");
+  }
+  return value;
+}
+
+namespace {
+
+/// The 404 of a read whose `?v=N` this node cannot answer from `snapshot`: N is newer than the
+/// version it serves, or (with `?rev=`) not the revision's.
+Error versionNotServed(const core::LiveModel& live, std::uint64_t asked,
+                       const core::ModelSnapshot& snapshot, bool revision) {
+  const std::string model = "model '" + live.name() + "'";
+  const std::string askedText = std::to_string(asked);
+  const std::string served = std::to_string(snapshot.version);
+  if (revision) {
+    return Error(ErrorCode::NotFound, "?v=" + askedText + " asks for version " + askedText +
+                                          " of " + model + ", but ?rev= names revision " + served +
+                                          " (version " + served + ")");
+  }
+  return Error(ErrorCode::NotFound,
+               "?v=" + askedText + " asks for version " + askedText + " of " + model +
+                   ", but this node serves version " + served +
+                   " (it has not followed that publish yet, or there is no such version); ask "
+                   "again in a moment, or without ?v= for the current version");
+}
+
+/// Kept revision `asked` (older than `current`, the version the node serves), which answers a read
+/// of `?v=asked` that the current version cannot. Null on a network thread when it has to be read
+/// from disk. Throws Error(NotFound) naming both versions when it is no longer kept.
+std::shared_ptr<const core::ModelSnapshot> olderVersion(core::LiveModel& live, std::uint64_t asked,
+                                                        std::uint64_t current,
+                                                        std::string_view what,
+                                                        bool onNetworkThread) {
+  if (onNetworkThread) {
+    return live.heldSnapshot(asked);
+  }
+  try {
+    return live.snapshotAt(asked);
+  } catch (const Error& e) {
+    if (e.code() != ErrorCode::NotFound) {
+      throw;
+    }
+    throw Error(ErrorCode::NotFound,
+                "?v=" + std::to_string(asked) + " asks for version " + std::to_string(asked) +
+                    " of model '" + live.name() + "', but this node serves version " +
+                    std::to_string(current) + std::string(what) + ", and version " +
+                    std::to_string(asked) +
+                    " is no longer kept (GET the model's revisions); ask without ?v= for the "
+                    "current version");
+  }
+}
+
+}  // namespace
+
+std::shared_ptr<const core::ModelSnapshot> versionedSnapshot(core::LiveModel& live,
+                                                             const http::Request& request,
+                                                             bool onNetworkThread) {
+  const std::optional<std::uint64_t> asked = requestedVersion(request);
+  auto snapshot = requestedSnapshot(live, request, onNetworkThread);
+  if (!asked || snapshot == nullptr || snapshot->version == *asked) {
+    return snapshot;
+  }
+  const bool revision = request.queryParam("rev").has_value();
+  if (revision || *asked > snapshot->version) {
+    throw versionNotServed(live, *asked, *snapshot, revision);
+  }
+  return olderVersion(live, *asked, snapshot->version, "", onNetworkThread);
+}
+
+std::optional<VersionedPatch> versionedPatch(core::LiveModel& live, const http::Request& request,
+                                             const core::PatchKey& key, bool onNetworkThread) {
+  const std::optional<std::uint64_t> asked = requestedVersion(request);
+  auto snapshot = requestedSnapshot(live, request, onNetworkThread);
+  if (snapshot == nullptr) {
+    return std::nullopt;
+  }
+  const bool revision = request.queryParam("rev").has_value();
+  if (asked && *asked > snapshot->version) {
+    throw versionNotServed(live, *asked, *snapshot, revision);
+  }
+  const core::PatchInfo* info = &findPatch(live.name(), *snapshot, key);
+  if (!asked || info->version <= *asked) {
+    return VersionedPatch{std::move(snapshot), info};
+  }
+  // The patch was rewritten after version `asked`: what that version holds is older.
+  const std::string rewritten = " (patch " + key.toString() + " of version " +
+                                std::to_string(info->version) + ", rewritten after version " +
+                                std::to_string(*asked) + ")";
+  if (revision) {
+    throw Error(ErrorCode::NotFound, "?v=" + std::to_string(*asked) + " asks for version " +
+                                         std::to_string(*asked) + " of model '" + live.name() +
+                                         "', but ?rev= names revision " +
+                                         std::to_string(snapshot->version) + rewritten);
+  }
+  snapshot = olderVersion(live, *asked, snapshot->version, rewritten, onNetworkThread);
+  if (snapshot == nullptr) {
+    return std::nullopt;
+  }
+  info = &findPatch(live.name(), *snapshot, key);
+  return VersionedPatch{std::move(snapshot), info};
 }
 
 std::optional<http::Response> redirectToWriter(const ModelContext& context, const std::string& id,

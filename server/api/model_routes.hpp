@@ -59,6 +59,44 @@ std::shared_ptr<const core::ModelSnapshot> requestedSnapshot(core::LiveModel& li
                                                              const http::Request& request,
                                                              bool onNetworkThread = false);
 
+/// The model version a read's `?v=N` names, or nullopt without the parameter. A read that names
+/// one answers exactly what version N of the model holds, or 404: in a cluster a node that has
+/// not followed the publish of N yet must not answer N's URL with its older data (a cache in
+/// front would keep that under N's URL). Throws core::Error(InvalidArgument) unless N is an
+/// integer >= 1.
+std::optional<std::uint64_t> requestedVersion(const http::Request& request);
+
+/// The snapshot a read of the whole model (summary, hierarchy, LOD cut, tileset, terrain layer
+/// and tiles) answers from: requestedSnapshot()'s; with `?v=N` it must be version N: the current
+/// one, or (without `?rev=`) kept revision N when N is older. Null on a network thread when that
+/// needs the disk (as requestedSnapshot()). Throws core::Error(NotFound), naming both versions,
+/// when this node cannot answer version N: N is newer than its current version (it has not
+/// followed that publish yet, or there is no such version), no longer kept, or not the revision
+/// `?rev=` names. The pipeline answers NotFound with 404 and Cache-Control: no-store, so no cache
+/// keeps it. Also throws as requestedSnapshot().
+std::shared_ptr<const core::ModelSnapshot> versionedSnapshot(core::LiveModel& live,
+                                                             const http::Request& request,
+                                                             bool onNetworkThread = false);
+
+/// One patch of one snapshot, as a read of the patch answers it.
+struct VersionedPatch {
+  std::shared_ptr<const core::ModelSnapshot> snapshot;
+  const core::PatchInfo* info = nullptr;  ///< in *snapshot
+};
+/// The snapshot and patch `key` a read of that patch (metadata, positions, texture, coordinates,
+/// GLB tile) answers from: requestedSnapshot()'s. With `?v=N`, the patch as it is in version N:
+/// a patch is rewritten with the version of the publish that rewrote it, so a snapshot of
+/// version M holding the patch at version k (k <= M) holds what every version from k to M holds,
+/// and answers any N in [k, M] (the tileset's links name k, so they stay the same, and cached,
+/// across publishes that leave the patch alone). An N older than k is answered from kept revision
+/// N (without `?rev=`). nullopt on a network thread when that needs the disk. Throws
+/// core::Error(NotFound) for a patch not in that snapshot, and as versionedSnapshot() (404,
+/// no-store) when the node cannot answer version N: N newer than its current version, older than
+/// k and no longer kept, or outside [k, R] for `?rev=R`.
+std::optional<VersionedPatch> versionedPatch(core::LiveModel& live, const http::Request& request,
+                                             const core::PatchKey& key,
+                                             bool onNetworkThread = false);
+
 /// A model-wide JSON document answered gzipped (the client accepts gzip): the bytes made once per
 /// (`variant`, snapshot `version`) from build().dump() and kept in `encoded` as Encoding::JsonGzip,
 /// within the memory budget, never gzipped per request. `document` names the document and
@@ -85,8 +123,9 @@ http::Response temporaryRedirect(const std::string& location, std::string_view w
 /// GET/POST /v1/models, GET/DELETE /v1/models/{m}, GET /v1/models/{m}/hierarchy,
 /// /v1/models/{m}/patches/{p}, /v1/models/{m}/patches/{p}/positions, .../coordinates,
 /// .../texture[/{layer}], /v1/models/{m}/lod, /v1/models/{m}/diff[.png] (see proto/openapi.yaml).
-/// Every read works on one
-/// snapshot of the model, so a response never mixes two versions.
+/// Every read works on one snapshot of the model, so a response never mixes two versions; the
+/// summary, hierarchy, LOD cut and every patch route honour `?v=` (versionedSnapshot,
+/// versionedPatch).
 void addModelRoutes(http::Router& router, ModelContext context);
 
 /// GET/POST /v1/jobs, GET/DELETE /v1/jobs/{j}.

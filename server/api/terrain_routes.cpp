@@ -33,7 +33,10 @@ using nlohmann::json;
 
 namespace {
 
-/// As the 3D Tiles: the tile URLs name no model version, so revalidate (by ETag) after a minute.
+/// As the 3D Tiles: revalidated (by ETag) after a minute. layer.json's tile URLs name the model
+/// version ("?v=N") and a tile is answered only from that version (or 404), but a model directory
+/// replaced by another of the same name starts its versions again, so not even those are
+/// immutable.
 constexpr std::string_view kTerrainCacheControl = "public, max-age=60";
 constexpr std::string_view kTerrainType = "application/vnd.quantized-mesh";
 
@@ -164,7 +167,7 @@ http::Response getLayer(models::ModelRegistry& models, TerrainLayers& layers,
                         const http::Request& request) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = models.getServed(id);
-  const auto snapshot = requestedSnapshot(*served.live, request);
+  const auto snapshot = versionedSnapshot(*served.live, request);
   if (snapshot->model->empty()) {
     throw Error(ErrorCode::NotFound, "model '" + id + "' has no patches");
   }
@@ -180,7 +183,9 @@ http::Response getLayer(models::ModelRegistry& models, TerrainLayers& layers,
   }
   const auto layer = layers.get(*served.live, snapshot);
   requireHeightField(id, *layer);
-  const auto build = [&] { return terrainLayerJson(id, *layer, rev ? snapshot->version : 0); };
+  const auto build = [&] {
+    return terrainLayerJson(id, *layer, snapshot->version, rev ? snapshot->version : 0);
+  };
   http::Response response = gzipped ? gzippedJson(*served.encoded,
                                                   rev ? GzippedDocument::TerrainLayerRevision
                                                       : GzippedDocument::TerrainLayer,
@@ -193,14 +198,17 @@ http::Response getLayer(models::ModelRegistry& models, TerrainLayers& layers,
   return response;
 }
 
-/// GET .../terrain/{z}/{x}/{y}.terrain. On a network thread it answers only a 304 or a cached
-/// tile (nullopt otherwise); on the CPU pool it builds the layer if needed, samples and encodes.
+/// GET .../terrain/{z}/{x}/{y}.terrain[?v=N][&rev=R]: with layer.json's `?v=`, the tile of that
+/// version or 404 (versionedSnapshot): a tile is sampled from several patches and the layer's
+/// availability, so only that very version answers it. On a network thread it answers only a 304
+/// or a cached tile (nullopt otherwise); on the CPU pool it builds the layer if needed, samples
+/// and encodes.
 std::optional<http::Response> getTile(models::ModelRegistry& models, TerrainLayers& layers,
                                       const http::Request& request, bool onNetworkThread) {
   const std::string& id = request.param("m");
   const core::TerrainTileKey key = parseTile(request);
   const models::ModelRegistry::Served served = models.getServed(id);
-  const auto snapshot = requestedSnapshot(*served.live, request, onNetworkThread);
+  const auto snapshot = versionedSnapshot(*served.live, request, onNetworkThread);
   if (snapshot == nullptr) {
     return std::nullopt;
   }
@@ -320,7 +328,7 @@ TerrainExtensions parseTerrainAccept(std::string_view accept) {
 }
 
 json terrainLayerJson(std::string_view id, const core::TerrainLayer& layer,
-                      std::uint64_t revision) {
+                      std::uint64_t modelVersion, std::uint64_t revision) {
   json available = json::array();
   for (const auto& level : layer.available) {
     json ranges = json::array();
@@ -330,7 +338,10 @@ json terrainLayerJson(std::string_view id, const core::TerrainLayer& layer,
     }
     available.push_back(std::move(ranges));
   }
-  std::string tiles = "{z}/{x}/{y}.terrain?v={version}";
+  // The model version itself, not CesiumJS's "{version}" template (which it fills with the
+  // "version" field below, the same for every model version): the tile route answers "?v=N" only
+  // from version N, so a node that has not followed N yet answers 404 rather than older tiles.
+  std::string tiles = "{z}/{x}/{y}.terrain?v=" + std::to_string(modelVersion);
   if (revision != 0) {
     tiles += "&rev=" + std::to_string(revision);
   }
@@ -346,6 +357,7 @@ json terrainLayerJson(std::string_view id, const core::TerrainLayer& layer,
           {"bounds", b.empty() ? json::array({-180.0, -90.0, 180.0, 90.0})
                                : json::array({b.west, b.south, b.east, b.north})},
           {"tiles", json::array({tiles})},
+          {"model_version", modelVersion},
           {"minzoom", 0},
           {"maxzoom", layer.maxZoom},
           {"available", std::move(available)},

@@ -38,10 +38,11 @@ struct TerrainExtensions {
 };
 TerrainExtensions parseTerrainAccept(std::string_view accept);
 
-/// layer.json of a terrain layer: tilejson 2.1.0, format quantized-mesh-1.0, version 1.0.0,
-/// scheme tms, projection EPSG:4326, bounds, tiles ["{z}/{x}/{y}.terrain?v={version}"] (with
-/// "&rev=N" for a revision other than 0), available, minzoom/maxzoom, extensions.
+/// layer.json of a terrain layer of model version `modelVersion`: tilejson 2.1.0, format
+/// quantized-mesh-1.0, version 1.0.0, scheme tms, projection EPSG:4326, bounds, tiles
+/// ["{z}/{x}/{y}.terrain?v={modelVersion}"] (with "&rev=N" for a revision other than 0),
+/// model_version, available, minzoom/maxzoom, extensions.
 nlohmann::json terrainLayerJson(std::string_view id, const core::TerrainLayer& layer,
-                                std::uint64_t revision = 0);
+                                std::uint64_t modelVersion, std::uint64_t revision = 0);
 
 }  // namespace vsm::server::api

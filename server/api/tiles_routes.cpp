@@ -27,7 +27,9 @@ using nlohmann::json;
 
 namespace {
 
-/// As patch data (model_routes.cpp): the URL names no version, so revalidate after a minute.
+/// As patch data (model_routes.cpp): revalidated after a minute. A GLB URL with `?v=` is answered
+/// only with that version's bytes (versionedPatch), but a model directory replaced by another
+/// model of the same name starts its versions again, so not even those are immutable.
 constexpr std::string_view kTileCacheControl = "public, max-age=60";
 
 constexpr std::string_view kGlbType = "model/gltf-binary";
@@ -38,8 +40,9 @@ json translationJson(const core::Vec3d& t) {
       {1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, t.x, t.y, t.z, 1.0});
 }
 
-/// "{key}.glb", with "?v={patch version}" when `model` is given, "&rev={revision}" for a
-/// revision other than 0, and "compress=none" (after '?' or '&') for uncompressed content.
+/// "{key}.glb", with "?v={patch version}" when `model` is given (the version that wrote the
+/// patch: the GLB route answers it with the patch as in that version, or 404), "&rev={revision}"
+/// for a revision other than 0, and "compress=none" (after '?' or '&') for uncompressed content.
 std::string contentUri(const core::PatchKey& key, const core::Model* model, std::uint64_t revision,
                        bool compressedContent) {
   std::string uri = key.toString() + ".glb";
@@ -114,7 +117,7 @@ core::GlbCompression requestedCompression(const http::Request& request) {
 http::Response getTileset(models::ModelRegistry& models, const http::Request& request) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = models.getServed(id);
-  const auto snapshot = requestedSnapshot(*served.live, request);
+  const auto snapshot = versionedSnapshot(*served.live, request);
   if (snapshot->model->empty()) {
     throw Error(ErrorCode::NotFound, "model '" + id + "' has no patches");
   }
@@ -137,7 +140,7 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
   const auto build = [&] {
     const core::TileNode root = core::buildTileTree(*snapshot->model);
     return tilesetJson(root, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get(),
-                       revisionUris ? snapshot->version : 0, compressedContent);
+                       revisionUris ? snapshot->version : 0, compressedContent, snapshot->version);
   };
   const GzippedDocument document =
       compressedContent
@@ -152,24 +155,23 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
   return withCache(std::move(response), etag);
 }
 
-/// GET /v1/models/{m}/3dtiles/{p}.glb (any query, such as the tileset's "?v=", is ignored). On a
-/// network thread (`onNetworkThread`) it answers only a 304 or a cached GLB, and nullopt
-/// otherwise; on the CPU pool it encodes the GLB from the patch's data (read through the patch
-/// cache) and caches it.
+/// GET /v1/models/{m}/3dtiles/{p}.glb[?v=N][&rev=R][&compress=none]: with the tileset's `?v=`, the
+/// patch as in that version or 404 (versionedPatch), so that no node answers a version it has not
+/// followed yet. On a network thread (`onNetworkThread`) it answers only a 304 or a cached GLB,
+/// and nullopt otherwise; on the CPU pool it encodes the GLB from the patch's data (read through
+/// the patch cache) and caches it.
 std::optional<http::Response> glb(models::ModelRegistry& models, const http::Request& request,
                                   bool onNetworkThread) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = models.getServed(id);
   const core::PatchKey key = parseGlbKey(request.param("p"));
-  const auto snapshot = requestedSnapshot(*served.live, request, onNetworkThread);
-  if (snapshot == nullptr) {
+  const std::optional<VersionedPatch> read =
+      versionedPatch(*served.live, request, key, onNetworkThread);
+  if (!read) {
     return std::nullopt;
   }
-  const core::PatchInfo* info = snapshot->model->find(key);
-  if (info == nullptr) {
-    throw Error(ErrorCode::NotFound, "model '" + id + "' has no patch " + key.toString() +
-                                         " (version " + std::to_string(snapshot->version) + ")");
-  }
+  const core::ModelSnapshot* snapshot = read->snapshot.get();
+  const core::PatchInfo* info = read->info;
   const core::GlbCompression compression = requestedCompression(request);
   const bool compressed = compression == core::GlbCompression::Meshopt;
   const models::Encoding encoding =
@@ -216,11 +218,15 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
 }  // namespace
 
 json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
-                 const core::Model* model, std::uint64_t revision, bool compressedContent) {
-  return {
-      {"asset", {{"version", "1.1"}, {"tilesetVersion", tilesetVersion}, {"generator", "vsmd"}}},
-      {"geometricError", core::tilesetGeometricError(root)},
-      {"root", tileJson(root, core::Vec3d{0, 0, 0}, model, revision, compressedContent)}};
+                 const core::Model* model, std::uint64_t revision, bool compressedContent,
+                 std::uint64_t modelVersion) {
+  json asset = {{"version", "1.1"}, {"tilesetVersion", tilesetVersion}, {"generator", "vsmd"}};
+  if (modelVersion != 0) {
+    asset["extras"] = {{"model_version", modelVersion}};
+  }
+  return {{"asset", std::move(asset)},
+          {"geometricError", core::tilesetGeometricError(root)},
+          {"root", tileJson(root, core::Vec3d{0, 0, 0}, model, revision, compressedContent)}};
 }
 
 void addTilesRoutes(http::Router& router, models::ModelRegistry& models) {

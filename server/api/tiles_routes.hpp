@@ -35,14 +35,18 @@ void addTilesRoutes(http::Router& router, models::ModelRegistry& models);
 /// its centre, in ECEF for models imported from georeferenced rasters), boundingVolume.box
 /// relative to the tile's centre, geometricError, refine "REPLACE", content.uri "{key}.glb"
 /// (relative to the tileset's URL) and children. With `model` (the one the tree was built from),
-/// each URI names the patch's version, "{key}.glb?v={version}", so that browser and CDN caches
-/// never mix a tile of one version of the model with a tileset of another. A `revision` other than
-/// 0 (the tileset of ?rev=N) is added to each URI ("&rev=N"), so the tiles come from that revision.
+/// each URI names the patch's version, "{key}.glb?v={version}": the version of the publish that
+/// wrote the patch, in which it is exactly as in this one (model version `modelVersion`). The GLB
+/// route answers that URI with the patch as in that version or with 404 (never with another
+/// version's bytes), so neither a node that has not followed this version yet nor a browser or
+/// CDN cache mixes a tile of one version of the model with a tileset of another; and a URI stays
+/// the same (and cached) across publishes that leave its patch alone. A `revision` other than 0
+/// (the tileset of ?rev=N) is added to each URI ("&rev=N"), so the tiles come from that revision.
 /// `compressedContent` false (the tileset of ?compress=none) adds "compress=none" to each URI
-/// (after
-/// '?' or '&'), which names the uncompressed GLBs; true names the default, compressed ones.
+/// (after '?' or '&'), which names the uncompressed GLBs; true names the default, compressed
+/// ones. A `modelVersion` other than 0 is named as asset.extras.model_version.
 nlohmann::json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
                            const core::Model* model = nullptr, std::uint64_t revision = 0,
-                           bool compressedContent = true);
+                           bool compressedContent = true, std::uint64_t modelVersion = 0);
 
 }  // namespace vsm::server::api

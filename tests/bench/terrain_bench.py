@@ -107,7 +107,7 @@ def main():
             t0 = time.perf_counter()
             for z, x, y in tiles:
                 s = time.perf_counter()
-                size += len(get("/v1/models/merged/terrain/%d/%d/%d.terrain?v=1.0.0" % (z, x, y),
+                size += len(get("/v1/models/merged/terrain/%d/%d/%d.terrain" % (z, x, y),
                                 headers))
                 times.append(time.perf_counter() - s)
             return time.perf_counter() - t0, times, size

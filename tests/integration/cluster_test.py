@@ -11,7 +11,11 @@ nodes over one data root, real nginx in front (deploy/nginx/vsm.conf).
 2. A merge job submitted through the front (a replica answers 307, nginx follows it to the
    writer) succeeds, and within 2 s every node serves the new version: its number and its bytes.
    Meanwhile 8 clients read through the front: no error, and no mixed version (one patch version
-   always has the same bytes, whichever node and whichever moment).
+   always has the same bytes, whichever node and whichever moment). One version per answer: before
+   the merge, URLs naming the version it will make (?v=N+1: positions, texture, GLB, terrain tile,
+   tileset) are answered by nodes that have not made or followed it: 404 no-store through the
+   front, and not cached (a second request is no HIT); once every node has followed, the same
+   URLs answer version N+1, the writer's bytes, not a cached older answer.
 3. kill -9 of a node that is not the writer: 200 reads through the front, none failed.
 4. kill -9 of the writer during a merge: another node holds the model's writer key in etcd within
    the lease TTL + 2 s; the model is the old or the new version and validates; a new merge job
@@ -198,8 +202,24 @@ class Cluster(unittest.TestCase):
                              capture_output=True, text=True, timeout=30)
         self.assertEqual(out.stdout, "2 200", out.stderr)
 
+    def versioned_urls(self, version):
+        return ["/v1/models/prism/patches/0_0_0/positions?v=%d" % version,
+                "/v1/models/prism/patches/0_0_0/texture?v=%d" % version,
+                "/v1/models/prism/3dtiles/0_0_0.glb?v=%d" % version,
+                "/v1/models/prism/terrain/0/0/0.terrain?v=%d" % version,
+                "/v1/models/prism/3dtiles/tileset.json?v=%d" % version]
+
     def test_2_a_merge_through_the_front_reaches_every_node_and_readers_see_no_mix(self):
         before = get_json(self.nodes["n1"] + "/v1/models/prism")["version"]
+        # The next version, asked before any node has it: what a node that has not followed a
+        # publish yet sees. Not its older bytes under the newer URL, and nothing the front keeps.
+        for path in self.versioned_urls(before + 1):
+            for attempt in range(2):
+                status, headers, body = request(self.front + path)
+                self.assertEqual(status, 404, "%s: %d %s" % (path, status, body[:200]))
+                self.assertEqual(headers["Cache-Control"], "no-store", path)
+                self.assertEqual(json.loads(body)["error"]["code"], "not_found", path)
+                self.assertNotEqual(headers.get("X-Cache-Status"), "HIT", path)
         keys = list(walk_keys(get_json(self.front + "/v1/models/prism/hierarchy")["root"]))
         stop = threading.Event()
         errors = []
@@ -245,6 +265,22 @@ class Cluster(unittest.TestCase):
             done = time.monotonic()
             after = get_json(self.nodes[writer] + "/v1/models/prism")["version"]
             self.assertGreater(after, before)
+            # While the replicas follow, a client holding the new version's links (from the
+            # writer) reads them through the front: a replica that has not followed answers 404
+            # and the front asks the next node, so the client sees the new version or nothing.
+            lagging = {}
+            i = 0
+            while time.monotonic() - done < 1.0:
+                key = keys[i % len(keys)]
+                i += 1
+                path = "/v1/models/prism/patches/%s/positions?v=%d&read=lag-%d" % (key, after, i)
+                status, headers, body = request(self.front + path, timeout=10)
+                lagging[status] = lagging.get(status, 0) + 1
+                if status == 200:
+                    self.assertEqual(headers["X-VSM-Model-Version"], str(after), path)
+            print("?v=%d through the front while the replicas follow: %s" % (after, lagging),
+                  flush=True)
+            self.assertEqual(set(lagging), {200}, lagging)
             # Every node follows within 2 s: the version, and the changed patches' bytes.
             changed = [k for k in walk_keys(get_json(self.nodes[writer] + "/v1/models/prism/hierarchy")["root"])]
             for name, url in self.nodes.items():
@@ -257,6 +293,15 @@ class Cluster(unittest.TestCase):
                 path = "/v1/models/prism/patches/%s/positions" % key
                 bodies = {name: request(url + path)[2] for name, url in self.nodes.items()}
                 self.assertEqual(len(set(bodies.values())), 1, path)
+            # The URLs asked before the merge now answer the merged version, through the front.
+            self.assertEqual(after, before + 1)
+            for path in self.versioned_urls(after):
+                status, headers, body = request(self.front + path)
+                self.assertEqual(status, 200, "%s: %d %s" % (path, status, body[:200]))
+                self.assertEqual(headers["X-VSM-Model-Version"], str(after), path)
+                self.assertEqual(body, request(self.nodes[writer] + path)[2], path)
+            print("?v=%d before the merge: 404 no-store, not cached; after it: version %d"
+                  % (after, after), flush=True)
             # And go on until they have read the merged version too (or the deadline).
             with lock:
                 reads_after = reads[0]

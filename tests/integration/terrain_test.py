@@ -279,7 +279,7 @@ class Terrain(unittest.TestCase):
         headers = {"Accept": accept}
         if gz:
             headers["Accept-Encoding"] = "gzip"
-        code, h, body = self.get("/v1/models/%s/terrain/%d/%d/%d.terrain?v=1.0.0" % ((model,) + key),
+        code, h, body = self.get("/v1/models/%s/terrain/%d/%d/%d.terrain" % ((model,) + key),
                                  headers)
         self.assertEqual(code, status, body[:300])
         if status != 200:
@@ -426,7 +426,8 @@ class Terrain(unittest.TestCase):
         for field, value in (("tilejson", "2.1.0"), ("format", "quantized-mesh-1.0"),
                              ("version", "1.0.0"), ("scheme", "tms"), ("projection", "EPSG:4326")):
             self.assertEqual(layer[field], value, field)
-        self.assertEqual(layer["tiles"], ["{z}/{x}/{y}.terrain?v={version}"])
+        # The tiles' URL names the model version the layer is of (not CesiumJS's "{version}").
+        self.assertEqual(layer["tiles"], ["{z}/{x}/{y}.terrain?v=%d" % layer["model_version"]])
         self.assertEqual(layer["extensions"], ["octvertexnormals", "metadata"])
         # CesiumJS takes availability from the tiles' metadata (each names its children) only
         # with this; with `available` alone it fails on tiles that carry the metadata extension.
@@ -640,7 +641,7 @@ class Terrain(unittest.TestCase):
         self.assertEqual(status, 200, body[:300])
         old = json.loads(body)
         self.assertEqual(old["available"], layer["available"])
-        self.assertEqual(old["tiles"], ["{z}/{x}/{y}.terrain?v={version}&rev=1"])
+        self.assertEqual(old["tiles"], ["{z}/{x}/{y}.terrain?v=1&rev=1"])
 
 
 def main():

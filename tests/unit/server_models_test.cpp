@@ -28,6 +28,8 @@
 #include "core/store/live_model.hpp"
 #include "core/store/model_edit.hpp"
 #include "server/api/model_routes.hpp"
+#include "server/api/terrain_routes.hpp"
+#include "server/api/tiles_routes.hpp"
 #include "server/exec/work_pool.hpp"
 #include "server/http/pipeline.hpp"
 #include "server/http/router.hpp"
@@ -713,6 +715,110 @@ TEST_F(ModelRoutes, JobRoutesValidateAndReportMergeJobs) {
   EXPECT_EQ(get("/v1/jobs/absent").status, 404);
   EXPECT_EQ(send(http::Method::Delete, "/v1/jobs/absent").status, 404);
   EXPECT_EQ(json::parse(get("/v1/jobs").body).at("jobs").size(), 0u);
+}
+
+/// The model routes with the 3D Tiles and terrain routes, over "m" at version 2 (every patch
+/// written at version 2).
+class VersionedReads : public ModelRoutes {
+ protected:
+  VersionedReads() {
+    api::addTilesRoutes(router_, registry_);
+    api::addTerrainRoutes(router_, registry_);
+  }
+
+  /// Publishes version 3: leaf 2_1_2 and its ancestors rewritten, every other patch still of
+  /// version 2 (revision 2 kept).
+  void publish() {
+    auto edit = registry_.get("m")->beginEdit();
+    edit->setPositions({2, 1, 2}, leafGrid(1, 2));
+    edit->publish();
+  }
+
+  /// Every read route that takes ?v=, with `query` ("v=N..."): each answers from one version.
+  static std::vector<std::string> routes(const std::string& patch, const std::string& query) {
+    std::vector<std::string> out;
+    for (const std::string& path : std::vector<std::string>{
+             "/v1/models/m", "/v1/models/m/hierarchy", "/v1/models/m/patches/" + patch,
+             "/v1/models/m/patches/" + patch + "/positions",
+             "/v1/models/m/patches/" + patch + "/coordinates",
+             "/v1/models/m/patches/" + patch + "/texture",
+             "/v1/models/m/patches/" + patch + "/texture/Diffuse",
+             "/v1/models/m/3dtiles/tileset.json", "/v1/models/m/3dtiles/" + patch + ".glb",
+             "/v1/models/m/terrain/layer.json", "/v1/models/m/terrain/0/0/0.terrain"}) {
+      out.push_back(path + "?" + query);
+    }
+    out.push_back("/v1/models/m/lod?box=0,0,-10,64,64,10&resolution=100&" + query);
+    return out;
+  }
+};
+
+TEST_F(VersionedReads, AVersionNewerThanTheServedOneIsA404NoCacheKeeps) {
+  ASSERT_EQ(json::parse(get("/v1/models/m").body).at("version"), 2);
+  for (const std::string patch : {"2_1_2", "2_0_0"}) {
+    for (const std::string& target : routes(patch, "v=999")) {
+      const auto response = get(target);
+      EXPECT_EQ(*response.header("Cache-Control"), "no-store") << target;
+      if (response.status != 404) {
+        ADD_FAILURE() << target << " answered " << response.status << ", not 404";
+        continue;
+      }
+      const json error = json::parse(response.body).at("error");
+      EXPECT_EQ(error.at("code"), "not_found") << target;
+      const std::string message = error.at("message");
+      EXPECT_NE(message.find("version 999"), std::string::npos) << target << ": " << message;
+      EXPECT_NE(message.find("serves version 2"), std::string::npos) << target << ": " << message;
+    }
+  }
+  // With ?rev=, only that revision's version answers.
+  publish();
+  for (const std::string& target : routes("2_1_2", "v=2&rev=3")) {
+    const auto response = get(target);
+    EXPECT_EQ(response.status, 404) << target;
+    EXPECT_EQ(*response.header("Cache-Control"), "no-store") << target;
+  }
+  for (const std::string& target : routes("2_1_2", "v=x")) {
+    EXPECT_EQ(get(target).status, 400) << target;
+  }
+}
+
+TEST_F(VersionedReads, EveryVersionThatHoldsAPatchAsServedAnswersIt) {
+  publish();
+  ASSERT_EQ(json::parse(get("/v1/models/m").body).at("version"), 3);
+  // 2_0_0 is of version 2 in version 3: both versions name the same bytes.
+  const auto current = get("/v1/models/m/patches/2_0_0/positions");
+  ASSERT_EQ(current.status, 200);
+  for (const char* query : {"?v=2", "?v=3", "?v=3&rev=3"}) {
+    const auto response = get(std::string("/v1/models/m/patches/2_0_0/positions") + query);
+    ASSERT_EQ(response.status, 200) << query << response.body;
+    EXPECT_EQ(response.bodyText(), current.bodyText()) << query;
+    EXPECT_EQ(*response.header("X-VSM-Patch-Version"), "2") << query;
+    EXPECT_EQ(get(std::string("/v1/models/m/3dtiles/2_0_0.glb") + query).status, 200) << query;
+  }
+  // 2_1_2 was rewritten by version 3: ?v=2 is answered from kept revision 2, ?v=3 now; version 1
+  // was never kept.
+  const auto old = get("/v1/models/m/patches/2_1_2/positions?v=2");
+  ASSERT_EQ(old.status, 200) << old.body;
+  EXPECT_EQ(*old.header("X-VSM-Patch-Version"), "2");
+  EXPECT_EQ(*old.header("X-VSM-Model-Version"), "2");
+  EXPECT_EQ(old.bodyText(), get("/v1/models/m/patches/2_1_2/positions?rev=2").bodyText());
+  EXPECT_EQ(*get("/v1/models/m/patches/2_1_2/positions?v=3").header("X-VSM-Patch-Version"), "3");
+  EXPECT_EQ(get("/v1/models/m/patches/2_1_2?v=2&rev=3").status, 404);
+  const auto gone = get("/v1/models/m/patches/2_1_2/positions?v=1");
+  EXPECT_EQ(gone.status, 404);
+  EXPECT_EQ(*gone.header("Cache-Control"), "no-store");
+  // Documents: exactly their version, the current one or a kept revision.
+  EXPECT_EQ(json::parse(get("/v1/models/m?v=3").body).at("version"), 3);
+  EXPECT_EQ(json::parse(get("/v1/models/m?v=2").body).at("version"), 2);
+  EXPECT_EQ(json::parse(get("/v1/models/m/hierarchy?v=2").body).at("version"), 2);
+  EXPECT_EQ(get("/v1/models/m?v=1").status, 404);
+  // The tileset names its version, and its links the version that wrote each patch.
+  const json tileset = json::parse(get("/v1/models/m/3dtiles/tileset.json").body);
+  EXPECT_EQ(tileset.at("asset").at("extras").at("model_version"), 3);
+  EXPECT_EQ(tileset.at("root").at("content").at("uri"), "0_0_0.glb?v=3");
+  const json oldTileset = json::parse(get("/v1/models/m/3dtiles/tileset.json?v=2").body);
+  EXPECT_EQ(oldTileset.at("asset").at("extras").at("model_version"), 2);
+  EXPECT_EQ(oldTileset.at("root").at("content").at("uri"), "0_0_0.glb?v=2");
+  EXPECT_EQ(get("/v1/models/m/3dtiles/0_0_0.glb?v=2").status, 200);
 }
 
 }  // namespace

@@ -444,11 +444,14 @@ TEST(TerrainRoutes, LayerJsonNamesTheSchemeAndTemplate) {
   layer.bounds = {-1, -2, 3, 4};
   layer.available = {{{0, 0, 1, 0}}, {{1, 1, 1, 1}}};
   layer.maxZoom = 1;
-  const nlohmann::json j = terrainLayerJson("m", layer, 7);
+  const nlohmann::json j = terrainLayerJson("m", layer, 7, 7);
   EXPECT_EQ(j["format"], "quantized-mesh-1.0");
   EXPECT_EQ(j["scheme"], "tms");
   EXPECT_EQ(j["projection"], "EPSG:4326");
-  EXPECT_EQ(j["tiles"][0], "{z}/{x}/{y}.terrain?v={version}&rev=7");
+  EXPECT_EQ(j["tiles"][0], "{z}/{x}/{y}.terrain?v=7&rev=7");
+  EXPECT_EQ(j["model_version"], 7);
+  // The tiles' URL names the model version itself, not CesiumJS's "{version}" template.
+  EXPECT_EQ(terrainLayerJson("m", layer, 12)["tiles"][0], "{z}/{x}/{y}.terrain?v=12");
   EXPECT_EQ(j["maxzoom"], 1);
   EXPECT_EQ(j["available"][1][0]["startX"], 1);
   EXPECT_EQ(j["bounds"], nlohmann::json::array({-1.0, -2.0, 3.0, 4.0}));
