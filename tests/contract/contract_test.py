@@ -293,14 +293,16 @@ def exercise_main(r, d):
     r.call(d, "glb of no patch", "GET", m + "/3dtiles/12_0_0.glb", 404)
 
     lj = m + "/terrain/layer.json"
-    r.call(d, "terrain layer", "GET", lj, 200)
+    _, layer = r.call(d, "terrain layer", "GET", lj, 200)
+    layer_version = json.loads(layer)["model_version"]
     r.call(d, "terrain layer revalidated", "GET", lj, 304, headers=etag_of(lj))
     r.call(d, "terrain layer, bad revision", "GET", lj + "?rev=0", 400)
     r.call(d, "terrain layer of no model", "GET", "/v1/models/nope/terrain/layer.json", 404)
     tile = m + "/terrain/0/0/0.terrain"
     accept = {"Accept": "application/vnd.quantized-mesh;extensions=octvertexnormals-metadata",
               "Accept-Encoding": "gzip"}
-    r.call(d, "terrain tile", "GET", tile + "?v=1.0.0", 200, headers=accept)
+    r.call(d, "terrain tile", "GET", tile + "?v=%d" % layer_version, 200, headers=accept)
+    r.call(d, "terrain tile of a version not served", "GET", tile + "?v=999", 404)
     hdrs, _ = r.call(d, "terrain tile (for an ETag)", "GET", tile, 200)
     r.call(d, "terrain tile revalidated", "GET", tile, 304, headers={"If-None-Match": hdrs["etag"]})
     r.call(d, "terrain tile outside the scheme", "GET", m + "/terrain/25/0/0.terrain", 400)
