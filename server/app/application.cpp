@@ -190,6 +190,8 @@ Application::Application(Config config) : config_(std::move(config)) {
     coordinator_ = std::make_unique<cluster::Coordinator>(std::move(options), std::move(node));
     // Every model is read only until this node is elected to write it (Coordinator::start).
     models_->electWriters([this](std::string_view id) { return coordinator_->writes(id); });
+    // A commit checks, just before its commit point, that this node still holds the lease.
+    models_->fenceWrites([this](std::string_view id) { coordinator_->checkWriter(id); });
     log::info("cluster: node " + coordinator_->node() + ", coordinator " +
               config_.cluster.coordinator);
   }

@@ -230,6 +230,12 @@ std::optional<std::string> Coordinator::writerElsewhere(const std::string& id) {
   {
     const std::lock_guard lock(mutex_);
     if (const auto it = writers_.find(id); it != writers_.end()) {
+      if (it->second == options_.node &&
+          Clock::now() - renewed_ >= options_.leaseTtl - fenceMargin()) {
+        // The lease may run out before a job could commit: no job is accepted on it.
+        throw Error(ErrorCode::Unavailable,
+                    "node " + options_.node + " is renewing its lease; retry in a second");
+      }
       return urlOf(it->second);
     }
     lease = lease_;
@@ -243,6 +249,12 @@ std::optional<std::string> Coordinator::writerElsewhere(const std::string& id) {
   if (etcd.putIfAbsent(writerKey(id), options_.node, lease)) {
     {
       const std::lock_guard lock(mutex_);
+      if (lease_ != lease) {
+        // Lost while the claim was on its way: the key goes with the old lease.
+        throw Error(ErrorCode::Unavailable, "node " + options_.node +
+                                                " lost its lease while claiming model '" + id +
+                                                "'; retry in a second");
+      }
       writers_[id] = options_.node;
     }
     log::info("cluster: model=" + id + " is written by this node");
@@ -269,6 +281,29 @@ std::optional<std::string> Coordinator::writerElsewhere(const std::string& id) {
   const std::lock_guard lock(mutex_);
   writers_[id] = writer;
   return urlOf(writer);
+}
+
+std::chrono::milliseconds Coordinator::fenceMargin() const {
+  return std::max(std::chrono::milliseconds(1000), options_.leaseTtl / 5);
+}
+
+void Coordinator::checkWriter(std::string_view id) const {
+  const auto now = Clock::now();
+  const std::lock_guard lock(mutex_);
+  const auto it = writers_.find(id);
+  if (lease_ == 0 || it == writers_.end() || it->second != options_.node) {
+    throw Error(ErrorCode::Conflict, "node " + options_.node +
+                                         " is no longer the writer of model '" + std::string(id) +
+                                         "'; the write is not committed");
+  }
+  const auto held = std::chrono::duration_cast<std::chrono::milliseconds>(now - renewed_);
+  if (held >= options_.leaseTtl - fenceMargin()) {
+    throw Error(ErrorCode::Conflict, "node " + options_.node +
+                                         " cannot be sure it still holds its lease (last renewed " +
+                                         std::to_string(held.count()) + " ms ago, TTL " +
+                                         std::to_string(options_.leaseTtl.count()) +
+                                         " ms): model '" + std::string(id) + "' is not committed");
+  }
 }
 
 bool Coordinator::writes(std::string_view id) const {

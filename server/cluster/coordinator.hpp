@@ -79,6 +79,14 @@ class Coordinator {
   std::optional<std::string> writerElsewhere(const std::string& id);
   /// True when this node is the elected writer of `id`.
   bool writes(std::string_view id) const;
+  /// The fence of a commit into model `id` (core::PublishOptions::fence), called just before its
+  /// commit point: throws core::Error(Conflict) unless this node is the writer of `id` under a
+  /// lease that etcd cannot have expired yet with a margin (the last renewal etcd confirmed was
+  /// sent less than TTL - kFenceMargin ago), so a node paused or cut off from etcd past its lease
+  /// never commits over the node that took the model over.
+  void checkWriter(std::string_view id) const;
+  /// What checkWriter keeps in hand of the lease: a fifth of the TTL, at least a second.
+  std::chrono::milliseconds fenceMargin() const;
   /// The advertised URL of node `name`: nullopt for this node and for a node not in the cluster.
   std::optional<std::string> nodeUrl(std::string_view name) const;
   /// The writer of every model with one, by model id.

@@ -342,6 +342,16 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
   return model;
 }
 
+void ModelRegistry::fenceWrites(std::function<void(std::string_view id)> check) {
+  fence_ = std::move(check);
+}
+
+void ModelRegistry::checkWriter(std::string_view id) const {
+  if (fence_) {
+    fence_(id);
+  }
+}
+
 void ModelRegistry::reopen(std::string_view id) {
   if (const auto version = replace(get(id), id, "after a failed write")) {
     log::warn("model=" + std::string(id) + " read again from disk after a failed write: version " +

@@ -89,6 +89,12 @@ class ModelRegistry {
   /// opening finish on it. True when `id` is open in that role now; false when it is not open or
   /// the opening failed (logged once per model until it succeeds).
   bool setWriter(std::string_view id, bool writer);
+  /// In a cluster: `check(id)` is called just before every commit into model `id` by a job of
+  /// this process (core::PublishOptions::fence) and throws to refuse it (the node no longer
+  /// holds the model's lease). Call before the first job.
+  void fenceWrites(std::function<void(std::string_view id)> check);
+  /// The fence of a commit into `id`: what fenceWrites() set; nothing without it.
+  void checkWriter(std::string_view id) const;
   /// The ids of the open models, in order.
   std::vector<std::string> ids() const;
 
@@ -206,6 +212,7 @@ class ModelRegistry {
   /// Ids being opened right now (open() reads the disk without the lock).
   std::set<std::string, std::less<>> opening_;
   std::function<bool(std::string_view)> writes_;         // set before any model is opened
+  std::function<void(std::string_view)> fence_;          // set before the first job
   std::function<void(const Publication&)> onPublished_;  // set before any model is opened
   /// setWriter()'s own state: models whose last change of role failed (logged once).
   std::set<std::string, std::less<>> roleFailed_;

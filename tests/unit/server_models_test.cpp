@@ -34,6 +34,7 @@
 #include "server/http/pipeline.hpp"
 #include "server/http/router.hpp"
 #include "server/jobs/job_registry.hpp"
+#include "server/jobs/model_jobs.hpp"
 #include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
 
@@ -715,6 +716,41 @@ TEST_F(ModelRoutes, JobRoutesValidateAndReportMergeJobs) {
   EXPECT_EQ(get("/v1/jobs/absent").status, 404);
   EXPECT_EQ(send(http::Method::Delete, "/v1/jobs/absent").status, 404);
   EXPECT_EQ(json::parse(get("/v1/jobs").body).at("jobs").size(), 0u);
+}
+
+// Issue 32, finding 2: a job's commit is fenced (in a cluster, by the node's lease).
+TEST_F(ModelRoutes, AFencedCommitIsRefusedAndLeavesTheModelAsItWas) {
+  std::shared_ptr<core::LiveModel> live = registry_.get("m");
+  const std::uint64_t v = live->snapshot()->version;
+  {
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 1, 2}, leafGrid(1, 2));
+    edit->publish();
+  }
+  const fs::path hierarchy = root_.path() / "m" / "Patches" / "patchhierarchy.xml";
+  const auto before = core::hierarchyStamp(root_.path() / "m");
+  std::atomic<bool> holds{false};
+  std::atomic<int> asked{0};
+  registry_.fenceWrites([&](std::string_view id) {
+    EXPECT_EQ(id, "m");
+    ++asked;
+    if (!holds) {
+      throw core::Error(core::ErrorCode::Conflict, "node a is no longer the writer of model 'm'");
+    }
+  });
+  const auto refused = waitFinal(jobs_, jobs::submitRestore(jobs_, registry_, "m", v).id);
+  EXPECT_EQ(refused.state, jobs::JobState::Failed);
+  EXPECT_EQ(refused.errorCode, core::ErrorCode::Conflict);
+  EXPECT_EQ(asked, 1);
+  EXPECT_EQ(core::hierarchyStamp(root_.path() / "m"), before)
+      << "a refused commit changed the model";
+  EXPECT_EQ(registry_.get("m")->snapshot()->version, v + 1);
+  EXPECT_TRUE(core::validateOpc(root_.path() / "m").empty());
+  holds = true;
+  const auto done = waitFinal(jobs_, jobs::submitRestore(jobs_, registry_, "m", v).id);
+  EXPECT_EQ(done.state, jobs::JobState::Succeeded) << done.errorMessage;
+  EXPECT_EQ(registry_.get("m")->snapshot()->version, v + 2);
+  EXPECT_TRUE(fs::exists(hierarchy));
 }
 
 /// The model routes with the 3D Tiles and terrain routes, over "m" at version 2 (every patch
