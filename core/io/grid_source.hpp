@@ -83,6 +83,14 @@ struct ImportOptions {
 Model buildOpc(GridSource& source, const std::filesystem::path& outDir,
                const ImportOptions& options);
 
+/// Removes the staging directories interrupted imports left in `parent` ("<name>.partial-<id>";
+/// only those of `target` when it is given): each one whose writer lock nobody holds (its import
+/// died; the kernel freed the lock). One that is being written (locked) is left alone. Failures
+/// are logged. Returns how many were removed. buildOpc calls it for its target; a server calls it
+/// for its data root at start.
+std::size_t removeAbandonedImports(const std::filesystem::path& parent,
+                                   std::string_view target = {});
+
 /// Opens a georeferenced raster through GDAL (first band = height). Geographic rasters become
 /// WGS 84 ECEF metres, projected rasters are transformed to ECEF through GDAL/PROJ; sample (col,
 /// row) becomes the vertex at its pixel centre; no-data and NaN become undefined.

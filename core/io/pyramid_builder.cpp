@@ -11,12 +11,14 @@
 #include <memory>
 #include <mutex>
 #include <optional>
+#include <regex>
 #include <string>
 #include <system_error>
 #include <vector>
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/common/random.hpp"
 #include "core/common/vectorised.hpp"
 #include "core/durable/durable_io.hpp"
 #include "core/durable/writer_lock.hpp"
@@ -372,6 +374,36 @@ class PyramidBuilder {
 
 }  // namespace
 
+std::size_t removeAbandonedImports(const fs::path& parent, std::string_view target) {
+  static const std::regex staging("(.+)\\.partial-[0-9]+(-[0-9a-f]+)?");
+  std::size_t removed = 0;
+  std::error_code ec;
+  for (const auto& entry : fs::directory_iterator(parent, ec)) {
+    const std::string name = entry.path().filename().string();
+    std::smatch match;
+    if (!std::regex_match(name, match, staging) || (!target.empty() && match[1].str() != target) ||
+        !entry.is_directory(ec) || entry.is_symlink(ec)) {
+      continue;
+    }
+    try {
+      // Held while removing: an import cannot start writing into it meanwhile.
+      const auto lock = durable::WriterLock::acquire(entry.path());
+      fs::remove_all(entry.path());
+      log::info("removed " + quoted(entry.path()) + ", left by an interrupted import");
+      ++removed;
+    } catch (const Error& e) {
+      if (e.code() != ErrorCode::Conflict) {
+        log::warn("cannot remove " + quoted(entry.path()) +
+                  " left by an interrupted import: " + e.what());
+      }
+    } catch (const fs::filesystem_error& e) {
+      log::warn("cannot remove " + quoted(entry.path()) +
+                " left by an interrupted import: " + e.what());
+    }
+  }
+  return removed;
+}
+
 Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& options) {
   Model model(options.patchSize);  // validates the patch size
   if ((options.drape == ImportOptions::Drape::Image) == options.texture.empty()) {
@@ -397,8 +429,12 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
   if (ec) {
     throwIoError("cannot create directory", parent.string(), ec.value());
   }
+  removeAbandonedImports(parent, target.filename().string());
+  // The pid names the writer for people; the random part keeps names apart where pids repeat (a
+  // container's process is pid 1 every time).
   StagingDirectory staging(parent / (target.filename().string() + ".partial-" +
-                                     std::to_string(static_cast<long long>(::getpid()))));
+                                     std::to_string(static_cast<long long>(::getpid())) + "-" +
+                                     randomHex()));
   if (!fs::create_directory(staging.path(), ec)) {
     if (ec) {
       throwIoError("cannot create directory", staging.path().string(), ec.value());

@@ -8,6 +8,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/common/random.hpp"
 #include "core/grid/shaded_relief.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
@@ -37,7 +38,7 @@ ModelEdit::ModelEdit(LiveModel& live, std::shared_ptr<const ModelSnapshot> base)
       sync_(live.dir_),
       base_(std::move(base)),
       model_(std::make_unique<Model>(*base_->model)),
-      nonce_(newNonce()) {}
+      nonce_(randomHex()) {}
 
 ModelEdit::~ModelEdit() {
   if (!published_) {

@@ -6,12 +6,11 @@
 #include <cctype>
 #include <cstdio>
 #include <ctime>
-#include <mutex>
-#include <random>
 #include <regex>
 #include <utility>
 
 #include "core/common/log.hpp"
+#include "core/common/random.hpp"
 #include "core/opc/texture_file.hpp"
 #include "core/store/live_model.hpp"
 
@@ -43,19 +42,6 @@ std::optional<std::uint64_t> revisionOfFile(const std::string& name) {
 
 std::string draftFolder(const PatchKey& key, std::uint64_t version, std::string_view nonce) {
   return key.toString() + "-v" + std::to_string(version) + "-" + std::string(nonce);
-}
-
-std::string newNonce() {
-  static std::mutex mutex;
-  static std::random_device device;
-  std::uint32_t value = 0;
-  {
-    std::lock_guard lock(mutex);
-    value = device();
-  }
-  char text[9];
-  std::snprintf(text, sizeof text, "%08x", value);
-  return text;
 }
 
 bool isOurFolderName(const std::string& name) {

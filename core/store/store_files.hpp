@@ -26,9 +26,6 @@ namespace store {
 /// lost in a power cut after it was served), so names and the tags made from them never repeat.
 std::string draftFolder(const PatchKey& key, std::uint64_t version, std::string_view nonce);
 
-/// A new random nonce for an edit: 8 lowercase hex digits.
-std::string newNonce();
-
 /// Folders vsm names: "d_x_y" as an import writes them, "d_x_y-vN[-nonce]" as an edit does.
 bool isOurFolderName(const std::string& name);
 

@@ -15,6 +15,7 @@
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "core/durable/durable_io.hpp"
+#include "core/io/grid_source.hpp"
 #include "core/opc/texture_file.hpp"
 #include "server/api/event_routes.hpp"
 #include "server/api/model_routes.hpp"
@@ -198,6 +199,9 @@ Application::Application(Config config) : config_(std::move(config)) {
   jobs_ = std::make_unique<jobs::JobRegistry>(*jobPool_, jobLimits);
   // Before any model opens, so that every opening is watched.
   api::connectEvents(*events_, *jobs_, *models_);
+  // Staging directories of imports a crash interrupted (kept from the previous life of this
+  // process, whose pid a container reuses); an import another node runs holds its lock.
+  core::removeAbandonedImports(models_->dataRoot());
   const std::size_t opened = models_->openAll();
   log::info("data root " + models_->dataRoot().string() + ": " + std::to_string(opened) +
             " model(s) open");

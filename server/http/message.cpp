@@ -6,11 +6,11 @@
 #include <atomic>
 #include <cerrno>
 #include <cstdio>
-#include <random>
 
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
+#include "core/common/random.hpp"
 
 namespace vsm::server::http {
 
@@ -291,10 +291,7 @@ Response notModified(std::string_view etag, std::string_view cacheControl) {
 }
 
 std::string newRequestId() {
-  static const std::uint32_t prefix = [] {
-    std::random_device device;
-    return static_cast<std::uint32_t>(device());
-  }();
+  static const std::uint32_t prefix = core::randomWord();
   static std::atomic<std::uint32_t> counter{0};
   char text[17];
   std::snprintf(text, sizeof text, "%08x%08x", prefix, counter.fetch_add(1) + 1);

@@ -3,13 +3,13 @@
 #include <algorithm>
 #include <cstdio>
 #include <ctime>
-#include <random>
 
 #include <sys/resource.h>
 #include <sys/syscall.h>
 #include <unistd.h>
 
 #include "core/common/log.hpp"
+#include "core/common/random.hpp"
 #include "server/exec/work_pool.hpp"
 
 namespace vsm::server::jobs {
@@ -100,10 +100,7 @@ struct JobRegistry::Job {
 };
 
 JobRegistry::JobRegistry(exec::WorkPool& pool, JobLimits limits)
-    : pool_(pool), limits_(limits), idPrefix_([] {
-        std::random_device device;
-        return static_cast<std::uint32_t>(device());
-      }()) {}
+    : pool_(pool), limits_(limits), idPrefix_(core::randomWord()) {}
 
 JobRegistry::~JobRegistry() = default;
 

@@ -26,6 +26,7 @@
 #include <vector>
 
 #include "core/common/error.hpp"
+#include "core/durable/writer_lock.hpp"
 #include "core/grid/texture_tile.hpp"
 #include "core/io/gdal_support.hpp"
 #include "core/io/grid_source.hpp"
@@ -575,6 +576,32 @@ TEST(PyramidBuilder, An300By200RasterWithPatchSize65IsThreeLevelsBelowTheRoot) {
   // keeps the patches whose area starts inside the raster.
   EXPECT_EQ(patchesPerDepth(model), (std::map<int, std::size_t>{{0, 1}, {1, 2}, {2, 6}, {3, 20}}));
   EXPECT_TRUE(fs::is_directory(dir / "opc" / "Patches"));
+}
+
+// Issue 32, finding 8: staging directories of killed imports are swept, and an import whose pid
+// repeats (a container's pid 1) is not refused by its earlier life's leftover.
+TEST(PyramidBuilder, StagingLeftByAKilledImportIsSweptAndAnImportOfTheSamePidProceeds) {
+  TempDir dir;
+  const auto leftover = [&](const std::string& name) {
+    fs::create_directories(dir / name / "Patches" / "0_0_0");
+    std::ofstream(dir / name / "Patches" / "0_0_0" / "Patch.xml") << "half written";
+    return dir / name;
+  };
+  const fs::path samePid = leftover("opc.partial-" + std::to_string(::getpid()));
+  const fs::path oldStyle = leftover("opc.partial-1");
+  const fs::path other = leftover("other.partial-7-0123abcd");
+  const fs::path busy = leftover("opc.partial-9-89abcdef");
+  const auto held = durable::WriterLock::acquire(busy);  // an import still writing it
+  SyntheticSource source(100, 100);
+  EXPECT_NO_THROW(buildOpc(source, dir / "opc", withPatchSize(65)));
+  EXPECT_TRUE(fs::is_directory(dir / "opc" / "Patches"));
+  EXPECT_FALSE(fs::exists(samePid));
+  EXPECT_FALSE(fs::exists(oldStyle));
+  EXPECT_TRUE(fs::exists(busy)) << "a staging directory being written was removed";
+  EXPECT_TRUE(fs::exists(other)) << "another target's staging is not this import's to sweep";
+  EXPECT_EQ(removeAbandonedImports(dir.path()), 1u);  // all targets: `other`, not `busy`
+  EXPECT_FALSE(fs::exists(other));
+  EXPECT_TRUE(fs::exists(busy));
 }
 
 TEST(PyramidBuilder, QuadrantsOutsideTheSourceAreOmitted) {
