@@ -34,7 +34,7 @@ using nlohmann::json;
 namespace {
 
 /// As the 3D Tiles: the tile URLs name no model version, so revalidate (by ETag) after a minute.
-constexpr std::string_view kTerrainCacheControl = "public, max-age=60";
+constexpr std::string_view kTerrainCacheControl = http::cache_control::kMinute;
 constexpr std::string_view kTerrainType = "application/vnd.quantized-mesh";
 
 /// The terrain layers of the published versions being served, built once per version: the first

@@ -28,7 +28,7 @@ using nlohmann::json;
 namespace {
 
 /// As patch data (model_routes.cpp): the URL names no version, so revalidate after a minute.
-constexpr std::string_view kTileCacheControl = "public, max-age=60";
+constexpr std::string_view kTileCacheControl = http::cache_control::kMinute;
 
 constexpr std::string_view kGlbType = "model/gltf-binary";
 

@@ -14,11 +14,13 @@
 
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
+#include "core/common/text.hpp"
 
 namespace vsm::server {
 
 using core::Error;
 using core::ErrorCode;
+using core::trim;
 using nlohmann::json;
 
 namespace {
@@ -28,16 +30,6 @@ constexpr std::size_t kMiB = kKiB * 1024;
 constexpr std::size_t kGiB = kMiB * 1024;
 /// Longest token (the server compares tokens up to this length in constant time).
 constexpr std::size_t kMaxTokenBytes = 1024;
-
-std::string_view trim(std::string_view s) {
-  while (!s.empty() && (s.front() == ' ' || s.front() == '\t')) {
-    s.remove_prefix(1);
-  }
-  while (!s.empty() && (s.back() == ' ' || s.back() == '\t')) {
-    s.remove_suffix(1);
-  }
-  return s;
-}
 
 std::string lower(std::string_view s) {
   std::string out(s);
