@@ -263,6 +263,11 @@ const Key kKeys[] = {
        c.limits.eventSubscribers = countOf(k, v);
      },
      [](const Config& c) { return std::to_string(c.limits.eventSubscribers); }},
+    {"limits.event_subscribers_per_client",
+     [](Config& c, std::string_view k, const json& v) {
+       c.limits.eventSubscribersPerClient = countOf(k, v);
+     },
+     [](const Config& c) { return std::to_string(c.limits.eventSubscribersPerClient); }},
     {"limits.shutdown_grace",
      [](Config& c, std::string_view k, const json& v) {
        c.limits.shutdownGrace = durationOf(k, v);
@@ -513,6 +518,7 @@ void Config::validate() const {
   checkCount("limits.pipelined_responses", limits.pipelinedResponses, 1, 256);
   checkCount("limits.texture_pixels", limits.texturePixels, 1, std::size_t{1} << 32);
   checkCount("limits.event_subscribers", limits.eventSubscribers, 0, 100'000);
+  checkCount("limits.event_subscribers_per_client", limits.eventSubscribersPerClient, 0, 100'000);
   checkCount("threads.io", threads.io, 1, 256);
   checkCount("threads.cpu", threads.cpu, 0, 1024);
   checkCount("threads.jobs", threads.jobs, 1, 256);
@@ -649,7 +655,8 @@ std::string_view commandLineUsage() {
          "  limits.body_bytes, limits.header_bytes, limits.header_timeout, limits.read_timeout,\n"
          "  limits.idle_timeout, limits.write_timeout, limits.connections,\n"
          "  limits.connections_per_client, limits.pipelined_responses, limits.texture_pixels,\n"
-         "  limits.event_subscribers, limits.shutdown_grace, threads.io,\n"
+         "  limits.event_subscribers, limits.event_subscribers_per_client,\n"
+         "  limits.shutdown_grace, threads.io,\n"
          "  threads.cpu (0 = one per core), threads.jobs,\n"
          "  cluster.coordinator, cluster.node, cluster.advertise, cluster.lease_ttl (10s)\n"
          "sizes: bytes or 512KiB, 64MiB, 4GiB, 1GB ...; durations: seconds or 250ms, 30s, 5m\n";

@@ -64,6 +64,9 @@ struct Limits {
   /// Subscribers of the event stream (GET /v1/events) at once; one more is answered 503 with
   /// Retry-After. Each is also a connection (limits.connections).
   std::size_t eventSubscribers = events::HubOptions{}.maxSubscribers;
+  /// Subscribers of the event stream from one source address at once; one more from it is
+  /// answered 503 with Retry-After while other addresses still get a stream.
+  std::size_t eventSubscribersPerClient = events::HubOptions{}.maxSubscribersPerClient;
   /// On SIGTERM/SIGINT, how long in-flight requests may take before connections are closed.
   std::chrono::milliseconds shutdownGrace{10'000};
 };

@@ -43,6 +43,10 @@ struct Request {
   std::string body;
   /// Set by the server: "X-Request-Id" when the client sent a sane one, a fresh id otherwise.
   std::string id;
+  /// Set by the server: the source address the connection is counted under
+  /// (limits.connections_per_client; an IPv4-mapped IPv6 address as the IPv4 one). Empty when
+  /// made elsewhere (tests).
+  std::string client;
   /// Path parameters, percent-decoded; filled in by the Router ("{m}" -> params["m"]).
   std::map<std::string, std::string, std::less<>> params;
 

@@ -114,6 +114,7 @@ void Connection::onHeader() {
     request.headers.emplace_back(std::move(name), std::string(field.value()));
   }
   request.id = requestIdFor(request);
+  request.client = client_;
   const bool body = !parser_->is_done();
   if (std::optional<Handled> refused = server_.pipeline.authorize(request)) {
     // Its body is never read: a connection with one still to come is closed after the 401
