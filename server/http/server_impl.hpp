@@ -1,9 +1,7 @@
 // Server::Impl: the acceptor, the admission limits and the network threads (private to
 // server/http; defined in server.cpp). Connections reach it for the options, the pipeline, the CPU
-// pool and the metrics, and to be forgotten when they end.
-//
-// Lock order: Server::Impl::mutex is the only lock here; it is never held while calling into a
-// connection, the pipeline or the pools (connections are copied out first).
+// pool and the metrics, and to be forgotten when they end. `mutex` is the only lock (its order:
+// server.cpp).
 #pragma once
 
 #include <atomic>
