@@ -146,11 +146,13 @@ up() {
   for ((i = 1; i <= count; i++)); do
     local port=${ports[$((i + 1))]}
     url[N$i]="http://127.0.0.1:$port"
+    # The nginx front is one client to every node: event streams are bounded per node only.
     # shellcheck disable=SC2086
     setsid "$vsmd" --listen "127.0.0.1:$port" --data-root "$DIR/data" \
       --coordinator "$etcd_url" --node "n$i" --advertise "${url[N$i]}" \
       --memory-budget "${VSM_MEMORY_BUDGET:-256MiB}" \
-      --set "cluster.lease_ttl=${VSM_LEASE_TTL:-10s}" "${token_args[@]}" ${VSMD_ARGS:-} \
+      --set "cluster.lease_ttl=${VSM_LEASE_TTL:-10s}" \
+      --set limits.event_subscribers_per_client=64 "${token_args[@]}" ${VSMD_ARGS:-} \
       >"$DIR/logs/n$i.log" 2>&1 </dev/null &
     pid[N$i]=$!
   done

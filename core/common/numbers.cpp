@@ -3,19 +3,9 @@
 #include <charconv>
 #include <cmath>
 
+#include "core/common/text.hpp"
+
 namespace vsm::core {
-namespace {
-std::string_view trim(std::string_view s) {
-  const auto isSpace = [](char c) { return c == ' ' || c == '\t' || c == '\n' || c == '\r'; };
-  while (!s.empty() && isSpace(s.front())) {
-    s.remove_prefix(1);
-  }
-  while (!s.empty() && isSpace(s.back())) {
-    s.remove_suffix(1);
-  }
-  return s;
-}
-}  // namespace
 
 std::string formatDouble(double value) {
   if (std::isnan(value)) {

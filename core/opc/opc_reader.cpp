@@ -14,6 +14,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
+#include "core/common/text.hpp"
 #include "core/opc/aara.hpp"
 #include "core/opc/opc_detail.hpp"
 
@@ -39,17 +40,8 @@ pugi::xml_node childCi(const pugi::xml_node& node, std::string_view name) {
   return {};
 }
 
-std::string trimmed(std::string_view text) {
-  const auto first = text.find_first_not_of(" \t\r\n");
-  if (first == std::string_view::npos) {
-    return {};
-  }
-  const auto last = text.find_last_not_of(" \t\r\n");
-  return std::string(text.substr(first, last - first + 1));
-}
-
 std::string textOf(const pugi::xml_node& node) {
-  return trimmed(node.child_value());
+  return std::string(trim(node.child_value()));
 }
 
 pugi::xml_document parseXml(const fs::path& file) {

@@ -55,12 +55,12 @@ json jobEndJson(const jobs::JobStatus& s) {
 void addEventRoutes(http::Router& router, events::EventHub& hub) {
   // Subscribing takes a lock for a moment and allocates: fit for the network thread, so a full
   // CPU pool cannot keep a client from its stream.
-  const auto subscribe = [&hub](const http::Request&) {
+  const auto subscribe = [&hub](const http::Request& request) {
     http::Response response;
     response.contentType = "text/event-stream";
     response.set("Cache-Control", "no-store");
-    response.set("X-Accel-Buffering", "no");  // nginx: pass each event on at once
-    response.stream = hub.subscribe();
+    response.set("X-Accel-Buffering", "no");          // nginx: pass each event on at once
+    response.stream = hub.subscribe(request.client);  // limits.event_subscribers_per_client
     return response;
   };
   router.add(http::Method::Get, "/v1/events", subscribe,

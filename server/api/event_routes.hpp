@@ -17,8 +17,9 @@ class ModelRegistry;
 
 namespace vsm::server::api {
 
-/// GET /v1/events: a Server-Sent Events stream of `hub` (see proto/openapi.yaml). `hub` must
-/// outlive the router.
+/// GET /v1/events: a Server-Sent Events stream of `hub` (see proto/openapi.yaml), counted under
+/// the request's client address (limits.event_subscribers_per_client). `hub` must outlive the
+/// router.
 void addEventRoutes(http::Router& router, events::EventHub& hub);
 
 /// Feeds `hub` with the jobs' changes (event "job", coalesced per job, and "job_end") and the

@@ -44,7 +44,7 @@ namespace {
 /// Patch metadata and data: revalidated after a minute. The URL names no version, so a merge
 /// changes what it returns; a minute of staleness in client caches is the trade for fewer
 /// round trips (the ETag makes the revalidation cheap).
-constexpr std::string_view kPatchCacheControl = "public, max-age=60";
+constexpr std::string_view kPatchCacheControl = http::cache_control::kMinute;
 
 /// The largest diff.png asked for (pixels along the longer side): 4096 x 4096 RGBA is 64 MiB
 /// before encoding, the map's floats another 64 MiB.

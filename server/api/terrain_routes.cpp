@@ -37,7 +37,7 @@ namespace {
 /// version ("?v=N") and a tile is answered only from that version (or 404), but a model directory
 /// replaced by another of the same name starts its versions again, so not even those are
 /// immutable.
-constexpr std::string_view kTerrainCacheControl = "public, max-age=60";
+constexpr std::string_view kTerrainCacheControl = http::cache_control::kMinute;
 constexpr std::string_view kTerrainType = "application/vnd.quantized-mesh";
 
 /// The terrain layers of the published versions being served, built once per version: the first

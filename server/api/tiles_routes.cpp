@@ -30,7 +30,7 @@ namespace {
 /// As patch data (model_routes.cpp): revalidated after a minute. A GLB URL with `?v=` is answered
 /// only with that version's bytes (versionedPatch), but a model directory replaced by another
 /// model of the same name starts its versions again, so not even those are immutable.
-constexpr std::string_view kTileCacheControl = "public, max-age=60";
+constexpr std::string_view kTileCacheControl = http::cache_control::kMinute;
 
 constexpr std::string_view kGlbType = "model/gltf-binary";
 

@@ -168,6 +168,7 @@ Application::Application(Config config) : config_(std::move(config)) {
   jobPool_ = std::make_unique<exec::WorkPool>("jobs", config_.threads.jobs);
   events::HubOptions hubOptions;
   hubOptions.maxSubscribers = config_.limits.eventSubscribers;
+  hubOptions.maxSubscribersPerClient = config_.limits.eventSubscribersPerClient;
   events_ = std::make_unique<events::EventHub>(std::move(hubOptions));
   models_ = std::make_unique<models::ModelRegistry>(config_.dataRoot, *cache_,
                                                     config_.limits.texturePixels,

@@ -14,11 +14,13 @@
 
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
+#include "core/common/text.hpp"
 
 namespace vsm::server {
 
 using core::Error;
 using core::ErrorCode;
+using core::trim;
 using nlohmann::json;
 
 namespace {
@@ -28,16 +30,6 @@ constexpr std::size_t kMiB = kKiB * 1024;
 constexpr std::size_t kGiB = kMiB * 1024;
 /// Longest token (the server compares tokens up to this length in constant time).
 constexpr std::size_t kMaxTokenBytes = 1024;
-
-std::string_view trim(std::string_view s) {
-  while (!s.empty() && (s.front() == ' ' || s.front() == '\t')) {
-    s.remove_prefix(1);
-  }
-  while (!s.empty() && (s.back() == ' ' || s.back() == '\t')) {
-    s.remove_suffix(1);
-  }
-  return s;
-}
 
 std::string lower(std::string_view s) {
   std::string out(s);
@@ -271,6 +263,11 @@ const Key kKeys[] = {
        c.limits.eventSubscribers = countOf(k, v);
      },
      [](const Config& c) { return std::to_string(c.limits.eventSubscribers); }},
+    {"limits.event_subscribers_per_client",
+     [](Config& c, std::string_view k, const json& v) {
+       c.limits.eventSubscribersPerClient = countOf(k, v);
+     },
+     [](const Config& c) { return std::to_string(c.limits.eventSubscribersPerClient); }},
     {"limits.shutdown_grace",
      [](Config& c, std::string_view k, const json& v) {
        c.limits.shutdownGrace = durationOf(k, v);
@@ -521,6 +518,7 @@ void Config::validate() const {
   checkCount("limits.pipelined_responses", limits.pipelinedResponses, 1, 256);
   checkCount("limits.texture_pixels", limits.texturePixels, 1, std::size_t{1} << 32);
   checkCount("limits.event_subscribers", limits.eventSubscribers, 0, 100'000);
+  checkCount("limits.event_subscribers_per_client", limits.eventSubscribersPerClient, 0, 100'000);
   checkCount("threads.io", threads.io, 1, 256);
   checkCount("threads.cpu", threads.cpu, 0, 1024);
   checkCount("threads.jobs", threads.jobs, 1, 256);
@@ -657,7 +655,8 @@ std::string_view commandLineUsage() {
          "  limits.body_bytes, limits.header_bytes, limits.header_timeout, limits.read_timeout,\n"
          "  limits.idle_timeout, limits.write_timeout, limits.connections,\n"
          "  limits.connections_per_client, limits.pipelined_responses, limits.texture_pixels,\n"
-         "  limits.event_subscribers, limits.shutdown_grace, threads.io,\n"
+         "  limits.event_subscribers, limits.event_subscribers_per_client,\n"
+         "  limits.shutdown_grace, threads.io,\n"
          "  threads.cpu (0 = one per core), threads.jobs,\n"
          "  cluster.coordinator, cluster.node, cluster.advertise, cluster.lease_ttl (10s)\n"
          "sizes: bytes or 512KiB, 64MiB, 4GiB, 1GB ...; durations: seconds or 250ms, 30s, 5m\n";

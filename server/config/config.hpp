@@ -14,6 +14,8 @@
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/log.hpp"
+#include "server/events/event_hub.hpp"
+#include "server/http/server.hpp"
 
 namespace vsm::server {
 
@@ -30,36 +32,41 @@ struct ListenAddress {
   friend bool operator==(const ListenAddress&, const ListenAddress&) = default;
 };
 
-/// Bounds on what one client can make the server hold or wait for.
+/// Bounds on what one client can make the server hold or wait for. The defaults of those the HTTP
+/// server and the event hub enforce are theirs (http::ServerOptions, events::HubOptions), stated
+/// there once.
 struct Limits {
   /// Largest request body; larger ones are answered 413 and the connection is closed.
-  std::size_t bodyBytes = 1024 * 1024;
+  std::size_t bodyBytes = http::ServerOptions{}.bodyLimit;
   /// Largest request line plus header fields; larger ones are answered 431.
-  std::size_t headerBytes = 16 * 1024;
+  std::size_t headerBytes = http::ServerOptions{}.headerLimit;
   /// Time from a request's first byte to the end of its header (for a new connection: from
   /// accepting it). Shorter than readTimeout: a header is small, and slow headers hold a
   /// connection without the server being able to tell who is asking for what.
-  std::chrono::milliseconds headerTimeout{10'000};
+  std::chrono::milliseconds headerTimeout = http::ServerOptions{}.headerTimeout;
   /// Time from the end of a request's header to the end of its body.
-  std::chrono::milliseconds readTimeout{30'000};
+  std::chrono::milliseconds readTimeout = http::ServerOptions{}.readTimeout;
   /// Time a connection may wait for its next request (keep-alive) or its first one.
-  std::chrono::milliseconds idleTimeout{60'000};
+  std::chrono::milliseconds idleTimeout = http::ServerOptions{}.idleTimeout;
   /// Time to write one response.
-  std::chrono::milliseconds writeTimeout{60'000};
+  std::chrono::milliseconds writeTimeout = http::ServerOptions{}.writeTimeout;
   /// Open connections; one more is answered 503 with Retry-After and closed.
-  std::size_t connections = 512;
+  std::size_t connections = http::ServerOptions{}.maxConnections;
   /// Open connections from one source address (loopback included); one more is answered 503
   /// with Retry-After and closed while other addresses are still served.
-  std::size_t connectionsPerClient = 256;
+  std::size_t connectionsPerClient = http::ServerOptions{}.maxPerClient;
   /// Pipelined requests of one connection being handled or waiting to be written; the server
   /// stops reading the connection while it has this many.
-  std::size_t pipelinedResponses = 8;
+  std::size_t pipelinedResponses = http::ServerOptions{}.maxPipelined;
   /// Pixels of a texture file the server decodes (width x height from the file's header, checked
   /// before anything is allocated); larger ones are refused. 16384 x 16384 by default.
   std::size_t texturePixels = std::size_t{16384} * 16384;
   /// Subscribers of the event stream (GET /v1/events) at once; one more is answered 503 with
   /// Retry-After. Each is also a connection (limits.connections).
-  std::size_t eventSubscribers = 64;
+  std::size_t eventSubscribers = events::HubOptions{}.maxSubscribers;
+  /// Subscribers of the event stream from one source address at once; one more from it is
+  /// answered 503 with Retry-After while other addresses still get a stream.
+  std::size_t eventSubscribersPerClient = events::HubOptions{}.maxSubscribersPerClient;
   /// On SIGTERM/SIGINT, how long in-flight requests may take before connections are closed.
   std::chrono::milliseconds shutdownGrace{10'000};
 };

@@ -38,6 +38,12 @@ struct EventHub::State {
 
   /// Appends `frame` to every subscriber's queue, dropping those it overflows. Under `mutex`.
   void deliverLocked(const Frame& frame, std::vector<std::string>* notices);
+  /// One subscriber of `client` fewer. Under `mutex`.
+  void forgetClientLocked(const std::string& client) {
+    if (const auto it = perClient.find(client); it != perClient.end() && --it->second == 0) {
+      perClient.erase(it);
+    }
+  }
   /// Serialises an event with the next id and delivers it. Under `mutex`.
   void emitLocked(std::string_view event, const nlohmann::json& data,
                   std::vector<std::string>* notices);
@@ -45,6 +51,8 @@ struct EventHub::State {
   const HubOptions options;
   mutable std::mutex mutex;              // guards everything below
   std::vector<Subscriber*> subscribers;  // they remove themselves when stopped or destroyed
+  /// Subscribers per client; clients with none are not kept.
+  std::map<std::string, std::size_t, std::less<>> perClient;
   std::uint64_t nextId = 1;
   std::uint64_t dropped = 0;
   std::uint64_t subscribed = 0;  // ever, for their names in the log
@@ -71,8 +79,8 @@ void logNotices(const std::vector<std::string>& notices) {
 /// One subscriber's stream: a bounded queue of frames shared with the other subscribers.
 class Subscriber final : public http::BodyStream {
  public:
-  Subscriber(std::shared_ptr<EventHub::State> hub, std::uint64_t number)
-      : hub_(std::move(hub)), number_(number) {}
+  Subscriber(std::shared_ptr<EventHub::State> hub, std::uint64_t number, std::string client)
+      : hub_(std::move(hub)), number_(number), client_(std::move(client)) {}
   ~Subscriber() override { leave(); }
 
   void start(std::function<void()> wake) override {
@@ -153,7 +161,10 @@ class Subscriber final : public http::BodyStream {
 
   std::uint64_t number() const { return number_; }
 
-  /// Called by the hub, under its mutex, once it forgot this subscriber.
+  const std::string& client() const { return client_; }
+
+  /// Called by the hub, under its mutex, once it forgot this subscriber (it is off the list and
+  /// no longer counted for its client).
   void forgotten() { listed_ = false; }
 
  private:
@@ -173,10 +184,12 @@ class Subscriber final : public http::BodyStream {
     listed_ = false;
     auto& list = hub_->subscribers;
     std::erase(list, this);
+    hub_->forgetClientLocked(client_);
   }
 
   const std::shared_ptr<EventHub::State> hub_;
   const std::uint64_t number_;
+  const std::string client_;
   bool listed_ = true;  // guarded by the hub's mutex
 
   mutable std::mutex mutex_;  // guards everything below
@@ -225,6 +238,7 @@ void EventHub::State::deliverLocked(const Frame& frame, std::vector<std::string>
                        std::to_string(options.queueEvents) + " events, " +
                        std::to_string(options.queueBytes) + " bytes)");
     subscriber.forgotten();
+    forgetClientLocked(subscriber.client());
     it = subscribers.erase(it);
   }
 }
@@ -261,7 +275,7 @@ void EventHub::start() {
   });
 }
 
-std::shared_ptr<http::BodyStream> EventHub::subscribe() {
+std::shared_ptr<http::BodyStream> EventHub::subscribe(const std::string& client) {
   std::shared_ptr<Subscriber> subscriber;
   std::size_t count = 0;
   {
@@ -274,8 +288,20 @@ std::shared_ptr<http::BodyStream> EventHub::subscribe() {
                   "the event stream has " + std::to_string(state_->options.maxSubscribers) +
                       " subscribers, its limit (limits.event_subscribers); retry shortly");
     }
-    subscriber = std::make_shared<Subscriber>(state_, ++state_->subscribed);
+    std::size_t& mine = state_->perClient[client];
+    if (mine >= state_->options.maxSubscribersPerClient) {
+      if (mine == 0) {
+        state_->perClient.erase(client);
+      }
+      throw Error(ErrorCode::Unavailable,
+                  "this client address has " +
+                      std::to_string(state_->options.maxSubscribersPerClient) +
+                      " event subscribers, its limit (limits.event_subscribers_per_client); "
+                      "retry shortly");
+    }
+    subscriber = std::make_shared<Subscriber>(state_, ++state_->subscribed, client);
     state_->subscribers.push_back(subscriber.get());
+    ++mine;
     count = state_->subscribers.size();
   }
   core::log::info("events: subscriber " + std::to_string(subscriber->number()) + " joined (" +
@@ -366,6 +392,7 @@ void EventHub::close() {
         subscriber->forgotten();
       }
       state_->subscribers.clear();
+      state_->perClient.clear();
       state_->progress.clear();
     }
     ticker = std::move(state_->ticker);

@@ -16,10 +16,15 @@ class BodyStream;
 
 namespace vsm::server::events {
 
-/// Bounds and timings of the event stream (limits.event_subscribers and fixed values).
+/// Bounds and timings of the event stream (limits.event_subscribers,
+/// limits.event_subscribers_per_client and fixed values). The defaults are the daemon's.
 struct HubOptions {
   /// Subscribers at once; one more is refused with core::Error(Unavailable) (503, Retry-After).
   std::size_t maxSubscribers = 64;
+  /// Subscribers of one client (source address) at once; one more from it is refused like one
+  /// over maxSubscribers, while other clients are still taken. Keeps one client from taking every
+  /// slot.
+  std::size_t maxSubscribersPerClient = 8;
   /// What one subscriber may have queued and not yet taken by its connection: events (heartbeats
   /// count) and their bytes. A subscriber over either is dropped.
   std::size_t queueEvents = 256;
@@ -45,7 +50,8 @@ struct HubOptions {
 /// has not taken (it takes them when its previous write is done, i.e. when the client reads). One
 /// more and it is dropped: its queue is replaced by one final "event: dropped" and its stream ends
 /// (the connection closes once that is written, or after a moment when the client does not read).
-/// Subscribers are capped by maxSubscribers. The hub never blocks on a subscriber.
+/// Subscribers are capped by maxSubscribers, and those of one client by maxSubscribersPerClient.
+/// The hub never blocks on a subscriber.
 ///
 /// Thread-safe: events come from job threads and the registry; streams are pulled on network
 /// threads. Lock order: the hub's mutex, then a subscriber's (never the other way round); no lock
@@ -63,10 +69,11 @@ class EventHub {
   /// Starts the thread that calls tick() (held-back progress, heartbeats) every 50 ms.
   void start();
 
-  /// A new subscriber; it sees every event sent from now on. Throws core::Error(Unavailable) when
-  /// maxSubscribers are subscribed or the hub is closed. The subscription ends when the stream is
-  /// stopped or destroyed.
-  std::shared_ptr<http::BodyStream> subscribe();
+  /// A new subscriber of `client` (the source address it is counted under); it sees every event
+  /// sent from now on. Throws core::Error(Unavailable) when maxSubscribers are subscribed,
+  /// `client` has maxSubscribersPerClient, or the hub is closed. The subscription ends when the
+  /// stream is stopped or destroyed.
+  std::shared_ptr<http::BodyStream> subscribe(const std::string& client = {});
 
   /// Sends `event` (a name: [a-z_]+) with `data` (a JSON object, written on one line) now.
   void publish(std::string_view event, const nlohmann::json& data);

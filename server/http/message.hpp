@@ -12,6 +12,8 @@
 
 #include <nlohmann/json_fwd.hpp>
 
+#include "core/common/text.hpp"
+
 namespace vsm::server::http {
 
 /// Request methods the server knows; anything else is Other (answered 405 or 501 by routing).
@@ -23,8 +25,8 @@ Method parseMethod(std::string_view name);
 /// ASCII case-insensitive equality (header field names, tokens such as content codings).
 bool equalsIgnoreCase(std::string_view a, std::string_view b);
 
-/// `s` without leading and trailing spaces and tabs (HTTP's optional whitespace).
-std::string_view trim(std::string_view s);
+/// `s` without leading and trailing white space (HTTP's optional whitespace): core's one trim.
+using core::trim;
 
 /// POST, PUT, PATCH, DELETE and unknown methods: the ones that need the bearer token.
 bool isWrite(Method method);
@@ -41,6 +43,10 @@ struct Request {
   std::string body;
   /// Set by the server: "X-Request-Id" when the client sent a sane one, a fresh id otherwise.
   std::string id;
+  /// Set by the server: the source address the connection is counted under
+  /// (limits.connections_per_client; an IPv4-mapped IPv6 address as the IPv4 one). Empty when
+  /// made elsewhere (tests).
+  std::string client;
   /// Path parameters, percent-decoded; filled in by the Router ("{m}" -> params["m"]).
   std::map<std::string, std::string, std::less<>> params;
 
@@ -151,6 +157,10 @@ inline constexpr std::string_view kNoStore = "no-store";
 inline constexpr std::string_view kRevalidate = "no-cache";
 /// Content addressed by version (patch data under a versioned ETag).
 inline constexpr std::string_view kImmutable = "public, max-age=31536000, immutable";
+/// Patch data, 3D Tiles and terrain tiles at URLs that name no version: a merge changes what
+/// they return, so they are revalidated (by ETag, cheaply) after a minute; a minute of staleness
+/// in client caches is the trade for fewer round trips.
+inline constexpr std::string_view kMinute = "public, max-age=60";
 }  // namespace cache_control
 
 /// A strong entity tag: `opaque` in double quotes (opaque must not contain '"').

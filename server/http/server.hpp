@@ -17,7 +17,8 @@ namespace vsm::server::http {
 
 class Pipeline;
 
-/// Limits and threads of the HTTP server (see Limits in server/config for their meaning).
+/// Limits and threads of the HTTP server (see Limits in server/config for their meaning). The
+/// defaults of the limits are the daemon's: server/config's Limits takes them from here.
 struct ServerOptions {
   std::string host = "127.0.0.1";
   std::uint16_t port = 0;

@@ -2,7 +2,8 @@
 """Hostile clients against the real vsmd (127.0.0.1, port 0; server_test.py's harness): slow
 headers from more connections of one address than limits.connections_per_client, header floods,
 unauthenticated body floods (401 before the body is sent), pipelining floods, random bytes,
-chunked-encoding abuse and clients that never read their responses. Each case checks that a
+chunked-encoding abuse, clients that never read their responses, and one client holding its
+share of the event streams (limits.event_subscribers_per_client). Each case checks that a
 well-behaved client (another source address: the attacker binds 127.0.0.2) is answered 200 within
 WELL_BEHAVED_BOUND meanwhile, and that the daemon's peak memory (VmHWM in /proc/<pid>/status) grew
 by less than a bound derived from the limits below. Each case is bounded in time and connections;
@@ -37,6 +38,11 @@ HEADER_TIMEOUT = 1.0  # limits.header_timeout, seconds
 READ_TIMEOUT = 2.0  # limits.read_timeout (the body), seconds
 WRITE_TIMEOUT = 2.0  # limits.write_timeout, seconds
 PIPELINED = 8  # limits.pipelined_responses
+# limits.event_subscribers_per_client, left at its default (so that a vsmd without the bound,
+# which would refuse the key, still starts and fails the test at the bound itself), and
+# limits.event_subscribers one above it: without the per-client bound one client takes them all.
+EVENT_SHARE = 8
+EVENT_SUBSCRIBERS = EVENT_SHARE + 1
 BUDGET = 8 * MiB  # memory_budget
 READ_AHEAD = 64 * KiB  # what a connection's read buffer holds beyond a header (server.cpp)
 # A well-behaved client's requests must each be answered within this many seconds.
@@ -138,7 +144,8 @@ class Hostile(unittest.TestCase):
                              "read_timeout": "%gs" % READ_TIMEOUT,
                              "write_timeout": "%gs" % WRITE_TIMEOUT, "idle_timeout": "5s",
                              "connections": 256, "connections_per_client": PER_CLIENT,
-                             "pipelined_responses": PIPELINED},
+                             "pipelined_responses": PIPELINED,
+                             "event_subscribers": EVENT_SUBSCRIBERS},
                   "threads": {"cpu": 2, "io": 2, "jobs": 1}}
         cls.daemon = Daemon("--token-file", token_file, config=config,
                             prepare=lambda root: write_dem(os.path.join(root, "hills.asc"),
@@ -267,6 +274,45 @@ class Hostile(unittest.TestCase):
                 for sock in socks:
                     sock.close()
         self.under_attack(attack)
+
+    def subscribe(self, source):
+        """GET /v1/events from a socket bound to `source`: (socket, status, header bytes)."""
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock.bind((source, 0))
+        sock.settimeout(5)
+        sock.connect(("127.0.0.1", self.daemon.port))
+        sock.sendall(b"GET /v1/events HTTP/1.1\r\nHost: x\r\nAccept: text/event-stream\r\n\r\n")
+        head = b""
+        while b"\r\n\r\n" not in head:
+            chunk = sock.recv(4096)
+            if not chunk:
+                break
+            head += chunk
+        return sock, status_of(head), head
+
+    def test_one_clients_event_subscribers_leave_the_others_a_stream(self):
+        # One client (127.0.0.1) fills its share of the /v1/events slots: its next subscriber is
+        # answered 503 with Retry-After, while another client (127.0.0.2) still gets a stream.
+        socks = []
+        try:
+            for i in range(EVENT_SHARE):
+                sock, status, head = self.subscribe("127.0.0.1")
+                socks.append(sock)
+                self.assertEqual(status, 200, "subscriber %d of 127.0.0.1: %r" % (i, head[:200]))
+                self.assertRegex(head, rb"(?i)\r\ncontent-type: text/event-stream\r\n")
+            sock, status, head = self.subscribe("127.0.0.1")
+            socks.append(sock)
+            self.assertEqual(status, 503, "subscriber %d of 127.0.0.1 (over its share of %d): %r"
+                             % (EVENT_SHARE, EVENT_SHARE, head[:300]))
+            self.assertRegex(head, rb"(?i)\r\nretry-after: 1\r\n")
+            sock, status, head = self.subscribe(ATTACKER)
+            socks.append(sock)
+            self.assertEqual(status, 200, "127.0.0.2 while 127.0.0.1 holds %d streams: %r"
+                             % (EVENT_SHARE, head[:300]))
+            self.assertRegex(head, rb"(?i)\r\ncontent-type: text/event-stream\r\n")
+        finally:
+            for sock in socks:
+                sock.close()
 
     def test_header_floods_get_431_and_are_closed(self):
         def flood(sock):

@@ -281,6 +281,43 @@ TEST(EventHub, SubscribersAreCapped) {
   EXPECT_NO_THROW(hub.subscribe());
 }
 
+TEST(EventHub, OneClientsSubscribersAreCappedWhileOthersAreStillTaken) {
+  FakeClock clock;
+  HubOptions o = options(clock);
+  o.maxSubscribers = 4;
+  o.maxSubscribersPerClient = 2;
+  EventHub hub(o);
+  auto a1 = hub.subscribe("127.0.0.1");
+  auto a2 = hub.subscribe("127.0.0.1");
+  try {
+    hub.subscribe("127.0.0.1");
+    FAIL() << "a third subscriber of one client was taken";
+  } catch (const core::Error& e) {
+    EXPECT_EQ(e.code(), core::ErrorCode::Unavailable);
+    EXPECT_NE(std::string(e.what()).find("limits.event_subscribers_per_client"), std::string::npos);
+  }
+  auto b = hub.subscribe("127.0.0.2");  // another client still gets one
+  EXPECT_EQ(hub.subscribers(), 3U);
+  a1->stop();  // the client's share frees as its streams go
+  auto a3 = hub.subscribe("127.0.0.1");
+  a2.reset();
+  auto a4 = hub.subscribe("127.0.0.1");
+  EXPECT_EQ(hub.subscribers(), 3U);
+}
+
+TEST(EventHub, ADroppedSubscriberFreesItsClientsShare) {
+  FakeClock clock;
+  HubOptions o = options(clock);
+  o.maxSubscribersPerClient = 1;
+  o.queueEvents = 1;
+  EventHub hub(o);
+  auto slow = hub.subscribe("127.0.0.1");
+  hub.publish("job", {{"n", 1}});
+  hub.publish("job", {{"n", 2}});  // overflows its queue: dropped
+  EXPECT_EQ(hub.dropped(), 1U);
+  EXPECT_NO_THROW(hub.subscribe("127.0.0.1"));
+}
+
 TEST(EventHub, CloseEndsEveryStreamAfterWhatItQueued) {
   FakeClock clock;
   EventHub hub(options(clock));

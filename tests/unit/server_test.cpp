@@ -219,6 +219,11 @@ TEST(Config, DefaultsAreValid) {
   EXPECT_EQ(config.listen.toString(), "127.0.0.1:8080");
   EXPECT_EQ(config.memoryBudget, kGiB);
   EXPECT_TRUE(config.token.empty());
+  // The limits' defaults are those of the components that enforce them.
+  EXPECT_EQ(config.limits.bodyBytes, http::ServerOptions{}.bodyLimit);
+  EXPECT_EQ(config.limits.connectionsPerClient, 256u);
+  EXPECT_EQ(config.limits.eventSubscribers, 64u);
+  EXPECT_EQ(config.limits.eventSubscribersPerClient, 8u);
 }
 
 TEST(Config, FlagsOverrideTheFileWhateverTheirOrder) {
@@ -241,7 +246,7 @@ TEST(Config, FileTakesNumbersStringsDurationsAndComments) {
     "cache_policy": "fifo-second-chance",
     "limits": {"read_timeout": 5, "idle_timeout": "750ms", "connections": 7,
                "header_bytes": 8192, "shutdown_grace": "1m", "header_timeout": "2s",
-               "connections_per_client": 3}
+               "connections_per_client": 3, "event_subscribers_per_client": 5}
   })");
   const Config config = parseCommandLine({"--config", file.path()}).config;
   EXPECT_EQ(config.dataRoot, "/srv/vsm");
@@ -255,6 +260,7 @@ TEST(Config, FileTakesNumbersStringsDurationsAndComments) {
   EXPECT_EQ(config.limits.shutdownGrace, 60s);
   EXPECT_EQ(config.limits.headerTimeout, 2s);
   EXPECT_EQ(config.limits.connectionsPerClient, 3u);
+  EXPECT_EQ(config.limits.eventSubscribersPerClient, 5u);
 }
 
 TEST(Config, TheTokenComesFromTheFirstLineOfATokenFile) {
@@ -410,6 +416,7 @@ TEST(Config, ValidationRejectsOutOfRangeValues) {
       {"--data-root", ""},
       {"--set", "limits.header_timeout=0"},
       {"--set", "limits.connections_per_client=0"},
+      {"--set", "limits.event_subscribers_per_client=100001"},
   };
   for (const auto& args : cases) {
     const auto [code, message] = errorOf([&] { parseCommandLine(args); });
