@@ -9,7 +9,9 @@
 # DIR/cluster.env (shell syntax): FRONT=http://127.0.0.1:PORT (nginx, HTTP/1.1),
 # FRONT_TLS=https://127.0.0.1:PORT (nginx, HTTP/2 with a self-signed certificate DIR/nginx/cert.pem),
 # ETCD=..., N1=..., N2=..., N3=... (the nodes), and PID_N1, PID_N2, PID_N3, PID_NGINX, PID_ETCD.
-# Models placed in DIR/data before `up` are served. Logs go to DIR/logs/.
+# Models placed in DIR/data before `up` are served. Logs go to DIR/logs/. DIR is one local file
+# system, which gives every node what a shared one must (README, "What the shared file system
+# must provide"): atomic rename, durable fsync, stable inodes, and flock seen by every node.
 #
 # Environment: VSMD (default build/server/vsmd, built with deploy/build.sh when missing),
 # VSM_MEMORY_BUDGET (per node, default 256MiB), VSM_LEASE_TTL (default 10s), VSM_TOKEN_FILE (a
