@@ -1,6 +1,7 @@
 #pragma once
 
 #include <atomic>
+#include <chrono>
 #include <cstdint>
 #include <deque>
 #include <filesystem>
@@ -159,11 +160,12 @@ class LiveModel {
   void onPublish(std::function<void(const ReplacedVersions&)> observer);
 
   /// Sets the one function called after every publish, after the onPublish observer, with the
-  /// version published and every key it changed (added or replaced): for telling clients (the
-  /// daemon's event stream). Same thread and lock rules as onPublish; independent of it, so that
-  /// caches and notifications do not replace each other. Thread-safe.
-  using NewVersionObserver =
-      std::function<void(std::uint64_t version, const std::set<PatchKey>& changed)>;
+  /// version published, every key it changed (added or replaced) and every key it removed (a
+  /// restore): for telling clients (the daemon's event stream). Same thread and lock rules as
+  /// onPublish; independent of it, so that caches and notifications do not replace each other.
+  /// Thread-safe.
+  using NewVersionObserver = std::function<void(
+      std::uint64_t version, const std::set<PatchKey>& changed, const std::set<PatchKey>& removed)>;
   void onNewVersion(NewVersionObserver observer);
 
   class Store;    // the PatchStore over the directory (model_store.hpp)
@@ -179,9 +181,10 @@ class LiveModel {
   /// Hands `removal` to every snapshot of `revision` held through this opening (it runs when the
   /// last of them, and of the other openings', is released), and forgets the revision.
   void holdRemoval(std::uint64_t revision, const std::shared_ptr<const void>& removal);
-  /// Step 5 of ModelEdit::publish: drops the oldest kept revisions until `keep` remain with the
-  /// current one (`current`, whose model is `latest`). Failures are logged, not thrown.
-  void dropRevisions(std::uint64_t current, const Model& latest, unsigned keep);
+  /// The last step of ModelEdit::publish: drops the oldest kept revisions until `keep` remain with
+  /// the current one, `current`, keeping each whose successor is younger than `keepSeconds`.
+  /// Failures are logged, not thrown.
+  void dropRevisions(const ModelSnapshot& current, unsigned keep, std::chrono::seconds keepSeconds);
   static std::unique_ptr<LiveModel> load(const std::filesystem::path& dir, std::string name,
                                          PatchCache& cache, std::shared_ptr<Writer> writer,
                                          bool sweep, std::uint64_t texturePixels);

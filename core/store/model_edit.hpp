@@ -1,5 +1,6 @@
 #pragma once
 
+#include <chrono>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -21,6 +22,10 @@ struct PublishOptions {
   /// Revisions kept after the publish, the new one included: at least 2 (the previous revision
   /// stays while replicas in other processes follow the new one).
   unsigned keepRevisions = kDefaultKeepRevisions;
+  /// A time floor beside the count: a revision is kept while the one that replaced it is younger
+  /// than this (by its record's time), however many there are: readers in other processes (a
+  /// replica re-reading it) get that long. 0: the count alone.
+  std::chrono::seconds keepSeconds{0};
   /// The revision whose content this one restores (0: none).
   std::uint64_t restoredFrom = 0;
   /// Writes the changed patches' files from kPublishWriters tasks on this executor at once

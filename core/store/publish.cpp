@@ -138,10 +138,10 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
     tellObserver(live_.name_, "dropping derived data", [&] { observer(replaced); });
   }
   if (announce) {
-    tellObserver(live_.name_, "the announcement", [&] { announce(version, changed_); });
+    tellObserver(live_.name_, "the announcement", [&] { announce(version, changed_, removed_); });
   }
   // 6. Revisions beyond the count go, oldest first.
-  live_.dropRevisions(version, *snapshot->model, options.keepRevisions);
+  live_.dropRevisions(*snapshot, options.keepRevisions, options.keepSeconds);
 }
 
 }  // namespace vsm::core

@@ -2,7 +2,9 @@
 
 #include <cerrno>
 #include <cstring>
+#include <ctime>
 #include <functional>
+#include <optional>
 #include <utility>
 
 #include "core/common/error.hpp"
@@ -123,11 +125,14 @@ std::vector<RevisionSummary> LiveModel::revisions() const {
   return list;
 }
 
-void LiveModel::dropRevisions(std::uint64_t current, const Model& latest, unsigned keep) {
+void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
+                              std::chrono::seconds keepSeconds) {
+  const Model& latest = *current.model;
+  const std::time_t now = std::time(nullptr);
   try {
     const fs::path patches = patchesDirOf(dir_);
     std::map<std::uint64_t, fs::path> files = revisionFiles(patches);
-    std::erase_if(files, [&](const auto& entry) { return entry.first >= current; });
+    std::erase_if(files, [&](const auto& entry) { return entry.first >= current.version; });
     while (files.size() + 1 > keep) {
       const auto oldest = files.begin();
       const std::uint64_t number = oldest->first;
@@ -135,6 +140,18 @@ void LiveModel::dropRevisions(std::uint64_t current, const Model& latest, unsign
       // Folders are never shared across a gap (a restore copies), so what the next kept revision
       // does not name, no later one does.
       const auto nextFile = std::next(oldest);
+      // The time floor: readers elsewhere may still read this revision for that long after the
+      // next one replaced it.
+      if (keepSeconds.count() > 0) {
+        const std::string replaced =
+            nextFile != files.end()
+                ? readRevisionRecord(nextFile->second).value_or(RevisionRecord{}).time
+                : current.revision.time;
+        const std::optional<std::time_t> when = parseUtcTime(replaced);
+        if (!when || now - *when < keepSeconds.count()) {
+          break;  // (an unreadable time keeps it: dropping is the irreversible side)
+        }
+      }
       if (nextFile != files.end()) {
         for (const std::string& folder : namedFolders(nextFile->second)) {
           only.erase(folder);

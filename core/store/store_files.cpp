@@ -74,6 +74,15 @@ std::string utcNow() {
   return isoTime(std::time(nullptr));
 }
 
+std::optional<std::time_t> parseUtcTime(const std::string& text) {
+  std::tm utc{};
+  const char* end = ::strptime(text.c_str(), "%Y-%m-%dT%H:%M:%SZ", &utc);
+  if (end == nullptr || *end != '\0') {
+    return std::nullopt;
+  }
+  return ::timegm(&utc);
+}
+
 std::string fileTime(const fs::path& file) {
   struct stat st {};
   if (::stat(file.c_str(), &st) != 0) {

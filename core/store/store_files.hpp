@@ -4,6 +4,7 @@
 // (leftover sweep), the revisions and the edit. Not installed, not included outside core/store.
 
 #include <cstdint>
+#include <ctime>
 #include <filesystem>
 #include <map>
 #include <memory>
@@ -40,6 +41,9 @@ std::map<std::uint64_t, std::filesystem::path> revisionFiles(const std::filesyst
 
 /// Now, UTC, ISO 8601 to the second.
 std::string utcNow();
+
+/// A time as utcNow() writes it ("2026-12-03T09:41:07Z"); nullopt for anything else.
+std::optional<std::time_t> parseUtcTime(const std::string& text);
 
 /// The modification time of `file`, UTC, ISO 8601; empty when it cannot be read.
 std::string fileTime(const std::filesystem::path& file);

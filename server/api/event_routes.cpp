@@ -81,17 +81,23 @@ void connectEvents(events::EventHub& hub, jobs::JobRegistry& jobs, models::Model
     }
   });
   models.onPublished([&hub](const models::ModelRegistry::Publication& publication) {
-    json keys = json::array();
-    const bool complete = publication.changed.size() <= kMaxListedKeys;
+    json changed = json::array();
+    json removed = json::array();
+    const bool complete = publication.changed.size() + publication.removed.size() <= kMaxListedKeys;
     if (complete) {
       for (const core::PatchKey& key : publication.changed) {
-        keys.push_back(key.toString());
+        changed.push_back(key.toString());
+      }
+      for (const core::PatchKey& key : publication.removed) {
+        removed.push_back(key.toString());
       }
     }
     hub.publish("published", {{"model", publication.model},
                               {"version", publication.version},
-                              {"changed", std::move(keys)},
+                              {"changed", std::move(changed)},
                               {"changed_count", publication.changed.size()},
+                              {"removed", std::move(removed)},
+                              {"removed_count", publication.removed.size()},
                               {"changed_complete", complete},
                               {"followed", publication.followed}});
   });

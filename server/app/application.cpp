@@ -170,9 +170,10 @@ Application::Application(Config config) : config_(std::move(config)) {
   hubOptions.maxSubscribers = config_.limits.eventSubscribers;
   hubOptions.maxSubscribersPerClient = config_.limits.eventSubscribersPerClient;
   events_ = std::make_unique<events::EventHub>(std::move(hubOptions));
-  models_ = std::make_unique<models::ModelRegistry>(config_.dataRoot, *cache_,
-                                                    config_.limits.texturePixels,
-                                                    static_cast<unsigned>(config_.keepRevisions));
+  models_ = std::make_unique<models::ModelRegistry>(
+      config_.dataRoot, *cache_, config_.limits.texturePixels,
+      static_cast<unsigned>(config_.keepRevisions),
+      std::chrono::duration_cast<std::chrono::seconds>(config_.keepRevisionsSeconds));
   // Jobs live in memory only: after a restart none is listed, and a merge that had not published
   // left its model at the last published version (drafts are removed when the model opens).
   jobs::JobLimits jobLimits;

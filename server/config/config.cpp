@@ -172,6 +172,11 @@ const Key kKeys[] = {
     {"keep_revisions",
      [](Config& c, std::string_view k, const json& v) { c.keepRevisions = countOf(k, v); },
      [](const Config& c) { return std::to_string(c.keepRevisions); }},
+    {"keep_revisions_seconds",
+     [](Config& c, std::string_view k, const json& v) {
+       c.keepRevisionsSeconds = durationOf(k, v);
+     },
+     [](const Config& c) { return formatDuration(c.keepRevisionsSeconds); }},
     {"cache_policy",
      [](Config& c, std::string_view k, const json& v) {
        const std::string text =
@@ -650,7 +655,8 @@ std::string_view commandLineUsage() {
          "\n"
          "configuration keys (file or --set):\n"
          "  listen, data_root, memory_budget, cache_policy (cost-aware-clock |\n"
-         "  fifo-second-chance), keep_revisions, token, token_file, port_file, viewer_dir,\n"
+         "  fifo-second-chance), keep_revisions, keep_revisions_seconds, token, token_file,\n"
+         "  port_file, viewer_dir,\n"
          "  log_level,\n"
          "  limits.body_bytes, limits.header_bytes, limits.header_timeout, limits.read_timeout,\n"
          "  limits.idle_timeout, limits.write_timeout, limits.connections,\n"

@@ -113,6 +113,10 @@ struct Config {
   /// Revisions every model keeps (the latest included) when a job publishes a new one: older
   /// ones can be read (?rev=N) and restored. At least 2.
   std::size_t keepRevisions = 8;
+  /// The time floor beside the count: a revision is kept while the one that replaced it is
+  /// younger than this, so that a replica re-reading it (a large model on a slow disk) is not
+  /// left without its folders by a writer publishing fast. 0: the count alone.
+  std::chrono::milliseconds keepRevisionsSeconds{60'000};
   /// Bearer token required for writes (POST, PUT, PATCH, DELETE); empty = writes are open.
   std::string token;
   /// A file holding the token (its first line), so that it stays out of `ps`; read by

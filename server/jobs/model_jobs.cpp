@@ -135,6 +135,7 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
           options.cancel = &context.cancelToken();
           options.publish.job = context.id();
           options.publish.keepRevisions = models.keepRevisions();
+          options.publish.keepSeconds = models.keepSeconds();
           options.publish.fence = [&models, &target] { models.checkWriter(target); };
           const core::MergeIntoResult merged = core::mergeInto(*targetModel, *sourceModel, options);
           json result = {{"base_version", merged.baseVersion}, {"version", merged.version}};
@@ -186,6 +187,7 @@ JobStatus submitRestore(JobRegistry& jobs, models::ModelRegistry& models, const 
           core::PublishOptions options;
           options.job = context.id();
           options.keepRevisions = models.keepRevisions();
+          options.keepSeconds = models.keepSeconds();
           options.restoredFrom = revision;
           options.fence = [&models, &id] { models.checkWriter(id); };
           edit->publish(&context.cancelToken(), options);

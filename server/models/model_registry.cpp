@@ -119,11 +119,13 @@ void ModelRegistry::Lease::release() {
 // ---- ModelRegistry ---------------------------------------------------------------------------
 
 ModelRegistry::ModelRegistry(const fs::path& dataRoot, core::PatchCache& cache,
-                             std::uint64_t texturePixels, unsigned keepRevisions)
+                             std::uint64_t texturePixels, unsigned keepRevisions,
+                             std::chrono::seconds keepSeconds)
     : root_(fs::canonical(dataRoot)),
       cache_(cache),
       texturePixels_(texturePixels),
-      keepRevisions_(keepRevisions) {}
+      keepRevisions_(keepRevisions),
+      keepSeconds_(keepSeconds) {}
 
 ModelRegistry::~ModelRegistry() {
   std::map<std::string, Served, std::less<>> models;
@@ -195,8 +197,14 @@ void ModelRegistry::watch(core::LiveModel& live) const {
     return;
   }
   live.onNewVersion([listener = onPublished_, id = live.name()](
-                        std::uint64_t version, const std::set<core::PatchKey>& changed) {
-    listener(Publication{id, version, {changed.begin(), changed.end()}, false});
+                        std::uint64_t version, const std::set<core::PatchKey>& changed,
+                        const std::set<core::PatchKey>& removed) {
+    Publication publication;
+    publication.model = id;
+    publication.version = version;
+    publication.changed.assign(changed.begin(), changed.end());
+    publication.removed.assign(removed.begin(), removed.end());
+    listener(publication);
   });
 }
 
@@ -210,12 +218,21 @@ void ModelRegistry::announceFollowed(const core::LiveModel& old,
   if (after->version == before->version) {
     return;  // the same version (read again after a failed write, a change of role)
   }
-  // What the other writer changed: every patch whose version differs (a patch is never removed).
-  Publication publication{fresh.name(), after->version, {}, true};
+  // What the other writer changed: every patch whose version differs, and every patch gone (a
+  // restore removes what the restored revision lacks).
+  Publication publication;
+  publication.model = fresh.name();
+  publication.version = after->version;
+  publication.followed = true;
   for (const auto& [key, info] : after->model->patches()) {
     const core::PatchInfo* was = before->model->find(key);
     if (was == nullptr || was->version != info.version) {
       publication.changed.push_back(key);
+    }
+  }
+  for (const auto& [key, info] : before->model->patches()) {
+    if (after->model->find(key) == nullptr) {
+      publication.removed.push_back(key);
     }
   }
   onPublished_(publication);

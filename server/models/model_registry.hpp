@@ -56,10 +56,12 @@ class ModelRegistry {
  public:
   /// `dataRoot` must be an existing directory; `cache` must outlive the registry. Models decode
   /// texture files of at most `texturePixels` pixels (limits.texture_pixels).
-  /// Jobs publishing into its models keep `keepRevisions` revisions (keep_revisions).
+  /// Jobs publishing into its models keep `keepRevisions` revisions (keep_revisions), and each
+  /// whose successor is younger than `keepSeconds` (keep_revisions_seconds).
   ModelRegistry(const std::filesystem::path& dataRoot, core::PatchCache& cache,
                 std::uint64_t texturePixels = core::kDefaultTexturePixels,
-                unsigned keepRevisions = core::kDefaultKeepRevisions);
+                unsigned keepRevisions = core::kDefaultKeepRevisions,
+                std::chrono::seconds keepSeconds = std::chrono::seconds(0));
   /// Closes every model (their dirty data is written back by the cache).
   ~ModelRegistry();
   ModelRegistry(const ModelRegistry&) = delete;
@@ -69,6 +71,8 @@ class ModelRegistry {
   const std::filesystem::path& dataRoot() const { return root_; }
   /// Revisions a publish keeps (core::PublishOptions::keepRevisions).
   unsigned keepRevisions() const { return keepRevisions_; }
+  /// The time floor of kept revisions (core::PublishOptions::keepSeconds).
+  std::chrono::seconds keepSeconds() const { return keepSeconds_; }
   /// The one patch cache of every model.
   core::PatchCache& cache() const { return cache_; }
 
@@ -106,6 +110,9 @@ class ModelRegistry {
     /// The keys of the patches added or replaced, in key order: as the publish made them, or,
     /// for a version read again, the patches whose version differs between the two openings.
     std::vector<core::PatchKey> changed;
+    /// The keys of the patches the version no longer has (a restore of a revision without them),
+    /// in key order.
+    std::vector<core::PatchKey> removed;
     /// True when the version was read again (another writer published it).
     bool followed = false;
   };
@@ -203,6 +210,7 @@ class ModelRegistry {
   core::PatchCache& cache_;
   const std::uint64_t texturePixels_;
   const unsigned keepRevisions_;
+  const std::chrono::seconds keepSeconds_;
   mutable std::mutex mutex_;  // guards models_, leases_, reserved_, opening_
   std::map<std::string, Served, std::less<>> models_;
   /// Id -> number of leases (on open models and reservations alike).

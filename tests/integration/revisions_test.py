@@ -36,6 +36,9 @@ ARGS = None
 TOKEN = "revisions-test-token"
 AUTH = {"Authorization": "Bearer " + TOKEN}
 KEEP = 8
+# Retention by count alone: the time floor (keep_revisions_seconds) would keep every revision of
+# this quick succession of merges.
+NO_TIME_FLOOR = ("--set", "keep_revisions_seconds=0")
 
 
 def import_models(root):
@@ -53,7 +56,8 @@ class Revisions(unittest.TestCase):
         os.makedirs(root)
         import_models(root)
         cls.root = root
-        cls.daemon = base.Daemon("--token", TOKEN, "--keep-revisions", str(KEEP), root=root)
+        cls.daemon = base.Daemon("--token", TOKEN, "--keep-revisions", str(KEEP), *NO_TIME_FLOOR,
+                                 root=root)
 
     @classmethod
     def tearDownClass(cls):
@@ -180,6 +184,7 @@ class Revisions(unittest.TestCase):
         # A restart reads the same list from disk.
         self.assertEqual(self.daemon.stop(), 0)
         type(self).daemon = base.Daemon("--token", TOKEN, "--keep-revisions", str(KEEP),
+                                        *NO_TIME_FLOOR,
                                         root=self.root)
         self.assertEqual([r["revision"] for r in self.revisions()], list(range(8, 16)))
         self.assertEqual([r["job"] for r in self.revisions()], [r["job"] for r in listed])

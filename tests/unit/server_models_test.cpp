@@ -4,6 +4,7 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -243,6 +244,42 @@ TEST(ModelRegistry, AReservedIdOpensOnlyForItsHolder) {
 std::vector<std::byte> bytesOf(std::string_view text) {
   const auto span = std::as_bytes(std::span(text.data(), text.size()));
   return {span.begin(), span.end()};
+}
+
+// Issue 32, finding 8: a followed version names the patches it removed (a restore), as the
+// writer's own publish does.
+TEST(ModelRegistry, AFollowedRestoreNamesThePatchesItRemoved) {
+  DataRoot root;
+  writeModel(root.path() / "m");
+  core::PatchCache cache(64 * kMiB);
+  // Another writer holds the model: the registry opens it for reading and follows it.
+  const auto writer = core::LiveModel::open(root.path() / "m", "writer", cache);
+  const std::uint64_t v = writer->snapshot()->version;
+  models::ModelRegistry registry(root.path(), cache);
+  std::vector<models::ModelRegistry::Publication> told;
+  registry.onPublished([&](const models::ModelRegistry::Publication& p) { told.push_back(p); });
+  ASSERT_EQ(registry.openAll(), 1u);
+  ASSERT_FALSE(registry.get("m")->writable());
+  const core::PatchKey added{3, 2, 4};  // a level below leaf 2_1_2
+  {
+    auto edit = writer->beginEdit();
+    edit->setPositions(added, leafGrid(1, 2));
+    edit->publish();
+  }
+  ASSERT_EQ(registry.follow(), 1u);
+  {
+    auto edit = writer->beginEdit();
+    edit->restore(*writer->snapshotAt(v));
+    edit->publish();
+  }
+  ASSERT_EQ(registry.follow(), 1u);
+  ASSERT_EQ(told.size(), 2u);
+  EXPECT_TRUE(told[0].followed);
+  EXPECT_NE(std::find(told[0].changed.begin(), told[0].changed.end(), added),
+            told[0].changed.end());
+  EXPECT_TRUE(told[0].removed.empty());
+  EXPECT_EQ(told[1].version, v + 2);
+  EXPECT_EQ(told[1].removed, std::vector<core::PatchKey>{added});
 }
 
 TEST(EncodedCache, BodiesAreTypedChargedAndPinnedWhileHeld) {

@@ -290,6 +290,25 @@ TEST_F(StoreTest, RevisionsAreKeptReadableAndDroppedOldestFirstWithTheFoldersOnl
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
+// Issue 32, finding 3: a time floor beside the count, for readers in other processes.
+TEST_F(StoreTest, ARevisionIsKeptWhileItsSuccessorIsYoungerThanTheTimeFloor) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v = live->snapshot()->version;
+  PublishOptions floor = publishing("j", 2);
+  floor.keepSeconds = std::chrono::hours(1);
+  for (int i = 0; i < 3; ++i) {
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 0, 0}, leafGrid(0, 0, 5.0 + i));
+    edit->publish(nullptr, floor);
+  }
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v, v + 1, v + 2, v + 3}))
+      << "revisions replaced within the hour were dropped";
+  publishLeaf(*live, {2, 0, 0}, 9.0, 2);  // the count alone again
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 3, v + 4}));
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
 TEST_F(StoreTest, AReaderPinnedOnADroppedRevisionReadsItUntilItLetsGo) {
   PatchCache cache(64 << 20);
   auto live = LiveModel::open(dir_, "m", cache);
@@ -622,7 +641,7 @@ TEST_F(StoreTest, ObserversRunAfterTheVersionIsDurableAndTheirFailuresAreContain
     sawStaleCache = sawStaleCache || fs::exists(staleCache);
     throw std::runtime_error("an observer's own failure");
   });
-  live->onNewVersion([&](std::uint64_t, const std::set<PatchKey>&) {
+  live->onNewVersion([&](std::uint64_t, const std::set<PatchKey>&, const std::set<PatchKey>&) {
     ++told;
     sawStaleCache = sawStaleCache || fs::exists(staleCache);
     throw 42;  // not even an exception
