@@ -213,7 +213,10 @@ class LiveModel {
   std::string name_;
   std::shared_ptr<Store> store_;
   /// Lock order: writer_->mutex, then mutex_.
-  mutable std::mutex mutex_;  // guards snapshot_ (the pointer, not the snapshot), readStamp_
+  /// Guards snapshot_ (the pointer, not the snapshot), readStamp_, and the revision cache below
+  /// (revisionSnapshots_, recentRevisions_, revisionReads_, readStats_). snapshotAt never holds it
+  /// while reading a revision's file or waiting for another caller's read.
+  mutable std::mutex mutex_;
   std::shared_ptr<ModelSnapshot> snapshot_;
   /// Null when opened for reading.
   std::shared_ptr<Writer> writer_;
