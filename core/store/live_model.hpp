@@ -6,6 +6,7 @@
 #include <deque>
 #include <filesystem>
 #include <functional>
+#include <future>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -125,7 +126,29 @@ class LiveModel {
   /// the current version's; its folders stay while the snapshot is held, even when a publish
   /// drops the revision meanwhile. Throws Error(NotFound) for a revision not kept (or newer than
   /// this opening's current one), Error(Corrupt / Io) from its files.
+  ///
+  /// Each revision is read from disk once while it stays cached: the kCachedRevisions revisions
+  /// last asked for are kept (least recently asked for dropped first), and a caller asking for a
+  /// revision another caller is reading waits for that read (on this call's thread; no thread is
+  /// created) and gets its snapshot or its error. A failed read is not kept: the next call reads
+  /// again. Thread-safe.
   std::shared_ptr<const ModelSnapshot> snapshotAt(std::uint64_t revision);
+  /// How many old revisions snapshotAt keeps read (per opening; their metadata is outside the
+  /// memory budget, as every snapshot's).
+  static constexpr std::size_t kCachedRevisions = 8;
+
+  /// What snapshotAt did, since this opening was made.
+  struct RevisionReadStats {
+    /// Revisions read from disk, and calls that waited for another caller's read instead.
+    std::uint64_t reads = 0;
+    std::uint64_t sharedReads = 0;
+    /// Reads in progress, and callers waiting for one, now.
+    std::uint64_t reading = 0;
+    std::uint64_t waiting = 0;
+    /// Old revisions kept read now (at most kCachedRevisions).
+    std::uint64_t cached = 0;
+  };
+  RevisionReadStats revisionReadStats() const;
   /// snapshotAt() when that needs no disk access (the current revision, or one held in memory);
   /// null otherwise. Never blocks on I/O.
   std::shared_ptr<const ModelSnapshot> heldSnapshot(std::uint64_t revision) const;
@@ -193,7 +216,10 @@ class LiveModel {
   std::string name_;
   std::shared_ptr<Store> store_;
   /// Lock order: writer_->mutex, then mutex_.
-  mutable std::mutex mutex_;  // guards snapshot_ (the pointer, not the snapshot), readStamp_
+  /// Guards snapshot_ (the pointer, not the snapshot), readStamp_, and the revision cache below
+  /// (revisionSnapshots_, recentRevisions_, revisionReads_, readStats_). snapshotAt never holds it
+  /// while reading a revision's file or waiting for another caller's read.
+  mutable std::mutex mutex_;
   std::shared_ptr<ModelSnapshot> snapshot_;
   /// Null when opened for reading.
   std::shared_ptr<Writer> writer_;
@@ -201,9 +227,17 @@ class LiveModel {
   /// Every snapshot of a revision this opening made that may still be held (guarded by mutex_):
   /// a publish that drops a revision hands its folder removal to it.
   std::map<std::uint64_t, std::weak_ptr<ModelSnapshot>> revisionSnapshots_;
-  /// The last old revisions read by snapshotAt, held so that the next request for them does not
-  /// read their metadata again (guarded by mutex_; dropped with their revision).
+  /// The old revisions snapshotAt read or handed out last, least recently asked for first, at
+  /// most kCachedRevisions, held so that the next request for them does not read their metadata
+  /// again (guarded by mutex_; dropped with their revision).
   std::deque<std::shared_ptr<ModelSnapshot>> recentRevisions_;
+  /// Reads of revisions in progress: the callers asking for one meanwhile wait for its future
+  /// (guarded by mutex_; never waited on with it held).
+  std::map<std::uint64_t, std::shared_future<std::shared_ptr<ModelSnapshot>>> revisionReads_;
+  /// RevisionReadStats (guarded by mutex_).
+  RevisionReadStats readStats_;
+  /// Reads revision `revision` from its file (no lock held). Throws as snapshotAt.
+  std::shared_ptr<ModelSnapshot> readRevision(std::uint64_t revision);
   /// The hierarchy file as it was just before this opening read it, or as its last publish made
   /// it.
   std::optional<HierarchyStamp> readStamp_;

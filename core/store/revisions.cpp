@@ -1,11 +1,15 @@
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
+#include <chrono>
 #include <cstring>
 #include <ctime>
 #include <functional>
+#include <future>
 #include <optional>
 #include <utility>
+#include <vector>
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
@@ -60,10 +64,87 @@ std::shared_ptr<const ModelSnapshot> LiveModel::heldSnapshot(std::uint64_t revis
   return nullptr;
 }
 
-std::shared_ptr<const ModelSnapshot> LiveModel::snapshotAt(std::uint64_t revision) {
-  if (auto held = heldSnapshot(revision)) {
-    return held;
+namespace {
+
+/// Makes `snapshot` the most recently asked for of `recent` (adding it when missing), dropping the
+/// least recently asked for beyond `bound` into `released` (to be let go after the lock: the last
+/// holder of a dropped revision runs its folder removal).
+void remember(std::deque<std::shared_ptr<ModelSnapshot>>& recent,
+              const std::shared_ptr<ModelSnapshot>& snapshot, std::size_t bound,
+              std::vector<std::shared_ptr<ModelSnapshot>>& released) {
+  if (const auto it = std::find(recent.begin(), recent.end(), snapshot); it != recent.end()) {
+    recent.erase(it);
   }
+  recent.push_back(snapshot);
+  while (recent.size() > bound) {
+    released.push_back(std::move(recent.front()));
+    recent.pop_front();
+  }
+}
+
+}  // namespace
+
+std::shared_ptr<const ModelSnapshot> LiveModel::snapshotAt(std::uint64_t revision) {
+  // Let go after the lock (declared before it): a dropped snapshot may run a removal.
+  std::vector<std::shared_ptr<ModelSnapshot>> released;
+  std::promise<std::shared_ptr<ModelSnapshot>> promise;
+  std::shared_future<std::shared_ptr<ModelSnapshot>> reading;
+  {
+    std::lock_guard lock(mutex_);
+    if (snapshot_->version == revision) {
+      return snapshot_;
+    }
+    if (const auto it = revisionSnapshots_.find(revision); it != revisionSnapshots_.end()) {
+      if (std::shared_ptr<ModelSnapshot> held = it->second.lock()) {
+        remember(recentRevisions_, held, kCachedRevisions, released);
+        return held;
+      }
+    }
+    if (const auto it = revisionReads_.find(revision); it != revisionReads_.end()) {
+      reading = it->second;
+      ++readStats_.sharedReads;
+      ++readStats_.waiting;
+    } else {
+      revisionReads_.emplace(revision, promise.get_future().share());
+      ++readStats_.reads;
+      ++readStats_.reading;
+    }
+  }
+  if (reading.valid()) {
+    // Another caller reads it: wait for that read (no lock held), sharing its result or error.
+    const auto done = [this] {
+      std::lock_guard lock(mutex_);
+      --readStats_.waiting;
+    };
+    try {
+      std::shared_ptr<ModelSnapshot> read = reading.get();
+      done();
+      return read;
+    } catch (...) {
+      done();
+      throw;
+    }
+  }
+  std::shared_ptr<ModelSnapshot> read;
+  try {
+    read = readRevision(revision);
+  } catch (...) {
+    // Not kept: the next caller reads again.
+    promise.set_exception(std::current_exception());
+    std::lock_guard lock(mutex_);
+    revisionReads_.erase(revision);
+    --readStats_.reading;
+    throw;
+  }
+  promise.set_value(read);
+  std::lock_guard lock(mutex_);
+  revisionReads_.erase(revision);
+  --readStats_.reading;
+  return read;
+}
+
+std::shared_ptr<ModelSnapshot> LiveModel::readRevision(std::uint64_t revision) {
+  const auto start = std::chrono::steady_clock::now();
   std::shared_ptr<const ModelSnapshot> current = snapshot();
   const fs::path file = patchesDirOf(dir_) / revisionFileName(revision);
   if (revision > current->version || !fs::is_regular_file(file)) {
@@ -79,13 +160,11 @@ std::shared_ptr<const ModelSnapshot> LiveModel::snapshotAt(std::uint64_t revisio
   for (const auto& [key, info] : read->model->patches()) {
     store_->add(info);
   }
+  std::vector<std::shared_ptr<ModelSnapshot>> released;  // let go after the lock
   {
     std::lock_guard lock(mutex_);
     revisionSnapshots_[revision] = read;
-    recentRevisions_.push_back(read);
-    if (recentRevisions_.size() > 2) {
-      recentRevisions_.pop_front();
-    }
+    remember(recentRevisions_, read, kCachedRevisions, released);
   }
   // A publish that dropped the revision meanwhile removed its file before looking for snapshots
   // of it to hand its folders to: either it found this one, or the file is gone now.
@@ -95,7 +174,20 @@ std::shared_ptr<const ModelSnapshot> LiveModel::snapshotAt(std::uint64_t revisio
     throw Error(ErrorCode::NotFound,
                 "model '" + name_ + "' no longer keeps revision " + std::to_string(revision));
   }
+  log::info("model=" + name_ + " read revision " + std::to_string(revision) + " (" +
+            std::to_string(read->model->patchCount()) + " patches, " +
+            std::to_string(std::chrono::duration_cast<std::chrono::milliseconds>(
+                               std::chrono::steady_clock::now() - start)
+                               .count()) +
+            " ms)");
   return read;
+}
+
+LiveModel::RevisionReadStats LiveModel::revisionReadStats() const {
+  std::lock_guard lock(mutex_);
+  RevisionReadStats stats = readStats_;
+  stats.cached = recentRevisions_.size();
+  return stats;
 }
 
 std::vector<RevisionSummary> LiveModel::revisions() const {

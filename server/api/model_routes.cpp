@@ -4,6 +4,7 @@
 #include <bit>
 #include <cerrno>
 #include <charconv>
+#include <chrono>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
@@ -16,6 +17,7 @@
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
+#include "core/common/progress.hpp"
 #include "core/diff/revision_diff.hpp"
 #include "core/grid/patch_grid.hpp"
 #include "core/opc/aara.hpp"
@@ -25,6 +27,7 @@
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
 #include "core/tiles/lod_cut.hpp"
+#include "server/api/diff_gate.hpp"
 #include "server/cluster/coordinator.hpp"
 #include "server/http/gzip.hpp"
 #include "server/jobs/job_registry.hpp"
@@ -176,11 +179,42 @@ http::Response getRevisions(const ModelContext& c, const http::Request& request)
       http::cache_control::kRevalidate);
 }
 
+/// Stops a diff at its next leaf once its slot's deadline has passed (the diff reports progress
+/// after every leaf and checks the token before the next).
+class DiffDeadline final : public core::Progress {
+ public:
+  DiffDeadline(std::chrono::steady_clock::time_point deadline, core::CancelToken& cancel)
+      : deadline_(deadline), cancel_(cancel) {}
+  void report(std::string_view, double) override {
+    if (std::chrono::steady_clock::now() >= deadline_) {
+      cancel_.cancel();
+    }
+  }
+
+ private:
+  std::chrono::steady_clock::time_point deadline_;
+  core::CancelToken& cancel_;
+};
+
+/// The working memory of a diff with a map of `mapSize` pixels along its longer side, allocated
+/// outside the cache: the map's floats, the RGBA picture and, at most as large again, the PNG.
+std::size_t diffWorkBytes(int mapSize) {
+  const auto pixels = static_cast<std::size_t>(mapSize) * static_cast<std::size_t>(mapSize);
+  return pixels * (sizeof(float) + 4 + 4);
+}
+
 /// The diff a request asks for: between the kept revisions ?from=A and ?to=B of model {m}, with a
-/// map of `mapSize` pixels along its longer side when > 0. Throws Error(InvalidArgument) for a
-/// missing or malformed revision, NotFound for one not kept.
-core::RevisionDiff requestedDiff(const ModelContext& c, const http::Request& request, int mapSize) {
-  const auto live = c.models.get(request.param("m"));
+/// map of `mapSize` pixels along its longer side when > 0. Runs inside the gate (a slot held
+/// throughout, 503 when none is free), with the map's memory charged to the budget
+/// (Encoding::DiffWork) while it is drawn and encoded, and stops at the slot's deadline (503).
+/// `finish` turns the diff into the response while the slot and the charge are held. Throws
+/// Error(InvalidArgument) for a missing or malformed revision, NotFound for one not kept,
+/// Unavailable when every slot is taken or the deadline passed, ResourceExhausted when the map
+/// does not fit in the budget.
+http::Response runDiff(const ModelContext& c, const http::Request& request, int mapSize,
+                       const std::function<http::Response(const core::RevisionDiff&)>& finish) {
+  const std::string& id = request.param("m");
+  const models::ModelRegistry::Served served = c.models.getServed(id);
   const auto fromText = request.queryParam("from");
   const auto toText = request.queryParam("to");
   if (!fromText || !toText) {
@@ -189,36 +223,57 @@ core::RevisionDiff requestedDiff(const ModelContext& c, const http::Request& req
   }
   const std::uint64_t from = parseRevision("query parameter 'from'", *fromText);
   const std::uint64_t to = parseRevision("query parameter 'to'", *toText);
+  const std::unique_ptr<DiffGate::Slot> slot = c.diffs->enter();
+  const std::shared_ptr<const void> charged =
+      mapSize > 0 ? served.encoded->reserve(models::Encoding::DiffWork, diffWorkBytes(mapSize))
+                  : nullptr;
+  core::CancelToken cancel;
+  DiffDeadline deadline(slot->deadline(), cancel);
   core::DiffOptions options;
   options.mapSize = mapSize;
-  return core::diffRevisions(*live, live->snapshotAt(from), live->snapshotAt(to), options);
+  options.cancel = &cancel;
+  options.progress = &deadline;
+  try {
+    return finish(core::diffRevisions(*served.live, served.live->snapshotAt(from),
+                                      served.live->snapshotAt(to), options));
+  } catch (const Error& e) {
+    if (e.code() != ErrorCode::Cancelled || !cancel.cancelled()) {
+      throw;
+    }
+    c.diffs->countTimeout();
+    throw Error(ErrorCode::Unavailable,
+                "the diff of revisions " + std::to_string(from) + " and " + std::to_string(to) +
+                    " of model '" + id + "' ran longer than limits.diff_timeout and was stopped");
+  }
 }
 
 /// GET /v1/models/{m}/diff?from=A&to=B: the displacement per changed patch and in total.
 http::Response getDiff(const ModelContext& c, const http::Request& request) {
-  const core::RevisionDiff diff = requestedDiff(c, request, 0);
-  http::Response response;
-  response.status = 200;
-  response.contentType = "application/json";
-  response.body = core::diffJson(diff, request.param("m"));
-  return withCache(std::move(response), http::cache_control::kRevalidate);
+  return runDiff(c, request, 0, [&](const core::RevisionDiff& diff) {
+    http::Response response;
+    response.status = 200;
+    response.contentType = "application/json";
+    response.body = core::diffJson(diff, request.param("m"));
+    return withCache(std::move(response), http::cache_control::kRevalidate);
+  });
 }
 
 /// GET /v1/models/{m}/diff.png?from=A&to=B&size=N: the displacement seen from above, blue - white
 /// - red over [-R, R], R the largest |d|, named by the PNG's text and X-VSM-Diff-Range.
 http::Response getDiffPng(const ModelContext& c, const http::Request& request) {
   const int size = intQuery(request, "size", 1024, 1, kMaxDiffPngSize);
-  const core::RevisionDiff diff = requestedDiff(c, request, size);
-  const std::vector<std::byte> png = core::diffPng(diff, size);
-  http::Response response;
-  response.status = 200;
-  response.contentType = "image/png";
-  response.body.assign(reinterpret_cast<const char*>(png.data()), png.size());
-  char range[64];
-  std::snprintf(range, sizeof range, "%.9g", diff.totals.maxAbs());
-  response.set("X-VSM-Diff-Range", range);
-  response.set("X-VSM-Diff-Legend", core::diffLegend(diff));
-  return withCache(std::move(response), http::cache_control::kRevalidate);
+  return runDiff(c, request, size, [&](const core::RevisionDiff& diff) {
+    const std::vector<std::byte> png = core::diffPng(diff, size);
+    http::Response response;
+    response.status = 200;
+    response.contentType = "image/png";
+    response.body.assign(reinterpret_cast<const char*>(png.data()), png.size());
+    char range[64];
+    std::snprintf(range, sizeof range, "%.9g", diff.totals.maxAbs());
+    response.set("X-VSM-Diff-Range", range);
+    response.set("X-VSM-Diff-Legend", core::diffLegend(diff));
+    return withCache(std::move(response), http::cache_control::kRevalidate);
+  });
 }
 
 /// POST /v1/models/{m}/revisions/{n}/restore: a job publishing revision n's content anew.
@@ -874,6 +929,9 @@ http::Response temporaryRedirect(const std::string& location, std::string_view w
 }
 
 void addModelRoutes(http::Router& router, ModelContext context) {
+  if (context.diffs == nullptr) {
+    context.diffs = DiffGate::create({});
+  }
   const auto bind = [context](
                         http::Response (*handler)(const ModelContext&, const http::Request&)) {
     return [context, handler](const http::Request& request) { return handler(context, request); };

@@ -37,12 +37,16 @@ class Coordinator;
 
 namespace vsm::server::api {
 
+class DiffGate;
+
 /// What the model and job routes use. Every reference must outlive the router.
 struct ModelContext {
   models::ModelRegistry& models;
   jobs::JobRegistry& jobs;
   /// In a cluster: who writes which model. Null for a daemon alone.
   cluster::Coordinator* cluster = nullptr;
+  /// The bound on diffs at once and their deadline; null: DiffGate's defaults.
+  std::shared_ptr<DiffGate> diffs = nullptr;
 };
 
 /// In a cluster, a write to model `id` that another node must do: 307 to the same target on that

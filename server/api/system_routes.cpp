@@ -155,9 +155,14 @@ void addSystemRoutes(http::Router& router, SystemContext context) {
     response.body = metrics.render();
     return noStore(std::move(response));
   });
-  router.add(http::Method::Get, "/v1/stats", [&cache = context.cache](const http::Request&) {
-    return noStore(http::jsonResponse(200, statsJson(cache.stats(), cache.policy())));
-  });
+  router.add(http::Method::Get, "/v1/stats",
+             [&cache = context.cache, reads = context.reads](const http::Request&) {
+               json body = statsJson(cache.stats(), cache.policy());
+               if (reads) {
+                 body["reads"] = reads();
+               }
+               return noStore(http::jsonResponse(200, body));
+             });
 }
 
 }  // namespace vsm::server::api

@@ -16,6 +16,8 @@ struct SystemContext {
   const metrics::Registry& metrics;
   /// True once the daemon serves and until it begins to stop.
   std::function<bool()> ready;
+  /// The "reads" object of /v1/stats: what costly reads did (revisions read, diffs); null: none.
+  std::function<nlohmann::json()> reads = nullptr;
 };
 
 /// GET /healthz, /readyz, /metrics, /v1/stats (see proto/openapi.yaml; the model and job routes

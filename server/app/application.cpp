@@ -11,12 +11,16 @@
 #include <filesystem>
 #include <thread>
 
+#include <nlohmann/json.hpp>
+
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "core/durable/durable_io.hpp"
 #include "core/io/grid_source.hpp"
 #include "core/opc/texture_file.hpp"
+#include "core/store/live_model.hpp"
+#include "server/api/diff_gate.hpp"
 #include "server/api/event_routes.hpp"
 #include "server/api/model_routes.hpp"
 #include "server/api/static_routes.hpp"
@@ -209,9 +213,34 @@ Application::Application(Config config) : config_(std::move(config)) {
             " model(s) open");
 
   router_ = std::make_unique<http::Router>();
-  api::addSystemRoutes(*router_, {*cache_, *metrics_, [this] { return ready(); }});
-  api::addModelRoutes(*router_, {*models_, *jobs_, coordinator_.get()});
-  api::addJobRoutes(*router_, {*models_, *jobs_, coordinator_.get()});
+  // Shared by the diff routes and the statistics (the router's handlers keep it alive).
+  const auto diffs = api::DiffGate::create({config_.limits.diffs, config_.limits.diffTimeout});
+  const auto reads = [this, diffs] {
+    core::LiveModel::RevisionReadStats revisions;
+    for (const auto& live : models_->list()) {
+      const auto one = live->revisionReadStats();
+      revisions.reads += one.reads;
+      revisions.sharedReads += one.sharedReads;
+      revisions.reading += one.reading;
+      revisions.waiting += one.waiting;
+      revisions.cached += one.cached;
+    }
+    const api::DiffGate::Stats d = diffs->stats();
+    return nlohmann::json{{"revisions",
+                           {{"reads", revisions.reads},
+                            {"shared_reads", revisions.sharedReads},
+                            {"reading", revisions.reading},
+                            {"waiting", revisions.waiting},
+                            {"cached", revisions.cached}}},
+                          {"diffs",
+                           {{"running", d.running},
+                            {"limit", d.slots},
+                            {"refused", d.refused},
+                            {"timed_out", d.timedOut}}}};
+  };
+  api::addSystemRoutes(*router_, {*cache_, *metrics_, [this] { return ready(); }, reads});
+  api::addModelRoutes(*router_, {*models_, *jobs_, coordinator_.get(), diffs});
+  api::addJobRoutes(*router_, {*models_, *jobs_, coordinator_.get(), diffs});
   api::addTilesRoutes(*router_, *models_);
   api::addTerrainRoutes(*router_, *models_);
   api::addEventRoutes(*router_, *events_);

@@ -273,6 +273,12 @@ const Key kKeys[] = {
        c.limits.eventSubscribersPerClient = countOf(k, v);
      },
      [](const Config& c) { return std::to_string(c.limits.eventSubscribersPerClient); }},
+    {"limits.diffs",
+     [](Config& c, std::string_view k, const json& v) { c.limits.diffs = countOf(k, v); },
+     [](const Config& c) { return std::to_string(c.limits.diffs); }},
+    {"limits.diff_timeout",
+     [](Config& c, std::string_view k, const json& v) { c.limits.diffTimeout = durationOf(k, v); },
+     [](const Config& c) { return formatDuration(c.limits.diffTimeout); }},
     {"limits.shutdown_grace",
      [](Config& c, std::string_view k, const json& v) {
        c.limits.shutdownGrace = durationOf(k, v);
@@ -524,6 +530,8 @@ void Config::validate() const {
   checkCount("limits.texture_pixels", limits.texturePixels, 1, std::size_t{1} << 32);
   checkCount("limits.event_subscribers", limits.eventSubscribers, 0, 100'000);
   checkCount("limits.event_subscribers_per_client", limits.eventSubscribersPerClient, 0, 100'000);
+  checkCount("limits.diffs", limits.diffs, 0, 1024);
+  checkDuration("limits.diff_timeout", limits.diffTimeout, 0ms, 24h);
   checkCount("threads.io", threads.io, 1, 256);
   checkCount("threads.cpu", threads.cpu, 0, 1024);
   checkCount("threads.jobs", threads.jobs, 1, 256);
@@ -661,7 +669,8 @@ std::string_view commandLineUsage() {
          "  limits.body_bytes, limits.header_bytes, limits.header_timeout, limits.read_timeout,\n"
          "  limits.idle_timeout, limits.write_timeout, limits.connections,\n"
          "  limits.connections_per_client, limits.pipelined_responses, limits.texture_pixels,\n"
-         "  limits.event_subscribers, limits.event_subscribers_per_client,\n"
+         "  limits.event_subscribers, limits.event_subscribers_per_client, limits.diffs,\n"
+         "  limits.diff_timeout,\n"
          "  limits.shutdown_grace, threads.io,\n"
          "  threads.cpu (0 = one per core), threads.jobs,\n"
          "  cluster.coordinator, cluster.node, cluster.advertise, cluster.lease_ttl (10s)\n"

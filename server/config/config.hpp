@@ -67,6 +67,11 @@ struct Limits {
   /// Subscribers of the event stream from one source address at once; one more from it is
   /// answered 503 with Retry-After while other addresses still get a stream.
   std::size_t eventSubscribersPerClient = events::HubOptions{}.maxSubscribersPerClient;
+  /// Diffs (GET .../diff, .../diff.png) running at once; one more is answered 503 with
+  /// Retry-After (0 refuses them all).
+  std::size_t diffs = 2;
+  /// How long one diff may run before it is stopped (503); 0 = no deadline.
+  std::chrono::milliseconds diffTimeout{60'000};
   /// On SIGTERM/SIGINT, how long in-flight requests may take before connections are closed.
   std::chrono::milliseconds shutdownGrace{10'000};
 };

@@ -36,6 +36,8 @@ std::string_view toString(Encoding encoding) {
       return "glb_meshopt";
     case Encoding::JsonGzip:
       return "json_gzip";
+    case Encoding::DiffWork:
+      return "diff";
   }
   return "unknown";
 }
@@ -156,6 +158,22 @@ std::shared_ptr<const EncodedCache::Body> EncodedCache::putModelBody(Encoding en
   if (replaced) {
     cache_.invalidate(model_, bodyId(modelBodyKey(variant), *replaced, encoding));
   }
+  return body;
+}
+
+std::shared_ptr<const void> EncodedCache::reserve(Encoding encoding, std::size_t bytes) {
+  std::uint32_t number = 0;
+  {
+    const std::lock_guard lock(modelBodiesMutex_);
+    number = ++reservations_;
+  }
+  // Under a key no patch (depth >= 0) and no model body (depth -1) has; taken out of the table
+  // at once (invalidate of a pinned entry), so it stays charged exactly as long as it is held.
+  const core::ObjectId id = bodyId({-2, number, 0}, 1, encoding);
+  auto body = hold<Body>(
+      cache_.put(model_, id, core::CacheValue{std::make_shared<const EncodedBytes>(), bytes, 0},
+                 /*dirty=*/false));
+  cache_.invalidate(model_, id);
   return body;
 }
 

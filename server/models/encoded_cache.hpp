@@ -41,13 +41,16 @@ enum class Encoding : std::uint8_t {
   /// A model-wide JSON document, gzipped (findModelBody/putModelBody): tileset.json, the
   /// terrain's layer.json.
   JsonGzip = 6,
+  /// Not a body: the working memory of a diff in progress (its map and picture, allocated outside
+  /// the cache), charged while the diff runs (reserve()).
+  DiffWork = 7,
 };
 
-inline constexpr std::array<Encoding, 6> kEncodings{Encoding::PositionsAara, Encoding::Glb,
-                                                    Encoding::TexturePng,    Encoding::Terrain,
-                                                    Encoding::GlbMeshopt,    Encoding::JsonGzip};
+inline constexpr std::array<Encoding, 7> kEncodings{
+    Encoding::PositionsAara, Encoding::Glb,      Encoding::TexturePng, Encoding::Terrain,
+    Encoding::GlbMeshopt,    Encoding::JsonGzip, Encoding::DiffWork};
 /// The name /v1/stats and the metrics give an encoding: "aara", "glb", "png", "terrain",
-/// "glb_meshopt", "json_gzip".
+/// "glb_meshopt", "json_gzip", "diff".
 std::string_view toString(Encoding encoding);
 
 /// The stored files of a patch the server sends as they are (sendfile(2)).
@@ -102,6 +105,12 @@ class EncodedCache : public std::enable_shared_from_this<EncodedCache> {
   std::shared_ptr<const Body> putModelBody(Encoding encoding, std::uint8_t variant,
                                            std::uint64_t version, std::vector<std::byte> bytes);
 
+  /// Charges `bytes` of working memory that a request allocates outside the cache (`encoding`,
+  /// such as Encoding::DiffWork) to the budget until the returned hold is let go: a pinned entry
+  /// no find() ever returns, made room for by evicting others like any put(). Throws
+  /// core::Error(ResourceExhausted) when the budget is full of pinned data.
+  std::shared_ptr<const void> reserve(Encoding encoding, std::size_t bytes);
+
   /// Counts one miss in the statistics (see core::PatchCache::countMiss).
   void countMiss() const;
 
@@ -130,6 +139,8 @@ class EncodedCache : public std::enable_shared_from_this<EncodedCache> {
   std::mutex modelBodiesMutex_;
   /// (encoding, variant) -> the version putModelBody() last stored.
   std::map<std::pair<Encoding, std::uint8_t>, std::uint64_t> modelBodies_;
+  /// Numbers reservations (guarded by modelBodiesMutex_).
+  std::uint32_t reservations_ = 0;
 };
 
 /// What an Encoded entry holds.

@@ -420,6 +420,9 @@ def exercise_tiny(r, d):
     r.call(d, "glb over the budget", "GET", m + "/3dtiles/0_0_0.glb", 503)
     r.call(d, "terrain layer over the budget", "GET", m + "/terrain/layer.json", 503)
     r.call(d, "terrain tile over the budget", "GET", m + "/terrain/0/0/0.terrain", 503)
+    # This daemon runs no diffs at all (limits.diffs=0): every one is over the bound.
+    r.call(d, "diff over limits.diffs", "GET", m + "/diff?from=1&to=2", 503)
+    r.call(d, "diff map over limits.diffs", "GET", m + "/diff.png?from=1&to=2&size=64", 503)
     r.call(d, "stats after", "GET", "/v1/stats", 200)
 
 
@@ -488,7 +491,7 @@ def main():
                 break
             time.sleep(0.05)
         exercise_main(recorder, main_daemon)
-        tiny_daemon = Daemon("--memory-budget", "1MiB", root=tiny_root)
+        tiny_daemon = Daemon("--memory-budget", "1MiB", "--set", "limits.diffs=0", root=tiny_root)
         exercise_tiny(recorder, tiny_daemon)
     except AssertionError as e:
         failed = str(e)

@@ -13,6 +13,10 @@
 //   create  open, open64, openat, openat64, creat with O_CREAT
 //   unlink  unlink, unlinkat, rmdir, remove
 //   link    link, linkat (the path of the new name counts)
+//   read    open, open64, openat, openat64 for reading only (no O_CREAT, O_RDONLY); counted only
+//           when VSM_FAULT_HOLD or VSM_FAULT_CLASS names it, so that the traces of the other
+//           classes stay as they were (tests/integration/costly_reads_test.py holds a revision
+//           read with it)
 //
 // Environment:
 //   VSM_FAULT_PREFIX  absolute directory; nothing happens without it
@@ -50,9 +54,9 @@
 #include <time.h>
 #include <unistd.h>
 
-enum { kWrite, kSync, kRename, kMkdir, kCreate, kUnlink, kLink, kClasses };
+enum { kWrite, kSync, kRename, kMkdir, kCreate, kUnlink, kLink, kRead, kClasses };
 static const char* const kClassNames[kClasses] = {"write",  "sync",   "rename", "mkdir",
-                                                  "create", "unlink", "link"};
+                                                  "create", "unlink", "link",   "read"};
 
 static char prefix[PATH_MAX];
 static size_t prefixLength;
@@ -235,6 +239,9 @@ static int faultAt(int c, int dirfd, const char* path) {
   if (prefixLength == 0 || path == NULL) {
     return 0;
   }
+  if (c == kRead && holdClass != kRead && faultClass != kRead) {
+    return 0;  // opt-in (see the class list above)
+  }
   char full[PATH_MAX];
   absolute(dirfd, path, full, sizeof full);
   return fault(c, full);
@@ -371,6 +378,10 @@ int mkdirat(int dirfd, const char* path, mode_t mode) {
   return NEXT(mkdirat)(dirfd, path, mode);
 }
 
+static int readOnly(int flags) {
+  return (flags & (O_CREAT | __O_TMPFILE)) == 0 && (flags & O_ACCMODE) == O_RDONLY;
+}
+
 static mode_t modeOf(int flags, va_list args) {
   return (flags & (O_CREAT | __O_TMPFILE)) != 0 ? (mode_t)va_arg(args, int) : 0;
 }
@@ -381,6 +392,9 @@ int open(const char* path, int flags, ...) {
   const mode_t mode = modeOf(flags, args);
   va_end(args);
   if ((flags & O_CREAT) != 0 && faultAt(kCreate, AT_FDCWD, path)) {
+    return -1;
+  }
+  if (readOnly(flags) && faultAt(kRead, AT_FDCWD, path)) {
     return -1;
   }
   return NEXT(open)(path, flags, mode);
@@ -394,6 +408,9 @@ int open64(const char* path, int flags, ...) {
   if ((flags & O_CREAT) != 0 && faultAt(kCreate, AT_FDCWD, path)) {
     return -1;
   }
+  if (readOnly(flags) && faultAt(kRead, AT_FDCWD, path)) {
+    return -1;
+  }
   return NEXT(open64)(path, flags, mode);
 }
 
@@ -405,6 +422,9 @@ int openat(int dirfd, const char* path, int flags, ...) {
   if ((flags & O_CREAT) != 0 && faultAt(kCreate, dirfd, path)) {
     return -1;
   }
+  if (readOnly(flags) && faultAt(kRead, dirfd, path)) {
+    return -1;
+  }
   return NEXT(openat)(dirfd, path, flags, mode);
 }
 
@@ -414,6 +434,9 @@ int openat64(int dirfd, const char* path, int flags, ...) {
   const mode_t mode = modeOf(flags, args);
   va_end(args);
   if ((flags & O_CREAT) != 0 && faultAt(kCreate, dirfd, path)) {
+    return -1;
+  }
+  if (readOnly(flags) && faultAt(kRead, dirfd, path)) {
     return -1;
   }
   return NEXT(openat64)(dirfd, path, flags, mode);

@@ -17,6 +17,7 @@
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/opc/texture_file.hpp"
+#include "server/api/diff_gate.hpp"
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/app/application.hpp"
@@ -904,6 +905,31 @@ TEST(DescriptorPlan, SharesTheLimitWithoutEverExceedingIt) {
   EXPECT_GE(starved.cachedFiles, 8u);
 }
 
+// --- diff gate ------------------------------------------------------------------------------
+
+TEST(DiffGate, RefusesBeyondItsSlotsAndFreesASlotWhenItsDiffEnds) {
+  const auto gate = api::DiffGate::create({2, std::chrono::milliseconds(0)});
+  auto first = gate->enter();
+  auto second = gate->enter();
+  EXPECT_EQ(first->deadline(), std::chrono::steady_clock::time_point::max()) << "no deadline";
+  try {
+    gate->enter();
+    ADD_FAILURE() << "a third diff entered a gate of two";
+  } catch (const core::Error& e) {
+    EXPECT_EQ(e.code(), core::ErrorCode::Unavailable);  // 503 with Retry-After
+  }
+  EXPECT_EQ(gate->stats().running, 2u);
+  EXPECT_EQ(gate->stats().refused, 1u);
+  first.reset();
+  EXPECT_NE(gate->enter(), nullptr);
+  EXPECT_EQ(gate->stats().running, 1u);
+  const auto timed = api::DiffGate::create({1, std::chrono::minutes(1)});
+  const auto before = std::chrono::steady_clock::now();
+  EXPECT_GE(timed->enter()->deadline(), before + std::chrono::minutes(1));
+  EXPECT_EQ(api::DiffGate::create({0, {}})->stats().slots, 0u);
+  EXPECT_THROW(api::DiffGate::create({0, {}})->enter(), core::Error);
+}
+
 // --- system routes --------------------------------------------------------------------------
 
 TEST(SystemRoutes, StatsReportTheBudgetAndEveryCategory) {
@@ -917,7 +943,8 @@ TEST(SystemRoutes, StatsReportTheBudgetAndEveryCategory) {
                                                                       {"png", 0},
                                                                       {"terrain", 0},
                                                                       {"glb_meshopt", 0},
-                                                                      {"json_gzip", 0}}));
+                                                                      {"json_gzip", 0},
+                                                                      {"diff", 0}}));
   EXPECT_TRUE(stats.at("memory").at("resident_bytes_by_model").is_object());
   for (const char* key : {"hits", "misses", "evictions", "write_backs", "exhausted"}) {
     EXPECT_EQ(stats.at("cache").at(key), 0) << key;

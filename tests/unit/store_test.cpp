@@ -5,6 +5,8 @@
 #include <map>
 #include <set>
 #include <sstream>
+#include <thread>
+#include <vector>
 
 #include "core/common/error.hpp"
 #include "core/opc/opc_reader.hpp"
@@ -307,6 +309,65 @@ TEST_F(StoreTest, ARevisionIsKeptWhileItsSuccessorIsYoungerThanTheTimeFloor) {
   publishLeaf(*live, {2, 0, 0}, 9.0, 2);  // the count alone again
   EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 3, v + 4}));
   EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+// Issue 32, finding 7: an old revision is read from disk once while it stays cached, whoever asks.
+TEST_F(StoreTest, OldRevisionsAreReadOnceWhileCachedAndTheLeastRecentlyAskedGoesFirst) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v = live->snapshot()->version;
+  const std::uint64_t old = LiveModel::kCachedRevisions + 1;  // one more than the cache keeps
+  for (std::uint64_t i = 1; i <= old; ++i) {
+    publishLeaf(*live, {2, 0, 0}, 1.0 * static_cast<double>(i), static_cast<unsigned>(old + 1));
+  }
+  // Asked for twice in turn, not held: the first round reads the kCachedRevisions newest ones
+  // once and revision v once; the second round finds them cached (but v, which the least
+  // recently asked for, and then the next, push out in turn).
+  for (std::uint64_t n = v + 1; n < v + old; ++n) {
+    EXPECT_EQ(live->snapshotAt(n)->version, n);
+  }
+  EXPECT_EQ(live->revisionReadStats().reads, old - 1);
+  for (std::uint64_t n = v + 1; n < v + old; ++n) {
+    EXPECT_EQ(live->snapshotAt(n)->version, n);
+  }
+  EXPECT_EQ(live->revisionReadStats().reads, old - 1) << "a cached revision was read again";
+  EXPECT_EQ(live->revisionReadStats().cached, old - 1);
+  // One more revision: the least recently asked for (v + 1) goes, the others stay.
+  EXPECT_EQ(live->snapshotAt(v)->version, v);
+  EXPECT_EQ(live->revisionReadStats().reads, old);
+  EXPECT_EQ(live->revisionReadStats().cached, LiveModel::kCachedRevisions);
+  EXPECT_EQ(live->snapshotAt(v + 2)->version, v + 2);
+  EXPECT_EQ(live->revisionReadStats().reads, old);
+  EXPECT_EQ(live->snapshotAt(v + 1)->version, v + 1);
+  EXPECT_EQ(live->revisionReadStats().reads, old + 1);
+  // A revision not kept is not found, and not cached.
+  EXPECT_EQ(codeOf([&] { live->snapshotAt(v + old + 5); }), ErrorCode::NotFound);
+}
+
+// Concurrent callers get one snapshot of one read: whether a caller joins the read in progress or
+// comes after it, the snapshot the others hold is the one it gets (the order of the threads does
+// not matter; tests/integration/costly_reads_test.py holds the read to make them meet).
+TEST_F(StoreTest, ConcurrentCallersForOneRevisionShareOneRead) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v = live->snapshot()->version;
+  publishLeaf(*live, {2, 0, 0}, 3.0, 8);
+  constexpr int kThreads = 8;
+  std::vector<std::shared_ptr<const ModelSnapshot>> got(kThreads);
+  std::vector<std::thread> threads;
+  for (int i = 0; i < kThreads; ++i) {
+    threads.emplace_back([&, i] { got[i] = live->snapshotAt(v); });
+  }
+  for (std::thread& t : threads) {
+    t.join();
+  }
+  for (const auto& snapshot : got) {
+    EXPECT_EQ(snapshot, got[0]);
+  }
+  const LiveModel::RevisionReadStats stats = live->revisionReadStats();
+  EXPECT_EQ(stats.reads, 1u);
+  EXPECT_EQ(stats.reading, 0u);
+  EXPECT_EQ(stats.waiting, 0u);
 }
 
 TEST_F(StoreTest, AReaderPinnedOnADroppedRevisionReadsItUntilItLetsGo) {
