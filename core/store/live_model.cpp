@@ -208,11 +208,12 @@ std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
                 "model '" + name_ + "' is open for reading only" +
                     (readOnlyReason_.empty() ? std::string() : ": " + readOnlyReason_));
   }
+  const std::optional<HierarchyStamp> onDisk = hierarchyStamp(dir_);  // no lock held over I/O
   std::lock_guard lock(writer_->mutex);
   if (writer_->editing) {
     throw Error(ErrorCode::Conflict, "model '" + name_ + "' is being changed by another job");
   }
-  checkCurrent();
+  checkCurrent(onDisk);
   writer_->editing = true;
   try {
     return std::unique_ptr<ModelEdit>(new ModelEdit(*this, snapshot()));
@@ -222,13 +223,12 @@ std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
   }
 }
 
-void LiveModel::checkCurrent() const {
+void LiveModel::checkCurrent(const std::optional<HierarchyStamp>& onDisk) const {
   if (writer_->current != this) {
     throw Error(ErrorCode::Conflict, "model '" + name_ +
                                          "' was read again from disk since this opening was "
                                          "made; edits go through the new opening");
   }
-  const std::optional<HierarchyStamp> onDisk = hierarchyStamp(dir_);
   std::lock_guard lock(mutex_);
   if (onDisk != readStamp_) {
     throw Error(ErrorCode::Conflict,

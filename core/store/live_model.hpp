@@ -198,9 +198,10 @@ class LiveModel {
   friend class ModelEdit;
   LiveModel(std::filesystem::path dir, std::string name, std::shared_ptr<Store> store,
             std::shared_ptr<ModelSnapshot> snapshot, std::shared_ptr<Writer> writer);
-  /// Throws Error(Conflict) unless this opening is its writer's current one and the hierarchy on
-  /// disk is the one it last read or published. Called with writer_->mutex held.
-  void checkCurrent() const;
+  /// Throws Error(Conflict) unless this opening is its writer's current one and `onDisk`, the
+  /// hierarchy's stamp taken just before (no lock is held over the stat), is the one it last read
+  /// or published. Called with writer_->mutex held.
+  void checkCurrent(const std::optional<HierarchyStamp>& onDisk) const;
   /// Hands `removal` to every snapshot of `revision` held through this opening (it runs when the
   /// last of them, and of the other openings', is released), and forgets the revision.
   void holdRemoval(std::uint64_t revision, const std::shared_ptr<const void>& removal);

@@ -90,8 +90,9 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
     cancel->throwIfCancelled();
   }
   {
+    const std::optional<HierarchyStamp> onDisk = hierarchyStamp(live_.dir_);
     std::lock_guard lock(live_.writer_->mutex);
-    live_.checkCurrent();
+    live_.checkCurrent(onDisk);
   }
   if (options.fence) {
     options.fence();
