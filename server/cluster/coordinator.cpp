@@ -230,8 +230,7 @@ std::optional<std::string> Coordinator::writerElsewhere(const std::string& id) {
   {
     const std::lock_guard lock(mutex_);
     if (const auto it = writers_.find(id); it != writers_.end()) {
-      if (it->second == options_.node &&
-          Clock::now() - renewed_ >= options_.leaseTtl - fenceMargin()) {
+      if (it->second == options_.node && pastFence(Clock::now())) {
         // The lease may run out before a job could commit: no job is accepted on it.
         throw Error(ErrorCode::Unavailable,
                     "node " + options_.node + " is renewing its lease; retry in a second");
@@ -283,6 +282,10 @@ std::optional<std::string> Coordinator::writerElsewhere(const std::string& id) {
   return urlOf(writer);
 }
 
+bool Coordinator::pastFence(Clock::time_point now) const {
+  return now - renewed_ >= options_.leaseTtl - fenceMargin();
+}
+
 std::chrono::milliseconds Coordinator::fenceMargin() const {
   return std::max(std::chrono::milliseconds(1000), options_.leaseTtl / 5);
 }
@@ -296,8 +299,8 @@ void Coordinator::checkWriter(std::string_view id) const {
                                          " is no longer the writer of model '" + std::string(id) +
                                          "'; the write is not committed");
   }
-  const auto held = std::chrono::duration_cast<std::chrono::milliseconds>(now - renewed_);
-  if (held >= options_.leaseTtl - fenceMargin()) {
+  if (pastFence(now)) {
+    const auto held = std::chrono::duration_cast<std::chrono::milliseconds>(now - renewed_);
     throw Error(ErrorCode::Conflict, "node " + options_.node +
                                          " cannot be sure it still holds its lease (last renewed " +
                                          std::to_string(held.count()) + " ms ago, TTL " +

@@ -100,6 +100,9 @@ class Coordinator {
   /// Renews `lease` when a third of its TTL has passed since the last renewal. False when etcd says
   /// it has expired: the models are given up (loseLease). Throws on etcd errors.
   bool renewIfDue(EtcdClient& etcd, std::int64_t lease);
+  /// True when the lease may end before a write started now commits (checkWriter's fence):
+  /// `now` is fenceMargin() or less from the end of the last confirmed renewal. With mutex_ held.
+  bool pastFence(std::chrono::steady_clock::time_point now) const;
 
   Options options_;  // advertise is set by start()
   const Node node_;
