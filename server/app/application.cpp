@@ -110,12 +110,13 @@ std::string nodeName(const ClusterConfig& cluster) {
 
 }  // namespace
 
-DescriptorPlan planDescriptors(std::size_t limit, std::size_t connections, std::size_t threads) {
+DescriptorPlan planDescriptors(std::size_t limit, std::size_t connections, std::size_t threads,
+                               std::size_t models, std::size_t jobThreads) {
   constexpr std::size_t kReserved = 64;
   constexpr std::size_t kRejecting = 64;
   constexpr std::size_t kMinCachedFiles = 64;
   constexpr std::size_t kMaxCachedFiles = 65536;
-  const std::size_t reserved = kReserved + 2 * threads + kRejecting;
+  const std::size_t reserved = kReserved + 2 * threads + kRejecting + models + jobThreads;
   DescriptorPlan plan;
   plan.connections = connections;
   const std::size_t available = limit > reserved ? limit - reserved : 0;
@@ -156,7 +157,8 @@ Application::Application(Config config) : config_(std::move(config)) {
                                : std::max<std::size_t>(1, std::thread::hardware_concurrency());
   const DescriptorPlan descriptors =
       planDescriptors(raiseDescriptorLimit(), config_.limits.connections,
-                      cpuThreads + config_.threads.jobs + config_.threads.io);
+                      cpuThreads + config_.threads.jobs + config_.threads.io, config_.limits.models,
+                      config_.threads.jobs);
   cache_->setHandleBudget(descriptors.cachedFiles);
   if (descriptors.connections < config_.limits.connections) {
     log::warn("descriptors: the limit leaves room for " + std::to_string(descriptors.connections) +
@@ -178,6 +180,7 @@ Application::Application(Config config) : config_(std::move(config)) {
       config_.dataRoot, *cache_, config_.limits.texturePixels,
       static_cast<unsigned>(config_.keepRevisions),
       std::chrono::duration_cast<std::chrono::seconds>(config_.keepRevisionsSeconds));
+  models_->limitModels(config_.limits.models);
   // Jobs live in memory only: after a restart none is listed, and a merge that had not published
   // left its model at the last published version (drafts are removed when the model opens).
   jobs::JobLimits jobLimits;

@@ -48,10 +48,14 @@ struct DescriptorPlan {
 };
 
 /// Keeps 64 descriptors (and two per thread) for the process itself — the listener, the event
-/// loop, logs, the files merges, imports and cache misses open for a moment — and one per
-/// connection (plus the 64 being answered 503 at once); cached files get the rest, at most 65536.
-/// When that leaves fewer than 64, connections are cut to fit. `limit` is RLIMIT_NOFILE.
-DescriptorPlan planDescriptors(std::size_t limit, std::size_t connections, std::size_t threads);
+/// loop, logs, the files merges, imports and cache misses open for a moment — one per model (the
+/// writer lock a writable model holds for its whole life; `models` is limits.models), one per
+/// job thread (the directory descriptor an edit holds to make its drafts durable, a
+/// durable::FileSystemSync) and one per connection (plus the 64 being answered 503 at once);
+/// cached files get the rest, at most 65536. When that leaves fewer than 64, connections are cut
+/// to fit. `limit` is RLIMIT_NOFILE.
+DescriptorPlan planDescriptors(std::size_t limit, std::size_t connections, std::size_t threads,
+                               std::size_t models, std::size_t jobThreads);
 
 /// The daemon's version ("0.1.0").
 std::string_view version();

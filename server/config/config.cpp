@@ -273,6 +273,9 @@ const Key kKeys[] = {
        c.limits.eventSubscribersPerClient = countOf(k, v);
      },
      [](const Config& c) { return std::to_string(c.limits.eventSubscribersPerClient); }},
+    {"limits.models",
+     [](Config& c, std::string_view k, const json& v) { c.limits.models = countOf(k, v); },
+     [](const Config& c) { return std::to_string(c.limits.models); }},
     {"limits.diffs",
      [](Config& c, std::string_view k, const json& v) { c.limits.diffs = countOf(k, v); },
      [](const Config& c) { return std::to_string(c.limits.diffs); }},
@@ -530,6 +533,7 @@ void Config::validate() const {
   checkCount("limits.texture_pixels", limits.texturePixels, 1, std::size_t{1} << 32);
   checkCount("limits.event_subscribers", limits.eventSubscribers, 0, 100'000);
   checkCount("limits.event_subscribers_per_client", limits.eventSubscribersPerClient, 0, 100'000);
+  checkCount("limits.models", limits.models, 1, 100'000);
   checkCount("limits.diffs", limits.diffs, 0, 1024);
   checkDuration("limits.diff_timeout", limits.diffTimeout, 0ms, 24h);
   checkCount("threads.io", threads.io, 1, 256);
@@ -669,8 +673,8 @@ std::string_view commandLineUsage() {
          "  limits.body_bytes, limits.header_bytes, limits.header_timeout, limits.read_timeout,\n"
          "  limits.idle_timeout, limits.write_timeout, limits.connections,\n"
          "  limits.connections_per_client, limits.pipelined_responses, limits.texture_pixels,\n"
-         "  limits.event_subscribers, limits.event_subscribers_per_client, limits.diffs,\n"
-         "  limits.diff_timeout,\n"
+         "  limits.event_subscribers, limits.event_subscribers_per_client, limits.models,\n"
+         "  limits.diffs, limits.diff_timeout,\n"
          "  limits.shutdown_grace, threads.io,\n"
          "  threads.cpu (0 = one per core), threads.jobs,\n"
          "  cluster.coordinator, cluster.node, cluster.advertise, cluster.lease_ttl (10s)\n"

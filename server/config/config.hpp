@@ -67,6 +67,10 @@ struct Limits {
   /// Subscribers of the event stream from one source address at once; one more from it is
   /// answered 503 with Retry-After while other addresses still get a stream.
   std::size_t eventSubscribersPerClient = events::HubOptions{}.maxSubscribersPerClient;
+  /// Models open at once (served, being opened or being imported); an import beyond it is refused
+  /// (409) and a model directory beyond it is skipped with a warning at start. Each writable
+  /// model holds its writer lock's descriptor, counted in the descriptor plan.
+  std::size_t models = 256;
   /// Diffs (GET .../diff, .../diff.png) running at once; one more is answered 503 with
   /// Retry-After (0 refuses them all).
   std::size_t diffs = 2;

@@ -136,6 +136,24 @@ ModelRegistry::~ModelRegistry() {
   models.clear();  // outside the lock: closing writes dirty data back
 }
 
+void ModelRegistry::limitModels(std::size_t max) {
+  const std::lock_guard lock(mutex_);
+  maxModels_ = max;
+}
+
+bool ModelRegistry::atLimit() const {
+  const std::lock_guard lock(mutex_);
+  return models_.size() + opening_.size() + reserved_.size() >= maxModels_;
+}
+
+void ModelRegistry::checkRoomLocked(std::string_view id) const {
+  if (models_.size() + opening_.size() + reserved_.size() >= maxModels_) {
+    throw Error(ErrorCode::Conflict, "cannot open model '" + std::string(id) +
+                                         "': vsmd serves at most " + std::to_string(maxModels_) +
+                                         " models (limits.models); close one or raise the limit");
+  }
+}
+
 std::size_t ModelRegistry::openAll() {
   std::vector<fs::path> dirs;
   std::error_code ec;
@@ -178,7 +196,8 @@ std::size_t ModelRegistry::openAll() {
     } catch (const Error& e) {
       if (e.code() == ErrorCode::NotFound) {
         log::info("data root: skipping '" + id + "' (no OPC hierarchy)");
-      } else if (e.code() != ErrorCode::Conflict) {  // Conflict: opened or imported meanwhile
+      } else if (e.code() != ErrorCode::Conflict || atLimit()) {
+        // Conflict: opened or imported meanwhile, or no room left
         log::warn("model=" + id + " skipped: cannot open: " + e.what());
       }
     } catch (const std::exception& e) {
@@ -320,6 +339,9 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
     }
     if (reserved_.contains(id) && !reserved) {
       throw Error(ErrorCode::Conflict, "model '" + id + "' is being imported");
+    }
+    if (!reserved) {  // a reservation holds its place already
+      checkRoomLocked(id);
     }
     for (const auto& [other, model] : models_) {
       if (model.live->dir() == canonical) {
@@ -529,6 +551,7 @@ ModelRegistry::Lease ModelRegistry::reserve(const std::string& id) {
   if (reserved_.contains(id)) {
     throw Error(ErrorCode::Conflict, "model '" + id + "' is being imported");
   }
+  checkRoomLocked(id);
   reserved_.insert(id);
   ++leases_[id];
   return Lease(this, id);

@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <functional>
+#include <limits>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -82,6 +83,11 @@ class ModelRegistry {
   /// directory again, silently, only once its hierarchy file changed. Returns the number opened.
   /// For one caller at a time.
   std::size_t openAll();
+  /// At most `max` models open, being opened or reserved at once (limits.models): each writable
+  /// one holds its writer lock's descriptor for its whole life, so the bound is part of the
+  /// descriptor plan. One more is refused (Conflict) and openAll() skips it with a warning.
+  /// Call before openAll(); without it there is no bound.
+  void limitModels(std::size_t max);
 
   /// In a cluster: from now on a model is opened for writing only when `writes(id)` says this node
   /// is its elected writer, and for reading otherwise; setWriter() changes it. Call before
@@ -190,6 +196,9 @@ class ModelRegistry {
                                                 const std::filesystem::path& dir);
 
  private:
+  /// Throws Conflict when limitModels()'s bound is reached; under mutex_.
+  void checkRoomLocked(std::string_view id) const;
+  bool atLimit() const;
   std::shared_ptr<core::LiveModel> openChecked(const std::string& id,
                                                const std::filesystem::path& dir, bool reserved);
   void unlease(const std::string& id);
@@ -211,6 +220,7 @@ class ModelRegistry {
   const std::uint64_t texturePixels_;
   const unsigned keepRevisions_;
   const std::chrono::seconds keepSeconds_;
+  std::size_t maxModels_ = std::numeric_limits<std::size_t>::max();
   mutable std::mutex mutex_;  // guards models_, leases_, reserved_, opening_
   std::map<std::string, Served, std::less<>> models_;
   /// Id -> number of leases (on open models and reservations alike).

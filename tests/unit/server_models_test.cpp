@@ -239,6 +239,35 @@ TEST(ModelRegistry, AReservedIdOpensOnlyForItsHolder) {
   const auto reservation = registry.reserve("m");  // free again
 }
 
+// Issue 32, finding 8: limits.models bounds the models open at once (each writable one holds its
+// writer lock's descriptor, counted in the descriptor plan): at the bound, one more model is
+// skipped at start, an import's reservation or an open is refused, and closing one makes room.
+TEST(ModelRegistry, ModelsOpenAtOnceStopAtTheLimit) {
+  const DataRoot root;
+  for (const char* id : {"a", "b", "c"}) {
+    writeModel(root.path() / id);
+  }
+  core::PatchCache cache(64 * kMiB);
+  models::ModelRegistry registry(root.path(), cache);
+  registry.limitModels(2);
+  EXPECT_EQ(registry.openAll(), 2u);
+  EXPECT_EQ(registry.ids(), (std::vector<std::string>{"a", "b"}));
+  EXPECT_EQ(codeOf([&] { registry.reserve("d"); }), ErrorCode::Conflict);
+  EXPECT_EQ(codeOf([&] { registry.open("c", root.path() / "c"); }), ErrorCode::Conflict);
+  registry.close("a");
+  {
+    // A reservation takes the place: an open beside it is refused, its holder opens.
+    const auto reservation = registry.reserve("d");
+    EXPECT_EQ(codeOf([&] { registry.open("c", root.path() / "c"); }), ErrorCode::Conflict);
+    writeModel(root.path() / "d");
+    registry.openReserved(reservation, root.path() / "d");
+  }
+  EXPECT_EQ(registry.ids(), (std::vector<std::string>{"b", "d"}));
+  EXPECT_EQ(codeOf([&] { registry.reserve("e"); }), ErrorCode::Conflict);
+  registry.close("b");
+  EXPECT_EQ(registry.open("c", root.path() / "c")->name(), "c");
+}
+
 // ---- encoded responses -------------------------------------------------------------------------
 
 std::vector<std::byte> bytesOf(std::string_view text) {
