@@ -191,6 +191,14 @@ class LiveModel {
       std::uint64_t version, const std::set<PatchKey>& changed, const std::set<PatchKey>& removed)>;
   void onNewVersion(NewVersionObserver observer);
 
+  /// Removes the folders of dropped revisions whose last reader has let go. Letting go only
+  /// queues them (it may happen on a network thread or under a lock, and a removal is slow
+  /// I/O); the publish that dropped them and the daemon's housekeeping (ModelRegistry) call
+  /// this. Returns the number of folders removed (failures are logged: the next open removes
+  /// what is left). A model closed with folders queued leaves them to its next open, which
+  /// removes every folder no kept revision names.
+  std::size_t removeRetiredFolders();
+
   class Store;    // the PatchStore over the directory (model_store.hpp)
   struct Writer;  // what the openings of a model that may write share (below)
 
@@ -251,6 +259,11 @@ class LiveModel {
 /// it, and every opening, so that a publish through one keeps what readers of the others hold.
 struct LiveModel::Writer {
   std::shared_ptr<const durable::WriterLock> lock;
+  /// Folders of dropped revisions whose last reader let go, with the store that knew them,
+  /// waiting for removeRetiredFolders(). Guarded by retiredMutex, a leaf lock: a reader may let
+  /// go anywhere, on any thread, with any other lock held.
+  std::mutex retiredMutex;
+  std::vector<std::pair<std::weak_ptr<Store>, std::set<std::string>>> retired;
   std::mutex mutex;  // guards everything below
   bool editing = false;
   /// The newest opening: the only one that may begin an edit.

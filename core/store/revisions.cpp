@@ -263,12 +263,14 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
       files.erase(oldest);
       log::info("model=" + name_ + " dropped revision " + std::to_string(number) + " (" +
                 std::to_string(only.size()) + " folders only it used)");
-      std::shared_ptr<Store> keepStore = store_;
-      const fs::path dir = dir_;
-      auto removal = std::make_shared<const RunOnRelease>([keepStore, dir, only] {
-        keepStore->forgetFolders(only);
-        removeFolders(dir, only);
-      });
+      // Letting go queues the folders; removeRetiredFolders() removes them (below, or later).
+      auto removal = std::make_shared<const RunOnRelease>(
+          [writer = std::weak_ptr<Writer>(writer_), store = std::weak_ptr<Store>(store_), only] {
+            if (const std::shared_ptr<Writer> alive = writer.lock()) {
+              const std::lock_guard retiredLock(alive->retiredMutex);
+              alive->retired.emplace_back(store, only);
+            }
+          });
       // Every opening sharing the writer hands it to the snapshots of the revision its readers
       // hold; `removal` runs when the last of them lets go, or here, as its last owner goes.
       std::lock_guard writerLock(writer_->mutex);
@@ -280,6 +282,27 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
     log::warn("model=" + name_ + " dropping old revisions: " + e.what() +
               " (retried at the next publish)");
   }
+  removeRetiredFolders();
+}
+
+std::size_t LiveModel::removeRetiredFolders() {
+  if (!writer_) {
+    return 0;
+  }
+  std::vector<std::pair<std::weak_ptr<Store>, std::set<std::string>>> retired;
+  {
+    const std::lock_guard lock(writer_->retiredMutex);
+    retired.swap(writer_->retired);
+  }
+  std::size_t removed = 0;
+  for (const auto& [weakStore, folders] : retired) {
+    if (const std::shared_ptr<Store> store = weakStore.lock()) {
+      store->forgetFolders(folders);
+    }
+    removeFolders(dir_, folders);
+    removed += folders.size();
+  }
+  return removed;
 }
 
 void LiveModel::holdRemoval(std::uint64_t revision, const std::shared_ptr<const void>& removal) {

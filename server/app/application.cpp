@@ -370,7 +370,8 @@ void Application::start() {
 void Application::run() {
   start();
   // The main thread follows other writers' publishes of models open for reading only (a vsm
-  // merge, another vsmd holding the writer lock) until asked to stop.
+  // merge, another vsmd holding the writer lock), and removes the folders of dropped revisions
+  // whose last reader let go, until asked to stop.
   constexpr auto kFollowEvery = std::chrono::milliseconds(500);
   for (;;) {
     {
@@ -383,6 +384,7 @@ void Application::run() {
       models_->openAll();  // models other nodes imported
     }
     models_->follow();
+    models_->removeRetiredFolders();
   }
   shutdown();
 }

@@ -474,6 +474,14 @@ namespace {
 
 }  // namespace
 
+std::size_t ModelRegistry::removeRetiredFolders() {
+  std::size_t removed = 0;
+  for (const std::shared_ptr<core::LiveModel>& model : list()) {
+    removed += model->removeRetiredFolders();
+  }
+  return removed;
+}
+
 std::shared_ptr<core::LiveModel> ModelRegistry::find(std::string_view id) const {
   const std::lock_guard lock(mutex_);
   const auto it = models_.find(id);

@@ -146,6 +146,11 @@ class ModelRegistry {
   /// A reading that fails is logged and tried again after kFollowRetry. Returns how many models
   /// were read again. For one caller at a time (the daemon calls it twice a second).
   std::size_t follow();
+  /// Removes the folders of dropped revisions whose last reader let go since
+  /// (core::LiveModel::removeRetiredFolders), for every open model: the daemon's housekeeping,
+  /// on its main thread, so that a request letting go of a revision never removes files itself.
+  /// Returns the number of folders removed.
+  std::size_t removeRetiredFolders();
   static constexpr std::chrono::seconds kFollowRetry{5};
 
   /// The open model `id`, or nullptr.

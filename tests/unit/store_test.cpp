@@ -383,8 +383,13 @@ TEST_F(StoreTest, AReaderPinnedOnADroppedRevisionReadsItUntilItLetsGo) {
   EXPECT_TRUE(fs::exists(dir_ / "Patches" / folder));
   EXPECT_NEAR(leafZ(*live, *pinned, {2, 0, 0}), height(3, 3, 0), 1e-3) << "read from disk";
   EXPECT_DOUBLE_EQ(leafZ(*live, *pinned, {2, 1, 1}), z);
+  // Issue 32, finding 8: letting go only queues the removal (a reader may let go on a network
+  // thread or under a lock); removeRetiredFolders() removes, on a thread meant for it.
   pinned.reset();
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / folder));
+  EXPECT_GE(live->removeRetiredFolders(), 1u);
   EXPECT_FALSE(fs::exists(dir_ / "Patches" / folder));
+  EXPECT_EQ(live->removeRetiredFolders(), 0u);
   EXPECT_EQ(codeOf([&] { live->snapshotAt(v); }), ErrorCode::NotFound);
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
@@ -684,7 +689,10 @@ TEST_F(StoreTest, ARevisionReadThroughAnOlderOpeningStaysUntilItsReaderLetsGo) {
   EXPECT_NEAR(leafZ(*old, *pinned, {2, 0, 0}), height(3, 3, 0), 1e-3) << "read from disk";
   pinned.reset();
   EXPECT_TRUE(fs::exists(dir_ / "Patches" / folder)) << "the older opening still serves it";
+  EXPECT_EQ(fresh->removeRetiredFolders(), 0u);
   old.reset();
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / folder)) << "letting go only queues the removal";
+  EXPECT_GE(fresh->removeRetiredFolders(), 1u);
   EXPECT_FALSE(fs::exists(dir_ / "Patches" / folder));
 }
 
