@@ -163,6 +163,23 @@ class Surface:
             worst = max(worst, float(np.abs(h - f(u, v)).max()))
         return worst
 
+    def foot(self, p):
+        """The point of B's true surface along the base's normal through p."""
+        u, v, _ = self.coords(p)
+        return self.point(u, v, self.f_b(u, v))
+
+    def ideal_points(self, with_b=True):
+        """What a merge along the surface should give, as one grid: A's lattice refined 4x over
+        A's whole extent, on B's true surface over B's extent and on A's elsewhere (the checks'
+        positive control: imported as it is, it must pass them). Without B: A refined alone (a
+        negative control: on-B and bump must fail)."""
+        a = self.a
+        fine = Grid(a.u0, a.du / FINER, FINER * (a.nu - 1) + 1, a.v0, a.dv / FINER,
+                    FINER * (a.nv - 1) + 1)
+        u, v = fine.mesh()
+        f = np.where(self.b.inside(u, v) & with_b, self.f_b(u, v), self.f_a(u, v))
+        return self.point(u, v, f)
+
     def write(self, directory):
         os.makedirs(directory, exist_ok=True)
         for which in ("A", "B"):
