@@ -5,7 +5,8 @@ in closed form, written without any of vsm's code.
     /usr/bin/python3 surfaces.py <surface> <out-dir>     writes <out-dir>/A.pcd and B.pcd
     /usr/bin/python3 surfaces.py --list
 
-Surfaces (local frame in metres, z up): `face` (a vertical rock face), `overhang` (a face leaning
+Surfaces (local frame in metres, z up): `ground` (flat ground, the height field today's merge
+handles: the checks' control on a real merge), `face` (a vertical rock face), `overhang` (a face leaning
 20 degrees past vertical), `tunnel` (a horseshoe: 240 degrees of a 3 m circle about a horizontal
 axis; the detail sits on the wall where it is vertical, so the ceiling above it folds over it
 seen along z) and `boulder` (a zone of a 4 m sphere about a horizontal axis, from 120 degrees on
@@ -205,6 +206,17 @@ class Plane(Surface):
         return d @ self.eu, d @ self.ev, d @ self.n
 
 
+class Ground(Plane):
+    name = "ground"
+    description = "flat ground (plane z = 0, facing up), 16 x 16 m: the height field of today"
+
+    def __init__(self):
+        a = Grid(0.0, 0.25, 65, 0.0, 0.25, 65)
+        super().__init__(origin=(0, 0, 0), eu=(1, 0, 0), ev=(0, 1, 0), a=a,
+                         b_start=(5.31, 5.17), b_size=(4.5, 4.5), bump_at=(0.33, 0.5),
+                         groove_at=0.75)
+
+
 class Face(Plane):
     name = "face"
     description = "vertical rock face (plane y = 0, facing -y), 16 x 16 m"
@@ -302,7 +314,7 @@ class Boulder(Surface):
         return 0.08 * np.sin(2 * math.pi * u / 7.0) * np.cos(2 * math.pi * v / 5.0)
 
 
-SURFACES = {cls.name: cls for cls in (Face, Overhang, Tunnel, Boulder)}
+SURFACES = {cls.name: cls for cls in (Ground, Face, Overhang, Tunnel, Boulder)}
 
 
 def make(name):

@@ -24,8 +24,9 @@ Checks
   which placement by interpolation does not enlarge) + both patches' storage rounding (2^-23 x
   the largest local coordinate) + 1 um. For the vertices off by more that lie over Jacksboro,
   their height off Jacksboro's bilinear surface is reported too (the reference's surface there,
-  as its own check shows): a vertex shifted along the surface is still on it, though not where
-  the unturned merge put it.
+  as its own check shows), and how many of those off it lie within 5 of Jacksboro's pixels from
+  its border (the seam): a vertex shifted along the surface is still on it, though not where the
+  unturned merge put it.
 
 Exit 0 when every requested angle passes; prints one line per angle and check.
 """
@@ -53,6 +54,7 @@ JACK = "jacksboro_fault_dem"
 CROP = 33
 ORIGIN = (-84.2458, 36.3029, 500.0)  # Jacksboro's centre, lon/lat/height
 PLACEMENT_TOLERANCE = 0.5
+BORDER_PIXELS = 5  # the diagnosis tells vertices near B's border (the seam) from the others
 
 
 def geodetic_to_ecef(lon, lat, h):
@@ -175,8 +177,8 @@ def compare(ref, turned, angle, cloud_max, raster):
     extra = sorted(set(turned) - set(ref))
     rounding_in = 2 * math.sqrt(3) * 2.0 ** -24 * cloud_max
     count = off = defined_diff = 0
-    worst = worst_height = 0.0
-    off_surface = off_inside = 0
+    worst = worst_height = worst_inner = 0.0
+    off_surface = off_inside = off_border = 0
     for key in set(ref) & set(turned):
         a, b = ref[key], turned[key]
         pb = b.grid @ back.T
@@ -200,18 +202,26 @@ def compare(ref, turned, angle, cloud_max, raster):
             if inside.any():
                 dh = np.abs(h[inside] - raster.bilinear(lon[inside], lat[inside]))
                 off_inside += int(inside.sum())
-                off_surface += int((dh > PLACEMENT_TOLERANCE).sum())
+                far = dh > PLACEMENT_TOLERANCE
+                off_surface += int(far.sum())
+                col, row = raster.pixel(lon[inside], lat[inside])
+                edge = np.minimum(np.minimum(col, raster.width - 1 - col),
+                                  np.minimum(row, raster.height - 1 - row))
+                off_border += int((far & (edge <= BORDER_PIXELS)).sum())
                 worst_height = max(worst_height, float(dh.max()))
+                if (far & (edge > BORDER_PIXELS)).any():
+                    worst_inner = max(worst_inner, float(dh[edge > BORDER_PIXELS].max()))
     ok = not missing and not extra and not defined_diff and not off and count > 0
     depth_ref = max(k[0] for k in ref)
     depth_turned = max(k[0] for k in turned) if turned else -1
     return ok, ("%d leaves (reference %d, %d missing, %d extra, deepest %d vs %d), %d common "
                 "vertices, %d defined on one side only; %d off by more than the rounding "
                 "(%.4f m at the clouds' %.0f m), max %.3f m; of these %d lie over Jacksboro, "
-                "%d of them more than %.1f m in height off its surface (max %.3f m)" %
+                "%d of them more than %.1f m in height off its surface (max %.3f m), %d of "
+                "those within %d of its pixels from its border (farther in: max %.3f m)" %
                 (len(turned), len(ref), len(missing), len(extra), depth_turned, depth_ref, count,
                  defined_diff, off, rounding_in, cloud_max, worst, off_inside, off_surface,
-                 PLACEMENT_TOLERANCE, worst_height))
+                 PLACEMENT_TOLERANCE, worst_height, off_border, BORDER_PIXELS, worst_inner))
 
 
 def main():
