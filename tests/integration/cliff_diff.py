@@ -148,7 +148,8 @@ def diff_at(vsm, slope, work):
     area = totals.get("changed_area", 0.0) or 0.0
     ok = (volume is not None and abs(volume / LOST_VOLUME - 1) <= VOLUME_TOLERANCE and
           abs(area / CHANGED_AREA - 1) <= AREA_TOLERANCE)
-    return ok, ("diff from 2 to 3: d %.3f .. %.3f m, changed area %.2f m^2 (truth %.2f m^2, %+.0f %%), "
+    return ok, ("diff from 2 to 3: d %.3f .. %.3f m, changed area %.2f m^2 (truth %.2f m^2, "
+                "%+.0f %%), "
             "lost volume %s (truth %.3f m^3); totals %s" %
             (totals.get("min") or 0.0, totals.get("max") or 0.0,
              area, CHANGED_AREA, 100 * (area / CHANGED_AREA - 1),

@@ -6,12 +6,12 @@ in closed form, written without any of vsm's code.
     /usr/bin/python3 surfaces.py --list
 
 Surfaces (local frame in metres, z up): `ground` (flat ground, the height field today's merge
-handles: the checks' control on a real merge), `face` (a vertical rock face), `overhang` (a face leaning
-20 degrees past vertical), `tunnel` (a horseshoe: 240 degrees of a 3 m circle about a horizontal
-axis; the detail sits on the wall where it is vertical, so the ceiling above it folds over it
-seen along z) and `boulder` (a zone of a 4 m sphere about a horizontal axis, from 120 degrees on
-one side over the top to 120 degrees on the other: the top is terrain-like, the flanks vertical,
-their lower parts overhang; the detail sits where the flank turns past vertical).
+handles: the checks' control on a real merge), `face` (a vertical rock face), `overhang` (a face
+leaning 20 degrees past vertical), `tunnel` (a horseshoe: 240 degrees of a 3 m circle about a
+horizontal axis; the detail sits on the wall where it is vertical, so the ceiling above it folds
+over it seen along z) and `boulder` (a zone of a 4 m sphere about a horizontal axis, from 120
+degrees on one side over the top to 120 degrees on the other: the top is terrain-like, the flanks
+vertical, their lower parts overhang; the detail sits where the flank turns past vertical).
 
 Every surface is a base surface (plane, cylinder or sphere) with parameters (u, v) in metres of
 arc length along it and a unit normal N(u, v), displaced along N by a height f(u, v):
@@ -20,9 +20,9 @@ arc length along it and a unit normal N(u, v), displaced along N by a height f(u
 
 `coords(p)` inverts the base in closed form: the (u, v) of the base point below p and p's height
 h along N (for a plane the exact offset; for the cylinder and the sphere the radial distance to
-the base). So `h - f(u, v)` is p's signed distance to S along the true normal of the base, which
-bounds p's distance to S from above (up to the factor 1 + |h|/R on curved bases): a check of
-|h - f| <= tol needs no sampling of S at all.
+the base). So `h - f(u, v)` is p's signed distance to S along the true normal of the base: p and
+S(u, v) lie on the same normal line, so |h - f| bounds p's distance to S from above, and a check
+of |h - f| <= tol needs no sampling of S at all. `foot(p)` is that point S(u, v).
 
 A, the coarse scan, samples S with f = fA (a gentle undulation, the same in both scans). B, the
 detail, samples 4x finer over part of A (its lattice not aligned with A's) with f = fB = fA plus

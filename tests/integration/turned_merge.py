@@ -209,7 +209,7 @@ def compare(ref, turned, angle, cloud_max, raster):
                                   np.minimum(row, raster.height - 1 - row))
                 off_border += int((far & (edge <= BORDER_PIXELS)).sum())
                 worst_height = max(worst_height, float(dh.max()))
-                if (far & (edge > BORDER_PIXELS)).any():
+                if (edge > BORDER_PIXELS).any():
                     worst_inner = max(worst_inner, float(dh[edge > BORDER_PIXELS].max()))
     ok = not missing and not extra and not defined_diff and not off and count > 0
     depth_ref = max(k[0] for k in ref)
