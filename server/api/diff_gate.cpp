@@ -47,6 +47,11 @@ void DiffGate::countTimeout() {
   ++stats_.timedOut;
 }
 
+void DiffGate::countAbandoned() {
+  const std::lock_guard lock(mutex_);
+  ++stats_.abandoned;
+}
+
 DiffGate::Stats DiffGate::stats() const {
   const std::lock_guard lock(mutex_);
   return stats_;

@@ -12,7 +12,8 @@ namespace vsm::server::api {
 /// each may run. A diff samples every changed leaf of two revisions and, for the PNG, draws a map
 /// of up to 4096^2 pixels: whole-model work that any client may ask for (reads are public), so the
 /// daemon runs at most `slots` of them at a time and answers more with 503 and Retry-After
-/// (Error(Unavailable)), and stops one at its next leaf once `timeout` has passed.
+/// (Error(Unavailable)), and stops one at its next leaf once `timeout` has passed or its client
+/// has closed the connection.
 ///
 /// Thread-safe.
 class DiffGate {
@@ -47,6 +48,8 @@ class DiffGate {
     /// Diffs refused because every slot was taken, and diffs stopped at their deadline.
     std::uint64_t refused = 0;
     std::uint64_t timedOut = 0;
+    /// Diffs stopped because their client closed the connection.
+    std::uint64_t abandoned = 0;
   };
 
   static std::shared_ptr<DiffGate> create(Options options);
@@ -56,6 +59,8 @@ class DiffGate {
   std::unique_ptr<Slot> enter();
   /// Counts a diff stopped at its deadline.
   void countTimeout();
+  /// Counts a diff stopped because its client went away.
+  void countAbandoned();
   Stats stats() const;
   const Options& options() const { return options_; }
 

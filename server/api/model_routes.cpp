@@ -179,21 +179,28 @@ http::Response getRevisions(const ModelContext& c, const http::Request& request)
       http::cache_control::kRevalidate);
 }
 
-/// Stops a diff at its next leaf once its slot's deadline has passed (the diff reports progress
-/// after every leaf and checks the token before the next).
-class DiffDeadline final : public core::Progress {
+/// Stops a diff at its next leaf once its slot's deadline has passed or its client has gone (the
+/// diff reports progress after every leaf and checks the token before the next).
+class DiffStop final : public core::Progress {
  public:
-  DiffDeadline(std::chrono::steady_clock::time_point deadline, core::CancelToken& cancel)
-      : deadline_(deadline), cancel_(cancel) {}
+  DiffStop(std::chrono::steady_clock::time_point deadline, const http::Request& request,
+           core::CancelToken& cancel)
+      : deadline_(deadline), request_(request), cancel_(cancel) {}
   void report(std::string_view, double) override {
     if (std::chrono::steady_clock::now() >= deadline_) {
       cancel_.cancel();
+    } else if (request_.clientGone()) {
+      abandoned_ = true;
+      cancel_.cancel();
     }
   }
+  bool abandoned() const { return abandoned_; }
 
  private:
   std::chrono::steady_clock::time_point deadline_;
+  const http::Request& request_;
   core::CancelToken& cancel_;
+  bool abandoned_ = false;
 };
 
 /// The working memory of a diff with a map of `mapSize` pixels along its longer side, allocated
@@ -206,7 +213,8 @@ std::size_t diffWorkBytes(int mapSize) {
 /// The diff a request asks for: between the kept revisions ?from=A and ?to=B of model {m}, with a
 /// map of `mapSize` pixels along its longer side when > 0. Runs inside the gate (a slot held
 /// throughout, 503 when none is free), with the map's memory charged to the budget
-/// (Encoding::DiffWork) while it is drawn and encoded, and stops at the slot's deadline (503).
+/// (Encoding::DiffWork) while it is drawn and encoded, and stops at the slot's deadline (503) or
+/// when its client closes the connection (Cancelled, answered to nobody).
 /// `finish` turns the diff into the response while the slot and the charge are held. Throws
 /// Error(InvalidArgument) for a missing or malformed revision, NotFound for one not kept,
 /// Unavailable when every slot is taken or the deadline passed, ResourceExhausted when the map
@@ -228,17 +236,21 @@ http::Response runDiff(const ModelContext& c, const http::Request& request, int 
       mapSize > 0 ? served.encoded->reserve(models::Encoding::DiffWork, diffWorkBytes(mapSize))
                   : nullptr;
   core::CancelToken cancel;
-  DiffDeadline deadline(slot->deadline(), cancel);
+  DiffStop stop(slot->deadline(), request, cancel);
   core::DiffOptions options;
   options.mapSize = mapSize;
   options.cancel = &cancel;
-  options.progress = &deadline;
+  options.progress = &stop;
   try {
     return finish(core::diffRevisions(*served.live, served.live->snapshotAt(from),
                                       served.live->snapshotAt(to), options));
   } catch (const Error& e) {
     if (e.code() != ErrorCode::Cancelled || !cancel.cancelled()) {
       throw;
+    }
+    if (stop.abandoned()) {
+      c.diffs->countAbandoned();
+      throw Error(ErrorCode::Cancelled, "the client of the diff went away; it was stopped");
     }
     c.diffs->countTimeout();
     throw Error(ErrorCode::Unavailable,

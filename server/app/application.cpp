@@ -239,7 +239,8 @@ Application::Application(Config config) : config_(std::move(config)) {
                            {{"running", d.running},
                             {"limit", d.slots},
                             {"refused", d.refused},
-                            {"timed_out", d.timedOut}}}};
+                            {"timed_out", d.timedOut},
+                            {"abandoned", d.abandoned}}}};
   };
   api::addSystemRoutes(*router_, {*cache_, *metrics_, [this] { return ready(); }, reads});
   api::addModelRoutes(*router_, {*models_, *jobs_, coordinator_.get(), diffs});

@@ -1,5 +1,8 @@
 // A connection's life: start, the 503 of a rejected one, graceful shutdown, closing (with a
 // linger), and the access-log line and metrics of every response (see connection.hpp).
+#include <sys/socket.h>
+
+#include <cerrno>
 #include <cstdio>
 #include <string>
 
@@ -71,6 +74,10 @@ Connection::~Connection() {
 }
 
 void Connection::start() {
+  {
+    const std::lock_guard lock(probeMutex_);
+    probeFd_ = stream_.socket().native_handle();
+  }
   net::dispatch(stream_.get_executor(), [self = shared_from_this()] { self->readNext(); });
 }
 
@@ -180,7 +187,21 @@ void Connection::closeNow() {
   endFileWrite();
   error_code ignored;
   stream_.socket().shutdown(tcp::socket::shutdown_both, ignored);
+  const std::lock_guard lock(probeMutex_);
+  probeFd_ = -1;
   stream_.close();
+}
+
+bool Connection::peerGone() const {
+  const std::lock_guard lock(probeMutex_);
+  if (probeFd_ < 0) {
+    return true;
+  }
+  char byte = 0;
+  const ssize_t n = ::recv(probeFd_, &byte, 1, MSG_PEEK | MSG_DONTWAIT);
+  // 0: the peer's FIN (after any bytes it sent, which a peek returns first: a client that sent
+  // more requests is still there); an error other than "nothing yet": reset.
+  return n == 0 || (n < 0 && errno != EAGAIN && errno != EWOULDBLOCK && errno != EINTR);
 }
 
 }  // namespace vsm::server::http

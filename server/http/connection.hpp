@@ -21,6 +21,7 @@
 #include <cstdint>
 #include <deque>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <string>
 #include <string_view>
@@ -129,6 +130,9 @@ class Connection : public std::enable_shared_from_this<Connection> {
   void beginShutdown();
   /// The grace period is over.
   void forceClose();
+  /// True once the peer closed or reset the connection, or it was closed here: a peek at the
+  /// socket (MSG_PEEK, non-blocking) that reads nothing. Any thread (Request::goneProbe).
+  bool peerGone() const;
 
  private:
   /// A request being handled or a response waiting to be written, in request order.
@@ -283,6 +287,10 @@ class Connection : public std::enable_shared_from_this<Connection> {
   bool shutdown_ = false;  // the server is stopping
   bool lingering_ = false;
   bool closed_ = false;
+  /// The socket's descriptor for peerGone(), -1 once closed; guarded by probeMutex_ so that a
+  /// probe never peeks at a descriptor number the process reused.
+  mutable std::mutex probeMutex_;
+  int probeFd_ = -1;
 };
 
 }  // namespace vsm::server::http

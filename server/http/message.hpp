@@ -47,6 +47,11 @@ struct Request {
   /// (limits.connections_per_client; an IPv4-mapped IPv6 address as the IPv4 one). Empty when
   /// made elsewhere (tests).
   std::string client;
+  /// Set by the server: true once the client has closed the connection (or reset it, or the
+  /// server closed it), probed without reading anything, from any thread. A handler of long work
+  /// asks it between steps and stops when nobody waits for the answer. Empty when made elsewhere
+  /// (tests): call clientGone() below.
+  std::function<bool()> goneProbe;
   /// Path parameters, percent-decoded; filled in by the Router ("{m}" -> params["m"]).
   std::map<std::string, std::string, std::less<>> params;
 
@@ -56,6 +61,8 @@ struct Request {
   std::string_view query() const;
   /// The first value of a header field; `name` in any case. nullptr when absent.
   const std::string* header(std::string_view name) const;
+  /// goneProbe's answer; false without one.
+  bool clientGone() const { return goneProbe && goneProbe(); }
   /// A path parameter. Throws core::Error(Internal) when the route has no such parameter.
   const std::string& param(std::string_view name) const;
   /// The first query parameter `name`, percent- and '+'-decoded; nullopt when absent. Throws

@@ -316,6 +316,10 @@ void Connection::onRequest() {
   slot.target = request.target;
   slot.id = request.id;
   queue_.push_back(std::move(slot));
+  request.goneProbe = [connection = weak_from_this()] {
+    const std::shared_ptr<Connection> alive = connection.lock();
+    return !alive || alive->peerGone();
+  };
 
   // The handler runs on the CPU pool; its result comes back to this connection's strand.
   server_.handlers.post([self = shared_from_this(), executor = stream_.get_executor(), seq,

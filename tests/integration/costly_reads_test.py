@@ -15,6 +15,9 @@ library of tests/fault (class `read`: opens for reading) and states are polled.
 3. Diffs are bounded: with limits.diffs=1, a diff.png held at its first read keeps its slot and
    its map's working memory is charged to the budget (encoded bytes "diff", pinned); a second
    diff meanwhile is 503 with Retry-After; once the first ends, the charge is gone.
+4. Diffs stop: one held at its first read past limits.diff_timeout is answered 503 naming the
+   limit (diffs.timed_out); one whose client closes the connection while it is held stops at its
+   next patch instead of running to the end for nobody (diffs.abandoned), and frees its slot.
 """
 
 import argparse
@@ -24,6 +27,7 @@ import shutil
 import subprocess
 import sys
 import threading
+import time
 import unittest
 
 import numpy as np
@@ -214,6 +218,44 @@ class Diffs(Fixture):
         # The slot is free again.
         status, _, body = daemon.request("GET", "/v1/models/%s/diff?from=1&to=3" % MODEL)
         self.assertEqual(status, 200, body)
+
+
+class Stopping(Fixture):
+    def test_a_diff_past_its_deadline_is_503(self):
+        hold = Hold(ARGS.lib, os.path.join(self.root, MODEL), "read",
+                    os.path.join(ARGS.work, "gate-deadline"))
+        daemon = self.start(hold, "--set", "limits.diff_timeout=1ms", "--set", "threads.cpu=4")
+        n = hold.let_through(hold.calls())
+        diff = self.in_thread(daemon, "/v1/models/%s/diff?from=1&to=3" % MODEL)
+        self.assertIsNotNone(hold.wait_held(n + 1))
+        time.sleep(0.01)  # not a wait for an event: the 1 ms deadline has passed for certain
+        hold.release()
+        diff[0].join()
+        status, headers, body = diff[1][0]
+        self.assertEqual(status, 503, body)
+        self.assertIn("limits.diff_timeout", json.loads(body)["error"]["message"])
+        self.assertEqual(reads(daemon, "diffs", "timed_out"), 1)
+        self.assertEqual(reads(daemon, "diffs", "running"), 0)
+
+    def test_a_diff_whose_client_went_away_stops(self):
+        hold = Hold(ARGS.lib, os.path.join(self.root, MODEL), "read",
+                    os.path.join(ARGS.work, "gate-gone"))
+        daemon = self.start(hold, "--set", "limits.diffs=1", "--set", "threads.cpu=4")
+        n = hold.let_through(hold.calls())
+        client = daemon.socket()
+        client.sendall(("GET /v1/models/%s/diff?from=1&to=3 HTTP/1.1\r\nHost: vsm\r\n\r\n"
+                        % MODEL).encode())
+        self.assertIsNotNone(hold.wait_held(n + 1))
+        self.assertEqual(reads(daemon, "diffs", "running"), 1)
+        client.close()
+        hold.release()
+        poll(lambda: reads(daemon, "diffs", "running") == 0)
+        self.assertEqual(reads(daemon, "diffs", "abandoned"), 1)
+        self.assertEqual(reads(daemon, "diffs", "timed_out"), 0)
+        # The slot is free, and a diff whose client stays is answered whole.
+        status, _, body = daemon.request("GET", "/v1/models/%s/diff?from=1&to=3" % MODEL)
+        self.assertEqual(status, 200, body)
+        self.assertEqual(reads(daemon, "diffs", "abandoned"), 1)
 
 
 def main():
