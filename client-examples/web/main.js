@@ -135,15 +135,23 @@ function paletteColour(depth) {
   return DEPTH_PALETTE[Math.min(depth, DEPTH_PALETTE.length - 1)];
 }
 
-/// "4.6 km", "37 m", "0.8 m".
+/// "4.6 km", "37 m", "2.5 m", "0.80 m", "3.2 cm", "4.0 mm": within 5 % of the value from 1 mm up,
+/// and never "0.0 m" for a fine level of a rock-face scan.
 function formatMetres(metres) {
   if (metres === null || metres === undefined) {
     return 'n/a';
   }
-  if (metres >= 1000) {
-    return `${(metres / 1000).toFixed(metres >= 10000 ? 0 : 1)} km`;
+  const size = Math.abs(metres);
+  if (size >= 1000) {
+    return `${(metres / 1000).toFixed(size >= 10000 ? 0 : 1)} km`;
   }
-  return `${metres.toFixed(metres >= 10 ? 0 : 1)} m`;
+  if (size >= 0.1 || size === 0) {
+    return `${metres.toFixed(size >= 10 ? 0 : size >= 1 ? 1 : 2)} m`;
+  }
+  if (size >= 0.01) {
+    return `${(metres * 100).toFixed(1)} cm`;
+  }
+  return `${(metres * 1000).toFixed(size >= 0.001 ? 1 : 2)} mm`;
 }
 
 async function getJson(path) {

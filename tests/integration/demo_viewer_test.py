@@ -157,7 +157,7 @@ class Demo(unittest.TestCase):
         for entry, level in zip(legend, levels):
             self.assertTrue(entry["text"].startswith("depth %d: " % level["depth"]), entry)
             value, unit = entry["text"].split(": ")[1].split()
-            metres = float(value) * (1000 if unit == "km" else 1)
+            metres = float(value) * {"km": 1000, "m": 1, "cm": 0.01, "mm": 0.001}[unit]
             self.assertAlmostEqual(metres / level["resolution"], 1, delta=0.06, msg=entry)
             # The swatch on the screen in its palette colour (sRGB, unlit HTML).
             s = entry["swatch"]
