@@ -295,6 +295,69 @@ TEST(SurfaceCaster, HitsASphereCapAlongItsNormalsWithinTheInterpolationBound) {
   EXPECT_GT(worst, bound / 50);  // the bound is not vacuous
 }
 
+TEST(SurfaceCaster, InsideATunnelTheNearerWallWins) {
+  // A horseshoe around the y axis: radius 3, from -135 to 135 degrees (0 at the crown), every
+  // 270 / 64 degrees, y every 0.5 m.
+  constexpr double kRadius = 3;
+  const auto tunnel = makeGrid(65, {0, 8, 0}, [](int i, int j) -> std::optional<Vec3d> {
+    const double a = (-135 + 270.0 * i / 64) * std::numbers::pi / 180;
+    return Vec3d{kRadius * std::sin(a), j * 0.25, kRadius * std::cos(a)};
+  });
+  const SurfaceCaster caster({tunnel});
+  // The chord sagitta of a cell: how far inside the circle its surface may lie.
+  const double step = 270.0 / 64 * std::numbers::pi / 180;
+  const double sagitta = kRadius * (1 - std::cos(step / 2)) + 1e-5;
+  std::mt19937 rng(17);
+  std::uniform_real_distribution<double> angle(-2.2, 2.2), radius(0, 2.5), y(1, 15);
+  for (int n = 0; n < 2000; ++n) {
+    // From a point inside, off the axis along a direction across the tunnel, cast both ways.
+    const double a = angle(rng), r = radius(rng);
+    const Vec3d d{std::sin(a), 0, std::cos(a)};
+    const Vec3d origin = Vec3d{0, y(rng), 0} + d * r;
+    const auto hit = caster.cast({origin, d, -6, 6});
+    ASSERT_TRUE(hit.has_value()) << n;
+    const double hitRadius = std::hypot(hit->position.x, hit->position.z);
+    EXPECT_LE(hitRadius, kRadius + 1e-6);  // float32 rounding of the stored vertices
+    EXPECT_GE(hitRadius, kRadius - sagitta);
+    EXPECT_LE(offLine(hit->position, origin, d), 1e-9);
+    const Vec3d back = hit->position - Vec3d{0, hit->position.y, 0};
+    // The wall ahead (3 - r away), not the one behind (3 + r, where the horseshoe has one).
+    EXPECT_GT(dot(back, d), 0) << n;
+    EXPECT_NEAR(hit->distance, kRadius - r, sagitta + 1e-9) << n;
+  }
+  // Through the opening (the floor between -135 and 135 degrees): nothing below, the crown above.
+  EXPECT_FALSE(caster.cast({{0, 5, 0}, {0, 0, -1}, 0, 6}).has_value());
+  const auto crown = caster.cast({{0, 5, 0}, {0, 0, -1}, -6, 6});
+  ASSERT_TRUE(crown.has_value());
+  EXPECT_NEAR(crown->position.z, kRadius, 1e-12);
+  EXPECT_NEAR(crown->x, 32, 1e-9);
+  EXPECT_NEAR(crown->y, 20, 1e-9);
+}
+
+TEST(SurfaceCaster, TransformsBAsTheSamplerDoes) {
+  // The plane turned by a rigid transform: a ray turned with it meets the turned point.
+  Mat4d turn;
+  const double c = std::cos(0.7), s = std::sin(0.7);
+  turn.m = {c, 0, s, 10, 0, 1, 0, -20, -s, 0, c, 5, 0, 0, 0, 1};
+  const SurfaceCaster plain({planeGrid()});
+  const SurfaceCaster turned({planeGrid()}, turn);
+  auto rotate = [&](const Vec3d& v) {  // the linear part
+    return turn.apply(v) - turn.apply({0, 0, 0});
+  };
+  for (double i = 1.3; i < 30; i += 2.9) {
+    const double x = 1000 + i / 2, y = 2000 + (32 - i) / 2;
+    const Vec3d origin = Vec3d{x, y, planeZ(x, y)} + Vec3d{0.1, -0.2, 0.6};
+    const auto a = plain.cast({origin, {0.1, 0.2, -1}, -2, 2});
+    const auto b = turned.cast({turn.apply(origin), rotate({0.1, 0.2, -1}), -2, 2});
+    ASSERT_TRUE(a.has_value());
+    ASSERT_TRUE(b.has_value());
+    EXPECT_LE((turn.apply(a->position) - b->position).norm(), 1e-9);
+    EXPECT_NEAR(a->distance, b->distance, 1e-9);
+    EXPECT_NEAR(a->x, b->x, 1e-9);
+    EXPECT_NEAR(a->y, b->y, 1e-9);
+  }
+}
+
 TEST(SurfaceCaster, HolesHaveNoSurface) {
   // The plane with vertex (8, 8) undefined (its four cells become triangles of their other three
   // corners) and vertices (20, 20) and (21, 20) undefined (the two cells between them have two
