@@ -145,6 +145,7 @@ struct SurfaceCaster::Impl {
   std::vector<Vec3d> vertices;  // global (transformed) double positions of the cells' corners
   std::vector<Cell> cells;      // in grid order
   std::vector<std::uint32_t> triangleCell;  // per Embree triangle (primID), its cell
+  std::size_t surfaceTriangles = 0;         // the cells' (the rest are skirts)
   // Seams between B's grids: per vertex on a grid's border that coincides (within rounding) with
   // a vertex of another grid, its group (index into seamCells, else kNone), and per group the
   // cells with a corner in it.
@@ -611,11 +612,84 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     }
   }
 
+  m.surfaceTriangles = triangles.size();
+  // Skirts: every edge of a cell on B's border (no cell across it in its grid, and not a welded
+  // seam) gets a strip of two triangles outside it, owned by the cell, so that a ray within
+  // kBorderTolerance of the cell (SurfaceSampler's measure: the parameter clamped onto a full
+  // cell, a triangle's barycentric coordinates clamped and re-normalised) meets the hierarchy
+  // and resolves to the cell's nearest point. The strip is wider than that (a full cell's sides
+  // extended by 1.5 times the tolerance, a triangle scaled about the corner off the edge by 2
+  // times it, which covers the re-normalised measure): resolve() refuses the rest and the ray
+  // goes on past it. Float vertices only.
+  const auto vertexCount = static_cast<std::uint32_t>(m.vertices.size());
+  std::vector<Vec3d> skirt;
+  {
+    constexpr double kQuadSkirt = 1.5 * SurfaceSampler::kBorderTolerance;
+    constexpr double kTriangleSkirt = 2 * SurfaceSampler::kBorderTolerance;
+    constexpr int kAcrossX[4] = {0, 1, 0, -1};  // the neighbour across edge e = (e, e + 1)
+    constexpr int kAcrossY[4] = {-1, 0, 1, 0};
+    auto addStrip = [&](std::uint32_t a, std::uint32_t b, const Vec3d& awayA, const Vec3d& awayB,
+                        double width, std::uint32_t cellIndex) {
+      const Vec3d& pa = m.vertices[a];
+      const Vec3d& pb = m.vertices[b];
+      const auto ea = vertexCount + static_cast<std::uint32_t>(skirt.size());
+      skirt.push_back(pa + awayA * width);
+      skirt.push_back(pb + awayB * width);
+      triangles.push_back({a, b, ea + 1});
+      triangles.push_back({a, ea + 1, ea});
+      m.triangleCell.push_back(cellIndex);
+      m.triangleCell.push_back(cellIndex);
+    };
+    for (std::size_t c = 0; c < m.cells.size(); ++c) {
+      const Impl::Cell& cell = m.cells[c];
+      const auto& k = cell.corners;
+      const auto cellIndex = static_cast<std::uint32_t>(c);
+      const bool full = k[0] != kNone && k[1] != kNone && k[2] != kNone && k[3] != kNone;
+      std::uint32_t opposite = kNone;  // a triangle's: the corner off a given edge
+      for (int e = 0; e < 4; ++e) {
+        const std::uint32_t a = k[e], b = k[(e + 1) % 4];
+        if (a == kNone || b == kNone) {
+          continue;
+        }
+        const bool across =
+            m.gridCells[cell.grid].at(static_cast<int>(cell.x) + kAcrossX[e],
+                                      static_cast<int>(cell.y) + kAcrossY[e]) != kNone;
+        const bool seam = m.seamGroup[a] != kNone && m.seamGroup[b] != kNone;
+        if (across || seam) {
+          continue;
+        }
+        if (full) {
+          const Vec3d& innerA = m.vertices[k[(e + 3) % 4]];
+          const Vec3d& innerB = m.vertices[k[(e + 2) % 4]];
+          addStrip(a, b, m.vertices[a] - innerA, m.vertices[b] - innerB, kQuadSkirt, cellIndex);
+        } else {
+          for (const std::uint32_t v : k) {
+            if (v != kNone && v != a && v != b) {
+              opposite = v;
+            }
+          }
+          const Vec3d& o = m.vertices[opposite];
+          addStrip(a, b, m.vertices[a] - o, m.vertices[b] - o, kTriangleSkirt, cellIndex);
+        }
+      }
+      if (!full) {  // the diagonal of a 3-corner cell is always B's border
+        // The corners off the diagonal: the missing corner's neighbours in the cycle.
+        int missing = 0;
+        while (k[missing] != kNone) {
+          ++missing;
+        }
+        const std::uint32_t a = k[(missing + 1) % 4], b = k[(missing + 3) % 4];
+        const Vec3d& o = m.vertices[k[(missing + 2) % 4]];
+        addStrip(a, b, m.vertices[a] - o, m.vertices[b] - o, kTriangleSkirt, cellIndex);
+      }
+    }
+  }
+
   const RTCDevice dev = device();
   RTCGeometry geometry = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
   auto* vertexBuffer = static_cast<float*>(
       rtcSetNewGeometryBuffer(geometry, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
-                              3 * sizeof(float), m.vertices.size()));
+                              3 * sizeof(float), m.vertices.size() + skirt.size()));
   auto* indexBuffer = static_cast<unsigned*>(
       rtcSetNewGeometryBuffer(geometry, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
                               3 * sizeof(unsigned), triangles.size()));
@@ -632,9 +706,17 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     vertexBuffer[3 * v + 1] = static_cast<float>(p.y);
     vertexBuffer[3 * v + 2] = static_cast<float>(p.z);
   }
+  for (std::size_t v = 0; v < skirt.size(); ++v) {
+    const Vec3d p = skirt[v] - m.origin;
+    float* f = vertexBuffer + 3 * (vertexCount + v);
+    f[0] = static_cast<float>(p.x);
+    f[1] = static_cast<float>(p.y);
+    f[2] = static_cast<float>(p.z);
+  }
   for (std::size_t t = 0; t < triangles.size(); ++t) {
     for (int k = 0; k < 3; ++k) {
-      indexBuffer[3 * t + k] = weld[triangles[t][k]];
+      const std::uint32_t v = triangles[t][k];
+      indexBuffer[3 * t + k] = v < vertexCount ? weld[v] : v;
     }
   }
   m.tSlack = static_cast<float>(largest * 0x1p-16);
@@ -657,7 +739,7 @@ std::size_t SurfaceCaster::cellCount() const {
 }
 
 std::size_t SurfaceCaster::triangleCount() const {
-  return impl_->triangleCell.size();
+  return impl_->surfaceTriangles;
 }
 
 const Box3d& SurfaceCaster::bounds() const {
@@ -702,6 +784,7 @@ void SurfaceCaster::cast(std::span<const CastRay> rays, std::span<std::optional<
   // has tnear > tfar (inactive). The far end is widened a little for float rounding: the answer is
   // checked against [tmin, tmax] in double.
   std::array<RTCRayHit, 2 * kChunk> stream;
+  std::array<float, 2 * kChunk> far;  // each ray's end of the search (Embree moves tfar to a hit)
   for (std::size_t first = 0; first < rays.size(); first += kChunk) {
     const std::size_t n = std::min(kChunk, rays.size() - first);
     for (std::size_t i = 0; i < n; ++i) {
@@ -729,6 +812,7 @@ void SurfaceCaster::cast(std::span<const CastRay> rays, std::span<std::optional<
           rh.ray.tnear = 1;
           rh.ray.tfar = 0;
         }
+        far[2 * i + side] = rh.ray.tfar;
         rh.ray.time = 0;
         rh.ray.mask = 0xFFFFFFFFu;
         rh.ray.id = 0;
@@ -738,43 +822,55 @@ void SurfaceCaster::cast(std::span<const CastRay> rays, std::span<std::optional<
         rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
       }
     }
+    // Resolves side `side` of ray i (already intersected): a hit the double resolution rejects
+    // (beyond the tolerance, out of [tmin, tmax], or a triangle the bilinear cell does not meet)
+    // does not hide a farther one: the ray goes on past it, a few times at most.
+    auto settle = [&](std::size_t i, int side, const Impl::Line& line) -> std::optional<CastHit> {
+      RTCRayHit& rh = stream[2 * i + side];
+      const CastRay& ray = rays[first + i];
+      for (int attempt = 0; attempt < 4 && rh.hit.geomID != RTC_INVALID_GEOMETRY_ID; ++attempt) {
+        if (std::optional<CastHit> hit =
+                m.resolve(m.triangleCell[rh.hit.primID], line, ray.tmin, ray.tmax)) {
+          return hit;
+        }
+        rh.ray.tnear = rh.ray.tfar + m.tSlack;  // past the rejected hit
+        rh.ray.tfar = far[2 * i + side];
+        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+        if (rh.ray.tnear <= rh.ray.tfar) {
+          rtcIntersect1(m.scene, &context, &rh);
+        }
+      }
+      return std::nullopt;
+    };
     if (batch == Batch::Stream) {
       rtcIntersect1M(m.scene, &context, stream.data(), static_cast<unsigned>(2 * n),
                      sizeof(RTCRayHit));
-    } else {
-      for (std::size_t i = 0; i < n; ++i) {
-        RTCRayHit& forward = stream[2 * i];
-        RTCRayHit& backward = stream[2 * i + 1];
-        if (forward.ray.tnear <= forward.ray.tfar) {
-          rtcIntersect1(m.scene, &context, &forward);
-        }
+    }
+    for (std::size_t i = 0; i < n; ++i) {
+      RTCRayHit& forward = stream[2 * i];
+      RTCRayHit& backward = stream[2 * i + 1];
+      if (forward.ray.tnear > forward.ray.tfar && backward.ray.tnear > backward.ray.tfar) {
+        continue;  // invalid, or nothing to search
+      }
+      const CastRay& ray = rays[first + i];
+      const Vec3d d = ray.direction * (1.0 / ray.direction.norm());
+      const Impl::Line line{ray.origin, d, UpFrame(ray.origin, d)};
+      if (batch == Batch::Single && forward.ray.tnear <= forward.ray.tfar) {
+        rtcIntersect1(m.scene, &context, &forward);
+      }
+      const std::optional<CastHit> a = settle(i, 0, line);
+      if (batch == Batch::Single) {
         // Only a backward hit about as near as the forward one can win.
-        if (forward.hit.geomID != RTC_INVALID_GEOMETRY_ID) {
-          backward.ray.tfar =
-              std::min(backward.ray.tfar, forward.ray.tfar * (1 + 1e-5f) + m.tSlack);
+        if (a) {
+          far[2 * i + 1] = std::min(
+              far[2 * i + 1], static_cast<float>(std::fabs(a->distance)) * (1 + 1e-5f) + m.tSlack);
+          backward.ray.tfar = far[2 * i + 1];
         }
         if (backward.ray.tnear <= backward.ray.tfar) {
           rtcIntersect1(m.scene, &context, &backward);
         }
       }
-    }
-    for (std::size_t i = 0; i < n; ++i) {
-      const RTCRayHit& forward = stream[2 * i];
-      const RTCRayHit& backward = stream[2 * i + 1];
-      if (forward.hit.geomID == RTC_INVALID_GEOMETRY_ID &&
-          backward.hit.geomID == RTC_INVALID_GEOMETRY_ID) {
-        continue;
-      }
-      const CastRay& ray = rays[first + i];
-      const Vec3d d = ray.direction * (1.0 / ray.direction.norm());
-      const Impl::Line line{ray.origin, d, UpFrame(ray.origin, d)};
-      std::optional<CastHit> a, b;
-      if (forward.hit.geomID != RTC_INVALID_GEOMETRY_ID) {
-        a = m.resolve(m.triangleCell[forward.hit.primID], line, ray.tmin, ray.tmax);
-      }
-      if (backward.hit.geomID != RTC_INVALID_GEOMETRY_ID) {
-        b = m.resolve(m.triangleCell[backward.hit.primID], line, ray.tmin, ray.tmax);
-      }
+      const std::optional<CastHit> b = settle(i, 1, line);
       // The nearest wins, the positive side on a tie.
       if (a && b) {
         const double da = std::fabs(a->distance), db = std::fabs(b->distance);

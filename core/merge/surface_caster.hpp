@@ -67,18 +67,23 @@ struct CastHit {
 /// The rule for folds, overhangs and tunnels: the hit nearest to the origin (smallest |t|) within
 /// [tmin, tmax] wins, the positive side on a tie. Where the hit lies on or within float32 rounding
 /// of a cell's border (a ray through a shared edge or vertex, which the hierarchy may report in
-/// either cell), the cell's neighbours in the same grid are intersected too, and the answer is the
-/// smallest (distance outside the cell in grid units, |t|, cell in grid order): it does not depend
-/// on which cell the float traversal reported, nor on the caster's origin or clip. A hit is taken
-/// within SurfaceSampler::kBorderTolerance grid units outside a cell the hierarchy hit (parameter
-/// clamped onto the cell, the point kept on the ray), as SurfaceSampler does. Not done (yet): a
-/// ray that misses every float triangle by rounding (B's outer border, or a sliver between two of
-/// B's grids, which are rounded around their own origins) gets no hit, where SurfaceSampler's
-/// tolerance would give one.
+/// either cell), the cell's neighbours in its grid, and across a seam the other grids' cells
+/// sharing a corner with it, are intersected too, and the answer is the smallest (distance outside
+/// the cell in grid units, |t|, cell in grid order): it does not depend on which cell the float
+/// traversal reported, nor on the caster's origin or clip. B's border is SurfaceSampler's: a ray
+/// within kBorderTolerance grid units of a cell (its parameter clamped onto the cell, or a
+/// triangle's barycentric coordinates clamped and re-normalised) takes the cell's nearest point, at
+/// its distance along the ray (the point stays on the ray). The hierarchy finds those through
+/// skirts, strips of triangles outside every border edge of B (its outer border and around holes),
+/// a little wider than the tolerance: a hit the double resolution refuses (there, or out of [tmin,
+/// tmax]) does not hide a farther one, the ray goes on past it. Not covered: the quarter disc of
+/// the tolerance around a convex corner of B, outside both neighbouring edges' strips.
 ///
 /// Traversal is watertight within a grid (Embree's robust mode: a ray through a shared edge or
-/// vertex hits one of its triangles). The hierarchy is built and cast on the calling thread
-/// (Embree runs with threads=1: core creates no threads). Thread-safe for concurrent const calls.
+/// vertex hits one of its triangles) and across the seams between B's grids (their border
+/// vertices within 1e-4 of a cell edge of each other are one vertex of the float mesh). The
+/// hierarchy is built and cast on the calling thread (Embree runs with threads=1: core creates no
+/// threads). Thread-safe for concurrent const calls.
 class SurfaceCaster {
  public:
   /// Cells per side of the blocks blockBoxes() describes.
@@ -126,7 +131,7 @@ class SurfaceCaster {
             Batch batch = Batch::Single) const;
   std::optional<CastHit> cast(const CastRay& ray) const;
 
-  /// Cells built (full quads and 3-corner triangles), and the triangles in the hierarchy.
+  /// Cells built (full quads and 3-corner triangles), and their triangles (without skirts).
   std::size_t cellCount() const;
   std::size_t triangleCount() const;
   /// Box of the cells built (global).

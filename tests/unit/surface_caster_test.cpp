@@ -393,6 +393,74 @@ TEST(SurfaceCaster, HolesHaveNoSurface) {
   EXPECT_NEAR(hit->y, 7.25, 1e-9);
 }
 
+TEST(SurfaceCaster, BsBorderReachesAsFarAsTheSamplersTolerance) {
+  // The plane with a hole at vertex (8, 8): within kBorderTolerance grid units across B's outer
+  // border and across the diagonals around the hole a ray takes B (its nearest point's distance,
+  // on the ray), beyond it nothing; the sampler along up agrees (away from B's corners, where the
+  // sampler's tolerance is a quarter disc the caster does not cover).
+  const auto grid = makeGrid(33, {1008, 2008, 0}, [](int i, int j) -> std::optional<Vec3d> {
+    if (i == 8 && j == 8) {
+      return std::nullopt;
+    }
+    const double x = 1000 + i / 2.0, y = 2000 + j / 2.0;
+    return Vec3d{x, y, planeZ(x, y)};
+  });
+  const SurfaceCaster caster({grid});
+  const SurfaceSampler sampler({grid}, {0, 0, 1});
+  constexpr double kTolerance = SurfaceSampler::kBorderTolerance;
+  auto rayAt = [](double i, double j) {
+    const double x = 1000 + i / 2.0, y = 2000 + j / 2.0;
+    return CastRay{{x, y, planeZ(x, y) + 0.5}, {0, 0, -1}, -1, 1};
+  };
+  std::mt19937 rng(23);
+  std::uniform_real_distribution<double> along(0.5, 31.5), outside(0, 2 * kTolerance);
+  int taken = 0, refused = 0;
+  for (int n = 0; n < 4000; ++n) {
+    const double a = along(rng), o = outside(rng);
+    double i = 0, j = 0;
+    double measure = o;  // how far outside B the sampler sees the point, in grid units
+    switch (n % 5) {
+      case 0:
+        i = -o, j = a;
+        break;
+      case 1:
+        i = 32 + o, j = a;
+        break;
+      case 2:
+        i = a, j = -o;
+        break;
+      case 3:
+        i = a, j = 32 + o;
+        break;
+      default: {  // beyond the diagonal of cell (7, 7), a 3-corner cell: (7, 8) to (8, 7)
+        const double t = 0.1 + 0.8 * (a - 0.5) / 31;
+        const double s = t + o / std::sqrt(2.0), u = 1 - t + o / std::sqrt(2.0);
+        i = 7 + s, j = 7 + u;
+        // Barycentric coordinates clamped and re-normalised: the point moves towards (7, 7).
+        measure = std::hypot(s, u) * (s + u - 1) / (s + u);
+      }
+    }
+    if (std::fabs(measure - kTolerance) < 1e-3) {
+      continue;
+    }
+    const CastRay ray = rayAt(i, j);
+    const auto hit = caster.cast(ray);
+    const auto expected = sampler.locate(ray.origin);
+    ASSERT_EQ(hit.has_value(), measure < kTolerance) << n << " " << i << " " << j;
+    ASSERT_EQ(expected.has_value(), measure < kTolerance) << n;
+    if (hit) {
+      ++taken;
+      EXPECT_LE((hit->position - expected->position).norm(), 1e-9) << n;
+      EXPECT_NEAR(hit->x, expected->x, 1e-9) << n;
+      EXPECT_NEAR(hit->y, expected->y, 1e-9) << n;
+    } else {
+      ++refused;
+    }
+  }
+  EXPECT_GT(taken, 1000);
+  EXPECT_GT(refused, 1000);
+}
+
 TEST(SurfaceCaster, MissesBeyondTheSearchDistanceAndOutsideB) {
   const SurfaceCaster caster({planeGrid()});
   const Vec3d onPlane{1005, 2005, planeZ(1005, 2005)};
