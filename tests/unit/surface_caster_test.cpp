@@ -7,6 +7,7 @@
 #include <numbers>
 #include <optional>
 #include <random>
+#include <thread>
 #include <vector>
 
 #include "core/common/error.hpp"
@@ -544,6 +545,39 @@ TEST(SurfaceCaster, RaysThroughEdgesAndVerticesHitAndClipsChangeNothing) {
     }
   }
   EXPECT_GT(compared, 1000u);
+}
+
+TEST(SurfaceCaster, BuildsAndCastsOnSeveralThreadsAtOnce) {
+  // A merge builds one caster per new patch, on every executor thread: concurrent construction
+  // and casting (each on its own thread, and two threads on one caster) give the sequential
+  // answers.
+  std::vector<CastRay> rays;
+  for (int n = 0; n < 4000; ++n) {
+    const double x = 1000.3 + (n % 60) * 0.25, y = 2000.3 + (n / 60) * 0.2;
+    rays.push_back({{x, y, planeZ(x, y) + 0.3}, {0.1, 0, 1}, -1, 1});
+  }
+  const SurfaceCaster reference({planeGrid()});
+  std::vector<std::optional<CastHit>> expected(rays.size());
+  reference.cast(rays, expected);
+  std::vector<std::vector<std::optional<CastHit>>> got(
+      4, std::vector<std::optional<CastHit>>(rays.size()));
+  std::vector<std::thread> threads;
+  for (int t = 0; t < 2; ++t) {
+    threads.emplace_back([&, t] {
+      const SurfaceCaster own({planeGrid()});
+      own.cast(rays, got[t]);
+    });
+    threads.emplace_back([&, t] { reference.cast(rays, got[2 + t]); });
+  }
+  for (std::thread& thread : threads) {
+    thread.join();
+  }
+  for (const auto& hits : got) {
+    for (std::size_t r = 0; r < rays.size(); ++r) {
+      ASSERT_TRUE(hits[r].has_value()) << r;
+      EXPECT_EQ(hits[r]->position, expected[r]->position) << r;
+    }
+  }
 }
 
 TEST(SurfaceCaster, CreatesNoThreads) {
