@@ -1,0 +1,147 @@
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <span>
+#include <vector>
+
+#include "core/grid/geometry.hpp"
+#include "core/grid/patch_grid.hpp"
+
+namespace vsm::core {
+
+/// Spacing of a grid along its surface, in 3D (global coordinates, after a transform when given):
+/// the mean distance between defined neighbours along its rows ((x, y) to (x + 1, y)), along its
+/// columns ((x, y) to (x, y + 1)), and over both. 0 where no two such neighbours are defined. This
+/// is "resolution on the surface" (issue 33): a vertical wall has its real spacing, where the
+/// projection across one up direction (merge.cpp's planeResolution) has almost none.
+struct GridSpacing {
+  double rows = 0;
+  double columns = 0;
+  double mean = 0;
+};
+GridSpacing gridSpacing(const PatchGrid& grid,
+                        const std::optional<Mat4d>& transform = std::nullopt);
+
+/// A ray to cast: the line origin + t * direction (direction normalised by the caster, so t is a
+/// length) searched for t in [tmin, tmax]. Along a surface normal: tmin = -search, tmax = search.
+struct CastRay {
+  Vec3d origin;
+  Vec3d direction;
+  double tmin = 0;
+  double tmax = 0;
+};
+
+/// Where a ray met B's surface.
+struct CastHit {
+  /// On the ray (origin + distance * normalised direction), computed in double from the hit cell's
+  /// double vertices (see SurfaceCaster).
+  Vec3d position;
+  /// The grid (index into the caster's `grids`) whose cell was hit, and the point's coordinates in
+  /// that grid's vertex space (vertex (x, y) at (x, y)), as SurfaceSampler::locate gives them:
+  /// where a texture tile of that grid is to be sampled.
+  std::uint32_t grid = 0;
+  double x = 0, y = 0;
+  /// Signed distance from the ray's origin along its (normalised) direction.
+  double distance = 0;
+};
+
+/// B's surface as a set of triangles in a bounding volume hierarchy (Embree 3), for placing and
+/// comparing along the surface instead of along one up direction (issue 33): it answers "where
+/// does this line, within this distance of its origin, meet B's surface". Unlike SurfaceSampler it
+/// does not see B as a height function: vertical walls, overhangs and tunnels are all surface.
+///
+/// B's surface is SurfaceSampler's: a cell with four defined corners is the bilinear surface of
+/// its corners, a cell with exactly three the triangle of those three, other cells have none. The
+/// hierarchy holds each full cell as two triangles, split along its shorter diagonal in 3D (the one
+/// nearer to the bilinear surface over a fold), as float32 triangles around an origin of the
+/// caster's own (the centre of the clip's box, else of all of B: a patch-local origin, so ECEF
+/// coordinates keep their precision). A hit found there only names the cell; the answer is then
+/// computed in double from the cell's double vertices: the ray is intersected with the cell's
+/// bilinear surface (Newton's method from the triangle's barycentric start, the very inversion
+/// SurfaceSampler does in the plane across the ray) or triangle, so a hit lies on the ray and
+/// exactly on SurfaceSampler's surface, and a ray along `up` gets the point sample() gives.
+///
+/// The rule for folds, overhangs and tunnels: the hit nearest to the origin (smallest |t|) within
+/// [tmin, tmax] wins, the positive side on a tie. Where the hit lies on or within float32 rounding
+/// of a cell's border (a ray through a shared edge or vertex, which the hierarchy may report in
+/// either cell), the cell's neighbours in its grid, and across a seam the other grids' cells
+/// sharing a corner with it, are intersected too, and the answer is the smallest (distance outside
+/// the cell in grid units, |t|, cell in grid order): it does not depend on which cell the float
+/// traversal reported, nor on the caster's origin or clip. B's border is SurfaceSampler's: a ray
+/// within kBorderTolerance grid units of a cell (its parameter clamped onto the cell, or a
+/// triangle's barycentric coordinates clamped and re-normalised) takes the cell's nearest point, at
+/// its distance along the ray (the point stays on the ray). The hierarchy finds those through
+/// skirts, strips of triangles outside every border edge of B (its outer border and around holes),
+/// a little wider than the tolerance: a hit the double resolution refuses (there, or out of [tmin,
+/// tmax]) does not hide a farther one, the ray goes on past it. Not covered: the quarter disc of
+/// the tolerance around a convex corner of B, outside both neighbouring edges' strips.
+///
+/// Traversal is watertight within a grid (Embree's robust mode: a ray through a shared edge or
+/// vertex hits one of its triangles) and across the seams between B's grids (their border
+/// vertices within 1e-4 of a cell edge of each other are one vertex of the float mesh). The
+/// hierarchy is built and cast on the calling thread (Embree runs with threads=1: core creates no
+/// threads). Thread-safe for concurrent const calls.
+class SurfaceCaster {
+ public:
+  /// Cells per side of the blocks blockBoxes() describes.
+  static constexpr int kBlockCells = 16;
+
+  /// Global boxes (after `transform` when given) of `grid`'s blocks of kBlockCells x kBlockCells
+  /// cells, row by row (the last ones in a row or column may be smaller), empty where a block has
+  /// no defined vertex. Computed once per grid of B, they let the many clipped casters a merge
+  /// builds skip the blocks far from their clips.
+  static std::vector<Box3d> blockBoxes(const PatchGrid& grid,
+                                       const std::optional<Mat4d>& transform);
+
+  /// Where rays will go: a box in global coordinates. Only cells whose box, grown by
+  /// kBorderTolerance of its size, meets it are built. A ray whose segment [tmin, tmax] lies inside
+  /// `box` gets the answer the whole caster gives.
+  struct Clip {
+    Box3d box;
+    /// Per grid (empty, or one per grid): its blockBoxes(). Blocks far from `box` are skipped
+    /// whole; the cells built, and so every answer, are the same.
+    std::vector<std::span<const Box3d>> blocks = {};
+  };
+
+  /// `grids`: B's bottom grids (vertex data copied in double, after `transform` when given; null
+  /// entries are skipped). Throws Error(InvalidArgument) when `clip`'s blocks do not match the
+  /// grids, Error(Internal) when Embree fails.
+  explicit SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>& grids,
+                         const std::optional<Mat4d>& transform = std::nullopt,
+                         const std::optional<Clip>& clip = std::nullopt);
+  ~SurfaceCaster();
+  SurfaceCaster(SurfaceCaster&&) noexcept;
+  SurfaceCaster& operator=(SurfaceCaster&&) noexcept;
+  SurfaceCaster(const SurfaceCaster&) = delete;
+  SurfaceCaster& operator=(const SurfaceCaster&) = delete;
+
+  /// How a batch goes through Embree: rtcIntersect1 per ray (the default: the backward ray is then
+  /// cut at the forward hit's distance, and tests/bench/caster_bench.sh measured it faster, in
+  /// grid and in random order), or rtcIntersect1M over chunks of rays (a stream).
+  enum class Batch { Single, Stream };
+
+  /// The nearest hit of each ray (see the class comment); nullopt where there is none within
+  /// [tmin, tmax], or for a ray with an undefined or zero direction or origin. `hits` must have
+  /// rays.size() elements (Error(InvalidArgument) otherwise). Rays in grid order (neighbours
+  /// after each other) traverse coherently, several times faster than in random order.
+  void cast(std::span<const CastRay> rays, std::span<std::optional<CastHit>> hits,
+            Batch batch = Batch::Single) const;
+  std::optional<CastHit> cast(const CastRay& ray) const;
+
+  /// Cells built (full quads and 3-corner triangles), and their triangles (without skirts).
+  std::size_t cellCount() const;
+  std::size_t triangleCount() const;
+  /// Box of the cells built (global).
+  const Box3d& bounds() const;
+  /// Bytes held by the caster's own arrays, plus an estimate of the hierarchy's.
+  std::size_t bytes() const;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace vsm::core
