@@ -28,15 +28,15 @@ Checks
 Exit 0 printing one summary line; exit 1 listing the failures (at most 50, then a count).
 """
 
-import math
 import os
 import re
-import struct
 import sys
 import xml.etree.ElementTree as ET
 
 import numpy as np
 from osgeo import gdal, osr
+
+import harness  # the .aara reader (beside this file)
 
 gdal.UseExceptions()
 
@@ -49,7 +49,6 @@ EP2 = (A * A - B * B) / (B * B)
 
 QUADRANTS = {"nw": (0, 0), "ne": (1, 0), "sw": (0, 1), "se": (1, 1)}
 QUADRANT_ORDER = ["nw", "ne", "sw", "se"]
-AARA_TYPES = {"V3f": ("<f4", 3), "V3d": ("<f8", 3)}
 MAX_LISTED = 50
 
 
@@ -89,30 +88,12 @@ def numbers(text):
                                          text, flags=re.IGNORECASE)]
 
 
-def aara_parts(path):
-    """(type name, sizes, data, header length) of an .aara file, per OPC.md."""
-    with open(path, "rb") as f:
-        data = f.read()
-    n = data[0]
-    type_name = data[1:1 + n].decode("ascii")
-    dims = data[1 + n]
-    sizes = struct.unpack_from("<%di" % dims, data, 2 + n)
-    return type_name, sizes, data, 2 + n + 4 * dims
-
-
 def read_aara(path):
     """(type name, sizes, elements as float64 array of shape (rows, cols, 3))."""
-    type_name, sizes, data, header = aara_parts(path)
-    if type_name not in AARA_TYPES or len(sizes) != 2:
-        raise ValueError("%s: unexpected array %s with %d dimensions" %
-                         (path, type_name, len(sizes)))
-    dtype, components = AARA_TYPES[type_name]
-    count = sizes[0] * sizes[1]
-    expected = header + count * components * np.dtype(dtype).itemsize
-    if len(data) != expected:
-        raise ValueError("%s: %d bytes, expected %d" % (path, len(data), expected))
-    values = np.frombuffer(data, dtype=dtype, offset=header, count=count * components)
-    return type_name, sizes, values.reshape(sizes[1], sizes[0], components).astype(np.float64)
+    type_name, sizes, values = harness.read_aara(path)
+    if type_name not in ("V3f", "V3d"):
+        raise ValueError("%s: unexpected array %s" % (path, type_name))
+    return type_name, tuple(sizes), values.astype(np.float64)
 
 
 def read_hierarchy(opc, name="patchhierarchy.xml"):
@@ -192,11 +173,8 @@ TIFF_MAGIC = (b"II*\x00", b"MM\x00*")
 
 def aara_header(path):
     """(type name, sizes) of an .aara file, checking that its length fits them."""
-    type_name, sizes, data, header = aara_parts(path)
-    element = {"V2f": 8, "V2d": 16, "V3f": 12, "V3d": 24}.get(type_name, 0)
-    if len(data) != header + int(np.prod(sizes)) * element:
-        raise ValueError("%s: %d bytes do not hold %s %s" % (path, len(data), type_name, sizes))
-    return type_name, list(sizes)
+    type_name, sizes, _ = harness.read_aara(path)
+    return type_name, sizes
 
 
 def check_pro3d(opc, failures, only=None):

@@ -27,33 +27,17 @@ import struct
 import subprocess
 import sys
 import tempfile
-import time
-import urllib.request
 import xml.etree.ElementTree as ET
 
 import numpy as np
 from osgeo import gdal
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import harness  # noqa: E402
+from check_import import read_hierarchy  # noqa: E402
+from harness import Daemon, read_aara  # noqa: E402
+
 gdal.UseExceptions()
-
-TYPES = {"V2f": ("<f", 2, 8), "V2d": ("<d", 2, 16), "V3f": ("<f", 3, 12), "V3d": ("<d", 3, 24)}
-
-
-def read_aara(path):
-    """(type name, [columns, rows], float array of shape (rows, columns, k)) per OPC.md."""
-    with open(path, "rb") as f:
-        data = f.read()
-    n = data[0]
-    name = data[1:1 + n].decode("ascii")
-    dims = data[1 + n]
-    sizes = list(struct.unpack_from("<%di" % dims, data, 2 + n))
-    header = 2 + n + 4 * dims
-    fmt, k, size = TYPES[name]
-    count = sizes[0] * sizes[1]
-    assert len(data) == header + count * size, (path, len(data), header, count, size)
-    values = np.frombuffer(data, dtype=np.dtype(fmt), offset=header).reshape(sizes[1], sizes[0], k)
-    return name, sizes, values
-
 
 def bilinear(image, x, y):
     """image (bands, rows, cols) at pixel-edge coordinates (x, y): bilinear between centres."""
@@ -73,27 +57,16 @@ def check_glb(args, opc):
     """The root's GLB from a real vsmd: texture embedded, coordinates in [0, 1], valid glTF."""
     root = tempfile.mkdtemp(prefix="vsm-texture-")
     shutil.copytree(opc, os.path.join(root, "jack"))
-    port_file = os.path.join(root, "port")
-    log = open(os.path.join(root, "vsmd.log"), "w")
-    daemon = subprocess.Popen([args.vsmd, "--listen", "127.0.0.1:0", "--data-root", root,
-                               "--port-file", port_file], stdout=log, stderr=subprocess.STDOUT)
+    daemon = Daemon(root=root, vsmd=args.vsmd)
     try:
-        deadline = time.monotonic() + 120  # a bound that only ends a hang
-        while not os.path.exists(port_file):
-            assert daemon.poll() is None and time.monotonic() < deadline, "vsmd did not start"
-            time.sleep(0.05)  # the poll interval
-        with open(port_file) as f:  # written atomically (renamed into place) once listening
-            port = int(f.read())
         # The default (meshopt-compressed) GLB and the uncompressed one.
         glbs = {}
         for query in ("", "?compress=none"):
-            url = "http://127.0.0.1:%d/v1/models/jack/3dtiles/0_0_0.glb%s" % (port, query)
-            with urllib.request.urlopen(url, timeout=60) as response:
-                glbs[query] = response.read()
+            status, _, glbs[query] = daemon.request(
+                "GET", "/v1/models/jack/3dtiles/0_0_0.glb%s" % query, timeout=60)
+            assert status == 200, (query, status, glbs[query][:200])
     finally:
-        daemon.terminate()
-        daemon.wait(timeout=30)
-        log.close()
+        daemon.stop(timeout=30)
     for query, data in glbs.items():
         json_length = struct.unpack_from("<I", data, 12)[0]
         gltf = json.loads(data[20:20 + json_length])
@@ -144,8 +117,8 @@ def main():
     opc = os.path.join(args.work, "jacksboro-textured")
     shutil.rmtree(args.work, ignore_errors=True)
     os.makedirs(args.work)
-    subprocess.run([args.vsm, "import", dem_path, opc, "--texture", image_path,
-                    "--patch-size", "65"], check=True)
+    harness.configure(args)
+    harness.import_dem(dem_path, opc, 65, "--texture", image_path)
     assert sorted(os.listdir(args.work)) == ["jacksboro-textured"], os.listdir(args.work)
 
     dem = gdal.Open(dem_path)
@@ -157,13 +130,8 @@ def main():
     n = 65
     tile_size = n - 1
 
-    hierarchy = ET.parse(os.path.join(opc, "Patches", "patchhierarchy.xml")).getroot()
-    children = {}
-    for item in hierarchy.find("PatchHierarchy/SubPatchMap"):
-        val = item.find("val")
-        children[item.find("key").text] = {q.tag: q.text for q in val}
-    folders = [hierarchy.find("PatchHierarchy/RootPatch").text]
-    folders += [c for kids in children.values() for c in kids.values()]
+    _, root_folder, children = read_hierarchy(opc)
+    folders = [root_folder] + [c for kids in children.values() for c in kids.values()]
 
     tiles = {}
     leaf_checks = 0

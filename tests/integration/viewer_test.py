@@ -42,8 +42,8 @@ import sys
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
-from server_test import Daemon  # noqa: E402
+import harness  # noqa: E402
+from harness import Daemon  # noqa: E402
 
 ARGS = None
 MODEL = "merged"
@@ -533,7 +533,7 @@ def main():
     parser.add_argument("--screenshots", required=True, help="where the screenshots are kept")
     parser.add_argument("--chromium", default="", help="the browser (default /usr/bin/chromium)")
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
