@@ -62,6 +62,21 @@ class Failures:
         if len(self.items) < MAX_LISTED:
             self.items.append(message)
 
+    def report(self, summary=""):
+        """Prints the failures (the first MAX_LISTED, then how many more) and the summary; the
+        exit status: 1 with failures, else 0."""
+        for message in self.items:
+            print("FAIL " + message)
+        if self.count > len(self.items):
+            print("... and %d more failures" % (self.count - len(self.items)))
+        if self.count:
+            if summary:
+                print(summary)
+            print("%d failures" % self.count)
+            return 1
+        print(("OK " + summary).rstrip())
+        return 0
+
 
 # ------------------------------------------------------------------------------------------------
 # Reading the OPC
@@ -509,16 +524,7 @@ def check(raster_path, opc):
                (opc, len(patches), leaves, depth, n, stats["samples"], stats["overlap"],
                 stats["undefined"], stats["parent_vertices"], stats["horizontal"],
                 stats["vertical"], stats["parent"]))
-    if failures.count:
-        for message in failures.items:
-            print("FAIL " + message)
-        if failures.count > len(failures.items):
-            print("... and %d more failures" % (failures.count - len(failures.items)))
-        print(summary)
-        print("%d failures" % failures.count)
-        return 1
-    print("OK " + summary)
-    return 0
+    return failures.report(summary)
 
 
 if __name__ == "__main__":

@@ -110,7 +110,7 @@ class Demo(unittest.TestCase):
         cls.daemon = Daemon("--viewer-dir", os.path.join(cls.demo, "viewer"),
                             "--set", "threads.cpu=2", "--log-level", "warn",
                             root=os.path.join(cls.demo, "models"))
-        cls.base_url = "http://127.0.0.1:%d" % cls.daemon.port
+        cls.base_url = cls.daemon.base
         cls.dem = Raster(os.path.join(ARGS.data, "PRISMelevation.tif"))
 
     @classmethod

@@ -381,18 +381,19 @@ def read_raster(path):
     return heights, dataset.GetGeoTransform()
 
 
-def write_raster(path, heights, west, north, pixel, nodata=None):
-    """A float32 GeoTIFF in WGS 84 of a 2-D array (row 0 north), square pixels of `pixel`
-    degrees from (west, north)."""
+def write_raster(path, heights, west, north, pixel, nodata=None, epsg=4326):
+    """A float32 GeoTIFF of a 2-D array (row 0 north), square pixels of `pixel` degrees from
+    (west, north), in the CRS of `epsg` (WGS 84; None: no CRS)."""
     import numpy as np
     from osgeo import gdal, osr
     gdal.UseExceptions()
     rows, cols = heights.shape
     ds = gdal.GetDriverByName("GTiff").Create(path, cols, rows, 1, gdal.GDT_Float32)
     ds.SetGeoTransform((west, pixel, 0.0, north, 0.0, -pixel))
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(4326)
-    ds.SetProjection(srs.ExportToWkt())
+    if epsg is not None:
+        srs = osr.SpatialReference()
+        srs.ImportFromEPSG(epsg)
+        ds.SetProjection(srs.ExportToWkt())
     band = ds.GetRasterBand(1)
     if nodata is not None:
         band.SetNoDataValue(nodata)

@@ -44,11 +44,12 @@ import subprocess
 import sys
 
 import numpy as np
-from osgeo import gdal, osr
+from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from check_import import Failures, ecef_to_geodetic  # noqa: E402
-from merge_check import GeoRaster, load  # noqa: E402
+from check_import import Failures  # noqa: E402
+from harness import write_raster  # noqa: E402
+from merge_check import GeoRaster, leaf_points, load  # noqa: E402
 
 gdal.UseExceptions()
 
@@ -80,22 +81,6 @@ CASES = {
 def a_height(col, row):
     """A's heights at fractional A pixel (column, row): a gentle tilted, curved surface."""
     return 200.0 + 0.3 * col - 0.2 * row + 0.004 * (col - 30.0) ** 2
-
-
-def write_raster(path, heights, west, north, pixel, nodata=None):
-    driver = gdal.GetDriverByName("GTiff")
-    rows, cols = heights.shape
-    ds = driver.Create(path, cols, rows, 1, gdal.GDT_Float32)
-    ds.SetGeoTransform((west, pixel, 0.0, north, 0.0, -pixel))
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(4326)
-    ds.SetProjection(srs.ExportToWkt())
-    band = ds.GetRasterBand(1)
-    if nodata is not None:
-        band.SetNoDataValue(nodata)
-    band.WriteArray(heights.astype(np.float32))
-    band.FlushCache()
-    ds = None
 
 
 def make_target(path):
@@ -133,18 +118,11 @@ def run(args):
 def leaf_vertices(patches, children_of):
     """(lon, lat, height, tolerance, depth) of every defined vertex of every leaf."""
     out = [[], [], [], [], []]
-    for key, patch in patches.items():
-        if children_of[key]:
-            continue
-        g = patch.grid.reshape(-1, 3)
-        g = g[~np.isnan(g[:, 0])]
-        if len(g) == 0:
-            continue
-        lon, lat, h = ecef_to_geodetic(g[:, 0], g[:, 1], g[:, 2])
+    for key, patch, lon, lat, h in leaf_points(patches, children_of):
         for target, values in zip(out, (lon, lat, h)):
             target.append(values)
-        out[3].append(np.full(len(g), 16 * patch.rounding + 1e-6))
-        out[4].append(np.full(len(g), key[0]))
+        out[3].append(np.full(len(h), 16 * patch.rounding + 1e-6))
+        out[4].append(np.full(len(h), key[0]))
     return [np.concatenate(values) for values in out]
 
 

@@ -163,11 +163,10 @@ def tree_digest(opc):
     return folder_digest(opc)
 
 
-def check_placement(merged, children_of, detail, target, failures, stats):
-    """(a) and (b) over every defined leaf vertex inside the detail raster."""
-    max_depth = max(k[0] for k in merged)
-    heights, lons, lats, depths = [], [], [], []
-    for key, patch in merged.items():
+def leaf_points(patches, children_of):
+    """(key, patch, lon, lat, height) of each leaf with defined vertices: those vertices in
+    geodetic coordinates (WGS 84)."""
+    for key, patch in patches.items():
         if children_of[key]:
             continue
         g = patch.grid.reshape(-1, 3)
@@ -175,6 +174,14 @@ def check_placement(merged, children_of, detail, target, failures, stats):
         if len(g) == 0:
             continue
         lon, lat, h = ecef_to_geodetic(g[:, 0], g[:, 1], g[:, 2])
+        yield key, patch, lon, lat, h
+
+
+def check_placement(merged, children_of, detail, target, failures, stats):
+    """(a) and (b) over every defined leaf vertex inside the detail raster."""
+    max_depth = max(k[0] for k in merged)
+    heights, lons, lats, depths = [], [], [], []
+    for key, patch, lon, lat, h in leaf_points(merged, children_of):
         inside = detail.inside(lon, lat)
         if not inside.any():
             continue
@@ -370,16 +377,7 @@ def main():
          stats.get("triangle_max", 0), stats.get("target_max", 0), stats.get("target_mean", 0),
          stats["parent_vertices"], stats["parent"], stats.get("matched", 0),
          stats.get("affected", 0), stats.get("unchanged", 0)))
-    if failures.count:
-        for message in failures.items:
-            print("FAIL " + message)
-        if failures.count > len(failures.items):
-            print("... and %d more failures" % (failures.count - len(failures.items)))
-        print(summary)
-        print("%d failures" % failures.count)
-        return 1
-    print("OK " + summary)
-    return 0
+    return failures.report(summary)
 
 
 if __name__ == "__main__":

@@ -40,7 +40,7 @@ Exit 0 printing a summary; exit 1 listing the failures.
 """
 
 import argparse
-import json
+import http.client
 import os
 import random
 import re
@@ -51,9 +51,9 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.request
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from harness import Daemon  # noqa: E402
 from model_states import crop, make_outside_model, version_of, which  # noqa: E402
 
 DRAFT = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v[0-9]+-[0-9a-f]{8}")
@@ -122,28 +122,15 @@ class DaemonMerge:
         self.vsmd, self.root, self.scratch = vsmd, root, scratch
 
     def start(self):
-        port_file = os.path.join(self.scratch, "port")
-        if os.path.exists(port_file):
-            os.remove(port_file)
-        self.log = open(os.path.join(self.scratch, "vsmd.log"), "w")
-        self.proc = subprocess.Popen([self.vsmd, "--listen", "127.0.0.1:0", "--data-root",
-                                      self.root, "--port-file", port_file, "--token", "kill"],
-                                     stdout=self.log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 30
-        while not os.path.exists(port_file):
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError("vsmd did not start")
-            time.sleep(0.005)
-        self.base = "http://127.0.0.1:%s" % open(port_file).read().strip()
+        self.daemon = Daemon("--token", "kill", root=self.root, vsmd=self.vsmd,
+                             port_file=os.path.join(self.scratch, "port"),
+                             log_path=os.path.join(self.scratch, "vsmd.log"), start_deadline=30)
+        self.proc = self.daemon.proc
         self.publishing = [None, None]
         self.seen = threading.Event()
         self.state = None
-        request = urllib.request.Request(
-            self.base + "/v1/jobs", method="POST",
-            data=json.dumps({"type": "merge", "target": "target", "source": "detail"}).encode(),
-            headers={"Authorization": "Bearer kill", "Content-Type": "application/json"})
-        with urllib.request.urlopen(request, timeout=30) as response:
-            self.job = json.loads(response.read())["id"]
+        self.job = self.daemon.submit({"type": "merge", "target": "target",
+                                       "source": "detail"})["id"]
         self.start_time = time.monotonic()
         self.poller = threading.Thread(target=self._poll)
         self.poller.start()
@@ -152,9 +139,8 @@ class DaemonMerge:
     def _poll(self):
         while self.proc.poll() is None:
             try:
-                with urllib.request.urlopen(self.base + "/v1/jobs/" + self.job, timeout=5) as r:
-                    job = json.loads(r.read())
-            except (OSError, ValueError):
+                _, _, job = self.daemon.get_json("/v1/jobs/" + self.job)
+            except (OSError, ValueError, http.client.HTTPException):
                 break  # killed
             now = time.monotonic() - self.start_time
             if self.publishing[0] is None and job.get("stage") == "publishing":
@@ -181,7 +167,6 @@ class DaemonMerge:
             self.proc.send_signal(signal.SIGTERM)
         rc = self.proc.wait()
         self.poller.join()
-        self.log.close()
         if rc == 0 and self.state != "succeeded":
             rc = 1
         with open(os.path.join(self.scratch, "vsmd.log")) as f:

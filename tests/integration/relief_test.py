@@ -195,13 +195,7 @@ def main():
                "hillshade %.3f (> %.2f); controls %s (< %.2f); %d parent quadrants exact" %
                (checked, got.size, correlation, MIN_CORRELATION, ", ".join(control_text),
                 MAX_CONTROL, parent_quadrants))
-    if failures.count:
-        for message in failures.items:
-            print("FAIL " + message)
-        print(summary)
-        return 1
-    print(summary)
-    return 0
+    return failures.report(summary)
 
 
 if __name__ == "__main__":

@@ -97,7 +97,7 @@ class Terrain(unittest.TestCase):
                                           t[0] + size.RasterXSize * t[1], t[3])
         cls.daemon = Daemon("--set", "threads.cpu=2", "--viewer-dir", cls.site,
                             "--log-level", "warn", prepare=prepare)
-        cls.base_url = "http://127.0.0.1:%d" % cls.daemon.port
+        cls.base_url = cls.daemon.base
 
     @classmethod
     def tearDownClass(cls):

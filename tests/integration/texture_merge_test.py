@@ -293,12 +293,7 @@ def main():
         "%.2f of B's image (%d unlike A's), %d outside within %.2f of A's image, %d parent "
         "quadrants exact" % (len(m_patches), len(new_keys), len(shared), inside, worst_inside,
                              differs, outside, worst_outside, parents) + "; " + mixed)
-    if failures.count:
-        print("\n".join(failures.items), file=sys.stderr)
-        print("texture merge: %d failures" % failures.count, file=sys.stderr)
-        return 1
-    print(summary)
-    return 0
+    return failures.report(summary)
 
 
 if __name__ == "__main__":

@@ -301,7 +301,7 @@ class Browser(unittest.TestCase):
         os.makedirs(ARGS.screenshots, exist_ok=True)
         cls.daemon = Daemon("--set", "threads.cpu=2", "--viewer-dir", ARGS.viewer,
                             "--log-level", "warn", prepare=prepare)
-        cls.base_url = "http://127.0.0.1:%d" % cls.daemon.port
+        cls.base_url = cls.daemon.base
 
     @classmethod
     def tearDownClass(cls):
