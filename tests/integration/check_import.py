@@ -25,12 +25,15 @@ Checks
 - PRo3D opens it (check_pro3d, OPC.md): Images/ beside Patches/, and every patch names a
   Coordinates file of its positions' size and a first texture whose tile exists under Images/.
 
-Exit 0 printing one summary line; exit 1 listing the failures (at most 50, then a count).
+A unittest case: it prints one summary line and fails listing the failures (at most 50,
+then a count).
 """
 
+import argparse
 import os
 import re
 import sys
+import unittest
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -53,6 +56,10 @@ MAX_LISTED = 50
 
 
 class Failures:
+    """The findings of a checker that walks a whole model (thousands of patches, each checked
+    alone): collected rather than raised at the first, so one run lists them all; the test then
+    asserts there are none (assert_none)."""
+
     def __init__(self):
         self.items = []
         self.count = 0
@@ -62,20 +69,14 @@ class Failures:
         if len(self.items) < MAX_LISTED:
             self.items.append(message)
 
-    def report(self, summary=""):
-        """Prints the failures (the first MAX_LISTED, then how many more) and the summary; the
-        exit status: 1 with failures, else 0."""
-        for message in self.items:
-            print("FAIL " + message)
-        if self.count > len(self.items):
-            print("... and %d more failures" % (self.count - len(self.items)))
-        if self.count:
-            if summary:
-                print(summary)
-            print("%d failures" % self.count)
-            return 1
-        print(("OK " + summary).rstrip())
-        return 0
+    def assert_none(self, test, summary=""):
+        """The verdict of a unittest case: the summary printed, then none failed (the first
+        MAX_LISTED listed in the assertion's message)."""
+        if summary:
+            print(summary)
+        more = self.count - len(self.items)
+        test.assertEqual(self.count, 0, "%d failures:\n%s" % (
+            self.count, "\n".join(self.items + (["... and %d more" % more] if more else []))))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -482,19 +483,28 @@ def check_parents(patches, children_of, n, failures, stats):
                              % (parent.folder, i, j, d[k], limit[k]))
 
 
+ARGS = None
+
+
+class CheckImport(unittest.TestCase):
+    def test_the_model_is_the_raster(self):
+        """Geometry, hierarchy, parents and PRo3D completeness of the OPC against the raster."""
+        try:
+            failures, summary = check(ARGS.raster, ARGS.opc)
+        except (OSError, ValueError, KeyError, AttributeError, IndexError, ET.ParseError,
+                RuntimeError) as e:
+            # A file that cannot be read as the specification says is a failure, not a crash.
+            self.fail("%s: %s: %s" % (ARGS.opc, type(e).__name__, e))
+        failures.assert_none(self, summary)
+
+
 def main():
-    if len(sys.argv) != 3:
-        print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
-        return 2
-    raster_path, opc = sys.argv[1], sys.argv[2]
-    try:
-        return check(raster_path, opc)
-    except (OSError, ValueError, KeyError, AttributeError, IndexError, ET.ParseError,
-            RuntimeError) as e:
-        # A file that cannot be read as the specification says is a failure, not a crash.
-        print("FAIL %s: %s: %s" % (opc, type(e).__name__, e))
-        print("1 failure")
-        return 1
+    global ARGS
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("raster")
+    parser.add_argument("opc")
+    ARGS, rest = parser.parse_known_args()
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
 def check(raster_path, opc):
@@ -524,8 +534,8 @@ def check(raster_path, opc):
                (opc, len(patches), leaves, depth, n, stats["samples"], stats["overlap"],
                 stats["undefined"], stats["parent_vertices"], stats["horizontal"],
                 stats["vertical"], stats["parent"]))
-    return failures.report(summary)
+    return failures, summary
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -38,12 +38,13 @@ import shutil
 import subprocess
 import sys
 import time
+import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import harness  # noqa: E402
 from harness import Daemon  # noqa: E402
 from model_states import (  # noqa: E402
-                          check_valid_and_reopened, crop, exit_status,
+                          assert_no_failures, check_valid_and_reopened, crop,
                           make_outside_model, version_of, which)
 
 
@@ -302,6 +303,51 @@ def sweep(scenario, failures, totals):
     totals.append((scenario.name, len(calls), per_class, counts, time.monotonic() - started))
 
 
+ARGS = None
+
+
+class FaultSweep(unittest.TestCase):
+    def test_every_fault_leaves_the_old_or_the_new_version(self):
+        """Each writer with one file-system call failed at sampled points: a clear error or a
+        reported warning, the model old or new, valid, no orphans after the next open."""
+        work = os.path.abspath(ARGS.work)
+        if os.path.exists(work):
+            shutil.rmtree(work)
+        inputs = os.path.join(work, "inputs")
+        os.makedirs(inputs)
+        prism = os.path.join(ARGS.data, "PRISMelevation.tif")
+        jack = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
+        image = os.path.join(ARGS.data, "conus_visible_earth.tif")
+        target_tif = crop(prism, os.path.join(inputs, "target.tif"), -84.8, 36.8, -83.8, 35.8)
+        detail_tif = crop(jack, os.path.join(inputs, "detail.tif"), -84.40, 36.44, -84.36, 36.40)
+
+        def imported(tif, name, texture=False):
+            out = os.path.join(inputs, name)
+            extra = ["--texture", image] if texture else []
+            harness.import_dem(tif, out, PATCH, *extra)
+            return out
+
+        target, detail = imported(target_tif, "target"), imported(detail_tif, "detail")
+        ttarget, tdetail = imported(target_tif, "ttarget", True), imported(detail_tif, "tdetail", True)
+        outside = make_outside_model(ARGS.vsm, inputs, PATCH)
+        scenarios = {
+            "import": lambda: CliImport("import", work, detail_tif, outside),
+            "merge": lambda: CliMerge("merge", work, target, detail, outside),
+            "textured": lambda: CliMerge("textured", work, ttarget, tdetail, outside),
+            "vsmd": lambda: DaemonMerge("vsmd", work, target, detail, outside),
+        }
+        failures, totals = [], []
+        for name in ARGS.scenarios.split(","):
+            sweep(scenarios[name](), failures, totals)
+        for name, calls, per_class, counts, seconds in totals:
+            print("%s: %d counted calls (%s); %d runs, %d faults injected, %d missed; outcomes: "
+                  "%d errors, %d warnings; %d old, %d new; %.1f s" %
+                  (name, calls, ", ".join("%s %d" % kv for kv in per_class.items()), counts["runs"],
+                   counts["injected"], counts["missed"], counts["error"], counts["warned"],
+                   counts["old"], counts["new"], seconds))
+        assert_no_failures(self, failures)
+
+
 def main():
     global ARGS
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
@@ -313,45 +359,10 @@ def main():
     parser.add_argument("--scenarios", default="import,merge,textured,vsmd")
     parser.add_argument("--window", type=int, default=6)
     parser.add_argument("--samples", type=int, default=5)
-    ARGS = parser.parse_args()
-    work = os.path.abspath(ARGS.work)
-    if os.path.exists(work):
-        shutil.rmtree(work)
-    inputs = os.path.join(work, "inputs")
-    os.makedirs(inputs)
-    prism = os.path.join(ARGS.data, "PRISMelevation.tif")
-    jack = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
-    image = os.path.join(ARGS.data, "conus_visible_earth.tif")
-    target_tif = crop(prism, os.path.join(inputs, "target.tif"), -84.8, 36.8, -83.8, 35.8)
-    detail_tif = crop(jack, os.path.join(inputs, "detail.tif"), -84.40, 36.44, -84.36, 36.40)
-
-    def imported(tif, name, texture=False):
-        out = os.path.join(inputs, name)
-        extra = ["--texture", image] if texture else []
-        subprocess.run([ARGS.vsm, "import", tif, out, "--patch-size", str(PATCH)] + extra,
-                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        return out
-
-    target, detail = imported(target_tif, "target"), imported(detail_tif, "detail")
-    ttarget, tdetail = imported(target_tif, "ttarget", True), imported(detail_tif, "tdetail", True)
-    outside = make_outside_model(ARGS.vsm, inputs, PATCH)
-    scenarios = {
-        "import": lambda: CliImport("import", work, detail_tif, outside),
-        "merge": lambda: CliMerge("merge", work, target, detail, outside),
-        "textured": lambda: CliMerge("textured", work, ttarget, tdetail, outside),
-        "vsmd": lambda: DaemonMerge("vsmd", work, target, detail, outside),
-    }
-    failures, totals = [], []
-    for name in ARGS.scenarios.split(","):
-        sweep(scenarios[name](), failures, totals)
-    for name, calls, per_class, counts, seconds in totals:
-        print("%s: %d counted calls (%s); %d runs, %d faults injected, %d missed; outcomes: "
-              "%d errors, %d warnings; %d old, %d new; %.1f s" %
-              (name, calls, ", ".join("%s %d" % kv for kv in per_class.items()), counts["runs"],
-               counts["injected"], counts["missed"], counts["error"], counts["warned"],
-               counts["old"], counts["new"], seconds))
-    return exit_status(failures)
+    ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -25,7 +25,9 @@ import socket
 import struct
 import subprocess
 import tempfile
+import sys
 import time
+import unittest
 import urllib.parse
 
 # The binaries and the proto directory, from configure(): a test's command line names them.
@@ -48,6 +50,18 @@ def configure(args):
     VSMD = getattr(args, "vsmd", None) or VSMD
     VSM = getattr(args, "vsm", None) or VSM
     PROTO = getattr(args, "proto", None) or PROTO
+
+
+def run_tests(argv, skip_code=None):
+    """unittest's main over the script's cases (`argv`: what the script's parser left):
+    exits 1 on a failure; `skip_code` (ctest's SKIP_RETURN_CODE) when every case was skipped."""
+    result = unittest.main(module="__main__", argv=[sys.argv[0], *argv], verbosity=2,
+                           exit=False).result
+    if not result.wasSuccessful():
+        sys.exit(1)
+    if skip_code is not None and result.testsRun and len(result.skipped) == result.testsRun:
+        sys.exit(skip_code)
+    sys.exit(0)
 
 
 # ---- the daemon ---------------------------------------------------------------------------------

@@ -51,10 +51,13 @@ import sys
 import tempfile
 import threading
 import time
+import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from harness import Daemon  # noqa: E402
-from model_states import crop, make_outside_model, version_of, which  # noqa: E402
+import harness  # noqa: E402
+from model_states import (assert_no_failures, crop, make_outside_model, version_of,  # noqa: E402
+                          which)
 
 DRAFT = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v[0-9]+-[0-9a-f]{8}")
 MAX_EXTRA = 30
@@ -193,42 +196,31 @@ def fresh_copy(source, destination):
     shutil.copytree(source, destination)
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
-    parser.add_argument("--vsm", required=True)
-    parser.add_argument("--vsmd", help="kill vsmd running the merge as a job instead of vsm")
-    parser.add_argument("--target", help="the target OPC (or --crops)")
-    parser.add_argument("--detail", help="the detail OPC (or --crops)")
-    parser.add_argument("--crops", metavar="DATA",
-                        help="make small target and detail models from crops of the real DEMs "
-                        "in DATA (17 x 17 patches) instead of --target and --detail")
-    parser.add_argument("--work", required=True)
-    parser.add_argument("--scratch", help="where the copies go (default: /dev/shm if writable, "
-                        "else --work)")
-    parser.add_argument("--runs", type=int, default=24)
-    parser.add_argument("--publish-runs", type=int, default=10)
-    parser.add_argument("--complete-runs", type=int, default=4)
-    parser.add_argument("--patch-size", type=int, default=65)
-    parser.add_argument("--seed", type=int, default=20261125)
-    args = parser.parse_args()
-    if args.crops is None and (args.target is None or args.detail is None):
-        parser.error("--target and --detail, or --crops")
-
-    os.makedirs(args.work, exist_ok=True)
-    if args.crops is not None:
-        args.target, args.detail = make_crops(args.vsm, args.crops, args.work)
-        args.patch_size = 17
-    scratch_parent = args.scratch
-    if scratch_parent is None:
-        scratch_parent = "/dev/shm" if os.access("/dev/shm", os.W_OK) else args.work
-    scratch = tempfile.mkdtemp(prefix="vsm-merge-kill-", dir=scratch_parent)
-    try:
-        return run(args, scratch)
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+ARGS = None
 
 
-def run(args, scratch):
+class MergeKill(unittest.TestCase):
+    def test_a_killed_merge_leaves_the_old_or_the_new_version(self):
+        """The merge SIGKILLed at sampled points: each time exactly the old or the new version,
+        valid, no draft left after the next open, and merging again gives the new one."""
+        if ARGS.crops is None and (ARGS.target is None or ARGS.detail is None):
+            self.fail("--target and --detail, or --crops")
+
+        os.makedirs(ARGS.work, exist_ok=True)
+        if ARGS.crops is not None:
+            ARGS.target, ARGS.detail = make_crops(ARGS.vsm, ARGS.crops, ARGS.work)
+            ARGS.patch_size = 17
+        scratch_parent = ARGS.scratch
+        if scratch_parent is None:
+            scratch_parent = "/dev/shm" if os.access("/dev/shm", os.W_OK) else ARGS.work
+        scratch = tempfile.mkdtemp(prefix="vsm-merge-kill-", dir=scratch_parent)
+        try:
+            run(self, ARGS, scratch)
+        finally:
+            shutil.rmtree(scratch, ignore_errors=True)
+
+
+def run(test, args, scratch):
     failures = []
     warnings = []
     started = time.monotonic()
@@ -240,8 +232,7 @@ def run(args, scratch):
     outside = make_outside_model(vsm, scratch, args.patch_size)
     old = version_of(old_dir)
     if old[2]:
-        print("FAIL the target has unreachable entries in Patches/ to begin with: %s" % old[2][:5])
-        return 1
+        test.fail("the target has unreachable entries in Patches/ to begin with: %s" % old[2][:5])
 
     root = os.path.join(scratch, "root")  # vsmd's data root: the copy and the detail
     os.makedirs(root)
@@ -264,11 +255,9 @@ def run(args, scratch):
         rc, end, err = merge.finish()
         publishing = merge.publishing
         if rc != 0:
-            print("FAIL the complete merge exited %d:\n%s" % (rc, err))
-            return 1
+            test.fail("the complete merge exited %d:\n%s" % (rc, err))
         if None in publishing:
-            print("FAIL no \"publishing\" stage from its start to its end:\n%s" % err)
-            return 1
+            test.fail("no \"publishing\" stage from its start to its end:\n%s" % err)
         durations.append((end, publishing))
         version = version_of(copy)
         if version[2]:
@@ -277,12 +266,10 @@ def run(args, scratch):
         if new is None:
             new = version
         elif which(version, old, new) != "new":
-            print("FAIL two complete merges of the same models differ: %s" %
-                  describe_difference(version, new))
-            return 1
+            test.fail("two complete merges of the same models differ: %s" %
+                      describe_difference(version, new))
     if which(new, old, new) == "old" or new[0] == old[0]:
-        print("FAIL the complete merge did not change the target")
-        return 1
+        test.fail("the complete merge did not change the target")
     duration = max(d[0] for d in durations)
     print("complete merges: %s; %d folders before, %d after" %
           ("; ".join("%.3f s, publishing %.3f-%.3f s" % (d[0], d[1][0], d[1][1])
@@ -417,15 +404,32 @@ def run(args, scratch):
                 counts["new"], counts["completed"], len(warnings), time.monotonic() - started))
     for message in warnings:
         print("WARN " + message)
-    if failures:
-        for message in failures[:50]:
-            print("FAIL " + message)
-        print(summary)
-        print("%d failures" % len(failures))
-        return 1
-    print("OK " + summary)
-    return 0
+    print(summary)
+    assert_no_failures(test, failures)
+
+
+def main():
+    global ARGS
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("--vsm", required=True)
+    parser.add_argument("--vsmd", help="kill vsmd running the merge as a job instead of vsm")
+    parser.add_argument("--target", help="the target OPC (or --crops)")
+    parser.add_argument("--detail", help="the detail OPC (or --crops)")
+    parser.add_argument("--crops", metavar="DATA",
+                        help="make small target and detail models from crops of the real DEMs "
+                        "in DATA (17 x 17 patches) instead of --target and --detail")
+    parser.add_argument("--work", required=True)
+    parser.add_argument("--scratch", help="where the copies go (default: /dev/shm if writable, "
+                        "else --work)")
+    parser.add_argument("--runs", type=int, default=24)
+    parser.add_argument("--publish-runs", type=int, default=10)
+    parser.add_argument("--complete-runs", type=int, default=4)
+    parser.add_argument("--patch-size", type=int, default=65)
+    parser.add_argument("--seed", type=int, default=20261125)
+    ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -142,9 +142,10 @@ def make_outside_model(vsm, directory, patch_size):
     return out
 
 
-def exit_status(failures):
-    """Lists the failures (a list of messages) as check_import.Failures does: the exit status."""
+def assert_no_failures(test, failures):
+    """The verdict of a sweep (a list of messages) as a unittest assertion, listed as
+    check_import.Failures lists them."""
     listed = Failures()
     for message in failures:
         listed.add(message)
-    return listed.report()
+    listed.assert_none(test)
