@@ -278,16 +278,7 @@ class Raster:
         gt = ds.GetGeoTransform()
         if gt[2] != 0 or gt[4] != 0:
             raise ValueError("rotated geotransform")
-        values = band.ReadAsArray().astype(np.float64)
-        nodata = band.GetNoDataValue()
-        undefined = ~np.isfinite(values)
-        if nodata is not None:
-            if band.DataType == gdal.GDT_Float32:
-                nodata = float(np.float32(nodata))
-            undefined |= values == nodata
-        scale = band.GetScale() or 1.0
-        offset = band.GetOffset() or 0.0
-        self.heights = np.where(undefined, np.nan, values * scale + offset)
+        self.heights = harness.band_heights(band)
         # Pixel centres in lon/lat (WGS 84), per sample.
         cols = gt[0] + (np.arange(self.width) + 0.5) * gt[1]
         rows = gt[3] + (np.arange(self.height) + 0.5) * gt[5]

@@ -24,8 +24,8 @@ import signal
 import socket
 import struct
 import subprocess
-import tempfile
 import sys
+import tempfile
 import time
 import unittest
 import urllib.parse
@@ -101,7 +101,8 @@ class Daemon:
         deadline = time.monotonic() + start_deadline
         while not os.path.exists(self.port_file):
             if self.proc.poll() is not None:
-                raise AssertionError("vsmd exited with %d:\n%s" % (self.proc.returncode, self.log()))
+                raise AssertionError("vsmd exited with %d:\n%s"
+                                     % (self.proc.returncode, self.log()))
             if time.monotonic() > deadline:
                 self.kill()
                 raise AssertionError("vsmd wrote no port file within %d s:\n" % start_deadline
@@ -197,7 +198,8 @@ class Daemon:
             return self.proc.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             self.kill()
-            raise AssertionError("vsmd did not exit within %d s of SIGTERM:\n%s" % (timeout, self.log()))
+            raise AssertionError("vsmd did not exit within %d s of SIGTERM:\n%s"
+                                 % (timeout, self.log()))
 
     def kill(self):
         if self.proc.poll() is None:
@@ -381,18 +383,28 @@ def write_dem(path, size, cell=0.0005, west=10.0, south=45.0, slope=0.5):
         f.write(WGS84_PRJ)
 
 
-def read_raster(path):
-    """(heights as float64 rows x cols with NaN for no data, geotransform) of a DEM, by GDAL."""
+def band_heights(band):
+    """A GDAL band's heights as float64 rows x cols with its scale and offset applied, NaN where
+    undefined: not finite, or its no-data value (as float32 when the band is)."""
     import numpy as np
+    from osgeo import gdal
+    values = band.ReadAsArray().astype(np.float64)
+    nodata = band.GetNoDataValue()
+    undefined = ~np.isfinite(values)
+    if nodata is not None:
+        if band.DataType == gdal.GDT_Float32:
+            nodata = float(np.float32(nodata))
+        undefined |= values == nodata
+    return np.where(undefined, np.nan,
+                    values * (band.GetScale() or 1.0) + (band.GetOffset() or 0.0))
+
+
+def read_raster(path):
+    """(heights as band_heights gives them, geotransform) of a DEM's first band, by GDAL."""
     from osgeo import gdal
     gdal.UseExceptions()
     dataset = gdal.Open(path)
-    band = dataset.GetRasterBand(1)
-    heights = band.ReadAsArray().astype(np.float64)
-    nodata = band.GetNoDataValue()
-    if nodata is not None and not math.isnan(nodata):
-        heights[heights == nodata] = np.nan
-    return heights, dataset.GetGeoTransform()
+    return band_heights(dataset.GetRasterBand(1)), dataset.GetGeoTransform()
 
 
 def write_raster(path, heights, west, north, pixel, nodata=None, epsg=4326):

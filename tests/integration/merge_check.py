@@ -66,15 +66,7 @@ class GeoRaster:
         wgs84.ImportFromEPSG(4326)
         if not (srs.IsGeographic() and srs.IsSameGeogCS(wgs84)):
             raise ValueError("%s: not WGS 84 geographic" % path)
-        values = band.ReadAsArray().astype(np.float64)
-        nodata = band.GetNoDataValue()
-        undefined = ~np.isfinite(values)
-        if nodata is not None:
-            if band.DataType == gdal.GDT_Float32:
-                nodata = float(np.float32(nodata))
-            undefined |= values == nodata
-        self.heights = np.where(undefined, np.nan, values * (band.GetScale() or 1.0) +
-                                (band.GetOffset() or 0.0))
+        self.heights = harness.band_heights(band)
         self.gt = gt
         self.height, self.width = self.heights.shape
         # The hull of the pixel centres, lon/lat.

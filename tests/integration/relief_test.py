@@ -115,11 +115,7 @@ class Relief(unittest.TestCase):
         failures = Failures()
         checked = check_pro3d(opc, failures)
 
-        dem = gdal.Open(dem_path)
-        band = dem.GetRasterBand(1)
-        heights = band.ReadAsArray().astype(float)
-        if band.GetNoDataValue() is not None:
-            heights[heights == band.GetNoDataValue()] = np.nan
+        heights, _ = harness.read_raster(dem_path)
         defined = (~np.isnan(heights)).astype(float)
         reference = gdal_hillshade(dem_path, 315)
         controls = {"mirrored east-west": reference[:, ::-1],

@@ -155,13 +155,7 @@ def vertices(t, key):
 
 class Dem:
     def __init__(self, path):
-        ds = gdal.Open(path)
-        band = ds.GetRasterBand(1)
-        self.a = band.ReadAsArray().astype(np.float64)
-        nodata = band.GetNoDataValue()
-        if nodata is not None:
-            self.a[self.a == nodata] = np.nan
-        self.gt = ds.GetGeoTransform()
+        self.a, self.gt = harness.read_raster(path)
         self.h, self.w = self.a.shape
 
     def bounds(self):
