@@ -25,6 +25,7 @@ imported by the real `vsm` at --patch-size 65).
 """
 
 import argparse
+import functools
 import json
 import os
 import re
@@ -143,16 +144,10 @@ class Events(unittest.TestCase):
             f.write("not a raster\n")
         cls.junk = junk
 
-    def check(self, condition, message):
-        """One step's verdict: printed as it comes, and failed without stopping the steps after
-        it (each is a subtest)."""
-        print(("ok   " if condition else "FAIL ") + message, flush=True)
-        with self.subTest(message):
-            self.assertTrue(condition, message)
-
     def test_1_to_4_a_merge_a_flood_the_client_and_sigterm(self):
         import vsm_client
-        work, root, junk, check = self.work, self.root, self.junk, self.check
+        work, root, junk = self.work, self.root, self.junk
+        check = functools.partial(harness.check, self)
         # The merge's file creations under PRISM go through a gate the test opens step by step.
         hold = Hold(ARGS.lib, os.path.join(root, "prism"), "create", os.path.join(work, "gate"))
         # A long grace, so that "the streams end at once" (4.) is far from "vsmd waited for it".
@@ -380,7 +375,8 @@ class Events(unittest.TestCase):
             daemon.stop()
 
     def test_5_the_cap(self):
-        work, root, check = self.work, self.root, self.check
+        work, root = self.work, self.root
+        check = functools.partial(harness.check, self)
         # 5. The cap.
         daemon = Daemon("--set", "limits.event_subscribers=2", root=root,
                         port_file=os.path.join(work, "capped.port"),

@@ -64,6 +64,14 @@ def run_tests(argv, skip_code=None):
     sys.exit(0)
 
 
+def check(test, condition, message):
+    """One step of a scenario test: printed as it comes ("ok" or "FAIL"), failed as a subtest of
+    `test`, so the steps after it still run and every failed one is listed."""
+    print(("ok   " if condition else "FAIL ") + message, flush=True)
+    with test.subTest(message):
+        test.assertTrue(condition, message)
+
+
 # ---- the daemon ---------------------------------------------------------------------------------
 
 class Daemon:

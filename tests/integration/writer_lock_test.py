@@ -18,6 +18,7 @@
 """
 
 import argparse
+import functools
 import os
 import shutil
 import signal
@@ -37,15 +38,8 @@ TOKEN = "lock-test"
 
 
 class WriterLock(unittest.TestCase):
-    def check(self, condition, message):
-        """One step's verdict: printed as it comes, and failed without stopping the steps after
-        it (each is a subtest)."""
-        print(("ok   " if condition else "FAIL ") + message, flush=True)
-        with self.subTest(message):
-            self.assertTrue(condition, message)
-
     def test_one_writer_per_model(self):
-        check = self.check
+        check = functools.partial(harness.check, self)
         work = os.path.abspath(ARGS.work)
         leftover = os.path.join(work, "root", "readonly")
         if os.path.ismount(leftover):  # an interrupted earlier run's read-only mount
