@@ -6,7 +6,7 @@ then validates each one against the contract (status, media type, body schema, h
 event stream's events) and fails when a documented (method, path, status) was not exercised and
 is not in coverage-exclusions.txt.
 
-Two vsmd processes on 127.0.0.1:0 (the harness of tests/integration/server_test.py):
+Two vsmd processes on 127.0.0.1:0 (tests/integration/harness.py):
   main    a token, limits.body_bytes 4KiB, one job thread, one event subscriber; its data root
           holds PRISM (relief texture) and Jacksboro (no texture) imported by `vsm import` at
           65 x 65, a copy of Jacksboro whose writer lock this test holds (so vsmd serves it
@@ -38,8 +38,8 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.join(HERE, "..", "integration"))
-import server_test as base  # noqa: E402  (the Daemon harness)
-from server_test import Daemon  # noqa: E402
+import harness  # noqa: E402
+from harness import Daemon  # noqa: E402
 
 TOKEN = "contract-token-0123456789"
 AUTH = {"Authorization": "Bearer " + TOKEN}
@@ -92,7 +92,7 @@ class Recorder:
         until the daemon closes the connection."""
         with daemon.socket(timeout=60) as sock:
             sock.sendall(request)
-            data = base.read_until_closed(sock)
+            data = harness.read_until_closed(sock)
         head, _, body = data.partition(b"\r\n\r\n")
         lines = head.decode("latin-1").split("\r\n")
         status = int(lines[0].split(" ")[1])
@@ -163,8 +163,7 @@ class EventStream:
 
 
 def import_opc(dem, out, size, *options):
-    subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, dem), out, "--patch-size",
-                    str(size), *options], check=True, capture_output=True, timeout=600)
+    harness.import_dem(os.path.join(ARGS.data, dem), out, size, *options)
 
 
 FINAL = ("succeeded", "failed", "cancelled")
@@ -433,8 +432,7 @@ def main():
         parser.add_argument(name, required=True)
     parser.add_argument("--keep", action="store_true")
     ARGS = parser.parse_args()
-    # The harness reads ARGS.vsmd (and ARGS.proto for examples, unused here).
-    base.ARGS = argparse.Namespace(vsmd=ARGS.vsmd, proto=os.path.dirname(ARGS.contract))
+    harness.configure(ARGS)
     checker = os.path.join(HERE, "check_exchanges.js")
     if not os.path.isfile(os.path.join(ARGS.tools, "node_modules", "ajv", "package.json")):
         print("contract_test: no Ajv in %s (run install-contract-tools.sh)" % ARGS.tools)

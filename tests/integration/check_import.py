@@ -25,18 +25,21 @@ Checks
 - PRo3D opens it (check_pro3d, OPC.md): Images/ beside Patches/, and every patch names a
   Coordinates file of its positions' size and a first texture whose tile exists under Images/.
 
-Exit 0 printing one summary line; exit 1 listing the failures (at most 50, then a count).
+A unittest case: it prints one summary line and fails listing the failures (at most 50,
+then a count).
 """
 
-import math
+import argparse
 import os
 import re
-import struct
 import sys
+import unittest
 import xml.etree.ElementTree as ET
 
 import numpy as np
 from osgeo import gdal, osr
+
+import harness  # the .aara reader (beside this file)
 
 gdal.UseExceptions()
 
@@ -49,11 +52,14 @@ EP2 = (A * A - B * B) / (B * B)
 
 QUADRANTS = {"nw": (0, 0), "ne": (1, 0), "sw": (0, 1), "se": (1, 1)}
 QUADRANT_ORDER = ["nw", "ne", "sw", "se"]
-AARA_TYPES = {"V3f": ("<f4", 3), "V3d": ("<f8", 3)}
 MAX_LISTED = 50
 
 
 class Failures:
+    """The findings of a checker that walks a whole model (thousands of patches, each checked
+    alone): collected rather than raised at the first, so one run lists them all; the test then
+    asserts there are none (assert_none)."""
+
     def __init__(self):
         self.items = []
         self.count = 0
@@ -62,6 +68,15 @@ class Failures:
         self.count += 1
         if len(self.items) < MAX_LISTED:
             self.items.append(message)
+
+    def assert_none(self, test, summary=""):
+        """The verdict of a unittest case: the summary printed, then none failed (the first
+        MAX_LISTED listed in the assertion's message)."""
+        if summary:
+            print(summary)
+        more = self.count - len(self.items)
+        test.assertEqual(self.count, 0, "%d failures:\n%s" % (
+            self.count, "\n".join(self.items + (["... and %d more" % more] if more else []))))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -89,30 +104,12 @@ def numbers(text):
                                          text, flags=re.IGNORECASE)]
 
 
-def aara_parts(path):
-    """(type name, sizes, data, header length) of an .aara file, per OPC.md."""
-    with open(path, "rb") as f:
-        data = f.read()
-    n = data[0]
-    type_name = data[1:1 + n].decode("ascii")
-    dims = data[1 + n]
-    sizes = struct.unpack_from("<%di" % dims, data, 2 + n)
-    return type_name, sizes, data, 2 + n + 4 * dims
-
-
 def read_aara(path):
     """(type name, sizes, elements as float64 array of shape (rows, cols, 3))."""
-    type_name, sizes, data, header = aara_parts(path)
-    if type_name not in AARA_TYPES or len(sizes) != 2:
-        raise ValueError("%s: unexpected array %s with %d dimensions" %
-                         (path, type_name, len(sizes)))
-    dtype, components = AARA_TYPES[type_name]
-    count = sizes[0] * sizes[1]
-    expected = header + count * components * np.dtype(dtype).itemsize
-    if len(data) != expected:
-        raise ValueError("%s: %d bytes, expected %d" % (path, len(data), expected))
-    values = np.frombuffer(data, dtype=dtype, offset=header, count=count * components)
-    return type_name, sizes, values.reshape(sizes[1], sizes[0], components).astype(np.float64)
+    type_name, sizes, values = harness.read_aara(path)
+    if type_name not in ("V3f", "V3d"):
+        raise ValueError("%s: unexpected array %s" % (path, type_name))
+    return type_name, tuple(sizes), values.astype(np.float64)
 
 
 def read_hierarchy(opc, name="patchhierarchy.xml"):
@@ -192,11 +189,8 @@ TIFF_MAGIC = (b"II*\x00", b"MM\x00*")
 
 def aara_header(path):
     """(type name, sizes) of an .aara file, checking that its length fits them."""
-    type_name, sizes, data, header = aara_parts(path)
-    element = {"V2f": 8, "V2d": 16, "V3f": 12, "V3d": 24}.get(type_name, 0)
-    if len(data) != header + int(np.prod(sizes)) * element:
-        raise ValueError("%s: %d bytes do not hold %s %s" % (path, len(data), type_name, sizes))
-    return type_name, list(sizes)
+    type_name, sizes, _ = harness.read_aara(path)
+    return type_name, sizes
 
 
 def check_pro3d(opc, failures, only=None):
@@ -284,16 +278,7 @@ class Raster:
         gt = ds.GetGeoTransform()
         if gt[2] != 0 or gt[4] != 0:
             raise ValueError("rotated geotransform")
-        values = band.ReadAsArray().astype(np.float64)
-        nodata = band.GetNoDataValue()
-        undefined = ~np.isfinite(values)
-        if nodata is not None:
-            if band.DataType == gdal.GDT_Float32:
-                nodata = float(np.float32(nodata))
-            undefined |= values == nodata
-        scale = band.GetScale() or 1.0
-        offset = band.GetOffset() or 0.0
-        self.heights = np.where(undefined, np.nan, values * scale + offset)
+        self.heights = harness.band_heights(band)
         # Pixel centres in lon/lat (WGS 84), per sample.
         cols = gt[0] + (np.arange(self.width) + 0.5) * gt[1]
         rows = gt[3] + (np.arange(self.height) + 0.5) * gt[5]
@@ -489,19 +474,28 @@ def check_parents(patches, children_of, n, failures, stats):
                              % (parent.folder, i, j, d[k], limit[k]))
 
 
+ARGS = None
+
+
+class CheckImport(unittest.TestCase):
+    def test_the_model_is_the_raster(self):
+        """Geometry, hierarchy, parents and PRo3D completeness of the OPC against the raster."""
+        try:
+            failures, summary = check(ARGS.raster, ARGS.opc)
+        except (OSError, ValueError, KeyError, AttributeError, IndexError, ET.ParseError,
+                RuntimeError) as e:
+            # A file that cannot be read as the specification says is a failure, not a crash.
+            self.fail("%s: %s: %s" % (ARGS.opc, type(e).__name__, e))
+        failures.assert_none(self, summary)
+
+
 def main():
-    if len(sys.argv) != 3:
-        print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
-        return 2
-    raster_path, opc = sys.argv[1], sys.argv[2]
-    try:
-        return check(raster_path, opc)
-    except (OSError, ValueError, KeyError, AttributeError, IndexError, ET.ParseError,
-            RuntimeError) as e:
-        # A file that cannot be read as the specification says is a failure, not a crash.
-        print("FAIL %s: %s: %s" % (opc, type(e).__name__, e))
-        print("1 failure")
-        return 1
+    global ARGS
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("raster")
+    parser.add_argument("opc")
+    ARGS, rest = parser.parse_known_args()
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
 def check(raster_path, opc):
@@ -531,17 +525,8 @@ def check(raster_path, opc):
                (opc, len(patches), leaves, depth, n, stats["samples"], stats["overlap"],
                 stats["undefined"], stats["parent_vertices"], stats["horizontal"],
                 stats["vertical"], stats["parent"]))
-    if failures.count:
-        for message in failures.items:
-            print("FAIL " + message)
-        if failures.count > len(failures.items):
-            print("... and %d more failures" % (failures.count - len(failures.items)))
-        print(summary)
-        print("%d failures" % failures.count)
-        return 1
-    print("OK " + summary)
-    return 0
+    return failures, summary
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -14,56 +14,23 @@ import struct
 import subprocess
 import sys
 import unittest
-import xml.etree.ElementTree as ET
 
-from osgeo import gdal, osr
+import numpy as np
+from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from check_import import Failures, check_pro3d  # noqa: E402
+import harness  # noqa: E402
+from check_import import Failures, check_pro3d, find_ci, read_hierarchy  # noqa: E402
+from harness import vsm, write_raster  # noqa: E402
 
 gdal.UseExceptions()
 ARGS = None
-
-
-def vsm(*args):
-    return subprocess.run([ARGS.vsm, *map(str, args)], capture_output=True, text=True, timeout=600)
 
 
 def work(name):
     path = os.path.join(ARGS.work, name)
     shutil.rmtree(path, ignore_errors=True)
     return path
-
-
-def find_ci(directory, name):
-    for entry in os.listdir(directory):
-        if entry.lower() == name.lower():
-            return os.path.join(directory, entry)
-    raise FileNotFoundError(os.path.join(directory, name))
-
-
-def hierarchy(opc):
-    patches = find_ci(opc, "Patches")
-    root = ET.parse(find_ci(patches, "patchhierarchy.xml")).getroot()
-    ph = root.find("PatchHierarchy")
-    children = {}
-    for item in ph.find("SubPatchMap"):
-        children[item.findtext("key").strip()] = [c.text.strip() for c in item.find("val")]
-    return patches, ph.findtext("RootPatch").strip(), children
-
-
-def make_raster(path, width, height, values, srs_epsg=4326, nodata=None):
-    ds = gdal.GetDriverByName("GTiff").Create(path, width, height, 1, gdal.GDT_Float32)
-    ds.SetGeoTransform((10.0, 0.01, 0, 47.0, 0, -0.01))
-    if srs_epsg is not None:
-        srs = osr.SpatialReference()
-        srs.ImportFromEPSG(srs_epsg)
-        ds.SetProjection(srs.ExportToWkt())
-    band = ds.GetRasterBand(1)
-    if nodata is not None:
-        band.SetNoDataValue(nodata)
-    band.WriteRaster(0, 0, width, height, struct.pack("<%df" % (width * height), *values))
-    ds = None
 
 
 class CliErrors(unittest.TestCase):
@@ -109,14 +76,14 @@ class CliErrors(unittest.TestCase):
 
     def test_import_of_a_raster_without_crs_is_rejected(self):
         path = os.path.join(ARGS.work, "no-crs.tif")
-        make_raster(path, 4, 4, [1.0] * 16, srs_epsg=None)
+        write_raster(path, np.full((4, 4), 1.0), 10.0, 47.0, 0.01, epsg=None)
         out = work("no-crs-out")
         self.assert_one_line_error(vsm("import", path, out), "coordinate reference system")
         self.assertFalse(os.path.exists(out))
 
     def test_import_of_an_all_nodata_raster_is_rejected(self):
         path = os.path.join(ARGS.work, "all-nodata.tif")
-        make_raster(path, 4, 4, [-9999.0] * 16, nodata=-9999.0)
+        write_raster(path, np.full((4, 4), -9999.0), 10.0, 47.0, 0.01, nodata=-9999.0)
         out = work("all-nodata-out")
         result = vsm("import", path, out)
         self.assertEqual(result.returncode, 1, result.stderr)
@@ -271,7 +238,7 @@ class ValidateFindsEachBreak(unittest.TestCase):
 
     def test_three_breaks_give_three_findings(self):
         opc = self.broken_copy("jacksboro-broken")
-        patches, root, children = hierarchy(opc)
+        patches, root, children = read_hierarchy(opc)
 
         # 1. A parent vertex that no longer equals its child's: shift the first defined vertex of
         #    the root patch by 50 m in its stored float32 local coordinates.
@@ -290,7 +257,7 @@ class ValidateFindsEachBreak(unittest.TestCase):
             f.write(data)
 
         # 2. A leaf whose stored box does not match its vertices.
-        leaves = [c for cs in children.values() for c in cs if c not in children]
+        leaves = [c for cs in children.values() for c in cs.values() if c not in children]
         leaf_box = leaves[0]
         patch_xml = find_ci(os.path.join(patches, leaf_box), "Patch.xml")
         text = open(patch_xml).read()
@@ -313,8 +280,8 @@ class ValidateFindsEachBreak(unittest.TestCase):
 
     def test_a_hierarchy_naming_a_missing_folder_is_reported(self):
         opc = self.broken_copy("jacksboro-missing-folder")
-        patches, root, children = hierarchy(opc)
-        leaf = [c for cs in children.values() for c in cs if c not in children][0]
+        patches, root, children = read_hierarchy(opc)
+        leaf = [c for cs in children.values() for c in cs.values() if c not in children][0]
         shutil.rmtree(os.path.join(patches, leaf))
         result = vsm("validate", opc)
         self.assertEqual(result.returncode, 1)
@@ -345,7 +312,7 @@ class Pro3dComplete(unittest.TestCase):
         self.assertEqual(result.returncode, 0, result.stderr)
         self.assertRegex(result.stderr, r"--texture none.*PRo3D will not open it")
         self.assertFalse(os.path.exists(os.path.join(out, "Images")))
-        patches, root, _ = hierarchy(out)
+        patches, root, _ = read_hierarchy(out)
         self.assertNotIn("Coordinates.aara", os.listdir(os.path.join(patches, root)))
         failures = Failures()
         check_pro3d(out, failures)
@@ -448,6 +415,7 @@ def main():
     parser.add_argument("--data", required=True)
     parser.add_argument("--work", required=True)
     ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
     shutil.rmtree(ARGS.work, ignore_errors=True)
     os.makedirs(ARGS.work)
     unittest.main(argv=[sys.argv[0], "-v", *rest])

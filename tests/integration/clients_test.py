@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""The client examples against the real daemon: vsmd on 127.0.0.1:0 (server_test.py's harness)
+"""The client examples against the real daemon: vsmd on 127.0.0.1:0 (harness.py)
 over a data root holding PRISM (target) and Jacksboro (detail) imported by `vsm import` at 65 x 65,
 and a copy of PRISM for the curl walk-through's merge. Runs client-examples/curl.sh, the Python
 client (with the real-data merge PRISM + Jacksboro as a job, its printed progress rising to 1) and
@@ -23,18 +23,13 @@ import threading
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
+import harness  # noqa: E402
 from hold import Hold, poll  # noqa: E402
-from server_test import Daemon  # noqa: E402
+from harness import Daemon  # noqa: E402
 
 TOKEN = "clients-token-0123456789"
 PATCH = 65
 ARGS = None
-
-
-def import_opc(dem, out):
-    subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, dem), out, "--patch-size",
-                    str(PATCH)], check=True, capture_output=True, timeout=600)
 
 
 class Clients(unittest.TestCase):
@@ -43,8 +38,10 @@ class Clients(unittest.TestCase):
     @classmethod
     def setUpClass(cls):
         def prepare(root):
-            import_opc("PRISMelevation.tif", os.path.join(root, "prism"))
-            import_opc("jacksboro_fault_dem.tif", os.path.join(root, "jacksboro"))
+            harness.import_dem(os.path.join(ARGS.data, "PRISMelevation.tif"),
+                               os.path.join(root, "prism"), PATCH)
+            harness.import_dem(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
+                               os.path.join(root, "jacksboro"), PATCH)
             shutil.copytree(os.path.join(root, "prism"), os.path.join(root, "prism-curl"))
 
         root = tempfile.mkdtemp(prefix="vsmd-test-")
@@ -54,7 +51,7 @@ class Clients(unittest.TestCase):
                         os.path.join(cls.gate, "gate"))
         cls.daemon = Daemon("--token", TOKEN, "--memory-budget", "256MiB", root=root,
                             env=cls.hold.env())
-        cls.url = "http://127.0.0.1:%d" % cls.daemon.port
+        cls.url = cls.daemon.base
 
     @classmethod
     def tearDownClass(cls):
@@ -239,7 +236,7 @@ def main():
     parser.add_argument("--lib", required=True, help="libvsm_fault_inject.so (tests/fault)")
     parser.add_argument("--python", default=sys.executable)
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 

@@ -37,10 +37,9 @@ import sys
 import threading
 import time
 import unittest
-import urllib.error
-import urllib.request
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import harness  # noqa: E402
 from hold import poll  # noqa: E402
 
 ARGS = None
@@ -49,24 +48,8 @@ TOKEN = "cluster-test-token"
 
 
 def request(url, method="GET", body=None, timeout=30, token=TOKEN):
-    """(status, headers, body bytes); no redirect is followed."""
-    data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url, data=data, method=method)
-    if body is not None:
-        req.add_header("Content-Type", "application/json")
-    if method != "GET" and token:
-        req.add_header("Authorization", "Bearer " + token)
-    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), NoRedirect())
-    try:
-        with opener.open(req, timeout=timeout) as response:
-            return response.status, response.headers, response.read()
-    except urllib.error.HTTPError as e:
-        return e.code, e.headers, e.read()
-
-
-class NoRedirect(urllib.request.HTTPRedirectHandler):
-    def redirect_request(self, *args, **kwargs):
-        return None
+    """(status, headers, body bytes); the token goes with writes only; no redirect is followed."""
+    return harness.request(url, method, body, timeout, token=token if method != "GET" else None)
 
 
 def get_json(url):
@@ -74,12 +57,6 @@ def get_json(url):
     if status != 200:
         raise AssertionError("GET %s: %d %s" % (url, status, body[:200]))
     return json.loads(body)
-
-
-def walk_keys(node):
-    yield node["key"]
-    for child in node.get("children", []):
-        yield from walk_keys(child)
 
 
 def etcd_value(etcd, key):
@@ -181,7 +158,7 @@ class Cluster(unittest.TestCase):
         for model in ("prism", "jacksboro"):
             self.assertEqual(get_json(self.front + "/v1/models/" + model)["id"], model)
             hierarchy = get_json(self.front + "/v1/models/%s/hierarchy" % model)
-            keys += [(model, k) for k in walk_keys(hierarchy["root"])]
+            keys += [(model, k) for k in harness.keys(hierarchy)]
         self.assertGreaterEqual(len(keys), 50)
         served_by = {}
         for model, key in keys[:50]:
@@ -220,7 +197,7 @@ class Cluster(unittest.TestCase):
                 self.assertEqual(headers["Cache-Control"], "no-store", path)
                 self.assertEqual(json.loads(body)["error"]["code"], "not_found", path)
                 self.assertNotEqual(headers.get("X-Cache-Status"), "HIT", path)
-        keys = list(walk_keys(get_json(self.front + "/v1/models/prism/hierarchy")["root"]))
+        keys = harness.keys(get_json(self.front + "/v1/models/prism/hierarchy"))
         stop = threading.Event()
         errors = []
         seen = {}  # (key, patch version) -> bytes
@@ -282,7 +259,7 @@ class Cluster(unittest.TestCase):
                   flush=True)
             self.assertEqual(set(lagging), {200}, lagging)
             # Every node follows within 2 s: the version, and the changed patches' bytes.
-            changed = [k for k in walk_keys(get_json(self.nodes[writer] + "/v1/models/prism/hierarchy")["root"])]
+            changed = harness.keys(get_json(self.nodes[writer] + "/v1/models/prism/hierarchy"))
             for name, url in self.nodes.items():
                 while get_json(url + "/v1/models/prism")["version"] != after:
                     self.assertLess(time.monotonic() - done, 2.0, name + " did not follow in 2 s")
@@ -326,7 +303,7 @@ class Cluster(unittest.TestCase):
         writer = self.writer("prism")
         replica = next(n for n in sorted(self.alive()) if n != writer)
         self.kill(replica)
-        keys = list(walk_keys(get_json(self.front + "/v1/models/prism/hierarchy")["root"]))
+        keys = harness.keys(get_json(self.front + "/v1/models/prism/hierarchy"))
         failed = []
         for i in range(200):
             # Model metadata is not cached by the front (no-cache): every read reaches a node.

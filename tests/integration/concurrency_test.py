@@ -20,47 +20,33 @@ and Jacksboro imported by the real `vsm` at --patch-size 65), with the project's
 """
 
 import argparse
-import json
 import os
 import shutil
-import subprocess
 import sys
-import time
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
+import harness  # noqa: E402
 from model_states import reachable_folders  # noqa: E402
 
 ARGS = None
 TOKEN = "concurrency-test-token"
-AUTH = {"Authorization": "Bearer " + TOKEN, "Content-Type": "application/json"}
-
-
-def vsm(*args):
-    return subprocess.run([ARGS.vsm, *args], capture_output=True, text=True, timeout=600)
 
 
 def import_models(root, details=("jacksboro",)):
     """PRISM as `prism`, Jacksboro under each name of `details` (copies: each merge has its own
     source model)."""
-    vsm("import", os.path.join(ARGS.data, "PRISMelevation.tif"), os.path.join(root, "prism"),
-        "--patch-size", "65").check_returncode()
+    harness.import_dem(os.path.join(ARGS.data, "PRISMelevation.tif"), os.path.join(root, "prism"),
+                       65)
     first = os.path.join(root, details[0])
-    vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), first,
-        "--patch-size", "65").check_returncode()
+    harness.import_dem(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), first, 65)
     for name in details[1:]:
         shutil.copytree(first, os.path.join(root, name))
 
 
 def fault_env(prefix, work, **fault):
-    env = dict(os.environ)
-    env["LD_PRELOAD"] = ARGS.lib
-    env["VSM_FAULT_PREFIX"] = prefix
-    env["VSM_FAULT_REPORT"] = os.path.join(work, "faults")
-    for key, value in fault.items():
-        env["VSM_FAULT_" + key.upper()] = str(value)
-    return env
+    """The fault library acting under `prefix`, reporting to <work>/faults."""
+    return harness.fault_env(ARGS.lib, prefix, report=os.path.join(work, "faults"), **fault)
 
 
 def folders_of_kept_revisions(opc):
@@ -89,22 +75,13 @@ class Concurrency(unittest.TestCase):
             self.assertEqual(code, 0, log[-3000:])
 
     def start(self, *flags, env=None):
-        self.daemon = base.Daemon("--token", TOKEN, *flags, root=self.root, env=env)
+        self.daemon = harness.Daemon("--token", TOKEN, *flags, root=self.root, env=env)
 
     def post_merge(self, source, target="prism"):
-        code, _, body = self.daemon.request(
-            "POST", "/v1/jobs", json.dumps({"type": "merge", "target": target, "source": source}),
-            AUTH)
-        self.assertEqual(code, 202, body[:300])
-        return json.loads(body)
+        return self.daemon.submit({"type": "merge", "target": target, "source": source})
 
-    def wait(self, job, timeout=600):
-        deadline = time.monotonic() + timeout
-        while job["state"] in ("queued", "running"):
-            self.assertLess(time.monotonic(), deadline, job)
-            time.sleep(0.05)
-            _, _, job = self.daemon.get_json("/v1/jobs/" + job["id"])
-        return job
+    def wait(self, job):
+        return self.daemon.wait_job(job["id"], interval=0.05)
 
     def revisions(self):
         code, _, body = self.daemon.get_json("/v1/models/prism/revisions")
@@ -118,7 +95,7 @@ class Concurrency(unittest.TestCase):
         named = folders_of_kept_revisions(opc)
         self.assertEqual(on_disk - named, set(), "folders no kept revision names (orphans)")
         self.assertEqual(named - on_disk, set(), "folders kept revisions name but that are gone")
-        result = vsm("validate", opc)
+        result = harness.vsm("validate", opc)
         self.assertEqual(result.returncode, 0, result.stdout + result.stderr)
 
     def test_merges_behind_a_failed_one_all_land(self):
@@ -171,10 +148,8 @@ class Concurrency(unittest.TestCase):
         dry = os.path.join(self.work, "dry")
         shutil.copytree(self.root, dry)
         trace = os.path.join(self.work, "trace")
-        traced = subprocess.run(
-            [ARGS.vsm, "merge", os.path.join(dry, "prism"), os.path.join(dry, "jacksboro")],
-            capture_output=True, text=True, timeout=600,
-            env={**fault_env(os.path.join(dry, "prism"), self.work), "VSM_FAULT_TRACE": trace})
+        traced = harness.vsm("merge", os.path.join(dry, "prism"), os.path.join(dry, "jacksboro"),
+                             env=fault_env(os.path.join(dry, "prism"), self.work, trace=trace))
         self.assertEqual(traced.returncode, 0, traced.stderr)
         with open(trace) as f:
             commits = [int(line.split()[2]) for line in f
@@ -205,5 +180,5 @@ if __name__ == "__main__":
     parser.add_argument("--data", required=True)
     parser.add_argument("--work", required=True)
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = argparse.Namespace(vsmd=ARGS.vsmd, proto=None)
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0], "-v", *rest])

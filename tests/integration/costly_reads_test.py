@@ -24,17 +24,17 @@ import argparse
 import json
 import os
 import shutil
-import subprocess
 import sys
 import threading
 import time
 import unittest
 
 import numpy as np
-from osgeo import gdal, osr
+from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
+import harness  # noqa: E402
+from harness import import_dem, write_raster  # noqa: E402
 from hold import Hold, poll  # noqa: E402
 
 gdal.UseExceptions()
@@ -44,19 +44,6 @@ CONCURRENT = 4
 PNG_SIZE = 512
 
 
-def write_raster(path, heights, west, north, pixel):
-    driver = gdal.GetDriverByName("GTiff")
-    rows, cols = heights.shape
-    ds = driver.Create(path, cols, rows, 1, gdal.GDT_Float32)
-    ds.SetGeoTransform((west, pixel, 0.0, north, 0.0, -pixel))
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(4326)
-    ds.SetProjection(srs.ExportToWkt())
-    ds.GetRasterBand(1).WriteArray(heights.astype(np.float32))
-    ds.FlushCache()
-    ds = None
-
-
 def make_model(root, work):
     """Revision 1: a 129 x 129 tilted surface over 1 degree; revisions 2..4: a bump merged into a
     different corner each time, 65 x 65 pixels at a quarter of the spacing."""
@@ -64,9 +51,7 @@ def make_model(root, work):
     cols = np.arange(129, dtype=np.float64)[None, :]
     write_raster(os.path.join(work, "base.tif"), 300.0 + 2.0 * cols - 1.5 * rows, -97.0, 34.0,
                  1.0 / 128)
-    subprocess.run([ARGS.vsm, "import", os.path.join(work, "base.tif"),
-                    os.path.join(root, MODEL), "--patch-size", "33"], check=True,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    import_dem(os.path.join(work, "base.tif"), os.path.join(root, MODEL), 33)
     r = np.arange(65, dtype=np.float64)[:, None]
     c = np.arange(65, dtype=np.float64)[None, :]
     for i, (west, north) in enumerate([(-96.9, 33.9), (-96.4, 33.9), (-96.9, 33.4)]):
@@ -77,10 +62,8 @@ def make_model(root, work):
         base_col = (west + 97.0) * 128 + c * step * 128
         base_row = (34.0 - north) * 128 + r * step * 128
         write_raster(detail, 300.0 + 2.0 * base_col - 1.5 * base_row + bump, west, north, step)
-        subprocess.run([ARGS.vsm, "import", detail, detail[:-len(".tif")], "--patch-size", "33"],
-                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        subprocess.run([ARGS.vsm, "merge", os.path.join(root, MODEL), detail[:-len(".tif")]],
-                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        import_dem(detail, detail[:-len(".tif")], 33)
+        harness.vsm("merge", os.path.join(root, MODEL), detail[:-len(".tif")], check=True)
 
 
 def stats(daemon):
@@ -114,7 +97,7 @@ class Fixture(unittest.TestCase):
         assert revisions == [1, 2, 3], revisions
 
     def start(self, hold, *flags):
-        daemon = base.Daemon(*flags, root=self.root, env=hold.env() if hold else None)
+        daemon = harness.Daemon(*flags, root=self.root, env=hold.env() if hold else None)
         self.addCleanup(daemon.stop)
         if hold:
             self.addCleanup(hold.release)
@@ -267,7 +250,7 @@ def main():
     parser.add_argument("--work", required=True)
     ARGS, rest = parser.parse_known_args()
     ARGS.work = os.path.abspath(ARGS.work)
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     os.makedirs(ARGS.work, exist_ok=True)
     unittest.main(argv=[sys.argv[0]] + rest, verbosity=2)
 

@@ -43,9 +43,9 @@ import sys
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
+import harness  # noqa: E402
 import viewer_test  # noqa: E402  (browser_check, screen_samples, Raster, dem_points)
-from server_test import Daemon  # noqa: E402
+from harness import Daemon  # noqa: E402
 from viewer_test import Raster, dem_points, load_page, read_png, screen_samples  # noqa: E402
 
 ARGS = None
@@ -110,7 +110,7 @@ class Demo(unittest.TestCase):
         cls.daemon = Daemon("--viewer-dir", os.path.join(cls.demo, "viewer"),
                             "--set", "threads.cpu=2", "--log-level", "warn",
                             root=os.path.join(cls.demo, "models"))
-        cls.base_url = "http://127.0.0.1:%d" % cls.daemon.port
+        cls.base_url = cls.daemon.base
         cls.dem = Raster(os.path.join(ARGS.data, "PRISMelevation.tif"))
 
     @classmethod
@@ -358,7 +358,7 @@ def main():
     parser.add_argument("--chromium", default="", help="the browser (default /usr/bin/chromium)")
     ARGS, rest = parser.parse_known_args()
     ARGS.dem = os.path.join(ARGS.data, "PRISMelevation.tif")
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     viewer_test.ARGS = ARGS
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 

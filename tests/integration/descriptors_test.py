@@ -11,19 +11,19 @@ Run by ctest:
 import argparse
 import http.client
 import json
-import math
 import os
 import random
 import resource
 import shutil
-import signal
 import socket
-import subprocess
 import sys
 import tempfile
 import threading
-import time
 import unittest
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import harness  # noqa: E402
+from harness import Daemon, write_dem  # noqa: E402
 
 ARGS = None
 LIMIT = 1024
@@ -34,20 +34,6 @@ PATCH_SIZE = 9
 PATCHES = sum(4 ** d for d in range(7))
 
 
-def write_dem(path, size, cell=0.0005, west=10.0, south=45.0):
-    """A synthetic DEM (smooth hills, metres) as an ESRI ASCII grid with a WGS 84 .prj."""
-    with open(path, "w") as f:
-        f.write("ncols %d\nnrows %d\nxllcorner %r\nyllcorner %r\ncellsize %r\n"
-                % (size, size, west, south, cell))
-        for row in range(size):
-            f.write(" ".join("%.2f" % (500 + 40 * math.sin(col / 9.0) * math.cos(row / 13.0))
-                             for col in range(size)))
-            f.write("\n")
-    with open(os.path.splitext(path)[0] + ".prj", "w") as f:
-        f.write('GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
-                'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]]')
-
-
 def limit_descriptors():
     resource.setrlimit(resource.RLIMIT_NOFILE, (LIMIT, LIMIT))
 
@@ -56,38 +42,23 @@ class DescriptorLimit(unittest.TestCase):
     @classmethod
     def setUpClass(cls):
         cls.dir = tempfile.mkdtemp(prefix="vsmd-descriptors-")
-        write_dem(os.path.join(cls.dir, "dem.asc"), DEM_SIZE)
-        subprocess.run([ARGS.vsm, "import", os.path.join(cls.dir, "dem.asc"),
-                        os.path.join(cls.dir, "data", "many"), "--patch-size", str(PATCH_SIZE)],
-                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                       timeout=600)
-        cls.port_file = os.path.join(cls.dir, "port")
-        cls.log_path = os.path.join(cls.dir, "vsmd.log")
-        with open(cls.log_path, "wb") as log:
-            # The default budget (1 GiB), the default connection limit (512).
-            cls.proc = subprocess.Popen(
-                [ARGS.vsmd, "--listen", "127.0.0.1:0", "--data-root", os.path.join(cls.dir, "data"),
-                 "--port-file", cls.port_file, "--log-level", "info"],
-                stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT,
-                preexec_fn=limit_descriptors)
-        deadline = time.monotonic() + 60
-        while not os.path.exists(cls.port_file):
-            if cls.proc.poll() is not None or time.monotonic() > deadline:
-                cls.proc.kill()
-                raise AssertionError("vsmd did not start:\n" + cls.log())
-            time.sleep(0.05)
-        with open(cls.port_file) as f:
-            cls.port = int(f.read())
+        write_dem(os.path.join(cls.dir, "dem.asc"), DEM_SIZE, slope=0.0)
+        harness.import_dem(os.path.join(cls.dir, "dem.asc"), os.path.join(cls.dir, "data", "many"),
+                           PATCH_SIZE)
+        # The default budget (1 GiB), the default connection limit (512).
+        cls.daemon = Daemon("--log-level", "info", root=os.path.join(cls.dir, "data"),
+                            port_file=os.path.join(cls.dir, "port"),
+                            log_path=os.path.join(cls.dir, "vsmd.log"),
+                            preexec_fn=limit_descriptors, start_deadline=60)
+        cls.proc = cls.daemon.proc
+        cls.port = cls.daemon.port
 
     @classmethod
     def tearDownClass(cls):
-        code = None
-        if cls.proc.poll() is None:
-            cls.proc.send_signal(signal.SIGTERM)
-            try:
-                code = cls.proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                cls.proc.kill()
+        try:
+            code = cls.daemon.stop(timeout=30)
+        except AssertionError:
+            code = None
         if code == 0:
             shutil.rmtree(cls.dir, ignore_errors=True)
         else:
@@ -95,8 +66,7 @@ class DescriptorLimit(unittest.TestCase):
 
     @classmethod
     def log(cls):
-        with open(cls.log_path, errors="replace") as f:
-            return f.read()
+        return cls.daemon.log()
 
     def get(self, conn, path):
         conn.request("GET", path)
@@ -196,4 +166,5 @@ if __name__ == "__main__":
     parser.add_argument("--vsmd", required=True)
     parser.add_argument("--vsm", required=True)
     ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0]] + rest, verbosity=2)

@@ -34,7 +34,6 @@ import math
 import os
 import shutil
 import struct
-import subprocess
 import sys
 import time
 import unittest
@@ -44,7 +43,8 @@ import numpy as np
 from osgeo import gdal, osr
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
+import harness  # noqa: E402
+from harness import read_raster  # noqa: E402
 
 gdal.UseExceptions()
 ARGS = None
@@ -52,22 +52,6 @@ SIZE = 4096
 POINTS = 200
 WGS84_A = 6378137.0
 WGS84_E2 = 0.00669437999014
-
-
-def run(*args):
-    start = time.monotonic()
-    out = subprocess.run(args, check=True, capture_output=True, text=True)
-    return out.stdout, time.monotonic() - start
-
-
-def raster(path):
-    ds = gdal.Open(path)
-    band = ds.GetRasterBand(1)
-    values = band.ReadAsArray().astype(np.float64)
-    nodata = band.GetNoDataValue()
-    if nodata is not None and not math.isnan(nodata):
-        values[values == nodata] = np.nan
-    return values, ds.GetGeoTransform()
 
 
 def half_ulp_norm(box):
@@ -157,42 +141,36 @@ class Diff(unittest.TestCase):
         cls.model = os.path.join(root, "prism")
         jack = os.path.join(ARGS.work, "jack")
         shutil.rmtree(jack, ignore_errors=True)
-        run(ARGS.vsm, "import", os.path.join(ARGS.data, "PRISMelevation.tif"), cls.model,
-            "--patch-size", "65")
-        run(ARGS.vsm, "import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), jack,
-            "--patch-size", "65")
-        run(ARGS.vsm, "merge", cls.model, jack)
+        harness.import_dem(os.path.join(ARGS.data, "PRISMelevation.tif"), cls.model, 65)
+        harness.import_dem(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"), jack, 65)
+        harness.vsm("merge", cls.model, jack, check=True)
         out = os.path.join(ARGS.work, "out")
         os.makedirs(out, exist_ok=True)
         cls.json_path = os.path.join(out, "diff.json")
         cls.tif_path = os.path.join(out, "diff.tif")
         cls.png_path = os.path.join(out, "diff.png")
-        cls.stdout, cls.seconds = run(ARGS.vsm, "diff", cls.model, "--from", "1", "--to", "2",
-                                      "--json", cls.json_path, "--geotiff", cls.tif_path,
-                                      "--png", cls.png_path, "--size", str(SIZE))
+        start = time.monotonic()
+        cls.stdout = harness.vsm("diff", cls.model, "--from", "1", "--to", "2",
+                                 "--json", cls.json_path, "--geotiff", cls.tif_path,
+                                 "--png", cls.png_path, "--size", SIZE, check=True).stdout
+        cls.seconds = time.monotonic() - start
         print("\nvsm diff (%.2f s):\n%s" % (cls.seconds, cls.stdout), file=sys.stderr)
         with open(cls.json_path) as f:
             cls.diff = json.load(f)
-        cls.jack, cls.jack_gt = raster(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"))
-        cls.prism, cls.prism_gt = raster(os.path.join(ARGS.data, "PRISMelevation.tif"))
-        cls.map, cls.map_gt = raster(cls.tif_path)
+        cls.jack, cls.jack_gt = read_raster(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"))
+        cls.prism, cls.prism_gt = read_raster(os.path.join(ARGS.data, "PRISMelevation.tif"))
+        cls.map, cls.map_gt = read_raster(cls.tif_path)
         gt, (h, w) = cls.jack_gt, cls.jack.shape
         # Jacksboro's footprint (its pixels' area), grown by one of its pixels and one map pixel:
         # cells of the merged model straddling its border interpolate between the two surfaces.
         gx = abs(gt[1]) + abs(cls.map_gt[1])
         gy = abs(gt[5]) + abs(cls.map_gt[5])
         cls.footprint = (gt[0] - gx, gt[0] + w * gt[1] + gx, gt[3] + h * gt[5] - gy, gt[3] + gy)
-        cls.daemon = base.Daemon(root=root)
+        cls.daemon = harness.Daemon(root=root)
         # Revision 1's leaves (boxes) over HTTP, for the float32 bounds.
         status, _, hierarchy = cls.daemon.get_json("/v1/models/prism/hierarchy?rev=1")
         assert status == 200, hierarchy
-        cls.old_leaves = []
-        stack = [hierarchy["root"]]
-        while stack:
-            node = stack.pop()
-            if node["leaf"]:
-                cls.old_leaves.append(node["box"])
-            stack.extend(node.get("children", []))
+        cls.old_leaves = [node["box"] for node in harness.walk(hierarchy["root"]) if node["leaf"]]
 
     @classmethod
     def tearDownClass(cls):
@@ -363,7 +341,7 @@ def main():
     parser.add_argument("--data", required=True)
     parser.add_argument("--work", required=True)
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     os.makedirs(ARGS.work, exist_ok=True)
     unittest.main(argv=[sys.argv[0]] + rest, verbosity=2)
 

@@ -40,12 +40,14 @@ import shutil
 import subprocess
 import sys
 import time
+import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import fault_sweep_test  # noqa: E402
+import harness  # noqa: E402
 from fault_sweep_test import PATCH, CliMerge, DaemonMerge, Scenario  # noqa: E402
 from model_states import (  # noqa: E402
-                          check_valid_and_reopened, crop, digest_tree, exit_status,
+                          assert_no_failures, check_valid_and_reopened, crop, digest_tree,
                           make_outside_model, version_of, which)
 
 SKIP = 77
@@ -340,6 +342,79 @@ def staged_runs(name, work, command_for, new, counts, failures):
 
 # ---- main ------------------------------------------------------------------------------------
 
+ARGS = None
+
+
+class DiskFull(unittest.TestCase):
+    def test_a_full_disk_leaves_the_old_or_the_new_version(self):
+        """Each writer on a tmpfs with 10 to 99 % of the pages it adds free: a clear ENOSPC
+        error, the model old or new and valid, no orphan, the space back after the next open."""
+        work = os.path.abspath(ARGS.work)
+        # Leftovers of an earlier run that did not get to unmount.
+        for point in mounts_under(work):
+            unmount(point)
+        if os.path.exists(work):
+            shutil.rmtree(work)
+        inputs = os.path.join(work, "inputs")
+        os.makedirs(inputs)
+        names = ARGS.scenarios.split(",")
+        mounted = []
+        try:
+            for name in names:
+                point = os.path.join(work, name, "run")
+                os.makedirs(point)
+                mount_tmpfs(point, OnTmpfs.big)
+                mounted.append(point)
+        except CannotMount as e:
+            for point in mounted:
+                unmount(point)
+            self.skipTest("cannot mount a size-limited tmpfs (this test needs root): %s" % e)
+        try:
+            prism = os.path.join(ARGS.data, "PRISMelevation.tif")
+            jack = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
+            target_tif = crop(prism, os.path.join(inputs, "target.tif"), -84.8, 36.8, -83.8, 35.8)
+            detail_tif = crop(jack, os.path.join(inputs, "detail.tif"), -84.40, 36.44, -84.36, 36.40)
+
+            def imported(tif, name):
+                out = os.path.join(inputs, name)
+                harness.import_dem(tif, out, PATCH)
+                return out
+
+            target, detail = imported(target_tif, "target"), imported(detail_tif, "detail")
+            outside = make_outside_model(ARGS.vsm, inputs, PATCH)
+            failures, totals = [], []
+            edge = None
+            for name in names:
+                counts = {"runs": 0, "fit": 0, "ENOSPC": 0, "old": 0, "new": 0, "seconds": 0.0}
+                if name == "merge":
+                    edge = merge_runs(TmpfsMerge("merge", work, target, detail, outside), counts,
+                                      failures)
+                elif name == "vsmd":
+                    merge_runs(TmpfsDaemonMerge("vsmd", work, target, detail, outside), counts,
+                               failures, edge)
+                elif name == "merge-out":
+                    merged = os.path.join(inputs, "merged")
+                    harness.vsm("merge", target, detail, "--out", merged, check=True)
+                    staged_runs(name, work, lambda out: [ARGS.vsm, "merge", target, detail, "--out",
+                                                         out], version_of(merged), counts, failures)
+                elif name == "import":
+                    staged_runs(name, work, lambda out: [ARGS.vsm, "import", detail_tif, out,
+                                                         "--patch-size", str(PATCH)], None, counts,
+                                failures)
+                else:
+                    self.fail("unknown scenario " + name)
+                totals.append((name, counts))
+        finally:
+            for point in mounted:
+                unmount(point)
+        for name, counts in totals:
+            print("%s: %d runs; outcomes: %d ENOSPC errors, %d fit; %d old, %d new%s; %.1f s" %
+                  (name, counts["runs"], counts["ENOSPC"], counts["fit"], counts["old"],
+                   counts["new"], " (old: nothing at <out>)" if name in ("import", "merge-out") else "",
+                   counts["seconds"]))
+        assert_no_failures(self, failures)
+
+
 def main():
     global ARGS
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
@@ -348,76 +423,11 @@ def main():
     parser.add_argument("--data", required=True)
     parser.add_argument("--work", required=True)
     parser.add_argument("--scenarios", default="merge,vsmd,merge-out,import")
-    ARGS = parser.parse_args()
+    ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
     fault_sweep_test.ARGS = ARGS  # DaemonMerge starts ARGS.vsmd
-    work = os.path.abspath(ARGS.work)
-    # Leftovers of an earlier run that did not get to unmount.
-    for point in mounts_under(work):
-        unmount(point)
-    if os.path.exists(work):
-        shutil.rmtree(work)
-    inputs = os.path.join(work, "inputs")
-    os.makedirs(inputs)
-    names = ARGS.scenarios.split(",")
-    mounted = []
-    try:
-        for name in names:
-            point = os.path.join(work, name, "run")
-            os.makedirs(point)
-            mount_tmpfs(point, OnTmpfs.big)
-            mounted.append(point)
-    except CannotMount as e:
-        for point in mounted:
-            unmount(point)
-        print("SKIP: cannot mount a size-limited tmpfs (this test needs root): %s" % e)
-        return SKIP
-    try:
-        prism = os.path.join(ARGS.data, "PRISMelevation.tif")
-        jack = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
-        target_tif = crop(prism, os.path.join(inputs, "target.tif"), -84.8, 36.8, -83.8, 35.8)
-        detail_tif = crop(jack, os.path.join(inputs, "detail.tif"), -84.40, 36.44, -84.36, 36.40)
-
-        def imported(tif, name):
-            out = os.path.join(inputs, name)
-            subprocess.run([ARGS.vsm, "import", tif, out, "--patch-size", str(PATCH)],
-                           check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            return out
-
-        target, detail = imported(target_tif, "target"), imported(detail_tif, "detail")
-        outside = make_outside_model(ARGS.vsm, inputs, PATCH)
-        failures, totals = [], []
-        edge = None
-        for name in names:
-            counts = {"runs": 0, "fit": 0, "ENOSPC": 0, "old": 0, "new": 0, "seconds": 0.0}
-            if name == "merge":
-                edge = merge_runs(TmpfsMerge("merge", work, target, detail, outside), counts,
-                                  failures)
-            elif name == "vsmd":
-                merge_runs(TmpfsDaemonMerge("vsmd", work, target, detail, outside), counts,
-                           failures, edge)
-            elif name == "merge-out":
-                merged = os.path.join(inputs, "merged")
-                subprocess.run([ARGS.vsm, "merge", target, detail, "--out", merged], check=True,
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-                staged_runs(name, work, lambda out: [ARGS.vsm, "merge", target, detail, "--out",
-                                                     out], version_of(merged), counts, failures)
-            elif name == "import":
-                staged_runs(name, work, lambda out: [ARGS.vsm, "import", detail_tif, out,
-                                                     "--patch-size", str(PATCH)], None, counts,
-                            failures)
-            else:
-                parser.error("unknown scenario " + name)
-            totals.append((name, counts))
-    finally:
-        for point in mounted:
-            unmount(point)
-    for name, counts in totals:
-        print("%s: %d runs; outcomes: %d ENOSPC errors, %d fit; %d old, %d new%s; %.1f s" %
-              (name, counts["runs"], counts["ENOSPC"], counts["fit"], counts["old"],
-               counts["new"], " (old: nothing at <out>)" if name in ("import", "merge-out") else "",
-               counts["seconds"]))
-    return exit_status(failures)
+    harness.run_tests(rest, skip_code=SKIP)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

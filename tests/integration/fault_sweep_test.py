@@ -35,17 +35,16 @@ import argparse
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
-import urllib.error
-import urllib.request
-
+import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import harness  # noqa: E402
+from harness import Daemon  # noqa: E402
 from model_states import (  # noqa: E402
-                          check_valid_and_reopened, crop, exit_status,
+                          assert_no_failures, check_valid_and_reopened, crop,
                           make_outside_model, version_of, which)
 
 
@@ -57,17 +56,11 @@ TIMEOUT = 120
 # ---- running with a fault --------------------------------------------------------------------
 
 def fault_env(prefix, trace=None, fault=None, report=None):
-    env = dict(os.environ)
-    env["LD_PRELOAD"] = ARGS.lib
-    env["VSM_FAULT_PREFIX"] = prefix
-    env["ASAN_OPTIONS"] = (env.get("ASAN_OPTIONS", "") + ":verify_asan_link_order=0").lstrip(":")
-    if trace:
-        env["VSM_FAULT_TRACE"] = trace
-    if fault:
-        env["VSM_FAULT_CLASS"], n, env["VSM_FAULT_ERRNO"] = fault
-        env["VSM_FAULT_N"] = str(n)
-        env["VSM_FAULT_REPORT"] = report
-    return env
+    """The fault library under `prefix`: tracing its calls, or failing call n of class cls with
+    errno code (fault=(cls, n, code)), reported to `report`."""
+    cls, n, code = fault or (None, None, None)
+    return harness.fault_env(ARGS.lib, prefix, trace=trace or None, **{"class": cls}, n=n,
+                             errno=code, report=report if fault else None)
 
 
 def read_trace(path):
@@ -179,47 +172,34 @@ class DaemonMerge(CliMerge):
         shutil.copytree(self.detail, os.path.join(self.root, "detail"))
 
     def run(self, env, on_ready=None):
-        port_file = os.path.join(self.work, "port")
-        if os.path.exists(port_file):
-            os.remove(port_file)
-        with open(self.log, "w") as log:
-            proc = subprocess.Popen(
-                [ARGS.vsmd, "--listen", "127.0.0.1:0", "--data-root", self.root, "--port-file",
-                 port_file, "--token", "sweep", "--log-level", "info"],
-                env=env, stdout=log, stderr=subprocess.STDOUT)
         try:
-            deadline = time.monotonic() + 30
-            while not os.path.exists(port_file):
-                if proc.poll() is not None or time.monotonic() > deadline:
-                    return 99, "vsmd did not start: " + open(self.log).read()[-500:]
-                time.sleep(0.01)
-            base = "http://127.0.0.1:%s" % open(port_file).read().strip()
+            daemon = Daemon("--token", "sweep", "--log-level", "info", root=self.root, env=env,
+                            vsmd=ARGS.vsmd, port_file=os.path.join(self.work, "port"),
+                            log_path=self.log, start_deadline=30)
+        except AssertionError as e:
+            return 99, "vsmd did not start: " + str(e)[-500:]
+        try:
             if on_ready:
                 on_ready()
-            status, body = http(base + "/v1/jobs", {"type": "merge", "target": "target",
-                                                    "source": "detail"})
+            status, _, answer = daemon.json("POST", "/v1/jobs", {"type": "merge", "target": "target",
+                                                                "source": "detail"}, timeout=30)
             if status != 202:
-                return 1, "job refused: %d %s" % (status, body)
-            job = json.loads(body)["id"]
-            deadline = time.monotonic() + TIMEOUT
-            while True:
-                status, body = http(base + "/v1/jobs/" + job)
-                state = json.loads(body)
-                if state["state"] in ("succeeded", "failed", "cancelled"):
-                    break
-                if time.monotonic() > deadline:
-                    return 98, "job hangs: %s" % body
-                time.sleep(0.02)
-            problems = []
-            status, body = http(base + "/v1/models/target")
-            if status != 200:
-                problems.append("the model is not served after the job: %d %s" % (status, body))
-            proc.send_signal(signal.SIGTERM)
+                return 1, "job refused: %d %s" % (status, answer)
             try:
-                rc = proc.wait(timeout=60)
-            except subprocess.TimeoutExpired:
+                state = daemon.wait_job(answer["id"], timeout=TIMEOUT, interval=0.02)
+            except AssertionError as e:
+                return 98, "job hangs: %s" % e
+            body = json.dumps(state)
+            problems = []
+            status, _, answer = daemon.request("GET", "/v1/models/target", timeout=30)
+            if status != 200:
+                problems.append("the model is not served after the job: %d %s"
+                                % (status, answer.decode(errors="replace")))
+            try:
+                rc = daemon.stop(timeout=60)
+            except AssertionError:
                 return 97, "vsmd hangs on SIGTERM"
-            log = open(self.log).read()
+            log = daemon.log()
             if rc != 0:
                 problems.append("vsmd exited %d on SIGTERM" % rc)
             if state["state"] == "failed":
@@ -236,22 +216,7 @@ class DaemonMerge(CliMerge):
             warn = "\n".join(line for line in log.splitlines() if " WARN " in line)
             return (0 if not problems else 96), warn + "".join("\n" + p for p in problems)
         finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait()
-
-
-def http(url, body=None):
-    data = None if body is None else json.dumps(body).encode()
-    request = urllib.request.Request(url, data=data, method="GET" if body is None else "POST")
-    if body is not None:
-        request.add_header("Content-Type", "application/json")
-        request.add_header("Authorization", "Bearer sweep")
-    try:
-        with urllib.request.urlopen(request, timeout=30) as response:
-            return response.status, response.read().decode()
-    except urllib.error.HTTPError as e:
-        return e.code, e.read().decode()
+            daemon.kill()
 
 
 # ---- the sweep -------------------------------------------------------------------------------
@@ -338,6 +303,51 @@ def sweep(scenario, failures, totals):
     totals.append((scenario.name, len(calls), per_class, counts, time.monotonic() - started))
 
 
+ARGS = None
+
+
+class FaultSweep(unittest.TestCase):
+    def test_every_fault_leaves_the_old_or_the_new_version(self):
+        """Each writer with one file-system call failed at sampled points: a clear error or a
+        reported warning, the model old or new, valid, no orphans after the next open."""
+        work = os.path.abspath(ARGS.work)
+        if os.path.exists(work):
+            shutil.rmtree(work)
+        inputs = os.path.join(work, "inputs")
+        os.makedirs(inputs)
+        prism = os.path.join(ARGS.data, "PRISMelevation.tif")
+        jack = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
+        image = os.path.join(ARGS.data, "conus_visible_earth.tif")
+        target_tif = crop(prism, os.path.join(inputs, "target.tif"), -84.8, 36.8, -83.8, 35.8)
+        detail_tif = crop(jack, os.path.join(inputs, "detail.tif"), -84.40, 36.44, -84.36, 36.40)
+
+        def imported(tif, name, texture=False):
+            out = os.path.join(inputs, name)
+            extra = ["--texture", image] if texture else []
+            harness.import_dem(tif, out, PATCH, *extra)
+            return out
+
+        target, detail = imported(target_tif, "target"), imported(detail_tif, "detail")
+        ttarget, tdetail = imported(target_tif, "ttarget", True), imported(detail_tif, "tdetail", True)
+        outside = make_outside_model(ARGS.vsm, inputs, PATCH)
+        scenarios = {
+            "import": lambda: CliImport("import", work, detail_tif, outside),
+            "merge": lambda: CliMerge("merge", work, target, detail, outside),
+            "textured": lambda: CliMerge("textured", work, ttarget, tdetail, outside),
+            "vsmd": lambda: DaemonMerge("vsmd", work, target, detail, outside),
+        }
+        failures, totals = [], []
+        for name in ARGS.scenarios.split(","):
+            sweep(scenarios[name](), failures, totals)
+        for name, calls, per_class, counts, seconds in totals:
+            print("%s: %d counted calls (%s); %d runs, %d faults injected, %d missed; outcomes: "
+                  "%d errors, %d warnings; %d old, %d new; %.1f s" %
+                  (name, calls, ", ".join("%s %d" % kv for kv in per_class.items()), counts["runs"],
+                   counts["injected"], counts["missed"], counts["error"], counts["warned"],
+                   counts["old"], counts["new"], seconds))
+        assert_no_failures(self, failures)
+
+
 def main():
     global ARGS
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
@@ -349,45 +359,10 @@ def main():
     parser.add_argument("--scenarios", default="import,merge,textured,vsmd")
     parser.add_argument("--window", type=int, default=6)
     parser.add_argument("--samples", type=int, default=5)
-    ARGS = parser.parse_args()
-    work = os.path.abspath(ARGS.work)
-    if os.path.exists(work):
-        shutil.rmtree(work)
-    inputs = os.path.join(work, "inputs")
-    os.makedirs(inputs)
-    prism = os.path.join(ARGS.data, "PRISMelevation.tif")
-    jack = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
-    image = os.path.join(ARGS.data, "conus_visible_earth.tif")
-    target_tif = crop(prism, os.path.join(inputs, "target.tif"), -84.8, 36.8, -83.8, 35.8)
-    detail_tif = crop(jack, os.path.join(inputs, "detail.tif"), -84.40, 36.44, -84.36, 36.40)
-
-    def imported(tif, name, texture=False):
-        out = os.path.join(inputs, name)
-        extra = ["--texture", image] if texture else []
-        subprocess.run([ARGS.vsm, "import", tif, out, "--patch-size", str(PATCH)] + extra,
-                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        return out
-
-    target, detail = imported(target_tif, "target"), imported(detail_tif, "detail")
-    ttarget, tdetail = imported(target_tif, "ttarget", True), imported(detail_tif, "tdetail", True)
-    outside = make_outside_model(ARGS.vsm, inputs, PATCH)
-    scenarios = {
-        "import": lambda: CliImport("import", work, detail_tif, outside),
-        "merge": lambda: CliMerge("merge", work, target, detail, outside),
-        "textured": lambda: CliMerge("textured", work, ttarget, tdetail, outside),
-        "vsmd": lambda: DaemonMerge("vsmd", work, target, detail, outside),
-    }
-    failures, totals = [], []
-    for name in ARGS.scenarios.split(","):
-        sweep(scenarios[name](), failures, totals)
-    for name, calls, per_class, counts, seconds in totals:
-        print("%s: %d counted calls (%s); %d runs, %d faults injected, %d missed; outcomes: "
-              "%d errors, %d warnings; %d old, %d new; %.1f s" %
-              (name, calls, ", ".join("%s %d" % kv for kv in per_class.items()), counts["runs"],
-               counts["injected"], counts["missed"], counts["error"], counts["warned"],
-               counts["old"], counts["new"], seconds))
-    return exit_status(failures)
+    ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

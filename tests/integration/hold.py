@@ -18,6 +18,8 @@ time instead, so the verdict does not depend on how fast the machine is.
 import os
 import time
 
+from harness import fault_env
+
 
 class Hold:
     def __init__(self, lib, prefix, cls, gate):
@@ -34,15 +36,8 @@ class Hold:
 
     def env(self, base=None):
         """The environment that preloads the library into a process (`base`: os.environ)."""
-        env = dict(os.environ if base is None else base)
-        env["LD_PRELOAD"] = self.lib
-        env["VSM_FAULT_PREFIX"] = self.prefix
-        env["VSM_FAULT_HOLD"] = self.cls
-        env["VSM_FAULT_GATE"] = self.gate
-        env["VSM_FAULT_TRACE"] = self.trace
-        # Under ASan the runtime must come first; the library only forwards calls.
-        env["ASAN_OPTIONS"] = (env.get("ASAN_OPTIONS", "") + ":verify_asan_link_order=0").lstrip(":")
-        return env
+        return fault_env(self.lib, self.prefix, base, hold=self.cls, gate=self.gate,
+                         trace=self.trace)
 
     def calls(self):
         """The calls of the class counted so far (from the trace)."""

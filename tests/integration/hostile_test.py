@@ -24,12 +24,12 @@ import time
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
-from server_test import Daemon, read_response, write_dem  # noqa: E402
+import harness  # noqa: E402
+from harness import Daemon, read_response, write_dem  # noqa: E402
 
 KiB = 1024
 MiB = 1024 * KiB
-TOKEN = base.TOKEN  # import_model() sends it
+TOKEN = "test-token-0123456789"
 ATTACKER = "127.0.0.2"  # the hostile clients' source address; the well-behaved one is 127.0.0.1
 PER_CLIENT = 16  # limits.connections_per_client
 BODY_BYTES = 4 * MiB  # limits.body_bytes
@@ -147,10 +147,10 @@ class Hostile(unittest.TestCase):
                              "pipelined_responses": PIPELINED,
                              "event_subscribers": EVENT_SUBSCRIBERS},
                   "threads": {"cpu": 2, "io": 2, "jobs": 1}}
-        cls.daemon = Daemon("--token-file", token_file, config=config,
+        cls.daemon = Daemon("--token-file", token_file, config=config, token=TOKEN,
                             prepare=lambda root: write_dem(os.path.join(root, "hills.asc"),
                                                            2 * PATCH - 1))
-        base.import_model(cls.daemon, "hills", "hills.asc", PATCH)
+        cls.daemon.import_model("hills", "hills.asc", PATCH)
         status, _, hierarchy = cls.daemon.get_json("/v1/models/hills/hierarchy")
         assert status == 200, hierarchy
         cls.leaves = [child["key"] for child in hierarchy["root"]["children"]]
@@ -528,7 +528,7 @@ class Hostile(unittest.TestCase):
         def metric(name, labels=""):
             status, _, text = self.daemon.request("GET", "/metrics")
             self.assertEqual(status, 200)
-            return base.metric(text.decode(), name, labels)
+            return harness.metric(text.decode(), name, labels)
 
         def write_timeouts():
             return metric("vsm_http_timeouts_total", '{phase="write"}')
@@ -571,7 +571,7 @@ def main():
     parser.add_argument("--vsmd", required=True)
     parser.add_argument("--proto", required=True)
     args, rest = parser.parse_known_args()
-    base.ARGS = args
+    harness.configure(args)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 

@@ -42,13 +42,16 @@ import argparse
 import os
 import subprocess
 import sys
+import unittest
 
 import numpy as np
-from osgeo import gdal, osr
+from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from check_import import Failures, ecef_to_geodetic  # noqa: E402
-from merge_check import GeoRaster, load  # noqa: E402
+from check_import import Failures  # noqa: E402
+import harness  # noqa: E402
+from harness import write_raster  # noqa: E402
+from merge_check import GeoRaster, leaf_points, load  # noqa: E402
 
 gdal.UseExceptions()
 
@@ -82,22 +85,6 @@ def a_height(col, row):
     return 200.0 + 0.3 * col - 0.2 * row + 0.004 * (col - 30.0) ** 2
 
 
-def write_raster(path, heights, west, north, pixel, nodata=None):
-    driver = gdal.GetDriverByName("GTiff")
-    rows, cols = heights.shape
-    ds = driver.Create(path, cols, rows, 1, gdal.GDT_Float32)
-    ds.SetGeoTransform((west, pixel, 0.0, north, 0.0, -pixel))
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(4326)
-    ds.SetProjection(srs.ExportToWkt())
-    band = ds.GetRasterBand(1)
-    if nodata is not None:
-        band.SetNoDataValue(nodata)
-    band.WriteArray(heights.astype(np.float32))
-    band.FlushCache()
-    ds = None
-
-
 def make_target(path):
     rows, cols = np.mgrid[0:A_SIZE, 0:A_SIZE].astype(np.float64)
     write_raster(path, a_height(cols, rows), A_WEST, A_NORTH, A_PIXEL)
@@ -122,29 +109,14 @@ def make_detail(path, shift_lon, shift_lat, holes):
     write_raster(path, heights, west, north, B_PIXEL, NODATA if holes else None)
 
 
-def run(args):
-    result = subprocess.run(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    if result.returncode != 0:
-        raise RuntimeError("%s exited %d:\n%s%s" % (" ".join(args), result.returncode,
-                                                    result.stdout, result.stderr))
-    return result.stdout
-
-
 def leaf_vertices(patches, children_of):
     """(lon, lat, height, tolerance, depth) of every defined vertex of every leaf."""
     out = [[], [], [], [], []]
-    for key, patch in patches.items():
-        if children_of[key]:
-            continue
-        g = patch.grid.reshape(-1, 3)
-        g = g[~np.isnan(g[:, 0])]
-        if len(g) == 0:
-            continue
-        lon, lat, h = ecef_to_geodetic(g[:, 0], g[:, 1], g[:, 2])
+    for key, patch, lon, lat, h in leaf_points(patches, children_of):
         for target, values in zip(out, (lon, lat, h)):
             target.append(values)
-        out[3].append(np.full(len(g), 16 * patch.rounding + 1e-6))
-        out[4].append(np.full(len(g), key[0]))
+        out[3].append(np.full(len(h), 16 * patch.rounding + 1e-6))
+        out[4].append(np.full(len(h), key[0]))
     return [np.concatenate(values) for values in out]
 
 
@@ -297,64 +269,79 @@ def check_case(merged, target_raster, detail_raster, expect_all_on_vertices):
     return counts, failures
 
 
+ARGS = None
+
+
+class MergeBorder(unittest.TestCase):
+    def test_detail_samples_on_vertices_are_kept(self):
+        """Each case (shifts, holes) merged into A: every detail sample on a leaf vertex keeps
+        its height."""
+        os.makedirs(ARGS.work, exist_ok=True)
+
+        target_tif = os.path.join(ARGS.work, "target.tif")
+        target_opc = os.path.join(ARGS.work, "target")
+        make_target(target_tif)
+        subprocess.run(["rm", "-rf", target_opc], check=True)
+        harness.import_dem(target_tif, target_opc, PATCH)
+        target_raster = GeoRaster(target_tif)
+
+        total_failures = 0
+        case_verdicts = []
+        totals = {"lost": 0, "lost_border": 0, "border_on_vertices": 0}
+        for name in ARGS.case or list(CASES):
+            shift_lon, shift_lat, holes = CASES[name]
+            directory = os.path.join(ARGS.work, name)
+            subprocess.run(["rm", "-rf", directory], check=True)
+            os.makedirs(directory)
+            detail_tif = os.path.join(directory, "detail.tif")
+            detail_opc = os.path.join(directory, "detail")
+            merged_opc = os.path.join(directory, "merged")
+            make_detail(detail_tif, shift_lon, shift_lat, holes)
+            harness.import_dem(detail_tif, detail_opc, PATCH)
+            harness.vsm("merge", target_opc, detail_opc, "--out", merged_opc, check=True)
+            validate = harness.vsm("validate", merged_opc)
+            failures = []
+            if validate.returncode != 0:
+                failures.append("vsm validate exited %d: %s" % (
+                    validate.returncode, (validate.stdout + validate.stderr).strip()[-1000:]))
+            load_failures = Failures()
+            _, patches, children_of, _ = load(merged_opc, PATCH, load_failures)
+            failures += load_failures.items
+            counts, case_failures = check_case((patches, children_of), target_raster,
+                                               GeoRaster(detail_tif), abs(shift_lon) < 0.25 and
+                                               abs(shift_lat) < 0.25)
+            failures += case_failures
+            for key in totals:
+                totals[key] += counts[key]
+            print("%s %s: %d samples, %d on leaf vertices (%d on B's borders), lost %d (%d on "
+                  "borders); %d vertices inside (max error %.2e m, %d wrong), %d outside (%d wrong); "
+                  "depth %d" %
+                  ("FAIL" if failures else "OK", name, counts["samples"], counts["on_vertices"],
+                   counts["border_on_vertices"], counts["lost"], counts["lost_border"],
+                   counts["inside"], counts["inside_max_error"], counts["inside_wrong"],
+                   counts["outside"], counts["outside_wrong"], counts["depth"]))
+            for message in failures:
+                print("  FAIL " + message)
+            total_failures += len(failures)
+            case_verdicts.append((name, failures))
+        print("total: %d samples lost (%d on borders) of %d border samples on vertices; %d failures" %
+              (totals["lost"], totals["lost_border"], totals["border_on_vertices"], total_failures))
+        for name, failures in case_verdicts:
+            with self.subTest(name):
+                self.assertEqual(failures, [], name)
+
+
 def main():
+    global ARGS
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument("--vsm", required=True)
     parser.add_argument("--work", required=True)
     parser.add_argument("--case", action="append", choices=sorted(CASES),
                         help="run only these cases (default: all)")
-    args = parser.parse_args()
-    os.makedirs(args.work, exist_ok=True)
-
-    target_tif = os.path.join(args.work, "target.tif")
-    target_opc = os.path.join(args.work, "target")
-    make_target(target_tif)
-    subprocess.run(["rm", "-rf", target_opc], check=True)
-    run([args.vsm, "import", target_tif, target_opc, "--patch-size", str(PATCH)])
-    target_raster = GeoRaster(target_tif)
-
-    total_failures = 0
-    totals = {"lost": 0, "lost_border": 0, "border_on_vertices": 0}
-    for name in args.case or list(CASES):
-        shift_lon, shift_lat, holes = CASES[name]
-        directory = os.path.join(args.work, name)
-        subprocess.run(["rm", "-rf", directory], check=True)
-        os.makedirs(directory)
-        detail_tif = os.path.join(directory, "detail.tif")
-        detail_opc = os.path.join(directory, "detail")
-        merged_opc = os.path.join(directory, "merged")
-        make_detail(detail_tif, shift_lon, shift_lat, holes)
-        run([args.vsm, "import", detail_tif, detail_opc, "--patch-size", str(PATCH)])
-        run([args.vsm, "merge", target_opc, detail_opc, "--out", merged_opc])
-        validate = subprocess.run([args.vsm, "validate", merged_opc], stdout=subprocess.PIPE,
-                                  stderr=subprocess.STDOUT, text=True)
-        failures = []
-        if validate.returncode != 0:
-            failures.append("vsm validate exited %d: %s" % (validate.returncode,
-                                                            validate.stdout.strip()[-1000:]))
-        load_failures = Failures()
-        _, patches, children_of, _ = load(merged_opc, PATCH, load_failures)
-        failures += load_failures.items
-        counts, case_failures = check_case((patches, children_of), target_raster,
-                                           GeoRaster(detail_tif), abs(shift_lon) < 0.25 and
-                                           abs(shift_lat) < 0.25)
-        failures += case_failures
-        for key in totals:
-            totals[key] += counts[key]
-        print("%s %s: %d samples, %d on leaf vertices (%d on B's borders), lost %d (%d on "
-              "borders); %d vertices inside (max error %.2e m, %d wrong), %d outside (%d wrong); "
-              "depth %d" %
-              ("FAIL" if failures else "OK", name, counts["samples"], counts["on_vertices"],
-               counts["border_on_vertices"], counts["lost"], counts["lost_border"],
-               counts["inside"], counts["inside_max_error"], counts["inside_wrong"],
-               counts["outside"], counts["outside_wrong"], counts["depth"]))
-        for message in failures:
-            print("  FAIL " + message)
-        total_failures += len(failures)
-    print("total: %d samples lost (%d on borders) of %d border samples on vertices; %d failures" %
-          (totals["lost"], totals["lost_border"], totals["border_on_vertices"], total_failures))
-    return 1 if total_failures else 0
+    ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -25,7 +25,7 @@ Checks
     folder name, and that folder holds the same files with the same bytes as in A; every patch in
     the affected subtree got a new folder; A itself is not modified.
 
-Exit 0 printing a summary; exit 1 listing the failures.
+A unittest case: it prints a summary and fails listing the failures.
 """
 
 import argparse
@@ -35,11 +35,13 @@ import re
 import subprocess
 import sys
 import time
+import unittest
 
 import numpy as np
 from osgeo import gdal, osr
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import harness  # noqa: E402
 from check_import import (QUADRANTS, Failures, check_parents, check_pro3d,  # noqa: E402
                           ecef_to_geodetic,
                           read_hierarchy, walk)
@@ -64,15 +66,7 @@ class GeoRaster:
         wgs84.ImportFromEPSG(4326)
         if not (srs.IsGeographic() and srs.IsSameGeogCS(wgs84)):
             raise ValueError("%s: not WGS 84 geographic" % path)
-        values = band.ReadAsArray().astype(np.float64)
-        nodata = band.GetNoDataValue()
-        undefined = ~np.isfinite(values)
-        if nodata is not None:
-            if band.DataType == gdal.GDT_Float32:
-                nodata = float(np.float32(nodata))
-            undefined |= values == nodata
-        self.heights = np.where(undefined, np.nan, values * (band.GetScale() or 1.0) +
-                                (band.GetOffset() or 0.0))
+        self.heights = harness.band_heights(band)
         self.gt = gt
         self.height, self.width = self.heights.shape
         # The hull of the pixel centres, lon/lat.
@@ -113,12 +107,6 @@ class GeoRaster:
         anti = np.where(u + v <= 1, z00 + u * (z10 - z00) + v * (z01 - z00),
                         z11 + (1 - u) * (z01 - z11) + (1 - v) * (z10 - z11))
         return main, anti
-
-
-def run(args, **kwargs):
-    result = subprocess.run(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            **kwargs)
-    return result
 
 
 def load(opc, n, failures):
@@ -163,11 +151,10 @@ def tree_digest(opc):
     return folder_digest(opc)
 
 
-def check_placement(merged, children_of, detail, target, failures, stats):
-    """(a) and (b) over every defined leaf vertex inside the detail raster."""
-    max_depth = max(k[0] for k in merged)
-    heights, lons, lats, depths = [], [], [], []
-    for key, patch in merged.items():
+def leaf_points(patches, children_of):
+    """(key, patch, lon, lat, height) of each leaf with defined vertices: those vertices in
+    geodetic coordinates (WGS 84)."""
+    for key, patch in patches.items():
         if children_of[key]:
             continue
         g = patch.grid.reshape(-1, 3)
@@ -175,6 +162,14 @@ def check_placement(merged, children_of, detail, target, failures, stats):
         if len(g) == 0:
             continue
         lon, lat, h = ecef_to_geodetic(g[:, 0], g[:, 1], g[:, 2])
+        yield key, patch, lon, lat, h
+
+
+def check_placement(merged, children_of, detail, target, failures, stats):
+    """(a) and (b) over every defined leaf vertex inside the detail raster."""
+    max_depth = max(k[0] for k in merged)
+    heights, lons, lats, depths = [], [], [], []
+    for key, patch, lon, lat, h in leaf_points(merged, children_of):
         inside = detail.inside(lon, lat)
         if not inside.any():
             continue
@@ -311,7 +306,63 @@ def check_untouched(target_dir, target, target_children, merged_dir, merged, mer
         failures.add("no patch outside the affected subtree: (d) checked nothing")
 
 
+ARGS = None
+
+
+class MergeCheck(unittest.TestCase):
+    def test_the_merge_keeps_b_in_b_and_a_elsewhere(self):
+        """(a) to (d) of the module's doc on `vsm merge A B --out`, validated."""
+        failures = Failures()
+        os.makedirs(ARGS.work, exist_ok=True)
+        merged_dir = os.path.join(ARGS.work, "merged")
+        subprocess.run(["rm", "-rf", merged_dir], check=True)
+        target_before = tree_digest(ARGS.target)
+
+        start = time.monotonic()
+        merge = harness.vsm("merge", ARGS.target, ARGS.detail, "--out", merged_dir)
+        merge_seconds = time.monotonic() - start
+        if merge.returncode != 0:
+            self.fail("vsm merge exited %d:\n%s%s" % (merge.returncode, merge.stdout, merge.stderr))
+        print(merge.stdout.strip())
+        validate = harness.vsm("validate", merged_dir)
+        if validate.returncode != 0:
+            failures.add("vsm validate %s exited %d: %s" % (merged_dir, validate.returncode,
+                                                           validate.stdout.strip()[-2000:]))
+        if tree_digest(ARGS.target) != target_before:
+            failures.add("vsm merge --out modified the target %s" % ARGS.target)
+
+        target_raster = GeoRaster(ARGS.target_raster)
+        detail_raster = GeoRaster(ARGS.detail_raster)
+        target_patches, target, target_children, n = load(ARGS.target, ARGS.patch_size, failures)
+        merged_patches, merged, merged_children, n_merged = load(merged_dir, n, failures)
+        if n_merged != n:
+            failures.add("patch size %d after the merge, %d before" % (n_merged, n))
+        stats = {"parent": 0.0, "parent_vertices": 0}
+        check_placement(merged, merged_children, detail_raster, target_raster, failures, stats)
+        check_parents(merged, merged_children, n, failures, stats)
+        check_untouched(target_patches, target, target_children, merged_patches, merged,
+                        merged_children, detail_raster, failures, stats)
+        check_pro3d(merged_dir, failures)
+
+        summary = (
+            "%s: %d patches (target %d), depth %d (target %d), merge %.2f s; "
+            "(a) %d vertices inside the detail raster in %d of its %d cells: bilinear distance max "
+            "%.3f m, p99 %.3f m, mean %.3f m (tolerance %.2f m); nearer triangulation max %.3f m; "
+            "(b) distance to the target's surface max %.1f m, mean %.1f m; (c) %d parent vertices, "
+            "max parent-child %.2e m; (d) %d matched leaves, %d affected patches, %d patches "
+            "byte-identical" %
+            (merged_dir, len(merged), len(target), max(k[0] for k in merged),
+             max(k[0] for k in target), merge_seconds, stats.get("vertices", 0),
+             stats.get("cells", 0), stats.get("cells_total", 0), stats.get("bilinear_max", 0),
+             stats.get("bilinear_p99", 0), stats.get("bilinear_mean", 0), PLACEMENT_TOLERANCE,
+             stats.get("triangle_max", 0), stats.get("target_max", 0), stats.get("target_mean", 0),
+             stats["parent_vertices"], stats["parent"], stats.get("matched", 0),
+             stats.get("affected", 0), stats.get("unchanged", 0)))
+        failures.assert_none(self, summary)
+
+
 def main():
+    global ARGS
     parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
     parser.add_argument("--vsm", required=True)
     parser.add_argument("--target", required=True)
@@ -321,66 +372,10 @@ def main():
     parser.add_argument("--work", required=True)
     parser.add_argument("--patch-size", type=int, default=65,
                         help="used when the OPC does not state it")
-    args = parser.parse_args()
-
-    failures = Failures()
-    os.makedirs(args.work, exist_ok=True)
-    merged_dir = os.path.join(args.work, "merged")
-    subprocess.run(["rm", "-rf", merged_dir], check=True)
-    target_before = tree_digest(args.target)
-
-    start = time.monotonic()
-    merge = run([args.vsm, "merge", args.target, args.detail, "--out", merged_dir])
-    merge_seconds = time.monotonic() - start
-    if merge.returncode != 0:
-        print("FAIL vsm merge exited %d:\n%s%s" % (merge.returncode, merge.stdout, merge.stderr))
-        return 1
-    print(merge.stdout.strip())
-    validate = run([args.vsm, "validate", merged_dir])
-    if validate.returncode != 0:
-        failures.add("vsm validate %s exited %d: %s" % (merged_dir, validate.returncode,
-                                                       validate.stdout.strip()[-2000:]))
-    if tree_digest(args.target) != target_before:
-        failures.add("vsm merge --out modified the target %s" % args.target)
-
-    target_raster = GeoRaster(args.target_raster)
-    detail_raster = GeoRaster(args.detail_raster)
-    target_patches, target, target_children, n = load(args.target, args.patch_size, failures)
-    merged_patches, merged, merged_children, n_merged = load(merged_dir, n, failures)
-    if n_merged != n:
-        failures.add("patch size %d after the merge, %d before" % (n_merged, n))
-    stats = {"parent": 0.0, "parent_vertices": 0}
-    check_placement(merged, merged_children, detail_raster, target_raster, failures, stats)
-    check_parents(merged, merged_children, n, failures, stats)
-    check_untouched(target_patches, target, target_children, merged_patches, merged,
-                    merged_children, detail_raster, failures, stats)
-    check_pro3d(merged_dir, failures)
-
-    summary = (
-        "%s: %d patches (target %d), depth %d (target %d), merge %.2f s; "
-        "(a) %d vertices inside the detail raster in %d of its %d cells: bilinear distance max "
-        "%.3f m, p99 %.3f m, mean %.3f m (tolerance %.2f m); nearer triangulation max %.3f m; "
-        "(b) distance to the target's surface max %.1f m, mean %.1f m; (c) %d parent vertices, "
-        "max parent-child %.2e m; (d) %d matched leaves, %d affected patches, %d patches "
-        "byte-identical" %
-        (merged_dir, len(merged), len(target), max(k[0] for k in merged),
-         max(k[0] for k in target), merge_seconds, stats.get("vertices", 0),
-         stats.get("cells", 0), stats.get("cells_total", 0), stats.get("bilinear_max", 0),
-         stats.get("bilinear_p99", 0), stats.get("bilinear_mean", 0), PLACEMENT_TOLERANCE,
-         stats.get("triangle_max", 0), stats.get("target_max", 0), stats.get("target_mean", 0),
-         stats["parent_vertices"], stats["parent"], stats.get("matched", 0),
-         stats.get("affected", 0), stats.get("unchanged", 0)))
-    if failures.count:
-        for message in failures.items:
-            print("FAIL " + message)
-        if failures.count > len(failures.items):
-            print("... and %d more failures" % (failures.count - len(failures.items)))
-        print(summary)
-        print("%d failures" % failures.count)
-        return 1
-    print("OK " + summary)
-    return 0
+    ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

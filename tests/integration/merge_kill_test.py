@@ -40,7 +40,7 @@ Exit 0 printing a summary; exit 1 listing the failures.
 """
 
 import argparse
-import json
+import http.client
 import os
 import random
 import re
@@ -51,10 +51,13 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.request
+import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from model_states import crop, make_outside_model, version_of, which  # noqa: E402
+from harness import Daemon  # noqa: E402
+import harness  # noqa: E402
+from model_states import (assert_no_failures, crop, make_outside_model, version_of,  # noqa: E402
+                          which)
 
 DRAFT = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v[0-9]+-[0-9a-f]{8}")
 MAX_EXTRA = 30
@@ -122,28 +125,15 @@ class DaemonMerge:
         self.vsmd, self.root, self.scratch = vsmd, root, scratch
 
     def start(self):
-        port_file = os.path.join(self.scratch, "port")
-        if os.path.exists(port_file):
-            os.remove(port_file)
-        self.log = open(os.path.join(self.scratch, "vsmd.log"), "w")
-        self.proc = subprocess.Popen([self.vsmd, "--listen", "127.0.0.1:0", "--data-root",
-                                      self.root, "--port-file", port_file, "--token", "kill"],
-                                     stdout=self.log, stderr=subprocess.STDOUT)
-        deadline = time.monotonic() + 30
-        while not os.path.exists(port_file):
-            if self.proc.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError("vsmd did not start")
-            time.sleep(0.005)
-        self.base = "http://127.0.0.1:%s" % open(port_file).read().strip()
+        self.daemon = Daemon("--token", "kill", root=self.root, vsmd=self.vsmd,
+                             port_file=os.path.join(self.scratch, "port"),
+                             log_path=os.path.join(self.scratch, "vsmd.log"), start_deadline=30)
+        self.proc = self.daemon.proc
         self.publishing = [None, None]
         self.seen = threading.Event()
         self.state = None
-        request = urllib.request.Request(
-            self.base + "/v1/jobs", method="POST",
-            data=json.dumps({"type": "merge", "target": "target", "source": "detail"}).encode(),
-            headers={"Authorization": "Bearer kill", "Content-Type": "application/json"})
-        with urllib.request.urlopen(request, timeout=30) as response:
-            self.job = json.loads(response.read())["id"]
+        self.job = self.daemon.submit({"type": "merge", "target": "target",
+                                       "source": "detail"})["id"]
         self.start_time = time.monotonic()
         self.poller = threading.Thread(target=self._poll)
         self.poller.start()
@@ -152,9 +142,8 @@ class DaemonMerge:
     def _poll(self):
         while self.proc.poll() is None:
             try:
-                with urllib.request.urlopen(self.base + "/v1/jobs/" + self.job, timeout=5) as r:
-                    job = json.loads(r.read())
-            except (OSError, ValueError):
+                _, _, job = self.daemon.get_json("/v1/jobs/" + self.job)
+            except (OSError, ValueError, http.client.HTTPException):
                 break  # killed
             now = time.monotonic() - self.start_time
             if self.publishing[0] is None and job.get("stage") == "publishing":
@@ -181,7 +170,6 @@ class DaemonMerge:
             self.proc.send_signal(signal.SIGTERM)
         rc = self.proc.wait()
         self.poller.join()
-        self.log.close()
         if rc == 0 and self.state != "succeeded":
             rc = 1
         with open(os.path.join(self.scratch, "vsmd.log")) as f:
@@ -208,42 +196,31 @@ def fresh_copy(source, destination):
     shutil.copytree(source, destination)
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
-    parser.add_argument("--vsm", required=True)
-    parser.add_argument("--vsmd", help="kill vsmd running the merge as a job instead of vsm")
-    parser.add_argument("--target", help="the target OPC (or --crops)")
-    parser.add_argument("--detail", help="the detail OPC (or --crops)")
-    parser.add_argument("--crops", metavar="DATA",
-                        help="make small target and detail models from crops of the real DEMs "
-                        "in DATA (17 x 17 patches) instead of --target and --detail")
-    parser.add_argument("--work", required=True)
-    parser.add_argument("--scratch", help="where the copies go (default: /dev/shm if writable, "
-                        "else --work)")
-    parser.add_argument("--runs", type=int, default=24)
-    parser.add_argument("--publish-runs", type=int, default=10)
-    parser.add_argument("--complete-runs", type=int, default=4)
-    parser.add_argument("--patch-size", type=int, default=65)
-    parser.add_argument("--seed", type=int, default=20261125)
-    args = parser.parse_args()
-    if args.crops is None and (args.target is None or args.detail is None):
-        parser.error("--target and --detail, or --crops")
-
-    os.makedirs(args.work, exist_ok=True)
-    if args.crops is not None:
-        args.target, args.detail = make_crops(args.vsm, args.crops, args.work)
-        args.patch_size = 17
-    scratch_parent = args.scratch
-    if scratch_parent is None:
-        scratch_parent = "/dev/shm" if os.access("/dev/shm", os.W_OK) else args.work
-    scratch = tempfile.mkdtemp(prefix="vsm-merge-kill-", dir=scratch_parent)
-    try:
-        return run(args, scratch)
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+ARGS = None
 
 
-def run(args, scratch):
+class MergeKill(unittest.TestCase):
+    def test_a_killed_merge_leaves_the_old_or_the_new_version(self):
+        """The merge SIGKILLed at sampled points: each time exactly the old or the new version,
+        valid, no draft left after the next open, and merging again gives the new one."""
+        if ARGS.crops is None and (ARGS.target is None or ARGS.detail is None):
+            self.fail("--target and --detail, or --crops")
+
+        os.makedirs(ARGS.work, exist_ok=True)
+        if ARGS.crops is not None:
+            ARGS.target, ARGS.detail = make_crops(ARGS.vsm, ARGS.crops, ARGS.work)
+            ARGS.patch_size = 17
+        scratch_parent = ARGS.scratch
+        if scratch_parent is None:
+            scratch_parent = "/dev/shm" if os.access("/dev/shm", os.W_OK) else ARGS.work
+        scratch = tempfile.mkdtemp(prefix="vsm-merge-kill-", dir=scratch_parent)
+        try:
+            run(self, ARGS, scratch)
+        finally:
+            shutil.rmtree(scratch, ignore_errors=True)
+
+
+def run(test, args, scratch):
     failures = []
     warnings = []
     started = time.monotonic()
@@ -255,8 +232,7 @@ def run(args, scratch):
     outside = make_outside_model(vsm, scratch, args.patch_size)
     old = version_of(old_dir)
     if old[2]:
-        print("FAIL the target has unreachable entries in Patches/ to begin with: %s" % old[2][:5])
-        return 1
+        test.fail("the target has unreachable entries in Patches/ to begin with: %s" % old[2][:5])
 
     root = os.path.join(scratch, "root")  # vsmd's data root: the copy and the detail
     os.makedirs(root)
@@ -279,11 +255,9 @@ def run(args, scratch):
         rc, end, err = merge.finish()
         publishing = merge.publishing
         if rc != 0:
-            print("FAIL the complete merge exited %d:\n%s" % (rc, err))
-            return 1
+            test.fail("the complete merge exited %d:\n%s" % (rc, err))
         if None in publishing:
-            print("FAIL no \"publishing\" stage from its start to its end:\n%s" % err)
-            return 1
+            test.fail("no \"publishing\" stage from its start to its end:\n%s" % err)
         durations.append((end, publishing))
         version = version_of(copy)
         if version[2]:
@@ -292,12 +266,10 @@ def run(args, scratch):
         if new is None:
             new = version
         elif which(version, old, new) != "new":
-            print("FAIL two complete merges of the same models differ: %s" %
-                  describe_difference(version, new))
-            return 1
+            test.fail("two complete merges of the same models differ: %s" %
+                      describe_difference(version, new))
     if which(new, old, new) == "old" or new[0] == old[0]:
-        print("FAIL the complete merge did not change the target")
-        return 1
+        test.fail("the complete merge did not change the target")
     duration = max(d[0] for d in durations)
     print("complete merges: %s; %d folders before, %d after" %
           ("; ".join("%.3f s, publishing %.3f-%.3f s" % (d[0], d[1][0], d[1][1])
@@ -432,15 +404,32 @@ def run(args, scratch):
                 counts["new"], counts["completed"], len(warnings), time.monotonic() - started))
     for message in warnings:
         print("WARN " + message)
-    if failures:
-        for message in failures[:50]:
-            print("FAIL " + message)
-        print(summary)
-        print("%d failures" % len(failures))
-        return 1
-    print("OK " + summary)
-    return 0
+    print(summary)
+    assert_no_failures(test, failures)
+
+
+def main():
+    global ARGS
+    parser = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    parser.add_argument("--vsm", required=True)
+    parser.add_argument("--vsmd", help="kill vsmd running the merge as a job instead of vsm")
+    parser.add_argument("--target", help="the target OPC (or --crops)")
+    parser.add_argument("--detail", help="the detail OPC (or --crops)")
+    parser.add_argument("--crops", metavar="DATA",
+                        help="make small target and detail models from crops of the real DEMs "
+                        "in DATA (17 x 17 patches) instead of --target and --detail")
+    parser.add_argument("--work", required=True)
+    parser.add_argument("--scratch", help="where the copies go (default: /dev/shm if writable, "
+                        "else --work)")
+    parser.add_argument("--runs", type=int, default=24)
+    parser.add_argument("--publish-runs", type=int, default=10)
+    parser.add_argument("--complete-runs", type=int, default=4)
+    parser.add_argument("--patch-size", type=int, default=65)
+    parser.add_argument("--seed", type=int, default=20261125)
+    ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

@@ -7,9 +7,10 @@ import re
 import subprocess
 
 import numpy as np
-from osgeo import gdal, osr
+from osgeo import gdal
 
-from check_import import find_ci, read_hierarchy
+from check_import import Failures, find_ci, read_hierarchy
+from harness import write_raster
 from merge_check import NONCE, folder_digest
 
 gdal.UseExceptions()
@@ -134,25 +135,17 @@ def check_valid_and_reopened(vsm, where, outside, old, new, state, label, failur
 def make_outside_model(vsm, directory, patch_size):
     """A one-patch model in the Alps (10 E, 47 N), far outside any CONUS target."""
     tif = os.path.join(directory, "outside.tif")
-    ds = gdal.GetDriverByName("GTiff").Create(tif, patch_size, patch_size, 1, gdal.GDT_Float32)
-    ds.SetGeoTransform((10.0, 1.0 / 3600, 0.0, 47.0, 0.0, -1.0 / 3600))
-    srs = osr.SpatialReference()
-    srs.ImportFromEPSG(4326)
-    ds.SetProjection(srs.ExportToWkt())
-    ds.GetRasterBand(1).WriteArray(np.full((patch_size, patch_size), 1000.0, np.float32))
-    ds = None
+    write_raster(tif, np.full((patch_size, patch_size), 1000.0), 10.0, 47.0, 1.0 / 3600)
     out = os.path.join(directory, "outside")
     subprocess.run([vsm, "import", tif, out, "--patch-size", str(patch_size)], check=True,
                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return out
 
 
-def exit_status(failures):
-    """Lists the failures (the first 60) and their count: 1; or prints OK: 0."""
-    if failures:
-        for message in failures[:60]:
-            print("FAIL " + message)
-        print("%d failures" % len(failures))
-        return 1
-    print("OK")
-    return 0
+def assert_no_failures(test, failures):
+    """The verdict of a sweep (a list of messages) as a unittest assertion, listed as
+    check_import.Failures lists them."""
+    listed = Failures()
+    for message in failures:
+        listed.add(message)
+    listed.assert_none(test)

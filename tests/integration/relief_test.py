@@ -27,14 +27,15 @@ import argparse
 import math
 import os
 import shutil
-import subprocess
 import sys
+import unittest
 import xml.etree.ElementTree as ET
 
 import numpy as np
 from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import harness  # noqa: E402
 from check_import import QUADRANTS, Failures, check_pro3d, read_hierarchy  # noqa: E402
 
 gdal.UseExceptions()
@@ -96,113 +97,113 @@ def leaves_and_tiles(opc):
     return tiles, kids
 
 
+ARGS = None
+
+
+class Relief(unittest.TestCase):
+    def test_leaf_tiles_are_the_dems_hillshade(self):
+        """PRISM's default texture against GDAL's hillshade, with negative controls; parents as
+        2 x 2 means."""
+        dem_path = os.path.join(ARGS.data, "PRISMelevation.tif")
+        opc = os.path.join(ARGS.work, "prism-relief")
+        shutil.rmtree(ARGS.work, ignore_errors=True)
+        os.makedirs(ARGS.work)
+        n = 65
+        size = n - 1
+        harness.import_dem(dem_path, opc, n)
+
+        failures = Failures()
+        checked = check_pro3d(opc, failures)
+
+        heights, _ = harness.read_raster(dem_path)
+        defined = (~np.isnan(heights)).astype(float)
+        reference = gdal_hillshade(dem_path, 315)
+        controls = {"mirrored east-west": reference[:, ::-1],
+                    "shifted %d pixels" % SHIFT: np.roll(reference, (SHIFT, SHIFT), axis=(0, 1)),
+                    "sun in the south-east": gdal_hillshade(dem_path, 135)}
+
+        tiles, kids = leaves_and_tiles(opc)
+        depth = max(key[0] for key in tiles)
+        # The leaves' texels as one mosaic: texel (i, j) of leaf (x, y) is quad (64 x + i, 64 y + j)
+        # of the DEM, the quad between samples (c, r) and (c + 1, r + 1) (NaN: transparent).
+        rows, cols = heights.shape
+        grey = np.full((rows - 1, cols - 1), np.nan)
+        alpha = np.zeros((rows - 1, cols - 1))
+        for key, tile in tiles.items():
+            if kids[key]:
+                continue
+            if key[0] != depth:
+                failures.add("leaf %s is not at the bottom depth %d" % (key, depth))
+                continue
+            if not (np.array_equal(tile[0], tile[1]) and np.array_equal(tile[0], tile[2])):
+                failures.add("leaf %s: the relief is not grey" % (key,))
+            if np.any((tile[3] != 0) & (tile[3] != 255)):
+                failures.add("leaf %s: alpha other than 0 and 255" % (key,))
+            x0, y0 = key[1] * size, key[2] * size
+            h, w = min(size, rows - 1 - y0), min(size, cols - 1 - x0)
+            if h <= 0 or w <= 0:
+                continue
+            alpha[y0:y0 + h, x0:x0 + w] = tile[3, :h, :w]
+            grey[y0:y0 + h, x0:x0 + w] = np.where(tile[3, :h, :w] == 255, tile[0, :h, :w], np.nan)
+
+        # The image is where the surface is: a quad with three or four defined corners is shaded.
+        corners = defined[:-1, :-1] + defined[:-1, 1:] + defined[1:, :-1] + defined[1:, 1:]
+        wrong = int(np.count_nonzero((alpha == 255) != (corners >= 3)))
+        if wrong:
+            failures.add("%d leaf texels are opaque where the DEM has no surface or transparent where "
+                         "it has" % wrong)
+
+        # At each inner DEM pixel: the mean of the four texels around it against GDAL's value there.
+        # Horn's gradient (GDAL's) at a pixel is exactly the mean of the gradients of the four quads
+        # around it (each taken across its mid-lines, as vsm does), so the two agree up to the
+        # shading's non-linearity and the ellipsoid; a single texel against GDAL's smoother value
+        # correlates only about 0.84 on this rough 4 km DEM.
+        around = (grey[:-1, :-1] + grey[:-1, 1:] + grey[1:, :-1] + grey[1:, 1:]) / 4
+        inner = reference[1:-1, 1:-1]
+        use = ~np.isnan(around) & ~np.isnan(inner)
+        got, expected = around[use], inner[use]
+        correlation = float(np.corrcoef(got, expected)[0, 1])
+        if not correlation > MIN_CORRELATION:
+            failures.add("correlation with GDAL's hillshade %.3f, not above %.2f" %
+                         (correlation, MIN_CORRELATION))
+        control_text = []
+        for name, control in controls.items():
+            values = control[1:-1, 1:-1][use]
+            values = np.where(np.isnan(values), np.nanmean(control), values)
+            c = float(np.corrcoef(got, values)[0, 1])
+            control_text.append("%s %.3f" % (name, c))
+            if not c < MAX_CONTROL:
+                failures.add("negative control (%s) correlates %.3f: the check cannot tell" % (name, c))
+
+        parent_quadrants = 0
+        half = size // 2
+        for key, quadrants in kids.items():
+            for q, child in quadrants.items():
+                qx, qy = QUADRANTS[q]
+                c = tiles[child]
+                mean = (c[:, 0::2, 0::2] + c[:, 0::2, 1::2] + c[:, 1::2, 0::2] + c[:, 1::2, 1::2]) / 4
+                part = tiles[key][:, qy * half:(qy + 1) * half, qx * half:(qx + 1) * half]
+                if np.any(np.abs(part - mean) > 0.5 + 1e-9):
+                    failures.add("parent %s, quadrant %s: not the mean of its child's texels" % (key, q))
+                parent_quadrants += 1
+
+        summary = ("relief: %d patches complete for PRo3D, %d DEM pixels, correlation with GDAL's "
+                   "hillshade %.3f (> %.2f); controls %s (< %.2f); %d parent quadrants exact" %
+                   (checked, got.size, correlation, MIN_CORRELATION, ", ".join(control_text),
+                    MAX_CONTROL, parent_quadrants))
+        failures.assert_none(self, summary)
+
+
 def main():
+    global ARGS
     parser = argparse.ArgumentParser()
     parser.add_argument("--vsm", required=True)
     parser.add_argument("--data", required=True)
     parser.add_argument("--work", required=True)
-    args = parser.parse_args()
-
-    dem_path = os.path.join(args.data, "PRISMelevation.tif")
-    opc = os.path.join(args.work, "prism-relief")
-    shutil.rmtree(args.work, ignore_errors=True)
-    os.makedirs(args.work)
-    n = 65
-    size = n - 1
-    subprocess.run([args.vsm, "import", dem_path, opc, "--patch-size", str(n)], check=True,
-                   stdout=subprocess.DEVNULL)
-
-    failures = Failures()
-    checked = check_pro3d(opc, failures)
-
-    dem = gdal.Open(dem_path)
-    band = dem.GetRasterBand(1)
-    heights = band.ReadAsArray().astype(float)
-    if band.GetNoDataValue() is not None:
-        heights[heights == band.GetNoDataValue()] = np.nan
-    defined = (~np.isnan(heights)).astype(float)
-    reference = gdal_hillshade(dem_path, 315)
-    controls = {"mirrored east-west": reference[:, ::-1],
-                "shifted %d pixels" % SHIFT: np.roll(reference, (SHIFT, SHIFT), axis=(0, 1)),
-                "sun in the south-east": gdal_hillshade(dem_path, 135)}
-
-    tiles, kids = leaves_and_tiles(opc)
-    depth = max(key[0] for key in tiles)
-    # The leaves' texels as one mosaic: texel (i, j) of leaf (x, y) is quad (64 x + i, 64 y + j)
-    # of the DEM, the quad between samples (c, r) and (c + 1, r + 1) (NaN: transparent).
-    rows, cols = heights.shape
-    grey = np.full((rows - 1, cols - 1), np.nan)
-    alpha = np.zeros((rows - 1, cols - 1))
-    for key, tile in tiles.items():
-        if kids[key]:
-            continue
-        if key[0] != depth:
-            failures.add("leaf %s is not at the bottom depth %d" % (key, depth))
-            continue
-        if not (np.array_equal(tile[0], tile[1]) and np.array_equal(tile[0], tile[2])):
-            failures.add("leaf %s: the relief is not grey" % (key,))
-        if np.any((tile[3] != 0) & (tile[3] != 255)):
-            failures.add("leaf %s: alpha other than 0 and 255" % (key,))
-        x0, y0 = key[1] * size, key[2] * size
-        h, w = min(size, rows - 1 - y0), min(size, cols - 1 - x0)
-        if h <= 0 or w <= 0:
-            continue
-        alpha[y0:y0 + h, x0:x0 + w] = tile[3, :h, :w]
-        grey[y0:y0 + h, x0:x0 + w] = np.where(tile[3, :h, :w] == 255, tile[0, :h, :w], np.nan)
-
-    # The image is where the surface is: a quad with three or four defined corners is shaded.
-    corners = defined[:-1, :-1] + defined[:-1, 1:] + defined[1:, :-1] + defined[1:, 1:]
-    wrong = int(np.count_nonzero((alpha == 255) != (corners >= 3)))
-    if wrong:
-        failures.add("%d leaf texels are opaque where the DEM has no surface or transparent where "
-                     "it has" % wrong)
-
-    # At each inner DEM pixel: the mean of the four texels around it against GDAL's value there.
-    # Horn's gradient (GDAL's) at a pixel is exactly the mean of the gradients of the four quads
-    # around it (each taken across its mid-lines, as vsm does), so the two agree up to the
-    # shading's non-linearity and the ellipsoid; a single texel against GDAL's smoother value
-    # correlates only about 0.84 on this rough 4 km DEM.
-    around = (grey[:-1, :-1] + grey[:-1, 1:] + grey[1:, :-1] + grey[1:, 1:]) / 4
-    inner = reference[1:-1, 1:-1]
-    use = ~np.isnan(around) & ~np.isnan(inner)
-    got, expected = around[use], inner[use]
-    correlation = float(np.corrcoef(got, expected)[0, 1])
-    if not correlation > MIN_CORRELATION:
-        failures.add("correlation with GDAL's hillshade %.3f, not above %.2f" %
-                     (correlation, MIN_CORRELATION))
-    control_text = []
-    for name, control in controls.items():
-        values = control[1:-1, 1:-1][use]
-        values = np.where(np.isnan(values), np.nanmean(control), values)
-        c = float(np.corrcoef(got, values)[0, 1])
-        control_text.append("%s %.3f" % (name, c))
-        if not c < MAX_CONTROL:
-            failures.add("negative control (%s) correlates %.3f: the check cannot tell" % (name, c))
-
-    parent_quadrants = 0
-    half = size // 2
-    for key, quadrants in kids.items():
-        for q, child in quadrants.items():
-            qx, qy = QUADRANTS[q]
-            c = tiles[child]
-            mean = (c[:, 0::2, 0::2] + c[:, 0::2, 1::2] + c[:, 1::2, 0::2] + c[:, 1::2, 1::2]) / 4
-            part = tiles[key][:, qy * half:(qy + 1) * half, qx * half:(qx + 1) * half]
-            if np.any(np.abs(part - mean) > 0.5 + 1e-9):
-                failures.add("parent %s, quadrant %s: not the mean of its child's texels" % (key, q))
-            parent_quadrants += 1
-
-    summary = ("relief: %d patches complete for PRo3D, %d DEM pixels, correlation with GDAL's "
-               "hillshade %.3f (> %.2f); controls %s (< %.2f); %d parent quadrants exact" %
-               (checked, got.size, correlation, MIN_CORRELATION, ", ".join(control_text),
-                MAX_CONTROL, parent_quadrants))
-    if failures.count:
-        for message in failures.items:
-            print("FAIL " + message)
-        print(summary)
-        return 1
-    print(summary)
-    return 0
+    ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

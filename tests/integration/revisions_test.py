@@ -25,11 +25,10 @@ import re
 import shutil
 import subprocess
 import sys
-import time
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
+import harness  # noqa: E402
 from model_states import reachable_folders  # noqa: E402
 
 ARGS = None
@@ -43,9 +42,7 @@ NO_TIME_FLOOR = ("--set", "keep_revisions_seconds=0")
 
 def import_models(root):
     for name in ("PRISMelevation", "jacksboro_fault_dem"):
-        subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, name + ".tif"),
-                        os.path.join(root, name), "--patch-size", "65"], check=True,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        harness.import_dem(os.path.join(ARGS.data, name + ".tif"), os.path.join(root, name), 65)
 
 
 class Revisions(unittest.TestCase):
@@ -56,7 +53,7 @@ class Revisions(unittest.TestCase):
         os.makedirs(root)
         import_models(root)
         cls.root = root
-        cls.daemon = base.Daemon("--token", TOKEN, "--keep-revisions", str(KEEP), *NO_TIME_FLOOR,
+        cls.daemon = harness.Daemon("--token", TOKEN, "--keep-revisions", str(KEEP), *NO_TIME_FLOOR,
                                  root=root)
 
     @classmethod
@@ -72,11 +69,7 @@ class Revisions(unittest.TestCase):
         return json.loads(self.get(path, status)[1])
 
     def wait(self, job):
-        deadline = time.monotonic() + 300
-        while job["state"] in ("queued", "running"):
-            self.assertLess(time.monotonic(), deadline, job)
-            time.sleep(0.05)
-            job = self.get_json("/v1/jobs/" + job["id"])
+        job = self.daemon.wait_job(job["id"], timeout=300, interval=0.05)
         self.assertEqual(job["state"], "succeeded", job)
         return job
 
@@ -96,12 +89,7 @@ class Revisions(unittest.TestCase):
         q = "" if rev is None else "?rev=%d" % rev
         model = self.get_json("/v1/models/PRISMelevation" + q)
         hierarchy = self.get_json("/v1/models/PRISMelevation/hierarchy" + q)
-        keys = []
-        stack = [hierarchy["root"]]
-        while stack:
-            node = stack.pop()
-            keys.append(node["key"])
-            stack.extend(node.get("children", []))
+        keys = harness.keys(hierarchy)
         positions = {k: self.get("/v1/models/PRISMelevation/patches/%s/positions%s" % (k, q))[1]
                      for k in keys}
         return model, hierarchy, positions
@@ -183,7 +171,7 @@ class Revisions(unittest.TestCase):
         self.assertEqual(validate.returncode, 0, validate.stdout[-500:])
         # A restart reads the same list from disk.
         self.assertEqual(self.daemon.stop(), 0)
-        type(self).daemon = base.Daemon("--token", TOKEN, "--keep-revisions", str(KEEP),
+        type(self).daemon = harness.Daemon("--token", TOKEN, "--keep-revisions", str(KEEP),
                                         *NO_TIME_FLOOR,
                                         root=self.root)
         self.assertEqual([r["revision"] for r in self.revisions()], list(range(8, 16)))
@@ -198,7 +186,7 @@ def main():
     parser.add_argument("--data", required=True)
     parser.add_argument("--work", required=True)
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     os.makedirs(ARGS.work, exist_ok=True)
     unittest.main(argv=[sys.argv[0]] + rest, verbosity=2)
 

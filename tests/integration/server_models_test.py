@@ -1,6 +1,6 @@
 #!/usr/bin/python3
 """End-to-end tests of vsmd's model, patch, LOD and job routes on real data: the real daemon on
-127.0.0.1:0 (see server_test.py for the harness) over a data root holding the Jacksboro DEM
+127.0.0.1:0 (harness.py) over a data root holding the Jacksboro DEM
 imported by `vsm import` at 65 x 65, and PRISM imported over HTTP as a job, then merged with
 Jacksboro as a job. Responses are checked against proto/examples and decoded independently
 (the .aara bytes with struct). The merges' file creations under PRISM pass a gate of the
@@ -16,17 +16,15 @@ import os
 import re
 import shutil
 import struct
-import subprocess
 import sys
 import tempfile
 import threading
-import time
 import unittest
 import urllib.parse
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness and helpers)
-from server_test import Daemon, example, shape  # noqa: E402
+import harness  # noqa: E402
+from harness import Daemon, decode_aara, example, shape, walk  # noqa: E402
 from check_import import Failures, check_pro3d  # noqa: E402
 from hold import Hold  # noqa: E402
 
@@ -39,8 +37,7 @@ ARGS = None
 
 
 def import_opc(dem, out, size=PATCH, *options):
-    subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, dem), out, "--patch-size",
-                    str(size), *options], check=True, capture_output=True, timeout=300)
+    harness.import_dem(os.path.join(ARGS.data, dem), out, size, *options, timeout=300)
 
 
 def assert_pro3d_complete(opc):
@@ -48,42 +45,6 @@ def assert_pro3d_complete(opc):
     failures = Failures()
     checked = check_pro3d(opc, failures)
     assert failures.count == 0 and checked > 0, (opc, failures.items)
-
-
-def decode_aara(data):
-    """(type name, sizes, payload) of .aara bytes, per ../shared/docs/OPC.md."""
-    n = data[0]
-    name = data[1:1 + n].decode("ascii")
-    dims = data[1 + n]
-    sizes = struct.unpack_from("<%di" % dims, data, 2 + n)
-    return name, sizes, data[2 + n + 4 * dims:]
-
-
-def wait_job(daemon, job_id, timeout=600, seen=None):
-    """Polls a job until it is final; `seen` collects (state, stage, progress) along the way."""
-    deadline = time.monotonic() + timeout
-    while True:
-        status, _, job = daemon.get_json("/v1/jobs/" + job_id)
-        assert status == 200, job
-        if seen is not None:
-            seen.append((job["state"], job["stage"], job["progress"]))
-        if job["state"] in ("succeeded", "failed", "cancelled"):
-            return job
-        if time.monotonic() > deadline:
-            raise AssertionError("job %s not final after %d s: %r" % (job_id, timeout, job))
-        time.sleep(0.02)
-
-
-def post_json(daemon, path, body, headers=AUTH):
-    status, hdrs, data = daemon.request("POST", path, body=json.dumps(body).encode(),
-                                        headers={**JSON, **headers})
-    return status, hdrs, json.loads(data) if data else None
-
-
-def walk(node):
-    yield node
-    for child in node.get("children", []):
-        yield from walk(child)
 
 
 def key_parts(key):
@@ -379,7 +340,7 @@ class Models(unittest.TestCase):
             {"id": "../../tmp/evil", "source": {"import": "rasters/prism.tif", "patch_size": 65}},
         ]
         for body in tricks:
-            status, _, data = post_json(self.daemon, "/v1/models", body)
+            status, _, data = self.daemon.json("POST", "/v1/models", body)
             self.assert_error(status, data, 400, "invalid_argument")
         for path in ("/v1/models/..%2F..%2Fetc", "/v1/models/%2E%2E%2Fx/hierarchy"):
             status, _, data = self.daemon.request("DELETE", path, headers=AUTH)
@@ -390,20 +351,20 @@ class Models(unittest.TestCase):
         self.assertNotIn("ok", ids)
 
     def test_open_conflict_close_and_reopen(self):
-        status, _, body = post_json(self.daemon, "/v1/models",
-                                    {"id": "jacksboro", "source": {"path": "jacksboro"}})
+        status, _, body = self.daemon.json("POST", "/v1/models",
+                                           {"id": "jacksboro", "source": {"path": "jacksboro"}})
         self.assert_error(status, body, 409, "conflict")
-        status, _, body = post_json(self.daemon, "/v1/models",
-                                    {"id": "twin", "source": {"path": "jacksboro"}})
+        status, _, body = self.daemon.json("POST", "/v1/models",
+                                           {"id": "twin", "source": {"path": "jacksboro"}})
         self.assert_error(status, body, 409, "conflict")
-        status, _, body = post_json(self.daemon, "/v1/models",
-                                    {"id": "nothing", "source": {"path": "empty-dir"}})
+        status, _, body = self.daemon.json("POST", "/v1/models",
+                                           {"id": "nothing", "source": {"path": "empty-dir"}})
         self.assert_error(status, body, 404, "not_found")
         # A second copy, opened by path, closed, and opened again.
         shutil.copytree(os.path.join(self.daemon.dir, "jacksboro"),
                         os.path.join(self.daemon.dir, "rasters", "copy"))
-        status, headers, body = post_json(self.daemon, "/v1/models",
-                                          {"id": "copy", "source": {"path": "rasters/copy"}})
+        status, headers, body = self.daemon.json("POST", "/v1/models",
+                                                 {"id": "copy", "source": {"path": "rasters/copy"}})
         self.assertEqual(status, 201, body)
         self.assertEqual(headers["Location"], "/v1/models/copy")
         self.assertEqual(shape(body), shape(example("model.json")))
@@ -413,8 +374,8 @@ class Models(unittest.TestCase):
         self.assertEqual(self.daemon.get_json("/v1/models/copy")[0], 404)
         self.assertEqual(self.daemon.request("DELETE", "/v1/models/copy", headers=AUTH)[0], 404)
         self.assertTrue(os.path.isdir(os.path.join(self.daemon.dir, "rasters", "copy", "Patches")))
-        status, _, body = post_json(self.daemon, "/v1/models",
-                                    {"id": "copy", "source": {"path": "rasters/copy"}})
+        status, _, body = self.daemon.json("POST", "/v1/models",
+                                           {"id": "copy", "source": {"path": "rasters/copy"}})
         self.assertEqual(status, 201, body)
         self.assertEqual(self.daemon.request("DELETE", "/v1/models/copy", headers=AUTH)[0], 204)
 
@@ -423,15 +384,15 @@ class Models(unittest.TestCase):
     def test_z_import_then_merge_then_cancel_then_restart(self):
         d = self.daemon
         # Import PRISM as a job.
-        status, headers, job = post_json(d, "/v1/models", {
+        status, headers, job = d.json("POST", "/v1/models", {
             "id": "prism", "source": {"import": "rasters/prism.tif", "patch_size": PATCH}})
         self.assertEqual(status, 202, job)
         self.assertEqual(shape(job), shape(example("job-import.json")))
         self.assertEqual(headers["Location"], "/v1/jobs/" + job["id"])
-        status, _, again = post_json(d, "/v1/models", {
+        status, _, again = d.json("POST", "/v1/models", {
             "id": "prism", "source": {"import": "rasters/prism.tif", "patch_size": PATCH}})
         self.assert_error(status, again, 409, "conflict")
-        done = wait_job(d, job["id"])
+        done = d.wait_job(job["id"])
         self.assertEqual(done["state"], "succeeded", done)
         self.assertEqual(done["progress"], 1)
         status, _, prism = d.get_json("/v1/models/prism")
@@ -441,12 +402,12 @@ class Models(unittest.TestCase):
         self.assertEqual(done["params"]["texture"], "relief")
         assert_pro3d_complete(os.path.join(d.dir, "prism"))
         # "texture": "none": no Images/ and no coordinates (PRo3D will not open it, vsm does).
-        status, _, job = post_json(d, "/v1/models", {
+        status, _, job = d.json("POST", "/v1/models", {
             "id": "bare", "source": {"import": "rasters/prism.tif", "patch_size": PATCH,
                                      "texture": "none"}})
         self.assertEqual(status, 202, job)
         self.assertEqual(job["params"]["texture"], "none")
-        self.assertEqual(wait_job(d, job["id"])["state"], "succeeded")
+        self.assertEqual(d.wait_job(job["id"])["state"], "succeeded")
         self.assertTrue(os.path.isdir(os.path.join(d.dir, "bare", "Patches")))
         self.assertFalse(os.path.exists(os.path.join(d.dir, "bare", "Images")))
         self.assertIsNone(d.get_json("/v1/models/bare/patches/0_0_0")[2]["texture"])
@@ -457,8 +418,8 @@ class Models(unittest.TestCase):
         before_count = len(list(walk(before_tree["root"])))
         hold = self.hold
         allowed = hold.let_through(hold.calls())
-        status, _, job = post_json(d, "/v1/jobs", {"type": "merge", "target": "prism",
-                                                   "source": "jacksboro", "register": False})
+        status, _, job = d.json("POST", "/v1/jobs", {"type": "merge", "target": "prism",
+                                "source": "jacksboro", "register": False})
         self.assertEqual(status, 202, job)
         self.assertEqual(shape(job), shape(example("job.json")))
         self.assertIn(job["state"], ("queued", "running"))
@@ -512,7 +473,7 @@ class Models(unittest.TestCase):
             seen.append((now["state"], now["stage"], now["progress"]))
             # Readers meanwhile see the published version whole (checked by reader()).
             hold.release()
-            done = wait_job(d, job["id"], seen=seen)
+            done = d.wait_job(job["id"], seen=seen)
         finally:
             hold.release()
             stop.set()
@@ -545,15 +506,15 @@ class Models(unittest.TestCase):
         _, summary_headers, summary = d.get_json("/v1/models/prism")
         hold.let_through(hold.calls())
         try:
-            status, _, job = post_json(d, "/v1/jobs", {"type": "merge", "target": "prism",
-                                                       "source": "jacksboro"})
+            status, _, job = d.json("POST", "/v1/jobs", {"type": "merge", "target": "prism",
+                                    "source": "jacksboro"})
             self.assertEqual(status, 202, job)
             status, _, cancelled = d.request("DELETE", "/v1/jobs/" + job["id"], headers=AUTH)
             self.assertIn(status, (200, 202), cancelled)
             self.assertTrue(json.loads(cancelled)["cancel_requested"])
         finally:
             hold.release()
-        final = wait_job(d, job["id"])
+        final = d.wait_job(job["id"])
         self.assertEqual(final["state"], "cancelled", final)
         self.assertEqual(final["error"]["code"], "cancelled")
         status, headers, now = d.get_json("/v1/models/prism")
@@ -591,10 +552,8 @@ class TexturedModel(unittest.TestCase):
             raise unittest.SkipTest("--vsm and --data are needed")
 
         def prepare(root):
-            subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
-                            os.path.join(root, "textured"), "--patch-size", str(PATCH),
-                            "--texture", os.path.join(ARGS.data, "conus_visible_earth.tif")],
-                           check=True, capture_output=True, timeout=300)
+            import_opc("jacksboro_fault_dem.tif", os.path.join(root, "textured"), PATCH,
+                       "--texture", os.path.join(ARGS.data, "conus_visible_earth.tif"))
             # Untextured on purpose: the texture routes' 404s and "texture": null.
             import_opc("jacksboro_fault_dem.tif", os.path.join(root, "plain"), PATCH,
                        "--texture", "none")
@@ -611,8 +570,7 @@ class TexturedModel(unittest.TestCase):
                 raise AssertionError("vsmd exited %d" % code)
 
     def keys(self):
-        _, _, tree = self.daemon.get_json("/v1/models/textured/hierarchy")
-        return [n["key"] for n in walk(tree["root"])]
+        return self.daemon.keys("textured")
 
     def test_patch_metadata_names_the_texture(self):
         status, _, meta = self.daemon.get_json("/v1/models/textured/patches/0_0_0")
@@ -693,7 +651,7 @@ def main():
     parser.add_argument("--data")
     parser.add_argument("--lib", required=True, help="libvsm_fault_inject.so (tests/fault)")
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 

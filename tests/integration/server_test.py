@@ -8,9 +8,7 @@ wait is bounded. Run by ctest:
     server_test.py --vsmd build/server/vsmd --proto proto"""
 
 import argparse
-import http.client
 import json
-import math
 import os
 import re
 import shutil
@@ -22,150 +20,17 @@ import tempfile
 import time
 import unittest
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import harness  # noqa: E402
+from harness import (Daemon, example, metric, read_response, read_until_closed, shape,  # noqa: E402
+                     write_dem)
+
 ARGS = None
-# How long a process may take to start (port file, health): a bound that only ends a hang, far
-# above what a loaded machine or a sanitizer build needs.
-START_DEADLINE = 120
 TOKEN = "test-token-0123456789"
 MiB = 1024 * 1024
 BODY_LIMIT = 1024  # the main daemon's limits.body_bytes
 IDLE_TIMEOUT = 1.0  # the main daemon's limits.idle_timeout, seconds
 HEADER_TIMEOUT = 1.5  # the main daemon's limits.header_timeout, seconds
-
-
-class Daemon:
-    """One vsmd process on 127.0.0.1:0 with its own data root; the port comes from --port-file."""
-
-    def __init__(self, *flags, config=None, prepare=None, root=None, env=None):
-        """`prepare(dir)` fills the data root before the daemon starts; `root` reuses one; `env`
-        is the process's environment (default: this one's)."""
-        self.dir = root or tempfile.mkdtemp(prefix="vsmd-test-")
-        if prepare is not None:
-            prepare(self.dir)
-        self.port_file = os.path.join(self.dir, "port")
-        self.log_path = os.path.join(self.dir, "vsmd.log")
-        args = [ARGS.vsmd, "--listen", "127.0.0.1:0", "--data-root", self.dir,
-                "--port-file", self.port_file, *flags]
-        if config is not None:
-            path = os.path.join(self.dir, "vsmd.json")
-            with open(path, "w") as f:
-                json.dump(config, f)
-            args += ["--config", path]
-        with open(self.log_path, "wb") as log:
-            self.proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=log,
-                                         stderr=subprocess.STDOUT, env=env)
-        deadline = time.monotonic() + START_DEADLINE
-        while not os.path.exists(self.port_file):
-            if self.proc.poll() is not None:
-                raise AssertionError("vsmd exited with %d:\n%s" % (self.proc.returncode, self.log()))
-            if time.monotonic() > deadline:
-                self.kill()
-                raise AssertionError("vsmd wrote no port file within %d s:\n" % START_DEADLINE
-                                     + self.log())
-            time.sleep(0.02)
-        with open(self.port_file) as f:
-            self.port = int(f.read())
-
-    def log(self):
-        with open(self.log_path, errors="replace") as f:
-            return f.read()
-
-    def connection(self, timeout=10):
-        return http.client.HTTPConnection("127.0.0.1", self.port, timeout=timeout)
-
-    def socket(self, timeout=10):
-        return socket.create_connection(("127.0.0.1", self.port), timeout=timeout)
-
-    def request(self, method, path, body=None, headers=None):
-        """One request on a fresh connection: (status, headers, body bytes)."""
-        conn = self.connection()
-        try:
-            conn.request(method, path, body=body, headers=headers or {})
-            response = conn.getresponse()
-            return response.status, response.headers, response.read()
-        finally:
-            conn.close()
-
-    def get_json(self, path):
-        status, headers, body = self.request("GET", path)
-        return status, headers, json.loads(body)
-
-    def stop(self, timeout=20):
-        """SIGTERM and the exit code."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-        try:
-            return self.proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.kill()
-            raise AssertionError("vsmd did not exit within %d s of SIGTERM:\n%s" % (timeout, self.log()))
-
-    def kill(self):
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(timeout=10)
-
-    def cleanup(self, keep=False):
-        self.kill()
-        if not keep:
-            shutil.rmtree(self.dir, ignore_errors=True)
-
-
-def example(name):
-    with open(os.path.join(ARGS.proto, "examples", name)) as f:
-        return json.load(f)
-
-
-def shape(value, maps=("resident_bytes_by_model",), key=None):
-    """The structure of a JSON value: dict keys and value kinds, recursively. Objects named in
-    `maps` are maps (any keys, possibly none) of numbers."""
-    if isinstance(value, dict):
-        if key in maps:
-            if any(shape(v) != "number" for v in value.values()):
-                return "map with other values than numbers"
-            return "map of numbers"
-        return {k: shape(v, maps, k) for k, v in value.items()}
-    if isinstance(value, list):
-        return "list"
-    if isinstance(value, bool):
-        return "bool"
-    if isinstance(value, (int, float)):
-        return "number"
-    return type(value).__name__
-
-
-def read_until_closed(sock, limit=1 << 20):
-    chunks = []
-    while sum(map(len, chunks)) < limit:
-        try:
-            data = sock.recv(65536)
-        except ConnectionResetError:
-            break
-        if not data:
-            break
-        chunks.append(data)
-    return b"".join(chunks)
-
-
-def read_response(sock):
-    """Reads one response with a Content-Length (or none) from a raw socket: (status, headers
-    text, body)."""
-    data = b""
-    while b"\r\n\r\n" not in data:
-        chunk = sock.recv(65536)
-        if not chunk:
-            raise AssertionError("connection closed before a response: %r" % data)
-        data += chunk
-    head, _, body = data.partition(b"\r\n\r\n")
-    head = head.decode("latin-1")
-    match = re.search(r"(?im)^content-length:\s*(\d+)", head)
-    length = int(match.group(1)) if match else 0
-    while len(body) < length:
-        chunk = sock.recv(65536)
-        if not chunk:
-            break
-        body += chunk
-    return int(head.split(" ")[1]), head, body
 
 
 class MainDaemon(unittest.TestCase):
@@ -448,47 +313,6 @@ class MainDaemon(unittest.TestCase):
                               r'bytes=15 ms=[0-9.]+ peer=127\.0\.0\.1:\d+')
 
 
-def write_dem(path, size, cell=0.0005, west=10.0, south=45.0):
-    """A synthetic DEM of size x size samples (smooth hills, metres) as an ESRI ASCII grid with a
-    WGS 84 .prj beside it: a raster GDAL reads, written with the standard library only."""
-    with open(path, "w") as f:
-        f.write("ncols %d\nnrows %d\nxllcorner %r\nyllcorner %r\ncellsize %r\n"
-                % (size, size, west, south, cell))
-        for row in range(size):
-            f.write(" ".join("%.2f" % (500 + 40 * math.sin(col / 9.0) * math.cos(row / 13.0)
-                                       + 0.5 * row) for col in range(size)))
-            f.write("\n")
-    with open(os.path.splitext(path)[0] + ".prj", "w") as f:
-        f.write('GEOGCS["WGS 84",DATUM["WGS_1984",SPHEROID["WGS 84",6378137,298.257223563]],'
-                'PRIMEM["Greenwich",0],UNIT["degree",0.0174532925199433]]')
-
-
-def import_model(daemon, model_id, raster, patch_size, timeout=300):
-    """Imports `raster` (in the data root) as `model_id` through the jobs API and waits for it."""
-    status, _, body = daemon.request(
-        "POST", "/v1/models",
-        body=json.dumps({"id": model_id, "source": {"import": raster, "patch_size": patch_size}}),
-        headers={"Authorization": "Bearer " + TOKEN, "Content-Type": "application/json"})
-    assert status == 202, body
-    job_id = json.loads(body)["id"]
-    deadline = time.monotonic() + timeout
-    while True:
-        status, _, job = daemon.get_json("/v1/jobs/" + job_id)
-        assert status == 200, job
-        if job["state"] not in ("queued", "running"):
-            assert job["state"] == "succeeded", job
-            return
-        assert time.monotonic() < deadline, job
-        time.sleep(0.05)
-
-
-def metric(text, name, labels=""):
-    """The value of one sample of the Prometheus text, e.g. metric(t, "x", '{a="b"}')."""
-    match = re.search(r"(?m)^%s%s (\S+)$" % (re.escape(name), re.escape(labels)), text)
-    assert match, "no sample %s%s" % (name, labels)
-    return float(match.group(1))
-
-
 class EncodedResponses(unittest.TestCase):
     """Stored positions files held open (sent with sendfile), encodings of cropped patches and
     GLBs are cached inside the one memory budget: charged by category, shown in /v1/stats and
@@ -504,15 +328,8 @@ class EncodedResponses(unittest.TestCase):
         # cropped; the others are stored whole.
         cls.daemon = Daemon("--memory-budget", "1MiB", "--token", TOKEN,
                             prepare=lambda root: write_dem(os.path.join(root, "hills.asc"), 241))
-        import_model(cls.daemon, "hills", "hills.asc", 65)
-        status, _, hierarchy = cls.daemon.get_json("/v1/models/hills/hierarchy")
-        assert status == 200, hierarchy
-
-        def walk(node):
-            yield node
-            for child in node.get("children", []):
-                yield from walk(child)
-        cls.keys = [node["key"] for node in walk(hierarchy["root"])]
+        cls.daemon.import_model("hills", "hills.asc", 65)
+        cls.keys = cls.daemon.keys("hills")
         assert len(cls.keys) == 21, cls.keys
 
     @classmethod
@@ -785,6 +602,7 @@ def main():
     parser.add_argument("--vsm", help="the vsm command (model tests are skipped without it)")
     parser.add_argument("--data", help="the shared real data (../shared/data)")
     ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 

@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""SIGTERM loses nothing: the real vsmd on 127.0.0.1:0 (server_test.py's harness) with a memory
+"""SIGTERM loses nothing: the real vsmd on 127.0.0.1:0 (harness.py) with a memory
 budget so small that a merge of Jacksboro into PRISM (both imported by `vsm import` at 65 x 65)
 writes dirty patches back to disk before it publishes. SIGTERM while that merge runs (held
 mid-way, after write-backs, by the LD_PRELOAD library of tests/fault, so on any machine), SIGTERM
@@ -10,41 +10,27 @@ new one. Run by ctest:
         --proto proto --lib build/tests/fault/libvsm_fault_inject.so"""
 
 import argparse
-import json
 import os
 import re
 import shutil
 import signal
 import socket
 import struct
-import subprocess
 import sys
 import tempfile
 import time
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
+import harness  # noqa: E402
 from hold import Hold, poll  # noqa: E402
-from server_test import Daemon  # noqa: E402
+from harness import Daemon  # noqa: E402
 
 TOKEN = "shutdown-token-0123456789"
-AUTH = {"Authorization": "Bearer " + TOKEN, "Content-Type": "application/json"}
 PATCH = 65
 # 65 x 65 positions are 50 KiB: a few dozen patches fit, a merge makes a few hundred.
 BUDGET = "3MiB"
 ARGS = None
-
-
-def vsm(*args, check=True):
-    return subprocess.run([ARGS.vsm, *args], capture_output=True, text=True, check=check,
-                          timeout=600)
-
-
-def walk(node):
-    yield node
-    for child in node.get("children", []):
-        yield from walk(child)
 
 
 class Shutdown(unittest.TestCase):
@@ -55,13 +41,13 @@ class Shutdown(unittest.TestCase):
     @classmethod
     def setUpClass(cls):
         cls.pristine = tempfile.mkdtemp(prefix="vsmd-shutdown-")
-        vsm("import", os.path.join(ARGS.data, "PRISMelevation.tif"),
-            os.path.join(cls.pristine, "prism"), "--patch-size", str(PATCH))
-        vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
-            os.path.join(cls.pristine, "jacksboro"), "--patch-size", str(PATCH))
+        harness.import_dem(os.path.join(ARGS.data, "PRISMelevation.tif"),
+                           os.path.join(cls.pristine, "prism"), PATCH)
+        harness.import_dem(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
+                           os.path.join(cls.pristine, "jacksboro"), PATCH)
         # 257 x 257 patches (774 KiB each): eight of them overflow a socket's send buffer.
-        vsm("import", os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
-            os.path.join(cls.pristine, "jacksboro257"), "--patch-size", "257")
+        harness.import_dem(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
+                           os.path.join(cls.pristine, "jacksboro257"), 257)
 
     @classmethod
     def tearDownClass(cls):
@@ -90,8 +76,7 @@ class Shutdown(unittest.TestCase):
         positions of every patch."""
         status, headers, summary = daemon.get_json("/v1/models/prism")
         self.assertEqual(status, 200, summary)
-        _, _, tree = daemon.get_json("/v1/models/prism/hierarchy")
-        keys = sorted(n["key"] for n in walk(tree["root"]))
+        keys = sorted(daemon.keys("prism"))
         conn = daemon.connection(timeout=30)
         data = {}
         try:
@@ -106,28 +91,13 @@ class Shutdown(unittest.TestCase):
         return {"etag": headers["ETag"], "patches": summary["patches"],
                 "depth": summary["depth"], "keys": keys, "data": data}
 
-    def submit_merge(self, daemon):
-        status, _, body = daemon.request("POST", "/v1/jobs", body=json.dumps(
-            {"type": "merge", "target": "prism", "source": "jacksboro"}).encode(), headers=AUTH)
-        self.assertEqual(status, 202, body)
-        return json.loads(body)["id"]
-
-    def wait_job(self, daemon, job_id, until, timeout=600):
-        deadline = time.monotonic() + timeout
-        while True:
-            _, _, job = daemon.get_json("/v1/jobs/" + job_id)
-            if until(job):
-                return job
-            self.assertLess(time.monotonic(), deadline, job)
-            time.sleep(0.01)
-
     def stop_and_reopen(self, daemon):
         """SIGTERM (exit 0, no leftovers of an edit), `vsm validate`, then a fresh daemon on the
         same data root; returns the reopened state and the first daemon's log."""
         self.assertEqual(daemon.stop(timeout=60), 0, daemon.log())
         log = daemon.log()  # the reopened daemon writes the same file
         self.assertIn("stopped", log)
-        result = vsm("validate", os.path.join(daemon.dir, "prism"), check=False)
+        result = harness.vsm("validate", os.path.join(daemon.dir, "prism"))
         self.assertEqual(result.returncode, 0, result.stdout + result.stderr)
         reopened = self.start(daemon.dir)
         state = self.model_state(reopened)
@@ -148,7 +118,7 @@ class Shutdown(unittest.TestCase):
         daemon = self.start(root, env=hold.env())
         before = self.model_state(daemon)
         allowed = hold.let_through(hold.calls())
-        job_id = self.submit_merge(daemon)
+        job_id = daemon.submit({"type": "merge", "target": "prism", "source": "jacksboro"})["id"]
 
         def ended():
             return daemon.get_json("/v1/jobs/" + job_id)[2]["state"] not in ("queued", "running")
@@ -181,8 +151,9 @@ class Shutdown(unittest.TestCase):
     def test_sigterm_after_a_merge_published_reopens_the_new_version(self):
         daemon = self.start()
         before = self.model_state(daemon)
-        job_id = self.submit_merge(daemon)
-        job = self.wait_job(daemon, job_id, lambda j: j["state"] in ("succeeded", "failed"))
+        job_id = daemon.submit({"type": "merge", "target": "prism", "source": "jacksboro"})["id"]
+        job = daemon.wait_job(job_id, until=lambda j: j["state"] in ("succeeded", "failed"),
+                              interval=0.01)
         self.assertEqual(job["state"], "succeeded", job)
         _, _, stats = daemon.get_json("/v1/stats")
         self.assertGreater(stats["cache"]["write_backs"], 0, "the budget never forced a write-back")
@@ -193,10 +164,9 @@ class Shutdown(unittest.TestCase):
 
     def test_sigterm_finishes_a_patch_download_in_flight_then_exits_0(self):
         daemon = self.start()
-        _, _, tree = daemon.get_json("/v1/models/prism/hierarchy")
         # More answers than the socket's buffers hold (about 6 MB against 4 MB), so vsmd is still writing them
         # when the last request begins to arrive.
-        tree_keys = [n["key"] for n in walk(tree["root"])]
+        tree_keys = daemon.keys("prism")
         keys = [tree_keys[i % len(tree_keys)] for i in range(120)]
         # A small receive window, so the answers wait in vsmd until read below (not in the
         # kernel's buffers).
@@ -250,8 +220,7 @@ class Shutdown(unittest.TestCase):
         # Patch data goes out by sendfile(2), which raises SIGPIPE on a connection the peer reset
         # unless the network threads block it.
         daemon = self.start(models=("jacksboro257",))
-        _, _, tree = daemon.get_json("/v1/models/jacksboro257/hierarchy")
-        keys = [n["key"] for n in walk(tree["root"])]
+        keys = daemon.keys("jacksboro257")
         keys = (keys * 8)[:8]
         requests = b"".join(b"GET /v1/models/jacksboro257/patches/%s/positions HTTP/1.1\r\nHost: x\r\n"
                             b"\r\n" % k.encode() for k in keys)
@@ -284,7 +253,7 @@ def main():
     parser.add_argument("--proto", required=True)
     parser.add_argument("--lib", required=True, help="libvsm_fault_inject.so (tests/fault)")
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 

@@ -30,9 +30,9 @@ import tempfile
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
+import harness  # noqa: E402
 import viewer_test  # noqa: E402  (browser_check.js and the screenshot helpers)
-from server_test import Daemon  # noqa: E402
+from harness import Daemon  # noqa: E402
 
 ARGS = None
 MODEL = "merged"
@@ -42,20 +42,6 @@ SAMPLES = 100
 # at 8:00 local summer time (the sun low in the east-north-east, so slopes shade strongly).
 JACKSBORO_VIEW = "-84.30,36.18,14000,35,-40"
 JACKSBORO_TIME = "2026-06-21T12:00:00Z"
-
-
-def raster(path):
-    """(heights as float rows x cols with NaN for no data, geotransform) of a DEM, by GDAL."""
-    import numpy
-    from osgeo import gdal
-    gdal.UseExceptions()
-    dataset = gdal.Open(path)
-    band = dataset.GetRasterBand(1)
-    heights = band.ReadAsArray().astype(float)
-    nodata = band.GetNoDataValue()
-    if nodata is not None:
-        heights[heights == nodata] = numpy.nan
-    return heights, dataset.GetGeoTransform()
 
 
 def pixel_centres(heights, transform, count, seed, exclude=None):
@@ -111,7 +97,7 @@ class Terrain(unittest.TestCase):
                                           t[0] + size.RasterXSize * t[1], t[3])
         cls.daemon = Daemon("--set", "threads.cpu=2", "--viewer-dir", cls.site,
                             "--log-level", "warn", prepare=prepare)
-        cls.base_url = "http://127.0.0.1:%d" % cls.daemon.port
+        cls.base_url = cls.daemon.base
 
     @classmethod
     def tearDownClass(cls):
@@ -132,8 +118,8 @@ class Terrain(unittest.TestCase):
 
     def test_cesium_loads_the_terrain_with_the_image_and_samples_the_dems(self):
         import numpy
-        prism, prism_t = raster(os.path.join(ARGS.data, "PRISMelevation.tif"))
-        jack, jack_t = raster(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"))
+        prism, prism_t = harness.read_raster(os.path.join(ARGS.data, "PRISMelevation.tif"))
+        jack, jack_t = harness.read_raster(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"))
         # PRISM's pixels away from the merged area (there the surface is Jacksboro's).
         points = {
             "prism": pixel_centres(prism, prism_t, SAMPLES, 1,
@@ -199,7 +185,7 @@ def main():
     parser.add_argument("--screenshots", required=True)
     parser.add_argument("--chromium", default=None)
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     viewer_test.ARGS = ARGS
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 

@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""Quantized-mesh terrain end to end: the real vsmd on 127.0.0.1:0 (server_test.py's harness)
+"""Quantized-mesh terrain end to end: the real vsmd on 127.0.0.1:0 (harness.py)
 over PRISM and Jacksboro imported by the real `vsm` at --patch-size 65, and an organized point
 cloud in its own frame, driven over real HTTP; every tile is read by the decoder below, written
 from the quantized-mesh-1.0 spec (github.com/CesiumGS/quantized-mesh), not from vsm's encoder,
@@ -32,7 +32,6 @@ import math
 import os
 import shutil
 import struct
-import subprocess
 import sys
 import threading
 import time
@@ -42,7 +41,7 @@ import numpy as np
 from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
+import harness  # noqa: E402
 
 gdal.UseExceptions()
 
@@ -156,13 +155,7 @@ def vertices(t, key):
 
 class Dem:
     def __init__(self, path):
-        ds = gdal.Open(path)
-        band = ds.GetRasterBand(1)
-        self.a = band.ReadAsArray().astype(np.float64)
-        nodata = band.GetNoDataValue()
-        if nodata is not None:
-            self.a[self.a == nodata] = np.nan
-        self.gt = ds.GetGeoTransform()
+        self.a, self.gt = harness.read_raster(path)
         self.h, self.w = self.a.shape
 
     def bounds(self):
@@ -225,24 +218,19 @@ class Terrain(unittest.TestCase):
         shutil.rmtree(ARGS.work, ignore_errors=True)
         os.makedirs(root)
         for name in (PRISM, JACK):
-            subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, name + ".tif"),
-                            os.path.join(root, name), "--patch-size", "65", "--texture", "none"],
-                           check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            harness.import_dem(os.path.join(ARGS.data, name + ".tif"), os.path.join(root, name), 65,
+                               "--texture", "none")
         # Jacksboro in a projected CRS (UTM 16N, 90 m pixels, bilinear), as a projected DEM.
         utm = os.path.join(ARGS.work, "jack_utm.tif")
         gdal.Warp(utm, os.path.join(ARGS.data, JACK + ".tif"), dstSRS="EPSG:32616", xRes=90,
                   yRes=90, resampleAlg="bilinear", dstNodata=-32768)
-        subprocess.run([ARGS.vsm, "import", utm, os.path.join(root, "jack_utm"), "--patch-size",
-                        "65", "--texture", "none"], check=True, stdout=subprocess.DEVNULL,
-                       stderr=subprocess.DEVNULL)
+        harness.import_dem(utm, os.path.join(root, "jack_utm"), 65, "--texture", "none")
         cloud = os.path.join(ARGS.work, "cloud.pcd")
         write_cloud(cloud)
-        subprocess.run([ARGS.vsm, "import", cloud, os.path.join(root, "cloud"), "--patch-size",
-                        "9", "--texture", "none"], check=True, stdout=subprocess.DEVNULL,
-                       stderr=subprocess.DEVNULL)
+        harness.import_dem(cloud, os.path.join(root, "cloud"), 9, "--texture", "none")
         cls.dems = {PRISM: Dem(os.path.join(ARGS.data, PRISM + ".tif")),
                     JACK: Dem(os.path.join(ARGS.data, JACK + ".tif"))}
-        cls.daemon = base.Daemon("--token", TOKEN, "--set", "threads.cpu=2", root=root)
+        cls.daemon = harness.Daemon("--token", TOKEN, "--set", "threads.cpu=2", root=root)
         cls.stats = {"tiles": 0, "normals": 0, "normal_max_deg": 0.0, "heights": 0,
                      "height_max_excess": -1e9, "hop_cameras": 0}
 
@@ -652,7 +640,7 @@ def main():
     parser.add_argument("--data", required=True)
     parser.add_argument("--work", required=True)
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0]] + rest, verbosity=2)
 
 

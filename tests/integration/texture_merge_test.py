@@ -29,13 +29,14 @@ import argparse
 import hashlib
 import os
 import shutil
-import subprocess
 import sys
+import unittest
 
 import numpy as np
 from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import harness  # noqa: E402
 from check_import import QUADRANTS, Failures, check_pro3d, ecef_to_geodetic  # noqa: E402
 from merge_check import load  # noqa: E402
 from model_states import REVISION_FILE, reachable_folders  # noqa: E402
@@ -89,17 +90,14 @@ def check_mixed(args, textured_a, textured_b, failures):
     """(f): the merges of a textured model with an untextured one, both ways."""
     bare_a, bare_b = (os.path.join(args.work, name) for name in ("bare-a", "bare-b"))
     for dem, out in (("PRISMelevation.tif", bare_a), ("jacksboro_fault_dem.tif", bare_b)):
-        subprocess.run([args.vsm, "import", os.path.join(args.data, dem), out, "--texture", "none",
-                        "--patch-size", str(N)], check=True, stdout=subprocess.DEVNULL,
-                       stderr=subprocess.DEVNULL)
+        harness.import_dem(os.path.join(args.data, dem), out, N, "--texture", "none")
         if os.path.exists(os.path.join(out, "Images")):
             failures.add("%s: --texture none wrote Images/" % out)
 
     # A untextured, B textured: every patch the merge wrote (the folders A did not have).
     merged = os.path.join(args.work, "merged-bare-a")
-    subprocess.run([args.vsm, "merge", bare_a, textured_b, "--out", merged], check=True,
-                   stdout=subprocess.DEVNULL)
-    subprocess.run([args.vsm, "validate", merged], check=True, stdout=subprocess.DEVNULL)
+    harness.vsm("merge", bare_a, textured_b, "--out", merged, check=True)
+    harness.vsm("validate", merged, check=True)
     _, a_patches, _, _ = load(bare_a, N, failures)
     _, m_patches, m_children, _ = load(merged, N, failures)
     a_folders = {p.folder for p in a_patches.values()}
@@ -136,170 +134,172 @@ def check_mixed(args, textured_a, textured_b, failures):
 
     # A textured, B untextured: the result is complete for PRo3D.
     merged = os.path.join(args.work, "merged-bare-b")
-    subprocess.run([args.vsm, "merge", textured_a, bare_b, "--out", merged], check=True,
-                   stdout=subprocess.DEVNULL)
+    harness.vsm("merge", textured_a, bare_b, "--out", merged, check=True)
     complete = check_pro3d(merged, failures)
     return ("untextured target: %d written patches with tiles (%d texels of B's image, %d of "
             "relief); untextured detail: %d patches complete" %
             (len(written), coloured, grey, complete))
 
 
+ARGS = None
+
+
+class TextureMerge(unittest.TestCase):
+    def test_a_merge_carries_textures(self):
+        """Every texel of the new deepest patches from the image it must come from; parents,
+        untouched tiles, mixed merges."""
+        shutil.rmtree(ARGS.work, ignore_errors=True)
+        os.makedirs(ARGS.work)
+        target, detail, merged = (os.path.join(ARGS.work, name) for name in ("a", "b", "merged"))
+        gradient_path = os.path.join(ARGS.work, "gradient.png")
+        gradient = gradient_image(gradient_path)
+        nasa_path = os.path.join(ARGS.data, "conus_visible_earth.tif")
+        dem_b_path = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
+        harness.import_dem(os.path.join(ARGS.data, "PRISMelevation.tif"), target, N,
+                           "--texture", nasa_path)
+        harness.import_dem(dem_b_path, detail, N, "--texture", gradient_path)
+        harness.vsm("merge", target, detail, "--out", merged, check=True)
+        harness.vsm("validate", merged, check=True)
+
+        failures = Failures()
+        _, a_patches, _, _ = load(target, N, failures)
+        _, m_patches, m_children, _ = load(merged, N, failures)
+
+        # (a) every patch textured; the tiles on disk exactly the named ones and those of the target's
+        # revision before the merge, which the merged model keeps (core/store/README.md).
+        kept = set()
+        for name in os.listdir(os.path.join(merged, "Patches")):
+            if REVISION_FILE.fullmatch(name):
+                kept |= {folder + ".tif" for folder in reachable_folders(merged, name)}
+        if not kept:
+            failures.add("the merged model keeps no revision before the merge")
+        named = set()
+        for key, patch in m_patches.items():
+            xml = open(os.path.join(merged, "Patches", patch.folder, "Patch.xml")).read()
+            entry = "Diffuse\\%s.tif" % patch.folder
+            if entry not in xml or "Coordinates.aara" not in xml:
+                failures.add("%s: Patch.xml does not name %s and Coordinates.aara" % (patch.folder, entry))
+            named.add(patch.folder + ".tif")
+        on_disk = set(os.listdir(os.path.join(merged, "Images", "Diffuse")))
+        if on_disk != named | kept:
+            failures.add("Images/Diffuse holds %d tiles no patch names (%s) and misses %d named ones" %
+                         (len(on_disk - named - kept), sorted(on_disk - named - kept)[:5],
+                          len((named | kept) - on_disk)))
+
+        # (b) shared patches keep their tiles byte for byte.
+        a_folders = {p.folder for p in a_patches.values()}
+        shared = [p.folder for p in m_patches.values() if p.folder in a_folders]
+        for folder in shared:
+            before = digest(os.path.join(target, "Images", "Diffuse", folder + ".tif"))
+            after = digest(os.path.join(merged, "Images", "Diffuse", folder + ".tif"))
+            if before != after:
+                failures.add("%s: tile changed although the patch was not rewritten" % folder)
+        new_keys = [k for k, p in m_patches.items() if p.folder not in a_folders]
+
+        # (c) and (d): texels of the new leaves against the two images at their own lon/lat.
+        dem_b = gdal.Open(dem_b_path)
+        b_gt = dem_b.GetGeoTransform()
+        b_west, b_north = b_gt[0], b_gt[3]
+        b_east = b_west + dem_b.RasterXSize * b_gt[1]
+        b_south = b_north + dem_b.RasterYSize * b_gt[5]
+        nasa = gdal.Open(nasa_path)
+        nasa_inv = gdal.InvGeoTransform(nasa.GetGeoTransform())
+        nasa_image = nasa.ReadAsArray().astype(float)
+
+        def nasa_at(lon, lat):
+            ix = nasa_inv[0] + lon * nasa_inv[1] + lat * nasa_inv[2]
+            iy = nasa_inv[3] + lon * nasa_inv[4] + lat * nasa_inv[5]
+            return bilinear(nasa_image, ix, iy)[:3]
+
+        max_depth = max(k[0] for k in m_patches)
+        inside = outside = differs = 0
+        worst_inside = worst_outside = 0.0
+        for key in new_keys:
+            if m_children[key]:
+                continue
+            patch = m_patches[key]
+            tile = read_tile(merged, patch.folder)
+            for j in range(0, TILE, 7):
+                for i in range(0, TILE, 7):
+                    at = texel_lonlat(patch, i, j)
+                    if at is None:
+                        continue
+                    lon, lat = at
+                    got = tile[:3, j, i]
+                    margin_lon, margin_lat = MARGIN * b_gt[1], -MARGIN * b_gt[5]
+                    if (key[0] == max_depth and b_west + margin_lon < lon < b_east - margin_lon and
+                            b_south + margin_lat < lat < b_north - margin_lat):
+                        # The gradient is stretched over B's raster, pixel edge to pixel edge.
+                        gx = (lon - b_west) / (b_east - b_west) * GRADIENT_SIZE[0]
+                        gy = (b_north - lat) / (b_north - b_south) * GRADIENT_SIZE[1]
+                        expected = bilinear(gradient, gx, gy)
+                        error = float(np.max(np.abs(got - expected)))
+                        worst_inside = max(worst_inside, error)
+                        if error > GRADIENT_TOLERANCE:
+                            failures.add("%s texel (%d, %d) at %.5f, %.5f: %s, B's image %s" %
+                                         (patch.folder, i, j, lon, lat, got, expected))
+                        if float(np.max(np.abs(got - nasa_at(lon, lat)))) > 30:
+                            differs += 1
+                        inside += 1
+                    elif not (b_west - 4 * margin_lon < lon < b_east + 4 * margin_lon and
+                              b_south - 4 * margin_lat < lat < b_north + 4 * margin_lat):
+                        expected = nasa_at(lon, lat)
+                        error = float(np.max(np.abs(got - expected)))
+                        worst_outside = max(worst_outside, error)
+                        if error > IMAGE_TOLERANCE:
+                            failures.add("%s texel (%d, %d) at %.5f, %.5f: %s, A's image %s" %
+                                         (patch.folder, i, j, lon, lat, got, expected))
+                        outside += 1
+        if inside < 500 or differs < inside // 2:
+            failures.add("only %d texels checked inside B (%d of them unlike A's image)" %
+                         (inside, differs))
+        if outside < 100:
+            failures.add("only %d texels checked outside B" % outside)
+
+        # (e) parents: each texel the mean of the 2 x 2 child texels it covers.
+        parents = 0
+        tiles = {}
+
+        def tile_of(key):
+            if key not in tiles:
+                tiles[key] = read_tile(merged, m_patches[key].folder)
+            return tiles[key]
+
+        half = TILE // 2
+        for key, children in m_children.items():
+            if not children or m_patches[key].folder in a_folders:
+                continue
+            parent = tile_of(key)
+            for q, child_key in children.items():
+                qx, qy = QUADRANTS[q]
+                c = tile_of(child_key)
+                mean = (c[:, 0::2, 0::2] + c[:, 0::2, 1::2] + c[:, 1::2, 0::2] + c[:, 1::2, 1::2]) / 4
+                got = parent[:, qy * half:(qy + 1) * half, qx * half:(qx + 1) * half]
+                if not np.all(np.abs(got - mean) <= 0.5 + 1e-9):
+                    failures.add("%s: quadrant %s is not the mean of %s" %
+                                 (m_patches[key].folder, q, m_patches[child_key].folder))
+                parents += 1
+
+        mixed = check_mixed(ARGS, target, detail, failures)
+
+        summary = (
+            "texture merge: %d patches (%d new, %d shared byte-identical), %d texels inside B within "
+            "%.2f of B's image (%d unlike A's), %d outside within %.2f of A's image, %d parent "
+            "quadrants exact" % (len(m_patches), len(new_keys), len(shared), inside, worst_inside,
+                                 differs, outside, worst_outside, parents) + "; " + mixed)
+        failures.assert_none(self, summary)
+
+
 def main():
+    global ARGS
     parser = argparse.ArgumentParser()
     parser.add_argument("--vsm", required=True)
     parser.add_argument("--data", required=True)
     parser.add_argument("--work", required=True)
-    args = parser.parse_args()
-
-    shutil.rmtree(args.work, ignore_errors=True)
-    os.makedirs(args.work)
-    target, detail, merged = (os.path.join(args.work, name) for name in ("a", "b", "merged"))
-    gradient_path = os.path.join(args.work, "gradient.png")
-    gradient = gradient_image(gradient_path)
-    nasa_path = os.path.join(args.data, "conus_visible_earth.tif")
-    dem_b_path = os.path.join(args.data, "jacksboro_fault_dem.tif")
-    subprocess.run([args.vsm, "import", os.path.join(args.data, "PRISMelevation.tif"), target,
-                    "--texture", nasa_path, "--patch-size", str(N)], check=True,
-                   stdout=subprocess.DEVNULL)
-    subprocess.run([args.vsm, "import", dem_b_path, detail, "--texture", gradient_path,
-                    "--patch-size", str(N)], check=True, stdout=subprocess.DEVNULL)
-    subprocess.run([args.vsm, "merge", target, detail, "--out", merged], check=True,
-                   stdout=subprocess.DEVNULL)
-    subprocess.run([args.vsm, "validate", merged], check=True, stdout=subprocess.DEVNULL)
-
-    failures = Failures()
-    _, a_patches, _, _ = load(target, N, failures)
-    _, m_patches, m_children, _ = load(merged, N, failures)
-
-    # (a) every patch textured; the tiles on disk exactly the named ones and those of the target's
-    # revision before the merge, which the merged model keeps (core/store/README.md).
-    kept = set()
-    for name in os.listdir(os.path.join(merged, "Patches")):
-        if REVISION_FILE.fullmatch(name):
-            kept |= {folder + ".tif" for folder in reachable_folders(merged, name)}
-    if not kept:
-        failures.add("the merged model keeps no revision before the merge")
-    named = set()
-    for key, patch in m_patches.items():
-        xml = open(os.path.join(merged, "Patches", patch.folder, "Patch.xml")).read()
-        entry = "Diffuse\\%s.tif" % patch.folder
-        if entry not in xml or "Coordinates.aara" not in xml:
-            failures.add("%s: Patch.xml does not name %s and Coordinates.aara" % (patch.folder, entry))
-        named.add(patch.folder + ".tif")
-    on_disk = set(os.listdir(os.path.join(merged, "Images", "Diffuse")))
-    if on_disk != named | kept:
-        failures.add("Images/Diffuse holds %d tiles no patch names (%s) and misses %d named ones" %
-                     (len(on_disk - named - kept), sorted(on_disk - named - kept)[:5],
-                      len((named | kept) - on_disk)))
-
-    # (b) shared patches keep their tiles byte for byte.
-    a_folders = {p.folder for p in a_patches.values()}
-    shared = [p.folder for p in m_patches.values() if p.folder in a_folders]
-    for folder in shared:
-        before = digest(os.path.join(target, "Images", "Diffuse", folder + ".tif"))
-        after = digest(os.path.join(merged, "Images", "Diffuse", folder + ".tif"))
-        if before != after:
-            failures.add("%s: tile changed although the patch was not rewritten" % folder)
-    new_keys = [k for k, p in m_patches.items() if p.folder not in a_folders]
-
-    # (c) and (d): texels of the new leaves against the two images at their own lon/lat.
-    dem_b = gdal.Open(dem_b_path)
-    b_gt = dem_b.GetGeoTransform()
-    b_west, b_north = b_gt[0], b_gt[3]
-    b_east = b_west + dem_b.RasterXSize * b_gt[1]
-    b_south = b_north + dem_b.RasterYSize * b_gt[5]
-    nasa = gdal.Open(nasa_path)
-    nasa_inv = gdal.InvGeoTransform(nasa.GetGeoTransform())
-    nasa_image = nasa.ReadAsArray().astype(float)
-
-    def nasa_at(lon, lat):
-        ix = nasa_inv[0] + lon * nasa_inv[1] + lat * nasa_inv[2]
-        iy = nasa_inv[3] + lon * nasa_inv[4] + lat * nasa_inv[5]
-        return bilinear(nasa_image, ix, iy)[:3]
-
-    max_depth = max(k[0] for k in m_patches)
-    inside = outside = differs = 0
-    worst_inside = worst_outside = 0.0
-    for key in new_keys:
-        if m_children[key]:
-            continue
-        patch = m_patches[key]
-        tile = read_tile(merged, patch.folder)
-        for j in range(0, TILE, 7):
-            for i in range(0, TILE, 7):
-                at = texel_lonlat(patch, i, j)
-                if at is None:
-                    continue
-                lon, lat = at
-                got = tile[:3, j, i]
-                margin_lon, margin_lat = MARGIN * b_gt[1], -MARGIN * b_gt[5]
-                if (key[0] == max_depth and b_west + margin_lon < lon < b_east - margin_lon and
-                        b_south + margin_lat < lat < b_north - margin_lat):
-                    # The gradient is stretched over B's raster, pixel edge to pixel edge.
-                    gx = (lon - b_west) / (b_east - b_west) * GRADIENT_SIZE[0]
-                    gy = (b_north - lat) / (b_north - b_south) * GRADIENT_SIZE[1]
-                    expected = bilinear(gradient, gx, gy)
-                    error = float(np.max(np.abs(got - expected)))
-                    worst_inside = max(worst_inside, error)
-                    if error > GRADIENT_TOLERANCE:
-                        failures.add("%s texel (%d, %d) at %.5f, %.5f: %s, B's image %s" %
-                                     (patch.folder, i, j, lon, lat, got, expected))
-                    if float(np.max(np.abs(got - nasa_at(lon, lat)))) > 30:
-                        differs += 1
-                    inside += 1
-                elif not (b_west - 4 * margin_lon < lon < b_east + 4 * margin_lon and
-                          b_south - 4 * margin_lat < lat < b_north + 4 * margin_lat):
-                    expected = nasa_at(lon, lat)
-                    error = float(np.max(np.abs(got - expected)))
-                    worst_outside = max(worst_outside, error)
-                    if error > IMAGE_TOLERANCE:
-                        failures.add("%s texel (%d, %d) at %.5f, %.5f: %s, A's image %s" %
-                                     (patch.folder, i, j, lon, lat, got, expected))
-                    outside += 1
-    if inside < 500 or differs < inside // 2:
-        failures.add("only %d texels checked inside B (%d of them unlike A's image)" %
-                     (inside, differs))
-    if outside < 100:
-        failures.add("only %d texels checked outside B" % outside)
-
-    # (e) parents: each texel the mean of the 2 x 2 child texels it covers.
-    parents = 0
-    tiles = {}
-
-    def tile_of(key):
-        if key not in tiles:
-            tiles[key] = read_tile(merged, m_patches[key].folder)
-        return tiles[key]
-
-    half = TILE // 2
-    for key, children in m_children.items():
-        if not children or m_patches[key].folder in a_folders:
-            continue
-        parent = tile_of(key)
-        for q, child_key in children.items():
-            qx, qy = QUADRANTS[q]
-            c = tile_of(child_key)
-            mean = (c[:, 0::2, 0::2] + c[:, 0::2, 1::2] + c[:, 1::2, 0::2] + c[:, 1::2, 1::2]) / 4
-            got = parent[:, qy * half:(qy + 1) * half, qx * half:(qx + 1) * half]
-            if not np.all(np.abs(got - mean) <= 0.5 + 1e-9):
-                failures.add("%s: quadrant %s is not the mean of %s" %
-                             (m_patches[key].folder, q, m_patches[child_key].folder))
-            parents += 1
-
-    mixed = check_mixed(args, target, detail, failures)
-
-    summary = (
-        "texture merge: %d patches (%d new, %d shared byte-identical), %d texels inside B within "
-        "%.2f of B's image (%d unlike A's), %d outside within %.2f of A's image, %d parent "
-        "quadrants exact" % (len(m_patches), len(new_keys), len(shared), inside, worst_inside,
-                             differs, outside, worst_outside, parents) + "; " + mixed)
-    if failures.count:
-        print("\n".join(failures.items), file=sys.stderr)
-        print("texture merge: %d failures" % failures.count, file=sys.stderr)
-        return 1
-    print(summary)
-    return 0
+    ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

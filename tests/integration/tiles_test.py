@@ -1,6 +1,6 @@
 #!/usr/bin/python3
 """The OGC 3D Tiles view of a real merged model, end to end: the real vsmd on 127.0.0.1:0 (see
-server_test.py for the harness) over a data root holding PRISM with Jacksboro merged into it
+harness.py) over a data root holding PRISM with Jacksboro merged into it
 (imported at 65 x 65 by `vsm import`, merged by `vsm merge`: the `tiles.prepare` fixture), then
 
 - tileset.json fetched and checked against the 3D Tiles 1.1 rules with our own reader: asset
@@ -34,8 +34,8 @@ import time
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
-from server_test import Daemon  # noqa: E402
+import harness  # noqa: E402
+from harness import Daemon, decode_aara  # noqa: E402
 
 ARGS = None
 MODEL = "merged"
@@ -144,14 +144,6 @@ def version_of(uri):
     query = uri.partition("?")[2]
     params = dict(p.partition("=")[::2] for p in query.split("&") if p)
     return int(params["v"]) if "v" in params else None
-
-
-def decode_aara(data):
-    n = data[0]
-    name = data[1:1 + n].decode("ascii")
-    dims = data[1 + n]
-    sizes = struct.unpack_from("<%di" % dims, data, 2 + n)
-    return name, sizes, data[2 + n + 4 * dims:]
 
 
 def complete_quads(aara):
@@ -623,7 +615,7 @@ def main():
     parser.add_argument("--node-tools", required=True, help="prefix holding node_modules")
     parser.add_argument("--validator", required=True, help="validate_gltf.js")
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 

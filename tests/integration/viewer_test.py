@@ -42,8 +42,8 @@ import sys
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import server_test as base  # noqa: E402  (the Daemon harness)
-from server_test import Daemon  # noqa: E402
+import harness  # noqa: E402
+from harness import Daemon  # noqa: E402
 
 ARGS = None
 MODEL = "merged"
@@ -301,7 +301,7 @@ class Browser(unittest.TestCase):
         os.makedirs(ARGS.screenshots, exist_ok=True)
         cls.daemon = Daemon("--set", "threads.cpu=2", "--viewer-dir", ARGS.viewer,
                             "--log-level", "warn", prepare=prepare)
-        cls.base_url = "http://127.0.0.1:%d" % cls.daemon.port
+        cls.base_url = cls.daemon.base
 
     @classmethod
     def tearDownClass(cls):
@@ -533,7 +533,7 @@ def main():
     parser.add_argument("--screenshots", required=True, help="where the screenshots are kept")
     parser.add_argument("--chromium", default="", help="the browser (default /usr/bin/chromium)")
     ARGS, rest = parser.parse_known_args()
-    base.ARGS = ARGS
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 
