@@ -745,6 +745,52 @@ TEST_F(StoreTest, AVersionPublishedAgainAfterALostPublishHasOtherFoldersAndNonce
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
+// Issue 32, finding 2: a publish records its writer's fencing token, and a writer whose token is
+// older than the one on disk (it lost the model to a later writer, who published) cannot commit,
+// even from an opening that read the later writer's hierarchy (the stamp check cannot tell).
+TEST_F(StoreTest, AFencingTokenIsRecordedAndACommitUnderAnOlderOneIsRefused) {
+  PatchCache cache(64 << 20);
+  const fs::path hierarchy = dir_ / "Patches" / "patchhierarchy.xml";
+  auto publishUnder = [&](LiveModel& live, std::optional<FencingToken> token, double bump) {
+    auto edit = live.beginEdit();
+    edit->setPositions({2, 1, 1}, leafGrid(1, 1, bump));
+    PublishOptions options = publishing("j", 8);
+    options.token = token;
+    int fenced = 0;
+    options.fence = [&] { ++fenced; };
+    edit->publish(nullptr, options);
+    EXPECT_EQ(fenced, 1);
+  };
+  const FencingToken later{90, 2};
+  const FencingToken earlier{50, 1};
+  {
+    auto live = LiveModel::open(dir_, "m", cache);
+    publishUnder(*live, later, 1.0);
+    EXPECT_EQ(live->snapshot()->revision.fence, later);
+  }
+  ASSERT_TRUE(readRevisionRecord(hierarchy)->fence.has_value());
+  EXPECT_EQ(*readRevisionRecord(hierarchy)->fence, later) << "recorded on disk";
+  auto live = LiveModel::open(dir_, "m", cache);
+  EXPECT_EQ(live->snapshot()->revision.fence, later) << "read back by an opening";
+  const std::string before = test::readFile(hierarchy);
+  const std::uint64_t v = live->snapshot()->version;
+  const std::string message = messageOf([&] { publishUnder(*live, earlier, 2.0); });
+  EXPECT_NE(message.find("fencing token 90, this writer's 50"), std::string::npos) << message;
+  EXPECT_EQ(test::readFile(hierarchy), before) << "an older writer committed over a newer one";
+  EXPECT_EQ(live->snapshot()->version, v);
+  // The same writer, a later one and a writer without a token (a single node) commit.
+  auto fresh = live->reopen();
+  live.reset();
+  publishUnder(*fresh, later, 3.0);
+  publishUnder(*fresh, FencingToken{120, 3}, 4.0);
+  EXPECT_EQ(readRevisionRecord(hierarchy)->fence, (FencingToken{120, 3}));
+  publishUnder(*fresh, std::nullopt, 5.0);
+  EXPECT_FALSE(readRevisionRecord(hierarchy)->fence.has_value());
+  EXPECT_EQ(fresh->snapshot()->version, v + 3);
+  EXPECT_EQ(fresh->snapshotAt(v + 2)->revision.fence, (FencingToken{120, 3}));
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
 TEST_F(StoreTest, AnEditLargerThanTheBudgetStaysWithinIt) {
   // 4 patches of budget; the edit rewrites all 16 leaves and the 5 overviews above them.
   const std::size_t budget = 4 * kSize * kSize * 12;
