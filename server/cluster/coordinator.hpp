@@ -84,7 +84,18 @@ class Coordinator {
   /// lease that etcd cannot have expired yet with a margin (the last renewal etcd confirmed was
   /// sent less than TTL - kFenceMargin ago), so a node paused or cut off from etcd past its lease
   /// never commits over the node that took the model over.
-  void checkWriter(std::string_view id) const;
+  ///
+  /// With `takeover` (not 0), the write began under that claim (takeover()): the commit is also
+  /// refused when this node's claim on `id` is another one now (lost and claimed again meanwhile).
+  void checkWriter(std::string_view id, std::int64_t takeover = 0) const;
+  /// This node's claim on model `id`, its fencing token: the etcd revision that created the
+  /// model's writer key (greater for every later claim, by any node) and the lease it is attached
+  /// to. Nullopt when this node does not write `id`.
+  struct Takeover {
+    std::int64_t revision = 0;
+    std::int64_t lease = 0;
+  };
+  std::optional<Takeover> takeover(std::string_view id) const;
   /// What checkWriter keeps in hand of the lease: a fifth of the TTL, at least a second.
   std::chrono::milliseconds fenceMargin() const;
   /// The advertised URL of node `name`: nullopt for this node and for a node not in the cluster.
@@ -99,7 +110,12 @@ class Coordinator {
   void loseLease(std::string_view why);
   /// Renews `lease` when a third of its TTL has passed since the last renewal. False when etcd says
   /// it has expired: the models are given up (loseLease). Throws on etcd errors.
-  bool renewIfDue(EtcdClient& etcd, std::int64_t lease);
+  /// `force`: renews whenever called.
+  bool renewIfDue(EtcdClient& etcd, std::int64_t lease, bool force = false);
+  /// After a slow step (opening `id` for writing): true when the lease is still surely held
+  /// (renewed now if it was near its end); otherwise gives `id` up, or every model when etcd
+  /// says the lease expired, and returns false. Throws on etcd errors, having given `id` up.
+  bool stillHeldAfter(EtcdClient& etcd, std::int64_t lease, const std::string& id);
   /// True when the lease may end before a write started now commits (checkWriter's fence):
   /// `now` is fenceMargin() or less from the end of the last confirmed renewal. With mutex_ held.
   bool pastFence(std::chrono::steady_clock::time_point now) const;
@@ -116,6 +132,8 @@ class Coordinator {
   std::chrono::steady_clock::time_point renewed_;
   std::map<std::string, std::string, std::less<>> nodes_;    // name -> URL
   std::map<std::string, std::string, std::less<>> writers_;  // model -> node
+  /// model -> the etcd revision that created its writer key, for the models this node writes.
+  std::map<std::string, std::int64_t, std::less<>> takeovers_;
   std::thread thread_;
 };
 
