@@ -7,9 +7,10 @@ data root, on loopback.
 
 1. A node whose opening of a model for writing outlasts its lease does not become its writer.
    n2 writes both models; n1 follows them, its reads of `prism` counted by the fault library.
-   n2 is paused (SIGSTOP) until etcd ends its lease; n1 claims the models and starts opening
-   `prism` for writing, and its first read of it is held at the gate (the coordinator's thread
-   waits there). n1's lease then ends in etcd (polled), n2 resumes and claims `prism` again. The
+   n2 is killed (-9); once etcd ends its lease, n1 claims the models and starts opening `prism`
+   for writing, and its first read of it is held at the gate (the coordinator's thread waits
+   there, the writer lock taken). n1's lease then ends in etcd (polled), n2 starts again and
+   claims `prism` (its opening waits for n1's lock). The
    gate is opened: n1 finishes the opening, finds its lease past the fence, renews it, hears
    from etcd that it ended and gives the model up (its log says so); n2 becomes the writer and a
    merge through n2 succeeds.
@@ -46,14 +47,14 @@ LEASE_TTL = 3  # seconds
 TOKEN = "fence-test-token"
 
 
-def request(url, method="GET", body=None, timeout=30):
+def request(url, method="GET", body=None, timeout=30, token=TOKEN):
     """(status, body bytes)."""
     data = None if body is None else json.dumps(body).encode()
     req = urllib.request.Request(url, data=data, method=method)
     if body is not None:
         req.add_header("Content-Type", "application/json")
-    if method != "GET":
-        req.add_header("Authorization", "Bearer " + TOKEN)
+    if method != "GET" and token:
+        req.add_header("Authorization", "Bearer " + token)
     opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
     try:
         with opener.open(req, timeout=timeout) as response:
@@ -67,7 +68,7 @@ def request(url, method="GET", body=None, timeout=30):
 def etcd_key(etcd, key):
     """The key's kv as etcd's JSON API gives it (value decoded), or None."""
     status, body = request(etcd + "/v3/kv/range", "POST",
-                           {"key": base64.b64encode(key.encode()).decode()})
+                           {"key": base64.b64encode(key.encode()).decode()}, token=None)
     if status != 200:
         return None
     kvs = json.loads(body).get("kvs", [])
@@ -109,6 +110,17 @@ def fence_of(hierarchy):
 class Fence(unittest.TestCase):
     @classmethod
     def setUpClass(cls):
+        cls.procs = {}
+        cls.logs = {}
+        cls.hold = None
+        try:
+            cls.start_cluster()
+        except BaseException:
+            cls.tearDownClass()
+            raise
+
+    @classmethod
+    def start_cluster(cls):
         cls.dir = os.path.abspath(ARGS.work)
         shutil.rmtree(cls.dir, ignore_errors=True)
         cls.data = os.path.join(cls.dir, "data")
@@ -124,8 +136,6 @@ class Fence(unittest.TestCase):
         os.chmod(token, 0o600)
         etcd_port, peer_port, p1, p2 = free_ports(4)
         cls.etcd = "http://127.0.0.1:%d" % etcd_port
-        cls.procs = {}
-        cls.logs = {}
         cls.logs["etcd"] = open(os.path.join(cls.dir, "etcd.log"), "w")
         cls.procs["etcd"] = subprocess.Popen(
             ["etcd", "--name", "fence", "--data-dir", os.path.join(cls.dir, "etcd"),
@@ -151,7 +161,7 @@ class Fence(unittest.TestCase):
     @classmethod
     def start(cls, node, env):
         port = cls.urls[node].rsplit(":", 1)[1]
-        cls.logs[node] = open(os.path.join(cls.dir, node + ".log"), "w")
+        cls.logs[node] = open(os.path.join(cls.dir, node + ".log"), "a")
         cls.procs[node] = subprocess.Popen(
             [ARGS.vsmd, "--listen", "127.0.0.1:" + port, "--data-root", cls.data,
              "--coordinator", cls.etcd, "--node", node, "--advertise", cls.urls[node],
@@ -166,7 +176,8 @@ class Fence(unittest.TestCase):
 
     @classmethod
     def tearDownClass(cls):
-        cls.hold.release()
+        if cls.hold is not None:
+            cls.hold.release()
         for node in ("n1", "n2", "etcd"):
             proc = cls.procs.get(node)
             if proc is None:
@@ -190,20 +201,20 @@ class Fence(unittest.TestCase):
         self.assertTrue(n1_lease, "n1 holds no lease")
         # From now on n1's next read under prism waits at the gate.
         allowed = self.hold.let_through(self.hold.calls())
-        n2 = self.procs["n2"]
-        n2.send_signal(signal.SIGSTOP)
-        try:
-            # n2's lease ends; n1 claims prism and starts opening it for writing: held there.
-            path = self.hold.wait_held(allowed + 1, ended=lambda: self.procs["n1"].poll() is not None)
-            self.assertIsNotNone(path, "n1 exited")
-            print("n1 held opening prism for writing at %s" % path, flush=True)
-            self.assertEqual(self.writer("prism"), "n1")
-            # n1's coordinator waits at the gate: its lease ends in etcd, and its keys with it.
-            self.assertTrue(poll(lambda: etcd_key(self.etcd, "/vsm/nodes/n1") is None,
-                                 timeout=LEASE_TTL + 60), "n1's lease did not end")
-        finally:
-            n2.send_signal(signal.SIGCONT)
-        # n2 joins again and claims prism; its opening waits for n1's lock.
+        # n2 dies (its writer locks go with it); its lease ends, n1 claims prism and starts
+        # opening it for writing: held there, with the lock taken.
+        self.procs["n2"].kill()
+        self.procs["n2"].wait()
+        path = self.hold.wait_held(allowed + 1, ended=lambda: self.procs["n1"].poll() is not None)
+        self.assertIsNotNone(path, "n1 exited")
+        print("n1 held opening prism for writing at %s" % path, flush=True)
+        self.assertEqual(self.writer("prism"), "n1")
+        # n1's coordinator waits at the gate: its lease ends in etcd, and its keys with it.
+        self.assertTrue(poll(lambda: etcd_key(self.etcd, "/vsm/nodes/n1") is None,
+                             timeout=LEASE_TTL + 60), "n1's lease did not end")
+        # n2 starts again and claims prism; its opening for writing waits for n1's lock.
+        self.start("n2", dict(os.environ))
+        self.wait_ready("n2")
         self.assertTrue(poll(lambda: self.writer("prism") == "n2", timeout=LEASE_TTL + 60),
                         "n2 did not claim prism again")
         self.hold.release()
