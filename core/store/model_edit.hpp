@@ -40,6 +40,10 @@ struct PublishOptions {
   /// hierarchy on disk carries a newer token: a writer that took the model over later published.
   /// Nullopt: no token recorded, none checked.
   std::optional<FencingToken> token;
+  /// The revisions other processes read now (a cluster's replicas, as they say in etcd), asked
+  /// when old revisions are dropped: each is kept, with every later one, besides the count and
+  /// the time floor. Null: none.
+  std::function<std::set<std::uint64_t>()> readElsewhere;
 };
 
 /// Write-backs a publish runs at once when it has an executor.

@@ -1,4 +1,5 @@
 #include <exception>
+#include <set>
 #include <utility>
 #include <vector>
 
@@ -157,7 +158,12 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
     tellObserver(live_.name_, "the announcement", [&] { announce(version, changed_, removed_); });
   }
   // 6. Revisions beyond the count go, oldest first.
-  live_.dropRevisions(*snapshot, options.keepRevisions, options.keepSeconds);
+  std::set<std::uint64_t> readElsewhere;
+  if (options.readElsewhere) {
+    tellObserver(live_.name_, "asking which revisions others read",
+                 [&] { readElsewhere = options.readElsewhere(); });
+  }
+  live_.dropRevisions(*snapshot, options.keepRevisions, options.keepSeconds, readElsewhere);
 }
 
 }  // namespace vsm::core

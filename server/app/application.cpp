@@ -194,6 +194,10 @@ Application::Application(Config config) : config_(std::move(config)) {
       return models_->setWriter(id, writer);
     };
     node.lostLease = [this] { jobs_->cancelAll(/*refuseNew=*/false); };
+    node.servedVersion = [this](const std::string& id) -> std::uint64_t {
+      const auto live = models_->find(id);
+      return live != nullptr ? live->snapshot()->version : 0;
+    };
     coordinator_ = std::make_unique<cluster::Coordinator>(std::move(options), std::move(node));
     // Every model is read only until this node is elected to write it (Coordinator::start).
     models_->electWriters([this](std::string_view id) { return coordinator_->writes(id); });
@@ -211,6 +215,8 @@ Application::Application(Config config) : config_(std::move(config)) {
     fence.check = [this](std::string_view id, const std::optional<core::FencingToken>& token) {
       coordinator_->checkWriter(id, token ? static_cast<std::int64_t>(token->takeover) : 0);
     };
+    // A publish keeps the revisions the other nodes serve (they say so in etcd).
+    fence.readElsewhere = [this](std::string_view id) { return coordinator_->readElsewhere(id); };
     models_->fenceWrites(std::move(fence));
     log::info("cluster: node " + coordinator_->node() + ", coordinator " +
               config_.cluster.coordinator);

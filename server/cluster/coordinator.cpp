@@ -1,6 +1,7 @@
 #include "server/cluster/coordinator.hpp"
 
 #include <algorithm>
+#include <charconv>
 #include <utility>
 
 #include "core/common/error.hpp"
@@ -23,6 +24,10 @@ std::string nodeKey(std::string_view node) {
 
 std::string writerKey(std::string_view model) {
   return std::string(kWritersPrefix) + std::string(model);
+}
+
+std::string readingKey(std::string_view model, std::string_view node) {
+  return std::string(kReadingPrefix) + std::string(model) + "/" + std::string(node);
 }
 
 /// One etcd call may take this long: a quarter of the TTL, at most 2 s, so that a renewal that
@@ -144,8 +149,19 @@ void Coordinator::tick(EtcdClient& etcd) {
   std::map<std::string, std::string, std::less<>> nodes;
   std::map<std::string, std::string, std::less<>> writers;
   std::map<std::string, std::int64_t, std::less<>> takeovers;
+  std::map<std::string, std::set<std::uint64_t>, std::less<>> readElsewhere;
   for (KeyValue& kv : etcd.range("/vsm/")) {
-    if (kv.key.starts_with(kNodesPrefix)) {
+    if (kv.key.starts_with(kReadingPrefix)) {
+      const std::string rest = kv.key.substr(kReadingPrefix.size());
+      const auto slash = rest.find('/');
+      std::uint64_t version = 0;
+      const auto [end, error] =
+          std::from_chars(kv.value.data(), kv.value.data() + kv.value.size(), version);
+      if (slash != std::string::npos && rest.substr(slash + 1) != options_.node &&
+          error == std::errc() && version != 0) {
+        readElsewhere[rest.substr(0, slash)].insert(version);
+      }
+    } else if (kv.key.starts_with(kNodesPrefix)) {
       nodes[kv.key.substr(kNodesPrefix.size())] = std::move(kv.value);
     } else if (kv.key.starts_with(kWritersPrefix)) {
       // A key of this node under an older lease is not a role: that lease is lost, and the key
@@ -188,7 +204,9 @@ void Coordinator::tick(EtcdClient& etcd) {
     nodes_ = nodes;
     writers_ = writers;
     takeovers_ = takeovers;
+    readElsewhere_ = readElsewhere;
   }
+  sayWhatIsRead(etcd, lease, models, writers);
   for (const std::string& id : models) {
     // Opening a large model for writing can take seconds: renewed between models, so that many
     // models taken over at once cannot outlast the lease; and checked after each opening, which
@@ -201,6 +219,26 @@ void Coordinator::tick(EtcdClient& etcd) {
     if (node_.setWriter(id, writer) && writer && !stillHeldAfter(etcd, lease, id)) {
       return;
     }
+  }
+}
+
+void Coordinator::sayWhatIsRead(EtcdClient& etcd, std::int64_t lease,
+                                const std::vector<std::string>& models,
+                                const std::map<std::string, std::string, std::less<>>& writers) {
+  if (!node_.servedVersion) {
+    return;
+  }
+  for (const std::string& id : models) {
+    const auto it = writers.find(id);
+    if (it != writers.end() && it->second == options_.node) {
+      continue;  // its own publishes keep what this process reads
+    }
+    const std::uint64_t version = node_.servedVersion(id);
+    if (version == 0 || saidReading_[id] == version) {
+      continue;
+    }
+    etcd.put(readingKey(id, options_.node), std::to_string(version), lease);
+    saidReading_[id] = version;
   }
 }
 
@@ -253,7 +291,9 @@ void Coordinator::loseLease(std::string_view why) {
     lease_ = 0;
     writers_.clear();
     takeovers_.clear();
+    readElsewhere_.clear();
   }
+  saidReading_.clear();  // said again under the next lease
   for (const std::string& id : node_.models()) {
     node_.setWriter(id, false);
   }
@@ -374,6 +414,12 @@ void Coordinator::checkWriter(std::string_view id, std::int64_t takeover) const 
                                          std::to_string(options_.leaseTtl.count()) +
                                          " ms): model '" + std::string(id) + "' is not committed");
   }
+}
+
+std::set<std::uint64_t> Coordinator::readElsewhere(std::string_view id) const {
+  const std::lock_guard lock(mutex_);
+  const auto it = readElsewhere_.find(id);
+  return it == readElsewhere_.end() ? std::set<std::uint64_t>() : it->second;
 }
 
 std::optional<Coordinator::Takeover> Coordinator::takeover(std::string_view id) const {

@@ -372,6 +372,9 @@ void ModelRegistry::fencePublish(const std::string& id, core::PublishOptions& op
   if (fence_.check) {
     options.fence = [check = fence_.check, id, token = options.token] { check(id, token); };
   }
+  if (fence_.readElsewhere) {
+    options.readElsewhere = [read = fence_.readElsewhere, id] { return read(id); };
+  }
 }
 
 namespace {

@@ -104,10 +104,13 @@ class ModelRegistry {
     /// (core::PublishOptions::fence): throws to refuse it (the node no longer holds the model's
     /// lease, or claimed it again since).
     std::function<void(std::string_view id, const std::optional<core::FencingToken>& token)> check;
+    /// The revisions of `id` other processes read now, asked when a publish drops revisions
+    /// (core::PublishOptions::readElsewhere).
+    std::function<std::set<std::uint64_t>(std::string_view id)> readElsewhere;
   };
   void fenceWrites(WriterFence fence);
-  /// Fences a write into `id` that begins now: sets options.token and options.fence from what
-  /// fenceWrites() set; leaves both unset without it.
+  /// Fences a write into `id` that begins now: sets options.token, options.fence and
+  /// options.readElsewhere from what fenceWrites() set; leaves them unset without it.
   void fencePublish(const std::string& id, core::PublishOptions& options) const;
   /// The ids of the open models, in order.
   std::vector<std::string> ids() const;

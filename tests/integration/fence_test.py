@@ -16,7 +16,11 @@ data root, on loopback.
    merge through n2 succeeds.
 2. The revision that merge published carries n2's fencing token: <Fence><Takeover> is the etcd
    revision that created /vsm/writers/prism, <Lease> the lease it is attached to; n1 follows it.
-3. A follower refuses an older token: a hierarchy naming the same patches but an older takeover
+3. A revision a replica serves is kept (issue 32, finding 3): n1 says in etcd which version it
+   serves (/vsm/reading/prism/n1); while its following is held at the gate, n2 publishes twice
+   with keep_revisions=2 and no time floor, and the revision n1 serves stays; once n1 follows, a
+   later publish drops it.
+4. A follower refuses an older token: a hierarchy naming the same patches but an older takeover
    is put in place (as a writer that lost the model would commit it; n2, the writer, does not
    read its own model's hierarchy again, so only the follower is tested); n1 does not follow it, says
    so in its log and counts it in vsm_follows_refused_total; the real hierarchy put back is
@@ -166,6 +170,7 @@ class Fence(unittest.TestCase):
             [ARGS.vsmd, "--listen", "127.0.0.1:" + port, "--data-root", cls.data,
              "--coordinator", cls.etcd, "--node", node, "--advertise", cls.urls[node],
              "--memory-budget", "128MiB", "--set", "cluster.lease_ttl=%ds" % LEASE_TTL,
+             "--set", "keep_revisions=2", "--set", "keep_revisions_seconds=0s",
              "--token-file", os.path.join(cls.dir, "token")],
             env=env, stdout=cls.logs[node], stderr=subprocess.STDOUT)
 
@@ -252,7 +257,55 @@ class Fence(unittest.TestCase):
                              capture_output=True, text=True, timeout=300)
         self.assertEqual(out.returncode, 0, out.stdout + out.stderr)
 
-    def test_3_a_follower_refuses_an_older_token(self):
+    def run_job(self, path, body=None):
+        """Submits a job to n2 (retried while it answers otherwise than 202) and waits for it."""
+        def submit():
+            status, reply = request(self.urls["n2"] + path, "POST", body or {})
+            return json.loads(reply) if status == 202 else None
+        job = poll(submit, timeout=120, interval=0.2)
+        self.assertIsNotNone(job, "n2 took no job at " + path)
+
+        def final():
+            status, reply = request(self.urls["n2"] + "/v1/jobs/" + job["id"])
+            state = json.loads(reply) if status == 200 else None
+            return state if state and state["state"] in ("succeeded", "failed",
+                                                         "cancelled") else None
+        done = poll(final, timeout=600, interval=0.2)
+        self.assertIsNotNone(done)
+        self.assertEqual(done["state"], "succeeded", done)
+        return done["result"]["version"]
+
+    def test_3_a_revision_a_replica_serves_is_kept(self):
+        patches = os.path.join(self.data, "prism", "Patches")
+        served = Fence.merged
+        reading = lambda: (etcd_key(self.etcd, "/vsm/reading/prism/n1") or {}).get("value")
+        self.assertTrue(poll(lambda: reading() == str(served), timeout=60), reading())
+        # n1 follows no more: its next read of prism waits at the gate.
+        allowed = self.hold.let_through(self.hold.calls())
+        try:
+            self.run_job("/v1/models/prism/revisions/%d/restore" % (served - 1))
+            self.assertIsNotNone(self.hold.wait_held(allowed + 1), "n1 did not start following")
+            self.run_job("/v1/models/prism/revisions/%d/restore" % served)
+            # keep_revisions=2 and no time floor: only n1's reading keeps it.
+            self.assertTrue(os.path.exists(os.path.join(patches, "vsm-revision-%d.xml" % served)),
+                            "the revision n1 serves was dropped: " + str(os.listdir(patches)))
+            self.assertEqual(version_of(self.urls["n1"], "prism"), served)
+        finally:
+            self.hold.release()
+        latest = served + 2
+        self.assertTrue(poll(lambda: reading() == str(latest), timeout=60), reading())
+        # Once n2 has read that (its next round), a publish drops the revision.
+        for _ in range(5):
+            # (the one before the latest: restoring the latest would change nothing)
+            Fence.merged = self.run_job("/v1/models/prism/revisions/%d/restore" % (latest - 1))
+            latest = Fence.merged
+            if not os.path.exists(os.path.join(patches, "vsm-revision-%d.xml" % served)):
+                break
+        self.assertFalse(os.path.exists(os.path.join(patches, "vsm-revision-%d.xml" % served)))
+        self.assertTrue(poll(lambda: version_of(self.urls["n1"], "prism") == Fence.merged,
+                             timeout=60))
+
+    def test_4_a_follower_refuses_an_older_token(self):
         patches = os.path.join(self.data, "prism", "Patches")
         hierarchy = os.path.join(patches, "patchhierarchy.xml")
         takeover, _ = fence_of(hierarchy)

@@ -292,6 +292,39 @@ TEST_F(StoreTest, RevisionsAreKeptReadableAndDroppedOldestFirstWithTheFoldersOnl
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
+// Issue 32, finding 3: a revision another process reads (a replica, as it says in etcd) is kept
+// beyond the count, with the ones after it, and dropped once nobody reads it.
+TEST_F(StoreTest, ARevisionAnotherProcessReadsIsKeptBeyondTheCount) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v = live->snapshot()->version;
+  std::set<std::uint64_t> readElsewhere{v + 1};
+  int asked = 0;
+  auto publish = [&](double bump) {
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 0, 0}, leafGrid(0, 0, bump));
+    PublishOptions options = publishing("j", 2);
+    options.readElsewhere = [&] {
+      ++asked;
+      return readElsewhere;
+    };
+    edit->publish(nullptr, options);
+  };
+  publish(1);  // v + 1
+  publish(2);  // v + 2: v dropped
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 1, v + 2}));
+  publish(3);  // v + 3: v + 1 is read elsewhere
+  publish(4);  // v + 4
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 1, v + 2, v + 3, v + 4}));
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / revisionFileName(v + 1)));
+  EXPECT_EQ(live->snapshotAt(v + 1)->version, v + 1) << "a kept revision reads";
+  EXPECT_EQ(asked, 4);
+  readElsewhere = {v + 4};  // the replica followed
+  publish(5);
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 4, v + 5}));
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
 // Issue 32, finding 3: a time floor beside the count, for readers in other processes.
 TEST_F(StoreTest, ARevisionIsKeptWhileItsSuccessorIsYoungerThanTheTimeFloor) {
   PatchCache cache(64 << 20);
