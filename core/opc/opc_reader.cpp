@@ -370,6 +370,18 @@ ParsedHierarchy parseHierarchy(const fs::path& file) {
     if (record.nonce.size() > 64) {
       corrupt(file, "<Nonce> is longer than 64 characters");
     }
+    if (const pugi::xml_node fence = childCi(revision, "Fence")) {
+      FencingToken token;
+      token.takeover = revisionNumber(file, fence, "Takeover");
+      const std::string lease = textOf(childCi(fence, "Lease"));
+      const auto n = parseInteger(lease);
+      if (token.takeover == 0 || !n || *n <= 0) {
+        corrupt(file, "<Revision><Fence> needs a <Takeover> and a <Lease> above 0, not '" +
+                          textOf(childCi(fence, "Takeover")) + "' and '" + lease + "'");
+      }
+      token.lease = *n;
+      record.fence = token;
+    }
     parsed.revision = std::move(record);
   }
   return parsed;

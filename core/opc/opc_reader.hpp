@@ -22,6 +22,17 @@ namespace vsm::core {
 /// name containing "..", "/" or "\\", a bad number, or grids of differing sizes.
 Model readOpcModel(const std::filesystem::path& dir);
 
+/// The fencing token of the writer that published a revision (<Vsm><Revision><Fence>): in a
+/// cluster, the etcd revision at which that writer's node claimed the model (`takeover`: greater
+/// for every later claim, by any node) and the etcd lease it claimed it under. A revision with an
+/// older takeover than one already seen was committed by a writer that had lost the model, so
+/// followers refuse it and a writer does not commit over a newer one. Tokens compare by takeover.
+struct FencingToken {
+  std::uint64_t takeover = 0;
+  std::int64_t lease = 0;
+  friend bool operator==(const FencingToken&, const FencingToken&) = default;
+};
+
 /// What vsm records about a revision in the hierarchy that publishes it (<Vsm><Revision>, an
 /// extension other readers ignore): the revision it was made from, when (UTC, ISO 8601), by which
 /// job, how many patches it added or replaced and removed, and the revision it restored if any. Its
@@ -37,6 +48,9 @@ struct RevisionRecord {
   /// number published twice (the first lost in a power cut after it was served) never has the
   /// same record, so tags derived from it never repeat.
   std::string nonce;
+  /// The publishing writer's token; nullopt when it had none (a single node, the CLI, records
+  /// written before tokens existed).
+  std::optional<FencingToken> fence;
 };
 
 /// How many revisions a publish keeps by default, the new one included (core/store).

@@ -271,6 +271,11 @@ std::string hierarchyXml(const Model& model, const RevisionRecord* revision) {
     if (!revision->nonce.empty()) {
       addText(node, "Nonce", revision->nonce);
     }
+    if (const auto& token = revision->fence) {
+      pugi::xml_node fence = node.append_child("Fence");
+      addText(fence, "Takeover", std::to_string(token->takeover));
+      addText(fence, "Lease", std::to_string(token->lease));
+    }
   }
   return xmlText(doc);
 }

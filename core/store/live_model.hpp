@@ -214,9 +214,11 @@ class LiveModel {
   /// last of them, and of the other openings', is released), and forgets the revision.
   void holdRemoval(std::uint64_t revision, const std::shared_ptr<const void>& removal);
   /// The last step of ModelEdit::publish: drops the oldest kept revisions until `keep` remain with
-  /// the current one, `current`, keeping each whose successor is younger than `keepSeconds`.
+  /// the current one, `current`, keeping each whose successor is younger than `keepSeconds` and
+  /// each in `readElsewhere` (with the ones after it: folders are dropped oldest first).
   /// Failures are logged, not thrown.
-  void dropRevisions(const ModelSnapshot& current, unsigned keep, std::chrono::seconds keepSeconds);
+  void dropRevisions(const ModelSnapshot& current, unsigned keep, std::chrono::seconds keepSeconds,
+                     const std::set<std::uint64_t>& readElsewhere = {});
   static std::unique_ptr<LiveModel> load(const std::filesystem::path& dir, std::string name,
                                          PatchCache& cache, std::shared_ptr<Writer> writer,
                                          bool sweep, std::uint64_t texturePixels);

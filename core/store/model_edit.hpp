@@ -4,6 +4,7 @@
 #include <cstdint>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <set>
 #include <string>
 
@@ -34,6 +35,15 @@ struct PublishOptions {
   /// Called just before the commit point, after every other check: throws to refuse the commit
   /// (a cluster node that no longer holds the model's lease: Error(Conflict)). Null: no fence.
   std::function<void()> fence;
+  /// The writer's fencing token (a cluster node's claim on the model), recorded in the new
+  /// revision (<Vsm><Revision><Fence>). With it the commit is refused (Error(Conflict)) when the
+  /// hierarchy on disk carries a newer token: a writer that took the model over later published.
+  /// Nullopt: no token recorded, none checked.
+  std::optional<FencingToken> token;
+  /// The revisions other processes read now (a cluster's replicas, as they say in etcd), asked
+  /// when old revisions are dropped: each is kept, with every later one, besides the count and
+  /// the time floor. Null: none.
+  std::function<std::set<std::uint64_t>()> readElsewhere;
 };
 
 /// Write-backs a publish runs at once when it has an executor.
@@ -101,10 +111,10 @@ class ModelEdit {
   ///    yet), and writes the new hierarchy, recording the revision (`options`), under a temporary
   ///    name and fsyncs it;
   /// 3. **the commit point**, fenced: refuses (Error(Conflict)) unless the opening is still its
-  ///    writer's current one and the hierarchy on disk is still the one it last read or published,
-  ///    then calls options.fence; then renames the new hierarchy over
-  ///    Patches/patchhierarchy.xml (a rename error is resolved by looking: durable::PendingFile).
-  ///    snapshot() is the new version from here on;
+  ///    writer's current one, the hierarchy on disk is still the one it last read or published and
+  ///    carries no fencing token newer than options.token, then calls options.fence; then renames
+  ///    the new hierarchy over Patches/patchhierarchy.xml (a rename error is resolved by looking:
+  ///    durable::PendingFile). snapshot() is the new version from here on;
   /// 4. syncs Patches/ and removes a stale hierarchy.cache (OpcWriter::finishHierarchy):
   ///    durable before announced;
   /// 5. tells the onPublish and onNewVersion observers (what they throw is logged, not thrown);

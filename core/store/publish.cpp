@@ -1,4 +1,5 @@
 #include <exception>
+#include <set>
 #include <utility>
 #include <vector>
 
@@ -31,6 +32,18 @@ void tellObserver(const std::string& model, const char* what, Call&& call) {
     log::error("model=" + model + " " + what + " of a published version failed: " + e.what());
   } catch (...) {
     log::error("model=" + model + " " + what + " of a published version failed");
+  }
+}
+
+/// Refuses a commit under `token` when the hierarchy on disk (`file`) was published under a newer
+/// one: a writer that took the model over later has published, and this one lost it.
+void checkToken(const fs::path& file, const FencingToken& token) {
+  const std::optional<RevisionRecord> onDisk = readRevisionRecord(file);
+  if (onDisk && onDisk->fence && onDisk->fence->takeover > token.takeover) {
+    throw Error(ErrorCode::Conflict,
+                "the model on disk was published by a later writer (fencing token " +
+                    std::to_string(onDisk->fence->takeover) + ", this writer's " +
+                    std::to_string(token.takeover) + "); the write is not committed");
   }
 }
 
@@ -77,7 +90,7 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   auto snapshot = std::make_shared<ModelSnapshot>();
   snapshot->revision = {base_->version,  utcNow(),        options.job,
                         changed_.size(), removed_.size(), options.restoredFrom,
-                        nonce_};
+                        nonce_,          options.token};
   const std::unique_ptr<durable::PendingFile> hierarchy =
       stageHierarchy(live_.dir_, *next, &snapshot->revision);
   snapshot->model = std::move(next);
@@ -93,6 +106,9 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
     const std::optional<HierarchyStamp> onDisk = hierarchyStamp(live_.dir_);
     std::lock_guard lock(live_.writer_->mutex);
     live_.checkCurrent(onDisk);
+  }
+  if (options.token) {
+    checkToken(patches / "patchhierarchy.xml", *options.token);
   }
   if (options.fence) {
     options.fence();
@@ -142,7 +158,12 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
     tellObserver(live_.name_, "the announcement", [&] { announce(version, changed_, removed_); });
   }
   // 6. Revisions beyond the count go, oldest first.
-  live_.dropRevisions(*snapshot, options.keepRevisions, options.keepSeconds);
+  std::set<std::uint64_t> readElsewhere;
+  if (options.readElsewhere) {
+    tellObserver(live_.name_, "asking which revisions others read",
+                 [&] { readElsewhere = options.readElsewhere(); });
+  }
+  live_.dropRevisions(*snapshot, options.keepRevisions, options.keepSeconds, readElsewhere);
 }
 
 }  // namespace vsm::core

@@ -218,7 +218,8 @@ std::vector<RevisionSummary> LiveModel::revisions() const {
 }
 
 void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
-                              std::chrono::seconds keepSeconds) {
+                              std::chrono::seconds keepSeconds,
+                              const std::set<std::uint64_t>& readElsewhere) {
   const Model& latest = *current.model;
   const std::time_t now = std::time(nullptr);
   try {
@@ -232,6 +233,11 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
       // Folders are never shared across a gap (a restore copies), so what the next kept revision
       // does not name, no later one does.
       const auto nextFile = std::next(oldest);
+      if (readElsewhere.contains(number)) {
+        log::info("model=" + name_ + " keeps revision " + std::to_string(number) +
+                  " beyond the count: another process reads it");
+        break;
+      }
       // The time floor: readers elsewhere may still read this revision for that long after the
       // next one replaced it.
       if (keepSeconds.count() > 0) {

@@ -197,11 +197,30 @@ Application::Application(Config config) : config_(std::move(config)) {
       return models_->setWriter(id, writer);
     };
     node.lostLease = [this] { jobs_->cancelAll(/*refuseNew=*/false); };
+    node.servedVersion = [this](const std::string& id) -> std::uint64_t {
+      const auto live = models_->find(id);
+      return live != nullptr ? live->snapshot()->version : 0;
+    };
     coordinator_ = std::make_unique<cluster::Coordinator>(std::move(options), std::move(node));
     // Every model is read only until this node is elected to write it (Coordinator::start).
     models_->electWriters([this](std::string_view id) { return coordinator_->writes(id); });
-    // A commit checks, just before its commit point, that this node still holds the lease.
-    models_->fenceWrites([this](std::string_view id) { coordinator_->checkWriter(id); });
+    // A write records this node's claim on the model (its fencing token) in the revision it
+    // publishes, and checks just before its commit point that the node still holds the lease
+    // and that claim.
+    models::ModelRegistry::WriterFence fence;
+    fence.token = [this](std::string_view id) -> std::optional<core::FencingToken> {
+      const auto claim = coordinator_->takeover(id);
+      if (!claim) {
+        return std::nullopt;
+      }
+      return core::FencingToken{static_cast<std::uint64_t>(claim->revision), claim->lease};
+    };
+    fence.check = [this](std::string_view id, const std::optional<core::FencingToken>& token) {
+      coordinator_->checkWriter(id, token ? static_cast<std::int64_t>(token->takeover) : 0);
+    };
+    // A publish keeps the revisions the other nodes serve (they say so in etcd).
+    fence.readElsewhere = [this](std::string_view id) { return coordinator_->readElsewhere(id); };
+    models_->fenceWrites(std::move(fence));
     log::info("cluster: node " + coordinator_->node() + ", coordinator " +
               config_.cluster.coordinator);
   }
@@ -297,6 +316,12 @@ Application::Application(Config config) : config_(std::move(config)) {
                         Type::Gauge,
                         {},
                         {{{}, static_cast<double>(models_->size())}}};
+    Snapshot refused{"vsm_follows_refused_total",
+                     "Versions on disk not followed: their writer's fencing token was older than "
+                     "one already seen",
+                     Type::Counter,
+                     {},
+                     {{{}, static_cast<double>(models_->followsRefused())}}};
     Snapshot up{"vsm_ready",
                 "1 while the daemon serves, 0 while starting or stopping",
                 Type::Gauge,
@@ -313,8 +338,8 @@ Application::Application(Config config) : config_(std::move(config)) {
                    {},
                    {{{}, startTime}}};
     return std::vector<Snapshot>{std::move(threads),   std::move(queued),     std::move(active),
-                                 std::move(jobStates), std::move(openModels), std::move(up),
-                                 std::move(build),     std::move(start)};
+                                 std::move(jobStates), std::move(openModels), std::move(refused),
+                                 std::move(up),        std::move(build),      std::move(start)};
   });
 }
 

@@ -1,6 +1,7 @@
 #include "server/cluster/coordinator.hpp"
 
 #include <algorithm>
+#include <charconv>
 #include <utility>
 
 #include "core/common/error.hpp"
@@ -23,6 +24,10 @@ std::string nodeKey(std::string_view node) {
 
 std::string writerKey(std::string_view model) {
   return std::string(kWritersPrefix) + std::string(model);
+}
+
+std::string readingKey(std::string_view model, std::string_view node) {
+  return std::string(kReadingPrefix) + std::string(model) + "/" + std::string(node);
 }
 
 /// One etcd call may take this long: a quarter of the TTL, at most 2 s, so that a renewal that
@@ -71,6 +76,7 @@ void Coordinator::stop() {
     const std::lock_guard lock(mutex_);
     lease = std::exchange(lease_, 0);
     writers_.clear();
+    takeovers_.clear();
   }
   if (lease == 0) {
     return;
@@ -142,14 +148,30 @@ void Coordinator::tick(EtcdClient& etcd) {
 
   std::map<std::string, std::string, std::less<>> nodes;
   std::map<std::string, std::string, std::less<>> writers;
+  std::map<std::string, std::int64_t, std::less<>> takeovers;
+  std::map<std::string, std::set<std::uint64_t>, std::less<>> readElsewhere;
   for (KeyValue& kv : etcd.range("/vsm/")) {
-    if (kv.key.starts_with(kNodesPrefix)) {
+    if (kv.key.starts_with(kReadingPrefix)) {
+      const std::string rest = kv.key.substr(kReadingPrefix.size());
+      const auto slash = rest.find('/');
+      std::uint64_t version = 0;
+      const auto [end, error] =
+          std::from_chars(kv.value.data(), kv.value.data() + kv.value.size(), version);
+      if (slash != std::string::npos && rest.substr(slash + 1) != options_.node &&
+          error == std::errc() && version != 0) {
+        readElsewhere[rest.substr(0, slash)].insert(version);
+      }
+    } else if (kv.key.starts_with(kNodesPrefix)) {
       nodes[kv.key.substr(kNodesPrefix.size())] = std::move(kv.value);
     } else if (kv.key.starts_with(kWritersPrefix)) {
       // A key of this node under an older lease is not a role: that lease is lost, and the key
       // vanishes with it.
       if (kv.value != options_.node || kv.lease == lease) {
-        writers[kv.key.substr(kWritersPrefix.size())] = std::move(kv.value);
+        std::string model = kv.key.substr(kWritersPrefix.size());
+        if (kv.value == options_.node) {
+          takeovers[model] = kv.createRevision;
+        }
+        writers[std::move(model)] = std::move(kv.value);
       }
     }
   }
@@ -159,9 +181,19 @@ void Coordinator::tick(EtcdClient& etcd) {
   }
   const std::vector<std::string> models = node_.models();
   for (const std::string& id : models) {
-    if (!writers.contains(id) && etcd.putIfAbsent(writerKey(id), options_.node, lease)) {
+    if (writers.contains(id)) {
+      continue;
+    }
+    // A claim is made under a lease surely held (renewed when due): the etcd calls before it can
+    // each take up to callTimeout.
+    if (!renewIfDue(etcd, lease)) {
+      return;
+    }
+    if (const std::int64_t revision = etcd.putIfAbsent(writerKey(id), options_.node, lease)) {
       writers[id] = options_.node;
-      log::info("cluster: model=" + id + " is written by this node");
+      takeovers[id] = revision;
+      log::info("cluster: model=" + id + " is written by this node (takeover " +
+                std::to_string(revision) + ")");
     }
   }
   {
@@ -171,23 +203,73 @@ void Coordinator::tick(EtcdClient& etcd) {
     }
     nodes_ = nodes;
     writers_ = writers;
+    takeovers_ = takeovers;
+    readElsewhere_ = readElsewhere;
   }
+  sayWhatIsRead(etcd, lease, models, writers);
   for (const std::string& id : models) {
     // Opening a large model for writing can take seconds: renewed between models, so that many
-    // models taken over at once cannot outlast the lease.
+    // models taken over at once cannot outlast the lease; and checked after each opening, which
+    // may alone have outlasted it.
     if (!renewIfDue(etcd, lease)) {
       return;
     }
     const auto it = writers.find(id);
-    node_.setWriter(id, it != writers.end() && it->second == options_.node);
+    const bool writer = it != writers.end() && it->second == options_.node;
+    if (node_.setWriter(id, writer) && writer && !stillHeldAfter(etcd, lease, id)) {
+      return;
+    }
   }
 }
 
-bool Coordinator::renewIfDue(EtcdClient& etcd, std::int64_t lease) {
+void Coordinator::sayWhatIsRead(EtcdClient& etcd, std::int64_t lease,
+                                const std::vector<std::string>& models,
+                                const std::map<std::string, std::string, std::less<>>& writers) {
+  if (!node_.servedVersion) {
+    return;
+  }
+  for (const std::string& id : models) {
+    const auto it = writers.find(id);
+    if (it != writers.end() && it->second == options_.node) {
+      continue;  // its own publishes keep what this process reads
+    }
+    const std::uint64_t version = node_.servedVersion(id);
+    if (version == 0 || saidReading_[id] == version) {
+      continue;
+    }
+    etcd.put(readingKey(id, options_.node), std::to_string(version), lease);
+    saidReading_[id] = version;
+  }
+}
+
+bool Coordinator::stillHeldAfter(EtcdClient& etcd, std::int64_t lease, const std::string& id) {
+  {
+    const std::lock_guard lock(mutex_);
+    if (lease_ != lease) {
+      return false;  // lost meanwhile: given up already
+    }
+    if (!pastFence(Clock::now())) {
+      return true;
+    }
+  }
+  // Until renewed, no job is accepted and no commit is allowed (pastFence). A lease etcd renews
+  // now never ended, so no other node can have claimed the model meanwhile; one that expired
+  // gives every model up. An etcd error is thrown: loop() gives the models up when the lease is
+  // that close to its end.
+  log::warn("cluster: model=" + id +
+            " was opened for writing near the end of the lease: renewing it before writing");
+  if (!renewIfDue(etcd, lease, /*force=*/true)) {
+    log::warn("cluster: model=" + id + " given up: the lease ended while it was being opened");
+    return false;
+  }
+  return true;
+}
+
+bool Coordinator::renewIfDue(EtcdClient& etcd, std::int64_t lease, bool force) {
   const auto now = Clock::now();
   {
     const std::lock_guard lock(mutex_);
-    if (now - renewed_ < options_.leaseTtl / 3) {
+    if (!force && now - renewed_ < options_.leaseTtl / 3) {
       return true;
     }
   }
@@ -208,7 +290,10 @@ void Coordinator::loseLease(std::string_view why) {
     const std::lock_guard lock(mutex_);
     lease_ = 0;
     writers_.clear();
+    takeovers_.clear();
+    readElsewhere_.clear();
   }
+  saidReading_.clear();  // said again under the next lease
   for (const std::string& id : node_.models()) {
     node_.setWriter(id, false);
   }
@@ -245,7 +330,7 @@ std::optional<std::string> Coordinator::writerElsewhere(const std::string& id) {
                                             options_.coordinator + " unreachable?); retry later");
   }
   EtcdClient etcd(options_.coordinator, callTimeout(options_.leaseTtl));
-  if (etcd.putIfAbsent(writerKey(id), options_.node, lease)) {
+  if (const std::int64_t revision = etcd.putIfAbsent(writerKey(id), options_.node, lease)) {
     {
       const std::lock_guard lock(mutex_);
       if (lease_ != lease) {
@@ -255,9 +340,21 @@ std::optional<std::string> Coordinator::writerElsewhere(const std::string& id) {
                                                 "'; retry in a second");
       }
       writers_[id] = options_.node;
+      takeovers_[id] = revision;
     }
-    log::info("cluster: model=" + id + " is written by this node");
+    log::info("cluster: model=" + id + " is written by this node (takeover " +
+              std::to_string(revision) + ")");
     node_.setWriter(id, true);
+    {
+      // Opening it may have outlasted the lease: the coordinator's next round renews or gives
+      // the model up; meanwhile no job is accepted on it.
+      const std::lock_guard lock(mutex_);
+      if (lease_ != lease || pastFence(Clock::now())) {
+        throw Error(ErrorCode::Unavailable, "node " + options_.node +
+                                                " is renewing its lease after opening model '" +
+                                                id + "'; retry in a second");
+      }
+    }
     return std::nullopt;
   }
   std::string writer;
@@ -279,6 +376,9 @@ std::optional<std::string> Coordinator::writerElsewhere(const std::string& id) {
   }
   const std::lock_guard lock(mutex_);
   writers_[id] = writer;
+  if (writer != options_.node) {
+    takeovers_.erase(id);
+  }
   return urlOf(writer);
 }
 
@@ -290,7 +390,7 @@ std::chrono::milliseconds Coordinator::fenceMargin() const {
   return std::max(std::chrono::milliseconds(1000), options_.leaseTtl / 5);
 }
 
-void Coordinator::checkWriter(std::string_view id) const {
+void Coordinator::checkWriter(std::string_view id, std::int64_t takeover) const {
   const auto now = Clock::now();
   const std::lock_guard lock(mutex_);
   const auto it = writers_.find(id);
@@ -298,6 +398,13 @@ void Coordinator::checkWriter(std::string_view id) const {
     throw Error(ErrorCode::Conflict, "node " + options_.node +
                                          " is no longer the writer of model '" + std::string(id) +
                                          "'; the write is not committed");
+  }
+  if (const auto claim = takeovers_.find(id);
+      takeover != 0 && (claim == takeovers_.end() || claim->second != takeover)) {
+    throw Error(ErrorCode::Conflict,
+                "node " + options_.node + " claimed model '" + std::string(id) +
+                    "' again since the write began (takeover " + std::to_string(takeover) +
+                    "): the write is not committed");
   }
   if (pastFence(now)) {
     const auto held = std::chrono::duration_cast<std::chrono::milliseconds>(now - renewed_);
@@ -307,6 +414,21 @@ void Coordinator::checkWriter(std::string_view id) const {
                                          std::to_string(options_.leaseTtl.count()) +
                                          " ms): model '" + std::string(id) + "' is not committed");
   }
+}
+
+std::set<std::uint64_t> Coordinator::readElsewhere(std::string_view id) const {
+  const std::lock_guard lock(mutex_);
+  const auto it = readElsewhere_.find(id);
+  return it == readElsewhere_.end() ? std::set<std::uint64_t>() : it->second;
+}
+
+std::optional<Coordinator::Takeover> Coordinator::takeover(std::string_view id) const {
+  const std::lock_guard lock(mutex_);
+  const auto it = takeovers_.find(id);
+  if (lease_ == 0 || it == takeovers_.end()) {
+    return std::nullopt;
+  }
+  return Takeover{it->second, lease_};
 }
 
 bool Coordinator::writes(std::string_view id) const {

@@ -7,6 +7,7 @@
 #include <map>
 #include <mutex>
 #include <optional>
+#include <set>
 #include <string>
 #include <string_view>
 #include <thread>
@@ -23,6 +24,9 @@ class EtcdClient;
 /// its keys vanish after the lease's TTL and the other nodes take its models over.
 inline constexpr std::string_view kNodesPrefix = "/vsm/nodes/";
 inline constexpr std::string_view kWritersPrefix = "/vsm/writers/";
+/// /vsm/reading/<model>/<node> = the version of the model the node serves while it only reads it
+/// (attached to its lease too): the writer keeps that revision (issue 32, finding 3).
+inline constexpr std::string_view kReadingPrefix = "/vsm/reading/";
 
 /// A node's part in a cluster of vsmd nodes sharing one data root: every node serves every model;
 /// for each model one node, elected through etcd, writes it (runs its jobs, holds its writer
@@ -54,6 +58,9 @@ class Coordinator {
     std::function<bool(const std::string& id, bool writer)> setWriter;
     /// The lease is lost: stop writing (cancel jobs) before the models are given up.
     std::function<void()> lostLease;
+    /// The version of `id` the node serves (0: not open); said in etcd for the models it only
+    /// reads. Null: nothing said.
+    std::function<std::uint64_t(const std::string& id)> servedVersion;
   };
 
   Coordinator(Options options, Node node);
@@ -84,11 +91,25 @@ class Coordinator {
   /// lease that etcd cannot have expired yet with a margin (the last renewal etcd confirmed was
   /// sent less than TTL - kFenceMargin ago), so a node paused or cut off from etcd past its lease
   /// never commits over the node that took the model over.
-  void checkWriter(std::string_view id) const;
+  ///
+  /// With `takeover` (not 0), the write began under that claim (takeover()): the commit is also
+  /// refused when this node's claim on `id` is another one now (lost and claimed again meanwhile).
+  void checkWriter(std::string_view id, std::int64_t takeover = 0) const;
+  /// This node's claim on model `id`, its fencing token: the etcd revision that created the
+  /// model's writer key (greater for every later claim, by any node) and the lease it is attached
+  /// to. Nullopt when this node does not write `id`.
+  struct Takeover {
+    std::int64_t revision = 0;
+    std::int64_t lease = 0;
+  };
+  std::optional<Takeover> takeover(std::string_view id) const;
   /// What checkWriter keeps in hand of the lease: a fifth of the TTL, at least a second.
   std::chrono::milliseconds fenceMargin() const;
   /// The advertised URL of node `name`: nullopt for this node and for a node not in the cluster.
   std::optional<std::string> nodeUrl(std::string_view name) const;
+  /// The versions of model `id` the other nodes serve while they read it (as etcd said at the
+  /// last round): the revisions a publish into it keeps (core::PublishOptions::readElsewhere).
+  std::set<std::uint64_t> readElsewhere(std::string_view id) const;
   /// The writer of every model with one, by model id.
   std::map<std::string, std::string> writers() const;
 
@@ -99,7 +120,16 @@ class Coordinator {
   void loseLease(std::string_view why);
   /// Renews `lease` when a third of its TTL has passed since the last renewal. False when etcd says
   /// it has expired: the models are given up (loseLease). Throws on etcd errors.
-  bool renewIfDue(EtcdClient& etcd, std::int64_t lease);
+  /// `force`: renews whenever called.
+  bool renewIfDue(EtcdClient& etcd, std::int64_t lease, bool force = false);
+  /// After a slow step (opening `id` for writing): true when the lease is still surely held
+  /// (renewed now if it was near its end); otherwise gives `id` up, or every model when etcd
+  /// says the lease expired, and returns false. Throws on etcd errors, having given `id` up.
+  bool stillHeldAfter(EtcdClient& etcd, std::int64_t lease, const std::string& id);
+  /// Puts /vsm/reading/<model>/<node> for each of `models` this node only reads whose served
+  /// version changed since it last said it (Node::servedVersion). The coordinator's thread.
+  void sayWhatIsRead(EtcdClient& etcd, std::int64_t lease, const std::vector<std::string>& models,
+                     const std::map<std::string, std::string, std::less<>>& writers);
   /// True when the lease may end before a write started now commits (checkWriter's fence):
   /// `now` is fenceMargin() or less from the end of the last confirmed renewal. With mutex_ held.
   bool pastFence(std::chrono::steady_clock::time_point now) const;
@@ -116,6 +146,12 @@ class Coordinator {
   std::chrono::steady_clock::time_point renewed_;
   std::map<std::string, std::string, std::less<>> nodes_;    // name -> URL
   std::map<std::string, std::string, std::less<>> writers_;  // model -> node
+  /// model -> the etcd revision that created its writer key, for the models this node writes.
+  std::map<std::string, std::int64_t, std::less<>> takeovers_;
+  /// model -> the versions other nodes read (their /vsm/reading/ keys).
+  std::map<std::string, std::set<std::uint64_t>, std::less<>> readElsewhere_;
+  /// model -> the version this node last said it reads, under lease_ (the coordinator's thread).
+  std::map<std::string, std::uint64_t, std::less<>> saidReading_;
   std::thread thread_;
 };
 

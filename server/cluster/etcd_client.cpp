@@ -212,7 +212,8 @@ void EtcdClient::put(std::string_view key, std::string_view value, std::int64_t 
                       {"lease", std::to_string(lease)}});
 }
 
-bool EtcdClient::putIfAbsent(std::string_view key, std::string_view value, std::int64_t lease) {
+std::int64_t EtcdClient::putIfAbsent(std::string_view key, std::string_view value,
+                                     std::int64_t lease) {
   const std::string encoded = base64Encode(key);
   const json reply =
       call("/v3/kv/txn", {{"compare", json::array({{{"key", encoded},
@@ -223,7 +224,16 @@ bool EtcdClient::putIfAbsent(std::string_view key, std::string_view value, std::
                                                      {{"key", encoded},
                                                       {"value", base64Encode(value)},
                                                       {"lease", std::to_string(lease)}}}}})}});
-  return reply.value("succeeded", false);
+  if (!reply.value("succeeded", false)) {
+    return 0;
+  }
+  const std::int64_t revision =
+      integerOf(reply.value("header", json::object()).value("revision", json()));
+  if (revision <= 0) {
+    throw Error(ErrorCode::Unavailable,
+                "etcd created a key without naming its revision: " + reply.dump().substr(0, 200));
+  }
+  return revision;
 }
 
 std::vector<KeyValue> EtcdClient::range(std::string_view prefix) {
@@ -235,6 +245,7 @@ std::vector<KeyValue> EtcdClient::range(std::string_view prefix) {
     entry.key = base64Decode(kv.value("key", ""));
     entry.value = base64Decode(kv.value("value", ""));
     entry.lease = integerOf(kv.value("lease", json()));
+    entry.createRevision = integerOf(kv.value("create_revision", json()));
     out.push_back(std::move(entry));
   }
   return out;

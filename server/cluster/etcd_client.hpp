@@ -11,11 +11,14 @@
 
 namespace vsm::server::cluster {
 
-/// One key of etcd with its value and the lease it is attached to (0 = none).
+/// One key of etcd with its value, the lease it is attached to (0 = none) and the etcd revision
+/// that created it (greater for every later creation of any key: a key deleted and created again
+/// gets a greater one).
 struct KeyValue {
   std::string key;
   std::string value;
   std::int64_t lease = 0;
+  std::int64_t createRevision = 0;
 };
 
 /// The few calls of etcd's v3 API a node needs, through etcd's JSON gateway (POST /v3/...; keys
@@ -42,9 +45,9 @@ class EtcdClient {
   void revoke(std::int64_t lease);
   /// Sets `key` to `value`, attached to `lease`.
   void put(std::string_view key, std::string_view value, std::int64_t lease);
-  /// Creates `key` = `value` attached to `lease` unless the key exists (one transaction); true when
-  /// it was created.
-  bool putIfAbsent(std::string_view key, std::string_view value, std::int64_t lease);
+  /// Creates `key` = `value` attached to `lease` unless the key exists (one transaction): the etcd
+  /// revision that created it (its KeyValue::createRevision), 0 when the key existed.
+  std::int64_t putIfAbsent(std::string_view key, std::string_view value, std::int64_t lease);
   /// Every key that starts with `prefix`, in key order.
   std::vector<KeyValue> range(std::string_view prefix);
 

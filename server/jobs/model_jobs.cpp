@@ -136,7 +136,7 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
           options.publish.job = context.id();
           options.publish.keepRevisions = models.keepRevisions();
           options.publish.keepSeconds = models.keepSeconds();
-          options.publish.fence = [&models, &target] { models.checkWriter(target); };
+          models.fencePublish(target, options.publish);
           const core::MergeIntoResult merged = core::mergeInto(*targetModel, *sourceModel, options);
           json result = {{"base_version", merged.baseVersion}, {"version", merged.version}};
           if (const auto& registered = merged.registration) {
@@ -189,7 +189,7 @@ JobStatus submitRestore(JobRegistry& jobs, models::ModelRegistry& models, const 
           options.keepRevisions = models.keepRevisions();
           options.keepSeconds = models.keepSeconds();
           options.restoredFrom = revision;
-          options.fence = [&models, &id] { models.checkWriter(id); };
+          models.fencePublish(id, options);
           edit->publish(&context.cancelToken(), options);
           result["version"] = model->snapshot()->version;
           edit.reset();

@@ -8,6 +8,7 @@
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "core/store/live_model.hpp"
+#include "core/store/model_edit.hpp"
 #include "server/models/encoded_cache.hpp"
 
 namespace vsm::server::models {
@@ -372,6 +373,7 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
     const std::lock_guard lock(mutex_);
     opening_.erase(id);
     reserved_.erase(id);
+    sawTakeover(id, *model);
     models_.emplace(id, Served{model, std::move(encoded)});
   }
   const auto snapshot = model->snapshot();
@@ -381,13 +383,40 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
   return model;
 }
 
-void ModelRegistry::fenceWrites(std::function<void(std::string_view id)> check) {
-  fence_ = std::move(check);
+void ModelRegistry::fenceWrites(WriterFence fence) {
+  fence_ = std::move(fence);
 }
 
-void ModelRegistry::checkWriter(std::string_view id) const {
-  if (fence_) {
-    fence_(id);
+void ModelRegistry::fencePublish(const std::string& id, core::PublishOptions& options) const {
+  if (fence_.token) {
+    options.token = fence_.token(id);
+  }
+  if (fence_.check) {
+    options.fence = [check = fence_.check, id, token = options.token] { check(id, token); };
+  }
+  if (fence_.readElsewhere) {
+    options.readElsewhere = [read = fence_.readElsewhere, id] { return read(id); };
+  }
+}
+
+namespace {
+
+std::uint64_t takeoverOf(const core::LiveModel& live) {
+  const auto& fence = live.snapshot()->revision.fence;
+  return fence ? fence->takeover : 0;
+}
+
+}  // namespace
+
+std::uint64_t ModelRegistry::newestTakeover(std::string_view id, const core::LiveModel& old) const {
+  const auto it = takeoverSeen_.find(id);
+  return std::max(it == takeoverSeen_.end() ? 0 : it->second, takeoverOf(old));
+}
+
+void ModelRegistry::sawTakeover(std::string_view id, const core::LiveModel& live) {
+  if (const std::uint64_t takeover = takeoverOf(live)) {
+    auto [it, added] = takeoverSeen_.try_emplace(std::string(id), takeover);
+    it->second = std::max(it->second, takeover);
   }
 }
 
@@ -399,10 +428,36 @@ void ModelRegistry::reopen(std::string_view id) {
 }
 
 std::optional<std::uint64_t> ModelRegistry::replace(const std::shared_ptr<core::LiveModel>& old,
-                                                    std::string_view id, std::string_view why) {
+                                                    std::string_view id, std::string_view why,
+                                                    bool* refused) {
   Served fresh;
   try {
     fresh.live = old->reopen();
+  } catch (const std::exception& e) {
+    log::error("model=" + std::string(id) + " cannot be read again from disk " + std::string(why) +
+               ": " + e.what());
+    return std::nullopt;
+  }
+  if (refused != nullptr) {
+    const std::uint64_t takeover = takeoverOf(*fresh.live);
+    std::uint64_t seen = 0;
+    {
+      const std::lock_guard lock(mutex_);
+      seen = newestTakeover(id, *old);
+    }
+    if (takeover != 0 && takeover < seen) {
+      ++followsRefused_;
+      log::warn("model=" + std::string(id) + " version " +
+                std::to_string(fresh.live->snapshot()->version) +
+                " on disk is not followed: its writer's fencing token (takeover " +
+                std::to_string(takeover) + ") is older than one already seen (" +
+                std::to_string(seen) + "), so a writer that had lost the model committed it; " +
+                "version " + std::to_string(old->snapshot()->version) + " stays served");
+      *refused = true;
+      return std::nullopt;
+    }
+  }
+  try {
     fresh.encoded = EncodedCache::create(cache_, *fresh.live);
     watch(*fresh.live);
   } catch (const std::exception& e) {
@@ -427,6 +482,8 @@ bool ModelRegistry::swapOpening(std::string_view id, const std::shared_ptr<core:
     if (it == models_.end() || it->second.live != old) {
       return false;
     }
+    sawTakeover(id, *old);
+    sawTakeover(id, *live);
     replaced = std::exchange(it->second, std::move(fresh));
   }
   announceFollowed(*old, *live);
@@ -452,11 +509,20 @@ std::size_t ModelRegistry::follow() {
     if (!live->changedOnDisk()) {
       continue;
     }
-    if (const auto version = replace(live, id, "after another writer published")) {
+    const std::optional<core::HierarchyStamp> stamp = core::hierarchyStamp(live->dir());
+    if (const auto it = refusedStamps_.find(id);
+        it != refusedStamps_.end() && it->second == stamp) {
+      continue;  // refused as it is (a stale fencing token): read again once it changes
+    }
+    bool refused = false;
+    if (const auto version = replace(live, id, "after another writer published", &refused)) {
       log::info("model=" + id + " read again from disk after another writer published: version " +
                 std::to_string(*version));
       ++followed;
       followRetry_.erase(id);
+      refusedStamps_.erase(id);
+    } else if (refused) {
+      refusedStamps_[id] = stamp;
     } else {
       followRetry_[id] = now + kFollowRetry;
     }

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <atomic>
 #include <chrono>
 #include <cstddef>
 #include <cstdint>
@@ -22,6 +23,7 @@
 namespace vsm::core {
 class LiveModel;
 class PatchCache;
+struct PublishOptions;
 }  // namespace vsm::core
 
 namespace vsm::server::models {
@@ -99,12 +101,23 @@ class ModelRegistry {
   /// opening finish on it. True when `id` is open in that role now; false when it is not open or
   /// the opening failed (logged once per model until it succeeds).
   bool setWriter(std::string_view id, bool writer);
-  /// In a cluster: `check(id)` is called just before every commit into model `id` by a job of
-  /// this process (core::PublishOptions::fence) and throws to refuse it (the node no longer
-  /// holds the model's lease). Call before the first job.
-  void fenceWrites(std::function<void(std::string_view id)> check);
-  /// The fence of a commit into `id`: what fenceWrites() set; nothing without it.
-  void checkWriter(std::string_view id) const;
+  /// In a cluster, how the commits of this process's jobs are fenced. Call before the first job.
+  struct WriterFence {
+    /// This node's claim on model `id` as a fencing token, asked when a write begins: recorded
+    /// in the revision it publishes (core::PublishOptions::token). Nullopt: none.
+    std::function<std::optional<core::FencingToken>(std::string_view id)> token;
+    /// Called just before the commit of a write into `id` that began under `token`
+    /// (core::PublishOptions::fence): throws to refuse it (the node no longer holds the model's
+    /// lease, or claimed it again since).
+    std::function<void(std::string_view id, const std::optional<core::FencingToken>& token)> check;
+    /// The revisions of `id` other processes read now, asked when a publish drops revisions
+    /// (core::PublishOptions::readElsewhere).
+    std::function<std::set<std::uint64_t>(std::string_view id)> readElsewhere;
+  };
+  void fenceWrites(WriterFence fence);
+  /// Fences a write into `id` that begins now: sets options.token, options.fence and
+  /// options.readElsewhere from what fenceWrites() set; leaves them unset without it.
+  void fencePublish(const std::string& id, core::PublishOptions& options) const;
   /// The ids of the open models, in order.
   std::vector<std::string> ids() const;
 
@@ -145,12 +158,20 @@ class ModelRegistry {
   /// reopen(); requests holding the old opening finish on it, new ones see the new version whole.
   /// A reading that fails is logged and tried again after kFollowRetry. Returns how many models
   /// were read again. For one caller at a time (the daemon calls it twice a second).
+  ///
+  /// Fenced: a version whose revision carries a fencing token older than the newest this
+  /// process has seen for the model (in any opening of it, its own publishes included) was
+  /// committed by a writer that had lost the model; it is not followed (logged, counted in
+  /// followsRefused(), not read again until the hierarchy file changes) and the model stays at
+  /// the version it serves. Versions without a token are followed.
   std::size_t follow();
   /// Removes the folders of dropped revisions whose last reader let go since
   /// (core::LiveModel::removeRetiredFolders), for every open model: the daemon's housekeeping,
   /// on its main thread, so that a request letting go of a revision never removes files itself.
   /// Returns the number of folders removed.
   std::size_t removeRetiredFolders();
+  /// Versions follow() refused for a stale fencing token, since the registry was made.
+  std::uint64_t followsRefused() const { return followsRefused_; }
   static constexpr std::chrono::seconds kFollowRetry{5};
 
   /// The open model `id`, or nullptr.
@@ -217,8 +238,15 @@ class ModelRegistry {
   /// versions between them (announceFollowed); false, dropping `fresh`, when `id` was closed or
   /// replaced meanwhile.
   bool swapOpening(std::string_view id, const std::shared_ptr<core::LiveModel>& old, Served fresh);
+  /// With `refused`, a new opening whose fencing token is older than one seen for `id` is
+  /// refused (follow()): nullopt, and *refused set.
   std::optional<std::uint64_t> replace(const std::shared_ptr<core::LiveModel>& old,
-                                       std::string_view id, std::string_view why);
+                                       std::string_view id, std::string_view why,
+                                       bool* refused = nullptr);
+  /// The newest fencing token seen for `id`, `old`'s current version included; with mutex_ held.
+  std::uint64_t newestTakeover(std::string_view id, const core::LiveModel& old) const;
+  /// Remembers the token of `live`'s current version as seen for `id`; with mutex_ held.
+  void sawTakeover(std::string_view id, const core::LiveModel& live);
 
   std::filesystem::path root_;
   core::PatchCache& cache_;
@@ -235,14 +263,20 @@ class ModelRegistry {
   /// Ids being opened right now (open() reads the disk without the lock).
   std::set<std::string, std::less<>> opening_;
   std::function<bool(std::string_view)> writes_;         // set before any model is opened
-  std::function<void(std::string_view)> fence_;          // set before the first job
+  WriterFence fence_;                                    // set before the first job
   std::function<void(const Publication&)> onPublished_;  // set before any model is opened
   /// setWriter()'s own state: models whose last change of role failed (logged once).
   std::set<std::string, std::less<>> roleFailed_;
   /// openAll()'s own state: directories it skipped, with their hierarchy file as it was then.
   std::map<std::string, std::optional<core::HierarchyStamp>, std::less<>> skipped_;
+  /// The newest fencing token (takeover) seen per model id, guarded by mutex_.
+  std::map<std::string, std::uint64_t, std::less<>> takeoverSeen_;
+  std::atomic<std::uint64_t> followsRefused_{0};
   /// follow()'s own state: when a model whose reading failed is tried again.
   std::map<std::string, std::chrono::steady_clock::time_point, std::less<>> followRetry_;
+  /// follow()'s own state: the hierarchy files it refused to follow (stale fencing token), as
+  /// they were then.
+  std::map<std::string, std::optional<core::HierarchyStamp>, std::less<>> refusedStamps_;
 };
 
 }  // namespace vsm::server::models

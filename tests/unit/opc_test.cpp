@@ -747,6 +747,49 @@ TEST_F(OpcStoreTest, BadHierarchiesAreCorruptAndNamed) {
   }
 }
 
+// Issue 32, finding 2: a revision records its writer's fencing token (<Vsm><Revision><Fence>),
+// which reads back as written; records without one (older models, a single node) still read and
+// validate, and a broken token is Corrupt.
+TEST_F(OpcStoreTest, AFencingTokenRoundTripsAndItsAbsenceIsValid) {
+  const fs::path file = patches() / "patchhierarchy.xml";
+  RevisionRecord record;
+  record.parent = 1;
+  record.time = "2026-12-03T12:00:00Z";
+  record.job = "j1";
+  record.changed = 2;
+  record.nonce = "0a1b2c3d";
+  stageHierarchy(opc(), *model_, &record)->commit();
+  ASSERT_TRUE(readRevisionRecord(file).has_value());
+  EXPECT_FALSE(readRevisionRecord(file)->fence.has_value()) << "no token was given";
+  EXPECT_EQ(readText(file).find("<Fence>"), std::string::npos);
+  EXPECT_TRUE(validateOpc(opc()).empty());
+
+  record.fence = FencingToken{7'000'000'123, 7587884562315126784};
+  stageHierarchy(opc(), *model_, &record)->commit();
+  const std::optional<RevisionRecord> read = readRevisionRecord(file);
+  ASSERT_TRUE(read && read->fence);
+  EXPECT_EQ(*read->fence, *record.fence);
+  EXPECT_EQ(read->nonce, record.nonce);
+  EXPECT_EQ(readOpcRevision(opc()).record->fence, record.fence);
+  const std::string text = readText(file);
+  const auto fence = text.find("<Fence>");
+  EXPECT_LT(fence, text.find("<Takeover>7000000123</Takeover>")) << text;
+  EXPECT_LT(fence, text.find("<Lease>7587884562315126784</Lease>")) << text;
+  EXPECT_TRUE(validateOpc(opc()).empty());
+
+  const std::string good = readText(file);
+  for (const auto& [from, to] : std::vector<std::pair<std::string, std::string>>{
+           {"<Takeover>7000000123</Takeover>", "<Takeover>-1</Takeover>"},
+           {"<Takeover>7000000123</Takeover>", ""},
+           {"<Lease>7587884562315126784</Lease>", "<Lease>x</Lease>"},
+           {"<Lease>7587884562315126784</Lease>", ""}}) {
+    writeText(file, good);
+    replaceIn(file, from, to);
+    EXPECT_EQ(codeOf([&] { readRevisionRecord(file); }), ErrorCode::Corrupt) << to;
+    EXPECT_EQ(validateOpc(opc()).size(), 1u) << to;
+  }
+}
+
 TEST_F(OpcStoreTest, APatchXmlThatIsBrokenIsCorrupt) {
   writeText(patches() / "1_0_0" / "Patch.xml", "<Aardvark><Patch><Local2Global>[[1, 2]");
   EXPECT_EQ(codeOf([&] { readOpcModel(opc()); }), ErrorCode::Corrupt);

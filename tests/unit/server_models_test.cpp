@@ -311,6 +311,71 @@ TEST(ModelRegistry, AFollowedRestoreNamesThePatchesItRemoved) {
   EXPECT_EQ(told[1].removed, std::vector<core::PatchKey>{added});
 }
 
+// Issue 32, finding 2: a follower refuses a version committed under a fencing token older than
+// one it has seen for the model (a writer that had lost the model committed it), keeps serving
+// what it served, counts it, and follows the next version of a current writer.
+TEST(ModelRegistry, AFollowerRefusesAVersionWhoseFencingTokenIsOlderThanOneSeen) {
+  DataRoot root;
+  writeModel(root.path() / "m");
+  core::PatchCache cache(64 * kMiB);
+  auto writer = core::LiveModel::open(root.path() / "m", "writer", cache);
+  models::ModelRegistry registry(root.path(), cache);
+  ASSERT_EQ(registry.openAll(), 1u);
+  ASSERT_FALSE(registry.get("m")->writable());
+  const fs::path hierarchy = root.path() / "m" / "Patches" / "patchhierarchy.xml";
+  // What a writer that lost the model commits when its check of the token on disk came just
+  // before the new writer's publish: here the last revision's token rewritten to `takeover`.
+  auto forgeTakeover = [&](std::uint64_t takeover) {
+    std::ifstream in(hierarchy);
+    std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    const auto at = text.find("<Takeover>");
+    ASSERT_NE(at, std::string::npos);
+    const auto end = text.find("</Takeover>", at);
+    text.replace(at, end - at, "<Takeover>" + std::to_string(takeover));
+    std::ofstream(root.path() / "m" / "Patches" / "forged.xml") << text;
+    fs::rename(root.path() / "m" / "Patches" / "forged.xml", hierarchy);
+    writer = writer->reopen();
+  };
+  auto publishUnder = [&](std::optional<core::FencingToken> token, double bump) {
+    auto edit = writer->beginEdit();
+    auto grid = std::make_shared<core::PatchGrid>(*leafGrid(1, 2));
+    grid->setGlobal(3, 3, grid->global(3, 3) + core::Vec3d{0, 0, bump});
+    edit->setPositions({2, 1, 2}, grid);
+    core::PublishOptions options;
+    options.token = token;
+    edit->publish(nullptr, options);
+    return writer->snapshot()->version;
+  };
+  // Node b took the model over at etcd revision 90 and published: followed.
+  const std::uint64_t byB = publishUnder(core::FencingToken{90, 2}, 1);
+  ASSERT_EQ(registry.follow(), 1u);
+  ASSERT_EQ(registry.get("m")->snapshot()->version, byB);
+  // Node a, which had claimed it at revision 50 and lost it, commits anyway: not followed.
+  const std::uint64_t byA = publishUnder(core::FencingToken{90, 2}, 2);
+  forgeTakeover(50);
+  EXPECT_EQ(registry.follow(), 0u);
+  EXPECT_EQ(registry.get("m")->snapshot()->version, byB) << "followed a fenced-off writer";
+  EXPECT_EQ(registry.followsRefused(), 1u);
+  EXPECT_EQ(registry.get("m")->snapshot()->revision.fence, (core::FencingToken{90, 2}));
+  ASSERT_GT(byA, byB);
+  EXPECT_EQ(registry.follow(), 0u);
+  EXPECT_EQ(registry.followsRefused(), 1u) << "a refused hierarchy is read again before it changes";
+  // Node b publishes again (on top of what is on disk): followed, as is a version without a
+  // token (a single node's, an older vsmd's).
+  const std::uint64_t again = publishUnder(core::FencingToken{90, 2}, 3);
+  EXPECT_EQ(registry.follow(), 1u);
+  EXPECT_EQ(registry.get("m")->snapshot()->version, again);
+  publishUnder(std::nullopt, 4);
+  EXPECT_EQ(registry.follow(), 1u);
+  EXPECT_EQ(registry.followsRefused(), 1u);
+  // The token seen stays the newest: a version of the fenced-off writer after a token-less one is
+  // still refused.
+  publishUnder(core::FencingToken{90, 2}, 5);
+  forgeTakeover(50);
+  EXPECT_EQ(registry.follow(), 0u);
+  EXPECT_EQ(registry.followsRefused(), 2u);
+}
+
 TEST(EncodedCache, BodiesAreTypedChargedAndPinnedWhileHeld) {
   const DataRoot root;
   writeModel(root.path() / "m");
@@ -797,13 +862,17 @@ TEST_F(ModelRoutes, AFencedCommitIsRefusedAndLeavesTheModelAsItWas) {
   const auto before = core::hierarchyStamp(root_.path() / "m");
   std::atomic<bool> holds{false};
   std::atomic<int> asked{0};
-  registry_.fenceWrites([&](std::string_view id) {
+  models::ModelRegistry::WriterFence fence;
+  fence.token = [](std::string_view) { return core::FencingToken{42, 7}; };
+  fence.check = [&](std::string_view id, const std::optional<core::FencingToken>& token) {
     EXPECT_EQ(id, "m");
+    EXPECT_EQ(token, (core::FencingToken{42, 7})) << "the token the write began under";
     ++asked;
     if (!holds) {
       throw core::Error(core::ErrorCode::Conflict, "node a is no longer the writer of model 'm'");
     }
-  });
+  };
+  registry_.fenceWrites(std::move(fence));
   const auto refused = waitFinal(jobs_, jobs::submitRestore(jobs_, registry_, "m", v).id);
   EXPECT_EQ(refused.state, jobs::JobState::Failed);
   EXPECT_EQ(refused.errorCode, core::ErrorCode::Conflict);
@@ -817,6 +886,8 @@ TEST_F(ModelRoutes, AFencedCommitIsRefusedAndLeavesTheModelAsItWas) {
   EXPECT_EQ(done.state, jobs::JobState::Succeeded) << done.errorMessage;
   EXPECT_EQ(registry_.get("m")->snapshot()->version, v + 2);
   EXPECT_TRUE(fs::exists(hierarchy));
+  EXPECT_EQ(core::readRevisionRecord(hierarchy)->fence, (core::FencingToken{42, 7}))
+      << "the job's revision records its writer's token";
 }
 
 /// The model routes with the 3D Tiles and terrain routes, over "m" at version 2 (every patch

@@ -292,6 +292,39 @@ TEST_F(StoreTest, RevisionsAreKeptReadableAndDroppedOldestFirstWithTheFoldersOnl
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
+// Issue 32, finding 3: a revision another process reads (a replica, as it says in etcd) is kept
+// beyond the count, with the ones after it, and dropped once nobody reads it.
+TEST_F(StoreTest, ARevisionAnotherProcessReadsIsKeptBeyondTheCount) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v = live->snapshot()->version;
+  std::set<std::uint64_t> readElsewhere{v + 1};
+  int asked = 0;
+  auto publish = [&](double bump) {
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 0, 0}, leafGrid(0, 0, bump));
+    PublishOptions options = publishing("j", 2);
+    options.readElsewhere = [&] {
+      ++asked;
+      return readElsewhere;
+    };
+    edit->publish(nullptr, options);
+  };
+  publish(1);  // v + 1
+  publish(2);  // v + 2: v dropped
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 1, v + 2}));
+  publish(3);  // v + 3: v + 1 is read elsewhere
+  publish(4);  // v + 4
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 1, v + 2, v + 3, v + 4}));
+  EXPECT_TRUE(fs::exists(dir_ / "Patches" / revisionFileName(v + 1)));
+  EXPECT_EQ(live->snapshotAt(v + 1)->version, v + 1) << "a kept revision reads";
+  EXPECT_EQ(asked, 4);
+  readElsewhere = {v + 4};  // the replica followed
+  publish(5);
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 4, v + 5}));
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
 // Issue 32, finding 3: a time floor beside the count, for readers in other processes.
 TEST_F(StoreTest, ARevisionIsKeptWhileItsSuccessorIsYoungerThanTheTimeFloor) {
   PatchCache cache(64 << 20);
@@ -750,6 +783,52 @@ TEST_F(StoreTest, AVersionPublishedAgainAfterALostPublishHasOtherFoldersAndNonce
   EXPECT_EQ(now->revision.nonce.size(), 8u);
   EXPECT_NE(now->revision.nonce, lostNonce);
   EXPECT_EQ(readRevisionRecord(hierarchy)->nonce, now->revision.nonce) << "recorded on disk";
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+// Issue 32, finding 2: a publish records its writer's fencing token, and a writer whose token is
+// older than the one on disk (it lost the model to a later writer, who published) cannot commit,
+// even from an opening that read the later writer's hierarchy (the stamp check cannot tell).
+TEST_F(StoreTest, AFencingTokenIsRecordedAndACommitUnderAnOlderOneIsRefused) {
+  PatchCache cache(64 << 20);
+  const fs::path hierarchy = dir_ / "Patches" / "patchhierarchy.xml";
+  auto publishUnder = [&](LiveModel& live, std::optional<FencingToken> token, double bump) {
+    auto edit = live.beginEdit();
+    edit->setPositions({2, 1, 1}, leafGrid(1, 1, bump));
+    PublishOptions options = publishing("j", 8);
+    options.token = token;
+    int fenced = 0;
+    options.fence = [&] { ++fenced; };
+    edit->publish(nullptr, options);
+    EXPECT_EQ(fenced, 1);
+  };
+  const FencingToken later{90, 2};
+  const FencingToken earlier{50, 1};
+  {
+    auto live = LiveModel::open(dir_, "m", cache);
+    publishUnder(*live, later, 1.0);
+    EXPECT_EQ(live->snapshot()->revision.fence, later);
+  }
+  ASSERT_TRUE(readRevisionRecord(hierarchy)->fence.has_value());
+  EXPECT_EQ(*readRevisionRecord(hierarchy)->fence, later) << "recorded on disk";
+  auto live = LiveModel::open(dir_, "m", cache);
+  EXPECT_EQ(live->snapshot()->revision.fence, later) << "read back by an opening";
+  const std::string before = test::readFile(hierarchy);
+  const std::uint64_t v = live->snapshot()->version;
+  const std::string message = messageOf([&] { publishUnder(*live, earlier, 2.0); });
+  EXPECT_NE(message.find("fencing token 90, this writer's 50"), std::string::npos) << message;
+  EXPECT_EQ(test::readFile(hierarchy), before) << "an older writer committed over a newer one";
+  EXPECT_EQ(live->snapshot()->version, v);
+  // The same writer, a later one and a writer without a token (a single node) commit.
+  auto fresh = live->reopen();
+  live.reset();
+  publishUnder(*fresh, later, 3.0);
+  publishUnder(*fresh, FencingToken{120, 3}, 4.0);
+  EXPECT_EQ(readRevisionRecord(hierarchy)->fence, (FencingToken{120, 3}));
+  publishUnder(*fresh, std::nullopt, 5.0);
+  EXPECT_FALSE(readRevisionRecord(hierarchy)->fence.has_value());
+  EXPECT_EQ(fresh->snapshot()->version, v + 3);
+  EXPECT_EQ(fresh->snapshotAt(v + 2)->revision.fence, (FencingToken{120, 3}));
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
