@@ -28,6 +28,7 @@
 #include "core/opc/validate.hpp"
 #include "core/store/live_model.hpp"
 #include "core/store/model_edit.hpp"
+#include "server/api/job_routes.hpp"
 #include "server/api/model_routes.hpp"
 #include "server/api/terrain_routes.hpp"
 #include "server/api/tiles_routes.hpp"
