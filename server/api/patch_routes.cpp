@@ -27,12 +27,33 @@ models::Asker askerOf(bool onNetworkThread) {
   return onNetworkThread ? models::Asker::NetworkThread : models::Asker::PoolAfterNetwork;
 }
 
-/// The positions response of a patch: the .aara bytes and what describes them.
-http::Response positionsResponse(const core::ModelSnapshot& snapshot, const core::PatchInfo& info,
-                                 std::string etag) {
+/// A read of one patch's data: the model as served and the patch as the request names it.
+struct PatchRead {
+  models::ModelRegistry::Served served;
+  VersionedPatch read;
+};
+/// The model and patch of a patch-data request ({m}, {p}, ?v=, ?rev=); nullopt on a network
+/// thread when the snapshot would have to be read from disk. Throws as versionedPatch().
+std::optional<PatchRead> readPatch(const ModelContext& c, const http::Request& request,
+                                   bool onNetworkThread) {
+  models::ModelRegistry::Served served = c.models.getServed(request.param("m"));
+  const core::PatchKey key = parseKey(request.param("p"));
+  std::optional<VersionedPatch> read = versionedPatch(*served.live, request, key, onNetworkThread);
+  if (!read) {
+    return std::nullopt;
+  }
+  return PatchRead{std::move(served), std::move(*read)};
+}
+
+/// The headers every patch-data answer carries, X-VSM-Grid-Size first with `gridSize`.
+http::Response patchDataResponse(const core::ModelSnapshot& snapshot, const core::PatchInfo& info,
+                                 std::string_view contentType, const std::string& etag,
+                                 bool gridSize) {
   http::Response response;
-  response.contentType = "application/octet-stream";
-  response.set("X-VSM-Grid-Size", std::to_string(snapshot.model->gridSize()));
+  response.contentType = std::string(contentType);
+  if (gridSize) {
+    response.set("X-VSM-Grid-Size", std::to_string(snapshot.model->gridSize()));
+  }
   response.set("X-VSM-Model-Version", std::to_string(snapshot.version));
   response.set("X-VSM-Patch-Version", std::to_string(info.version));
   return withCache(std::move(response), kPatchCacheControl, etag);
@@ -47,21 +68,19 @@ http::Response positionsResponse(const core::ModelSnapshot& snapshot, const core
 /// on the CPU pool the service opens or encodes.
 std::optional<http::Response> positions(const ModelContext& c, const http::Request& request,
                                         bool onNetworkThread) {
-  const std::string& id = request.param("m");
-  const models::ModelRegistry::Served served = c.models.getServed(id);
-  const core::PatchKey key = parseKey(request.param("p"));
-  const std::optional<VersionedPatch> read =
-      versionedPatch(*served.live, request, key, onNetworkThread);
-  if (!read) {
+  const std::optional<PatchRead> patch = readPatch(c, request, onNetworkThread);
+  if (!patch) {
     return std::nullopt;
   }
-  const core::ModelSnapshot& snapshot = *read->snapshot;
-  const core::PatchInfo& info = *read->info;
-  std::string etag = patchEtag(info);
+  const models::ModelRegistry::Served& served = patch->served;
+  const core::ModelSnapshot& snapshot = *patch->read.snapshot;
+  const core::PatchInfo& info = *patch->read.info;
+  const std::string etag = patchEtag(info);
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kPatchCacheControl);
   }
-  http::Response response = positionsResponse(snapshot, info, std::move(etag));
+  http::Response response =
+      patchDataResponse(snapshot, info, "application/octet-stream", etag, /*gridSize=*/true);
   std::optional<models::PatchData::Positions> data =
       c.data->positions(served, snapshot, info, askerOf(onNetworkThread));
   if (!data) {
@@ -101,69 +120,52 @@ const core::PatchInfo& texturedPatch(std::string_view id, const core::PatchInfo&
   return info;
 }
 
-/// The response headers every texture-data answer carries.
-http::Response textureResponse(const core::ModelSnapshot& snapshot, const core::PatchInfo& info,
-                               std::string_view contentType, const std::string& etag) {
-  http::Response response;
-  response.contentType = std::string(contentType);
-  response.set("X-VSM-Model-Version", std::to_string(snapshot.version));
-  response.set("X-VSM-Patch-Version", std::to_string(info.version));
-  return withCache(std::move(response), kPatchCacheControl, etag);
+/// GET /v1/models/{m}/patches/{p}/coordinates (`png` false): the texture coordinates file
+/// (.aara) as stored, sent with sendfile(2) from the file held open (as positions); and
+/// GET /v1/models/{m}/patches/{p}/texture[/{layer}] (`png` true): the texture tile as PNG, encoded
+/// once and cached in the budget. On a network thread only a 304 or what the budget holds is
+/// answered.
+std::optional<http::Response> textureData(const ModelContext& c, const http::Request& request,
+                                          bool onNetworkThread, bool png) {
+  const std::optional<PatchRead> patch = readPatch(c, request, onNetworkThread);
+  if (!patch) {
+    return std::nullopt;
+  }
+  const core::PatchInfo& info = texturedPatch(request.param("m"), *patch->read.info, request);
+  const std::string etag = patchDataEtag(info, png ? "png" : "uv");
+  if (http::ifNoneMatch(request, etag)) {
+    return http::notModified(etag, kPatchCacheControl);
+  }
+  const models::Asker asker = askerOf(onNetworkThread);
+  std::shared_ptr<const models::EncodedCache::File> file;
+  std::shared_ptr<const models::EncodedCache::Body> body;
+  if (png) {
+    body = c.data->texturePng(patch->served, info, asker);
+  } else {
+    file = c.data->coordinates(patch->served, info, asker);
+  }
+  if (file == nullptr && body == nullptr) {
+    return std::nullopt;
+  }
+  http::Response response = patchDataResponse(
+      *patch->read.snapshot, info, png ? "image/png" : "application/octet-stream", etag, false);
+  if (png) {
+    response.set("X-VSM-Texture-Layer", std::string(textureLayer(info.textureFile)));
+    sendBody(response, std::move(body));
+  } else {
+    sendFile(response, std::move(file));
+  }
+  return response;
 }
 
-/// GET /v1/models/{m}/patches/{p}/coordinates: the texture coordinates file (.aara) as stored,
-/// sent with sendfile(2) from the file held open (as positions). On a network thread only a 304
-/// or a held file is answered.
 std::optional<http::Response> coordinates(const ModelContext& c, const http::Request& request,
                                           bool onNetworkThread) {
-  const std::string& id = request.param("m");
-  const models::ModelRegistry::Served served = c.models.getServed(id);
-  const core::PatchKey key = parseKey(request.param("p"));
-  const std::optional<VersionedPatch> read =
-      versionedPatch(*served.live, request, key, onNetworkThread);
-  if (!read) {
-    return std::nullopt;
-  }
-  const core::PatchInfo& info = texturedPatch(id, *read->info, request);
-  const std::string etag = patchDataEtag(info, "uv");
-  if (http::ifNoneMatch(request, etag)) {
-    return http::notModified(etag, kPatchCacheControl);
-  }
-  auto file = c.data->coordinates(served, info, askerOf(onNetworkThread));
-  if (file == nullptr) {
-    return std::nullopt;
-  }
-  http::Response response =
-      textureResponse(*read->snapshot, info, "application/octet-stream", etag);
-  sendFile(response, std::move(file));
-  return response;
+  return textureData(c, request, onNetworkThread, false);
 }
 
-/// GET /v1/models/{m}/patches/{p}/texture[/{layer}]: the texture tile as PNG, encoded once and
-/// cached in the budget. On a network thread only a 304 or a cached PNG is answered.
 std::optional<http::Response> texture(const ModelContext& c, const http::Request& request,
                                       bool onNetworkThread) {
-  const std::string& id = request.param("m");
-  const models::ModelRegistry::Served served = c.models.getServed(id);
-  const core::PatchKey key = parseKey(request.param("p"));
-  const std::optional<VersionedPatch> read =
-      versionedPatch(*served.live, request, key, onNetworkThread);
-  if (!read) {
-    return std::nullopt;
-  }
-  const core::PatchInfo& info = texturedPatch(id, *read->info, request);
-  const std::string etag = patchDataEtag(info, "png");
-  if (http::ifNoneMatch(request, etag)) {
-    return http::notModified(etag, kPatchCacheControl);
-  }
-  auto body = c.data->texturePng(served, info, askerOf(onNetworkThread));
-  if (body == nullptr) {
-    return std::nullopt;
-  }
-  http::Response response = textureResponse(*read->snapshot, info, "image/png", etag);
-  response.set("X-VSM-Texture-Layer", std::string(textureLayer(info.textureFile)));
-  sendBody(response, std::move(body));
-  return response;
+  return textureData(c, request, onNetworkThread, true);
 }
 
 }  // namespace

@@ -32,33 +32,40 @@ using core::ErrorCode;
 
 namespace {
 
-/// The one rule of where a body is made (Asker): found in the budget, or nullptr on a network
-/// thread, or made by `make` and put on the pool.
+/// The one rule of where a body is made (Asker): `find(countMiss)` looks in the budget; found, or
+/// on a network thread, that is the answer (null when missing); on the pool `make()` makes it and
+/// puts it there. The pool's look after a network thread's counts no second miss.
+template <typename Find, typename Make>
+auto lookOrMake(Asker asker, Find&& find, Make&& make) {
+  auto held = find(asker != Asker::PoolAfterNetwork);
+  if (held != nullptr || asker == Asker::NetworkThread) {
+    return held;
+  }
+  return make();
+}
+
+/// lookOrMake for an encoded body: `make()` returns its bytes. Throws ResourceExhausted (503,
+/// retry) when the budget is full of pinned data.
 template <typename Make>
 std::shared_ptr<const EncodedCache::Body> findOrMake(EncodedCache& encoded,
                                                      const core::PatchKey& key,
                                                      std::uint64_t version, Encoding encoding,
                                                      Asker asker, Make&& make) {
-  auto body = encoded.find(key, version, encoding, asker != Asker::PoolAfterNetwork);
-  if (body != nullptr || asker == Asker::NetworkThread) {
-    return body;
-  }
-  // Throws ResourceExhausted (503, retry) when the budget is full of pinned data.
-  return encoded.put(key, version, encoding, make());
+  return lookOrMake(
+      asker, [&](bool countMiss) { return encoded.find(key, version, encoding, countMiss); },
+      [&] { return encoded.put(key, version, encoding, make()); });
 }
 
-/// As findOrMake, for a stored file held open.
+/// lookOrMake for a stored file held open: `open()` opens it. Throws ResourceExhausted (503,
+/// retry) while every file the cache may hold is being sent.
 template <typename Open>
 std::shared_ptr<const EncodedCache::File> findOrOpen(EncodedCache& encoded,
                                                      const core::PatchKey& key,
                                                      std::uint64_t version, StoredKind kind,
                                                      Asker asker, Open&& open) {
-  auto file = encoded.findFile(key, version, kind, asker != Asker::PoolAfterNetwork);
-  if (file != nullptr || asker == Asker::NetworkThread) {
-    return file;
-  }
-  // Throws ResourceExhausted (503, retry) while every file the cache may hold is being sent.
-  return encoded.putFile(key, version, kind, open());
+  return lookOrMake(
+      asker, [&](bool countMiss) { return encoded.findFile(key, version, kind, countMiss); },
+      [&] { return encoded.putFile(key, version, kind, open()); });
 }
 
 std::vector<std::byte> bytesOf(std::string_view text) {
