@@ -226,6 +226,15 @@ struct PatchCache::Impl {
 
   void makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed, std::size_t budget,
                 EvictionPolicy policy, std::size_t neededHandles = 0);
+
+  /// The one write-back protocol (an eviction's and a flush's): writes dirty `e` through its
+  /// model's store with `lock` released, `e` WritingBack meanwhile (resident and readable, but
+  /// not chosen, flushed or dropped by anyone else). `pin`: holds a pin while unlocked (a flush
+  /// keeps its target alive; an eviction's victim stays unpinned, which anyEvictionInTransit()
+  /// counts on). Returns with `lock` held and `e` Resident again, clean unless a put() replaced
+  /// its object meanwhile (then it stays dirty with the new object). On the store's error
+  /// restores the state and rethrows. Either way wakes those waiting on `changed`.
+  void writeBackUnlocked(std::unique_lock<std::mutex>& lock, Entry& e, bool pin);
 };
 
 PatchCache::PatchCache(std::size_t budgetBytes, EvictionPolicy policy)
@@ -368,34 +377,46 @@ void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t 
       impl.remove(*victim);
       continue;
     }
-    // Write back outside the lock; the entry stays resident (and readable) meanwhile.
-    victim->state = State::WritingBack;
-    const FullKey id = victim->id;
-    const CacheValue value{victim->object, victim->bytes};
-    PatchStore* store = impl.slot(id.model).store;
-    lock.unlock();
-    try {
-      store->writeBack(id.object, value);
-    } catch (...) {
-      lock.lock();
-      victim->state = State::Resident;
-      impl.changed.notify_all();
-      throw;
-    }
-    lock.lock();
-    ++impl.writeBacks;
-    victim->state = State::Resident;
-    // A put() during the write-back replaces object and sets dirty again: keep it then.
-    if (victim->object == value.object) {
-      victim->dirty = false;
-      victim->dirtyPasses = 0;
-    }
-    impl.changed.notify_all();
+    impl.writeBackUnlocked(lock, *victim, /*pin=*/false);
     if (impl.evictable(*victim) && !victim->dirty) {
       ++impl.evictions;
       impl.remove(*victim);
     }
   }
+}
+
+void PatchCache::Impl::writeBackUnlocked(std::unique_lock<std::mutex>& lock, Entry& e, bool pin) {
+  e.state = State::WritingBack;
+  if (pin) {
+    ++e.pins;  // keeps the entry alive while unlocked
+  }
+  const FullKey id = e.id;
+  const CacheValue value{e.object, e.bytes};
+  PatchStore* store = slot(id.model).store;
+  lock.unlock();
+  try {
+    store->writeBack(id.object, value);
+  } catch (...) {
+    lock.lock();
+    e.state = State::Resident;
+    if (pin) {
+      --e.pins;
+    }
+    changed.notify_all();
+    throw;
+  }
+  lock.lock();
+  ++writeBacks;
+  e.state = State::Resident;
+  if (pin) {
+    --e.pins;
+  }
+  // A put() during the write-back replaces object and sets dirty again: keep it then.
+  if (e.object == value.object) {
+    e.dirty = false;
+    e.dirtyPasses = 0;
+  }
+  changed.notify_all();
 }
 
 // ---- access ----------------------------------------------------------------------------------
@@ -560,7 +581,7 @@ void PatchCache::flush(ModelId model, const ObjectId& object) {
 
 void PatchCache::flushEntries(ModelId model, const ObjectId* only) {
   std::unique_lock lock(impl_->mutex);
-  PatchStore* store = impl_->slot(model).store;
+  impl_->slot(model);  // throws NotFound for a model not in the cache
   for (;;) {
     Entry* target = nullptr;
     bool waiting = false;
@@ -582,29 +603,7 @@ void PatchCache::flushEntries(ModelId model, const ObjectId* only) {
       impl_->changed.wait(lock);
       continue;
     }
-    target->state = State::WritingBack;
-    ++target->pins;  // keeps the entry alive while unlocked
-    const FullKey id = target->id;
-    const CacheValue value{target->object, target->bytes};
-    lock.unlock();
-    try {
-      store->writeBack(id.object, value);
-    } catch (...) {
-      lock.lock();
-      target->state = State::Resident;
-      --target->pins;
-      impl_->changed.notify_all();
-      throw;
-    }
-    lock.lock();
-    ++impl_->writeBacks;
-    target->state = State::Resident;
-    --target->pins;
-    if (target->object == value.object) {
-      target->dirty = false;
-      target->dirtyPasses = 0;
-    }
-    impl_->changed.notify_all();
+    impl_->writeBackUnlocked(lock, *target, /*pin=*/true);
   }
 }
 

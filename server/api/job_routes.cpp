@@ -1,8 +1,8 @@
-// The job routes: GET/POST /v1/jobs, GET/DELETE /v1/jobs/{j} (declared in model_routes.hpp).
+#include "server/api/job_routes.hpp"
+
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
-#include "server/api/model_routes.hpp"
 #include "server/api/requests.hpp"
 #include "server/cluster/coordinator.hpp"
 #include "server/jobs/job_registry.hpp"

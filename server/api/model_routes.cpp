@@ -2,38 +2,28 @@
 
 #include <algorithm>
 #include <bit>
-#include <cerrno>
 #include <charconv>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
-#include <cstring>
 #include <numbers>
 #include <optional>
-#include <set>
-#include <span>
 
 #include <nlohmann/json.hpp>
 
-#include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/common/progress.hpp"
 #include "core/diff/revision_diff.hpp"
-#include "core/grid/patch_grid.hpp"
-#include "core/opc/aara.hpp"
-#include "core/opc/opc_reader.hpp"
-#include "core/opc/stored_file.hpp"
-#include "core/opc/texture_file.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
 #include "core/tiles/lod_cut.hpp"
 #include "server/api/diff_gate.hpp"
-#include "server/cluster/coordinator.hpp"
-#include "server/http/gzip.hpp"
+#include "server/api/patch_routes.hpp"
 #include "server/jobs/job_registry.hpp"
 #include "server/jobs/model_jobs.hpp"
 #include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
+#include "server/models/patch_data.hpp"
 
 namespace vsm::server::api {
 
@@ -43,11 +33,6 @@ using core::ErrorCode;
 using nlohmann::json;
 
 namespace {
-
-/// Patch metadata and data: revalidated after a minute. The URL names no version, so a merge
-/// changes what it returns; a minute of staleness in client caches is the trade for fewer
-/// round trips (the ETag makes the revalidation cheap).
-constexpr std::string_view kPatchCacheControl = http::cache_control::kMinute;
 
 /// The largest diff.png asked for (pixels along the longer side): 4096 x 4096 RGBA is 64 MiB
 /// before encoding, the map's floats another 64 MiB.
@@ -64,50 +49,6 @@ json rectJson(const core::GridRect& r) {
 /// A JSON number, or null when not finite (JSON has no NaN).
 json number(double v) {
   return std::isfinite(v) ? json(v) : json(nullptr);
-}
-
-core::PatchKey parseKey(std::string_view text) {
-  const auto key = core::PatchKey::parse(text);
-  if (!key) {
-    throw Error(ErrorCode::InvalidArgument, "patch key must be depth_x_y (e.g. 2_1_3), not '" +
-                                                std::string(text.substr(0, 64)) + "'");
-  }
-  return *key;
-}
-
-const core::PatchInfo& findPatch(std::string_view id, const core::ModelSnapshot& snapshot,
-                                 const core::PatchKey& key) {
-  const core::PatchInfo* info = snapshot.model->find(key);
-  if (info == nullptr) {
-    throw Error(ErrorCode::NotFound, "model '" + std::string(id) + "' has no patch " +
-                                         key.toString() + " (version " +
-                                         std::to_string(snapshot.version) + ")");
-  }
-  return *info;
-}
-
-http::Response withCache(http::Response response, std::string_view cacheControl,
-                         std::string_view etag = {}) {
-  response.set("Cache-Control", std::string(cacheControl));
-  if (!etag.empty()) {
-    response.set("ETag", std::string(etag));
-  }
-  return response;
-}
-
-int intQuery(const http::Request& request, std::string_view name, int fallback, int lo, int hi) {
-  const auto text = request.queryParam(name);
-  if (!text) {
-    return fallback;
-  }
-  int value = 0;
-  const auto [end, ec] = std::from_chars(text->data(), text->data() + text->size(), value);
-  if (ec != std::errc() || end != text->data() + text->size() || value < lo || value > hi) {
-    throw Error(ErrorCode::InvalidArgument, "query parameter '" + std::string(name) +
-                                                "' must be an integer from " + std::to_string(lo) +
-                                                " to " + std::to_string(hi));
-  }
-  return value;
 }
 
 json nodeJson(const core::Model& model, const core::PatchInfo& info, int levels) {
@@ -138,18 +79,6 @@ http::Response listModels(const ModelContext& c, const http::Request&) {
   }
   return withCache(http::jsonResponse(200, {{"models", std::move(models)}}),
                    http::cache_control::kRevalidate);
-}
-
-/// A revision number in the path or the query: a decimal integer >= 1.
-std::uint64_t parseRevision(std::string_view name, std::string_view text) {
-  std::uint64_t value = 0;
-  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
-  if (ec != std::errc() || end != text.data() + text.size() || value == 0) {
-    throw Error(ErrorCode::InvalidArgument,
-                std::string(name) + " must be a revision number (an integer >= 1), not '" +
-                    std::string(text.substr(0, 32)) + "'");
-  }
-  return value;
 }
 
 json revisionJson(const core::RevisionSummary& revision) {
@@ -386,235 +315,6 @@ http::Response getPatch(const ModelContext& c, const http::Request& request) {
   return withCache(http::jsonResponse(200, patchJson(id, snapshot, info)), kPatchCacheControl,
                    etag);
 }
-
-/// The positions response of a patch: the .aara bytes and what describes them.
-http::Response positionsResponse(const core::ModelSnapshot& snapshot, const core::PatchInfo& info,
-                                 std::string etag) {
-  http::Response response;
-  response.contentType = "application/octet-stream";
-  response.set("X-VSM-Grid-Size", std::to_string(snapshot.model->gridSize()));
-  response.set("X-VSM-Model-Version", std::to_string(snapshot.version));
-  response.set("X-VSM-Patch-Version", std::to_string(info.version));
-  return withCache(std::move(response), kPatchCacheControl, etag);
-}
-
-/// A body sent with sendfile(2) from a held open file, which the response keeps open (and its
-/// cache entry pinned) until written.
-void sendFile(http::Response& response, std::shared_ptr<const models::EncodedCache::File> file) {
-  response.file = {file->fd(), 0, file->size()};
-  response.bodyOwner = std::move(file);
-}
-
-/// A body written from held encoded bytes, without a copy; the response keeps them (and their
-/// cache entry pinned, so in-flight bytes stay counted) until written.
-void sendBody(http::Response& response, std::shared_ptr<const models::EncodedCache::Body> body) {
-  response.sharedBody = body->text();
-  response.bodyOwner = std::move(body);
-}
-
-/// The full-grid .aara of a patch whose stored file is laid out otherwise, cached with its
-/// Local2Global as the encoding's note: a cropped V3f file's rows are copied into place (no
-/// decoding); a V3d file is decoded and re-based.
-std::shared_ptr<const models::EncodedCache::Body> encodePositions(
-    models::EncodedCache& encoded, const core::LiveModel& live, const core::ModelSnapshot& snapshot,
-    const core::PatchInfo& info) {
-  if (std::optional<std::vector<std::byte>> bytes =
-          core::readFullGridPositions(live.dir(), snapshot.model->gridSize(), info)) {
-    return encoded.put(info.key, info.version, models::Encoding::PositionsAara, std::move(*bytes),
-                       matrixText(info.local2global));
-  }
-  const core::PatchGrid grid = core::readPatchGrid(live.dir(), *snapshot.model, info);
-  const std::span<const float> floats = grid.positions();
-  const std::int32_t n = grid.size();
-  const std::array<std::int32_t, 2> sizes{n, n};
-  std::vector<std::byte> bytes = core::encodeAaraHeader(core::AaraType::V3f, sizes);
-  const std::size_t header = bytes.size();
-  bytes.resize(header + floats.size_bytes());
-  std::memcpy(bytes.data() + header, floats.data(), floats.size_bytes());
-  return encoded.put(info.key, info.version, models::Encoding::PositionsAara, std::move(bytes),
-                     matrixText(grid.local2global()));
-}
-
-/// GET /v1/models/{m}/patches/{p}/positions. A patch whose stored file holds exactly the bytes
-/// served (the full grid as V3f) is sent from that file with sendfile(2) like a static file: no
-/// decoding, no copy, the page cache holds the bytes, the budget only the open file's entry.
-/// Other patches (cropped borders, V3d) are decoded and encoded once, and that encoding is cached
-/// in the budget. On a network thread (`onNetworkThread`) it answers only what needs no blocking
-/// — a 304, a held open file, a cached encoding — and nullopt otherwise; on the CPU pool it opens
-/// or encodes.
-std::optional<http::Response> positions(const ModelContext& c, const http::Request& request,
-                                        bool onNetworkThread) {
-  const std::string& id = request.param("m");
-  const models::ModelRegistry::Served served = c.models.getServed(id);
-  const core::PatchKey key = parseKey(request.param("p"));
-  const std::optional<VersionedPatch> read =
-      versionedPatch(*served.live, request, key, onNetworkThread);
-  if (!read) {
-    return std::nullopt;
-  }
-  const core::ModelSnapshot* snapshot = read->snapshot.get();
-  const core::PatchInfo& info = *read->info;
-  std::string etag = patchEtag(info);
-  if (http::ifNoneMatch(request, etag)) {
-    return http::notModified(etag, kPatchCacheControl);
-  }
-  const int n = snapshot->model->gridSize();
-  const bool asStored = info.stored == core::GridRect{0, 0, n, n};
-  http::Response response = positionsResponse(*snapshot, info, std::move(etag));
-  // A patch stored whole is cached as its open file, or as a body when the file cannot be sent as
-  // it is (V3d): one look for either, one miss counted when neither is there. The handler pool
-  // runs this after the network thread's look missed, and counts nothing again.
-  std::shared_ptr<const models::EncodedCache::File> file;
-  if (asStored) {
-    file = served.encoded->findFile(key, info.version, models::StoredKind::Positions, false);
-  }
-  std::shared_ptr<const models::EncodedCache::Body> body;
-  if (file == nullptr) {
-    body = served.encoded->find(key, info.version, models::Encoding::PositionsAara, false);
-  }
-  if (file == nullptr && body == nullptr) {
-    if (onNetworkThread) {
-      served.encoded->countMiss();
-      return std::nullopt;
-    }
-    if (asStored) {
-      if (std::unique_ptr<core::StoredFile> stored =
-              core::openFullGridPositions(served.live->dir(), n, info)) {
-        try {
-          file = served.encoded->putFile(key, info.version, models::StoredKind::Positions,
-                                         std::move(stored));
-        } catch (const Error& e) {
-          if (e.code() != ErrorCode::ResourceExhausted) {
-            throw;
-          }
-          // Every descriptor the cache may hold is being sent: encode this one in the budget.
-        }
-      }
-    }
-    if (file == nullptr) {
-      body = encodePositions(*served.encoded, *served.live, *snapshot, info);
-    }
-  }
-  if (file != nullptr) {
-    response.set("X-VSM-Local2Global", matrixText(info.local2global));
-    sendFile(response, std::move(file));
-  } else {
-    response.set("X-VSM-Local2Global", std::string(body->note()));
-    sendBody(response, std::move(body));
-  }
-  return response;
-}
-
-/// The layer a patch's texture entry names ("Diffuse" of "Diffuse\\3_0_1.tif"); empty when the
-/// entry has no folder.
-std::string_view textureLayer(std::string_view entry) {
-  const std::size_t slash = entry.find_first_of("\\/");
-  return slash == std::string_view::npos ? std::string_view() : entry.substr(0, slash);
-}
-
-/// `info`, the patch of a texture or coordinates request, 404 unless it has a texture (of the
-/// requested layer, when the route names one).
-const core::PatchInfo& texturedPatch(std::string_view id, const core::PatchInfo& info,
-                                     const http::Request& request) {
-  if (info.textureFile.empty()) {
-    throw Error(ErrorCode::NotFound, "patch " + info.key.toString() + " of model '" +
-                                         std::string(id) + "' has no texture");
-  }
-  if (const auto it = request.params.find("layer"); it != request.params.end()) {
-    const std::string_view own = textureLayer(info.textureFile);
-    const std::string* layer = &it->second;
-    const bool same = own.size() == layer->size() &&
-                      std::equal(own.begin(), own.end(), layer->begin(), [](char a, char b) {
-                        return std::tolower(static_cast<unsigned char>(a)) ==
-                               std::tolower(static_cast<unsigned char>(b));
-                      });
-    if (!same) {
-      throw Error(ErrorCode::NotFound, "patch " + info.key.toString() + " has no texture layer '" +
-                                           std::string(layer->substr(0, 64)) + "' (it has '" +
-                                           std::string(own) + "')");
-    }
-  }
-  return info;
-}
-
-/// The response headers every texture-data answer carries.
-http::Response textureResponse(const core::ModelSnapshot& snapshot, const core::PatchInfo& info,
-                               std::string_view contentType, const std::string& etag) {
-  http::Response response;
-  response.contentType = std::string(contentType);
-  response.set("X-VSM-Model-Version", std::to_string(snapshot.version));
-  response.set("X-VSM-Patch-Version", std::to_string(info.version));
-  return withCache(std::move(response), kPatchCacheControl, etag);
-}
-
-/// GET /v1/models/{m}/patches/{p}/coordinates: the texture coordinates file (.aara) as stored,
-/// sent with sendfile(2) from the file held open (as positions). On a network thread only a 304
-/// or a held file is answered.
-std::optional<http::Response> coordinates(const ModelContext& c, const http::Request& request,
-                                          bool onNetworkThread) {
-  const std::string& id = request.param("m");
-  const models::ModelRegistry::Served served = c.models.getServed(id);
-  const core::PatchKey key = parseKey(request.param("p"));
-  const std::optional<VersionedPatch> read =
-      versionedPatch(*served.live, request, key, onNetworkThread);
-  if (!read) {
-    return std::nullopt;
-  }
-  const core::ModelSnapshot* snapshot = read->snapshot.get();
-  const core::PatchInfo& info = texturedPatch(id, *read->info, request);
-  const std::string etag = patchDataEtag(info, "uv");
-  if (http::ifNoneMatch(request, etag)) {
-    return http::notModified(etag, kPatchCacheControl);
-  }
-  auto file = served.encoded->findFile(info.key, info.version, models::StoredKind::Coordinates,
-                                       onNetworkThread);
-  if (file == nullptr) {
-    if (onNetworkThread) {
-      return std::nullopt;
-    }
-    // Throws ResourceExhausted (503, retry) while every file the cache may hold is being sent.
-    file = served.encoded->putFile(info.key, info.version, models::StoredKind::Coordinates,
-                                   core::openCoordinatesFile(served.live->dir(), info));
-  }
-  http::Response response = textureResponse(*snapshot, info, "application/octet-stream", etag);
-  sendFile(response, std::move(file));
-  return response;
-}
-
-/// GET /v1/models/{m}/patches/{p}/texture[/{layer}]: the texture tile as PNG, encoded once and
-/// cached in the budget. On a network thread only a 304 or a cached PNG is answered.
-std::optional<http::Response> texture(const ModelContext& c, const http::Request& request,
-                                      bool onNetworkThread) {
-  const std::string& id = request.param("m");
-  const models::ModelRegistry::Served served = c.models.getServed(id);
-  const core::PatchKey key = parseKey(request.param("p"));
-  const std::optional<VersionedPatch> read =
-      versionedPatch(*served.live, request, key, onNetworkThread);
-  if (!read) {
-    return std::nullopt;
-  }
-  const core::ModelSnapshot* snapshot = read->snapshot.get();
-  const core::PatchInfo& info = texturedPatch(id, *read->info, request);
-  const std::string etag = patchDataEtag(info, "png");
-  if (http::ifNoneMatch(request, etag)) {
-    return http::notModified(etag, kPatchCacheControl);
-  }
-  auto body =
-      served.encoded->find(info.key, info.version, models::Encoding::TexturePng, onNetworkThread);
-  if (body == nullptr) {
-    if (onNetworkThread) {
-      return std::nullopt;
-    }
-    body = served.encoded->put(
-        info.key, info.version, models::Encoding::TexturePng,
-        core::readPatchTexturePng(served.live->dir(), info, served.live->texturePixels()));
-  }
-  http::Response response = textureResponse(*snapshot, info, "image/png", etag);
-  response.set("X-VSM-Texture-Layer", std::string(textureLayer(info.textureFile)));
-  sendBody(response, std::move(body));
-  return response;
-}
-
 json cutPatchJson(const core::PatchInfo& info) {
   return {{"key", info.key.toString()},
           {"box", boxJson(info.globalBox)},
@@ -764,185 +464,12 @@ json hierarchyJson(const core::Model& model, const core::PatchKey& root, int lev
   return nodeJson(model, model.at(root), levels);
 }
 
-std::string matrixText(const core::Mat4d& m) {
-  std::string out;
-  char text[32];
-  for (std::size_t i = 0; i < m.m.size(); ++i) {
-    const auto [end, ec] = std::to_chars(text, text + sizeof text, m.m[i]);
-    out.append(i == 0 ? "" : ",");
-    out.append(text, ec == std::errc() ? end : text);
-  }
-  return out;
-}
-
-// ---- routes ----------------------------------------------------------------------------------
-
-std::shared_ptr<const core::ModelSnapshot> requestedSnapshot(core::LiveModel& live,
-                                                             const http::Request& request,
-                                                             bool onNetworkThread) {
-  const auto text = request.queryParam("rev");
-  if (!text) {
-    return live.snapshot();
-  }
-  const std::uint64_t revision = parseRevision("query parameter 'rev'", *text);
-  return onNetworkThread ? live.heldSnapshot(revision) : live.snapshotAt(revision);
-}
-
-std::optional<std::uint64_t> requestedVersion(const http::Request& request) {
-  const auto text = request.queryParam("v");
-  if (!text) {
-    return std::nullopt;
-  }
-  std::uint64_t value = 0;
-  const auto [end, ec] = std::from_chars(text->data(), text->data() + text->size(), value);
-  if (ec != std::errc() || end != text->data() + text->size() || value == 0) {
-    throw Error(ErrorCode::InvalidArgument,
-                "query parameter 'v' must be a model version (an integer >= 1), not '" +
-                    text->substr(0, 32) + "'");
-  }
-  return value;
-}
-
-namespace {
-
-/// The 404 of a read whose `?v=N` this node cannot answer from `snapshot`: N is newer than the
-/// version it serves, or (with `?rev=`) not the revision's.
-Error versionNotServed(const core::LiveModel& live, std::uint64_t asked,
-                       const core::ModelSnapshot& snapshot, bool revision) {
-  const std::string model = "model '" + live.name() + "'";
-  const std::string askedText = std::to_string(asked);
-  const std::string served = std::to_string(snapshot.version);
-  if (revision) {
-    return Error(ErrorCode::NotFound, "?v=" + askedText + " asks for version " + askedText +
-                                          " of " + model + ", but ?rev= names revision " + served +
-                                          " (version " + served + ")");
-  }
-  return Error(ErrorCode::NotFound,
-               "?v=" + askedText + " asks for version " + askedText + " of " + model +
-                   ", but this node serves version " + served +
-                   " (it has not followed that publish yet, or there is no such version); ask "
-                   "again in a moment, or without ?v= for the current version");
-}
-
-/// Kept revision `asked` (older than `current`, the version the node serves), which answers a read
-/// of `?v=asked` that the current version cannot. Null on a network thread when it has to be read
-/// from disk. Throws Error(NotFound) naming both versions when it is no longer kept.
-std::shared_ptr<const core::ModelSnapshot> olderVersion(core::LiveModel& live, std::uint64_t asked,
-                                                        std::uint64_t current,
-                                                        std::string_view what,
-                                                        bool onNetworkThread) {
-  if (onNetworkThread) {
-    return live.heldSnapshot(asked);
-  }
-  try {
-    return live.snapshotAt(asked);
-  } catch (const Error& e) {
-    if (e.code() != ErrorCode::NotFound) {
-      throw;
-    }
-    throw Error(ErrorCode::NotFound,
-                "?v=" + std::to_string(asked) + " asks for version " + std::to_string(asked) +
-                    " of model '" + live.name() + "', but this node serves version " +
-                    std::to_string(current) + std::string(what) + ", and version " +
-                    std::to_string(asked) +
-                    " is no longer kept (GET the model's revisions); ask without ?v= for the "
-                    "current version");
-  }
-}
-
-}  // namespace
-
-std::shared_ptr<const core::ModelSnapshot> versionedSnapshot(core::LiveModel& live,
-                                                             const http::Request& request,
-                                                             bool onNetworkThread) {
-  const std::optional<std::uint64_t> asked = requestedVersion(request);
-  auto snapshot = requestedSnapshot(live, request, onNetworkThread);
-  if (!asked || snapshot == nullptr || snapshot->version == *asked) {
-    return snapshot;
-  }
-  const bool revision = request.queryParam("rev").has_value();
-  if (revision || *asked > snapshot->version) {
-    throw versionNotServed(live, *asked, *snapshot, revision);
-  }
-  return olderVersion(live, *asked, snapshot->version, "", onNetworkThread);
-}
-
-std::optional<VersionedPatch> versionedPatch(core::LiveModel& live, const http::Request& request,
-                                             const core::PatchKey& key, bool onNetworkThread) {
-  const std::optional<std::uint64_t> asked = requestedVersion(request);
-  auto snapshot = requestedSnapshot(live, request, onNetworkThread);
-  if (snapshot == nullptr) {
-    return std::nullopt;
-  }
-  const bool revision = request.queryParam("rev").has_value();
-  if (asked && *asked > snapshot->version) {
-    throw versionNotServed(live, *asked, *snapshot, revision);
-  }
-  const core::PatchInfo* info = &findPatch(live.name(), *snapshot, key);
-  if (!asked || info->version <= *asked) {
-    return VersionedPatch{std::move(snapshot), info};
-  }
-  // The patch was rewritten after version `asked`: what that version holds is older.
-  const std::string rewritten = " (patch " + key.toString() + " of version " +
-                                std::to_string(info->version) + ", rewritten after version " +
-                                std::to_string(*asked) + ")";
-  if (revision) {
-    throw Error(ErrorCode::NotFound, "?v=" + std::to_string(*asked) + " asks for version " +
-                                         std::to_string(*asked) + " of model '" + live.name() +
-                                         "', but ?rev= names revision " +
-                                         std::to_string(snapshot->version) + rewritten);
-  }
-  snapshot = olderVersion(live, *asked, snapshot->version, rewritten, onNetworkThread);
-  if (snapshot == nullptr) {
-    return std::nullopt;
-  }
-  info = &findPatch(live.name(), *snapshot, key);
-  return VersionedPatch{std::move(snapshot), info};
-}
-
-std::optional<http::Response> redirectToWriter(const ModelContext& context, const std::string& id,
-                                               const http::Request& request) {
-  if (context.cluster == nullptr) {
-    return std::nullopt;
-  }
-  const std::optional<std::string> writer = context.cluster->writerElsewhere(id);
-  if (!writer) {
-    return std::nullopt;
-  }
-  return temporaryRedirect(*writer + request.target,
-                           "model '" + id + "' is written by another node");
-}
-
-http::Response gzippedJson(models::EncodedCache& encoded, GzippedDocument document,
-                           std::uint64_t version, const std::function<json()>& build) {
-  const auto variant = static_cast<std::uint8_t>(document);
-  auto body = encoded.findModelBody(models::Encoding::JsonGzip, variant, version, true);
-  if (body == nullptr) {
-    const std::string packed = http::gzip(build().dump());
-    const auto* bytes = reinterpret_cast<const std::byte*>(packed.data());
-    body = encoded.putModelBody(models::Encoding::JsonGzip, variant, version,
-                                std::vector<std::byte>(bytes, bytes + packed.size()));
-  }
-  http::Response response;
-  response.status = 200;
-  response.contentType = "application/json";
-  response.sharedBody = body->text();
-  response.bodyOwner = std::move(body);
-  http::setGzipEncoded(response);
-  return response;
-}
-
-http::Response temporaryRedirect(const std::string& location, std::string_view why) {
-  http::Response response = http::errorResponse(
-      307, "temporary_redirect", std::string(why) + ": repeat the request at " + location);
-  response.set("Location", location);
-  response.set("Cache-Control", std::string(http::cache_control::kNoStore));
-  return response;
-}
-
 void addModelRoutes(http::Router& router, ModelContext context) {
   if (context.diffs == nullptr) {
     context.diffs = DiffGate::create({});
+  }
+  if (context.data == nullptr) {
+    context.data = std::make_shared<models::PatchData>();
   }
   const auto bind = [context](
                         http::Response (*handler)(const ModelContext&, const http::Request&)) {
@@ -958,23 +485,8 @@ void addModelRoutes(http::Router& router, ModelContext context) {
   router.add(http::Method::Post, "/v1/models/{m}/revisions/{n}/restore", bind(postRestore));
   router.add(http::Method::Get, "/v1/models/{m}/diff", bind(getDiff));
   router.add(http::Method::Get, "/v1/models/{m}/diff.png", bind(getDiffPng));
-  // Routes with an inline handler: answered on the network thread when cached.
-  using Inline = std::optional<http::Response> (*)(const ModelContext&, const http::Request&, bool);
-  const auto addCached = [&](const char* pattern, Inline handler) {
-    router.add(
-        http::Method::Get, pattern,
-        [context, handler](const http::Request& request) {
-          return *handler(context, request, false);
-        },
-        [context, handler](const http::Request& request) {
-          return handler(context, request, true);
-        });
-  };
-  addCached("/v1/models/{m}/patches/{p}/coordinates", coordinates);
-  addCached("/v1/models/{m}/patches/{p}/texture", texture);
-  addCached("/v1/models/{m}/patches/{p}/texture/{layer}", texture);
   router.add(http::Method::Get, "/v1/models/{m}/lod", bind(getLod));
-  addCached("/v1/models/{m}/patches/{p}/positions", positions);
+  addPatchDataRoutes(router, context);
 }
 
 }  // namespace vsm::server::api

@@ -21,7 +21,7 @@ struct SystemContext {
 };
 
 /// GET /healthz, /readyz, /metrics, /v1/stats (see proto/openapi.yaml; the model and job routes
-/// are in model_routes.hpp).
+/// are in model_routes.hpp and job_routes.hpp).
 void addSystemRoutes(http::Router& router, SystemContext context);
 
 /// The body of GET /v1/stats (proto/examples/stats.json).

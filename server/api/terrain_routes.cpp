@@ -1,12 +1,7 @@
 #include "server/api/terrain_routes.hpp"
 
 #include <charconv>
-#include <chrono>
-#include <exception>
-#include <future>
-#include <map>
 #include <memory>
-#include <mutex>
 #include <optional>
 #include <string>
 #include <vector>
@@ -14,16 +9,15 @@
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
-#include "core/common/log.hpp"
-#include "core/grid/patch_grid.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
 #include "core/tiles/quantized_mesh.hpp"
 #include "server/api/etags.hpp"
-#include "server/api/model_routes.hpp"
+#include "server/api/route_helpers.hpp"
 #include "server/http/gzip.hpp"
 #include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
+#include "server/models/patch_data.hpp"
 
 namespace vsm::server::api {
 
@@ -39,91 +33,6 @@ namespace {
 /// immutable.
 constexpr std::string_view kTerrainCacheControl = http::cache_control::kMinute;
 constexpr std::string_view kTerrainType = "application/vnd.quantized-mesh";
-
-/// The terrain layers of the published versions being served, built once per version: the first
-/// request that needs a version's layer builds it, requests that need it meanwhile wait for that
-/// build (on the CPU pool; network threads only look), and a failed build is forgotten so that the
-/// next request tries again.
-class TerrainLayers {
- public:
-  using Layer = std::shared_ptr<const core::TerrainLayer>;
-
-  /// The layer of `snapshot` when built already, else null. Never blocks (network threads).
-  Layer find(const std::shared_ptr<const core::ModelSnapshot>& snapshot) const {
-    std::shared_future<Layer> building;
-    {
-      const std::lock_guard lock(mutex_);
-      const auto it = layers_.find(snapshot.get());
-      if (it == layers_.end() || it->second.snapshot.lock() != snapshot) {
-        return nullptr;
-      }
-      building = it->second.layer;
-    }
-    if (building.wait_for(std::chrono::seconds(0)) != std::future_status::ready) {
-      return nullptr;
-    }
-    try {
-      return building.get();
-    } catch (...) {
-      return nullptr;  // the request that built it reports the error
-    }
-  }
-
-  /// The layer of `snapshot`, built (reading every patch of it through the cache) when missing,
-  /// or waited for while another request builds it. Throws what the build throws.
-  Layer get(core::LiveModel& live, const std::shared_ptr<const core::ModelSnapshot>& snapshot) {
-    std::promise<Layer> promise;
-    std::shared_future<Layer> building;
-    {
-      const std::lock_guard lock(mutex_);
-      // Forget the layers of versions no longer served (their snapshots are gone).
-      std::erase_if(layers_, [](const auto& entry) { return entry.second.snapshot.expired(); });
-      auto& entry = layers_[snapshot.get()];
-      if (entry.snapshot.lock() == snapshot) {
-        building = entry.layer;
-      } else {
-        entry = {snapshot, promise.get_future().share()};
-      }
-    }
-    if (building.valid()) {
-      return building.get();  // no lock held while waiting
-    }
-    try {
-      const auto start = std::chrono::steady_clock::now();
-      auto layer = std::make_shared<const core::TerrainLayer>(
-          core::buildTerrainLayer(*snapshot->model, [&](const core::PatchInfo& info) {
-            return live.positions(*snapshot, info.key).get<core::PatchGrid>();
-          }));
-      core::log::info(
-          "model=" + live.name() + " terrain layer of version " +
-          std::to_string(snapshot->version) + ": " +
-          (layer->heightField ? "levels 0.." + std::to_string(layer->maxZoom) : "no height field") +
-          ", " +
-          std::to_string(std::chrono::duration_cast<std::chrono::milliseconds>(
-                             std::chrono::steady_clock::now() - start)
-                             .count()) +
-          " ms");
-      promise.set_value(layer);
-      return layer;
-    } catch (...) {
-      promise.set_exception(std::current_exception());
-      const std::lock_guard lock(mutex_);
-      if (const auto it = layers_.find(snapshot.get());
-          it != layers_.end() && it->second.snapshot.lock() == snapshot) {
-        layers_.erase(it);
-      }
-      throw;
-    }
-  }
-
- private:
-  struct Entry {
-    std::weak_ptr<const core::ModelSnapshot> snapshot;  // the key's owner, to detect reuse
-    std::shared_future<Layer> layer;                    // ready once built
-  };
-  mutable std::mutex mutex_;  // guards layers_ (the map; layers are immutable once built)
-  std::map<const core::ModelSnapshot*, Entry> layers_;
-};
 
 std::uint32_t parseTileNumber(std::string_view text, std::string_view what) {
   std::uint32_t value = 0;
@@ -163,7 +72,7 @@ void requireHeightField(const std::string& id, const core::TerrainLayer& layer) 
   }
 }
 
-http::Response getLayer(models::ModelRegistry& models, TerrainLayers& layers,
+http::Response getLayer(models::ModelRegistry& models, models::PatchData& data,
                         const http::Request& request) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = models.getServed(id);
@@ -181,12 +90,12 @@ http::Response getLayer(models::ModelRegistry& models, TerrainLayers& layers,
     http::varyOnEncoding(response);
     return response;
   }
-  const auto layer = layers.get(*served.live, snapshot);
+  const auto layer = data.terrainLayer(served, snapshot, models::Asker::Pool);
   requireHeightField(id, *layer);
   const auto build = [&] {
     return terrainLayerJson(id, *layer, snapshot->version, rev ? snapshot->version : 0);
   };
-  http::Response response = gzipped ? gzippedJson(*served.encoded,
+  http::Response response = gzipped ? gzippedJson(data, served,
                                                   rev ? GzippedDocument::TerrainLayerRevision
                                                       : GzippedDocument::TerrainLayer,
                                                   snapshot->version, build)
@@ -203,8 +112,10 @@ http::Response getLayer(models::ModelRegistry& models, TerrainLayers& layers,
 /// availability, so only that very version answers it. On a network thread it answers only a 304
 /// or a cached tile (nullopt otherwise); on the CPU pool it builds the layer if needed, samples
 /// and encodes.
-std::optional<http::Response> getTile(models::ModelRegistry& models, TerrainLayers& layers,
+std::optional<http::Response> getTile(models::ModelRegistry& models, models::PatchData& data,
                                       const http::Request& request, bool onNetworkThread) {
+  const models::Asker asker =
+      onNetworkThread ? models::Asker::NetworkThread : models::Asker::PoolAfterNetwork;
   const std::string& id = request.param("m");
   const core::TerrainTileKey key = parseTile(request);
   const models::ModelRegistry::Served served = models.getServed(id);
@@ -215,7 +126,7 @@ std::optional<http::Response> getTile(models::ModelRegistry& models, TerrainLaye
   if (snapshot->model->empty()) {
     throw Error(ErrorCode::NotFound, "model '" + id + "' has no patches");
   }
-  const auto layer = onNetworkThread ? layers.find(snapshot) : layers.get(*served.live, snapshot);
+  const auto layer = data.terrainLayer(served, snapshot, asker);
   if (layer == nullptr) {
     return std::nullopt;
   }
@@ -244,33 +155,19 @@ std::optional<http::Response> getTile(models::ModelRegistry& models, TerrainLaye
     return response;
   }
 
-  // Cached under the tile as a key (z, x, y fit a PatchKey's fields) and its content version.
-  const core::PatchKey cacheKey{key.z, key.x, key.y};
-  auto body = served.encoded->find(cacheKey, version, models::Encoding::Terrain, onNetworkThread);
+  models::PatchData::TerrainTile wanted;
+  wanted.key = &key;
+  wanted.sources = &sources;
+  wanted.version = version;
+  wanted.normals = extensions.normals;
+  wanted.metadata = metadata;
+  wanted.gzipped = gzipped;
+  auto body = data.terrainTile(served, *snapshot, wanted, asker);
   if (body == nullptr) {
-    if (onNetworkThread) {
-      return std::nullopt;
-    }
-    const core::TerrainHeights heights =
-        core::sampleTerrain(*snapshot->model, sources, key, [&](const core::PatchInfo& info) {
-          return served.live->positions(*snapshot, info.key).get<core::PatchGrid>();
-        });
-    core::QuantizedMeshOptions options;
-    options.normals = extensions.normals;
-    options.metadata = metadata;
-    std::vector<std::byte> bytes = core::encodeQuantizedMesh(heights, options);
-    if (gzipped) {
-      const std::string packed =
-          http::gzip(std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size()));
-      bytes.assign(reinterpret_cast<const std::byte*>(packed.data()),
-                   reinterpret_cast<const std::byte*>(packed.data()) + packed.size());
-    }
-    // Throws ResourceExhausted (503, retry) when the budget is full of pinned data.
-    body = served.encoded->put(cacheKey, version, models::Encoding::Terrain, std::move(bytes));
+    return std::nullopt;
   }
   http::Response response;
-  response.sharedBody = body->text();
-  response.bodyOwner = std::move(body);
+  sendBody(response, std::move(body));
   response.contentType = std::string(kTerrainType);
   if (gzipped) {
     http::setGzipEncoded(response);
@@ -369,20 +266,21 @@ json terrainLayerJson(std::string_view id, const core::TerrainLayer& layer,
           {"metadataAvailability", 1}};
 }
 
-void addTerrainRoutes(http::Router& router, models::ModelRegistry& models) {
-  // Lives as long as the routes (the router owns the handlers that share it).
-  auto layers = std::make_shared<TerrainLayers>();
-  router.add(http::Method::Get, "/v1/models/{m}/terrain/layer.json",
-             [&models, layers](const http::Request& request) {
-               return getLayer(models, *layers, request);
-             });
+void addTerrainRoutes(http::Router& router, models::ModelRegistry& models,
+                      std::shared_ptr<models::PatchData> data) {
+  if (data == nullptr) {
+    data = std::make_shared<models::PatchData>();
+  }
+  router.add(
+      http::Method::Get, "/v1/models/{m}/terrain/layer.json",
+      [&models, data](const http::Request& request) { return getLayer(models, *data, request); });
   router.add(
       http::Method::Get, "/v1/models/{m}/terrain/{z}/{x}/{y}.terrain",
-      [&models, layers](const http::Request& request) {
-        return *getTile(models, *layers, request, false);
+      [&models, data](const http::Request& request) {
+        return *getTile(models, *data, request, false);
       },
-      [&models, layers](const http::Request& request) {
-        return getTile(models, *layers, request, true);
+      [&models, data](const http::Request& request) {
+        return getTile(models, *data, request, true);
       });
 }
 

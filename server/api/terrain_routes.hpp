@@ -1,6 +1,7 @@
 #pragma once
 
 #include <cstdint>
+#include <memory>
 #include <string_view>
 
 #include <nlohmann/json_fwd.hpp>
@@ -13,19 +14,22 @@ struct TerrainLayer;
 
 namespace vsm::server::models {
 class ModelRegistry;
-}
+class PatchData;
+}  // namespace vsm::server::models
 
 namespace vsm::server::api {
 
 /// GET /v1/models/{m}/terrain/layer.json and GET /v1/models/{m}/terrain/{z}/{x}/{y}.terrain: the
 /// quantized-mesh-1.0 terrain of every open model that is a height field over the WGS 84
 /// ellipsoid, for CesiumJS's CesiumTerrainProvider (see proto/openapi.yaml, core/tiles/README.md).
-/// Each published version's layer (availability, footprints; core::buildTerrainLayer, which reads
-/// every patch once) is built on the CPU pool at its first use and kept while the version is
-/// served. A tile is sampled and encoded on the CPU pool and kept, as sent (gzipped or not), in
-/// the model's EncodedCache within the one budget; cached tiles and 304s are answered on the
-/// network thread. `models` must outlive the router.
-void addTerrainRoutes(http::Router& router, models::ModelRegistry& models);
+/// The patch-data service `data` keeps each published version's layer (availability, footprints;
+/// core::buildTerrainLayer, which reads every patch once), built on the CPU pool at its first use
+/// and kept while the version is served, and samples and encodes a tile on the CPU pool, kept as
+/// sent (gzipped or not) in the model's EncodedCache within the one budget; cached tiles and 304s
+/// are answered on the network thread. `models` must outlive the router; a null `data` makes one
+/// of their own.
+void addTerrainRoutes(http::Router& router, models::ModelRegistry& models,
+                      std::shared_ptr<models::PatchData> data = nullptr);
 
 // ---- wire mapping, public for tests -----------------------------------------------------------
 

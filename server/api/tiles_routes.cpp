@@ -8,16 +8,15 @@
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
-#include "core/grid/patch_grid.hpp"
-#include "core/opc/texture_file.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
 #include "core/tiles/glb.hpp"
 #include "core/tiles/tile_tree.hpp"
-#include "server/api/model_routes.hpp"
+#include "server/api/route_helpers.hpp"
 #include "server/http/gzip.hpp"
 #include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
+#include "server/models/patch_data.hpp"
 
 namespace vsm::server::api {
 
@@ -88,7 +87,7 @@ core::PatchKey parseGlbKey(std::string_view text) {
   return *key;
 }
 
-http::Response withCache(http::Response response, std::string_view etag) {
+http::Response withTileCache(http::Response response, std::string_view etag) {
   response.set("Cache-Control", std::string(kTileCacheControl));
   response.set("ETag", std::string(etag));
   return response;
@@ -114,7 +113,8 @@ core::GlbCompression requestedCompression(const http::Request& request) {
 /// compression, revision URIs) and kept in the model's EncodedCache, within the budget. The
 /// identity body is built per request, as before (serialising the tree is cheaper than
 /// compressing it). Both carry "Vary: Accept-Encoding" and their own ETag.
-http::Response getTileset(models::ModelRegistry& models, const http::Request& request) {
+http::Response getTileset(models::ModelRegistry& models, const models::PatchData& data,
+                          const http::Request& request) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = models.getServed(id);
   const auto snapshot = versionedSnapshot(*served.live, request);
@@ -147,21 +147,20 @@ http::Response getTileset(models::ModelRegistry& models, const http::Request& re
           ? (revisionUris ? GzippedDocument::TilesetRevision : GzippedDocument::Tileset)
           : (revisionUris ? GzippedDocument::TilesetUncompressedRevision
                           : GzippedDocument::TilesetUncompressed);
-  http::Response response = gzipped
-                                ? gzippedJson(*served.encoded, document, snapshot->version, build)
-                                : http::jsonResponse(200, build());
+  http::Response response = gzipped ? gzippedJson(data, served, document, snapshot->version, build)
+                                    : http::jsonResponse(200, build());
   http::varyOnEncoding(response);
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
-  return withCache(std::move(response), etag);
+  return withTileCache(std::move(response), etag);
 }
 
 /// GET /v1/models/{m}/3dtiles/{p}.glb[?v=N][&rev=R][&compress=none]: with the tileset's `?v=`, the
 /// patch as in that version or 404 (versionedPatch), so that no node answers a version it has not
 /// followed yet. On a network thread (`onNetworkThread`) it answers only a 304 or a cached GLB,
-/// and nullopt otherwise; on the CPU pool it encodes the GLB from the patch's data (read through
-/// the patch cache) and caches it.
-std::optional<http::Response> glb(models::ModelRegistry& models, const http::Request& request,
-                                  bool onNetworkThread) {
+/// and nullopt otherwise; on the CPU pool the patch-data service encodes the GLB from the patch's
+/// data (read through the patch cache) and caches it.
+std::optional<http::Response> glb(models::ModelRegistry& models, const models::PatchData& data,
+                                  const http::Request& request, bool onNetworkThread) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = models.getServed(id);
   const core::PatchKey key = parseGlbKey(request.param("p"));
@@ -174,45 +173,24 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const http::Req
   const core::PatchInfo* info = read->info;
   const core::GlbCompression compression = requestedCompression(request);
   const bool compressed = compression == core::GlbCompression::Meshopt;
-  const models::Encoding encoding =
-      compressed ? models::Encoding::GlbMeshopt : models::Encoding::Glb;
   const std::string etag = glbEtag(*info, compressed ? "" : "raw");
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kTileCacheControl);
   }
-  // The handler pool runs this after the network thread's look missed: count that miss once.
-  auto body = served.encoded->find(key, info->version, encoding, onNetworkThread);
+  auto body =
+      data.glb(served, *snapshot, *info, compression,
+               onNetworkThread ? models::Asker::NetworkThread : models::Asker::PoolAfterNetwork);
   if (body == nullptr) {
-    if (onNetworkThread) {
-      return std::nullopt;
-    }
-    // A cache miss reads the disk here, and the encoding is CPU work. The pin is released before
-    // the snapshot.
-    const core::PatchCache::Pin pin = served.live->positions(*snapshot, key);
-    // The patch's texture tile (converted to PNG) and coordinates, read from disk.
-    const std::optional<core::PatchTexture> texture = core::readPatchTexture(
-        served.live->dir(), *snapshot->model, *info, served.live->texturePixels());
-    core::GlbOptions options;
-    options.compression = compression;
-    if (texture) {
-      options.texture = {texture->png, "image/png"};
-      options.texcoords = texture->texcoords;
-      options.baseColor = {1.0, 1.0, 1.0, 1.0};  // the texture's own colours
-    }
-    // Throws ResourceExhausted (503, retry) when the budget is full of pinned data.
-    body = served.encoded->put(
-        key, info->version, encoding,
-        core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(*info), options));
+    return std::nullopt;
   }
   http::Response response;
   // Written from the cached bytes without a copy; the response holds them (pinned, so they stay
   // counted in the budget) until written.
-  response.sharedBody = body->text();
-  response.bodyOwner = std::move(body);
+  sendBody(response, std::move(body));
   response.contentType = std::string(kGlbType);
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   response.set("X-VSM-Patch-Version", std::to_string(info->version));
-  return withCache(std::move(response), etag);
+  return withTileCache(std::move(response), etag);
 }
 
 }  // namespace
@@ -229,13 +207,18 @@ json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
           {"root", tileJson(root, core::Vec3d{0, 0, 0}, model, revision, compressedContent)}};
 }
 
-void addTilesRoutes(http::Router& router, models::ModelRegistry& models) {
-  router.add(http::Method::Get, "/v1/models/{m}/3dtiles/tileset.json",
-             [&models](const http::Request& request) { return getTileset(models, request); });
+void addTilesRoutes(http::Router& router, models::ModelRegistry& models,
+                    std::shared_ptr<models::PatchData> data) {
+  if (data == nullptr) {
+    data = std::make_shared<models::PatchData>();
+  }
+  router.add(
+      http::Method::Get, "/v1/models/{m}/3dtiles/tileset.json",
+      [&models, data](const http::Request& request) { return getTileset(models, *data, request); });
   router.add(
       http::Method::Get, "/v1/models/{m}/3dtiles/{p}.glb",
-      [&models](const http::Request& request) { return *glb(models, request, false); },
-      [&models](const http::Request& request) { return glb(models, request, true); });
+      [&models, data](const http::Request& request) { return *glb(models, *data, request, false); },
+      [&models, data](const http::Request& request) { return glb(models, *data, request, true); });
 }
 
 }  // namespace vsm::server::api

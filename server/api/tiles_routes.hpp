@@ -1,5 +1,6 @@
 #pragma once
 
+#include <memory>
 #include <string>
 #include <string_view>
 
@@ -17,16 +18,19 @@ struct TileNode;
 
 namespace vsm::server::models {
 class ModelRegistry;
-}
+class PatchData;
+}  // namespace vsm::server::models
 
 namespace vsm::server::api {
 
 /// GET /v1/models/{m}/3dtiles/tileset.json and GET /v1/models/{m}/3dtiles/{p}.glb: the OGC 3D
 /// Tiles 1.1 view of every open model (see proto/openapi.yaml). The tileset is built from one
-/// snapshot's metadata; a GLB is encoded from the patch's data, read through the cache on the CPU
-/// pool, and kept in the model's EncodedCache (one budget with the data), from which repeated
-/// requests are answered on the network thread. `models` must outlive the router.
-void addTilesRoutes(http::Router& router, models::ModelRegistry& models);
+/// snapshot's metadata; a GLB is found or made by the patch-data service `data` (encoded from the
+/// patch's data, read through the cache on the CPU pool, and kept in the model's EncodedCache, one
+/// budget with the data), from which repeated requests are answered on the network thread.
+/// `models` must outlive the router; a null `data` makes one of their own.
+void addTilesRoutes(http::Router& router, models::ModelRegistry& models,
+                    std::shared_ptr<models::PatchData> data = nullptr);
 
 // ---- wire mapping, public for tests -----------------------------------------------------------
 

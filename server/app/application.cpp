@@ -22,6 +22,7 @@
 #include "core/store/live_model.hpp"
 #include "server/api/diff_gate.hpp"
 #include "server/api/event_routes.hpp"
+#include "server/api/job_routes.hpp"
 #include "server/api/model_routes.hpp"
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
@@ -36,6 +37,7 @@
 #include "server/jobs/job_registry.hpp"
 #include "server/metrics/metrics.hpp"
 #include "server/models/model_registry.hpp"
+#include "server/models/patch_data.hpp"
 
 #ifndef VSM_VERSION
 #define VSM_VERSION "unknown"
@@ -262,10 +264,12 @@ Application::Application(Config config) : config_(std::move(config)) {
                             {"abandoned", d.abandoned}}}};
   };
   api::addSystemRoutes(*router_, {*cache_, *metrics_, [this] { return ready(); }, reads});
-  api::addModelRoutes(*router_, {*models_, *jobs_, coordinator_.get(), diffs});
-  api::addJobRoutes(*router_, {*models_, *jobs_, coordinator_.get(), diffs});
-  api::addTilesRoutes(*router_, *models_);
-  api::addTerrainRoutes(*router_, *models_);
+  // One patch-data service for every route that answers with encoded patch data.
+  const auto data = std::make_shared<models::PatchData>();
+  api::addModelRoutes(*router_, {*models_, *jobs_, coordinator_.get(), diffs, data});
+  api::addJobRoutes(*router_, {*models_, *jobs_, coordinator_.get(), diffs, data});
+  api::addTilesRoutes(*router_, *models_, data);
+  api::addTerrainRoutes(*router_, *models_, data);
   api::addEventRoutes(*router_, *events_);
   if (!config_.viewerDir.empty()) {
     api::addStaticRoutes(*router_, "/viewer", config_.viewerDir);

@@ -28,6 +28,8 @@
 #include "core/opc/validate.hpp"
 #include "core/store/live_model.hpp"
 #include "core/store/model_edit.hpp"
+#include "core/tiles/glb.hpp"
+#include "server/api/job_routes.hpp"
 #include "server/api/model_routes.hpp"
 #include "server/api/terrain_routes.hpp"
 #include "server/api/tiles_routes.hpp"
@@ -38,6 +40,7 @@
 #include "server/jobs/model_jobs.hpp"
 #include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
+#include "server/models/patch_data.hpp"
 
 namespace fs = std::filesystem;
 
@@ -634,6 +637,64 @@ TEST(JobRegistry, InAClusterJobIdsNameTheNodeAndALostLeaseCancelsButStillTakesJo
       registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json::object(); });
   EXPECT_EQ(waitFinal(registry, next.id).state, jobs::JobState::Succeeded);
   pool.join();
+}
+
+// ---- the patch-data service ------------------------------------------------------------------
+
+/// The one rule of where a body is made: a network thread only looks (one miss counted, null), the
+/// pool after it makes and puts without counting a second miss, and the next network-thread look
+/// finds the very bytes; the pool alone (no look before) counts its miss.
+TEST(PatchData, ANetworkThreadOnlyLooksAndThePoolMakesWithOneMissPerRequest) {
+  const DataRoot root;
+  writeModel(root.path() / "m");
+  core::PatchCache cache(64 * kMiB);
+  models::ModelRegistry registry(root.path(), cache);
+  registry.openAll();
+  const models::ModelRegistry::Served served = registry.getServed("m");
+  const auto snapshot = served.live->snapshot();
+  const core::PatchInfo& leaf = snapshot->model->at({2, 1, 1});
+  models::PatchData data;
+  const auto misses = [&] { return cache.stats().misses; };
+  const auto glbBytes = [&] {
+    const auto by = cache.stats().encodedByFormat;
+    const auto it = by.find(static_cast<std::uint8_t>(models::Encoding::Glb));
+    return it == by.end() ? std::size_t{0} : it->second;
+  };
+
+  std::uint64_t before = misses();
+  EXPECT_EQ(
+      data.glb(served, *snapshot, leaf, core::GlbCompression::None, models::Asker::NetworkThread),
+      nullptr);
+  EXPECT_EQ(misses(), before + 1);
+  EXPECT_EQ(glbBytes(), 0u);
+  const auto made = data.glb(served, *snapshot, leaf, core::GlbCompression::None,
+                             models::Asker::PoolAfterNetwork);
+  ASSERT_NE(made, nullptr);
+  EXPECT_GT(made->bytes().size(), 0u);
+  EXPECT_EQ(glbBytes(), made->bytes().size());
+  before = misses();
+  const auto found =
+      data.glb(served, *snapshot, leaf, core::GlbCompression::None, models::Asker::NetworkThread);
+  ASSERT_NE(found, nullptr);
+  EXPECT_EQ(found->bytes().data(), made->bytes().data());  // the cached body, not a copy
+  EXPECT_EQ(misses(), before);
+
+  // Positions: one look at the open file and the encoding, one miss for both.
+  before = misses();
+  EXPECT_FALSE(data.positions(served, *snapshot, leaf, models::Asker::NetworkThread));
+  EXPECT_EQ(misses(), before + 1);
+  const auto positions = data.positions(served, *snapshot, leaf, models::Asker::PoolAfterNetwork);
+  ASSERT_TRUE(positions);
+  EXPECT_EQ(misses(), before + 1);
+  EXPECT_TRUE(positions->file != nullptr || positions->body != nullptr);
+  EXPECT_EQ(positions->local2global, models::matrixText(leaf.local2global));
+  EXPECT_TRUE(data.positions(served, *snapshot, leaf, models::Asker::NetworkThread));
+
+  // The pool with no look before counts its own miss, once.
+  const core::PatchInfo& other = snapshot->model->at({2, 0, 0});
+  before = misses();
+  ASSERT_TRUE(data.positions(served, *snapshot, other, models::Asker::Pool));
+  EXPECT_EQ(misses(), before + 1);
 }
 
 // ---- routes ----------------------------------------------------------------------------------

@@ -1,0 +1,335 @@
+#include "server/models/patch_data.hpp"
+
+#include <array>
+#include <charconv>
+#include <chrono>
+#include <cstring>
+#include <exception>
+#include <future>
+#include <map>
+#include <mutex>
+#include <span>
+#include <utility>
+
+#include "core/common/error.hpp"
+#include "core/common/log.hpp"
+#include "core/grid/patch_grid.hpp"
+#include "core/opc/aara.hpp"
+#include "core/opc/opc_reader.hpp"
+#include "core/opc/stored_file.hpp"
+#include "core/opc/texture_file.hpp"
+#include "core/pyramid/model.hpp"
+#include "core/store/live_model.hpp"
+#include "core/tiles/glb.hpp"
+#include "core/tiles/quantized_mesh.hpp"
+#include "core/tiles/tile_tree.hpp"
+#include "server/http/gzip.hpp"
+
+namespace vsm::server::models {
+
+using core::Error;
+using core::ErrorCode;
+
+namespace {
+
+/// The one rule of where a body is made (Asker): `find(countMiss)` looks in the budget; found, or
+/// on a network thread, that is the answer (null when missing); on the pool `make()` makes it and
+/// puts it there. The pool's look after a network thread's counts no second miss.
+template <typename Find, typename Make>
+auto lookOrMake(Asker asker, Find&& find, Make&& make) {
+  auto held = find(asker != Asker::PoolAfterNetwork);
+  if (held != nullptr || asker == Asker::NetworkThread) {
+    return held;
+  }
+  return make();
+}
+
+/// lookOrMake for an encoded body: `make()` returns its bytes. Throws ResourceExhausted (503,
+/// retry) when the budget is full of pinned data.
+template <typename Make>
+std::shared_ptr<const EncodedCache::Body> findOrMake(EncodedCache& encoded,
+                                                     const core::PatchKey& key,
+                                                     std::uint64_t version, Encoding encoding,
+                                                     Asker asker, Make&& make) {
+  return lookOrMake(
+      asker, [&](bool countMiss) { return encoded.find(key, version, encoding, countMiss); },
+      [&] { return encoded.put(key, version, encoding, make()); });
+}
+
+/// lookOrMake for a stored file held open: `open()` opens it. Throws ResourceExhausted (503,
+/// retry) while every file the cache may hold is being sent.
+template <typename Open>
+std::shared_ptr<const EncodedCache::File> findOrOpen(EncodedCache& encoded,
+                                                     const core::PatchKey& key,
+                                                     std::uint64_t version, StoredKind kind,
+                                                     Asker asker, Open&& open) {
+  return lookOrMake(
+      asker, [&](bool countMiss) { return encoded.findFile(key, version, kind, countMiss); },
+      [&] { return encoded.putFile(key, version, kind, open()); });
+}
+
+std::vector<std::byte> bytesOf(std::string_view text) {
+  const auto* bytes = reinterpret_cast<const std::byte*>(text.data());
+  return {bytes, bytes + text.size()};
+}
+
+}  // namespace
+
+std::string matrixText(const core::Mat4d& m) {
+  std::string out;
+  char text[32];
+  for (std::size_t i = 0; i < m.m.size(); ++i) {
+    const auto [end, ec] = std::to_chars(text, text + sizeof text, m.m[i]);
+    out.append(i == 0 ? "" : ",");
+    out.append(text, ec == std::errc() ? end : text);
+  }
+  return out;
+}
+
+// ---- terrain layers --------------------------------------------------------------------------
+
+/// The terrain layers of the published versions being served, built once per version: the first
+/// request that needs a version's layer builds it, requests that need it meanwhile wait for that
+/// build (on the CPU pool; network threads only look), and a failed build is forgotten so that the
+/// next request tries again.
+class TerrainLayers {
+ public:
+  using Layer = std::shared_ptr<const core::TerrainLayer>;
+
+  /// The layer of `snapshot` when built already, else null. Never blocks (network threads).
+  Layer find(const std::shared_ptr<const core::ModelSnapshot>& snapshot) const {
+    std::shared_future<Layer> building;
+    {
+      const std::lock_guard lock(mutex_);
+      const auto it = layers_.find(snapshot.get());
+      if (it == layers_.end() || it->second.snapshot.lock() != snapshot) {
+        return nullptr;
+      }
+      building = it->second.layer;
+    }
+    if (building.wait_for(std::chrono::seconds(0)) != std::future_status::ready) {
+      return nullptr;
+    }
+    try {
+      return building.get();
+    } catch (...) {
+      return nullptr;  // the request that built it reports the error
+    }
+  }
+
+  /// The layer of `snapshot`, built (reading every patch of it through the cache) when missing,
+  /// or waited for while another request builds it. Throws what the build throws.
+  Layer get(core::LiveModel& live, const std::shared_ptr<const core::ModelSnapshot>& snapshot) {
+    std::promise<Layer> promise;
+    std::shared_future<Layer> building;
+    {
+      const std::lock_guard lock(mutex_);
+      // Forget the layers of versions no longer served (their snapshots are gone).
+      std::erase_if(layers_, [](const auto& entry) { return entry.second.snapshot.expired(); });
+      auto& entry = layers_[snapshot.get()];
+      if (entry.snapshot.lock() == snapshot) {
+        building = entry.layer;
+      } else {
+        entry = {snapshot, promise.get_future().share()};
+      }
+    }
+    if (building.valid()) {
+      return building.get();  // no lock held while waiting
+    }
+    try {
+      const auto start = std::chrono::steady_clock::now();
+      auto layer = std::make_shared<const core::TerrainLayer>(
+          core::buildTerrainLayer(*snapshot->model, [&](const core::PatchInfo& info) {
+            return live.positions(*snapshot, info.key).get<core::PatchGrid>();
+          }));
+      core::log::info(
+          "model=" + live.name() + " terrain layer of version " +
+          std::to_string(snapshot->version) + ": " +
+          (layer->heightField ? "levels 0.." + std::to_string(layer->maxZoom) : "no height field") +
+          ", " +
+          std::to_string(std::chrono::duration_cast<std::chrono::milliseconds>(
+                             std::chrono::steady_clock::now() - start)
+                             .count()) +
+          " ms");
+      promise.set_value(layer);
+      return layer;
+    } catch (...) {
+      promise.set_exception(std::current_exception());
+      const std::lock_guard lock(mutex_);
+      if (const auto it = layers_.find(snapshot.get());
+          it != layers_.end() && it->second.snapshot.lock() == snapshot) {
+        layers_.erase(it);
+      }
+      throw;
+    }
+  }
+
+ private:
+  struct Entry {
+    std::weak_ptr<const core::ModelSnapshot> snapshot;  // the key's owner, to detect reuse
+    std::shared_future<Layer> layer;                    // ready once built
+  };
+  mutable std::mutex mutex_;  // guards layers_ (the map; layers are immutable once built)
+  std::map<const core::ModelSnapshot*, Entry> layers_;
+};
+
+// ---- the service -----------------------------------------------------------------------------
+
+PatchData::PatchData() : layers_(std::make_unique<TerrainLayers>()) {}
+
+PatchData::~PatchData() = default;
+
+namespace {
+
+/// The full-grid .aara of a patch whose stored file is laid out otherwise, with the Local2Global
+/// it is based on: a cropped V3f file's rows are copied into place (no decoding); a V3d file is
+/// decoded and re-based.
+std::pair<std::vector<std::byte>, std::string> encodePositions(const core::LiveModel& live,
+                                                               const core::ModelSnapshot& snapshot,
+                                                               const core::PatchInfo& info) {
+  if (std::optional<std::vector<std::byte>> bytes =
+          core::readFullGridPositions(live.dir(), snapshot.model->gridSize(), info)) {
+    return {std::move(*bytes), matrixText(info.local2global)};
+  }
+  const core::PatchGrid grid = core::readPatchGrid(live.dir(), *snapshot.model, info);
+  const std::span<const float> floats = grid.positions();
+  const std::int32_t n = grid.size();
+  const std::array<std::int32_t, 2> sizes{n, n};
+  std::vector<std::byte> bytes = core::encodeAaraHeader(core::AaraType::V3f, sizes);
+  const std::size_t header = bytes.size();
+  bytes.resize(header + floats.size_bytes());
+  std::memcpy(bytes.data() + header, floats.data(), floats.size_bytes());
+  return {std::move(bytes), matrixText(grid.local2global())};
+}
+
+}  // namespace
+
+std::optional<PatchData::Positions> PatchData::positions(const ModelRegistry::Served& served,
+                                                         const core::ModelSnapshot& snapshot,
+                                                         const core::PatchInfo& info,
+                                                         Asker asker) const {
+  EncodedCache& encoded = *served.encoded;
+  const core::PatchKey& key = info.key;
+  const int n = snapshot.model->gridSize();
+  const bool asStored = info.stored == core::GridRect{0, 0, n, n};
+  // A patch stored whole is cached as its open file, or as a body when the file cannot be sent as
+  // it is (V3d): one look for either, one miss counted when neither is there.
+  Positions out;
+  if (asStored) {
+    out.file = encoded.findFile(key, info.version, StoredKind::Positions, false);
+  }
+  if (out.file == nullptr) {
+    out.body = encoded.find(key, info.version, Encoding::PositionsAara, false);
+  }
+  if (out.file == nullptr && out.body == nullptr) {
+    if (asker != Asker::PoolAfterNetwork) {
+      encoded.countMiss();
+    }
+    if (asker == Asker::NetworkThread) {
+      return std::nullopt;
+    }
+    if (asStored) {
+      if (std::unique_ptr<core::StoredFile> stored =
+              core::openFullGridPositions(served.live->dir(), n, info)) {
+        try {
+          out.file = encoded.putFile(key, info.version, StoredKind::Positions, std::move(stored));
+        } catch (const Error& e) {
+          if (e.code() != ErrorCode::ResourceExhausted) {
+            throw;
+          }
+          // Every descriptor the cache may hold is being sent: encode this one in the budget.
+        }
+      }
+    }
+    if (out.file == nullptr) {
+      auto [bytes, local2global] = encodePositions(*served.live, snapshot, info);
+      out.body = encoded.put(key, info.version, Encoding::PositionsAara, std::move(bytes),
+                             std::move(local2global));
+    }
+  }
+  out.local2global =
+      out.file != nullptr ? matrixText(info.local2global) : std::string(out.body->note());
+  return out;
+}
+
+std::shared_ptr<const EncodedCache::File> PatchData::coordinates(
+    const ModelRegistry::Served& served, const core::PatchInfo& info, Asker asker) const {
+  return findOrOpen(*served.encoded, info.key, info.version, StoredKind::Coordinates, asker,
+                    [&] { return core::openCoordinatesFile(served.live->dir(), info); });
+}
+
+std::shared_ptr<const EncodedCache::Body> PatchData::texturePng(const ModelRegistry::Served& served,
+                                                                const core::PatchInfo& info,
+                                                                Asker asker) const {
+  return findOrMake(*served.encoded, info.key, info.version, Encoding::TexturePng, asker, [&] {
+    return core::readPatchTexturePng(served.live->dir(), info, served.live->texturePixels());
+  });
+}
+
+std::shared_ptr<const EncodedCache::Body> PatchData::glb(const ModelRegistry::Served& served,
+                                                         const core::ModelSnapshot& snapshot,
+                                                         const core::PatchInfo& info,
+                                                         core::GlbCompression compression,
+                                                         Asker asker) const {
+  const Encoding encoding =
+      compression == core::GlbCompression::Meshopt ? Encoding::GlbMeshopt : Encoding::Glb;
+  return findOrMake(*served.encoded, info.key, info.version, encoding, asker, [&] {
+    // A cache miss reads the disk here, and the encoding is CPU work. The pin is released before
+    // the snapshot.
+    const core::PatchCache::Pin pin = served.live->positions(snapshot, info.key);
+    // The patch's texture tile (converted to PNG) and coordinates, read from disk.
+    const std::optional<core::PatchTexture> texture = core::readPatchTexture(
+        served.live->dir(), *snapshot.model, info, served.live->texturePixels());
+    core::GlbOptions options;
+    options.compression = compression;
+    if (texture) {
+      options.texture = {texture->png, "image/png"};
+      options.texcoords = texture->texcoords;
+      options.baseColor = {1.0, 1.0, 1.0, 1.0};  // the texture's own colours
+    }
+    return core::encodeGlb(*pin.get<core::PatchGrid>(), core::tileCentre(info), options);
+  });
+}
+
+std::shared_ptr<const core::TerrainLayer> PatchData::terrainLayer(
+    const ModelRegistry::Served& served, const std::shared_ptr<const core::ModelSnapshot>& snapshot,
+    Asker asker) {
+  return asker == Asker::NetworkThread ? layers_->find(snapshot)
+                                       : layers_->get(*served.live, snapshot);
+}
+
+std::shared_ptr<const EncodedCache::Body> PatchData::terrainTile(
+    const ModelRegistry::Served& served, const core::ModelSnapshot& snapshot,
+    const TerrainTile& tile, Asker asker) const {
+  const core::TerrainTileKey& key = *tile.key;
+  // Cached under the tile as a key (z, x, y fit a PatchKey's fields) and its content version.
+  const core::PatchKey cacheKey{key.z, key.x, key.y};
+  return findOrMake(*served.encoded, cacheKey, tile.version, Encoding::Terrain, asker, [&] {
+    const core::TerrainHeights heights =
+        core::sampleTerrain(*snapshot.model, *tile.sources, key, [&](const core::PatchInfo& info) {
+          return served.live->positions(snapshot, info.key).get<core::PatchGrid>();
+        });
+    core::QuantizedMeshOptions options;
+    options.normals = tile.normals;
+    options.metadata = tile.metadata;
+    std::vector<std::byte> bytes = core::encodeQuantizedMesh(heights, options);
+    if (tile.gzipped) {
+      bytes = bytesOf(
+          http::gzip(std::string_view(reinterpret_cast<const char*>(bytes.data()), bytes.size())));
+    }
+    return bytes;
+  });
+}
+
+std::shared_ptr<const EncodedCache::Body> PatchData::gzippedJson(
+    const ModelRegistry::Served& served, std::uint8_t variant, std::uint64_t version,
+    const std::function<std::string()>& build) const {
+  EncodedCache& encoded = *served.encoded;
+  auto body = encoded.findModelBody(Encoding::JsonGzip, variant, version, true);
+  if (body == nullptr) {
+    body = encoded.putModelBody(Encoding::JsonGzip, variant, version, bytesOf(http::gzip(build())));
+  }
+  return body;
+}
+
+}  // namespace vsm::server::models
