@@ -27,7 +27,6 @@ nodes over one data root, real nginx in front (deploy/nginx/vsm.conf).
 """
 
 import argparse
-import base64
 import json
 import os
 import shutil
@@ -37,10 +36,10 @@ import sys
 import threading
 import time
 import unittest
-import urllib.error
-import urllib.request
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import cluster_support  # noqa: E402
+from cluster_support import etcd_value, read_env, walk_keys  # noqa: E402
 from hold import poll  # noqa: E402
 
 ARGS = None
@@ -50,23 +49,7 @@ TOKEN = "cluster-test-token"
 
 def request(url, method="GET", body=None, timeout=30, token=TOKEN):
     """(status, headers, body bytes); no redirect is followed."""
-    data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url, data=data, method=method)
-    if body is not None:
-        req.add_header("Content-Type", "application/json")
-    if method != "GET" and token:
-        req.add_header("Authorization", "Bearer " + token)
-    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), NoRedirect())
-    try:
-        with opener.open(req, timeout=timeout) as response:
-            return response.status, response.headers, response.read()
-    except urllib.error.HTTPError as e:
-        return e.code, e.headers, e.read()
-
-
-class NoRedirect(urllib.request.HTTPRedirectHandler):
-    def redirect_request(self, *args, **kwargs):
-        return None
+    return cluster_support.request(url, method, body, timeout, token)
 
 
 def get_json(url):
@@ -74,31 +57,6 @@ def get_json(url):
     if status != 200:
         raise AssertionError("GET %s: %d %s" % (url, status, body[:200]))
     return json.loads(body)
-
-
-def walk_keys(node):
-    yield node["key"]
-    for child in node.get("children", []):
-        yield from walk_keys(child)
-
-
-def etcd_value(etcd, key):
-    """The value of `key` in etcd (its v3 JSON API), or None."""
-    status, _, body = request(etcd + "/v3/kv/range", "POST",
-                              {"key": base64.b64encode(key.encode()).decode()}, token=None)
-    if status != 200:
-        raise AssertionError("etcd range: %d %s" % (status, body[:200]))
-    kvs = json.loads(body).get("kvs", [])
-    return base64.b64decode(kvs[0]["value"]).decode() if kvs else None
-
-
-def read_env(path):
-    env = {}
-    with open(path) as f:
-        for line in f:
-            name, _, value = line.strip().partition("=")
-            env[name] = value
-    return env
 
 
 class Cluster(unittest.TestCase):
