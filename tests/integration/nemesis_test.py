@@ -3,12 +3,13 @@
 
     /usr/bin/python3 nemesis_test.py --vsm <vsm> --vsmd <vsmd> --lib <libvsm_fault_inject.so>
                                      --work <dir> --repo <source tree>
-                                     [--seconds S] [--seed N]
+                                     [--seconds S] [--seed N] [--lanes L]
 
 S (default 60, or VSM_NEMESIS_SECONDS; 600 is the long mode) is how long the nemesis acts; the
 seed (VSM_NEMESIS_SEED, else random) is printed, and given again it replays the same choices:
-the same faults in the same order with the same parameters, the same operations per client
-thread (what happens between threads still depends on timing).
+the same faults in the same order with the same parameters per lane, the same operations per
+client thread (what happens between threads still depends on timing). L (default 2,
+VSM_NEMESIS_LANES) lanes of faults act side by side.
 
 The cluster is deploy/local-cluster.sh's (cluster_support.LocalCluster): real etcd, three vsmd
 nodes over one data root (lease TTL 5 s, --keep-revisions 10000 so that every revision stays
@@ -29,11 +30,14 @@ version seen and body digest:
 - three readers: a tileset.json and three of its GLBs (each by its `?v=`), the hierarchy, the
   hierarchy again by `?v=` its version, and the positions of three of its patches by `?v=`.
 
-The nemesis, one fault at a time at random, until the time is up:
+The nemesis, in each lane one fault after another at random (a pause of 0.2 to 1.5 s between),
+until the time is up:
 - kill_writer, kill_replica: kill -9 of the node writing a random model (or of one that does
   not), restarted after 0 to 2 s;
-- disk_fault: kill -9 of a writer, restarted with the fault library failing its n-th call
-  (n 1..60) of a random class (create, write, rename, sync, mkdir) with ENOSPC or EIO;
+- disk_fault: the fault library of a writer armed (VSM_FAULT_ARM, a file the test writes): its
+  next call of a random class (create, write, rename, sync, mkdir, unlink) fails with ENOSPC or
+  EIO, or the next open for reading (`read`) of any node with EIO; disarmed after 5 s if no such
+  call came;
 - pause_etcd, pause_node: SIGSTOP for 1 to 10 s (twice the TTL), then SIGCONT;
 - cut_etcd: one node's proxy to etcd cut for 1 to 10 s, either reset (connections closed and
   refused) or a black hole (connections kept, nothing goes through), while the others reach it;
@@ -309,6 +313,7 @@ class Node:
         self.log = os.path.join(directory, "logs", name + ".log")
         self.proc = None
         self.stopped = False
+        self.lock = threading.Lock()  # held while the nemesis restarts it
 
     def env(self, fault=None):
         env = dict(os.environ)
@@ -389,6 +394,7 @@ class History:
         self.t0 = time.monotonic()
 
     def fault(self, **fields):
+        fields["lane"] = getattr(NEMESIS_LANE, "number", 0)
         with self.lock:
             self.faults.append(fields)
         print("%7.2f fault %s" % (fields["start"], " ".join(
@@ -405,6 +411,7 @@ def front_get(path, timeout=15):
 
 
 FRONT = None
+NEMESIS_LANE = None  # the Nemesis's thread-local lane
 
 
 class Clients:
@@ -564,9 +571,10 @@ class Nemesis:
     KINDS = ["kill_writer", "kill_replica", "disk_fault", "pause_etcd", "pause_node", "cut_etcd",
              "slow_reads"]
 
-    def __init__(self, history, rng, nodes, etcd_pid, etcd_url, directory):
+    def __init__(self, history, seed, nodes, etcd_pid, etcd_url, directory):
         self.history = history
-        self.rng = rng
+        self.seed = seed
+        self.lane = threading.local()  # rng, number: each lane's own
         self.nodes = nodes
         self.etcd_pid = etcd_pid
         self.etcd_url = etcd_url
@@ -581,42 +589,66 @@ class Nemesis:
 
     def pick(self, writer):
         """A node: the writer of a random model (writer=True) or one that does not write it."""
-        model = self.rng.choice(TARGETS)
+        model = self.lane.rng.choice(TARGETS)
         names = sorted(self.nodes)
         holder = self.writer_of(model)
         if writer:
-            return self.nodes[holder] if holder in self.nodes else self.nodes[self.rng.choice(names)]
+            return self.nodes[holder] if holder in self.nodes else self.nodes[self.lane.rng.choice(names)]
         others = [n for n in names if n != holder]
-        return self.nodes[self.rng.choice(others)]
+        return self.nodes[self.lane.rng.choice(others)]
 
     def supervise(self):
         """Restarts a node that exited by itself (counted)."""
         for node in self.nodes.values():
-            code = node.exited()
-            if code is not None:
-                self.exits.append((node.name, code, self.history.now()))
-                print("%7.2f %s exited by itself (status %s): restarted" %
-                      (self.history.now(), node.name, code), flush=True)
-                node.start()
-                node.ready()
+            if not node.lock.acquire(blocking=False):
+                continue  # a lane is restarting it
+            try:
+                code = node.exited()
+                if code is not None:
+                    self.exits.append((node.name, code, self.history.now()))
+                    print("%7.2f %s exited by itself (status %s): restarted" %
+                          (self.history.now(), node.name, code), flush=True)
+                    node.start()
+                    node.ready()
+            finally:
+                node.lock.release()
 
-    def run(self, seconds):
+    def run(self, seconds, lanes):
+        """`lanes` threads, each choosing faults one after the other (so up to `lanes` act at
+        once), lane i with its own generator seeded from the seed and i."""
         end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            kind = self.rng.choice(self.KINDS)
-            getattr(self, kind)(kind)
-            self.supervise()
-            time.sleep(self.rng.uniform(0.2, 1.5))
+        errors = []
+
+        def lane(number):
+            self.lane.rng = random.Random(self.seed if number == 0 else self.seed * 7919 + number)
+            self.lane.number = number
+            try:
+                while time.monotonic() < end:
+                    kind = self.lane.rng.choice(self.KINDS)
+                    getattr(self, kind)(kind)
+                    self.supervise()
+                    time.sleep(self.lane.rng.uniform(0.2, 1.5))
+            except Exception as e:  # noqa: BLE001 (raised again below)
+                errors.append(e)
+
+        threads = [threading.Thread(target=lane, args=(i,)) for i in range(lanes)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        if errors:
+            raise errors[0]
 
     def restart(self, node, kind, fault=None):
-        start = self.history.now()
-        node.kill9()
-        down = self.rng.uniform(0, 2)
-        time.sleep(down)  # how long the node stays down: a fault's duration, not a wait
-        node.start(fault)
-        ready = node.ready()
+        with node.lock:
+            start = self.history.now()
+            node.kill9()
+            down = self.lane.rng.uniform(0, 2)
+            time.sleep(down)  # how long the node stays down: a fault's duration, not a wait
+            node.start(fault)
+            ready = node.ready()
         self.history.fault(kind=kind, node=node.name, start=start, end=self.history.now(),
-                           down=round(down, 2), fault=fault, ready=ready)
+                           down=round(down, 2), ready=ready)
 
     def kill_writer(self, kind):
         self.restart(self.pick(True), kind)
@@ -627,8 +659,8 @@ class Nemesis:
     def disk_fault(self, kind):
         """Arms the fault library of a writer (VSM_FAULT_ARM): its next call of the class fails.
         Disarmed when it has not fired within 5 s (no write came)."""
-        cls = self.rng.choice(FAULT_CLASSES)
-        error = "EIO" if cls == "read" else self.rng.choice(["ENOSPC", "EIO"])
+        cls = self.lane.rng.choice(FAULT_CLASSES)
+        error = "EIO" if cls == "read" else self.lane.rng.choice(["ENOSPC", "EIO"])
         node = self.pick(cls != "read")
         start = self.history.now()
         with open(node.arm + ".new", "w") as f:
@@ -647,7 +679,7 @@ class Nemesis:
 
     def pause_etcd(self, kind):
         start = self.history.now()
-        seconds = self.rng.uniform(1, 2 * LEASE_TTL)
+        seconds = self.lane.rng.uniform(1, 2 * LEASE_TTL)
         os.kill(self.etcd_pid, signal.SIGSTOP)
         try:
             time.sleep(seconds)  # the fault's duration
@@ -657,9 +689,9 @@ class Nemesis:
                            seconds=round(seconds, 2))
 
     def pause_node(self, kind):
-        node = self.pick(self.rng.random() < 0.5)
+        node = self.pick(self.lane.rng.random() < 0.5)
         start = self.history.now()
-        seconds = self.rng.uniform(1, 2 * LEASE_TTL)
+        seconds = self.lane.rng.uniform(1, 2 * LEASE_TTL)
         node.signal(signal.SIGSTOP)
         node.stopped = True
         try:
@@ -671,10 +703,10 @@ class Nemesis:
                            seconds=round(seconds, 2))
 
     def cut_etcd(self, kind):
-        node = self.pick(self.rng.random() < 0.5)
-        mode = self.rng.choice(["reset", "blackhole"])
+        node = self.pick(self.lane.rng.random() < 0.5)
+        mode = self.lane.rng.choice(["reset", "blackhole"])
         start = self.history.now()
-        seconds = self.rng.uniform(1, 2 * LEASE_TTL)
+        seconds = self.lane.rng.uniform(1, 2 * LEASE_TTL)
         node.proxy.cut(mode)
         try:
             time.sleep(seconds)  # the fault's duration
@@ -686,14 +718,17 @@ class Nemesis:
     def slow_reads(self, kind):
         node = self.pick(False)
         start = self.history.now()
-        seconds = self.rng.uniform(0.5, 3)
+        seconds = self.lane.rng.uniform(0.5, 3)
         with open(node.gate + ".new", "w") as f:
             f.write("0\n")
         os.replace(node.gate + ".new", node.gate)  # every read-open from now on waits
         try:
             time.sleep(seconds)  # the fault's duration
         finally:
-            os.remove(node.gate)
+            try:
+                os.remove(node.gate)
+            except FileNotFoundError:
+                pass  # another lane's slow_reads of this node ended first
         held = [n for n in os.listdir(os.path.dirname(node.gate))
                 if n.startswith(node.name + ".held-")]
         self.history.fault(kind=kind, node=node.name, start=start, end=self.history.now(),
@@ -949,11 +984,13 @@ def main():
         parser.add_argument(name, required=True)
     parser.add_argument("--seconds", type=float,
                         default=float(os.environ.get("VSM_NEMESIS_SECONDS", "60")))
+    parser.add_argument("--lanes", type=int, default=int(os.environ.get("VSM_NEMESIS_LANES", "2")),
+                        help="faults acting at once at most (each lane one after the other)")
     parser.add_argument("--seed", type=int, default=int(os.environ.get(
         "VSM_NEMESIS_SEED", str(int.from_bytes(os.urandom(4), "little")))))
     ARGS = parser.parse_args()
-    print("nemesis: seed %d, %g s (replay: --seed %d or VSM_NEMESIS_SEED=%d)" % (
-        ARGS.seed, ARGS.seconds, ARGS.seed, ARGS.seed), flush=True)
+    print("nemesis: seed %d, %g s, %d lanes (replay: --seed %d or VSM_NEMESIS_SEED=%d)" % (
+        ARGS.seed, ARGS.seconds, ARGS.lanes, ARGS.seed, ARGS.seed), flush=True)
     directory = os.path.abspath(ARGS.work)
     shutil.rmtree(directory, ignore_errors=True)
     data = os.path.join(directory, "data")
@@ -993,14 +1030,15 @@ def main():
         print("nodes behind their proxies to etcd: %s" % {n: p.proxy.url for n, p in nodes.items()},
               flush=True)
 
-        rng = random.Random(ARGS.seed)
-        nemesis = Nemesis(history, rng, nodes, etcd_pid, cluster.etcd, directory)
+        global NEMESIS_LANE
+        nemesis = Nemesis(history, ARGS.seed, nodes, etcd_pid, cluster.etcd, directory)
+        NEMESIS_LANE = nemesis.lane
         clients = Clients(history, ARGS.seed, stop)
         history.restart_clock()
         clients.start()
         started = time.monotonic()
         try:
-            nemesis.run(ARGS.seconds)
+            nemesis.run(ARGS.seconds, ARGS.lanes)
         finally:
             nemesis.heal()
         print("nemesis over after %.1f s; healed" % (time.monotonic() - started), flush=True)
