@@ -814,9 +814,9 @@ def converge(cluster, nodes, models, checks, timeout=120):
             finals[model] = (writer, version, body)
             for name, (s, b) in answers.items():
                 if s != 200 or b != body:
-                    failures.append("%s: %s serves %s (version %s), the writer %s version %d" % (
+                    failures.append("%s: %s answers %s (version %s), the writer %s version %d%s" % (
                         model, name, s, json.loads(b)["version"] if s == 200 else "-", writer,
-                        version))
+                        version, ", other bytes" if s == 200 else ""))
         if not failures or time.monotonic() > deadline:
             break
         time.sleep(0.2)
