@@ -518,6 +518,8 @@ class Clients:
         status, headers, body = front_get(path)
         op = dict(kind=kind, start=start, end=h.now(), status=status, model=model, path=path,
                   **fields)
+        if status != 200:
+            op["answer"] = body[:200].decode(errors="replace")
         if status == 200:
             op["digest"] = digest(body)
             op["node"] = headers.get("X-VSM-Node")
