@@ -55,13 +55,16 @@ the test waits until no job is queued or running, and checks:
    job no client submitted (beyond the submissions the front answered with an error or not at
    all), or by a job that ended failed or cancelled; no job made two, and no two acknowledged
    jobs name one version;
-2. one content per version: every hierarchy read as version N (unversioned, by ?v=N, from each
-   node at the end, and the revision file on disk) has the same bytes; every tileset of model
-   version N the same bytes; every GLB and positions of one patch version the same bytes;
+2. one content per version: every hierarchy read as version N (unversioned through the front,
+   by ?v=N through the front, and by ?rev=N from each node at the end) has the same bytes; every
+   tileset of model version N the same bytes; every GLB and positions of one patch version the
+   same bytes;
 3. convergence: every node serves, for every model, the version etcd's writer serves, with the
    same hierarchy bytes;
-4. no mix: a GLB read by a tileset's `?v=K` and positions read by `?v=N` answer that version
-   (X-VSM-Patch-Version, X-VSM-Model-Version) or not at all; a hierarchy by ?v=N says N;
+4. no mix: a GLB read by a tileset's `?v=K` answers patch version K, positions read by `?v=N`
+   (N the version of the hierarchy that listed the patch) the patch version that hierarchy says,
+   from a snapshot of N or later (X-VSM-Patch-Version, X-VSM-Model-Version), or not at all; a
+   hierarchy by ?v=N says N; a tileset's X-VSM-Model-Version is its document's model_version;
 5. `vsm validate` passes for every model.
 The counts are printed: operations by kind and result, faults by kind (and injected disk faults
 that fired), each check. Exit 1 when a check fails.
