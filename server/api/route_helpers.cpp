@@ -196,14 +196,21 @@ std::optional<VersionedPatch> versionedPatch(core::LiveModel& live, const http::
   if (asked && *asked > snapshot->version) {
     throw versionNotServed(live, *asked, *snapshot, revision);
   }
-  const core::PatchInfo* info = &findPatch(live.name(), *snapshot, key);
-  if (!asked || info->version <= *asked) {
+  const core::PatchInfo* info = snapshot->model->find(key);
+  if (info == nullptr && (!asked || revision || *asked == snapshot->version)) {
+    findPatch(live.name(), *snapshot, key);  // throws NotFound naming the version
+  }
+  if (!asked || (info != nullptr && info->version <= *asked)) {
     return VersionedPatch{std::move(snapshot), info};
   }
-  // The patch was rewritten after version `asked`: what that version holds is older.
-  const std::string rewritten = " (patch " + key.toString() + " of version " +
-                                std::to_string(info->version) + ", rewritten after version " +
-                                std::to_string(*asked) + ")";
+  // The patch was rewritten, or removed (a restore), after version `asked`: what that version
+  // holds is older.
+  const std::string rewritten =
+      info != nullptr
+          ? " (patch " + key.toString() + " of version " + std::to_string(info->version) +
+                ", rewritten after version " + std::to_string(*asked) + ")"
+          : " (without patch " + key.toString() + ", removed after version " +
+                std::to_string(*asked) + ")";
   if (revision) {
     throw Error(ErrorCode::NotFound, "?v=" + std::to_string(*asked) + " asks for version " +
                                          std::to_string(*asked) + " of model '" + live.name() +

@@ -28,6 +28,11 @@
 //                     failed (as a retransmitted rename over NFS reports ENOENT after the server
 //                     applied it)
 //   VSM_FAULT_REPORT  file: the injected fault is appended as "<class> <n> <errno> <path>"
+//   VSM_FAULT_ARM     file: while it exists and holds "<class> <errno>" (e.g. "create ENOSPC";
+//                     errno EIO, ENOSPC or ENOENT), the next call of that class fails with that
+//                     errno (once: the library removes the file), so that a test arms a fault in
+//                     a running process at a moment of its choosing
+//                     (tests/integration/nemesis_test.py); reported as VSM_FAULT_CLASS's faults are
 //   VSM_FAULT_HOLD    a class whose calls can be held, so that a test stops a writer at a chosen
 //   VSM_FAULT_GATE    point, looks at it there, and lets it go on (with or without a fault):
 //                     call n of the class waits, before it is made, while the file
@@ -67,6 +72,7 @@ static long faultN;
 static int faultErrno = EIO;
 static int faultApplied;
 static char gatePath[PATH_MAX - 32];
+static char armPath[PATH_MAX];
 static int holdClass = -1;
 static unsigned long counts[kClasses];
 static unsigned long sequence;
@@ -116,6 +122,10 @@ __attribute__((constructor)) static void setup(void) {
   }
   if (e != NULL && strcmp(e, "ENOENT") == 0) {
     faultErrno = ENOENT;
+  }
+  const char* arm = getenv("VSM_FAULT_ARM");
+  if (arm != NULL && strlen(arm) < sizeof armPath) {
+    strcpy(armPath, arm);
   }
   const char* a = getenv("VSM_FAULT_APPLIED");
   faultApplied = a != NULL && strcmp(a, "1") == 0;
@@ -175,6 +185,32 @@ static long gateAllows(void) {
   return strtol(text, NULL, 10);
 }
 
+/// The errno armed for class `c` by VSM_FAULT_ARM's file, which is then removed (so it fires
+/// once); 0 when none is armed for it. Called under the mutex.
+static int armed(int c) {
+  if (armPath[0] == '\0') {
+    return 0;
+  }
+  const int fd = (int)syscall(SYS_openat, AT_FDCWD, armPath, O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    return 0;
+  }
+  char text[64];
+  const long n = (long)syscall(SYS_read, fd, text, sizeof text - 1);
+  syscall(SYS_close, fd);
+  text[n > 0 ? n : 0] = '\0';
+  const size_t length = strlen(kClassNames[c]);
+  if (strncmp(text, kClassNames[c], length) != 0 || text[length] != ' ') {
+    return 0;
+  }
+  const char* name = text + length + 1;
+  const int e = strncmp(name, "ENOSPC", 6) == 0   ? ENOSPC
+                : strncmp(name, "ENOENT", 6) == 0 ? ENOENT
+                                                  : EIO;
+  syscall(SYS_unlinkat, AT_FDCWD, armPath, 0);
+  return e;
+}
+
 /// Waits while the gate holds call `n` (see VSM_FAULT_GATE), showing it in "<gate>.held-<n>".
 static void hold(unsigned long n, const char* path) {
   const long allows = gateAllows();
@@ -211,7 +247,8 @@ static int fault(int c, const char* path) {
   pthread_mutex_lock(&mutex);
   const unsigned long n = ++counts[c];
   const unsigned long seq = ++sequence;
-  const int inject = c == faultClass && (long)n == faultN;
+  const int error = c == faultClass && (long)n == faultN ? faultErrno : armed(c);
+  const int inject = error != 0;
   char line[PATH_MAX + 96];
   if (tracePath[0] != '\0') {
     snprintf(line, sizeof line, "%lu %s %lu %s\n", seq, kClassNames[c], n, path);
@@ -219,9 +256,9 @@ static int fault(int c, const char* path) {
   }
   if (inject && reportPath[0] != '\0') {
     snprintf(line, sizeof line, "%s %lu %s %s\n", kClassNames[c], n,
-             faultErrno == ENOSPC   ? "ENOSPC"
-             : faultErrno == ENOENT ? "ENOENT"
-                                    : "EIO",
+             error == ENOSPC   ? "ENOSPC"
+             : error == ENOENT ? "ENOENT"
+                               : "EIO",
              path);
     appendLine(reportPath, line);
   }
@@ -230,7 +267,7 @@ static int fault(int c, const char* path) {
     hold(n, path);  // not under the mutex: the process's other calls go on
   }
   if (inject) {
-    errno = faultErrno;
+    errno = error;
   }
   return inject;
 }

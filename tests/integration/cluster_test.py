@@ -27,7 +27,6 @@ nodes over one data root, real nginx in front (deploy/nginx/vsm.conf).
 """
 
 import argparse
-import base64
 import json
 import os
 import shutil
@@ -39,7 +38,9 @@ import time
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import cluster_support  # noqa: E402
 import harness  # noqa: E402
+from cluster_support import etcd_value, read_env  # noqa: E402
 from hold import poll  # noqa: E402
 
 ARGS = None
@@ -48,8 +49,8 @@ TOKEN = "cluster-test-token"
 
 
 def request(url, method="GET", body=None, timeout=30, token=TOKEN):
-    """(status, headers, body bytes); the token goes with writes only; no redirect is followed."""
-    return harness.request(url, method, body, timeout, token=token if method != "GET" else None)
+    """(status, headers, body bytes); no redirect is followed."""
+    return cluster_support.request(url, method, body, timeout, token)
 
 
 def get_json(url):
@@ -57,25 +58,6 @@ def get_json(url):
     if status != 200:
         raise AssertionError("GET %s: %d %s" % (url, status, body[:200]))
     return json.loads(body)
-
-
-def etcd_value(etcd, key):
-    """The value of `key` in etcd (its v3 JSON API), or None."""
-    status, _, body = request(etcd + "/v3/kv/range", "POST",
-                              {"key": base64.b64encode(key.encode()).decode()}, token=None)
-    if status != 200:
-        raise AssertionError("etcd range: %d %s" % (status, body[:200]))
-    kvs = json.loads(body).get("kvs", [])
-    return base64.b64decode(kvs[0]["value"]).decode() if kvs else None
-
-
-def read_env(path):
-    env = {}
-    with open(path) as f:
-        for line in f:
-            name, _, value = line.strip().partition("=")
-            env[name] = value
-    return env
 
 
 class Cluster(unittest.TestCase):

@@ -38,12 +38,10 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 import unittest
-import urllib.error
-import urllib.request
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import cluster_support  # noqa: E402
 from hold import Hold, poll  # noqa: E402
 
 ARGS = None
@@ -52,20 +50,11 @@ TOKEN = "fence-test-token"
 
 
 def request(url, method="GET", body=None, timeout=30, token=TOKEN):
-    """(status, body bytes)."""
-    data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url, data=data, method=method)
-    if body is not None:
-        req.add_header("Content-Type", "application/json")
-    if method != "GET" and token:
-        req.add_header("Authorization", "Bearer " + token)
-    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
+    """(status, body bytes); status 0 with the error when the node cannot be reached."""
     try:
-        with opener.open(req, timeout=timeout) as response:
-            return response.status, response.read()
-    except urllib.error.HTTPError as e:
-        return e.code, e.read()
-    except (urllib.error.URLError, OSError) as e:
+        status, _, answer = cluster_support.request(url, method, body, timeout, token)
+        return status, answer
+    except OSError as e:
         return 0, str(e).encode()
 
 

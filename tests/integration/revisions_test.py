@@ -9,7 +9,8 @@ by the real `vsm` at --patch-size 65), driven over HTTP as a client would.
    patch's positions byte for byte as they were before the merge (a 3D Tiles tileset of ?rev=1
    points its tiles at revision 1); the ETags of the two revisions differ.
 2. Restoring revision 1 (a job, with the token) makes revision 3, whose hierarchy and positions
-   equal revision 1's patch for patch; its record says what it restored.
+   equal revision 1's patch for patch; its record says what it restored. The patches it removed
+   still answer ?v=2 (from revision 2), and 404 for ?v=3.
 3. Bad revisions: ?rev=0 and ?rev=x are 400, a revision never made is 404, a restore without
    the token is 401, of a revision not kept 404.
 4. Retention: after 12 more merges with --keep-revisions 8, exactly 8 revisions are listed, the
@@ -139,6 +140,15 @@ class Revisions(unittest.TestCase):
         self.assertEqual(now[0]["version"], 3)
         self.assertEqual(self.structure(now[1]["root"]), self.structure(before[1]["root"]))
         self.assertEqual(now[2], before[2])
+        # The patches the restore removed, asked as version 2 holds them (the links of version
+        # 2's documents): from revision 2, not 404 (seen by cluster.nemesis, seed 22).
+        removed = sorted(set(after[2]) - set(before[2]))
+        self.assertGreater(len(removed), 0)
+        for key in removed:
+            headers, data = self.get("/v1/models/PRISMelevation/patches/%s/positions?v=2" % key)
+            self.assertEqual(data, after[2][key], key)
+            self.assertEqual(headers["X-VSM-Patch-Version"], "2", key)
+        self.get("/v1/models/PRISMelevation/patches/%s/positions?v=3" % removed[0], 404)
 
         # 3. Bad revisions.
         for bad in ("0", "x", "-1", "1.5", "99999999999999999999"):
