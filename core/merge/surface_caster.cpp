@@ -9,17 +9,17 @@
 #include <string>
 
 #include "core/common/error.hpp"
+#include "core/merge/cell_geometry.hpp"
 #include "core/merge/surface_sampler.hpp"
 
 namespace vsm::core {
 
 namespace {
 
+using namespace cell_geometry;
+
 constexpr std::uint32_t kNone = std::numeric_limits<std::uint32_t>::max();
 
-// As SurfaceSampler: barycentric coordinates may come out a few ulps negative for a point on a
-// shared edge; both neighbours then accept it.
-constexpr double kBarycentricSlack = 1e-9;
 // A hit this close (grid units) to its cell's border, or outside it, is also intersected with the
 // cell's neighbours: far above kBarycentricSlack, so a neighbour that could tie is always looked
 // at.
@@ -29,26 +29,6 @@ constexpr std::size_t kChunk = 128;
 
 double dot(const Vec3d& a, const Vec3d& b) {
   return a.x * b.x + a.y * b.y + a.z * b.z;
-}
-
-double cross2(const Vec2d& a, const Vec2d& b) {
-  return a.u * b.v - a.v * b.u;
-}
-
-Vec2d sub2(const Vec2d& a, const Vec2d& b) {
-  return {a.u - b.u, a.v - b.v};
-}
-
-std::array<double, 3> barycentric(const Vec2d& a, const Vec2d& b, const Vec2d& c, const Vec2d& q) {
-  const Vec2d ab = sub2(b, a), ac = sub2(c, a), aq = sub2(q, a);
-  const double d = cross2(ab, ac);
-  const double l1 = cross2(aq, ac) / d;
-  const double l2 = cross2(ab, aq) / d;
-  return {1 - l1 - l2, l1, l2};
-}
-
-bool inside(const std::array<double, 3>& l) {
-  return l[0] >= -kBarycentricSlack && l[1] >= -kBarycentricSlack && l[2] >= -kBarycentricSlack;
 }
 
 // Grid offsets of a cell's corners, in the order (0,0), (1,0), (1,1), (0,1).
@@ -231,36 +211,11 @@ struct SurfaceCaster::Impl {
     const Vec2d p10 = line.frame.project(vertices[cell.corners[1]]);
     const Vec2d p11 = line.frame.project(vertices[cell.corners[2]]);
     const Vec2d p01 = line.frame.project(vertices[cell.corners[3]]);
-    const auto l1 = barycentric(p00, p10, p11, q);
-    const auto l2 = barycentric(p00, p11, p01, q);
-    const double min1 = std::min({l1[0], l1[1], l1[2]});
-    const double min2 = std::min({l2[0], l2[1], l2[2]});
-    double s = 0, t = 0;
-    if (min1 >= min2) {
-      s = l1[1] + l1[2];
-      t = l1[2];
-    } else {
-      s = l2[1];
-      t = l2[1] + l2[2];
-    }
-    const Vec2d e = sub2(p10, p00), f = sub2(p01, p00);
-    const Vec2d g{p00.u - p10.u - p01.u + p11.u, p00.v - p10.v - p01.v + p11.v};
-    bool converged = g.u == 0 && g.v == 0;
-    for (int iteration = 0; iteration < 12 && !converged; ++iteration) {
-      const Vec2d residual{p00.u + s * e.u + t * f.u + s * t * g.u - q.u,
-                           p00.v + s * e.v + t * f.v + s * t * g.v - q.v};
-      const Vec2d ds{e.u + t * g.u, e.v + t * g.v};
-      const Vec2d dt{f.u + s * g.u, f.v + s * g.v};
-      const double det = cross2(ds, dt);
-      if (det == 0 || !std::isfinite(det)) {
-        break;
-      }
-      const double stepS = cross2(residual, dt) / det;
-      const double stepT = cross2(ds, residual) / det;
-      s -= stepS;
-      t -= stepT;
-      converged = std::fabs(stepS) + std::fabs(stepT) < 1e-13;
-    }
+    const cell_geometry::BilinearPoint point = invertBilinear(p00, p10, p11, p01, q);
+    const auto& l1 = point.first;
+    const auto& l2 = point.second;
+    const double s = point.s, t = point.t;
+    const bool converged = point.converged;
     const double cs = std::clamp(s, 0.0, 1.0);
     const double ct = std::clamp(t, 0.0, 1.0);
     const double outside = s == cs && t == ct ? 0.0 : std::hypot(s - cs, t - ct);

@@ -1,0 +1,94 @@
+#pragma once
+
+// Internal to core/merge: the plane geometry of one grid cell that SurfaceSampler (cells
+// projected along up) and SurfaceCaster (cells projected across a ray) share, so that both find
+// the very same point of a cell.
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+
+#include "core/merge/surface_sampler.hpp"  // Vec2d
+
+namespace vsm::core::cell_geometry {
+
+// Barycentric coordinates may come out a few ulps negative for a point on a shared edge; both
+// neighbours then accept it (and agree on the result), so no point falls between triangles.
+inline constexpr double kBarycentricSlack = 1e-9;
+
+inline double cross2(const Vec2d& a, const Vec2d& b) {
+  return a.u * b.v - a.v * b.u;
+}
+
+inline Vec2d sub2(const Vec2d& a, const Vec2d& b) {
+  return {a.u - b.u, a.v - b.v};
+}
+
+/// Barycentric coordinates of q in the projected triangle (a, b, c); NaN when it is degenerate.
+inline std::array<double, 3> barycentric(const Vec2d& a, const Vec2d& b, const Vec2d& c,
+                                         const Vec2d& q) {
+  const Vec2d ab = sub2(b, a), ac = sub2(c, a), aq = sub2(q, a);
+  const double d = cross2(ab, ac);
+  const double l1 = cross2(aq, ac) / d;
+  const double l2 = cross2(ab, aq) / d;
+  return {1 - l1 - l2, l1, l2};
+}
+
+inline bool inside(const std::array<double, 3>& l) {
+  return l[0] >= -kBarycentricSlack && l[1] >= -kBarycentricSlack && l[2] >= -kBarycentricSlack;
+}
+
+/// Where q lies in the projected bilinear cell p00, p10, p11, p01 (corners (0,0), (1,0), (1,1),
+/// (0,1)): its barycentric coordinates in the cell's triangles (p00, p10, p11) and (p00, p11,
+/// p01), and the parameter (s, t) with q = p00 + s e + t f + s t g, by Newton's method from the
+/// nearer triangle's coordinates (exact for a parallelogram, a close start otherwise, also just
+/// outside). `converged` is false for a cell Newton cannot invert (strongly distorted, or seen
+/// edge-on): callers then fall back to the triangles.
+struct BilinearPoint {
+  std::array<double, 3> first{};
+  std::array<double, 3> second{};
+  double s = 0;
+  double t = 0;
+  bool converged = false;
+};
+
+inline BilinearPoint invertBilinear(const Vec2d& p00, const Vec2d& p10, const Vec2d& p11,
+                                    const Vec2d& p01, const Vec2d& q) {
+  BilinearPoint point;
+  point.first = barycentric(p00, p10, p11, q);
+  point.second = barycentric(p00, p11, p01, q);
+  const auto& l1 = point.first;
+  const auto& l2 = point.second;
+  double s = 0, t = 0;
+  if (std::min({l1[0], l1[1], l1[2]}) >= std::min({l2[0], l2[1], l2[2]})) {
+    s = l1[1] + l1[2];
+    t = l1[2];
+  } else {
+    s = l2[1];
+    t = l2[1] + l2[2];
+  }
+  const Vec2d e = sub2(p10, p00), f = sub2(p01, p00);
+  const Vec2d g{p00.u - p10.u - p01.u + p11.u, p00.v - p10.v - p01.v + p11.v};
+  bool converged = g.u == 0 && g.v == 0;  // a parallelogram: the start is exact
+  for (int iteration = 0; iteration < 12 && !converged; ++iteration) {
+    const Vec2d residual{p00.u + s * e.u + t * f.u + s * t * g.u - q.u,
+                         p00.v + s * e.v + t * f.v + s * t * g.v - q.v};
+    const Vec2d ds{e.u + t * g.u, e.v + t * g.v};  // d/ds
+    const Vec2d dt{f.u + s * g.u, f.v + s * g.v};  // d/dt
+    const double det = cross2(ds, dt);
+    if (det == 0 || !std::isfinite(det)) {
+      break;
+    }
+    const double stepS = cross2(residual, dt) / det;
+    const double stepT = cross2(ds, residual) / det;
+    s -= stepS;
+    t -= stepT;
+    converged = std::fabs(stepS) + std::fabs(stepT) < 1e-13;
+  }
+  point.s = s;
+  point.t = t;
+  point.converged = converged;
+  return point;
+}
+
+}  // namespace vsm::core::cell_geometry
