@@ -26,6 +26,20 @@ def request(url, method="GET", body=None, timeout=30, token=None, headers=None):
                            headers=headers)
 
 
+def import_models(vsm, rasters, data, token_file, token):
+    """PRISM and Jacksboro (`rasters` holds the shared DEMs) imported into `data` as models
+    `prism` and `jacksboro`, in patches of 65 x 65 (a few hundred patches, enough to spread over
+    nodes), and `token` written to `token_file` (mode 0600) for the nodes."""
+    os.makedirs(data, exist_ok=True)
+    for name, raster in (("prism", "PRISMelevation.tif"), ("jacksboro", "jacksboro_fault_dem.tif")):
+        subprocess.run([vsm, "import", os.path.join(rasters, raster), os.path.join(data, name),
+                        "--patch-size", "65"],
+                       check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    with open(token_file, "w") as f:
+        f.write(token + "\n")
+    os.chmod(token_file, 0o600)
+
+
 def etcd_value(etcd, key):
     """The value of `key` in etcd (its v3 JSON API), or None."""
     status, _, body = request(etcd + "/v3/kv/range", "POST",

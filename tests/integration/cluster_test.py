@@ -65,17 +65,9 @@ class Cluster(unittest.TestCase):
     def setUpClass(cls):
         cls.dir = os.path.abspath(ARGS.work)
         shutil.rmtree(cls.dir, ignore_errors=True)
-        os.makedirs(os.path.join(cls.dir, "data"))
         cls.data = os.path.join(cls.dir, "data")
-        for name, raster in (("prism", "PRISMelevation.tif"), ("jacksboro", "jacksboro_fault_dem.tif")):
-            # Patches of 65 x 65: a few hundred patches, enough to spread.
-            subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, raster),
-                            os.path.join(cls.data, name), "--patch-size", "65"],
-                           check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         token = os.path.join(cls.dir, "token")
-        with open(token, "w") as f:
-            f.write(TOKEN + "\n")
-        os.chmod(token, 0o600)
+        cluster_support.import_models(ARGS.vsm, ARGS.data, cls.data, token, TOKEN)
         cls.script = os.path.join(ARGS.repo, "deploy", "local-cluster.sh")
         env = dict(os.environ, VSMD=ARGS.vsmd, VSM_LEASE_TTL="%ds" % LEASE_TTL,
                    VSM_MEMORY_BUDGET="128MiB", VSM_TOKEN_FILE=token)

@@ -117,16 +117,8 @@ class Fence(unittest.TestCase):
         cls.dir = os.path.abspath(ARGS.work)
         shutil.rmtree(cls.dir, ignore_errors=True)
         cls.data = os.path.join(cls.dir, "data")
-        os.makedirs(cls.data)
-        for name, raster in (("prism", "PRISMelevation.tif"),
-                             ("jacksboro", "jacksboro_fault_dem.tif")):
-            subprocess.run([ARGS.vsm, "import", os.path.join(ARGS.data, raster),
-                            os.path.join(cls.data, name), "--patch-size", "65"],
-                           check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         token = os.path.join(cls.dir, "token")
-        with open(token, "w") as f:
-            f.write(TOKEN + "\n")
-        os.chmod(token, 0o600)
+        cluster_support.import_models(ARGS.vsm, ARGS.data, cls.data, token, TOKEN)
         etcd_port, peer_port, p1, p2 = free_ports(4)
         cls.etcd = "http://127.0.0.1:%d" % etcd_port
         cls.logs["etcd"] = open(os.path.join(cls.dir, "etcd.log"), "w")
