@@ -7,6 +7,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <optional>
 
 #include "core/merge/surface_sampler.hpp"  // Vec2d
 
@@ -36,6 +37,42 @@ inline std::array<double, 3> barycentric(const Vec2d& a, const Vec2d& b, const V
 
 inline bool inside(const std::array<double, 3>& l) {
   return l[0] >= -kBarycentricSlack && l[1] >= -kBarycentricSlack && l[2] >= -kBarycentricSlack;
+}
+
+/// A point with barycentric coordinates `l` in a triangle whose corners lie at grid coordinates
+/// (x[k], y[k]), moved onto the triangle: its coordinates clamped at 0 and re-normalised
+/// (`weights`), and how far that moved it, in grid units (`outside`, 0 when it was inside; the
+/// triangle's projection is affine, so this is exact). Nothing for non-finite coordinates (a
+/// degenerate triangle).
+struct ClampedPoint {
+  std::array<double, 3> weights{};
+  double outside = 0;
+};
+
+inline std::optional<ClampedPoint> clampOntoTriangle(const std::array<double, 3>& l,
+                                                     const std::array<double, 3>& x,
+                                                     const std::array<double, 3>& y) {
+  if (!std::isfinite(l[0]) || !std::isfinite(l[1]) || !std::isfinite(l[2])) {
+    return std::nullopt;
+  }
+  std::array<double, 3> clamped{};
+  for (int k = 0; k < 3; ++k) {
+    clamped[k] = std::max(l[k], 0.0);
+  }
+  const double sum = clamped[0] + clamped[1] + clamped[2];
+  ClampedPoint point;
+  for (int k = 0; k < 3; ++k) {
+    point.weights[k] = clamped[k] / sum;
+  }
+  if (!inside(l)) {
+    double du = 0, dv = 0;
+    for (int k = 0; k < 3; ++k) {
+      du += (l[k] - point.weights[k]) * x[k];
+      dv += (l[k] - point.weights[k]) * y[k];
+    }
+    point.outside = std::hypot(du, dv);
+  }
+  return point;
 }
 
 /// Where q lies in the projected bilinear cell p00, p10, p11, p01 (corners (0,0), (1,0), (1,1),

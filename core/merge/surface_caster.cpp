@@ -159,30 +159,17 @@ struct SurfaceCaster::Impl {
 
   static std::optional<CellHit> onTriangle(const std::array<int, 3>& which,
                                            const std::array<double, 3>& l) {
-    if (!std::isfinite(l[0]) || !std::isfinite(l[1]) || !std::isfinite(l[2])) {
+    // As SurfaceSampler::onTriangle: the point clamped onto the triangle, in the cell's grid
+    // units.
+    const std::optional<ClampedPoint> point = clampOntoTriangle(
+        l, {double(kCornerX[which[0]]), double(kCornerX[which[1]]), double(kCornerX[which[2]])},
+        {double(kCornerY[which[0]]), double(kCornerY[which[1]]), double(kCornerY[which[2]])});
+    if (!point || !(point->outside <= SurfaceSampler::kBorderTolerance)) {
       return std::nullopt;
     }
-    // As SurfaceSampler::onTriangle: clamp the barycentric coordinates onto the triangle; how far
-    // that moved the point, in grid units, is how far outside it lies.
-    std::array<double, 3> clamped{};
+    CellHit hit{{0, 0, 0, 0}, point->outside, false};
     for (int k = 0; k < 3; ++k) {
-      clamped[k] = std::max(l[k], 0.0);
-    }
-    const double sum = clamped[0] + clamped[1] + clamped[2];
-    CellHit hit{{0, 0, 0, 0}, 0, false};
-    for (int k = 0; k < 3; ++k) {
-      hit.weights[which[k]] = clamped[k] / sum;
-    }
-    if (!inside(l)) {
-      double du = 0, dv = 0;
-      for (int k = 0; k < 3; ++k) {
-        du += (l[k] - clamped[k] / sum) * kCornerX[which[k]];
-        dv += (l[k] - clamped[k] / sum) * kCornerY[which[k]];
-      }
-      hit.outside = std::hypot(du, dv);
-      if (!(hit.outside <= SurfaceSampler::kBorderTolerance)) {
-        return std::nullopt;
-      }
+      hit.weights[which[k]] = point->weights[k];
     }
     hit.nearBorder = hit.outside > 0 || std::min({l[0], l[1], l[2]}) < kNearBorder;
     return hit;

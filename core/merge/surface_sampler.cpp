@@ -381,30 +381,16 @@ std::optional<SurfaceSampler::CellHit> SurfaceSampler::onTriangle(const std::uin
 
 std::optional<SurfaceSampler::CellHit> SurfaceSampler::onTriangle(
     const std::uint32_t* t, const std::array<double, 3>& l) const {
-  if (!std::isfinite(l[0]) || !std::isfinite(l[1]) || !std::isfinite(l[2])) {
+  std::array<double, 3> x{}, y{};
+  for (int c = 0; c < 3; ++c) {
+    x[c] = origins_[t[c]].x;
+    y[c] = origins_[t[c]].y;
+  }
+  const std::optional<ClampedPoint> point = clampOntoTriangle(l, x, y);
+  if (!point || !(point->outside <= kBorderTolerance)) {
     return std::nullopt;
   }
-  // The projection of a triangle is affine, so the barycentric coordinates map q into the grid's
-  // parameter space exactly; clamping them (then re-normalising) moves an outside q onto the
-  // triangle, and the distance it moved there is how far outside it lies, in grid units.
-  std::array<double, 3> clamped{};
-  for (int c = 0; c < 3; ++c) {
-    clamped[c] = std::max(l[c], 0.0);
-  }
-  const double sum = clamped[0] + clamped[1] + clamped[2];
-  CellHit hit{{clamped[0] / sum, clamped[1] / sum, clamped[2] / sum, 0}, 0};
-  if (!inside(l)) {
-    double du = 0, dv = 0;
-    for (int c = 0; c < 3; ++c) {
-      du += (l[c] - hit.weights[c]) * origins_[t[c]].x;
-      dv += (l[c] - hit.weights[c]) * origins_[t[c]].y;
-    }
-    hit.outside = std::hypot(du, dv);
-    if (!(hit.outside <= kBorderTolerance)) {
-      return std::nullopt;
-    }
-  }
-  return hit;
+  return CellHit{{point->weights[0], point->weights[1], point->weights[2], 0}, point->outside};
 }
 
 std::optional<SurfaceSampler::CellHit> SurfaceSampler::onQuad(const std::uint32_t* c,
