@@ -163,8 +163,8 @@ void checkBorderOnTarget(MergeTarget& target, PatchSource& detail, const MergePl
       Box3d reach;
       for (int y = 0; y < s; ++y) {
         for (int x = 0; x < s; ++x) {
-          const bool onBorder =
-              (west && x == 0) || (east && x == s - 1) || (south && y == 0) || (north && y == s - 1);
+          const bool onBorder = (west && x == 0) || (east && x == s - 1) || (south && y == 0) ||
+                                (north && y == s - 1);
           if (!onBorder || !grid->defined(x, y)) {
             continue;
           }
@@ -263,8 +263,9 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
   // Candidates by boxes, a superset of the pairs the balls decide below: a leaf's Ball lies in
   // its box grown by the box's diagonal, and its search distance (its spacing) is at most half
   // that diagonal for grids of 3 x 3 and more, so a target leaf whose box grown by 1.5 times its
-  // diagonal misses every B leaf's box grown by that leaf's diagonal meets nothing. Descending from the root through such boxes
-  // keeps the cost with the affected subtree, not A's size (a parent's box holds its children's).
+  // diagonal misses every B leaf's box grown by that leaf's diagonal meets nothing. Descending from
+  // the root through such boxes keeps the cost with the affected subtree, not A's size (a parent's
+  // box holds its children's).
   std::vector<TargetLeaf> aLeaves;
   std::vector<PatchKey> pending{PatchKey::root()};
   while (!pending.empty()) {
@@ -379,8 +380,8 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
       // Far from every target leaf: the balls cannot meet (see the candidates above).
       throw Error(ErrorCode::InvalidArgument,
                   "detail model lies partly outside the target: its patch " +
-                      bLeaves[i].key.toString() + " around " +
-                      where(bLeaves[i].box.center()) + " is far from every target patch");
+                      bLeaves[i].key.toString() + " around " + where(bLeaves[i].box.center()) +
+                      " is far from every target patch");
     }
   }
   checkBorderOnTarget(target, detail, plan, aLeaves, aOfB, options);

@@ -34,11 +34,12 @@ std::shared_ptr<const TextureTile> textureOf(PatchSource& source, const PatchKey
 /// `detail` given, with `onDetail`: where on B each vertex of the patch was placed), else
 /// a's tile upsampled (`aTile`, may be null), else the patch's own shaded relief (so every patch a
 /// merge writes has a tile, whichever model had none).
-std::shared_ptr<const TextureTile> placeTexture(
-    const Subdivider& subdivider, int level, std::uint32_t i, std::uint32_t j,
-    const PatchGrid& grid, const TextureTile* aTile, const SurfaceCaster* detail, double search,
-    const std::vector<std::optional<CastHit>>& onDetail,
-    const std::vector<const TextureTile*>& bTiles) {
+std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, int level,
+                                                std::uint32_t i, std::uint32_t j,
+                                                const PatchGrid& grid, const TextureTile* aTile,
+                                                const SurfaceCaster* detail, double search,
+                                                const std::vector<std::optional<CastHit>>& onDetail,
+                                                const std::vector<const TextureTile*>& bTiles) {
   const bool fromDetail =
       detail != nullptr && level == subdivider.k() &&
       std::any_of(bTiles.begin(), bTiles.end(), [](const TextureTile* t) { return t != nullptr; });
@@ -65,7 +66,7 @@ std::shared_ptr<const TextureTile> placeTexture(
   auto detailColour = [&](int p, int q) -> std::array<std::uint8_t, 4> {
     const std::size_t corner = static_cast<std::size_t>(q) * n + static_cast<std::size_t>(p);
     const std::optional<CastHit>* c[4] = {&onDetail[corner], &onDetail[corner + 1],
-                                               &onDetail[corner + n], &onDetail[corner + n + 1]};
+                                          &onDetail[corner + n], &onDetail[corner + n + 1]};
     std::uint32_t b = 0;
     double x = 0, y = 0;
     if (std::all_of(std::begin(c), std::end(c),

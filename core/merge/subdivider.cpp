@@ -195,8 +195,7 @@ std::vector<Vec3d> Subdivider::normals(int level, std::uint32_t i, std::uint32_t
 }
 
 template <typename At>
-std::vector<Vec3d> Subdivider::lattice(int level, std::uint32_t i, std::uint32_t j,
-                                       At at) const {
+std::vector<Vec3d> Subdivider::lattice(int level, std::uint32_t i, std::uint32_t j, At at) const {
   if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
     throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
   }
