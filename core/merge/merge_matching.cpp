@@ -18,6 +18,11 @@ namespace {
 
 constexpr int kMaxNewLevels = 16;
 
+/// A new vertex looks for B's surface this many of its target leaf's spacings either way along
+/// its normal: B's features (a bump, a registration offset) may lie farther from A's coarse
+/// surface than one of its cells (merge.border's details are 5 to 9 m off a 3.4 m target).
+constexpr double kSearchSpacings = 4;
+
 Box3d transformed(const Box3d& box, const std::optional<Mat4d>& transform) {
   if (!transform || box.empty()) {
     return box;
@@ -38,12 +43,14 @@ double diagonal(const Box3d& box) {
   return box.empty() ? 0 : box.size().norm();
 }
 
-/// The smallest k >= 0 with 2^k >= ratio.
+/// The smallest k >= 0 with 2^k >= ratio, allowing the new level to be an eighth coarser than B:
+/// spacings on a curved or uneven surface scatter around their nominal ratio (a tunnel's leaves
+/// read 3.93 to 4.06 for a detail 4 times finer), and without that slack neighbouring leaves
+/// would take 2 or 3 levels by that noise: twice B's density, and T-junctions between them. A
+/// leaf already as fine as B (ratio <= 1, e.g. where B was merged before) needs no level at all.
 int levelsFor(double ratio) {
   int k = 0;
-  // A ratio that is a power of two up to rounding (e.g. 4.0000000001) needs no extra level; a
-  // leaf already as fine as B (ratio <= 1, e.g. where B was merged before) needs none at all.
-  while (k <= kMaxNewLevels && std::ldexp(1.0, k) < ratio * (1 - 1e-9)) {
+  while (k <= kMaxNewLevels && std::ldexp(1.0, k) < ratio * (1 - 1.0 / 8)) {
     ++k;
   }
   return k;
@@ -62,6 +69,7 @@ struct TargetLeaf {
   std::vector<std::size_t> candidates;  // B leaves near its box
   Ball ball;
   double spacing = 0;
+  double search = 0;  // kSearchSpacings times spacing
 };
 
 /// The target's vertices around `key` from its neighbours at the same depth (Ring): each side
@@ -113,8 +121,9 @@ Ring ringOf(MergeTarget& target, const PatchKey& key, const PatchGrid& grid, dou
 }
 
 /// B's outer border must lie on A's surface: each border vertex of a B leaf (on a grid side with
-/// no neighbouring B leaf at the same depth) is cast along B's normal there, up to `search` of
-/// the target leaves it meets either way, into those target leaves. Throws "partly outside the
+/// no neighbouring B leaf at the same depth) is cast along B's normal there, and where that
+/// misses along the leaf's mean normal, up to `search` of the target leaves it meets either way,
+/// into those target leaves. Throws "partly outside the
 /// target" with where and how many when some miss: B leaves A's surface there (beside it, beyond
 /// its border, or over its holes), and placing along A's normals would silently drop that part.
 void checkBorderOnTarget(MergeTarget& target, PatchSource& detail, const MergePlan& plan,
@@ -157,45 +166,60 @@ void checkBorderOnTarget(MergeTarget& target, PatchSource& detail, const MergePl
       };
       double search = 0;
       for (const std::size_t a : aOfB[i]) {
-        search = std::max(search, aLeaves[a].spacing);
+        search = std::max(search, aLeaves[a].search);
       }
+      // B's normal at (x, y): differences to its neighbours in the grid (one-sided on its sides
+      // and next to holes); nullopt where there are none.
+      auto normalAt = [&](int x, int y) -> std::optional<Vec3d> {
+        auto difference = [&](int x0, int y0, int x1, int y1) -> std::optional<Vec3d> {
+          const bool before = x0 >= 0 && y0 >= 0 && grid->defined(x0, y0);
+          const bool after = x1 < s && y1 < s && grid->defined(x1, y1);
+          if (before && after) {
+            return at(x1, y1) - at(x0, y0);
+          }
+          if (after) {
+            return at(x1, y1) - at(x, y);
+          }
+          if (before) {
+            return at(x, y) - at(x0, y0);
+          }
+          return std::nullopt;
+        };
+        const std::optional<Vec3d> du = difference(x - 1, y, x + 1, y);
+        const std::optional<Vec3d> dv = difference(x, y - 1, x, y + 1);
+        if (!du || !dv) {
+          return std::nullopt;
+        }
+        const Vec3d n{du->y * dv->z - du->z * dv->y, du->z * dv->x - du->x * dv->z,
+                      du->x * dv->y - du->y * dv->x};
+        const double length = n.norm();
+        if (!(length > 0)) {
+          return std::nullopt;
+        }
+        return n * (1 / length);
+      };
+      // The leaf's mean normal, for the vertices whose own normal is no guide: at the foot of a
+      // groove or on a rough scan a border vertex's normal may run along A instead of across it.
+      Vec3d mean;
       std::vector<CastRay> rays;
       Box3d reach;
       for (int y = 0; y < s; ++y) {
         for (int x = 0; x < s; ++x) {
+          if (!grid->defined(x, y)) {
+            continue;
+          }
+          const std::optional<Vec3d> n = normalAt(x, y);
+          if (!n) {
+            continue;
+          }
+          mean = mean + *n;
           const bool onBorder = (west && x == 0) || (east && x == s - 1) || (south && y == 0) ||
                                 (north && y == s - 1);
-          if (!onBorder || !grid->defined(x, y)) {
-            continue;
+          if (onBorder) {
+            const Vec3d p = at(x, y);
+            rays.push_back({p, *n, -search, search});
+            reach.extend(p);
           }
-          // B's normal: differences to the neighbours within the grid (one-sided on its sides).
-          auto difference = [&](int x0, int y0, int x1, int y1) -> std::optional<Vec3d> {
-            x0 = std::clamp(x0, 0, s - 1), x1 = std::clamp(x1, 0, s - 1);
-            y0 = std::clamp(y0, 0, s - 1), y1 = std::clamp(y1, 0, s - 1);
-            if (grid->defined(x0, y0) && grid->defined(x1, y1) && (x0 != x1 || y0 != y1)) {
-              return at(x1, y1) - at(x0, y0);
-            }
-            if (grid->defined(x1, y1) && (x != x1 || y != y1)) {
-              return at(x1, y1) - at(x, y);
-            }
-            if (grid->defined(x0, y0) && (x != x0 || y != y0)) {
-              return at(x, y) - at(x0, y0);
-            }
-            return std::nullopt;
-          };
-          const std::optional<Vec3d> du = difference(x - 1, y, x + 1, y);
-          const std::optional<Vec3d> dv = difference(x, y - 1, x, y + 1);
-          if (!du || !dv) {
-            continue;
-          }
-          const Vec3d n{du->y * dv->z - du->z * dv->y, du->z * dv->x - du->x * dv->z,
-                        du->x * dv->y - du->y * dv->x};
-          if (!(n.norm() > 0)) {
-            continue;
-          }
-          const Vec3d p = at(x, y);
-          rays.push_back({p, n, -search, search});
-          reach.extend(p);
         }
       }
       if (rays.empty()) {
@@ -208,6 +232,11 @@ void checkBorderOnTarget(MergeTarget& target, PatchSource& detail, const MergePl
       const SurfaceCaster onA(grids, std::nullopt, SurfaceCaster::Clip{grown(reach, search)});
       std::vector<std::optional<CastHit>> hits(rays.size());
       onA.cast(rays, hits);
+      for (std::size_t r = 0; r < rays.size(); ++r) {
+        if (!hits[r]) {
+          hits[r] = onA.cast({rays[r].origin, mean, -search, search});
+        }
+      }
       Outcome& outcome = outcomes[i];
       outcome.border = rays.size();
       for (std::size_t r = 0; r < rays.size(); ++r) {
@@ -234,7 +263,7 @@ void checkBorderOnTarget(MergeTarget& target, PatchSource& detail, const MergePl
                 "detail model lies partly outside the target: " + std::to_string(missed) +
                     " of its " + std::to_string(border) +
                     " border vertices are not over the target's surface (along their normal, "
-                    "within the target's spacing), the first at " +
+                    "within 4 of the target's spacings), the first at " +
                     where(*first));
   }
 }
@@ -261,18 +290,19 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
   }
 
   // Candidates by boxes, a superset of the pairs the balls decide below: a leaf's Ball lies in
-  // its box grown by the box's diagonal, and its search distance (its spacing) is at most half
-  // that diagonal for grids of 3 x 3 and more, so a target leaf whose box grown by 1.5 times its
-  // diagonal misses every B leaf's box grown by that leaf's diagonal meets nothing. Descending from
-  // the root through such boxes keeps the cost with the affected subtree, not A's size (a parent's
-  // box holds its children's).
+  // its box grown by the box's diagonal, and its search distance (kSearchSpacings spacings) is
+  // at most kSearchSpacings diagonals / (grid size - 1) for a regular grid, so a target leaf whose
+  // box grown by that much misses every B leaf's box grown by that leaf's diagonal meets nothing.
+  // Descending from the root through such boxes keeps the cost with the affected subtree, not A's
+  // size (a parent's box holds its children's).
   std::vector<TargetLeaf> aLeaves;
   std::vector<PatchKey> pending{PatchKey::root()};
   while (!pending.empty()) {
     const PatchKey key = pending.back();
     pending.pop_back();
     const PatchInfo& info = a.at(key);
-    const Box3d reach = grown(info.globalBox, 1.5 * diagonal(info.globalBox) + bReach);
+    const double aReach = diagonal(info.globalBox) * (1 + kSearchSpacings / (a.gridSize() - 1));
+    const Box3d reach = grown(info.globalBox, aReach + bReach);
     if (!reach.intersects(bBox)) {
       continue;
     }
@@ -282,10 +312,9 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
       }
       continue;
     }
-    TargetLeaf leaf{key, info.globalBox, {}, {}, 0};
+    TargetLeaf leaf{key, info.globalBox, {}, {}, 0, 0};
     for (std::size_t i = 0; i < bLeaves.size(); ++i) {
-      if (grown(info.globalBox, 1.5 * diagonal(info.globalBox) + diagonal(bLeaves[i].box))
-              .intersects(bLeaves[i].box)) {
+      if (grown(info.globalBox, aReach + diagonal(bLeaves[i].box)).intersects(bLeaves[i].box)) {
         leaf.candidates.push_back(i);
       }
     }
@@ -323,6 +352,7 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
         const std::shared_ptr<const PatchGrid> grid = target.positions(leaf.key);
         leaf.ball = ballOf(*grid);
         leaf.spacing = gridSpacing(*grid).mean;
+        leaf.search = kSearchSpacings * leaf.spacing;
       });
     }
     runTasks(options.executor, std::move(tasks));
@@ -334,9 +364,9 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
   std::vector<Match>& matches = plan.matches;
   for (std::size_t l = 0; l < aLeaves.size(); ++l) {
     const TargetLeaf& leaf = aLeaves[l];
-    Match match{leaf.key, {}, 1, leaf.spacing, {}};
+    Match match{leaf.key, {}, 1, leaf.search, {}};
     for (const std::size_t i : leaf.candidates) {
-      if (leaf.ball.meets(bLeaves[i].ball, leaf.spacing + bLeaves[i].spacing)) {
+      if (leaf.ball.meets(bLeaves[i].ball, leaf.search + bLeaves[i].spacing)) {
         match.detail.push_back(i);
         aOfB[i].push_back(l);
       }

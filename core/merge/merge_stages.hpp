@@ -35,9 +35,8 @@ struct Match {
   /// by `search` and the B leaf's spacing.
   std::vector<std::size_t> detail;
   int levels = 1;
-  /// How far along its normal a new vertex looks for B's surface (either way): the target leaf's
-  /// spacing on the surface (gridSpacing().mean), which bounds how far its bilinear surface lies
-  /// from a surface it samples.
+  /// How far along its normal a new vertex looks for B's surface (either way): 4 of the target
+  /// leaf's spacings on the surface (gridSpacing().mean; merge_matching.cpp says why 4).
   double search = 0;
   /// The target's vertices around the leaf, from its neighbours at the same depth.
   Ring ring;

@@ -255,7 +255,9 @@ class Tunnel(Surface):
         nv = 49
         a = Grid(0.0, 0.25, 65, -arc / 2, arc / (nv - 1), nv)
         wall = self.R * math.pi / 2  # phi = 90 degrees: the wall is vertical
-        super().__init__(a=a, b_start=(5.31, wall - 2.2), b_size=(4.5, 4.4),
+        # B from phi = 33 to 117 degrees, inside A's 120 (it once reached 132: vsm now refuses a
+        # detail that leaves the target's surface, and says where).
+        super().__init__(a=a, b_start=(5.31, wall - 3.0), b_size=(4.5, 4.4),
                          bump_at=(0.33, 0.5), groove_at=0.75)
 
     def base(self, u, v):
