@@ -54,9 +54,9 @@ struct MergeOptions {
   /// Rigid transform applied to every vertex (and box) of the detail model, e.g. from
   /// registerModels(). Never applied per patch.
   std::optional<Mat4d> transform;
-  /// Direction along which the detail surface is placed into the target (see SurfaceSampler).
-  /// Default: defaultUp() of the detail model's root box (the local vertical for ECEF models, +z
-  /// otherwise).
+  /// Registration only (registerModels' residual along it): the merge places B along the
+  /// normals of A's surface, whatever the direction. Default: defaultUp() of the detail model's
+  /// root box (the local vertical for ECEF models, +z otherwise).
   std::optional<Vec3d> up;
   /// Reads B's matched leaves and computes the new patches of a matched leaf (up to kMergeBatch
   /// at a time) in parallel; null: one after the other on the calling thread. The result is the
@@ -89,21 +89,23 @@ struct MergeResult {
 
 /// Inserts the detail model B into the target model A (DESIGN.md section 3, thesis 3.3):
 ///
-/// 1. matching: A's bottom patches whose footprint meets B's root footprint (found by descending
-///    A's tree, so the cost does not grow with A), then for each the bottom patches of B whose
-///    footprint meets it. Footprints are boxes projected onto the plane perpendicular to `up`, so
-///    a B whose heights differ from A's (the reason to merge it) still matches;
+/// 1. matching: A's bottom patches near B (found by descending A's tree through boxes grown by
+///    what their balls can reach, so the cost does not grow with A), paired with B's bottom
+///    patches whose balls meet theirs within the search distance (4 of the A leaf's spacings);
+///    B's outer border must lie on A's surface (cast along B's normals into A), else the merge
+///    is refused with where it leaves A;
 /// 2. placing: under each matched leaf a, k new levels with 2^k >= res(a) / res(B's matched
-///    leaves), resolutions measured in the plane perpendicular to `up` (the mean projected
-///    distance between grid neighbours, so a steep B over a flat A still counts as finer), k >= 0:
-///    a leaf already as fine as B (where B or a scan of its resolution was merged before) keeps its
-///    place in the tree and is placed on B's surface itself, so merging a scan again replaces its
-///    area instead of deepening the tree. A new patch is a's surface subdivided to its level
-///    (Subdivider); it is refined further only where B may have surface (SurfaceSampler::covers),
-///    down to level k, whose vertices are placed per vertex on B's surface (SurfaceSampler).
-///    Elsewhere it stays a leaf with a's surface interpolated (the thesis fills the whole new
-///    bottom level; this keeps the cost proportional to B's area instead of a's area times 4^k).
-///    Refined patches are added before their children as placeholders;
+///    leaves) (allowing an eighth), resolutions measured on the surface (gridSpacing, in 3D),
+///    k >= 0: a leaf already as fine as B (where B or a scan of its resolution was merged before)
+///    keeps its place in the tree and is placed on B's surface itself, so merging a scan again
+///    replaces its area instead of deepening the tree. A new patch is a's surface subdivided to
+///    its level (Subdivider); it is refined further only where B may have surface (balls), down
+///    to level k, whose vertices are cast along the normal of a's subdivided surface into B's
+///    triangles (SurfaceCaster; the nearest hit within the search distance wins; core/merge/
+///    README.md gives the rule for rays, folds and seams). Elsewhere it stays a leaf with a's
+///    surface interpolated (the thesis fills the whole new bottom level; this keeps the cost
+///    proportional to B's area instead of a's area times 4^k). Refined patches are added before
+///    their children as placeholders;
 /// 3. reducing: every stale overview, from the new levels up to the root, is recomputed by
 ///    reduction. Patches outside the matched leaves' subtrees and their ancestors are not touched.
 ///
@@ -119,8 +121,9 @@ struct MergeResult {
 /// Memory: the target's and B's patches are read through the cache (charged to its budget, B's
 /// grids pinned only while a task samples them). Beside the cache a merge holds the subdivider of
 /// the current matched leaf (a's vertices in double, 24 B each), per running task one sampler of
-/// the B cells under its new patch (SurfaceSampler clipped to the patch: about 76 B per B vertex
-/// there, e.g. 6 MB for 257 x 257 patches of B at the new level's spacing) and up to kMergeBatch
+/// the B cells within reach of its new patch (SurfaceCaster clipped to the patch's reach: about
+/// 300 B per B cell there, caster_bench's figure, e.g. 20 MB for 257 x 257 patches of B at the
+/// new level's spacing) and up to kMergeBatch
 /// finished new patches (grid and texture tile, about 1 MB each at 257 x 257) until they are
 /// inserted, in the order a single thread would insert them.
 ///
@@ -129,7 +132,8 @@ struct MergeResult {
 /// Throws Error(InvalidArgument) when either model is empty, when B lies outside A ("detail model
 /// lies outside the target") or only partly inside it, or when more than 16 levels would be
 /// needed; Error(Cancelled); the stores' errors. Where A is undefined nothing of B is placed (a
-/// new vertex needs A's position to look B up).
+/// new vertex needs A's position and normal to look B up); a B whose border lies over A's holes
+/// is refused as partly outside.
 MergeResult mergeModels(MergeTarget& target, PatchSource& detail, const MergeOptions& options = {});
 
 /// The same over the store: `target` is an open edit of A, `detail` the open model B (read at its

@@ -11,6 +11,7 @@
 #include "core/grid/shaded_relief.hpp"
 #include "core/merge/merge_stages.hpp"
 #include "core/merge/subdivider.hpp"
+#include "core/merge/surface_caster.hpp"
 
 namespace vsm::core::merge_stages {
 
@@ -29,15 +30,16 @@ std::shared_ptr<const TextureTile> textureOf(PatchSource& source, const PatchKey
 }
 
 /// The texture of new patch (i, j) of `level` below a's leaf, whose vertices are `grid`: per
-/// texel, B's texture where a textured part of B lies under the texel's centre (level k only,
-/// `detail` given, with `onDetail`: where on B positions() placed each vertex of the patch), else
+/// texel, B's texture where a textured part of B lies at the texel's centre (level k only,
+/// `detail` given, with `onDetail`: where on B each vertex of the patch was placed), else
 /// a's tile upsampled (`aTile`, may be null), else the patch's own shaded relief (so every patch a
 /// merge writes has a tile, whichever model had none).
-std::shared_ptr<const TextureTile> placeTexture(
-    const Subdivider& subdivider, int level, std::uint32_t i, std::uint32_t j,
-    const PatchGrid& grid, const TextureTile* aTile, const SurfaceSampler* detail,
-    const std::vector<std::optional<SurfacePoint>>& onDetail,
-    const std::vector<const TextureTile*>& bTiles) {
+std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, int level,
+                                                std::uint32_t i, std::uint32_t j,
+                                                const PatchGrid& grid, const TextureTile* aTile,
+                                                const SurfaceCaster* detail, double search,
+                                                const std::vector<std::optional<CastHit>>& onDetail,
+                                                const std::vector<const TextureTile*>& bTiles) {
   const bool fromDetail =
       detail != nullptr && level == subdivider.k() &&
       std::any_of(bTiles.begin(), bTiles.end(), [](const TextureTile* t) { return t != nullptr; });
@@ -55,16 +57,16 @@ std::shared_ptr<const TextureTile> placeTexture(
   // vertices (u0 + p, v0 + q) and (u0 + p + 1, v0 + q + 1) of level k.
   const std::int64_t u0 = std::int64_t{i} * size;
   const std::int64_t v0 = std::int64_t{j} * size;
-  // B's colour under the texel's centre. Where the four corners lie on one grid of B, its
+  // B's colour at the texel's centre. Where the four corners lie on one grid of B, its
   // parameter there is the mean of theirs (exact where B's cells and the quad are parallelograms,
   // otherwise off by the second order of the texel's size: a fraction of a texel far below what
   // rounding the colour keeps). Elsewhere (B's border, the seams between its grids) the centre
   // of the quad on a's surface (it lies in one cell of a, so the mean of its corners is its
-  // bilinear centre) is located on B by its projection.
+  // bilinear centre) is cast onto B along the quad's normal (the cross product of its diagonals).
   auto detailColour = [&](int p, int q) -> std::array<std::uint8_t, 4> {
     const std::size_t corner = static_cast<std::size_t>(q) * n + static_cast<std::size_t>(p);
-    const std::optional<SurfacePoint>* c[4] = {&onDetail[corner], &onDetail[corner + 1],
-                                               &onDetail[corner + n], &onDetail[corner + n + 1]};
+    const std::optional<CastHit>* c[4] = {&onDetail[corner], &onDetail[corner + 1],
+                                          &onDetail[corner + n], &onDetail[corner + n + 1]};
     std::uint32_t b = 0;
     double x = 0, y = 0;
     if (std::all_of(std::begin(c), std::end(c),
@@ -75,12 +77,15 @@ std::shared_ptr<const TextureTile> placeTexture(
         y += (*h)->y * 0.25;
       }
     } else {
-      const Vec3d centre =
-          (subdivider.interpolate(u0 + p, v0 + q) + subdivider.interpolate(u0 + p + 1, v0 + q) +
-           subdivider.interpolate(u0 + p, v0 + q + 1) +
-           subdivider.interpolate(u0 + p + 1, v0 + q + 1)) *
-          0.25;
-      const std::optional<SurfacePoint> hit = detail->locate(centre);
+      const Vec3d p00 = subdivider.interpolate(u0 + p, v0 + q);
+      const Vec3d p10 = subdivider.interpolate(u0 + p + 1, v0 + q);
+      const Vec3d p01 = subdivider.interpolate(u0 + p, v0 + q + 1);
+      const Vec3d p11 = subdivider.interpolate(u0 + p + 1, v0 + q + 1);
+      const Vec3d d1 = p11 - p00, d2 = p01 - p10;
+      const Vec3d normal{d1.y * d2.z - d1.z * d2.y, d1.z * d2.x - d1.x * d2.z,
+                         d1.x * d2.y - d1.y * d2.x};
+      const std::optional<CastHit> hit =
+          detail->cast(CastRay{(p00 + p10 + p01 + p11) * 0.25, normal, -search, search});
       if (!hit) {
         return {0, 0, 0, 0};
       }
@@ -129,49 +134,30 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
                 const MergeOptions& options, std::size_t m, std::vector<PatchKey>& finished,
                 MergeResult& result) {
   const Model& a = target.model();
-  const std::vector<Match>& matches = matched.matches;
-  const std::vector<std::pair<PatchKey, Rect2d>>& bLeaves = matched.bLeaves;
-  const std::vector<std::vector<Rect2d>>& bBlocks = matched.bBlocks;
-  const UpFrame& frame = matched.frame;
-  const Vec3d& up = matched.up;
-  const Match& match = matches[m];
+  const std::vector<DetailLeaf>& bLeaves = matched.bLeaves;
+  const Match& match = matched.matches[m];
   const int k = match.levels;
+  const double search = match.search;
 
-  // B's leaves over this leaf (footprints, metadata only).
-  Rect2d nearFoot;
-  for (const std::size_t i : match.detail) {
-    nearFoot.extend(bLeaves[i].second.min);
-    nearFoot.extend(bLeaves[i].second.max);
-  }
   std::optional<Subdivider> subdivider;
-  Rect2d aFootprint;
   {
     const std::shared_ptr<const PatchGrid> grid = target.positions(match.target);
     if (grid->size() != a.gridSize()) {
       throw Error(ErrorCode::Corrupt,
                   "merge: patch " + match.target.toString() + " has a grid of the wrong size");
     }
-    subdivider.emplace(*grid, k);
-    for (int y = 0; y < grid->size(); ++y) {
-      for (int x = 0; x < grid->size(); ++x) {
-        if (grid->defined(x, y)) {
-          aFootprint.extend(frame.project(grid->global(x, y)));
-        }
-      }
-    }
+    subdivider.emplace(*grid, k, match.ring);
   }
-  if (!aFootprint.intersects(nearFoot)) {
-    return;
-  }
-  // B's leaves whose footprint meets `rect` (indices into bLeaves).
-  auto detailUnder = [&](const Rect2d& rect) {
-    std::vector<std::size_t> under;
+  // B's leaves that may have surface within `search` of a new patch of ball `ball` (indices into
+  // bLeaves): a function of the surfaces alone, as matching's decisions are.
+  auto detailNear = [&](const Ball& ball) {
+    std::vector<std::size_t> near;
     for (const std::size_t i : match.detail) {
-      if (bLeaves[i].second.intersects(rect)) {
-        under.push_back(i);
+      if (ball.meets(bLeaves[i].ball, search + bLeaves[i].spacing)) {
+        near.push_back(i);
       }
     }
-    return under;
+    return near;
   };
   const std::shared_ptr<const TextureTile> aTexture = textureOf(target, match.target);
   const PatchKey& top = match.target;
@@ -184,14 +170,14 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
   struct NewLeaf {
     int level;
     std::uint32_t i, j;
-    Rect2d foot;
+    Ball ball;
   };
   std::vector<NewLeaf> leaves;
   std::function<void(int, std::uint32_t, std::uint32_t)> plan = [&](int level, std::uint32_t i,
                                                                     std::uint32_t j) {
-    const Rect2d foot = subdivider->footprint(level, i, j, frame);
-    if (level == k || detailUnder(foot).empty()) {
-      leaves.push_back({level, i, j, foot});
+    const Ball ball = subdivider->ball(level, i, j);
+    if (level == k || detailNear(ball).empty()) {
+      leaves.push_back({level, i, j, ball});
       return;
     }
     for (const Quadrant q : kQuadrants) {
@@ -211,9 +197,9 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
     return PatchKey{top.depth + level, (top.x << level) + i, (top.y << level) + j};
   };
 
-  // One new leaf, computed by a task: its vertices (placed on B's surface at level k, from the
-  // B leaves meeting it, read and pinned by this task only, in a sampler clipped to the
-  // patch) and its texture; no grid when it is empty.
+  // One new leaf, computed by a task: its vertices (at level k placed on B's surface along the
+  // subdivided surface's normals, cast into the B leaves near it, read and pinned by this task
+  // only, in a caster clipped to the patch's reach) and its texture; no grid when it is empty.
   struct Computed {
     std::shared_ptr<const PatchGrid> grid;
     std::shared_ptr<const TextureTile> texture;
@@ -222,28 +208,49 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
   };
   auto compute = [&](const NewLeaf& leaf, Computed& out) {
     checkCancelled(options);
-    std::optional<SurfaceSampler> sampler;
+    std::vector<Vec3d> positions = subdivider->positions(leaf.level, leaf.i, leaf.j);
+    std::optional<SurfaceCaster> caster;
     std::vector<std::shared_ptr<const TextureTile>> textures;
     std::vector<const TextureTile*> tiles;
+    std::vector<std::optional<CastHit>> onDetail;
     if (leaf.level == k) {
-      const std::vector<std::size_t> under = detailUnder(leaf.foot);
-      if (!under.empty()) {
+      const std::vector<std::size_t> near = detailNear(leaf.ball);
+      if (!near.empty()) {
         std::vector<std::shared_ptr<const PatchGrid>> grids;
-        SurfaceSampler::Clip clip{frame, leaf.foot};
-        grids.reserve(under.size());
-        for (const std::size_t i : under) {
-          grids.push_back(detail.positions(bLeaves[i].first));
-          textures.push_back(textureOf(detail, bLeaves[i].first));
+        // Every ray starts in the box of a's vertices around the patch and goes at most `search`
+        // either way.
+        Box3d reach = subdivider->box(leaf.level, leaf.i, leaf.j);
+        reach.min = reach.min - Vec3d{search, search, search};
+        reach.max = reach.max + Vec3d{search, search, search};
+        SurfaceCaster::Clip clip{reach};
+        grids.reserve(near.size());
+        for (const std::size_t i : near) {
+          grids.push_back(detail.positions(bLeaves[i].key));
+          textures.push_back(textureOf(detail, bLeaves[i].key));
           tiles.push_back(textures.back().get());
-          clip.blocks.emplace_back(bBlocks[i]);
+          clip.blocks.emplace_back(bLeaves[i].blocks);
         }
-        sampler.emplace(grids, up, options.transform, std::move(clip));
+        caster.emplace(grids, options.transform, std::move(clip));
+        const std::vector<Vec3d> normals = subdivider->normals(leaf.level, leaf.i, leaf.j);
+        std::vector<CastRay> rays(positions.size());
+        for (std::size_t v = 0; v < positions.size(); ++v) {
+          // An undefined origin or normal casts nothing (the caster answers nullopt).
+          rays[v] = {positions[v], normals[v], -search, search};
+        }
+        onDetail.resize(positions.size());
+        caster->cast(rays, onDetail);
+        for (std::size_t v = 0; v < positions.size(); ++v) {
+          if (onDetail[v]) {
+            positions[v] = onDetail[v]->position;
+            ++out.taken;
+          }
+        }
       }
     }
-    const SurfaceSampler* surface = sampler ? &*sampler : nullptr;
-    std::vector<std::optional<SurfacePoint>> onDetail;
-    const std::vector<Vec3d> positions =
-        subdivider->positions(leaf.level, leaf.i, leaf.j, surface, &out.taken, &onDetail);
+    const SurfaceCaster* surface = caster ? &*caster : nullptr;
+    if (!surface) {
+      onDetail.assign(positions.size(), std::nullopt);
+    }
     const auto first =
         std::find_if(positions.begin(), positions.end(), [](const Vec3d& p) { return p.finite(); });
     if (first == positions.end()) {
@@ -252,7 +259,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
     out.firstDefined = *first;
     out.grid = std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions));
     out.texture = placeTexture(*subdivider, leaf.level, leaf.i, leaf.j, *out.grid, aTexture.get(),
-                               surface, onDetail, tiles);
+                               surface, search, onDetail, tiles);
   };
 
   // Inserted in plan order; a refined patch goes in, as a placeholder, just before its first
@@ -302,7 +309,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
     report(options, "placing",
            (static_cast<double>(m) +
             static_cast<double>(first + count) / static_cast<double>(leaves.size())) /
-               static_cast<double>(matches.size()));
+               static_cast<double>(matched.matches.size()));
   }
   if (added > 0) {
     ++result.matchedLeaves;

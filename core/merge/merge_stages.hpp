@@ -11,38 +11,48 @@
 
 #include "core/grid/geometry.hpp"
 #include "core/merge/merge.hpp"
-#include "core/merge/surface_sampler.hpp"
+#include "core/merge/subdivider.hpp"
 
 namespace vsm::core::merge_stages {
+
+/// A bottom patch of B with what matching learnt of it.
+struct DetailLeaf {
+  PatchKey key;
+  /// Its box in global coordinates (after MergeOptions::transform), from B's metadata.
+  Box3d box;
+  /// Read from its grid for the leaves near A only (`read`): its Ball, its spacing on the
+  /// surface, and its SurfaceCaster::blockBoxes.
+  bool read = false;
+  Ball ball;
+  double spacing = 0;
+  std::vector<Box3d> blocks;
+};
 
 /// A bottom patch of the target that B's surface meets.
 struct Match {
   PatchKey target;
-  /// Indices of the B leaves (in bLeaves) whose footprint meets the target leaf's.
+  /// Indices of the B leaves (in MergePlan::bLeaves) whose ball meets the target leaf's, grown
+  /// by `search` and the B leaf's spacing.
   std::vector<std::size_t> detail;
   int levels = 1;
+  /// How far along its normal a new vertex looks for B's surface (either way): 4 of the target
+  /// leaf's spacings on the surface (gridSpacing().mean; merge_matching.cpp says why 4).
+  double search = 0;
+  /// The target's vertices around the leaf, from its neighbours at the same depth.
+  Ring ring;
 };
 
 /// What matching finds and placing works through.
 struct MergePlan {
-  explicit MergePlan(const UpFrame& frame) : frame(frame) {}
-
-  /// The direction along which B is placed (MergeOptions::up, or B's default), and the plane
-  /// perpendicular to it in which footprints and resolutions are measured.
-  Vec3d up;
-  UpFrame frame;
-  /// B's leaves with their footprints, grown by SurfaceSampler::kBorderTolerance of a cell.
-  std::vector<std::pair<PatchKey, Rect2d>> bLeaves;
-  /// Per B leaf a target leaf meets: its block footprints (SurfaceSampler::blockFootprints).
-  std::vector<std::vector<Rect2d>> bBlocks;
+  std::vector<DetailLeaf> bLeaves;
   /// The target's matched leaves, in key order, with their new levels.
   std::vector<Match> matches;
   /// Bottom patches of B that meet at least one matched target patch (MergeResult::detailLeaves).
   std::size_t detailLeaves = 0;
 };
 
-/// Stage "matching": A's bottom patches under B's footprint and B's leaves over each, and the
-/// levels each needs. Throws as mergeModels() for a B outside or partly outside A, or too fine.
+/// Stage "matching": A's bottom patches near B's surface and B's leaves near each, and the levels
+/// each needs. Throws as mergeModels() for a B outside or partly outside A, or too fine.
 MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptions& options);
 
 /// Stage "placing": the new levels under each matched leaf, placed on B's surface, with their

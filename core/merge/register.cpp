@@ -11,6 +11,7 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <array>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -26,7 +27,7 @@
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "core/merge/merge.hpp"
-#include "core/merge/surface_sampler.hpp"
+#include "core/merge/surface_caster.hpp"
 
 namespace vsm::core {
 
@@ -37,9 +38,9 @@ constexpr std::size_t kMinPoints = 12;
 
 using Grids = std::vector<std::shared_ptr<const PatchGrid>>;
 
-/// The grids of `depth` (or of shallower leaves) whose footprint meets `rect`, found by
-/// descending from the root.
-Grids gridsAt(PatchSource& source, int depth, const UpFrame& frame, const Rect2d& rect) {
+/// The grids of `depth` (or of shallower leaves) whose box meets `box`, found by descending from
+/// the root.
+Grids gridsAt(PatchSource& source, int depth, const Box3d& box) {
   const Model& model = source.model();
   Grids grids;
   std::vector<PatchKey> pending{PatchKey::root()};
@@ -47,7 +48,7 @@ Grids gridsAt(PatchSource& source, int depth, const UpFrame& frame, const Rect2d
     const PatchKey key = pending.back();
     pending.pop_back();
     const PatchInfo& info = model.at(key);
-    if (!frame.footprint(info.globalBox).intersects(rect)) {
+    if (!info.globalBox.intersects(box)) {
       continue;
     }
     if (key.depth >= depth || info.isLeaf()) {
@@ -153,26 +154,21 @@ struct Cloud {
   std::vector<Vec3d> normals;
 };
 
-/// The defined vertices of `grids` that have a normal and pass `keep(position)`, in grid order.
+/// The defined vertices of `grids` that have a normal and pass `keep(position, normal)`, in grid
+/// order.
 template <typename Keep>
 Cloud cloudOf(const Grids& grids, const Vec3d& up, const Keep& keep) {
   Cloud cloud;
   GlobalGrid g;
-  std::vector<std::size_t> kept;  // per grid, so the cloud grows once per grid
   for (const auto& grid : grids) {
     g.assign(*grid);
-    kept.clear();
     for (std::size_t i = 0; i < g.points.size(); ++i) {
-      if (g.valid[i] != 0 && keep(g.points[i])) {
-        kept.push_back(i);
+      if (g.valid[i] == 0) {
+        continue;
       }
-    }
-    cloud.points.reserve(cloud.points.size() + kept.size());
-    cloud.normals.reserve(cloud.normals.size() + kept.size());
-    for (const std::size_t i : kept) {
       const int x = static_cast<int>(i % static_cast<std::size_t>(g.size));
       const int y = static_cast<int>(i / static_cast<std::size_t>(g.size));
-      if (const auto n = normalAt(g, x, y, up)) {
+      if (const auto n = normalAt(g, x, y, up); n && keep(g.points[i], *n)) {
         cloud.points.push_back(g.points[i]);
         cloud.normals.push_back(*n);
       }
@@ -340,6 +336,22 @@ Vec3d applyLocal(const Eigen::Matrix4d& u, const Vec3d& centre, const Vec3d& p) 
   return Vec3d{r.x(), r.y(), r.z()} + centre;
 }
 
+/// Direction `d` turned by u's rotation.
+Vec3d turnLocal(const Eigen::Matrix4d& u, const Vec3d& d) {
+  const Eigen::Vector3d r = u.block<3, 3>(0, 0) * Eigen::Vector3d(d.x, d.y, d.z);
+  return {r.x(), r.y(), r.z()};
+}
+
+/// Two unit directions perpendicular to unit `n` and to each other.
+std::pair<Vec3d, Vec3d> tangents(const Vec3d& n) {
+  const Vec3d helper = std::fabs(n.x) < 0.6 ? Vec3d{1, 0, 0} : Vec3d{0, 1, 0};
+  Vec3d t1{helper.y * n.z - helper.z * n.y, helper.z * n.x - helper.x * n.z,
+           helper.x * n.y - helper.y * n.x};
+  t1 = t1 * (1 / t1.norm());
+  const Vec3d t2{n.y * t1.z - n.z * t1.y, n.z * t1.x - n.x * t1.z, n.x * t1.y - n.y * t1.x};
+  return {t1, t2};
+}
+
 }  // namespace
 
 RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
@@ -354,11 +366,15 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
   if (bBox.empty()) {
     throw Error(ErrorCode::InvalidArgument, "register: the detail model has no defined vertex");
   }
+  // `up` only orients the normals (point-to-plane ICP does not need it); everything else is
+  // measured on the surfaces, whatever their orientation (issue 33).
   const Vec3d up = options.up ? *options.up : defaultUp(bBox);
-  const UpFrame frame(bBox.center(), up);
   const Vec3d centre = bBox.center();
-  const Rect2d bFoot = frame.footprint(bBox);
-  const double area = (bFoot.max.u - bFoot.min.u) * (bFoot.max.v - bFoot.min.v);
+  // B's extent across its surface: its box's two largest sides (a wall's box is thin along its
+  // normal, a terrain's along up).
+  std::array<double, 3> sides{bBox.size().x, bBox.size().y, bBox.size().z};
+  std::sort(sides.begin(), sides.end());
+  const double area = sides[1] * sides[2];
 
   const std::vector<double> aRes = levelResolutions(a);
   const std::vector<double> bRes = levelResolutions(b);
@@ -400,7 +416,7 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
   Eigen::Matrix4d u = Eigen::Matrix4d::Identity();  // moves A onto B, centred coordinates
   struct DetailLevel {
     Cloud cloud;
-    std::shared_ptr<SurfaceSampler> surface;
+    std::shared_ptr<SurfaceCaster> surface;
     pcl::PointCloud<pcl::PointNormal>::Ptr points;
     pcl::search::KdTree<pcl::PointNormal>::Ptr tree;  // built once, shared by the stages
   };
@@ -417,9 +433,9 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     const Stage& stage = stages[s];
     DetailLevel& bLevel = bLevels[stage.bDepth];
     if (!bLevel.surface) {
-      const Grids grids = gridsAt(detail, stage.bDepth, frame, bFoot);
-      bLevel.cloud = cloudOf(grids, up, [](const Vec3d&) { return true; });
-      bLevel.surface = std::make_shared<SurfaceSampler>(grids, up);
+      const Grids grids = gridsAt(detail, stage.bDepth, bBox);
+      bLevel.cloud = cloudOf(grids, up, [](const Vec3d&, const Vec3d&) { return true; });
+      bLevel.surface = std::make_shared<SurfaceCaster>(grids);
       bLevel.points =
           toPcl(bLevel.cloud,
                 thinned(allIndices(bLevel.cloud.points.size()), options.maxPoints * 4), centre);
@@ -427,23 +443,28 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
       bLevel.tree->setInputCloud(bLevel.points);
       clock.lap("detail-level");
     }
-    const SurfaceSampler& bSurface = *bLevel.surface;
+    const SurfaceCaster& bSurface = *bLevel.surface;
 
-    // A's vertices whose current image lies over B with a margin of the search distance.
-    Rect2d near = bFoot;
-    near.min = {near.min.u - stage.distance, near.min.v - stage.distance};
-    near.max = {near.max.u + stage.distance, near.max.v + stage.distance};
-    // The margin keeps B's border from attracting A's vertices that have no partner on B; it never
-    // takes more than a quarter of B's width (a B only a few A cells wide must keep some). The
-    // test comes before the normal: most of A's vertices in these patches lie beside B.
-    const double m = std::min(
-        stage.distance, 0.25 * std::min(bFoot.max.u - bFoot.min.u, bFoot.max.v - bFoot.min.v));
+    // A's vertices whose current image lies over B, along its normal within the search distance,
+    // with a margin across its surface. The margin keeps B's border from attracting A's vertices
+    // that have no partner on B; it never takes more than a quarter of B's width (a B only a few
+    // A cells wide must keep some).
+    Box3d near = bBox;
+    near.min = near.min - Vec3d{stage.distance, stage.distance, stage.distance};
+    near.max = near.max + Vec3d{stage.distance, stage.distance, stage.distance};
+    const double m = std::min(stage.distance, 0.25 * sides[1]);
+    const double reach = stage.distance;
     const Cloud aCloud =
-        cloudOf(gridsAt(target, stage.aDepth, frame, near), up, [&](const Vec3d& p) {
+        cloudOf(gridsAt(target, stage.aDepth, near), up, [&](const Vec3d& p, const Vec3d& normal) {
           const Vec3d q = applyLocal(u, centre, p);
-          return bSurface.sample(q) && bSurface.sample(q + frame.e1 * m) &&
-                 bSurface.sample(q - frame.e1 * m) && bSurface.sample(q + frame.e2 * m) &&
-                 bSurface.sample(q - frame.e2 * m);
+          const Vec3d n = turnLocal(u, normal);
+          const auto [t1, t2] = tangents(n);
+          for (const Vec3d& o : {q, q + t1 * m, q - t1 * m, q + t2 * m, q - t2 * m}) {
+            if (!bSurface.cast({o, n, -reach, reach})) {
+              return false;
+            }
+          }
+          return true;
         });
     if (aCloud.points.size() < kMinPoints) {
       throw Error(ErrorCode::InvalidArgument,
@@ -488,14 +509,14 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
     }
     result.fitness = icp.getFitnessScore(stage.distance);
     clock.lap("fitness");
-    // The residual along up: how far A's vertices, moved by u, lie from B's surface.
+    // The residual along A's normals: how far A's vertices, moved by u, lie from B's surface.
     double sum = 0;
     std::size_t count = 0;
     for (const std::size_t i : use) {
       const Vec3d q = applyLocal(u, centre, aCloud.points[i]);
-      if (const auto onB = bSurface.sample(q)) {
-        const double h = frame.height(*onB) - frame.height(q);
-        sum += h * h;
+      const Vec3d n = turnLocal(u, aCloud.normals[i]);
+      if (const auto onB = bSurface.cast({q, n, -reach, reach})) {
+        sum += onB->distance * onB->distance;
         ++count;
       }
     }
@@ -532,8 +553,9 @@ RegistrationResult registerModels(PatchSource& target, PatchSource& detail,
   result.transform = toMat(shift * inv * unshift);
   result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   log::info("register: " + std::to_string(result.stages) + " stages, fitness " +
-            std::to_string(result.fitness) + " m2, rms along up " + std::to_string(result.rms) +
-            " m" + (result.converged ? ", converged" : ", not converged") + ", " +
+            std::to_string(result.fitness) + " m2, rms along the target's normals " +
+            std::to_string(result.rms) + " m" +
+            (result.converged ? ", converged" : ", not converged") + ", " +
             std::to_string(result.seconds) + " s");
   return result;
 }

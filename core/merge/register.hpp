@@ -33,9 +33,9 @@ struct RegistrationResult {
   /// PCL's fitness score of the last stage: mean squared distance (m^2) from the target's points
   /// to their nearest detail points after alignment.
   double fitness = 0;
-  /// Root mean square distance, along up, between the target's vertices used in the last stage
-  /// and the detail surface after alignment (metres): the interpolation error of the finer model
-  /// plus what registration could not remove.
+  /// Root mean square distance, along the target's normals, between its vertices used in the last
+  /// stage and the detail surface after alignment (metres): the interpolation error of the finer
+  /// model plus what registration could not remove.
   double rms = 0;
   /// Whether the last ICP stage converged.
   bool converged = false;

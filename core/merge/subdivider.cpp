@@ -6,7 +6,6 @@
 #include <string>
 
 #include "core/common/error.hpp"
-#include "core/merge/surface_sampler.hpp"
 
 namespace vsm::core {
 
@@ -14,7 +13,51 @@ namespace {
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 }
 
-Subdivider::Subdivider(const PatchGrid& a, int k) : k_(k), size_(a.size()) {
+bool Ball::meets(const Ball& other, double gap) const {
+  if (empty() || other.empty()) {
+    return false;
+  }
+  return (centre - other.centre).norm() <= radius + gap + other.radius;
+}
+
+Ball ballOf(const std::vector<Vec3d>& points) {
+  Vec3d sum;
+  std::size_t count = 0;
+  for (const Vec3d& p : points) {
+    if (p.finite()) {
+      sum = sum + p;
+      ++count;
+    }
+  }
+  Ball ball;
+  if (count == 0) {
+    return ball;
+  }
+  ball.centre = sum * (1.0 / static_cast<double>(count));
+  ball.radius = 0;
+  for (const Vec3d& p : points) {
+    if (p.finite()) {
+      ball.radius = std::max(ball.radius, (p - ball.centre).norm());
+    }
+  }
+  return ball;
+}
+
+Ball ballOf(const PatchGrid& grid, const std::optional<Mat4d>& transform) {
+  std::vector<Vec3d> points;
+  points.reserve(static_cast<std::size_t>(grid.size()) * grid.size());
+  for (int y = 0; y < grid.size(); ++y) {
+    for (int x = 0; x < grid.size(); ++x) {
+      if (grid.defined(x, y)) {
+        points.push_back(transform ? transform->apply(grid.global(x, y)) : grid.global(x, y));
+      }
+    }
+  }
+  return ballOf(points);
+}
+
+Subdivider::Subdivider(const PatchGrid& a, int k, const Ring& ring)
+    : k_(k), size_(a.size()), ring_(ring) {
   const int cells = size_ - 1;
   if ((cells & (cells - 1)) != 0) {
     throw Error(ErrorCode::InvalidArgument, "subdivide: grid size is not 2^n+1");
@@ -28,6 +71,11 @@ Subdivider::Subdivider(const PatchGrid& a, int k) : k_(k), size_(a.size()) {
     for (int x = 0; x < size_; ++x) {
       global_[static_cast<std::size_t>(y) * size_ + x] =
           a.defined(x, y) ? a.global(x, y) : Vec3d{kNaN, kNaN, kNaN};
+    }
+  }
+  for (const std::vector<Vec3d>* side : {&ring_.west, &ring_.east, &ring_.south, &ring_.north}) {
+    if (!side->empty() && side->size() != static_cast<std::size_t>(size_)) {
+      throw Error(ErrorCode::InvalidArgument, "subdivide: a ring side is not one row long");
     }
   }
 }
@@ -58,45 +106,113 @@ Vec3d Subdivider::interpolate(std::int64_t u, std::int64_t v) const {
   return weights == 1 ? sum : sum * (1.0 / weights);
 }
 
-std::vector<Vec3d> Subdivider::positions(int level, std::uint32_t i, std::uint32_t j,
-                                         const SurfaceSampler* detail, std::size_t* fromDetail,
-                                         std::vector<std::optional<SurfacePoint>>* onDetail) const {
+Vec3d Subdivider::extended(std::int64_t u, std::int64_t v) const {
+  const std::int64_t unit = std::int64_t{1} << k_;
+  const std::int64_t last = (size_ - 1) * unit;
+  if (u >= 0 && u <= last && v >= 0 && v <= last) {
+    return interpolate(u, v);
+  }
+  // One coordinate beyond the border (normals step along one axis at a time): the cell between
+  // the ring and a's border line, interpolated along the other coordinate as interpolate() does.
+  const bool alongU = u < 0 || u > last;
+  const std::int64_t out = alongU ? u : v;
+  const std::int64_t along = alongU ? v : u;
+  if (along < 0 || along > last || out < -unit || out > last + unit) {
+    return {kNaN, kNaN, kNaN};
+  }
+  const std::vector<Vec3d>& side =
+      alongU ? (u < 0 ? ring_.west : ring_.east) : (v < 0 ? ring_.south : ring_.north);
+  if (side.empty()) {
+    return {kNaN, kNaN, kNaN};
+  }
+  const std::int64_t c = std::min(along >> k_, static_cast<std::int64_t>(size_) - 2);
+  const double r = std::ldexp(static_cast<double>(along - (c << k_)), -k_);
+  // Weight of the ring's side: how far beyond the border line, in cells.
+  const double t = std::ldexp(static_cast<double>(out < 0 ? -out : out - last), -k_);
+  const auto border = [&](std::int64_t index) -> const Vec3d& {
+    const std::int64_t x = alongU ? (u < 0 ? 0 : size_ - 1) : index;
+    const std::int64_t y = alongU ? index : (v < 0 ? 0 : size_ - 1);
+    return global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
+  };
+  const Vec3d* corner[4] = {&border(c), &border(c + 1), &side[static_cast<std::size_t>(c)],
+                            &side[static_cast<std::size_t>(c + 1)]};
+  const double weight[4] = {(1 - r) * (1 - t), r * (1 - t), (1 - r) * t, r * t};
+  Vec3d sum;
+  double weights = 0;
+  for (int i = 0; i < 4; ++i) {
+    if (weight[i] == 0 || !corner[i]->finite()) {
+      continue;
+    }
+    sum = sum + *corner[i] * weight[i];
+    weights += weight[i];
+  }
+  if (weights == 0) {
+    return {kNaN, kNaN, kNaN};
+  }
+  return weights == 1 ? sum : sum * (1.0 / weights);
+}
+
+Vec3d Subdivider::normal(std::int64_t u, std::int64_t v) const {
+  const Vec3d nan{kNaN, kNaN, kNaN};
+  const Vec3d p = interpolate(u, v);
+  if (!p.finite()) {
+    return nan;
+  }
+  // The difference across (u, v) along one axis: central where both sides are defined, else
+  // one-sided.
+  auto across = [&](const Vec3d& before, const Vec3d& after) -> std::optional<Vec3d> {
+    if (before.finite() && after.finite()) {
+      return after - before;
+    }
+    if (after.finite()) {
+      return after - p;
+    }
+    if (before.finite()) {
+      return p - before;
+    }
+    return std::nullopt;
+  };
+  const std::optional<Vec3d> du = across(extended(u - 1, v), extended(u + 1, v));
+  const std::optional<Vec3d> dv = across(extended(u, v - 1), extended(u, v + 1));
+  if (!du || !dv) {
+    return nan;
+  }
+  const Vec3d n{du->y * dv->z - du->z * dv->y, du->z * dv->x - du->x * dv->z,
+                du->x * dv->y - du->y * dv->x};
+  const double length = n.norm();
+  if (!(length > 0) || !std::isfinite(length)) {
+    return nan;
+  }
+  return n * (1.0 / length);
+}
+
+std::vector<Vec3d> Subdivider::positions(int level, std::uint32_t i, std::uint32_t j) const {
+  return lattice(level, i, j, [this](std::int64_t u, std::int64_t v) { return interpolate(u, v); });
+}
+
+std::vector<Vec3d> Subdivider::normals(int level, std::uint32_t i, std::uint32_t j) const {
+  return lattice(level, i, j, [this](std::int64_t u, std::int64_t v) { return normal(u, v); });
+}
+
+template <typename At>
+std::vector<Vec3d> Subdivider::lattice(int level, std::uint32_t i, std::uint32_t j, At at) const {
   if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
     throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
   }
   const std::int64_t stride = std::int64_t{1} << (k_ - level);
   const std::int64_t cells = size_ - 1;
   std::vector<Vec3d> out(static_cast<std::size_t>(size_) * size_);
-  if (onDetail != nullptr) {
-    onDetail->assign(out.size(), std::nullopt);
-  }
-  std::size_t taken = 0;
   for (int y = 0; y < size_; ++y) {
     const std::int64_t v = (static_cast<std::int64_t>(j) * cells + y) * stride;
     for (int x = 0; x < size_; ++x) {
       const std::int64_t u = (static_cast<std::int64_t>(i) * cells + x) * stride;
-      const std::size_t index = static_cast<std::size_t>(y) * size_ + x;
-      Vec3d p = interpolate(u, v);
-      if (detail != nullptr && p.finite()) {
-        if (std::optional<SurfacePoint> hit = detail->locate(p)) {
-          p = hit->position;
-          ++taken;
-          if (onDetail != nullptr) {
-            (*onDetail)[index] = std::move(hit);
-          }
-        }
-      }
-      out[index] = p;
+      out[static_cast<std::size_t>(y) * size_ + x] = at(u, v);
     }
-  }
-  if (fromDetail != nullptr) {
-    *fromDetail = taken;
   }
   return out;
 }
 
-Rect2d Subdivider::footprint(int level, std::uint32_t i, std::uint32_t j,
-                             const UpFrame& frame) const {
+std::vector<Vec3d> Subdivider::around(int level, std::uint32_t i, std::uint32_t j) const {
   if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
     throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
   }
@@ -114,16 +230,28 @@ Rect2d Subdivider::footprint(int level, std::uint32_t i, std::uint32_t j,
   std::int64_t x0, x1, y0, y1;
   range(i, x0, x1);
   range(j, y0, y1);
-  Rect2d rect;
+  std::vector<Vec3d> points;
   for (std::int64_t y = y0; y <= y1; ++y) {
     for (std::int64_t x = x0; x <= x1; ++x) {
       const Vec3d& p = global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
       if (p.finite()) {
-        rect.extend(frame.project(p));
+        points.push_back(p);
       }
     }
   }
-  return rect;
+  return points;
+}
+
+Ball Subdivider::ball(int level, std::uint32_t i, std::uint32_t j) const {
+  return ballOf(around(level, i, j));
+}
+
+Box3d Subdivider::box(int level, std::uint32_t i, std::uint32_t j) const {
+  Box3d box;
+  for (const Vec3d& p : around(level, i, j)) {
+    box.extend(p);
+  }
+  return box;
 }
 
 PatchGrid gridFromGlobal(int size, const std::vector<Vec3d>& global) {

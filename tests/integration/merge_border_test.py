@@ -20,16 +20,21 @@ vertex that lost B's surface is metres away from it.
 Each case: `vsm import` both, `vsm merge A B --out`, then the merged OPC is read with
 check_import.py's reader (none of vsm's code) and compared with the rasters read by GDAL:
 (1) samples: every defined sample of B that a merged leaf vertex lies on (within 1e-3 of B's
-    pixels, after converting the vertex to lon/lat) is there at B's height; a sample is lost
-    when some leaf vertex on it is not (or no leaf vertex lies on it although the new grid lines
-    up there). In the aligned and +-1e-9 cases every sample of B must be on a vertex;
+    pixels, after converting the vertex to lon/lat) is there at B's height, unless it lies in
+    the seam band (below) on A's surface; a sample is lost when some leaf vertex on it is not.
+    The merge places each new vertex along the normal of A's subdivided surface (issue 33), not
+    along the vertical: over this tilted A, B's samples 5 to 9 m off it are met beside the
+    vertical through A's vertex, so they are no longer all vertices (the counts are printed);
 (2) surface: every leaf vertex on B's surface, or outside it by at most 1e-3 of B's pixels, is at
     B's height at its own lon/lat: B's surface as core/merge/README.md defines it, computed here
     from the raster (bilinear in cells with four defined samples, the triangle of the other three
-    where one is undefined, a point just outside clamped onto the nearest cell);
+    where one is undefined, a point just outside clamped onto the nearest cell). In the seam
+    band, within SEAM_BAND of B's pixels of its border or a hole, a vertex may instead keep A's
+    surface: its ray along A's normal, tilted by A's slope, passes B's border there (the band's
+    width is the largest gap between A and B times the tangent of A's steepest slope);
 (3) outside: every leaf vertex farther than 0.25 of B's pixels from any cell of B with surface
-    (beyond B's hull or in a hole) keeps A's surface (A's bilinear height at its lon/lat): the
-    seam rule of core/merge/README.md, detail within its tolerance, target beyond.
+    (beyond B's hull or in a hole) keeps A's surface (A's bilinear height at its lon/lat): a ray
+    from there along A's normal meets no part of B.
 Height tolerance: float32 rounding of the vertex's patch (16 x 2^-23 x its largest absolute
 local coordinate, a few micrometres here) plus 1e-6 m; in (3) 1e-4 m more (A's new vertices
 interpolate its ECEF vertices along chords, not its geodetic bilinear surface).
@@ -66,6 +71,7 @@ NODATA = -9999.0
 ON_VERTEX = 1e-3              # B pixels: a vertex this close to a sample lies on it
 NEAR_HULL = 1e-3              # B pixels: within this outside the hull counts as on the border
 OUTSIDE = 0.25                # B pixels: beyond this outside the hull it is the target's
+METRES_PER_DEGREE = 6378137.0 * np.pi / 180  # at the equator, in longitude and latitude
 
 CASES = {
     "aligned": (0.0, 0.0, []),
@@ -83,6 +89,19 @@ CASES = {
 def a_height(col, row):
     """A's heights at fractional A pixel (column, row): a gentle tilted, curved surface."""
     return 200.0 + 0.3 * col - 0.2 * row + 0.004 * (col - 30.0) ** 2
+
+
+def seam_band():
+    """B's pixels from its border or a hole within which a vertex may keep A's surface: the
+    largest gap between B and A (9 m) times the tangent of A's steepest slope, plus a tenth."""
+    rows, cols = np.mgrid[0:A_SIZE, 0:A_SIZE].astype(np.float64)
+    heights = a_height(cols, rows)
+    pixel = A_PIXEL * METRES_PER_DEGREE
+    slope = np.hypot(*np.gradient(heights, pixel)).max()
+    return 9.0 * slope / (B_PIXEL * METRES_PER_DEGREE) + 0.1
+
+
+SEAM_BAND = seam_band()
 
 
 def make_target(path):
@@ -181,7 +200,7 @@ def detail_surface(heights, col, row, reach):
     return out
 
 
-def check_case(merged, target_raster, detail_raster, expect_all_on_vertices):
+def check_case(merged, target_raster, detail_raster):
     """Counts and failure messages of one merged model."""
     patches, children_of = merged
     lon, lat, h, tol, depth = leaf_vertices(patches, children_of)
@@ -207,6 +226,13 @@ def check_case(merged, target_raster, detail_raster, expect_all_on_vertices):
     reached = np.zeros(len(col), dtype=bool)
     for i, found in zip(index, detail_surface(heights, col[index], row[index], OUTSIDE)):
         reached[i] = bool(found)
+    # The seam band, where a vertex may keep A's surface instead (it must then be on A's).
+    edge = np.minimum.reduce([col, cols - 1 - col, row, rows - 1 - row])
+    for r, c in zip(*np.nonzero(~np.isfinite(heights))):
+        edge = np.minimum(edge, np.maximum(np.abs(col - c), np.abs(row - r)) - 1)
+    a_col, a_row = target_raster.pixel(lon, lat)
+    on_target = np.abs(h - bilinear(target_raster.heights, a_col, a_row)) <= tol + 1e-4
+    seam = (edge <= SEAM_BAND) & on_target
 
     # (1) samples.
     near_c, near_r = np.rint(col), np.rint(row)
@@ -214,7 +240,7 @@ def check_case(merged, target_raster, detail_raster, expect_all_on_vertices):
           (near_c >= 0) & (near_c <= cols - 1) & (near_r >= 0) & (near_r <= rows - 1))
     ci, ri = near_c[on].astype(np.int64), near_r[on].astype(np.int64)
     defined_on = np.isfinite(heights[ri, ci])
-    wrong = ~matches[on]
+    wrong = ~matches[on] & ~seam[on]
     found = np.zeros(heights.shape, dtype=bool)
     lost = np.zeros(heights.shape, dtype=bool)
     found[ri[defined_on], ci[defined_on]] = True
@@ -228,12 +254,6 @@ def check_case(merged, target_raster, detail_raster, expect_all_on_vertices):
     counts["samples"] = int(defined.sum())
     counts["on_vertices"] = int(found.sum())
     counts["border_on_vertices"] = int((found & border).sum())
-    if expect_all_on_vertices:
-        missing = defined & ~found
-        lost |= missing
-        if missing.any():
-            failures.append("%d defined samples of B have no merged leaf vertex on them" %
-                            int(missing.sum()))
     counts["lost"] = int(lost.sum())
     counts["lost_border"] = int((lost & border).sum())
     if lost.any():
@@ -241,11 +261,14 @@ def check_case(merged, target_raster, detail_raster, expect_all_on_vertices):
         failures.append("%d samples of B lost (%d on its borders), e.g. (col %d, row %d) = %.3f m" %
                         (counts["lost"], counts["lost_border"], c, r, heights[r, c]))
 
-    # (2) every leaf vertex on B's surface (within NEAR_HULL of a cell that has surface).
-    bad = on_surface & ~matches
+    # (2) every leaf vertex on B's surface (within NEAR_HULL of a cell that has surface), or in
+    # the seam band on A's.
+    bad = on_surface & ~matches & ~seam
     counts["inside"] = int(on_surface.sum())
     counts["inside_wrong"] = int(bad.sum())
-    counts["inside_max_error"] = float(error[on_surface].max()) if on_surface.any() else 0.0
+    counts["seam"] = int((on_surface & ~matches & seam).sum())
+    kept = on_surface & matches
+    counts["inside_max_error"] = float(error[kept].max()) if kept.any() else 0.0
     if bad.any():
         failures.append("%d of %d leaf vertices on B's surface (or within %g of its pixels "
                         "outside it) are off it (max %.6f m)" %
@@ -308,18 +331,17 @@ class MergeBorder(unittest.TestCase):
             _, patches, children_of, _ = load(merged_opc, PATCH, load_failures)
             failures += load_failures.items
             counts, case_failures = check_case((patches, children_of), target_raster,
-                                               GeoRaster(detail_tif), abs(shift_lon) < 0.25 and
-                                               abs(shift_lat) < 0.25)
+                                               GeoRaster(detail_tif))
             failures += case_failures
             for key in totals:
                 totals[key] += counts[key]
             print("%s %s: %d samples, %d on leaf vertices (%d on B's borders), lost %d (%d on "
-                  "borders); %d vertices inside (max error %.2e m, %d wrong), %d outside (%d wrong); "
-                  "depth %d" %
+                  "borders); %d vertices inside (max error %.2e m, %d wrong, %d on A in the seam "
+                  "band of %.2f pixels), %d outside (%d wrong); depth %d" %
                   ("FAIL" if failures else "OK", name, counts["samples"], counts["on_vertices"],
                    counts["border_on_vertices"], counts["lost"], counts["lost_border"],
                    counts["inside"], counts["inside_max_error"], counts["inside_wrong"],
-                   counts["outside"], counts["outside_wrong"], counts["depth"]))
+                   counts["seam"], SEAM_BAND, counts["outside"], counts["outside_wrong"], counts["depth"]))
             for message in failures:
                 print("  FAIL " + message)
             total_failures += len(failures)

@@ -6,6 +6,10 @@ an overhang, a horseshoe tunnel, a boulder) written as organized PCD files, impo
 
     /usr/bin/python3 surfaces_test.py --vsm <vsm> --work <dir> [--surfaces face,tunnel,...]
 
+With --register, each detail scan is first misplaced (turned by a few degrees about a skew axis
+and shifted by decimetres, as it comes off the scanner) and merged with `vsm merge --register`:
+ICP must find it back for the checks to hold (issue 33, item 6).
+
 Prints one line per surface and check (a refused merge fails every check of its surface) and a
 table; exit 0 only when every check of every surface holds. These are the checks issue 33's
 merge must pass; today's merge, which sees B as a height field along +z, fails most of them.
@@ -18,11 +22,14 @@ reported in the `merge` column).
 """
 
 import argparse
+import math
 import os
 import shutil
 import subprocess
 import sys
 import time
+
+import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import surface_check  # noqa: E402
@@ -35,11 +42,31 @@ def run(args):
     return subprocess.run(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def one(vsm, name, work):
+def misplace(path):
+    """Turns the cloud at `path` by MISPLACED_DEGREES about the axis (1, 1, 1) through its centre
+    and shifts it by MISPLACED_SHIFT (metres): a detail scan as it comes off the scanner before
+    registration (issue 33, item 6)."""
+    points = surfaces.read_pcd(path)
+    centre = np.nanmean(points.reshape(-1, 3), axis=0)
+    axis = np.array([1.0, 1.0, 1.0]) / math.sqrt(3)
+    angle = math.radians(MISPLACED_DEGREES)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    rotation = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+    moved = (points - centre) @ rotation.T + centre + np.array(MISPLACED_SHIFT)
+    surfaces.write_pcd(path, moved)
+
+
+MISPLACED_DEGREES = 2.0
+MISPLACED_SHIFT = (0.15, -0.2, 0.1)
+
+
+def one(vsm, name, work, register=False):
     surface = surfaces.make(name)
     d = os.path.join(work, name)
     shutil.rmtree(d, ignore_errors=True)
     surface.write(d)
+    if register:
+        misplace(os.path.join(d, "B.pcd"))
     for which in ("A", "B"):
         r = run([vsm, "import", os.path.join(d, which + ".pcd"), os.path.join(d, which.lower()),
                  "--patch-size", "17", "--texture", "none"])
@@ -48,7 +75,8 @@ def one(vsm, name, work):
                                          (which, r.returncode, r.stderr.strip()[-300:]))]
     merged = os.path.join(d, "merged")
     start = time.monotonic()
-    r = run([vsm, "merge", os.path.join(d, "a"), os.path.join(d, "b"), "--out", merged])
+    r = run([vsm, "merge", os.path.join(d, "a"), os.path.join(d, "b"), "--out", merged] +
+            (["--register"] if register else []))
     seconds = time.monotonic() - start
     if r.returncode != 0:
         error = [line for line in r.stderr.splitlines() if "error" in line]
@@ -94,12 +122,18 @@ def main():
     parser.add_argument("--surfaces", default=",".join(surfaces.SURFACES))
     parser.add_argument("--control", action="store_true",
                         help="check the ideal surfaces imported directly instead of merges")
+    parser.add_argument("--register", action="store_true",
+                        help="misplace each detail scan (turned %g degrees, shifted %s m) and "
+                        "merge it with --register" % (MISPLACED_DEGREES, MISPLACED_SHIFT))
     args = parser.parse_args()
     os.makedirs(args.work, exist_ok=True)
     table = {}
     for name in args.surfaces.split(","):
         print("== %s: %s" % (name, surfaces.make(name).description))
-        results = (control if args.control else one)(args.vsm, name, args.work)
+        if args.control:
+            results = control(args.vsm, name, args.work)
+        else:
+            results = one(args.vsm, name, args.work, register=args.register)
         for r in results:
             print("   " + str(r))
         table[name] = {r.name: r.ok for r in results}
