@@ -77,7 +77,8 @@ mkdir -p "$tmp/js"
 cp "$src"/js/*.js "$tmp/js/"
 cp "$nm/three/LICENSE" "$tmp/vendor/three/"
 cp "$nm/three/build/three.module.js" "$nm/three/build/three.core.js" "$tmp/vendor/three/build/"
-for f in loaders/GLTFLoader.js controls/OrbitControls.js utils/BufferGeometryUtils.js \
+for f in loaders/GLTFLoader.js controls/OrbitControls.js controls/FlyControls.js \
+  utils/BufferGeometryUtils.js \
   utils/SkeletonUtils.js libs/meshopt_decoder.module.js; do
   cp "$nm/three/examples/jsm/$f" "$tmp/vendor/three/examples/jsm/$f"
 done

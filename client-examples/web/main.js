@@ -3,6 +3,7 @@
 //
 //   /viewer/?model=ID[&mode=lod|relief|texture][&lit=1][&view=oblique|top][&error=PIXELS]
 //            [&exaggeration=K][&sun=AZIMUTH,ALTITUDE][&fly=ID][&merge=ID][&tileset=URL]
+//            [&eye=X,Y,Z&at=X,Y,Z]
 //
 // mode=lod (the default) colours every tile by its depth in the pyramid, the depth being the first
 // number of its content URI "depth_x_y.glb", with the palette of `vsm render-lod`
@@ -17,6 +18,10 @@
 // otherwise computed per tile from its triangles.
 // exaggeration scales every vertex's height above the WGS 84 ellipsoid (default 1).
 // view=top looks straight down on the model (north up) instead of from above and to the south.
+// eye and at place the camera at eye looking at at (the model's coordinates, metres) instead.
+// A model in a local frame (not earth-centred: a tunnel, a rock face) gets a free-flying camera
+// that can go inside it, its near plane tied to the model's finest resolution (js/camera.js), up
+// along the frame's +z for the sun, and no height control.
 // error is the screen-space error target in pixels (default 4; smaller loads deeper levels sooner).
 // fly=ID flies to the finest area (the deepest level's bounds) of model ID once the model is in.
 // merge=ID preselects ID as the model the merge button merges into the shown one.
@@ -33,10 +38,11 @@
 // fly-to).
 //
 // One concern a module, in js/ (native ES modules, no bundler): settings.js (the URL and this
-// state), tileset.js (3d-tiles-renderer, one per version shown), materials.js and shading.js (the
-// modes and the sun), exaggeration.js, changes.js (the diff), legend.js, models.js (fly-to and merge
-// sources), revisions.js, camera.js, controls.js (the panel), jobs.js and events.js (live), and
-// frames.js (draw only on change). This file puts them together and runs the frame loop.
+// state), tileset.js (3d-tiles-renderer, one per version shown), materials.js and shading.js
+// (the modes and the sun), exaggeration.js, changes.js (the diff), legend.js, models.js (fly-to
+// and merge sources), revisions.js, camera.js, controls.js (the panel), jobs.js and events.js
+// (live), and frames.js (draw only on change). This file puts them together and runs the frame
+// loop.
 //
 // For tests and scripts, window.vsmViewer holds counters of the tileset drawn: tiles requested,
 // loaded (of them textured) and failed, pending loads, `idle` (the root is in and nothing is
@@ -46,21 +52,26 @@
 // changes mode, the displacement a drawn tile is coloured by), `reloads`, `frames` (frames
 // drawn: the page draws only when what it shows changed), `shown` (key, depth and ECEF box of
 // each tile drawn), `legend`, `jobs`, `published`, `overlays` (screen rectangles of the panel
-// and legend) and `camera`: the matrices of the last frame drawn (column-major, as three.js keeps
+// and legend), `frame` ('earth' or 'local', once the root is in), `near` (the camera's near plane,
+// metres) and `camera`: the matrices of the last frame drawn (column-major, as three.js keeps
 // them) and the canvas size in CSS pixels, so that a script can project a point to the screen.
 
 import * as THREE from 'three';
 import { OrbitControls } from 'three/addons/controls/OrbitControls.js';
 import { $, MODE_NAMES, modelId, params, state } from './js/settings.js';
 import { drawIfChanged, invalidate } from './js/frames.js';
-import { setSun } from './js/shading.js';
+import { setEarthCentred, setSun } from './js/shading.js';
 import { changeOf, haveChanges } from './js/changes.js';
 import { currentTiles, startTiles } from './js/tileset.js';
-import { initControls, initRevisionPicker, showChanges, showVersion } from './js/controls.js';
+import {
+  adaptToFrame, initControls, initRevisionPicker, showChanges, showVersion,
+} from './js/controls.js';
 import { readRevisions } from './js/revisions.js';
 import { readModel } from './js/legend.js';
 import { finest, readModels } from './js/models.js';
-import { flyTo, initCamera, placeCamera } from './js/camera.js';
+import {
+  flyTo, initCamera, placeCamera, setFinestResolution, updateControls,
+} from './js/camera.js';
 import { enableMerge } from './js/jobs.js';
 import { followEvents } from './js/events.js';
 
@@ -91,7 +102,7 @@ const scene = new THREE.Scene();
 const camera = new THREE.PerspectiveCamera(45, window.innerWidth / window.innerHeight, 1, 1e7);
 const controls = new OrbitControls(camera, canvas);
 controls.enableDamping = false;
-initCamera(camera, controls);
+initCamera(camera, controls, canvas);
 
 setSun(state.sun.azimuth, state.sun.altitude);
 startTiles(scene, camera, renderer);
@@ -99,8 +110,16 @@ enableMerge();
 
 // ---- the model: legend, revisions, fly-to, live events ----------------------------------------
 
+/// The legend, and the finest resolution for a free camera's near plane.
+function readShownModel() {
+  return readModel().then((info) => {
+    setFinestResolution(info.resolution ? info.resolution.finest : null);
+    return info;
+  });
+}
+
 $('changes-legend').hidden = state.mode !== 'changes';
-Promise.all([readModel(), readRevisions()]).then(() => {
+Promise.all([readShownModel(), readRevisions()]).then(() => {
   if (state.mode === 'changes' && !haveChanges()) {
     return showChanges();
   }
@@ -123,7 +142,7 @@ followEvents((data) => {
     readRevisions().catch((error) => console.warn(error));
     if (state.revision === null) {
       showVersion(data.version);
-      readModel().catch((error) => console.warn(error));
+      readShownModel().catch((error) => console.warn(error));
     }
   }
 });
@@ -149,11 +168,16 @@ function frame() {
   const tiles = currentTiles();
   if (!placed) {
     placed = placeCamera(tiles);
+    if (placed) {
+      setEarthCentred(state.frame === 'earth');
+      adaptToFrame(state.frame);
+    }
     if (placed && flyPending && finest.has(flyPending)) {
       flyTo(flyPending);
       flyPending = null;
     }
   }
+  updateControls();
   camera.updateMatrixWorld();
   tiles.update();
   if (drawIfChanged(renderer, scene, camera)) {

@@ -84,3 +84,12 @@ export function initControls() {
 export function initRevisionPicker() {
   $('revision').addEventListener('change', (event) => pickRevision(event.target.value));
 }
+
+/// The controls for the model's frame: in a local one (no ellipsoid) there is no height above the
+/// ellipsoid to exaggerate.
+export function adaptToFrame(frame) {
+  if (frame === 'local') {
+    $('exaggeration').disabled = true;
+    $('exaggeration').title = 'a model in a local frame has no height above the ellipsoid';
+  }
+}

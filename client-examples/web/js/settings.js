@@ -45,6 +45,8 @@ export const state = {
   flownTo: null,
   overlays: [],
   camera: null,
+  frame: null,
+  near: null,
 };
 window.vsmViewer = state;
 
