@@ -6,13 +6,16 @@ open: a local frame, z up, no georeference) is written as an organized PCD (its 
 imported by the real `vsm import` and served by the real vsmd on 127.0.0.1:0 with the built viewer
 (build.sh: the `viewer.site` fixture). Headless Chromium (browser_check.js, as viewer.browser) opens
 
-    /viewer/?model=tunnel&eye=2,0,5.5&at=16,0,5.5
+    /viewer/?model=tunnel&eye=2,0,5.5&at=16,0,5.5&exaggeration=3
 
-the camera inside the tunnel, 1.5 m above its axis, looking along it towards the far open end.
+the camera inside the tunnel, 1.5 m above its axis, looking along it towards the far open end
+(the exaggeration, heights above the WGS 84 ellipsoid, has no meaning in a local frame: the page
+must undo it, or the pixels below would not match).
 
 - The page: no console error, no failed request, nothing off 127.0.0.1, every tile loaded; it
-  calls the frame `local`, and its near plane is half the model's finest resolution (GET
-  /v1/models/tunnel) where the globe camera's would have been the model's radius / 1000.
+  calls the frame `local`, its exaggeration is 1, and its near plane is half the model's finest
+  resolution (GET /v1/models/tunnel) where the globe camera's would have been the model's
+  radius / 1000.
 - The pixels, against the tunnel's true surface: with the page's own camera matrices every
   pixel's ray is cast (numpy, no vsm code) against the surface surfaces.py defines (the cylinder
   displaced by A's undulation, iterated to the exact radius): it hits the wall where the wall
@@ -148,8 +151,8 @@ class TunnelView(unittest.TestCase):
     def test_a_camera_inside_the_tunnel_sees_its_walls_around_the_view(self):
         import numpy
         _, _, info = self.daemon.get_json("/v1/models/%s" % MODEL)
-        page = "/viewer/?model=%s&eye=%s&at=%s" % (MODEL, ",".join(map(str, EYE)),
-                                                  ",".join(map(str, AT)))
+        page = "/viewer/?model=%s&eye=%s&at=%s&exaggeration=3" % (
+            MODEL, ",".join(map(str, EYE)), ",".join(map(str, AT)))
         steps = [
             {"name": "forward", "run": "window.dispatchEvent(new KeyboardEvent('keydown', "
              "{code: 'KeyW'})); return true;"},
@@ -165,6 +168,7 @@ class TunnelView(unittest.TestCase):
         self.assertEqual(state["failed"], 0, state["errors"])
         self.assertGreater(state["loaded"], 0)
         self.assertEqual(state["frame"], "local")
+        self.assertEqual(state["exaggeration"], 1)
         finest = info["resolution"]["finest"]
         self.assertGreater(finest, 0)
         self.assertAlmostEqual(state["near"], finest / 2, delta=1e-6 * finest)

@@ -86,10 +86,14 @@ export function initRevisionPicker() {
 }
 
 /// The controls for the model's frame: in a local one (no ellipsoid) there is no height above the
-/// ellipsoid to exaggerate.
+/// ellipsoid to exaggerate (an exaggeration=K of the URL is undone).
 export function adaptToFrame(frame) {
   if (frame === 'local') {
     $('exaggeration').disabled = true;
     $('exaggeration').title = 'a model in a local frame has no height above the ellipsoid';
+    if (state.exaggeration !== 1) {
+      $('exaggeration').value = '1';
+      setExaggeration(1);
+    }
   }
 }
