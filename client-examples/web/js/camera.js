@@ -1,10 +1,11 @@
 // Where the camera looks, and how it is moved.
 //
 // The model's frame decides (window.vsmViewer.frame, set once the tileset's root is in):
-// - `earth`: the model is earth-centred (ECEF, as `vsm import` makes of georeferenced rasters:
-//   its bounding sphere's centre lies 6200 to 6500 km from the origin, the rule vsmd's terrain
-//   route uses). Orbit controls turn the camera about the local vertical, away from the earth's
-//   centre.
+// - `earth`: the model is earth-centred (ECEF, as `vsm import` makes of georeferenced rasters):
+//   its bounding sphere reaches the shell 6200 to 6500 km from the origin where vsmd's terrain
+//   route expects an ECEF model's vertices (the sphere's centre itself may lie far below: a model
+//   the size of the US has it some 400 km under the surface). Orbit controls turn the camera
+//   about the local vertical, away from the earth's centre.
 // - `local`: any other model (organized point clouds in a local frame: a tunnel, a rock face). A
 //   free-flying camera with no up to keep (three.js FlyControls: drag to look, W/S forward and
 //   back, A/D and R/F sideways and up, Q/E roll, shift slow), so that it can go inside a tunnel;
@@ -18,7 +19,8 @@ import { FlyControls } from 'three/addons/controls/FlyControls.js';
 import { params, state } from './settings.js';
 import { finest } from './models.js';
 
-/// Earth-centred: the bounding sphere's centre between these distances from the origin (metres).
+/// Earth-centred: the bounding sphere meets the shell between these distances from the origin
+/// (metres).
 const EARTH_MIN = 6.2e6;
 const EARTH_MAX = 6.5e6;
 
@@ -147,7 +149,8 @@ export function placeCamera(tiles) {
   const centre = sphere.center.clone().applyMatrix4(tiles.group.matrixWorld);
   modelRadius = Math.max(sphere.radius, 1);
   const distance = centre.length();
-  state.frame = distance > EARTH_MIN && distance < EARTH_MAX ? 'earth' : 'local';
+  state.frame = distance + sphere.radius >= EARTH_MIN && distance - sphere.radius <= EARTH_MAX
+    ? 'earth' : 'local';
   if (state.frame === 'local' && !fly) {
     useFreeCamera(modelRadius);
   }
