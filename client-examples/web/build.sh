@@ -1,6 +1,6 @@
 #!/bin/sh
-# Builds the browser viewer (index.html, main.js, and, with --cesium, cesium.html and
-# terrain.html) into <out-dir>, with the ES modules it imports vendored from npm into
+# Builds the browser viewer (index.html, main.js and the modules it imports from js/, and, with
+# --cesium, cesium.html and terrain.html) into <out-dir>, with the ES modules it imports vendored from npm into
 # <out-dir>/vendor, so that vsmd serves it with no network access at runtime
 # (vsmd --viewer-dir <out-dir>, then open /viewer/?model=ID).
 # No bundler: index.html maps the bare imports ("three", "3d-tiles-renderer") to the vendored files
@@ -73,9 +73,12 @@ mkdir -p "$tmp/vendor/three/build" "$tmp/vendor/three/examples/jsm/loaders" \
   "$tmp/vendor/three/examples/jsm/libs" \
   "$tmp/vendor/3d-tiles-renderer/build"
 cp "$src/index.html" "$src/main.js" "$tmp/"
+mkdir -p "$tmp/js"
+cp "$src"/js/*.js "$tmp/js/"
 cp "$nm/three/LICENSE" "$tmp/vendor/three/"
 cp "$nm/three/build/three.module.js" "$nm/three/build/three.core.js" "$tmp/vendor/three/build/"
-for f in loaders/GLTFLoader.js controls/OrbitControls.js utils/BufferGeometryUtils.js \
+for f in loaders/GLTFLoader.js controls/OrbitControls.js controls/FlyControls.js \
+  utils/BufferGeometryUtils.js \
   utils/SkeletonUtils.js libs/meshopt_decoder.module.js; do
   cp "$nm/three/examples/jsm/$f" "$tmp/vendor/three/examples/jsm/$f"
 done
