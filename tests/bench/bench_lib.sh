@@ -1,5 +1,5 @@
-# What the benches of vsm's commands share (import_bench.sh, merge_bench.sh, merge_budget.sh,
-# scaling_bench.sh; serve_bench.sh for median), sourced, not run:
+# What the benches share (import_bench.sh, merge_bench.sh, merge_budget.sh, scaling_bench.sh;
+# serve_bench.sh and soak.sh for median and install_missing), sourced, not run:
 #
 #   source "$(dirname "$0")/bench_lib.sh"
 #   bench_vsm_and_work "$@"
@@ -32,3 +32,13 @@ median() { printf '%s\n' "$@" | sort -g | sed -n "$(( ($# + 1) / 2 ))p"; }
 
 # The size of a file or directory in MB (10^6 bytes), rounded down.
 megabytes() { echo $(( $(du -sb "$1" | cut -f1) / 1000000 )); }
+
+# Installs the Debian packages named (apt-get, with sudo when not root); nothing without any.
+install_missing() {
+  (($#)) || return 0
+  local sudo=""
+  [[ $(id -u) -ne 0 ]] && sudo=sudo
+  echo "installing for the benchmark: $*"
+  $sudo apt-get update -q
+  DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -q --no-install-recommends "$@"
+}
