@@ -224,6 +224,21 @@ struct PatchCache::Impl {
     return it->second;
   }
 
+  /// The entry for `id` once no load or write-back is under way on it (waits on `changed` with
+  /// `lock`); nullptr when there is none.
+  Entry* settled(std::unique_lock<std::mutex>& lock, const FullKey& id) {
+    for (;;) {
+      const auto it = entries.find(id);
+      if (it == entries.end()) {
+        return nullptr;
+      }
+      if (it->second->state == State::Resident) {
+        return it->second.get();
+      }
+      changed.wait(lock);
+    }
+  }
+
   void makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed, std::size_t budget,
                 EvictionPolicy policy, std::size_t neededHandles = 0);
 
@@ -516,16 +531,8 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
   const FullKey id{model, object};
   std::unique_lock lock(impl_->mutex);
   impl_->slot(model);
-  for (;;) {
-    const auto it = impl_->entries.find(id);
-    if (it == impl_->entries.end()) {
-      break;
-    }
-    Entry& e = *it->second;
-    if (e.state != State::Resident) {
-      impl_->changed.wait(lock);
-      continue;
-    }
+  if (Entry* settled = impl_->settled(lock, id); settled != nullptr) {
+    Entry& e = *settled;
     // Replace in place: pin first so making room cannot evict it.
     ++e.pins;
     if (value.bytes > e.bytes || value.handles > e.handles) {
@@ -608,45 +615,27 @@ void PatchCache::flushEntries(ModelId model, const ObjectId* only) {
 }
 
 void PatchCache::drop(ModelId model, const ObjectId& object) {
-  const FullKey id{model, object};
   std::unique_lock lock(impl_->mutex);
-  for (;;) {
-    const auto it = impl_->entries.find(id);
-    if (it == impl_->entries.end()) {
-      return;
-    }
-    Entry& e = *it->second;
-    if (e.state != State::Resident) {
-      impl_->changed.wait(lock);
-      continue;
-    }
-    if (e.pins > 0) {
-      throw Error(ErrorCode::Conflict, "patch " + object.key.toString() + " is in use");
-    }
-    impl_->remove(e);
+  Entry* e = impl_->settled(lock, FullKey{model, object});
+  if (e == nullptr) {
     return;
   }
+  if (e->pins > 0) {
+    throw Error(ErrorCode::Conflict, "patch " + object.key.toString() + " is in use");
+  }
+  impl_->remove(*e);
 }
 
 void PatchCache::invalidate(ModelId model, const ObjectId& object) {
-  const FullKey id{model, object};
   std::unique_lock lock(impl_->mutex);
-  for (;;) {
-    const auto it = impl_->entries.find(id);
-    if (it == impl_->entries.end()) {
-      return;
-    }
-    Entry& e = *it->second;
-    if (e.state != State::Resident) {
-      impl_->changed.wait(lock);
-      continue;
-    }
-    if (e.pins > 0) {
-      impl_->detach(e);
-    } else {
-      impl_->remove(e);
-    }
+  Entry* e = impl_->settled(lock, FullKey{model, object});
+  if (e == nullptr) {
     return;
+  }
+  if (e->pins > 0) {
+    impl_->detach(*e);
+  } else {
+    impl_->remove(*e);
   }
 }
 

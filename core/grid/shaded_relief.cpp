@@ -2,6 +2,7 @@
 #include "core/grid/shaded_relief.hpp"
 
 #include "core/common/vectorised.hpp"
+#include "core/grid/vec_ops.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -13,13 +14,8 @@
 namespace vsm::core {
 namespace {
 
-Vec3d cross(const Vec3d& a, const Vec3d& b) {
-  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
-
-double dot(const Vec3d& a, const Vec3d& b) {
-  return a.x * b.x + a.y * b.y + a.z * b.z;
-}
+using vec::cross;
+using vec::dot;
 
 /// The linear part of `m` applied to direction `v`.
 Vec3d direction(const Mat4d& m, const Vec3d& v) {

@@ -12,6 +12,7 @@
 
 #include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
+#include "core/grid/vec_ops.hpp"
 
 namespace vsm::core {
 
@@ -43,9 +44,7 @@ Vec3d toYUp(const Vec3d& v) {
   return {v.x, v.z, -v.y};
 }
 
-Vec3d cross(const Vec3d& a, const Vec3d& b) {
-  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
+using vec::cross;
 
 /// Component-wise min and max of float vectors, written as the doubles the floats are exactly
 /// (nlohmann prints a double's shortest round-trip form), so a reader comparing with the float32

@@ -6,6 +6,7 @@
 #include <string>
 
 #include "core/common/error.hpp"
+#include "core/grid/vec_ops.hpp"
 #include "core/tiles/tile_tree.hpp"
 
 namespace vsm::core {
@@ -29,17 +30,9 @@ void descend(const Model& model, const PatchKey& key, const Box3d& box, double r
   }
 }
 
-double dot(const Vec3d& a, const Vec3d& b) {
-  return a.x * b.x + a.y * b.y + a.z * b.z;
-}
-
-Vec3d cross(const Vec3d& a, const Vec3d& b) {
-  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
-
-Vec3d unit(const Vec3d& v) {
-  return v * (1.0 / v.norm());
-}
+using vec::cross;
+using vec::dot;
+using vec::unit;
 
 /// The inward unit normal `n` through the eye, as a plane.
 Plane planeThrough(const Vec3d& eye, const Vec3d& n) {

@@ -13,6 +13,7 @@
 
 #include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
+#include "core/grid/vec_ops.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/tiles/lod_render.hpp"
 #include "core/tiles/top_down.hpp"
@@ -176,12 +177,8 @@ std::uint16_t zigZag(int value) {
                                     static_cast<unsigned>(value >> 31));
 }
 
-Vec3d cross(const Vec3d& a, const Vec3d& b) {
-  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
-double dot(const Vec3d& a, const Vec3d& b) {
-  return a.x * b.x + a.y * b.y + a.z * b.z;
-}
+using vec::cross;
+using vec::dot;
 
 /// Cesium's horizon culling point (EllipsoidalOccluder.computeHorizonCullingPoint) for `points`
 /// seen along `direction` (the bounding sphere's centre), in ellipsoid-scaled space. Where no

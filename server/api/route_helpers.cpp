@@ -185,6 +185,20 @@ std::shared_ptr<const core::ModelSnapshot> versionedSnapshot(core::LiveModel& li
   return olderVersion(live, *asked, snapshot->version, "", onNetworkThread);
 }
 
+std::optional<TiledRead> tiledRead(models::ModelRegistry& models, const http::Request& request,
+                                   bool onNetworkThread) {
+  const std::string& id = request.param("m");
+  TiledRead read{models.getServed(id), nullptr};
+  read.snapshot = versionedSnapshot(*read.served.live, request, onNetworkThread);
+  if (read.snapshot == nullptr) {
+    return std::nullopt;
+  }
+  if (read.snapshot->model->empty()) {
+    throw Error(ErrorCode::NotFound, "model '" + id + "' has no patches");
+  }
+  return read;
+}
+
 std::optional<VersionedPatch> versionedPatch(core::LiveModel& live, const http::Request& request,
                                              const core::PatchKey& key, bool onNetworkThread) {
   const std::optional<std::uint64_t> asked = requestedVersion(request);

@@ -88,6 +88,17 @@ std::shared_ptr<const core::ModelSnapshot> versionedSnapshot(core::LiveModel& li
                                                              const http::Request& request,
                                                              bool onNetworkThread = false);
 
+/// The served model and snapshot a read of a whole model's tiles answers from.
+struct TiledRead {
+  models::ModelRegistry::Served served;
+  std::shared_ptr<const core::ModelSnapshot> snapshot;  ///< holds at least one patch
+};
+/// The tileset's and the terrain's read: model `{m}` as getServed() serves it and its
+/// versionedSnapshot(). nullopt on a network thread when that needs the disk. Throws as those,
+/// and core::Error(NotFound) for a model without patches (it has no tiles).
+std::optional<TiledRead> tiledRead(models::ModelRegistry& models, const http::Request& request,
+                                   bool onNetworkThread = false);
+
 /// One patch of one snapshot, as a read of the patch answers it.
 struct VersionedPatch {
   std::shared_ptr<const core::ModelSnapshot> snapshot;

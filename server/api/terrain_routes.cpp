@@ -75,11 +75,7 @@ void requireHeightField(const std::string& id, const core::TerrainLayer& layer) 
 http::Response getLayer(models::ModelRegistry& models, models::PatchData& data,
                         const http::Request& request) {
   const std::string& id = request.param("m");
-  const models::ModelRegistry::Served served = models.getServed(id);
-  const auto snapshot = versionedSnapshot(*served.live, request);
-  if (snapshot->model->empty()) {
-    throw Error(ErrorCode::NotFound, "model '" + id + "' has no patches");
-  }
+  const auto [served, snapshot] = *tiledRead(models, request);
   const auto rev = request.queryParam("rev");
   const bool gzipped = http::acceptsGzip(request);
   const std::string etag =
@@ -118,14 +114,11 @@ std::optional<http::Response> getTile(models::ModelRegistry& models, models::Pat
       onNetworkThread ? models::Asker::NetworkThread : models::Asker::PoolAfterNetwork;
   const std::string& id = request.param("m");
   const core::TerrainTileKey key = parseTile(request);
-  const models::ModelRegistry::Served served = models.getServed(id);
-  const auto snapshot = versionedSnapshot(*served.live, request, onNetworkThread);
-  if (snapshot == nullptr) {
+  const std::optional<TiledRead> read = tiledRead(models, request, onNetworkThread);
+  if (!read) {
     return std::nullopt;
   }
-  if (snapshot->model->empty()) {
-    throw Error(ErrorCode::NotFound, "model '" + id + "' has no patches");
-  }
+  const auto& [served, snapshot] = *read;
   const auto layer = data.terrainLayer(served, snapshot, asker);
   if (layer == nullptr) {
     return std::nullopt;

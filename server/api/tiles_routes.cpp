@@ -115,12 +115,7 @@ core::GlbCompression requestedCompression(const http::Request& request) {
 /// compressing it). Both carry "Vary: Accept-Encoding" and their own ETag.
 http::Response getTileset(models::ModelRegistry& models, const models::PatchData& data,
                           const http::Request& request) {
-  const std::string& id = request.param("m");
-  const models::ModelRegistry::Served served = models.getServed(id);
-  const auto snapshot = versionedSnapshot(*served.live, request);
-  if (snapshot->model->empty()) {
-    throw Error(ErrorCode::NotFound, "model '" + id + "' has no patches");
-  }
+  const auto [served, snapshot] = *tiledRead(models, request);
   const bool compressedContent = requestedCompression(request) == core::GlbCompression::Meshopt;
   const bool revisionUris = request.queryParam("rev").has_value();
   const bool gzipped = http::acceptsGzip(request);

@@ -101,15 +101,59 @@ class ImageCodecPreload {
   std::jthread thread_;
 };
 
-int runImport(const std::vector<std::string_view>& args) {
+/// The value of option args[i], advancing i past it.
+std::string_view optionValue(const std::vector<std::string_view>& args, std::size_t& i) {
+  if (i + 1 >= args.size()) {
+    throw UsageError{std::string(args[i]) + " needs a value"};
+  }
+  return args[++i];
+}
+
+/// The value of --memory-budget at args[i] (advancing i): a size like 512MiB.
+std::size_t budgetOption(const std::vector<std::string_view>& args, std::size_t& i) {
+  try {
+    return vsm::server::parseSize(optionValue(args, i));
+  } catch (const Error& e) {
+    throw UsageError{e.what()};
+  }
+}
+
+/// The value of option args[i] (advancing i): an integer from lo to hi.
+std::int64_t integerOption(const std::vector<std::string_view>& args, std::size_t& i,
+                           std::int64_t lo, std::int64_t hi) {
+  const std::string name(args[i]);
+  const std::string_view text = optionValue(args, i);
+  std::int64_t value = 0;
+  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
+  if (ec != std::errc() || end != text.data() + text.size() || value < lo || value > hi) {
+    throw UsageError{name + " must be an integer from " + std::to_string(lo) + " to " +
+                     std::to_string(hi)};
+  }
+  return value;
+}
+
+/// Walks a command's arguments: an option (--name) goes to `option(i)`, which takes it, advancing
+/// i past its value, and returns true, or returns false for one the command does not know (a usage
+/// error); the others are the positional arguments, returned in order.
+template <class TakeOption>
+std::vector<std::string_view> parseArguments(const std::vector<std::string_view>& args,
+                                             TakeOption&& option) {
   std::vector<std::string_view> positional;
-  ImportOptions options;
   for (std::size_t i = 0; i < args.size(); ++i) {
+    if (!args[i].starts_with("--")) {
+      positional.push_back(args[i]);
+    } else if (!option(i)) {
+      throw UsageError{"unknown option " + std::string(args[i])};
+    }
+  }
+  return positional;
+}
+
+int runImport(const std::vector<std::string_view>& args) {
+  ImportOptions options;
+  const auto positional = parseArguments(args, [&](std::size_t& i) {
     if (args[i] == "--patch-size") {
-      if (i + 1 >= args.size()) {
-        throw UsageError{"--patch-size needs a value"};
-      }
-      const auto value = parseInteger(args[++i]);
+      const auto value = parseInteger(optionValue(args, i));
       if (!value || *value < 3 || *value > 65537) {
         throw UsageError{"--patch-size must be 2^n+1, e.g. 65, 129 or 257"};
       }
@@ -126,12 +170,11 @@ int runImport(const std::vector<std::string_view>& args) {
         options.drape = ImportOptions::Drape::Image;
         options.texture = fs::path(value);
       }
-    } else if (args[i].starts_with("--")) {
-      throw UsageError{"unknown option " + std::string(args[i])};
     } else {
-      positional.push_back(args[i]);
+      return false;
     }
-  }
+    return true;
+  });
   if (positional.size() != 2) {
     throw UsageError{"import needs <input> and <out-dir>"};
   }
@@ -209,44 +252,12 @@ class StagingCopy {
   durable::FileSystemSync sync_;
 };
 
-/// The value of option args[i], advancing i past it.
-std::string_view optionValue(const std::vector<std::string_view>& args, std::size_t& i) {
-  if (i + 1 >= args.size()) {
-    throw UsageError{std::string(args[i]) + " needs a value"};
-  }
-  return args[++i];
-}
-
-/// The value of --memory-budget at args[i] (advancing i): a size like 512MiB.
-std::size_t budgetOption(const std::vector<std::string_view>& args, std::size_t& i) {
-  try {
-    return vsm::server::parseSize(optionValue(args, i));
-  } catch (const Error& e) {
-    throw UsageError{e.what()};
-  }
-}
-
-/// The value of option args[i] (advancing i): an integer from lo to hi.
-std::int64_t integerOption(const std::vector<std::string_view>& args, std::size_t& i,
-                           std::int64_t lo, std::int64_t hi) {
-  const std::string name(args[i]);
-  const std::string_view text = optionValue(args, i);
-  std::int64_t value = 0;
-  const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
-  if (ec != std::errc() || end != text.data() + text.size() || value < lo || value > hi) {
-    throw UsageError{name + " must be an integer from " + std::to_string(lo) + " to " +
-                     std::to_string(hi)};
-  }
-  return value;
-}
-
 int runMerge(const std::vector<std::string_view>& args) {
-  std::vector<std::string_view> positional;
   bool registerFirst = false;
   std::optional<fs::path> out;
   std::size_t budget = std::size_t{1} << 30;
   PublishOptions publish;
-  for (std::size_t i = 0; i < args.size(); ++i) {
+  const auto positional = parseArguments(args, [&](std::size_t& i) {
     if (args[i] == "--register") {
       registerFirst = true;
     } else if (args[i] == "--keep-revisions") {
@@ -255,12 +266,11 @@ int runMerge(const std::vector<std::string_view>& args) {
       out = fs::path(optionValue(args, i));
     } else if (args[i] == "--memory-budget") {
       budget = budgetOption(args, i);
-    } else if (args[i].starts_with("--")) {
-      throw UsageError{"unknown option " + std::string(args[i])};
     } else {
-      positional.push_back(args[i]);
+      return false;
     }
-  }
+    return true;
+  });
   if (positional.size() != 2) {
     throw UsageError{"merge needs <target> and <detail>"};
   }
@@ -338,17 +348,14 @@ void writeWorldFile(const fs::path& out, double x0, double y0, double dx, double
 /// `vsm render-lod`: the leaves coloured by depth, seen from above, as an RGBA PNG (transparent
 /// where no leaf is) plus a world file so GDAL and GIS tools place it.
 int runRenderLod(const std::vector<std::string_view>& args) {
-  std::vector<std::string_view> positional;
   LodRenderOptions options;
-  for (std::size_t i = 0; i < args.size(); ++i) {
-    if (args[i] == "--size") {
-      options.size = static_cast<int>(integerOption(args, i, 1, 16384));
-    } else if (args[i].starts_with("--")) {
-      throw UsageError{"unknown option " + std::string(args[i])};
-    } else {
-      positional.push_back(args[i]);
+  const auto positional = parseArguments(args, [&](std::size_t& i) {
+    if (args[i] != "--size") {
+      return false;
     }
-  }
+    options.size = static_cast<int>(integerOption(args, i, 1, 16384));
+    return true;
+  });
   if (positional.size() != 2) {
     throw UsageError{"render-lod needs <opc> and <out.png>"};
   }
@@ -385,13 +392,12 @@ int runRenderLod(const std::vector<std::string_view>& args) {
 /// `vsm diff`: what changed between two kept revisions of a model, as numbers (stdout, --json),
 /// a picture (--png, with a world file) and a float32 GeoTIFF of the displacement (--geotiff).
 int runDiff(const std::vector<std::string_view>& args) {
-  std::vector<std::string_view> positional;
   std::optional<std::uint64_t> from, to;
   std::optional<fs::path> json, png, geotiff;
   DiffOptions options;
   int size = 1024;
   std::size_t budget = std::size_t{1} << 30;
-  for (std::size_t i = 0; i < args.size(); ++i) {
+  const auto positional = parseArguments(args, [&](std::size_t& i) {
     if (args[i] == "--from") {
       from = static_cast<std::uint64_t>(integerOption(args, i, 1, INT64_MAX));
     } else if (args[i] == "--to") {
@@ -406,12 +412,11 @@ int runDiff(const std::vector<std::string_view>& args) {
       geotiff = fs::path(optionValue(args, i));
     } else if (args[i] == "--memory-budget") {
       budget = budgetOption(args, i);
-    } else if (args[i].starts_with("--")) {
-      throw UsageError{"unknown option " + std::string(args[i])};
     } else {
-      positional.push_back(args[i]);
+      return false;
     }
-  }
+    return true;
+  });
   if (positional.size() != 1 || !from || !to) {
     throw UsageError{"diff needs <opc> --from A --to B"};
   }

@@ -228,36 +228,6 @@ void ModelRegistry::watch(core::LiveModel& live) const {
   });
 }
 
-void ModelRegistry::announceFollowed(const core::LiveModel& old,
-                                     const core::LiveModel& fresh) const {
-  if (!onPublished_) {
-    return;
-  }
-  const auto before = old.snapshot();
-  const auto after = fresh.snapshot();
-  if (after->version == before->version) {
-    return;  // the same version (read again after a failed write, a change of role)
-  }
-  // What the other writer changed: every patch whose version differs, and every patch gone (a
-  // restore removes what the restored revision lacks).
-  Publication publication;
-  publication.model = fresh.name();
-  publication.version = after->version;
-  publication.followed = true;
-  for (const auto& [key, info] : after->model->patches()) {
-    const core::PatchInfo* was = before->model->find(key);
-    if (was == nullptr || was->version != info.version) {
-      publication.changed.push_back(key);
-    }
-  }
-  for (const auto& [key, info] : before->model->patches()) {
-    if (after->model->find(key) == nullptr) {
-      publication.removed.push_back(key);
-    }
-  }
-  onPublished_(publication);
-}
-
 void ModelRegistry::electWriters(std::function<bool(std::string_view id)> writes) {
   writes_ = std::move(writes);
 }
@@ -373,7 +343,7 @@ std::shared_ptr<core::LiveModel> ModelRegistry::openChecked(const std::string& i
     const std::lock_guard lock(mutex_);
     opening_.erase(id);
     reserved_.erase(id);
-    sawTakeover(id, *model);
+    takeovers_.saw(id, *model);
     models_.emplace(id, Served{model, std::move(encoded)});
   }
   const auto snapshot = model->snapshot();
@@ -397,137 +367,6 @@ void ModelRegistry::fencePublish(const std::string& id, core::PublishOptions& op
   if (fence_.readElsewhere) {
     options.readElsewhere = [read = fence_.readElsewhere, id] { return read(id); };
   }
-}
-
-namespace {
-
-std::uint64_t takeoverOf(const core::LiveModel& live) {
-  const auto& fence = live.snapshot()->revision.fence;
-  return fence ? fence->takeover : 0;
-}
-
-}  // namespace
-
-std::uint64_t ModelRegistry::newestTakeover(std::string_view id, const core::LiveModel& old) const {
-  const auto it = takeoverSeen_.find(id);
-  return std::max(it == takeoverSeen_.end() ? 0 : it->second, takeoverOf(old));
-}
-
-void ModelRegistry::sawTakeover(std::string_view id, const core::LiveModel& live) {
-  if (const std::uint64_t takeover = takeoverOf(live)) {
-    auto [it, added] = takeoverSeen_.try_emplace(std::string(id), takeover);
-    it->second = std::max(it->second, takeover);
-  }
-}
-
-void ModelRegistry::reopen(std::string_view id) {
-  if (const auto version = replace(get(id), id, "after a failed write")) {
-    log::warn("model=" + std::string(id) + " read again from disk after a failed write: version " +
-              std::to_string(*version));
-  }
-}
-
-std::optional<std::uint64_t> ModelRegistry::replace(const std::shared_ptr<core::LiveModel>& old,
-                                                    std::string_view id, std::string_view why,
-                                                    bool* refused) {
-  Served fresh;
-  try {
-    fresh.live = old->reopen();
-  } catch (const std::exception& e) {
-    log::error("model=" + std::string(id) + " cannot be read again from disk " + std::string(why) +
-               ": " + e.what());
-    return std::nullopt;
-  }
-  if (refused != nullptr) {
-    const std::uint64_t takeover = takeoverOf(*fresh.live);
-    std::uint64_t seen = 0;
-    {
-      const std::lock_guard lock(mutex_);
-      seen = newestTakeover(id, *old);
-    }
-    if (takeover != 0 && takeover < seen) {
-      ++followsRefused_;
-      log::warn("model=" + std::string(id) + " version " +
-                std::to_string(fresh.live->snapshot()->version) +
-                " on disk is not followed: its writer's fencing token (takeover " +
-                std::to_string(takeover) + ") is older than one already seen (" +
-                std::to_string(seen) + "), so a writer that had lost the model committed it; " +
-                "version " + std::to_string(old->snapshot()->version) + " stays served");
-      *refused = true;
-      return std::nullopt;
-    }
-  }
-  try {
-    fresh.encoded = EncodedCache::create(cache_, *fresh.live);
-    watch(*fresh.live);
-  } catch (const std::exception& e) {
-    log::error("model=" + std::string(id) + " cannot be read again from disk " + std::string(why) +
-               ": " + e.what());
-    return std::nullopt;
-  }
-  const std::uint64_t version = fresh.live->snapshot()->version;
-  if (!swapOpening(id, old, std::move(fresh))) {
-    return std::nullopt;  // closed or replaced meanwhile
-  }
-  return version;
-}
-
-bool ModelRegistry::swapOpening(std::string_view id, const std::shared_ptr<core::LiveModel>& old,
-                                Served fresh) {
-  const std::shared_ptr<core::LiveModel> live = fresh.live;
-  Served replaced;
-  {
-    const std::lock_guard lock(mutex_);
-    const auto it = models_.find(id);
-    if (it == models_.end() || it->second.live != old) {
-      return false;
-    }
-    sawTakeover(id, *old);
-    sawTakeover(id, *live);
-    replaced = std::exchange(it->second, std::move(fresh));
-  }
-  announceFollowed(*old, *live);
-  return true;  // `replaced` goes here, outside the lock
-}
-
-std::size_t ModelRegistry::follow() {
-  std::vector<std::pair<std::string, std::shared_ptr<core::LiveModel>>> readOnly;
-  {
-    const std::lock_guard lock(mutex_);
-    for (const auto& [id, served] : models_) {
-      if (!served.live->writable()) {
-        readOnly.emplace_back(id, served.live);
-      }
-    }
-  }
-  const auto now = std::chrono::steady_clock::now();
-  std::size_t followed = 0;
-  for (const auto& [id, live] : readOnly) {
-    if (const auto it = followRetry_.find(id); it != followRetry_.end() && now < it->second) {
-      continue;  // its last reading failed: retried a little later, not at every look
-    }
-    if (!live->changedOnDisk()) {
-      continue;
-    }
-    const std::optional<core::HierarchyStamp> stamp = core::hierarchyStamp(live->dir());
-    if (const auto it = refusedStamps_.find(id);
-        it != refusedStamps_.end() && it->second == stamp) {
-      continue;  // refused as it is (a stale fencing token): read again once it changes
-    }
-    bool refused = false;
-    if (const auto version = replace(live, id, "after another writer published", &refused)) {
-      log::info("model=" + id + " read again from disk after another writer published: version " +
-                std::to_string(*version));
-      ++followed;
-      followRetry_.erase(id);
-      refusedStamps_.erase(id);
-    } else if (refused) {
-      refusedStamps_[id] = stamp;
-    } else {
-      followRetry_[id] = now + kFollowRetry;
-    }
-  }
-  return followed;
 }
 
 namespace {

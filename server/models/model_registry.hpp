@@ -19,6 +19,7 @@
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/texture_file.hpp"
 #include "core/pyramid/patch_key.hpp"
+#include "server/models/model_following.hpp"
 
 namespace vsm::core {
 class LiveModel;
@@ -230,23 +231,21 @@ class ModelRegistry {
   void unlease(const std::string& id);
   /// Passes `live`'s publishes to onPublished_.
   void watch(core::LiveModel& live) const;
+
+  // Following (model_following.cpp).
   /// Tells onPublished_ of `fresh` when it is a newer version than `old` (another writer's).
   void announceFollowed(const core::LiveModel& old, const core::LiveModel& fresh) const;
-  /// Replaces the opening `old` of `id` by old->reopen() and returns the new opening's version;
-  /// nullopt when reading failed (logged with `why`) or `id` was closed or replaced meanwhile.
   /// Puts `fresh`, a new opening of `id`, in place of the opening `old` and announces the
   /// versions between them (announceFollowed); false, dropping `fresh`, when `id` was closed or
   /// replaced meanwhile.
   bool swapOpening(std::string_view id, const std::shared_ptr<core::LiveModel>& old, Served fresh);
+  /// Replaces the opening `old` of `id` by old->reopen() and returns the new opening's version;
+  /// nullopt when reading failed (logged with `why`) or `id` was closed or replaced meanwhile.
   /// With `refused`, a new opening whose fencing token is older than one seen for `id` is
   /// refused (follow()): nullopt, and *refused set.
   std::optional<std::uint64_t> replace(const std::shared_ptr<core::LiveModel>& old,
                                        std::string_view id, std::string_view why,
                                        bool* refused = nullptr);
-  /// The newest fencing token seen for `id`, `old`'s current version included; with mutex_ held.
-  std::uint64_t newestTakeover(std::string_view id, const core::LiveModel& old) const;
-  /// Remembers the token of `live`'s current version as seen for `id`; with mutex_ held.
-  void sawTakeover(std::string_view id, const core::LiveModel& live);
 
   std::filesystem::path root_;
   core::PatchCache& cache_;
@@ -270,13 +269,10 @@ class ModelRegistry {
   /// openAll()'s own state: directories it skipped, with their hierarchy file as it was then.
   std::map<std::string, std::optional<core::HierarchyStamp>, std::less<>> skipped_;
   /// The newest fencing token (takeover) seen per model id, guarded by mutex_.
-  std::map<std::string, std::uint64_t, std::less<>> takeoverSeen_;
+  TakeoverBook takeovers_;
   std::atomic<std::uint64_t> followsRefused_{0};
-  /// follow()'s own state: when a model whose reading failed is tried again.
-  std::map<std::string, std::chrono::steady_clock::time_point, std::less<>> followRetry_;
-  /// follow()'s own state: the hierarchy files it refused to follow (stale fencing token), as
-  /// they were then.
-  std::map<std::string, std::optional<core::HierarchyStamp>, std::less<>> refusedStamps_;
+  /// follow()'s own state: models whose reading failed, hierarchy files it refused.
+  FollowSchedule followSchedule_;
 };
 
 }  // namespace vsm::server::models

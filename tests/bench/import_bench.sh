@@ -18,19 +18,9 @@
 # Defaults: build/server/cli/vsm and a temporary directory (removed afterwards). Issue 17 asks
 # for vsm import within 1.5x gdaladdo.
 set -euo pipefail
-ROOT=$(cd "$(dirname "$0")/../.." && pwd)
-VSM=${1:-$ROOT/build/server/cli/vsm}
-PYTHON=/usr/bin/python3  # Debian's: it has python3-gdal and python3-numpy
+source "$(dirname "$0")/bench_lib.sh"
 SIZE=${VSM_BENCH_SIZE:-8193}
-
-if [[ -n "${2:-}" ]]; then
-  WORK=$2
-  mkdir -p "$WORK"
-else
-  WORK=$(mktemp -d)
-  trap 'rm -rf "$WORK"' EXIT
-fi
-[[ -x "$VSM" ]] || { echo "no vsm binary at $VSM" >&2; exit 2; }
+bench_vsm_and_work "$@"
 
 echo "generating synthetic ${SIZE}x${SIZE} float32 terrain in $WORK ..."
 "$PYTHON" - "$WORK/terrain.tif" "$SIZE" <<'EOF'
@@ -70,9 +60,6 @@ EOF
 ls -l "$WORK/terrain.tif"
 
 rm -rf "$WORK"/terrain-opc-*  # left by an interrupted run
-
-now() { date +%s.%N; }
-median() { printf '%s\n' "$@" | sort -g | sed -n "$(( ($# + 1) / 2 ))p"; }
 
 # Three runs of each, alternating, each on fresh output: gdaladdo on a fresh copy of the input
 # (no .ovr left from a run before: -ro would add to it), vsm into a new directory.

@@ -29,21 +29,10 @@
 # VSM_BENCH_CASES (default "abc") picks the cases, e.g. VSM_BENCH_CASES=c for --register only
 # (its inputs take ~25 MB).
 set -euo pipefail
-ROOT=$(cd "$(dirname "$0")/../.." && pwd)
-HERE=$(cd "$(dirname "$0")" && pwd)
-VSM=${1:-$ROOT/build/server/cli/vsm}
-PYTHON=/usr/bin/python3  # Debian's: it has python3-gdal and python3-numpy
+source "$(dirname "$0")/bench_lib.sh"
 REPEAT=${VSM_BENCH_REPEAT:-3}
 CASES=${VSM_BENCH_CASES:-abc}
-
-if [[ -n "${2:-}" ]]; then
-  WORK=$2
-  mkdir -p "$WORK"
-else
-  WORK=$(mktemp -d)
-  trap 'rm -rf "$WORK"' EXIT
-fi
-[[ -x "$VSM" ]] || { echo "no vsm binary at $VSM" >&2; exit 2; }
+bench_vsm_and_work "$@"
 
 gen() {  # gen <name> <west> <north> <spacing"> <size> [shift options]: raster + OPC, once
   local name=$1
@@ -54,7 +43,7 @@ gen() {  # gen <name> <west> <north> <spacing"> <size> [shift options]: raster +
     mv "$WORK/$name.partial" "$WORK/$name"
   fi
   printf '  %-14s %5d x %-5d at %s"  OPC %4d MB\n' "$name" "$4" "$4" "$3" \
-    $(( $(du -sb "$WORK/$name" | cut -f1) / 1000000 ))
+    "$(megabytes "$WORK/$name")"
 }
 
 has() { [[ $CASES == *$1* ]]; }
@@ -66,8 +55,6 @@ if has b; then gen target-200mb -101.5 37.5 3 3585; fi
 if has a; then gen detail-small -100.1 36.1 0.8 513; fi
 if has b; then gen detail-60mb  -100.3 36.3 0.8 1921; fi
 if has c; then gen detail-shift -100.1 36.1 0.8 513 --shift-east 4 --up 1.5; fi
-
-now() { date +%s.%N; }
 
 # merge_once <target> <detail> [options]: wall seconds of one in-place merge into a fresh copy.
 merge_once() {
@@ -87,8 +74,6 @@ merge_once() {
 check_last() {
   "$VSM" validate "$WORK/copy" >/dev/null 2>&1 || { echo "merged model does not validate" >&2; exit 1; }
 }
-
-median() { printf '%s\n' "$@" | sort -n | sed -n "$(( ($# + 1) / 2 ))p"; }
 
 # merge_time <target> <detail> [options]: median wall seconds of $REPEAT in-place merges.
 merge_time() {

@@ -9,17 +9,9 @@
 #
 #   tests/bench/merge_budget.sh [path/to/vsm] [work-dir]
 set -euo pipefail
-ROOT=$(cd "$(dirname "$0")/../.." && pwd)
-VSM=${1:-$ROOT/build/server/cli/vsm}
+source "$(dirname "$0")/bench_lib.sh"
 DATA=${VSM_SHARED_DATA:-$ROOT/../shared/data}
-if [[ -n "${2:-}" ]]; then
-  WORK=$2
-  mkdir -p "$WORK"
-else
-  WORK=$(mktemp -d)
-  trap 'rm -rf "$WORK"' EXIT
-fi
-[[ -x "$VSM" ]] || { echo "no vsm binary at $VSM" >&2; exit 2; }
+bench_vsm_and_work "$@"
 
 rm -rf "$WORK/prism" "$WORK/jack"
 "$VSM" import "$DATA/PRISMelevation.tif" "$WORK/prism" --patch-size 65 >/dev/null 2>&1

@@ -17,20 +17,9 @@
 # Defaults: build/server/cli/vsm and a temporary directory (removed afterwards; needs ~12 GB).
 # VSM_BENCH_PARTS (default "im") picks import (i) and/or merge (m).
 set -euo pipefail
-ROOT=$(cd "$(dirname "$0")/../.." && pwd)
-HERE=$(cd "$(dirname "$0")" && pwd)
-VSM=${1:-$ROOT/build/server/cli/vsm}
-PYTHON=/usr/bin/python3  # Debian's: it has python3-gdal and python3-numpy
+source "$(dirname "$0")/bench_lib.sh"
 PARTS=${VSM_BENCH_PARTS:-im}
-
-if [[ -n "${2:-}" ]]; then
-  WORK=$2
-  mkdir -p "$WORK"
-else
-  WORK=$(mktemp -d)
-  trap 'rm -rf "$WORK"' EXIT
-fi
-[[ -x "$VSM" ]] || { echo "no vsm binary at $VSM" >&2; exit 2; }
+bench_vsm_and_work "$@"
 
 raster() {  # raster <name> <west> <north> <spacing"> <size>: the GeoTIFF, once
   [[ -f "$WORK/$1.tif" ]] || "$PYTHON" "$HERE/merge_terrain.py" "$WORK/$1.tif" "$2" "$3" "$4" "$5"
@@ -40,8 +29,6 @@ measure() {  # measure <command...>: prints "<wall s> <peak RSS MiB>" of one run
   /usr/bin/time -f '%e %M' -o "$WORK/last.time" "$@" >/dev/null 2>&1
   awk '{ printf "%.2f %.0f\n", $1, $2 / 1024 }' "$WORK/last.time"
 }
-
-megabytes() { echo $(( $(du -sb "$1" | cut -f1) / 1000000 )); }
 
 if [[ $PARTS == *i* ]]; then
   echo "import (1\" spacing, 257 x 257 patches, fresh output directory):"

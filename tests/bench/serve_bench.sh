@@ -42,7 +42,7 @@
 # many cropped patches under a small budget need more. Installs wrk and nginx-light with apt when
 # missing (for this benchmark only).
 set -euo pipefail
-ROOT=$(cd "$(dirname "$0")/../.." && pwd)
+source "$(dirname "$0")/bench_lib.sh"  # ROOT, median, install_missing
 BUILD=$(cd "${1:-$ROOT/build}" && pwd)
 DATA=${VSM_DATA:-$ROOT/../shared/data}
 DURATION=${BENCH_DURATION:-10s}
@@ -61,13 +61,7 @@ command -v wrk >/dev/null || missing+=(wrk)
 [[ -x /usr/sbin/nginx ]] || missing+=(nginx-light)
 command -v curl >/dev/null || missing+=(curl)
 command -v jq >/dev/null || missing+=(jq)
-if ((${#missing[@]})); then
-  SUDO=""
-  [[ $(id -u) -ne 0 ]] && SUDO=sudo
-  echo "installing for the benchmark: ${missing[*]}"
-  $SUDO apt-get update -q
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -q --no-install-recommends "${missing[@]}"
-fi
+install_missing "${missing[@]}"
 
 WORK=$(mktemp -d /tmp/vsm-serve-bench.XXXXXX)
 VSMD_PID=""
@@ -312,7 +306,6 @@ bench_random() { # URL, script[, connections]
   fi
   sed -n 's/^Requests\/sec: *//p' "$WORK/wrk.out"
 }
-median() { printf '%s\n' "$@" | sort -n | sed -n "$((($# + 1) / 2))p"; }
 range() { echo "$(printf '%s\n' "$@" | sort -n | head -1)x to $(printf '%s\n' "$@" | sort -n | tail -1)x"; }
 MISS_RATIOS=()
 LIMITED_RATIOS=()

@@ -66,7 +66,7 @@
 #
 # Installs python3-matplotlib (and python3-numpy) with apt when missing, as serve_bench does wrk.
 set -euo pipefail
-ROOT=$(cd "$(dirname "$0")/../.." && pwd)
+source "$(dirname "$0")/bench_lib.sh"  # ROOT, install_missing
 MINUTES=${1:-${SOAK_MINUTES:-30}}
 BUILD=$(cd "${2:-$ROOT/build}" && pwd)
 DATA=${VSM_DATA:-$ROOT/../shared/data}
@@ -87,13 +87,7 @@ missing=()
 $PY -c 'import matplotlib' 2>/dev/null || missing+=(python3-matplotlib)
 $PY -c 'import numpy' 2>/dev/null || missing+=(python3-numpy)
 command -v gdal_translate >/dev/null || missing+=(gdal-bin)
-if ((${#missing[@]})); then
-  SUDO=""
-  [[ $(id -u) -ne 0 ]] && SUDO=sudo
-  echo "installing for the benchmark: ${missing[*]}"
-  $SUDO apt-get update -q
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -q --no-install-recommends "${missing[@]}"
-fi
+install_missing "${missing[@]}"
 
 WORK=$(mktemp -d /tmp/vsm-soak.XXXXXX)
 VSMD_PID=""

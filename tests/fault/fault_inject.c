@@ -423,60 +423,43 @@ static mode_t modeOf(int flags, va_list args) {
   return (flags & (O_CREAT | __O_TMPFILE)) != 0 ? (mode_t)va_arg(args, int) : 0;
 }
 
+/// The mode argument of the open(2) being wrapped, whose last named parameter is `flags`.
+#define OPEN_MODE(flags)                               \
+  __extension__({                                      \
+    va_list modeArgs;                                  \
+    va_start(modeArgs, flags);                         \
+    const mode_t modeOfCall = modeOf(flags, modeArgs); \
+    va_end(modeArgs);                                  \
+    modeOfCall;                                        \
+  })
+
+/// Whether an open(2) of `path` (relative to `dirfd`) with `flags` fails here: a create's fault
+/// (O_CREAT), or a read's (read-only).
+static int openFault(int dirfd, const char* path, int flags) {
+  if ((flags & O_CREAT) != 0 && faultAt(kCreate, dirfd, path)) {
+    return 1;
+  }
+  return readOnly(flags) && faultAt(kRead, dirfd, path);
+}
+
 int open(const char* path, int flags, ...) {
-  va_list args;
-  va_start(args, flags);
-  const mode_t mode = modeOf(flags, args);
-  va_end(args);
-  if ((flags & O_CREAT) != 0 && faultAt(kCreate, AT_FDCWD, path)) {
-    return -1;
-  }
-  if (readOnly(flags) && faultAt(kRead, AT_FDCWD, path)) {
-    return -1;
-  }
-  return NEXT(open)(path, flags, mode);
+  const mode_t mode = OPEN_MODE(flags);
+  return openFault(AT_FDCWD, path, flags) ? -1 : NEXT(open)(path, flags, mode);
 }
 
 int open64(const char* path, int flags, ...) {
-  va_list args;
-  va_start(args, flags);
-  const mode_t mode = modeOf(flags, args);
-  va_end(args);
-  if ((flags & O_CREAT) != 0 && faultAt(kCreate, AT_FDCWD, path)) {
-    return -1;
-  }
-  if (readOnly(flags) && faultAt(kRead, AT_FDCWD, path)) {
-    return -1;
-  }
-  return NEXT(open64)(path, flags, mode);
+  const mode_t mode = OPEN_MODE(flags);
+  return openFault(AT_FDCWD, path, flags) ? -1 : NEXT(open64)(path, flags, mode);
 }
 
 int openat(int dirfd, const char* path, int flags, ...) {
-  va_list args;
-  va_start(args, flags);
-  const mode_t mode = modeOf(flags, args);
-  va_end(args);
-  if ((flags & O_CREAT) != 0 && faultAt(kCreate, dirfd, path)) {
-    return -1;
-  }
-  if (readOnly(flags) && faultAt(kRead, dirfd, path)) {
-    return -1;
-  }
-  return NEXT(openat)(dirfd, path, flags, mode);
+  const mode_t mode = OPEN_MODE(flags);
+  return openFault(dirfd, path, flags) ? -1 : NEXT(openat)(dirfd, path, flags, mode);
 }
 
 int openat64(int dirfd, const char* path, int flags, ...) {
-  va_list args;
-  va_start(args, flags);
-  const mode_t mode = modeOf(flags, args);
-  va_end(args);
-  if ((flags & O_CREAT) != 0 && faultAt(kCreate, dirfd, path)) {
-    return -1;
-  }
-  if (readOnly(flags) && faultAt(kRead, dirfd, path)) {
-    return -1;
-  }
-  return NEXT(openat64)(dirfd, path, flags, mode);
+  const mode_t mode = OPEN_MODE(flags);
+  return openFault(dirfd, path, flags) ? -1 : NEXT(openat64)(dirfd, path, flags, mode);
 }
 
 int creat(const char* path, mode_t mode) {

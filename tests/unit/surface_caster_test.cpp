@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "core/common/error.hpp"
+#include "core/grid/vec_ops.hpp"
 #include "core/merge/surface_caster.hpp"
 #include "core/merge/surface_sampler.hpp"
 #include "tests/unit/test_support.hpp"
@@ -21,17 +22,9 @@ namespace {
 using test::codeOf;
 using Grids = std::vector<std::shared_ptr<const PatchGrid>>;
 
-double dot(const Vec3d& a, const Vec3d& b) {
-  return a.x * b.x + a.y * b.y + a.z * b.z;
-}
-
-Vec3d cross(const Vec3d& a, const Vec3d& b) {
-  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
-
-Vec3d unit(const Vec3d& v) {
-  return v * (1.0 / v.norm());
-}
+using vec::cross;
+using vec::dot;
+using vec::unit;
 
 /// Distance of `p` from the line through `o` along `d`.
 double offLine(const Vec3d& p, const Vec3d& o, const Vec3d& d) {

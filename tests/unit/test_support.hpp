@@ -4,6 +4,7 @@
 // executor lending one thread per task.
 
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <exception>
 #include <filesystem>
@@ -13,6 +14,7 @@
 #include <sstream>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "core/common/error.hpp"
@@ -41,6 +43,38 @@ inline std::string messageOf(const std::function<void()>& f) {
   ADD_FAILURE() << "no Error thrown";
   return {};
 }
+
+/// The code and message of the Error `f` throws; a test failure (and Internal, "") when it throws
+/// none.
+template <typename F>
+std::pair<ErrorCode, std::string> errorOf(F&& f) {
+  try {
+    f();
+  } catch (const Error& e) {
+    return {e.code(), e.what()};
+  }
+  ADD_FAILURE() << "no core::Error thrown";
+  return {ErrorCode::Internal, ""};
+}
+
+/// A file holding `text` that is removed again at the end of the test.
+class TempFile {
+ public:
+  explicit TempFile(const std::string& text)
+      : path_(std::filesystem::temp_directory_path() /
+              ("vsm_unit_test_" + std::to_string(getpid()) + "_" + std::to_string(counter_++) +
+               ".json")) {
+    std::ofstream(path_) << text;
+  }
+  ~TempFile() { std::filesystem::remove(path_); }
+  TempFile(const TempFile&) = delete;
+  TempFile& operator=(const TempFile&) = delete;
+  std::string path() const { return path_.string(); }
+
+ private:
+  static inline int counter_ = 0;
+  std::filesystem::path path_;
+};
 
 /// The bytes of `file`.
 inline std::string readFile(const std::filesystem::path& file) {
