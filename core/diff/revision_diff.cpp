@@ -151,6 +151,74 @@ std::optional<std::array<double, 3>> lineTriangle(const Vec3d& p, const Vec3d& d
   return std::array<double, 3>{dot(e2, qv) * inv, u, v};
 }
 
+/// A side's roughness in a cylinder of axis n: the variance of the points' offsets `r` along n
+/// about their least-squares plane (z = a + b s + c w, s and w across n), with m - 3 degrees of
+/// freedom; 0 for fewer than 4 points. A plane's slope across the cylinder is no roughness (a
+/// grid samples a steep but smooth wall exactly), its curvature and steps are.
+double roughness(const std::vector<Vec3d>& r, const Vec3d& n) {
+  const std::size_t m = r.size();
+  if (m < 4) {
+    return 0;
+  }
+  // Two unit vectors across n.
+  const Vec3d helper = std::abs(n.x) < 0.9 ? Vec3d{1, 0, 0} : Vec3d{0, 1, 0};
+  Vec3d e1 = cross(n, helper);
+  e1 = e1 * (1 / e1.norm());
+  const Vec3d e2 = cross(n, e1);
+  // Normal equations of [1 s w] [a b c]^T = z, solved by Gauss-Jordan with partial pivoting; a
+  // degenerate set (points on a line) keeps its spread about the mean.
+  std::array<std::array<double, 4>, 3> A{};
+  for (const Vec3d& q : r) {
+    const std::array<double, 3> row{1, dot(q, e1), dot(q, e2)};
+    const double z = dot(q, n);
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) {
+        A[i][j] += row[i] * row[j];
+      }
+      A[i][3] += row[i] * z;
+    }
+  }
+  const double scale = A[1][1] + A[2][2] + 1;
+  bool solved = true;
+  for (int c = 0; c < 3 && solved; ++c) {
+    int pivot = c;
+    for (int i = c + 1; i < 3; ++i) {
+      if (std::abs(A[i][c]) > std::abs(A[pivot][c])) {
+        pivot = i;
+      }
+    }
+    if (!(std::abs(A[pivot][c]) > 1e-12 * scale)) {
+      solved = false;
+      break;
+    }
+    std::swap(A[c], A[pivot]);
+    for (int i = 0; i < 3; ++i) {
+      if (i != c) {
+        const double f = A[i][c] / A[c][c];
+        for (int j = c; j < 4; ++j) {
+          A[i][j] -= f * A[c][j];
+        }
+      }
+    }
+  }
+  std::array<double, 3> coef{};
+  if (solved) {
+    for (int i = 0; i < 3; ++i) {
+      coef[i] = A[i][3] / A[i][i];
+    }
+  } else {
+    for (const Vec3d& q : r) {
+      coef[0] += dot(q, n) / static_cast<double>(m);
+    }
+  }
+  double sum = 0;
+  for (const Vec3d& q : r) {
+    const double e = dot(q, n) - (coef[0] + coef[1] * dot(q, e1) + coef[2] * dot(q, e2));
+    sum += e * e;
+  }
+  return sum / static_cast<double>(solved ? m - 3 : m - 1);
+}
+
 /// The other revision's surface around one leaf, for casting lines along normals and counting
 /// points in cylinders: its leaves within reach, pinned, with their cells in a uniform 3D grid of
 /// buckets (twice their largest spacing), kept as sorted (bucket, cell) pairs, 16 bytes each. The
@@ -284,8 +352,9 @@ class SurfaceIndex {
     return Hit{bestHit[0], n * (1 / length)};
   }
 
-  /// M3C2's spread of this surface in a cylinder: the variance of (q - p) . n and the count of
-  /// its vertices q within `radius` of the axis p + t n, near p + t0 n (the buckets around it).
+  /// M3C2's spread of this surface in a cylinder: the roughness (about their local plane) and the
+  /// count of its vertices q within `radius` of the axis p + t n, near p + t0 n (the buckets around
+  /// it).
   std::pair<double, int> spread(const Vec3d& p, const Vec3d& n, double t0, double radius) const {
     const auto centre = bucketOf(p + n * t0);
     std::vector<std::uint64_t> seen;
@@ -308,33 +377,16 @@ class SurfaceIndex {
     }
     std::sort(seen.begin(), seen.end());
     seen.erase(std::unique(seen.begin(), seen.end()), seen.end());
-    std::vector<double> along;
+    std::vector<Vec3d> inside;
     for (const std::uint64_t v : seen) {
       const Vec3d q = grids_[v >> 40]->global(static_cast<int>(v & 0xfffff),
                                               static_cast<int>((v >> 20) & 0xfffff));
       const Vec3d r = q - p;
-      const double a = dot(r, n);
-      if ((r - n * a).norm() <= radius) {
-        along.push_back(a);
+      if ((r - n * dot(r, n)).norm() <= radius) {
+        inside.push_back(r);
       }
     }
-    return {variance(along), static_cast<int>(along.size())};
-  }
-
-  static double variance(const std::vector<double>& values) {
-    if (values.size() < 2) {
-      return 0;
-    }
-    double mean = 0;
-    for (const double v : values) {
-      mean += v;
-    }
-    mean /= static_cast<double>(values.size());
-    double sum = 0;
-    for (const double v : values) {
-      sum += (v - mean) * (v - mean);
-    }
-    return sum / static_cast<double>(values.size() - 1);
+    return {roughness(inside, n), static_cast<int>(inside.size())};
   }
 
   /// The largest grid spacing and storageNoise of the leaves of the last around().
@@ -820,22 +872,21 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
         // The cylinder's axis through the core point (on `from`): t0 from p along n.
         const double t0 = w.onFrom ? hit->t : -d;
         // M3C2's level of detection: each side's spread along n in the cylinder around the axis.
-        std::vector<double> along;
+        std::vector<Vec3d> inside;
         for (int v = std::max(0, y - window); v <= std::min(s - 1, y + window); ++v) {
           for (int u = std::max(0, x - window); u <= std::min(s - 1, x + window); ++u) {
             if (grid.defined(u, v)) {
               const Vec3d r = grid.global(u, v) - p;
-              const double t = dot(r, n);
-              if ((r - n * t).norm() <= radius) {
-                along.push_back(t);
+              if ((r - n * dot(r, n)).norm() <= radius) {
+                inside.push_back(r);
               }
             }
           }
         }
         const auto [otherVariance, otherCount] = other.spread(p, n, t0, radius);
         double spread = 0;
-        if (along.size() > 0) {
-          spread += SurfaceIndex::variance(along) / static_cast<double>(along.size());
+        if (!inside.empty()) {
+          spread += roughness(inside, n) / static_cast<double>(inside.size());
         }
         if (otherCount > 0) {
           spread += otherVariance / otherCount;
