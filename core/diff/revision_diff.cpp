@@ -340,16 +340,55 @@ class SurfaceIndex {
     }
     const auto [grid, x, y] = cellOf(bestCell);
     const PatchGrid& g = *grids_[grid];
-    cellCorners(g, x, y, at);
+    const int corners = cellCorners(g, x, y, at);
     const double u = bestHit[1], v = bestHit[2];
-    const Vec3d n = vertexNormal(g, at[0].first, at[0].second, sign_) * (1 - u - v) +
-                    vertexNormal(g, at[bestTri + 1].first, at[bestTri + 1].second, sign_) * u +
-                    vertexNormal(g, at[bestTri + 2].first, at[bestTri + 2].second, sign_) * v;
+    double t = bestHit[0];
+    Vec3d n = vertexNormal(g, at[0].first, at[0].second, sign_) * (1 - u - v) +
+              vertexNormal(g, at[bestTri + 1].first, at[bestTri + 1].second, sign_) * u +
+              vertexNormal(g, at[bestTri + 2].first, at[bestTri + 2].second, sign_) * v;
+    if (corners == 4) {
+      // A full cell is the bilinear patch B(a, b) through its corners, as the merge subdivides
+      // and SurfaceSampler interpolates (its triangles chord a twisted cell by up to a quarter of
+      // the twist): Newton's method on B(a, b) = p + t dir from the triangle's hit.
+      const Vec3d c00 = g.global(x, y), c10 = g.global(x + 1, y), c11 = g.global(x + 1, y + 1),
+                  c01 = g.global(x, y + 1);
+      double a = bestTri == 0 ? u + v : u, b = bestTri == 0 ? v : u + v;
+      bool ok = true;
+      for (int k = 0; k < 6 && ok; ++k) {
+        const Vec3d bp =
+            c00 * ((1 - a) * (1 - b)) + c10 * (a * (1 - b)) + c11 * (a * b) + c01 * ((1 - a) * b);
+        const Vec3d ba = (c10 - c00) * (1 - b) + (c11 - c01) * b;
+        const Vec3d bb = (c01 - c00) * (1 - a) + (c11 - c10) * a;
+        const Vec3d f = bp - (p + dir * t);
+        const Vec3d m = dir * -1.0;
+        // Solve [ba bb m] [da db dt]^T = -f by Cramer's rule.
+        const double det = dot(ba, cross(bb, m));
+        if (!(std::abs(det) > 1e-300)) {
+          ok = false;
+          break;
+        }
+        const Vec3d r = f * -1.0;
+        a += dot(r, cross(bb, m)) / det;
+        b += dot(ba, cross(r, m)) / det;
+        t += dot(ba, cross(bb, r)) / det;
+        ok = std::isfinite(a) && std::isfinite(b) && std::isfinite(t);
+      }
+      constexpr double kSlack = 1e-6;
+      if (ok && a >= -kSlack && a <= 1 + kSlack && b >= -kSlack && b <= 1 + kSlack &&
+          std::abs(t) <= reach) {
+        n = vertexNormal(g, x, y, sign_) * ((1 - a) * (1 - b)) +
+            vertexNormal(g, x + 1, y, sign_) * (a * (1 - b)) +
+            vertexNormal(g, x + 1, y + 1, sign_) * (a * b) +
+            vertexNormal(g, x, y + 1, sign_) * ((1 - a) * b);
+      } else {
+        t = bestHit[0];
+      }
+    }
     const double length = n.norm();
     if (!(length > 0)) {
       return std::nullopt;
     }
-    return Hit{bestHit[0], n * (1 / length)};
+    return Hit{t, n * (1 / length)};
   }
 
   /// M3C2's spread of this surface in a cylinder: the roughness (about their local plane) and the
@@ -815,7 +854,7 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
     const double spacing = grid.resolution();
     const std::vector<Vec3d> areas = vertexAreas(grid);
     // The reach: the leaf's box grown along its mean normal by the search distance, and by a
-    // quarter of it (and two samples) across, where lines from its vertices may go.
+    // twentieth of it (and two samples) across, where lines from its vertices may go.
     Vec3d mean;
     for (const Vec3d& area : areas) {
       mean = mean + area;
@@ -823,7 +862,7 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
     mean = mean * (mean.norm() > 0 ? 1 / mean.norm() : 0.0);
     const double reach = options.searchDistance > 0 ? options.searchDistance : 64 * spacing;
     Box3d box = info.globalBox;
-    const double across = 0.25 * reach + 2 * spacing;
+    const double across = 0.05 * reach + 2 * spacing;
     const Vec3d grow{reach * std::abs(mean.x) + across, reach * std::abs(mean.y) + across,
                      reach * std::abs(mean.z) + across};
     box.min = box.min - grow;
