@@ -232,6 +232,9 @@ class SurfaceIndex {
     double t = 0;
     /// Unit normal there (the hit cell's vertex normals, interpolated).
     Vec3d normal;
+    /// The hit cell: its grid (of this index) and corner.
+    std::size_t grid = 0;
+    int x = 0, y = 0;
   };
 
   /// Prepares the leaves meeting `box`; false when there are none.
@@ -388,41 +391,25 @@ class SurfaceIndex {
     if (!(length > 0)) {
       return std::nullopt;
     }
-    return Hit{t, n * (1 / length)};
+    return Hit{t, n * (1 / length), grid, x, y};
   }
 
   /// M3C2's spread of this surface in a cylinder: the roughness (about their local plane) and the
-  /// count of its vertices q within `radius` of the axis p + t n, near p + t0 n (the buckets around
-  /// it).
-  std::pair<double, int> spread(const Vec3d& p, const Vec3d& n, double t0, double radius) const {
-    const auto centre = bucketOf(p + n * t0);
-    std::vector<std::uint64_t> seen;
-    std::array<std::pair<int, int>, 4> at{};
-    for (std::int64_t i = centre[0] - 1; i <= centre[0] + 1; ++i) {
-      for (std::int64_t j = centre[1] - 1; j <= centre[1] + 1; ++j) {
-        for (std::int64_t k = centre[2] - 1; k <= centre[2] + 1; ++k) {
-          const auto [first, last] = range({i, j, k});
-          for (auto it = first; it != last; ++it) {
-            const auto [grid, x, y] = cellOf(it->second);
-            const int count = cellCorners(*grids_[grid], x, y, at);
-            for (int c = 0; c < count; ++c) {
-              seen.push_back((static_cast<std::uint64_t>(grid) << 40) |
-                             (static_cast<std::uint64_t>(at[c].second) << 20) |
-                             static_cast<std::uint64_t>(at[c].first));
-            }
+  /// count of its vertices within `radius` of the axis through p along n, among the vertices of
+  /// the hit cell's grid within `window` of it (a cylinder across a patch border sees one side).
+  std::pair<double, int> spread(const Vec3d& p, const Vec3d& n, const Hit& hit, double radius,
+                                int window) const {
+    const PatchGrid& g = *grids_[hit.grid];
+    const int s = g.size();
+    std::vector<Vec3d> inside;
+    for (int v = std::max(0, hit.y - window); v <= std::min(s - 1, hit.y + 1 + window); ++v) {
+      for (int u = std::max(0, hit.x - window); u <= std::min(s - 1, hit.x + 1 + window); ++u) {
+        if (g.defined(u, v)) {
+          const Vec3d r = g.global(u, v) - p;
+          if ((r - n * dot(r, n)).norm() <= radius) {
+            inside.push_back(r);
           }
         }
-      }
-    }
-    std::sort(seen.begin(), seen.end());
-    seen.erase(std::unique(seen.begin(), seen.end()), seen.end());
-    std::vector<Vec3d> inside;
-    for (const std::uint64_t v : seen) {
-      const Vec3d q = grids_[v >> 40]->global(static_cast<int>(v & 0xfffff),
-                                              static_cast<int>((v >> 20) & 0xfffff));
-      const Vec3d r = q - p;
-      if ((r - n * dot(r, n)).norm() <= radius) {
-        inside.push_back(r);
       }
     }
     return {roughness(inside, n), static_cast<int>(inside.size())};
@@ -908,8 +895,6 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
         // `to` minus `from` along from's normal n.
         const std::size_t i = static_cast<std::size_t>(y) * s + x;
         out.d[i] = d;
-        // The cylinder's axis through the core point (on `from`): t0 from p along n.
-        const double t0 = w.onFrom ? hit->t : -d;
         // M3C2's level of detection: each side's spread along n in the cylinder around the axis.
         std::vector<Vec3d> inside;
         for (int v = std::max(0, y - window); v <= std::min(s - 1, y + window); ++v) {
@@ -922,7 +907,9 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
             }
           }
         }
-        const auto [otherVariance, otherCount] = other.spread(p, n, t0, radius);
+        const int otherWindow = std::clamp(
+            static_cast<int>(std::ceil(radius / std::max(other.resolution(), 1e-300))), 1, 4);
+        const auto [otherVariance, otherCount] = other.spread(p, n, *hit, radius, otherWindow);
         double spread = 0;
         if (!inside.empty()) {
           spread += roughness(inside, n) / static_cast<double>(inside.size());
