@@ -254,7 +254,8 @@ class SurfaceIndex {
       const PatchInfo& info = source_.model().at(key);
       all.extend(info.globalBox);
       noise_ = std::max(noise_, storageNoise(info.localBox));
-      spacing = std::max(spacing, grids_.back()->resolution());
+      resolutions_.push_back(grids_.back()->resolution());
+      spacing = std::max(spacing, resolutions_.back());
     }
     resolution_ = spacing;
     origin_ = all.center();
@@ -401,7 +402,8 @@ class SurfaceIndex {
                                 int window) const {
     const PatchGrid& g = *grids_[hit.grid];
     const int s = g.size();
-    std::vector<Vec3d> inside;
+    std::vector<Vec3d>& inside = inside_;
+    inside.clear();
     for (int v = std::max(0, hit.y - window); v <= std::min(s - 1, hit.y + 1 + window); ++v) {
       for (int u = std::max(0, hit.x - window); u <= std::min(s - 1, hit.x + 1 + window); ++u) {
         if (g.defined(u, v)) {
@@ -417,6 +419,8 @@ class SurfaceIndex {
 
   /// The largest grid spacing and storageNoise of the leaves of the last around().
   double resolution() const { return resolution_; }
+  /// The grid spacing of the index's grid `g` (Hit::grid).
+  double resolutionOf(std::size_t g) const { return resolutions_[g]; }
   double noise() const { return noise_; }
   /// Memory of the index itself (the grids are the cache's).
   std::size_t bytes() const { return entries_.capacity() * sizeof(entries_[0]); }
@@ -428,6 +432,7 @@ class SurfaceIndex {
     entries_.shrink_to_fit();
     noise_ = 0;
     resolution_ = 0;
+    resolutions_.clear();
   }
 
  private:
@@ -512,6 +517,8 @@ class SurfaceIndex {
   double bucket_ = 1;
   double noise_ = 0;
   double resolution_ = 0;
+  std::vector<double> resolutions_;
+  mutable std::vector<Vec3d> inside_;
 };
 
 /// One leaf to sample: a changed leaf of `to`, or a leaf of `from` that `to` removed.
@@ -860,17 +867,23 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
       out.stats.noise = storageNoise(info.localBox) + other.noise();
     }
     const double threshold = std::max(options.epsilon, out.stats.noise);
-    // The cylinder's radius: 1.5 times the coarser side's spacing (3 x 3 vertices of a grid).
-    const double radius = 1.5 * std::max(spacing, found ? other.resolution() : 0.0);
-    const int window =
-        std::clamp(static_cast<int>(std::ceil(radius / std::max(spacing, 1e-300))), 1, 4);
     const int s = grid.size();
+    // The leaf's positions, once (NaN where undefined).
+    std::vector<Vec3d> positions(grid.vertexCount(), Vec3d{kNaN, kNaN, kNaN});
+    for (int y = 0; y < s; ++y) {
+      for (int x = 0; x < s; ++x) {
+        if (grid.defined(x, y)) {
+          positions[static_cast<std::size_t>(y) * s + x] = grid.global(x, y);
+        }
+      }
+    }
+    std::vector<Vec3d> inside;
     for (int y = 0; y < s; ++y) {
       for (int x = 0; x < s; ++x) {
         if (!grid.defined(x, y)) {
           continue;
         }
-        const Vec3d p = grid.global(x, y);
+        const Vec3d p = positions[static_cast<std::size_t>(y) * s + x];
         const Vec3d ownNormal = vertexNormal(grid, x, y, sign);
         std::optional<SurfaceIndex::Hit> hit;
         Vec3d n = ownNormal;
@@ -896,19 +909,25 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
         const std::size_t i = static_cast<std::size_t>(y) * s + x;
         out.d[i] = d;
         // M3C2's level of detection: each side's spread along n in the cylinder around the axis.
-        std::vector<Vec3d> inside;
+        // The cylinder's radius: 1.5 times the coarser side's spacing (3 x 3 vertices of a grid).
+        const double otherSpacing = other.resolutionOf(hit->grid);
+        const double radius = 1.5 * std::max(spacing, otherSpacing);
+        const int window =
+            std::clamp(static_cast<int>(std::ceil(radius / std::max(spacing, 1e-300))), 1, 3);
+        inside.clear();
         for (int v = std::max(0, y - window); v <= std::min(s - 1, y + window); ++v) {
           for (int u = std::max(0, x - window); u <= std::min(s - 1, x + window); ++u) {
-            if (grid.defined(u, v)) {
-              const Vec3d r = grid.global(u, v) - p;
+            const Vec3d q = positions[static_cast<std::size_t>(v) * s + u];
+            if (q.finite()) {
+              const Vec3d r = q - p;
               if ((r - n * dot(r, n)).norm() <= radius) {
                 inside.push_back(r);
               }
             }
           }
         }
-        const int otherWindow = std::clamp(
-            static_cast<int>(std::ceil(radius / std::max(other.resolution(), 1e-300))), 1, 4);
+        const int otherWindow =
+            std::clamp(static_cast<int>(std::ceil(radius / std::max(otherSpacing, 1e-300))), 1, 3);
         const auto [otherVariance, otherCount] = other.spread(p, n, *hit, radius, otherWindow);
         double spread = 0;
         if (!inside.empty()) {
