@@ -76,9 +76,9 @@ class Daemon:
     def socket(self, timeout=10):
         return socket.create_connection(("127.0.0.1", self.port), timeout=timeout)
 
-    def request(self, method, path, body=None, headers=None):
+    def request(self, method, path, body=None, headers=None, timeout=10):
         """One request on a fresh connection: (status, headers, body bytes)."""
-        conn = self.connection()
+        conn = self.connection(timeout)
         try:
             conn.request(method, path, body=body, headers=headers or {})
             response = conn.getresponse()
@@ -86,8 +86,8 @@ class Daemon:
         finally:
             conn.close()
 
-    def get_json(self, path):
-        status, headers, body = self.request("GET", path)
+    def get_json(self, path, timeout=10):
+        status, headers, body = self.request("GET", path, timeout=timeout)
         return status, headers, json.loads(body)
 
     def stop(self, timeout=20):
