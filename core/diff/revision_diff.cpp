@@ -55,10 +55,37 @@ std::vector<PatchKey> leavesMeeting(const Model& model, const Box3d& box) {
   return leaves;
 }
 
+/// A grid's global positions, computed once (NaN where undefined): what the diff reads of a grid
+/// many times, with PatchGrid's interface (size, defined, global).
+struct Points {
+  const Vec3d* at = nullptr;
+  int s = 0;
+  int size() const { return s; }
+  bool defined(int x, int y) const {
+    return std::isfinite(at[static_cast<std::size_t>(y) * s + x].x);
+  }
+  const Vec3d& global(int x, int y) const { return at[static_cast<std::size_t>(y) * s + x]; }
+};
+
+/// `grid`'s global positions, NaN where undefined.
+std::vector<Vec3d> globalPositions(const PatchGrid& grid) {
+  const int s = grid.size();
+  std::vector<Vec3d> out(grid.vertexCount(), Vec3d{kNaN, kNaN, kNaN});
+  for (int y = 0; y < s; ++y) {
+    for (int x = 0; x < s; ++x) {
+      if (grid.defined(x, y)) {
+        out[static_cast<std::size_t>(y) * s + x] = grid.global(x, y);
+      }
+    }
+  }
+  return out;
+}
+
 /// The unit normal of `grid` at vertex (x, y) at the scale of its spacing: the cross product of
 /// the central differences along x and y (one-sided at a border or beside an undefined vertex),
 /// on the side of the grid's winding times `sign`; NaN when either direction has no neighbour.
-Vec3d vertexNormal(const PatchGrid& grid, int x, int y, double sign) {
+template <class Grid>
+Vec3d vertexNormal(const Grid& grid, int x, int y, double sign) {
   const int s = grid.size();
   const auto along = [&](int dx, int dy) -> Vec3d {
     const int x0 = x - dx, y0 = y - dy, x1 = x + dx, y1 = y + dy;
@@ -85,7 +112,8 @@ Vec3d vertexNormal(const PatchGrid& grid, int x, int y, double sign) {
 
 /// The corners of cell (x, y) of `grid` that are defined, in winding order ((x, y), (x+1, y),
 /// (x+1, y+1), (x, y+1)); a cell is a surface with 3 or 4 of them.
-int cellCorners(const PatchGrid& grid, int x, int y, std::array<std::pair<int, int>, 4>& out) {
+template <class Grid>
+int cellCorners(const Grid& grid, int x, int y, std::array<std::pair<int, int>, 4>& out) {
   int n = 0;
   for (const auto& [u, v] : {std::pair{x, y}, {x + 1, y}, {x + 1, y + 1}, {x, y + 1}}) {
     if (grid.defined(u, v)) {
@@ -246,16 +274,39 @@ class SurfaceIndex {
     if (keys == keys_) {
       return true;
     }
-    clear();
-    double spacing = 0;
+    double spacing = 0, noise = 0;
     Box3d all;
+    // A leaf still in the neighbourhood keeps its positions (the next leaf's neighbourhood is
+    // mostly this one's).
+    std::vector<std::shared_ptr<const Grid>> grids;
+    std::size_t pointBytes = 0;
     for (const PatchKey& key : keys) {
-      grids_.push_back(source_.positions(key));
+      const auto kept = std::lower_bound(keys_.begin(), keys_.end(), key);
+      if (kept != keys_.end() && *kept == key) {
+        grids.push_back(grids_[static_cast<std::size_t>(kept - keys_.begin())]);
+      } else {
+        auto grid = std::make_shared<Grid>();
+        grid->grid = source_.positions(key);
+        grid->positions = globalPositions(*grid->grid);
+        grid->resolution = grid->grid->resolution();
+        grids.push_back(std::move(grid));
+      }
+      pointBytes += grids.back()->positions.size() * sizeof(Vec3d);
       const PatchInfo& info = source_.model().at(key);
       all.extend(info.globalBox);
-      noise_ = std::max(noise_, storageNoise(info.localBox));
-      resolutions_.push_back(grids_.back()->resolution());
-      spacing = std::max(spacing, resolutions_.back());
+      noise = std::max(noise, storageNoise(info.localBox));
+      spacing = std::max(spacing, grids.back()->resolution);
+    }
+    clear();
+    grids_ = std::move(grids);
+    pointBytes_ = pointBytes;
+    noise_ = noise;
+    if (pointBytes_ > maxBytes_) {
+      const std::size_t bytes = pointBytes_;
+      clear();
+      throw Error(ErrorCode::ResourceExhausted,
+                  "diff: the spatial index of one leaf's neighbourhood needs more than " +
+                      std::to_string(maxBytes_) + " bytes (" + std::to_string(bytes) + " so far)");
     }
     resolution_ = spacing;
     origin_ = all.center();
@@ -269,7 +320,7 @@ class SurfaceIndex {
     }
     std::array<std::pair<int, int>, 4> at{};
     for (std::size_t g = 0; g < grids_.size(); ++g) {
-      const PatchGrid& grid = *grids_[g];
+      const Points grid = points(g);
       for (int y = 0; y + 1 < s; ++y) {
         for (int x = 0; x + 1 < s; ++x) {
           const int n = cellCorners(grid, x, y, at);
@@ -290,8 +341,8 @@ class SurfaceIndex {
               }
             }
           }
-          if (entries_.size() * sizeof(entries_[0]) > maxBytes_) {
-            const std::size_t bytes = entries_.size() * sizeof(entries_[0]);
+          if (pointBytes_ + entries_.size() * sizeof(entries_[0]) > maxBytes_) {
+            const std::size_t bytes = pointBytes_ + entries_.size() * sizeof(entries_[0]);
             clear();
             throw Error(ErrorCode::ResourceExhausted,
                         "diff: the spatial index of one leaf's neighbourhood needs more than " +
@@ -314,15 +365,22 @@ class SurfaceIndex {
     std::array<double, 3> bestHit{};
     int bestTri = 0;
     std::array<std::pair<int, int>, 4> at{};
-    for (const double way : {1.0, -1.0}) {
-      walk(p, dir * way, reach, [&](const std::array<std::int64_t, 3>& b, double enter) {
-        if (enter > best) {
-          return false;
-        }
+    // Both ways at once, the nearer bucket first: a walk stops at the first bucket it enters
+    // beyond the best hit so far, so a hit behind p no longer costs the whole reach ahead of it.
+    std::array<Walker, 2> walkers{Walker(*this, p, dir), Walker(*this, p, dir * -1.0)};
+    walkers[1].advance();  // p's bucket is the first walker's
+    for (;;) {
+      Walker& w = walkers[0].t <= walkers[1].t ? walkers[0] : walkers[1];
+      if (w.t > reach || w.t > best) {
+        break;
+      }
+      const std::array<std::int64_t, 3> b = w.bucket;
+      w.advance();
+      {
         const auto [first, last] = range(b);
         for (auto it = first; it != last; ++it) {
           const auto [grid, x, y] = cellOf(it->second);
-          const PatchGrid& g = *grids_[grid];
+          const Points g = points(grid);
           const int n = cellCorners(g, x, y, at);
           for (int tri = 0; tri + 2 < n; ++tri) {
             const auto hit = lineTriangle(p, dir, g.global(at[0].first, at[0].second),
@@ -336,14 +394,13 @@ class SurfaceIndex {
             }
           }
         }
-        return true;
-      });
+      }
     }
     if (!(best < kInfinity)) {
       return std::nullopt;
     }
     const auto [grid, x, y] = cellOf(bestCell);
-    const PatchGrid& g = *grids_[grid];
+    const Points g = points(grid);
     const int corners = cellCorners(g, x, y, at);
     const double u = bestHit[1], v = bestHit[2];
     double t = bestHit[0];
@@ -400,15 +457,17 @@ class SurfaceIndex {
   /// the hit cell's grid within `window` of it (a cylinder across a patch border sees one side).
   std::pair<double, int> spread(const Vec3d& p, const Vec3d& n, const Hit& hit, double radius,
                                 int window) const {
-    const PatchGrid& g = *grids_[hit.grid];
+    const Points g = points(hit.grid);
     const int s = g.size();
     std::vector<Vec3d>& inside = inside_;
     inside.clear();
+    const double radius2 = radius * radius;
     for (int v = std::max(0, hit.y - window); v <= std::min(s - 1, hit.y + 1 + window); ++v) {
       for (int u = std::max(0, hit.x - window); u <= std::min(s - 1, hit.x + 1 + window); ++u) {
         if (g.defined(u, v)) {
           const Vec3d r = g.global(u, v) - p;
-          if ((r - n * dot(r, n)).norm() <= radius) {
+          const double along = dot(r, n);
+          if (dot(r, r) - along * along <= radius2) {
             inside.push_back(r);
           }
         }
@@ -420,10 +479,11 @@ class SurfaceIndex {
   /// The largest grid spacing and storageNoise of the leaves of the last around().
   double resolution() const { return resolution_; }
   /// The grid spacing of the index's grid `g` (Hit::grid).
-  double resolutionOf(std::size_t g) const { return resolutions_[g]; }
+  double resolutionOf(std::size_t g) const { return grids_[g]->resolution; }
   double noise() const { return noise_; }
-  /// Memory of the index itself (the grids are the cache's).
-  std::size_t bytes() const { return entries_.capacity() * sizeof(entries_[0]); }
+  /// Memory of the index itself: its buckets and its grids' global positions (the grids are the
+  /// cache's).
+  std::size_t bytes() const { return pointBytes_ + entries_.capacity() * sizeof(entries_[0]); }
   /// Releases the pins and the index.
   void clear() {
     grids_.clear();
@@ -432,7 +492,7 @@ class SurfaceIndex {
     entries_.shrink_to_fit();
     noise_ = 0;
     resolution_ = 0;
-    resolutions_.clear();
+    pointBytes_ = 0;
   }
 
  private:
@@ -469,55 +529,67 @@ class SurfaceIndex {
     return {id / perGrid, static_cast<int>(cell % s), static_cast<int>(cell / s)};
   }
 
-  /// Visits the buckets the ray p + t dir crosses for t in [0, reach] (3D DDA, Amanatides and
-  /// Woo), with the t where it enters each, until `visit` returns false.
-  template <class Visit>
-  void walk(const Vec3d& p, const Vec3d& dir, double reach, Visit&& visit) const {
-    const Vec3d q = (p - origin_) * (1 / bucket_);
-    std::array<std::int64_t, 3> b = bucketOf(p);
-    const std::array<double, 3> qa{q.x, q.y, q.z}, da{dir.x, dir.y, dir.z};
-    std::array<int, 3> step{};
-    std::array<double, 3> next{}, delta{};
-    for (int a = 0; a < 3; ++a) {
-      if (da[a] > 0) {
-        step[a] = 1;
-        next[a] = (static_cast<double>(b[a] + 1) - qa[a]) * bucket_ / da[a];
-        delta[a] = bucket_ / da[a];
-      } else if (da[a] < 0) {
-        step[a] = -1;
-        next[a] = (qa[a] - static_cast<double>(b[a])) * bucket_ / -da[a];
-        delta[a] = bucket_ / -da[a];
-      } else {
-        next[a] = delta[a] = kInfinity;
+  /// The buckets the ray p + t dir (t >= 0) crosses, one at a time (3D DDA, Amanatides and
+  /// Woo): `bucket`, entered at `t` (infinity once it leaves the index's range).
+  struct Walker {
+    Walker(const SurfaceIndex& index, const Vec3d& p, const Vec3d& dir)
+        : bucket(index.bucketOf(p)) {
+      const Vec3d q = (p - index.origin_) * (1 / index.bucket_);
+      const std::array<double, 3> qa{q.x, q.y, q.z}, da{dir.x, dir.y, dir.z};
+      const double size = index.bucket_;
+      for (int a = 0; a < 3; ++a) {
+        if (da[a] > 0) {
+          step[a] = 1;
+          next[a] = (static_cast<double>(bucket[a] + 1) - qa[a]) * size / da[a];
+          delta[a] = size / da[a];
+        } else if (da[a] < 0) {
+          step[a] = -1;
+          next[a] = (qa[a] - static_cast<double>(bucket[a])) * size / -da[a];
+          delta[a] = size / -da[a];
+        } else {
+          next[a] = delta[a] = kInfinity;
+        }
       }
     }
-    double t = 0;
-    while (t <= reach) {
-      if (!visit(b, t)) {
-        return;
-      }
+    /// Into the next bucket along the ray.
+    void advance() {
       const int a =
           next[0] <= next[1] ? (next[0] <= next[2] ? 0 : 2) : (next[1] <= next[2] ? 1 : 2);
       t = next[a];
-      b[a] += step[a];
+      bucket[a] += step[a];
       next[a] += delta[a];
-      if (b[a] <= -kBucketLimit + 1 || b[a] >= kBucketLimit - 2) {
-        return;
+      if (bucket[a] <= -kBucketLimit + 1 || bucket[a] >= kBucketLimit - 2) {
+        t = kInfinity;
       }
     }
-  }
+
+    std::array<std::int64_t, 3> bucket;
+    double t = 0;
+    std::array<int, 3> step{};
+    std::array<double, 3> next{}, delta{};
+  };
 
   PatchSource& source_;
   double sign_;
   std::size_t maxBytes_;
   std::vector<PatchKey> keys_;
-  std::vector<std::shared_ptr<const PatchGrid>> grids_;
+  /// A leaf of the neighbourhood: its grid (pinned), global positions and spacing.
+  struct Grid {
+    std::shared_ptr<const PatchGrid> grid;
+    std::vector<Vec3d> positions;
+    double resolution = 0;
+  };
+  Points points(std::size_t g) const {
+    return {grids_[g]->positions.data(), grids_[g]->grid->size()};
+  }
+
+  std::vector<std::shared_ptr<const Grid>> grids_;
+  std::size_t pointBytes_ = 0;
   Entries entries_;
   Vec3d origin_;
   double bucket_ = 1;
   double noise_ = 0;
   double resolution_ = 0;
-  std::vector<double> resolutions_;
   mutable std::vector<Vec3d> inside_;
 };
 
@@ -869,14 +941,8 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
     const double threshold = std::max(options.epsilon, out.stats.noise);
     const int s = grid.size();
     // The leaf's positions, once (NaN where undefined).
-    std::vector<Vec3d> positions(grid.vertexCount(), Vec3d{kNaN, kNaN, kNaN});
-    for (int y = 0; y < s; ++y) {
-      for (int x = 0; x < s; ++x) {
-        if (grid.defined(x, y)) {
-          positions[static_cast<std::size_t>(y) * s + x] = grid.global(x, y);
-        }
-      }
-    }
+    const std::vector<Vec3d> positions = globalPositions(grid);
+    const Points points{positions.data(), s};
     std::vector<Vec3d> inside;
     for (int y = 0; y < s; ++y) {
       for (int x = 0; x < s; ++x) {
@@ -884,7 +950,7 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
           continue;
         }
         const Vec3d p = positions[static_cast<std::size_t>(y) * s + x];
-        const Vec3d ownNormal = vertexNormal(grid, x, y, sign);
+        const Vec3d ownNormal = vertexNormal(points, x, y, sign);
         std::optional<SurfaceIndex::Hit> hit;
         Vec3d n = ownNormal;
         double d = kNaN;
@@ -920,7 +986,8 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
             const Vec3d q = positions[static_cast<std::size_t>(v) * s + u];
             if (q.finite()) {
               const Vec3d r = q - p;
-              if ((r - n * dot(r, n)).norm() <= radius) {
+              const double along = dot(r, n);
+              if (dot(r, r) - along * along <= radius * radius) {
                 inside.push_back(r);
               }
             }
