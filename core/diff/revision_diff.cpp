@@ -885,22 +885,31 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
     return x.key.depth != y.key.depth ? x.key.depth < y.key.depth : x.key < y.key;
   });
 
-  // n's side: the grids' winding, turned for the whole model when `from`'s root faces down (a
-  // height field whose rows run the other way); a vertical face keeps its winding.
+  // n's side, the model's front (outside): one sign for the whole model, never per patch or per
+  // vertex. In a local frame it is the grids' winding (the cross product of the grid's x and y
+  // directions), whatever way the scene is turned: a face turned 135 degrees is an overhang whose
+  // front still faces out of the rock. Only a body-centred model (ECEF: its root farther than
+  // kBodyCentredRadius from the origin) is placed on a planet, where out is away from its centre:
+  // its winding is turned when its root's faces point to the centre (rasters' rows run north to
+  // south, so their winding faces down), so on georeferenced terrain + is up.
   double sign = 1;
   {
-    const auto root = sourceA->positions(PatchKey::root());
-    Vec3d total;
-    for (const Vec3d& area : vertexAreas(*root)) {
-      total = total + area;
-    }
-    const Vec3d up = upAt(a.at(PatchKey::root()).globalBox.center());
-    if (dot(total, up) < -0.05 * total.norm()) {
-      sign = -1;
+    const Vec3d centre = a.at(PatchKey::root()).globalBox.center();
+    if (centre.norm() > kBodyCentredRadius) {
+      const auto root = sourceA->positions(PatchKey::root());
+      Vec3d total;
+      for (const Vec3d& area : vertexAreas(*root)) {
+        total = total + area;
+      }
+      if (dot(total, upAt(centre)) < 0) {
+        sign = -1;
+      }
     }
   }
-  SurfaceIndex surfaceA(*sourceA, sign, options.indexBytes),
-      surfaceB(*sourceB, sign, options.indexBytes);
+  // Both sides' indexes live at once (the leaves of either revision are sampled in depth order):
+  // each gets half the bound.
+  SurfaceIndex surfaceA(*sourceA, sign, options.indexBytes / 2),
+      surfaceB(*sourceB, sign, options.indexBytes / 2);
   // One leaf sampled: its grid (pinned) and the displacement at each vertex (NaN where none).
   struct Sampled {
     std::shared_ptr<const PatchGrid> grid;

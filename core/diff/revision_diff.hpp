@@ -87,6 +87,10 @@ struct DisplacementMap {
   std::vector<float> values;
 };
 
+/// DiffOptions::indexBytes's default, the one bound of `vsm diff` and vsmd (16 MiB a side;
+/// PRISM + Jacksboro at patch size 65 needs 1.5 MiB a side).
+inline constexpr std::size_t kDiffIndexBytes = std::size_t{32} << 20;
+
 struct DiffOptions {
   /// The displacement that counts as a change (metres).
   double epsilon = 1e-3;
@@ -97,10 +101,14 @@ struct DiffOptions {
   /// How far along the normal the other surface is looked for (metres); 0: 64 times the local
   /// resolution (the larger of the two revisions' spacing there).
   double searchDistance = 0;
-  /// The most memory the spatial index of one leaf's neighbourhood may take (bytes): cells
-  /// bucketed in a uniform 3D grid, 16 bytes per (bucket, cell) entry. A neighbourhood that needs
-  /// more is refused (Error(ResourceExhausted)). The server charges it as the diff's work memory.
-  std::size_t indexBytes = std::size_t{32} << 20;
+  /// The most memory the spatial indexes of the two revisions may take together (bytes, half a
+  /// side): each holds one leaf's neighbourhood, its leaves' global positions (24 bytes a vertex)
+  /// and their cells bucketed in a uniform 3D grid (16 bytes per (bucket, cell) entry). A
+  /// neighbourhood that needs more is refused
+  /// (Error(ResourceExhausted)); the bound never changes an answer (the buckets are twice the
+  /// leaves' spacing). The server charges it as the diff's work memory. `vsm diff` and vsmd both
+  /// use this default, so they give the same answer or the same refusal.
+  std::size_t indexBytes = kDiffIndexBytes;
   /// When > 0, also draw a DisplacementMap of about this many pixels along its longer side.
   int mapSize = 0;
   Progress* progress = nullptr;
@@ -131,8 +139,10 @@ struct RevisionDiff {
 /// vertex normal, and its normal at that point (the vertex normals of the hit cell, central
 /// differences over the grid, interpolated) is the axis. The axis meets `from`'s triangulated
 /// leaves at a (the nearest hit within the search distance wins: folds, overhangs); the
-/// displacement is d = (p - a) . n, signed + where `to` lies outward of `from` (n's side: the
-/// grids' winding, turned for the whole model to the local up when the root faces down). On a
+/// displacement is d = (p - a) . n, signed + where `to` lies outward of `from` (n's side, one for
+/// the whole model: in a local frame the grids' winding, x cross y, however the scene is turned;
+/// for a body-centred (ECEF) model the winding turned when its root faces the planet's centre,
+/// so + is up on georeferenced terrain). On a
 /// height field it is today's tangent-plane distance. Every leaf of `from` that `to` removed is
 /// sampled at its vertices along its own normal against `to`'s surface (the same sign). Vertices
 /// where the other surface is not found are skipped (counted).

@@ -133,16 +133,12 @@ class DiffStop final : public core::Progress {
   bool abandoned_ = false;
 };
 
-/// The most a diff's spatial index of one leaf's neighbourhood may take (core::DiffOptions::
-/// indexBytes): a neighbourhood of 257 x 257 leaves fits.
-constexpr std::size_t kDiffIndexBytes = std::size_t{16} << 20;
-
 /// The working memory of a diff with a map of `mapSize` pixels along its longer side, allocated
-/// outside the cache: the spatial index (kDiffIndexBytes at most), and the map's floats, the RGBA
-/// picture and, at most as large again, the PNG.
+/// outside the cache: the spatial index (core::kDiffIndexBytes at most, the CLI's bound too), and
+/// the map's floats, the RGBA picture and, at most as large again, the PNG.
 std::size_t diffWorkBytes(int mapSize) {
   const auto pixels = static_cast<std::size_t>(mapSize) * static_cast<std::size_t>(mapSize);
-  return kDiffIndexBytes + pixels * (sizeof(float) + 4 + 4);
+  return core::kDiffIndexBytes + pixels * (sizeof(float) + 4 + 4);
 }
 
 /// The diff a request asks for: between the kept revisions ?from=A and ?to=B of model {m}, with a
@@ -173,7 +169,6 @@ http::Response runDiff(const ModelContext& c, const http::Request& request, int 
   DiffStop stop(slot->deadline(), request, cancel);
   core::DiffOptions options;
   options.mapSize = mapSize;
-  options.indexBytes = kDiffIndexBytes;
   if (const auto error = request.queryParam("registration_error")) {
     char* end = nullptr;
     const std::string text(*error);

@@ -419,8 +419,10 @@ TEST_P(CavityTest, ReportsTheLostVolumeAndTheChangedAreaAlongTheNormal) {
   EXPECT_GE(hidden.totals.lodMax, 0.6);
 }
 
-// 90: a vertical face; 0: flat ground (terrain); 45: a slope.
-INSTANTIATE_TEST_SUITE_P(Slopes, CavityTest, ::testing::Values(90, 0, 45));
+// 90: a vertical face; 0: flat ground (terrain); 45: a slope; 135: an overhang; 180: the ground
+// seen from below (a ceiling); 270: the face turned upside down. The cavity is lost volume at
+// every angle: in a local frame the front is the grids' winding, however the scene is turned.
+INSTANTIATE_TEST_SUITE_P(Slopes, CavityTest, ::testing::Values(90, 0, 45, 135, 180, 270));
 
 TEST_F(DiffTest, BadArgumentsAreRefused) {
   auto live = open(tilted);
