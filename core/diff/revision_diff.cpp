@@ -193,55 +193,40 @@ double roughness(const std::vector<Vec3d>& r, const Vec3d& n) {
   Vec3d e1 = cross(n, helper);
   e1 = e1 * (1 / e1.norm());
   const Vec3d e2 = cross(n, e1);
-  // Normal equations of [1 s w] [a b c]^T = z, solved by Gauss-Jordan with partial pivoting; a
-  // degenerate set (points on a line) keeps its spread about the mean.
-  std::array<std::array<double, 4>, 3> A{};
-  for (const Vec3d& q : r) {
-    const std::array<double, 3> row{1, dot(q, e1), dot(q, e2)};
-    const double z = dot(q, n);
-    for (int i = 0; i < 3; ++i) {
-      for (int j = 0; j < 3; ++j) {
-        A[i][j] += row[i] * row[j];
-      }
-      A[i][3] += row[i] * z;
-    }
+  // Each point once in (s, w, z), then the plane through the centroid: with s and w centred the
+  // normal equations of [1 s w] [a b c]^T = z split into a = mean z and a 2 x 2 system for b, c.
+  // A degenerate set (points on a line) keeps its spread about the mean.
+  thread_local std::vector<std::array<double, 3>> swz;
+  swz.resize(m);
+  double ms = 0, mw = 0, mz = 0;
+  for (std::size_t k = 0; k < m; ++k) {
+    swz[k] = {dot(r[k], e1), dot(r[k], e2), dot(r[k], n)};
+    ms += swz[k][0];
+    mw += swz[k][1];
+    mz += swz[k][2];
   }
-  const double scale = A[1][1] + A[2][2] + 1;
-  bool solved = true;
-  for (int c = 0; c < 3 && solved; ++c) {
-    int pivot = c;
-    for (int i = c + 1; i < 3; ++i) {
-      if (std::abs(A[i][c]) > std::abs(A[pivot][c])) {
-        pivot = i;
-      }
-    }
-    if (!(std::abs(A[pivot][c]) > 1e-12 * scale)) {
-      solved = false;
-      break;
-    }
-    std::swap(A[c], A[pivot]);
-    for (int i = 0; i < 3; ++i) {
-      if (i != c) {
-        const double f = A[i][c] / A[c][c];
-        for (int j = c; j < 4; ++j) {
-          A[i][j] -= f * A[c][j];
-        }
-      }
-    }
+  const double inv = 1 / static_cast<double>(m);
+  ms *= inv;
+  mw *= inv;
+  mz *= inv;
+  double ss = 0, sw = 0, ww = 0, sz = 0, wz = 0;
+  for (std::array<double, 3>& q : swz) {
+    q[0] -= ms;
+    q[1] -= mw;
+    q[2] -= mz;
+    ss += q[0] * q[0];
+    sw += q[0] * q[1];
+    ww += q[1] * q[1];
+    sz += q[0] * q[2];
+    wz += q[1] * q[2];
   }
-  std::array<double, 3> coef{};
-  if (solved) {
-    for (int i = 0; i < 3; ++i) {
-      coef[i] = A[i][3] / A[i][i];
-    }
-  } else {
-    for (const Vec3d& q : r) {
-      coef[0] += dot(q, n) / static_cast<double>(m);
-    }
-  }
+  const double det = ss * ww - sw * sw;
+  const bool solved = det > 1e-12 * (ss + ww) * (ss + ww) && det > 0;
+  const double b = solved ? (sz * ww - wz * sw) / det : 0;
+  const double c = solved ? (wz * ss - sz * sw) / det : 0;
   double sum = 0;
-  for (const Vec3d& q : r) {
-    const double e = dot(q, n) - (coef[0] + coef[1] * dot(q, e1) + coef[2] * dot(q, e2));
+  for (const std::array<double, 3>& q : swz) {
+    const double e = q[2] - b * q[0] - c * q[1];
     sum += e * e;
   }
   return sum / static_cast<double>(solved ? m - 3 : m - 1);
@@ -404,9 +389,8 @@ class SurfaceIndex {
     const int corners = cellCorners(g, x, y, at);
     const double u = bestHit[1], v = bestHit[2];
     double t = bestHit[0];
-    Vec3d n = vertexNormal(g, at[0].first, at[0].second, sign_) * (1 - u - v) +
-              vertexNormal(g, at[bestTri + 1].first, at[bestTri + 1].second, sign_) * u +
-              vertexNormal(g, at[bestTri + 2].first, at[bestTri + 2].second, sign_) * v;
+    Vec3d n;
+    bool onPatch = false;
     if (corners == 4) {
       // A full cell is the bilinear patch B(a, b) through its corners, as the merge subdivides
       // and SurfaceSampler interpolates (its triangles chord a twisted cell by up to a quarter of
@@ -441,9 +425,16 @@ class SurfaceIndex {
             vertexNormal(g, x + 1, y, sign_) * (a * (1 - b)) +
             vertexNormal(g, x + 1, y + 1, sign_) * (a * b) +
             vertexNormal(g, x, y + 1, sign_) * ((1 - a) * b);
+        onPatch = true;
       } else {
         t = bestHit[0];
       }
+    }
+    if (!onPatch) {
+      // The triangle's hit: its corners' normals, interpolated.
+      n = vertexNormal(g, at[0].first, at[0].second, sign_) * (1 - u - v) +
+          vertexNormal(g, at[bestTri + 1].first, at[bestTri + 1].second, sign_) * u +
+          vertexNormal(g, at[bestTri + 2].first, at[bestTri + 2].second, sign_) * v;
     }
     const double length = n.norm();
     if (!(length > 0)) {
