@@ -234,8 +234,9 @@ double roughness(const std::vector<Vec3d>& r, const Vec3d& n) {
 
 /// The other revision's surface around one leaf, for casting lines along normals and counting
 /// points in cylinders: its leaves within reach, pinned, with their cells in a uniform 3D grid of
-/// buckets (twice their largest spacing), kept as sorted (bucket, cell) pairs, 16 bytes each. The
-/// last set is kept for the next leaf when it needs the same leaves.
+/// buckets (twice their largest spacing), kept as sorted (bucket, cell) pairs, 8 bytes each
+/// (buckets numbered densely over the leaves' box). The last set is kept for the next leaf when it
+/// needs the same leaves.
 class SurfaceIndex {
  public:
   SurfaceIndex(PatchSource& source, double sign, std::size_t maxBytes)
@@ -296,8 +297,23 @@ class SurfaceIndex {
     resolution_ = spacing;
     origin_ = all.center();
     const Vec3d size = all.size();
-    // Twice the spacing, but no more than 2^20 buckets along any axis of the leaves' box.
+    // Twice the spacing, but no more than 2^20 buckets along any axis of the leaves' box, and
+    // fewer than 2^32 in it, numbered densely (8 bytes an entry). A larger bucket only costs
+    // time: the answer is the nearest hit among the cells of every bucket the line crosses.
     bucket_ = std::max({2 * spacing, size.x * 1e-6, size.y * 1e-6, size.z * 1e-6, 1e-9});
+    for (;;) {
+      low_ = bucketOf(all.min);
+      const auto high = bucketOf(all.max);
+      for (int a = 0; a < 3; ++a) {
+        dims_[a] = high[a] - low_[a] + 1;
+      }
+      if (static_cast<double>(dims_[0]) * static_cast<double>(dims_[1]) *
+              static_cast<double>(dims_[2]) <
+          4.0e9) {
+        break;
+      }
+      bucket_ *= 2;
+    }
     const int s = source_.model().gridSize();
     const std::size_t cellsPerGrid = static_cast<std::size_t>(s - 1) * (s - 1);
     if (grids_.size() * cellsPerGrid >= (std::size_t{1} << 32)) {
@@ -413,9 +429,14 @@ class SurfaceIndex {
           break;
         }
         const Vec3d r = f * -1.0;
-        a += dot(r, cross(bb, m)) / det;
-        b += dot(ba, cross(r, m)) / det;
-        t += dot(ba, cross(bb, r)) / det;
+        const double da = dot(r, cross(bb, m)) / det, db = dot(ba, cross(r, m)) / det,
+                     dt = dot(ba, cross(bb, r)) / det;
+        if (da == 0 && db == 0 && dt == 0) {
+          break;  // converged: further steps change nothing
+        }
+        a += da;
+        b += db;
+        t += dt;
         ok = std::isfinite(a) && std::isfinite(b) && std::isfinite(t);
       }
       constexpr double kSlack = 1e-6;
@@ -497,15 +518,25 @@ class SurfaceIndex {
     };
     return {axis(p.x - origin_.x), axis(p.y - origin_.y), axis(p.z - origin_.z)};
   }
-  static std::uint64_t key(const std::array<std::int64_t, 3>& b) {
-    return (static_cast<std::uint64_t>(b[0] + kBucketLimit) << 42) |
-           (static_cast<std::uint64_t>(b[1] + kBucketLimit) << 21) |
-           static_cast<std::uint64_t>(b[2] + kBucketLimit);
+  /// The dense number of bucket `b` of the leaves' box; kOutside beyond it (no cell there).
+  static constexpr std::uint32_t kOutside = std::numeric_limits<std::uint32_t>::max();
+  std::uint32_t key(const std::array<std::int64_t, 3>& b) const {
+    std::array<std::int64_t, 3> r{};
+    for (int a = 0; a < 3; ++a) {
+      r[a] = b[a] - low_[a];
+      if (r[a] < 0 || r[a] >= dims_[a]) {
+        return kOutside;
+      }
+    }
+    return static_cast<std::uint32_t>((r[0] * dims_[1] + r[1]) * dims_[2] + r[2]);
   }
-  using Entries = std::vector<std::pair<std::uint64_t, std::uint32_t>>;
+  using Entries = std::vector<std::pair<std::uint32_t, std::uint32_t>>;
   std::pair<Entries::const_iterator, Entries::const_iterator> range(
       const std::array<std::int64_t, 3>& b) const {
-    const std::uint64_t k = key(b);
+    const std::uint32_t k = key(b);
+    if (k == kOutside) {
+      return {entries_.end(), entries_.end()};
+    }
     const auto first = std::lower_bound(entries_.begin(), entries_.end(), std::pair{k, 0u});
     auto last = first;
     while (last != entries_.end() && last->first == k) {
@@ -579,6 +610,8 @@ class SurfaceIndex {
   Entries entries_;
   Vec3d origin_;
   double bucket_ = 1;
+  std::array<std::int64_t, 3> low_{};
+  std::array<std::int64_t, 3> dims_{};
   double noise_ = 0;
   double resolution_ = 0;
   mutable std::vector<Vec3d> inside_;

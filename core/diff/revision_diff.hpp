@@ -87,9 +87,11 @@ struct DisplacementMap {
   std::vector<float> values;
 };
 
-/// DiffOptions::indexBytes's default, the one bound of `vsm diff` and vsmd (16 MiB a side;
-/// PRISM + Jacksboro at patch size 65 needs 1.5 MiB a side).
-inline constexpr std::size_t kDiffIndexBytes = std::size_t{32} << 20;
+/// DiffOptions::indexBytes's default, the one bound of `vsm diff` and vsmd: 48 MiB a side.
+/// Measured (largest neighbourhood of one side): PRISM + Jacksboro at patch size 65, 0.9 MB; the
+/// demo's (patch size 257, the import's default), 14.7 MB over 4 leaves, so about 33 MB for the
+/// 9 leaves around an inner 257 x 257 leaf.
+inline constexpr std::size_t kDiffIndexBytes = std::size_t{96} << 20;
 
 struct DiffOptions {
   /// The displacement that counts as a change (metres).
@@ -103,7 +105,7 @@ struct DiffOptions {
   double searchDistance = 0;
   /// The most memory the spatial indexes of the two revisions may take together (bytes, half a
   /// side): each holds one leaf's neighbourhood, its leaves' global positions (24 bytes a vertex)
-  /// and their cells bucketed in a uniform 3D grid (16 bytes per (bucket, cell) entry). A
+  /// and their cells bucketed in a uniform 3D grid (8 bytes per (bucket, cell) entry). A
   /// neighbourhood that needs more is refused
   /// (Error(ResourceExhausted)); the bound never changes an answer (the buckets are twice the
   /// leaves' spacing). The server charges it as the diff's work memory. `vsm diff` and vsmd both
