@@ -197,7 +197,10 @@ double roughness(const std::vector<Vec3d>& r, const Vec3d& n) {
   // normal equations of [1 s w] [a b c]^T = z split into a = mean z and a 2 x 2 system for b, c.
   // A degenerate set (points on a line) keeps its spread about the mean.
   thread_local std::vector<std::array<double, 3>> swz;
-  swz.resize(m);
+  if (swz.size() < m) {
+    swz.resize(m);
+  }
+  const auto end = swz.begin() + static_cast<std::ptrdiff_t>(m);
   double ms = 0, mw = 0, mz = 0;
   for (std::size_t k = 0; k < m; ++k) {
     swz[k] = {dot(r[k], e1), dot(r[k], e2), dot(r[k], n)};
@@ -210,7 +213,8 @@ double roughness(const std::vector<Vec3d>& r, const Vec3d& n) {
   mw *= inv;
   mz *= inv;
   double ss = 0, sw = 0, ww = 0, sz = 0, wz = 0;
-  for (std::array<double, 3>& q : swz) {
+  for (auto it = swz.begin(); it != end; ++it) {
+    std::array<double, 3>& q = *it;
     q[0] -= ms;
     q[1] -= mw;
     q[2] -= mz;
@@ -225,7 +229,8 @@ double roughness(const std::vector<Vec3d>& r, const Vec3d& n) {
   const double b = solved ? (sz * ww - wz * sw) / det : 0;
   const double c = solved ? (wz * ss - sz * sw) / det : 0;
   double sum = 0;
-  for (const std::array<double, 3>& q : swz) {
+  for (auto it = swz.begin(); it != end; ++it) {
+    const std::array<double, 3>& q = *it;
     const double e = q[2] - b * q[0] - c * q[1];
     sum += e * e;
   }
