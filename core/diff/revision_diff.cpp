@@ -5,12 +5,13 @@
 #include <cstdio>
 #include <limits>
 #include <map>
+#include <tuple>
 
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
 #include "core/merge/merge.hpp"
-#include "core/merge/surface_sampler.hpp"
+#include "core/merge/surface_sampler.hpp"  // Rect2d
 #include "core/opc/texture_file.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
@@ -30,28 +31,16 @@ Vec3d cross(const Vec3d& a, const Vec3d& b) {
   return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
 }
 
-/// `rect` grown by SurfaceSampler::kBorderTolerance of its diagonal on every side: how far
-/// outside its cells a surface still answers (as the merge grows its detail footprints).
-Rect2d grown(Rect2d rect) {
-  if (!rect.empty()) {
-    const double margin = SurfaceSampler::kBorderTolerance *
-                          std::hypot(rect.max.u - rect.min.u, rect.max.v - rect.min.v);
-    rect.min = {rect.min.u - margin, rect.min.v - margin};
-    rect.max = {rect.max.u + margin, rect.max.v + margin};
-  }
-  return rect;
-}
-
-/// The leaves of `model` whose footprint in `frame` meets `rect`: a descent from the root through
-/// patches whose footprint meets it (a parent's box holds its children's).
-std::vector<PatchKey> leavesMeeting(const Model& model, const UpFrame& frame, const Rect2d& rect) {
+/// The leaves of `model` whose global box meets `box`: a descent from the root through patches
+/// whose box meets it (a parent's box holds its children's).
+std::vector<PatchKey> leavesMeeting(const Model& model, const Box3d& box) {
   std::vector<PatchKey> leaves;
   std::vector<PatchKey> pending{PatchKey::root()};
   while (!pending.empty()) {
     const PatchKey key = pending.back();
     pending.pop_back();
     const PatchInfo* info = model.find(key);
-    if (info == nullptr || !grown(frame.footprint(info->globalBox)).intersects(rect)) {
+    if (info == nullptr || !info->globalBox.intersects(box)) {
       continue;
     }
     if (info->isLeaf()) {
@@ -66,118 +55,581 @@ std::vector<PatchKey> leavesMeeting(const Model& model, const UpFrame& frame, co
   return leaves;
 }
 
-/// The unit normal, on the side of `up`, of `grid`'s cell holding grid coordinates (x, y) (as
-/// SurfacePoint gives them): of its two diagonals for a full cell, of its triangle for a cell with
-/// one undefined corner; NaN when neither exists.
-Vec3d cellNormal(const PatchGrid& grid, double x, double y, const Vec3d& up) {
-  const int last = grid.size() - 2;
-  const int i = std::clamp(static_cast<int>(std::floor(x)), 0, last);
-  const int j = std::clamp(static_cast<int>(std::floor(y)), 0, last);
-  const std::array<std::pair<int, int>, 4> at{{{i, j}, {i + 1, j}, {i + 1, j + 1}, {i, j + 1}}};
-  std::vector<Vec3d> corners;
-  for (const auto& [u, v] : at) {
-    if (grid.defined(u, v)) {
-      corners.push_back(grid.global(u, v));
+/// A grid's global positions, computed once (NaN where undefined): what the diff reads of a grid
+/// many times, with PatchGrid's interface (size, defined, global).
+struct Points {
+  const Vec3d* at = nullptr;
+  int s = 0;
+  int size() const { return s; }
+  bool defined(int x, int y) const {
+    return std::isfinite(at[static_cast<std::size_t>(y) * s + x].x);
+  }
+  const Vec3d& global(int x, int y) const { return at[static_cast<std::size_t>(y) * s + x]; }
+};
+
+/// `grid`'s global positions, NaN where undefined.
+std::vector<Vec3d> globalPositions(const PatchGrid& grid) {
+  const int s = grid.size();
+  std::vector<Vec3d> out(grid.vertexCount(), Vec3d{kNaN, kNaN, kNaN});
+  for (int y = 0; y < s; ++y) {
+    for (int x = 0; x < s; ++x) {
+      if (grid.defined(x, y)) {
+        out[static_cast<std::size_t>(y) * s + x] = grid.global(x, y);
+      }
     }
   }
-  Vec3d n{kNaN, kNaN, kNaN};
-  if (corners.size() == 4) {
-    n = cross(corners[2] - corners[0], corners[3] - corners[1]);
-  } else if (corners.size() == 3) {
-    n = cross(corners[1] - corners[0], corners[2] - corners[0]);
-  }
+  return out;
+}
+
+/// The unit normal of `grid` at vertex (x, y) at the scale of its spacing: the cross product of
+/// the central differences along x and y (one-sided at a border or beside an undefined vertex),
+/// on the side of the grid's winding times `sign`; NaN when either direction has no neighbour.
+template <class Grid>
+Vec3d vertexNormal(const Grid& grid, int x, int y, double sign) {
+  const int s = grid.size();
+  const auto along = [&](int dx, int dy) -> Vec3d {
+    const int x0 = x - dx, y0 = y - dy, x1 = x + dx, y1 = y + dy;
+    const bool lo = x0 >= 0 && y0 >= 0 && grid.defined(x0, y0);
+    const bool hi = x1 < s && y1 < s && grid.defined(x1, y1);
+    if (lo && hi) {
+      return grid.global(x1, y1) - grid.global(x0, y0);
+    }
+    if (hi) {
+      return grid.global(x1, y1) - grid.global(x, y);
+    }
+    if (lo) {
+      return grid.global(x, y) - grid.global(x0, y0);
+    }
+    return {kNaN, kNaN, kNaN};
+  };
+  const Vec3d n = cross(along(1, 0), along(0, 1));
   const double length = n.norm();
   if (!(length > 0)) {
     return {kNaN, kNaN, kNaN};
   }
-  return n * ((dot(n, up) < 0 ? -1.0 : 1.0) / length);
+  return n * (sign / length);
 }
 
-/// Each vertex's share of the surface area: a quarter of every full cell around it, a third of
-/// every cell with one undefined corner (its triangle).
-std::vector<double> vertexAreas(const PatchGrid& grid) {
+/// The corners of cell (x, y) of `grid` that are defined, in winding order ((x, y), (x+1, y),
+/// (x+1, y+1), (x, y+1)); a cell is a surface with 3 or 4 of them.
+template <class Grid>
+int cellCorners(const Grid& grid, int x, int y, std::array<std::pair<int, int>, 4>& out) {
+  int n = 0;
+  for (const auto& [u, v] : {std::pair{x, y}, {x + 1, y}, {x + 1, y + 1}, {x, y + 1}}) {
+    if (grid.defined(u, v)) {
+      out[n++] = {u, v};
+    }
+  }
+  return n;
+}
+
+/// Each vertex's share of the surface as an area vector (winding side): a quarter of every full
+/// cell around it (half the cross product of its diagonals), a third of every 3-corner cell.
+/// |a . n| is the vertex's area on a surface of normal n.
+std::vector<Vec3d> vertexAreas(const PatchGrid& grid) {
   const int s = grid.size();
-  std::vector<double> areas(grid.vertexCount(), 0.0);
+  std::vector<Vec3d> areas(grid.vertexCount());
+  std::array<std::pair<int, int>, 4> at{};
   for (int y = 0; y + 1 < s; ++y) {
     for (int x = 0; x + 1 < s; ++x) {
-      const std::array<std::pair<int, int>, 4> at{{{x, y}, {x + 1, y}, {x + 1, y + 1}, {x, y + 1}}};
-      std::vector<std::size_t> index;
-      std::vector<Vec3d> corners;
-      for (const auto& [u, v] : at) {
-        if (grid.defined(u, v)) {
-          index.push_back(static_cast<std::size_t>(v) * s + u);
-          corners.push_back(grid.global(u, v));
-        }
-      }
-      double area = 0;
-      if (corners.size() == 4) {
-        area = 0.5 * cross(corners[2] - corners[0], corners[3] - corners[1]).norm();
-      } else if (corners.size() == 3) {
-        area = 0.5 * cross(corners[1] - corners[0], corners[2] - corners[0]).norm();
+      const int n = cellCorners(grid, x, y, at);
+      Vec3d area;
+      if (n == 4) {
+        area =
+            cross(grid.global(at[2].first, at[2].second) - grid.global(at[0].first, at[0].second),
+                  grid.global(at[3].first, at[3].second) - grid.global(at[1].first, at[1].second));
+      } else if (n == 3) {
+        const Vec3d c0 = grid.global(at[0].first, at[0].second);
+        area = cross(grid.global(at[1].first, at[1].second) - c0,
+                     grid.global(at[2].first, at[2].second) - c0);
       } else {
         continue;
       }
-      for (const std::size_t k : index) {
-        areas[k] += area / static_cast<double>(index.size());
+      for (int k = 0; k < n; ++k) {
+        Vec3d& a = areas[static_cast<std::size_t>(at[k].second) * s + at[k].first];
+        a = a + area * (0.5 / n);
       }
     }
   }
   return areas;
 }
 
-/// The other revision's surface around one leaf: a SurfaceSampler over its leaves meeting the
-/// leaf, with their grids held (pinned) for the normals. The last one is kept for the next leaf
-/// when it needs the same leaves (neighbours mostly do), so a diff holds a few patches at a time.
-class OtherSurface {
- public:
-  explicit OtherSurface(PatchSource& source) : source_(source) {}
-
-  /// The surface over `box` (a leaf's global box); null when the other revision has none there.
-  const SurfaceSampler* around(const Box3d& box) {
-    const UpFrame frame(box.center(), upAt(box.center()));
-    std::vector<PatchKey> keys = leavesMeeting(source_.model(), frame, grown(frame.footprint(box)));
-    if (keys.empty()) {
-      return nullptr;
-    }
-    if (!sampler_ || keys != keys_) {
-      sampler_.reset();
-      grids_.clear();
-      Box3d all;
-      noise_ = 0;
-      for (const PatchKey& key : keys) {
-        grids_.push_back(source_.positions(key));
-        const PatchInfo& info = source_.model().at(key);
-        all.extend(info.globalBox);
-        noise_ = std::max(noise_, storageNoise(info.localBox));
-      }
-      // One up direction for the whole set, so the sampler is the same whichever leaf built it.
-      sampler_.emplace(grids_, defaultUp(all));
-      keys_ = std::move(keys);
-    }
-    return &*sampler_;
+/// Where the line p + t dir meets triangle (a, b, c) (Moeller-Trumbore): t and the barycentric
+/// weights of b and c; none when it misses or runs parallel.
+std::optional<std::array<double, 3>> lineTriangle(const Vec3d& p, const Vec3d& dir, const Vec3d& a,
+                                                  const Vec3d& b, const Vec3d& c) {
+  constexpr double kTolerance = 1e-9;
+  const Vec3d e1 = b - a, e2 = c - a;
+  const Vec3d pv = cross(dir, e2);
+  const double det = dot(e1, pv);
+  if (!(std::abs(det) > 1e-300)) {
+    return std::nullopt;
   }
-  const PatchGrid& grid(std::uint32_t index) const { return *grids_[index]; }
-  /// The largest storageNoise of the leaves of the last around().
+  const double inv = 1 / det;
+  const Vec3d tv = p - a;
+  const double u = dot(tv, pv) * inv;
+  if (u < -kTolerance || u > 1 + kTolerance) {
+    return std::nullopt;
+  }
+  const Vec3d qv = cross(tv, e1);
+  const double v = dot(dir, qv) * inv;
+  if (v < -kTolerance || u + v > 1 + kTolerance) {
+    return std::nullopt;
+  }
+  return std::array<double, 3>{dot(e2, qv) * inv, u, v};
+}
+
+/// A side's roughness in a cylinder of axis n: the variance of the points' offsets `r` along n
+/// about their least-squares plane (z = a + b s + c w, s and w across n), with m - 3 degrees of
+/// freedom; 0 for fewer than 4 points. A plane's slope across the cylinder is no roughness (a
+/// grid samples a steep but smooth wall exactly), its curvature and steps are.
+double roughness(const std::vector<Vec3d>& r, const Vec3d& n) {
+  const std::size_t m = r.size();
+  if (m < 4) {
+    return 0;
+  }
+  // Two unit vectors across n.
+  const Vec3d helper = std::abs(n.x) < 0.9 ? Vec3d{1, 0, 0} : Vec3d{0, 1, 0};
+  Vec3d e1 = cross(n, helper);
+  e1 = e1 * (1 / e1.norm());
+  const Vec3d e2 = cross(n, e1);
+  // Each point once in (s, w, z), then the plane through the centroid: with s and w centred the
+  // normal equations of [1 s w] [a b c]^T = z split into a = mean z and a 2 x 2 system for b, c.
+  // A degenerate set (points on a line) keeps its spread about the mean.
+  thread_local std::vector<std::array<double, 3>> swz;
+  if (swz.size() < m) {
+    swz.resize(m);
+  }
+  const auto end = swz.begin() + static_cast<std::ptrdiff_t>(m);
+  double ms = 0, mw = 0, mz = 0;
+  for (std::size_t k = 0; k < m; ++k) {
+    swz[k] = {dot(r[k], e1), dot(r[k], e2), dot(r[k], n)};
+    ms += swz[k][0];
+    mw += swz[k][1];
+    mz += swz[k][2];
+  }
+  const double inv = 1 / static_cast<double>(m);
+  ms *= inv;
+  mw *= inv;
+  mz *= inv;
+  double ss = 0, sw = 0, ww = 0, sz = 0, wz = 0;
+  for (auto it = swz.begin(); it != end; ++it) {
+    std::array<double, 3>& q = *it;
+    q[0] -= ms;
+    q[1] -= mw;
+    q[2] -= mz;
+    ss += q[0] * q[0];
+    sw += q[0] * q[1];
+    ww += q[1] * q[1];
+    sz += q[0] * q[2];
+    wz += q[1] * q[2];
+  }
+  const double det = ss * ww - sw * sw;
+  const bool solved = det > 1e-12 * (ss + ww) * (ss + ww) && det > 0;
+  const double b = solved ? (sz * ww - wz * sw) / det : 0;
+  const double c = solved ? (wz * ss - sz * sw) / det : 0;
+  double sum = 0;
+  for (auto it = swz.begin(); it != end; ++it) {
+    const std::array<double, 3>& q = *it;
+    const double e = q[2] - b * q[0] - c * q[1];
+    sum += e * e;
+  }
+  return sum / static_cast<double>(solved ? m - 3 : m - 1);
+}
+
+/// The other revision's surface around one leaf, for casting lines along normals and counting
+/// points in cylinders: its leaves within reach, pinned, with their cells in a uniform 3D grid of
+/// buckets (twice their largest spacing), kept as sorted (bucket, cell) pairs, 8 bytes each
+/// (buckets numbered densely over the leaves' box). The last set is kept for the next leaf when it
+/// needs the same leaves.
+class SurfaceIndex {
+ public:
+  SurfaceIndex(PatchSource& source, double sign, std::size_t maxBytes)
+      : source_(source), sign_(sign), maxBytes_(maxBytes) {}
+
+  struct Hit {
+    double t = 0;
+    /// Unit normal there (the hit cell's vertex normals, interpolated).
+    Vec3d normal;
+    /// The hit cell: its grid (of this index) and corner.
+    std::size_t grid = 0;
+    int x = 0, y = 0;
+  };
+
+  /// Prepares the leaves meeting `box`; false when there are none.
+  bool around(const Box3d& box) {
+    std::vector<PatchKey> keys = leavesMeeting(source_.model(), box);
+    if (keys.empty()) {
+      return false;
+    }
+    if (keys == keys_) {
+      return true;
+    }
+    double spacing = 0, noise = 0;
+    Box3d all;
+    // A leaf still in the neighbourhood keeps its positions (the next leaf's neighbourhood is
+    // mostly this one's).
+    std::vector<std::shared_ptr<const Grid>> grids;
+    std::size_t pointBytes = 0;
+    for (const PatchKey& key : keys) {
+      const auto kept = std::lower_bound(keys_.begin(), keys_.end(), key);
+      if (kept != keys_.end() && *kept == key) {
+        grids.push_back(grids_[static_cast<std::size_t>(kept - keys_.begin())]);
+      } else {
+        auto grid = std::make_shared<Grid>();
+        grid->grid = source_.positions(key);
+        grid->positions = globalPositions(*grid->grid);
+        grid->resolution = grid->grid->resolution();
+        grids.push_back(std::move(grid));
+      }
+      pointBytes += grids.back()->positions.size() * sizeof(Vec3d);
+      const PatchInfo& info = source_.model().at(key);
+      all.extend(info.globalBox);
+      noise = std::max(noise, storageNoise(info.localBox));
+      spacing = std::max(spacing, grids.back()->resolution);
+    }
+    clear();
+    grids_ = std::move(grids);
+    pointBytes_ = pointBytes;
+    noise_ = noise;
+    if (pointBytes_ > maxBytes_) {
+      const std::size_t bytes = pointBytes_;
+      clear();
+      throw Error(ErrorCode::ResourceExhausted,
+                  "diff: the spatial index of one leaf's neighbourhood needs more than " +
+                      std::to_string(maxBytes_) + " bytes (" + std::to_string(bytes) + " so far)");
+    }
+    resolution_ = spacing;
+    origin_ = all.center();
+    const Vec3d size = all.size();
+    // Twice the spacing, but no more than 2^20 buckets along any axis of the leaves' box, and
+    // fewer than 2^32 in it, numbered densely (8 bytes an entry). A larger bucket only costs
+    // time: the answer is the nearest hit among the cells of every bucket the line crosses.
+    bucket_ = std::max({2 * spacing, size.x * 1e-6, size.y * 1e-6, size.z * 1e-6, 1e-9});
+    for (;;) {
+      low_ = bucketOf(all.min);
+      const auto high = bucketOf(all.max);
+      for (int a = 0; a < 3; ++a) {
+        dims_[a] = high[a] - low_[a] + 1;
+      }
+      if (static_cast<double>(dims_[0]) * static_cast<double>(dims_[1]) *
+              static_cast<double>(dims_[2]) <
+          4.0e9) {
+        break;
+      }
+      bucket_ *= 2;
+    }
+    const int s = source_.model().gridSize();
+    const std::size_t cellsPerGrid = static_cast<std::size_t>(s - 1) * (s - 1);
+    if (grids_.size() * cellsPerGrid >= (std::size_t{1} << 32)) {
+      throw Error(ErrorCode::ResourceExhausted, "diff: too many leaves around one leaf");
+    }
+    std::array<std::pair<int, int>, 4> at{};
+    for (std::size_t g = 0; g < grids_.size(); ++g) {
+      const Points grid = points(g);
+      for (int y = 0; y + 1 < s; ++y) {
+        for (int x = 0; x + 1 < s; ++x) {
+          const int n = cellCorners(grid, x, y, at);
+          if (n < 3) {
+            continue;
+          }
+          Box3d cell;
+          for (int k = 0; k < n; ++k) {
+            cell.extend(grid.global(at[k].first, at[k].second));
+          }
+          const auto lo = bucketOf(cell.min), hi = bucketOf(cell.max);
+          const auto id = static_cast<std::uint32_t>(g * cellsPerGrid +
+                                                     static_cast<std::size_t>(y) * (s - 1) + x);
+          for (std::int64_t i = lo[0]; i <= hi[0]; ++i) {
+            for (std::int64_t j = lo[1]; j <= hi[1]; ++j) {
+              for (std::int64_t k = lo[2]; k <= hi[2]; ++k) {
+                entries_.emplace_back(key({i, j, k}), id);
+              }
+            }
+          }
+          if (pointBytes_ + entries_.size() * sizeof(entries_[0]) > maxBytes_) {
+            const std::size_t bytes = pointBytes_ + entries_.size() * sizeof(entries_[0]);
+            clear();
+            throw Error(ErrorCode::ResourceExhausted,
+                        "diff: the spatial index of one leaf's neighbourhood needs more than " +
+                            std::to_string(maxBytes_) + " bytes (" + std::to_string(bytes) +
+                            " so far)");
+          }
+        }
+      }
+    }
+    std::sort(entries_.begin(), entries_.end());
+    keys_ = std::move(keys);
+    return true;
+  }
+
+  /// The nearest place (smallest |t|, |t| <= reach) where the line p + t dir (dir a unit vector)
+  /// meets the surface: a walk through the buckets the line crosses, outward from p both ways.
+  std::optional<Hit> cast(const Vec3d& p, const Vec3d& dir, double reach) const {
+    double best = kInfinity;
+    std::uint32_t bestCell = 0;
+    std::array<double, 3> bestHit{};
+    int bestTri = 0;
+    std::array<std::pair<int, int>, 4> at{};
+    // Both ways at once, the nearer bucket first: a walk stops at the first bucket it enters
+    // beyond the best hit so far, so a hit behind p no longer costs the whole reach ahead of it.
+    std::array<Walker, 2> walkers{Walker(*this, p, dir), Walker(*this, p, dir * -1.0)};
+    walkers[1].advance();  // p's bucket is the first walker's
+    for (;;) {
+      Walker& w = walkers[0].t <= walkers[1].t ? walkers[0] : walkers[1];
+      if (w.t > reach || w.t > best) {
+        break;
+      }
+      const std::array<std::int64_t, 3> b = w.bucket;
+      w.advance();
+      {
+        const auto [first, last] = range(b);
+        for (auto it = first; it != last; ++it) {
+          const auto [grid, x, y] = cellOf(it->second);
+          const Points g = points(grid);
+          const int n = cellCorners(g, x, y, at);
+          for (int tri = 0; tri + 2 < n; ++tri) {
+            const auto hit = lineTriangle(p, dir, g.global(at[0].first, at[0].second),
+                                          g.global(at[tri + 1].first, at[tri + 1].second),
+                                          g.global(at[tri + 2].first, at[tri + 2].second));
+            if (hit && std::abs((*hit)[0]) <= reach && std::abs((*hit)[0]) < best) {
+              best = std::abs((*hit)[0]);
+              bestCell = it->second;
+              bestHit = *hit;
+              bestTri = tri;  // its corners: 0, tri + 1, tri + 2
+            }
+          }
+        }
+      }
+    }
+    if (!(best < kInfinity)) {
+      return std::nullopt;
+    }
+    const auto [grid, x, y] = cellOf(bestCell);
+    const Points g = points(grid);
+    const int corners = cellCorners(g, x, y, at);
+    const double u = bestHit[1], v = bestHit[2];
+    double t = bestHit[0];
+    Vec3d n;
+    bool onPatch = false;
+    if (corners == 4) {
+      // A full cell is the bilinear patch B(a, b) through its corners, as the merge subdivides
+      // and SurfaceSampler interpolates (its triangles chord a twisted cell by up to a quarter of
+      // the twist): Newton's method on B(a, b) = p + t dir from the triangle's hit.
+      const Vec3d c00 = g.global(x, y), c10 = g.global(x + 1, y), c11 = g.global(x + 1, y + 1),
+                  c01 = g.global(x, y + 1);
+      double a = bestTri == 0 ? u + v : u, b = bestTri == 0 ? v : u + v;
+      bool ok = true;
+      for (int k = 0; k < 6 && ok; ++k) {
+        const Vec3d bp =
+            c00 * ((1 - a) * (1 - b)) + c10 * (a * (1 - b)) + c11 * (a * b) + c01 * ((1 - a) * b);
+        const Vec3d ba = (c10 - c00) * (1 - b) + (c11 - c01) * b;
+        const Vec3d bb = (c01 - c00) * (1 - a) + (c11 - c10) * a;
+        const Vec3d f = bp - (p + dir * t);
+        const Vec3d m = dir * -1.0;
+        // Solve [ba bb m] [da db dt]^T = -f by Cramer's rule.
+        const double det = dot(ba, cross(bb, m));
+        if (!(std::abs(det) > 1e-300)) {
+          ok = false;
+          break;
+        }
+        const Vec3d r = f * -1.0;
+        const double da = dot(r, cross(bb, m)) / det, db = dot(ba, cross(r, m)) / det,
+                     dt = dot(ba, cross(bb, r)) / det;
+        if (da == 0 && db == 0 && dt == 0) {
+          break;  // converged: further steps change nothing
+        }
+        a += da;
+        b += db;
+        t += dt;
+        ok = std::isfinite(a) && std::isfinite(b) && std::isfinite(t);
+      }
+      constexpr double kSlack = 1e-6;
+      if (ok && a >= -kSlack && a <= 1 + kSlack && b >= -kSlack && b <= 1 + kSlack &&
+          std::abs(t) <= reach) {
+        n = vertexNormal(g, x, y, sign_) * ((1 - a) * (1 - b)) +
+            vertexNormal(g, x + 1, y, sign_) * (a * (1 - b)) +
+            vertexNormal(g, x + 1, y + 1, sign_) * (a * b) +
+            vertexNormal(g, x, y + 1, sign_) * ((1 - a) * b);
+        onPatch = true;
+      } else {
+        t = bestHit[0];
+      }
+    }
+    if (!onPatch) {
+      // The triangle's hit: its corners' normals, interpolated.
+      n = vertexNormal(g, at[0].first, at[0].second, sign_) * (1 - u - v) +
+          vertexNormal(g, at[bestTri + 1].first, at[bestTri + 1].second, sign_) * u +
+          vertexNormal(g, at[bestTri + 2].first, at[bestTri + 2].second, sign_) * v;
+    }
+    const double length = n.norm();
+    if (!(length > 0)) {
+      return std::nullopt;
+    }
+    return Hit{t, n * (1 / length), grid, x, y};
+  }
+
+  /// M3C2's spread of this surface in a cylinder: the roughness (about their local plane) and the
+  /// count of its vertices within `radius` of the axis through p along n, among the vertices of
+  /// the hit cell's grid within `window` of it (a cylinder across a patch border sees one side).
+  std::pair<double, int> spread(const Vec3d& p, const Vec3d& n, const Hit& hit, double radius,
+                                int window) const {
+    const Points g = points(hit.grid);
+    const int s = g.size();
+    std::vector<Vec3d>& inside = inside_;
+    inside.clear();
+    const double radius2 = radius * radius;
+    for (int v = std::max(0, hit.y - window); v <= std::min(s - 1, hit.y + 1 + window); ++v) {
+      for (int u = std::max(0, hit.x - window); u <= std::min(s - 1, hit.x + 1 + window); ++u) {
+        if (g.defined(u, v)) {
+          const Vec3d r = g.global(u, v) - p;
+          const double along = dot(r, n);
+          if (dot(r, r) - along * along <= radius2) {
+            inside.push_back(r);
+          }
+        }
+      }
+    }
+    return {roughness(inside, n), static_cast<int>(inside.size())};
+  }
+
+  /// The largest grid spacing and storageNoise of the leaves of the last around().
+  double resolution() const { return resolution_; }
+  /// The grid spacing of the index's grid `g` (Hit::grid).
+  double resolutionOf(std::size_t g) const { return grids_[g]->resolution; }
   double noise() const { return noise_; }
-  /// Releases the pins.
+  /// Memory of the index itself: its buckets and its grids' global positions (the grids are the
+  /// cache's).
+  std::size_t bytes() const { return pointBytes_ + entries_.capacity() * sizeof(entries_[0]); }
+  /// Releases the pins and the index.
   void clear() {
-    sampler_.reset();
     grids_.clear();
     keys_.clear();
+    entries_.clear();
+    entries_.shrink_to_fit();
+    noise_ = 0;
+    resolution_ = 0;
+    pointBytes_ = 0;
   }
 
  private:
+  static constexpr double kInfinity = std::numeric_limits<double>::infinity();
+  static constexpr std::int64_t kBucketLimit = std::int64_t{1} << 20;
+
+  std::array<std::int64_t, 3> bucketOf(const Vec3d& p) const {
+    const auto axis = [&](double v) {
+      return std::clamp(static_cast<std::int64_t>(std::floor(v / bucket_)), -kBucketLimit + 1,
+                        kBucketLimit - 2);
+    };
+    return {axis(p.x - origin_.x), axis(p.y - origin_.y), axis(p.z - origin_.z)};
+  }
+  /// The dense number of bucket `b` of the leaves' box; kOutside beyond it (no cell there).
+  static constexpr std::uint32_t kOutside = std::numeric_limits<std::uint32_t>::max();
+  std::uint32_t key(const std::array<std::int64_t, 3>& b) const {
+    std::array<std::int64_t, 3> r{};
+    for (int a = 0; a < 3; ++a) {
+      r[a] = b[a] - low_[a];
+      if (r[a] < 0 || r[a] >= dims_[a]) {
+        return kOutside;
+      }
+    }
+    return static_cast<std::uint32_t>((r[0] * dims_[1] + r[1]) * dims_[2] + r[2]);
+  }
+  using Entries = std::vector<std::pair<std::uint32_t, std::uint32_t>>;
+  std::pair<Entries::const_iterator, Entries::const_iterator> range(
+      const std::array<std::int64_t, 3>& b) const {
+    const std::uint32_t k = key(b);
+    if (k == kOutside) {
+      return {entries_.end(), entries_.end()};
+    }
+    const auto first = std::lower_bound(entries_.begin(), entries_.end(), std::pair{k, 0u});
+    auto last = first;
+    while (last != entries_.end() && last->first == k) {
+      ++last;
+    }
+    return {first, last};
+  }
+  std::tuple<std::size_t, int, int> cellOf(std::uint32_t id) const {
+    const int s = source_.model().gridSize() - 1;
+    const std::size_t perGrid = static_cast<std::size_t>(s) * s;
+    const std::size_t cell = id % perGrid;
+    return {id / perGrid, static_cast<int>(cell % s), static_cast<int>(cell / s)};
+  }
+
+  /// The buckets the ray p + t dir (t >= 0) crosses, one at a time (3D DDA, Amanatides and
+  /// Woo): `bucket`, entered at `t` (infinity once it leaves the index's range).
+  struct Walker {
+    Walker(const SurfaceIndex& index, const Vec3d& p, const Vec3d& dir)
+        : bucket(index.bucketOf(p)) {
+      const Vec3d q = (p - index.origin_) * (1 / index.bucket_);
+      const std::array<double, 3> qa{q.x, q.y, q.z}, da{dir.x, dir.y, dir.z};
+      const double size = index.bucket_;
+      for (int a = 0; a < 3; ++a) {
+        if (da[a] > 0) {
+          step[a] = 1;
+          next[a] = (static_cast<double>(bucket[a] + 1) - qa[a]) * size / da[a];
+          delta[a] = size / da[a];
+        } else if (da[a] < 0) {
+          step[a] = -1;
+          next[a] = (qa[a] - static_cast<double>(bucket[a])) * size / -da[a];
+          delta[a] = size / -da[a];
+        } else {
+          next[a] = delta[a] = kInfinity;
+        }
+      }
+    }
+    /// Into the next bucket along the ray.
+    void advance() {
+      const int a =
+          next[0] <= next[1] ? (next[0] <= next[2] ? 0 : 2) : (next[1] <= next[2] ? 1 : 2);
+      t = next[a];
+      bucket[a] += step[a];
+      next[a] += delta[a];
+      if (bucket[a] <= -kBucketLimit + 1 || bucket[a] >= kBucketLimit - 2) {
+        t = kInfinity;
+      }
+    }
+
+    std::array<std::int64_t, 3> bucket;
+    double t = 0;
+    std::array<int, 3> step{};
+    std::array<double, 3> next{}, delta{};
+  };
+
   PatchSource& source_;
+  double sign_;
+  std::size_t maxBytes_;
   std::vector<PatchKey> keys_;
-  std::vector<std::shared_ptr<const PatchGrid>> grids_;
-  std::optional<SurfaceSampler> sampler_;
+  /// A leaf of the neighbourhood: its grid (pinned), global positions and spacing.
+  struct Grid {
+    std::shared_ptr<const PatchGrid> grid;
+    std::vector<Vec3d> positions;
+    double resolution = 0;
+  };
+  Points points(std::size_t g) const {
+    return {grids_[g]->positions.data(), grids_[g]->grid->size()};
+  }
+
+  std::vector<std::shared_ptr<const Grid>> grids_;
+  std::size_t pointBytes_ = 0;
+  Entries entries_;
+  Vec3d origin_;
+  double bucket_ = 1;
+  std::array<std::int64_t, 3> low_{};
+  std::array<std::int64_t, 3> dims_{};
   double noise_ = 0;
+  double resolution_ = 0;
+  mutable std::vector<Vec3d> inside_;
 };
 
 /// One leaf to sample: a changed leaf of `to`, or a leaf of `from` that `to` removed.
 struct Work {
   PatchKey key;
   bool removed = false;
+  /// The core points are `from`'s leaf of this key (cast into `to`): a removed leaf, or a changed
+  /// leaf of `to` whose key is a leaf of `from` too (a new version of the same patch). Otherwise
+  /// they are `to`'s leaf's vertices (new, finer leaves).
+  bool onFrom = false;
 };
 
 /// Fills the cells of `grid` whose corners all have a displacement into `map`, interpolated
@@ -244,7 +696,12 @@ nlohmann::json statsJson(const DisplacementStats& s) {
           {"max", any ? number(s.max) : nullptr},
           {"mean", number(s.mean())},
           {"rms", number(s.rms())},
-          {"max_abs", any ? number(s.maxAbs()) : nullptr}};
+          {"max_abs", any ? number(s.maxAbs()) : nullptr},
+          {"significant_area", s.significantArea},
+          {"volume_gained", s.volumeGained},
+          {"volume_lost", s.volumeLost},
+          {"lod_mean", number(s.lodMean())},
+          {"lod_max", any ? number(s.lodMax) : nullptr}};
 }
 
 /// 3 x 5 pixel glyphs of what a legend's numbers need, a row per 3 bits (top row first).
@@ -331,12 +788,18 @@ void drawLegend(std::vector<std::uint8_t>& rgba, int width, int height, double r
 
 }  // namespace
 
-void DisplacementStats::add(double d, double weight, double threshold) {
+void DisplacementStats::add(double d, double weight, double threshold, double lod) {
   ++samples;
   area += weight;
   if (std::abs(d) > threshold) {
     changedArea += weight;
+    if (std::abs(d) > lod) {
+      significantArea += weight;
+      (d > 0 ? volumeGained : volumeLost) += std::abs(d) * weight;
+    }
   }
+  lodSum += weight * lod;
+  lodMax = std::max(lodMax, lod);
   min = std::min(min, d);
   max = std::max(max, d);
   sum += weight * d;
@@ -353,6 +816,11 @@ void DisplacementStats::merge(const DisplacementStats& o) {
   max = std::max(max, o.max);
   sum += o.sum;
   sumSquares += o.sumSquares;
+  lodSum += o.lodSum;
+  lodMax = std::max(lodMax, o.lodMax);
+  significantArea += o.significantArea;
+  volumeGained += o.volumeGained;
+  volumeLost += o.volumeLost;
 }
 
 double storageNoise(const Box3d& localBox) {
@@ -377,6 +845,10 @@ double DisplacementStats::mean() const {
   return area > 0 ? sum / area : kNaN;
 }
 
+double DisplacementStats::lodMean() const {
+  return area > 0 ? lodSum / area : kNaN;
+}
+
 double DisplacementStats::rms() const {
   return area > 0 ? std::sqrt(sumSquares / area) : kNaN;
 }
@@ -398,6 +870,12 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
   if (!(options.epsilon >= 0)) {
     throw Error(ErrorCode::InvalidArgument, "diff: epsilon must be >= 0");
   }
+  if (!(options.registrationError >= 0) || !std::isfinite(options.registrationError)) {
+    throw Error(ErrorCode::InvalidArgument, "diff: the registration error must be >= 0 metres");
+  }
+  if (!(options.searchDistance >= 0) || !std::isfinite(options.searchDistance)) {
+    throw Error(ErrorCode::InvalidArgument, "diff: the search distance must be >= 0 metres");
+  }
   if (options.mapSize < 0 || options.mapSize > 16384) {
     throw Error(ErrorCode::InvalidArgument, "diff: the map size must be 0..16384 pixels");
   }
@@ -405,6 +883,7 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
   diff.from = from->version;
   diff.to = to->version;
   diff.epsilon = options.epsilon;
+  diff.registrationError = options.registrationError;
   const auto sourceA = liveSource(live, from);
   const auto sourceB = liveSource(live, to);
 
@@ -419,14 +898,14 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
     }
     changed[key] = {key, info.globalBox, false, info.isLeaf(), {}};
     if (info.isLeaf()) {
-      work.push_back({key, false});
+      work.push_back({key, false, old != nullptr && old->isLeaf()});
     }
   }
   for (const auto& [key, info] : a.patches()) {
     if (b.find(key) == nullptr) {
       changed[key] = {key, info.globalBox, true, info.isLeaf(), {}};
       if (info.isLeaf()) {
-        work.push_back({key, true});
+        work.push_back({key, true, true});
       }
     }
   }
@@ -435,7 +914,31 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
     return x.key.depth != y.key.depth ? x.key.depth < y.key.depth : x.key < y.key;
   });
 
-  OtherSurface surfaceA(*sourceA), surfaceB(*sourceB);
+  // n's side, the model's front (outside): one sign for the whole model, never per patch or per
+  // vertex. In a local frame it is the grids' winding (the cross product of the grid's x and y
+  // directions), whatever way the scene is turned: a face turned 135 degrees is an overhang whose
+  // front still faces out of the rock. Only a body-centred model (ECEF: its root farther than
+  // kBodyCentredRadius from the origin) is placed on a planet, where out is away from its centre:
+  // its winding is turned when its root's faces point to the centre (rasters' rows run north to
+  // south, so their winding faces down), so on georeferenced terrain + is up.
+  double sign = 1;
+  {
+    const Vec3d centre = a.at(PatchKey::root()).globalBox.center();
+    if (centre.norm() > kBodyCentredRadius) {
+      const auto root = sourceA->positions(PatchKey::root());
+      Vec3d total;
+      for (const Vec3d& area : vertexAreas(*root)) {
+        total = total + area;
+      }
+      if (dot(total, upAt(centre)) < 0) {
+        sign = -1;
+      }
+    }
+  }
+  // Both sides' indexes live at once (the leaves of either revision are sampled in depth order):
+  // each gets half the bound.
+  SurfaceIndex surfaceA(*sourceA, sign, options.indexBytes / 2),
+      surfaceB(*sourceB, sign, options.indexBytes / 2);
   // One leaf sampled: its grid (pinned) and the displacement at each vertex (NaN where none).
   struct Sampled {
     std::shared_ptr<const PatchGrid> grid;
@@ -447,38 +950,99 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
       options.cancel->throwIfCancelled();
     }
     // The leaf's own revision and the other one.
-    PatchSource& own = w.removed ? *sourceA : *sourceB;
-    OtherSurface& other = w.removed ? surfaceB : surfaceA;
+    PatchSource& own = w.onFrom ? *sourceA : *sourceB;
+    SurfaceIndex& other = w.onFrom ? surfaceB : surfaceA;
     const PatchInfo& info = own.model().at(w.key);
     Sampled out{own.positions(w.key), {}, {}};
     const PatchGrid& grid = *out.grid;
-    const SurfaceSampler* sampler = other.around(info.globalBox);
-    const std::vector<double> areas = vertexAreas(grid);
+    const double spacing = grid.resolution();
+    const std::vector<Vec3d> areas = vertexAreas(grid);
+    // The reach: the leaf's box grown along its mean normal by the search distance, and by a
+    // twentieth of it (and two samples) across, where lines from its vertices may go.
+    Vec3d mean;
+    for (const Vec3d& area : areas) {
+      mean = mean + area;
+    }
+    mean = mean * (mean.norm() > 0 ? 1 / mean.norm() : 0.0);
+    const double reach = options.searchDistance > 0 ? options.searchDistance : 64 * spacing;
+    Box3d box = info.globalBox;
+    const double across = 0.05 * reach + 2 * spacing;
+    const Vec3d grow{reach * std::abs(mean.x) + across, reach * std::abs(mean.y) + across,
+                     reach * std::abs(mean.z) + across};
+    box.min = box.min - grow;
+    box.max = box.max + grow;
+    const bool found = !box.empty() && other.around(box);
     out.d.assign(grid.vertexCount(), kNaN);
-    if (sampler != nullptr) {
+    if (found) {
       out.stats.noise = storageNoise(info.localBox) + other.noise();
     }
     const double threshold = std::max(options.epsilon, out.stats.noise);
     const int s = grid.size();
+    // The leaf's positions, once (NaN where undefined).
+    const std::vector<Vec3d> positions = globalPositions(grid);
+    const Points points{positions.data(), s};
+    std::vector<Vec3d> inside;
     for (int y = 0; y < s; ++y) {
       for (int x = 0; x < s; ++x) {
         if (!grid.defined(x, y)) {
           continue;
         }
-        const Vec3d p = grid.global(x, y);
-        const std::optional<SurfacePoint> hit =
-            sampler != nullptr ? sampler->locate(p) : std::nullopt;
-        const Vec3d n = hit ? cellNormal(other.grid(hit->grid), hit->x, hit->y, sampler->frame().up)
-                            : Vec3d{kNaN, kNaN, kNaN};
-        if (!n.finite()) {
+        const Vec3d p = positions[static_cast<std::size_t>(y) * s + x];
+        const Vec3d ownNormal = vertexNormal(points, x, y, sign);
+        std::optional<SurfaceIndex::Hit> hit;
+        Vec3d n = ownNormal;
+        double d = kNaN;
+        if (found && ownNormal.finite()) {
+          hit = other.cast(p, ownNormal, reach);
+        }
+        if (hit && w.onFrom) {
+          // p is a core point on `from`, n its normal: `to` is where the axis meets it.
+          d = hit->t;
+        } else if (hit) {
+          // p is on `to`: `from` is at a = p + t n0 along p's own normal; the axis is from's
+          // normal there and d is p's distance from from's tangent plane at a (as a core point at
+          // a would measure p, to first order; exact on a plane).
+          n = hit->normal;
+          d = -hit->t * dot(ownNormal, n);
+        }
+        if (!std::isfinite(d)) {
           ++out.stats.skipped;
           continue;
         }
-        // `to` minus `from` along from's normal, or along to's where `to` removed the leaf.
-        const double distance = dot(p - hit->position, n);
+        // `to` minus `from` along from's normal n.
         const std::size_t i = static_cast<std::size_t>(y) * s + x;
-        out.d[i] = w.removed ? -distance : distance;
-        out.stats.add(out.d[i], areas[i], threshold);
+        out.d[i] = d;
+        // M3C2's level of detection: each side's spread along n in the cylinder around the axis.
+        // The cylinder's radius: 1.5 times the coarser side's spacing (3 x 3 vertices of a grid).
+        const double otherSpacing = other.resolutionOf(hit->grid);
+        const double radius = 1.5 * std::max(spacing, otherSpacing);
+        const int window =
+            std::clamp(static_cast<int>(std::ceil(radius / std::max(spacing, 1e-300))), 1, 3);
+        inside.clear();
+        for (int v = std::max(0, y - window); v <= std::min(s - 1, y + window); ++v) {
+          for (int u = std::max(0, x - window); u <= std::min(s - 1, x + window); ++u) {
+            const Vec3d q = positions[static_cast<std::size_t>(v) * s + u];
+            if (q.finite()) {
+              const Vec3d r = q - p;
+              const double along = dot(r, n);
+              if (dot(r, r) - along * along <= radius * radius) {
+                inside.push_back(r);
+              }
+            }
+          }
+        }
+        const int otherWindow =
+            std::clamp(static_cast<int>(std::ceil(radius / std::max(otherSpacing, 1e-300))), 1, 3);
+        const auto [otherVariance, otherCount] = other.spread(p, n, *hit, radius, otherWindow);
+        double spread = 0;
+        if (!inside.empty()) {
+          spread += roughness(inside, n) / static_cast<double>(inside.size());
+        }
+        if (otherCount > 0) {
+          spread += otherVariance / otherCount;
+        }
+        const double lod = 1.96 * (std::sqrt(spread) + options.registrationError);
+        out.stats.add(out.d[i], std::abs(dot(areas[i], n)), threshold, lod);
       }
     }
     return out;
@@ -509,7 +1073,7 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
     TopDownGrid view;
     view.geographic = looksEcef(*sourceB->positions(PatchKey::root()));
     const auto extent = [&](const Work& w) {
-      const Box3d& box = (w.removed ? a : b).at(w.key).globalBox;
+      const Box3d& box = (w.onFrom ? a : b).at(w.key).globalBox;
       Rect2d r;
       for (int c = 0; c < 8 && !box.empty(); ++c) {
         const Point2d p =
@@ -574,9 +1138,13 @@ std::string diffJson(const RevisionDiff& diff, std::string_view model) {
   totals["shared_patches"] = diff.sharedPatches;
   totals["changed_patches"] = diff.patches.size() - removed;
   totals["removed_patches"] = removed;
-  nlohmann::json body = {{"model", model},   {"from", diff.from},
-                         {"to", diff.to},    {"epsilon", diff.epsilon},
-                         {"totals", totals}, {"patches", std::move(patches)}};
+  nlohmann::json body = {{"model", model},
+                         {"from", diff.from},
+                         {"to", diff.to},
+                         {"epsilon", diff.epsilon},
+                         {"registration_error", diff.registrationError},
+                         {"totals", totals},
+                         {"patches", std::move(patches)}};
   if (diff.map) {
     const TopDownGrid& g = diff.map->grid;
     body["map"] = {{"geographic", g.geographic},
@@ -618,12 +1186,15 @@ std::vector<std::uint8_t> colourMap(const DisplacementMap& map, double range) {
 
 std::string diffLegend(const RevisionDiff& diff) {
   const double range = diff.totals.maxAbs();
-  char text[256];
+  const DisplacementStats& t = diff.totals;
+  char text[512];
   std::snprintf(text, sizeof text,
                 "displacement from revision %llu to %llu along the surface normal, metres: blue "
-                "%.6g, white 0, red %+.6g",
+                "%.6g, white 0, red %+.6g; volume gained %.6g m^3, lost %.6g m^3, changed %.6g "
+                "m^2 (significant %.6g m^2)",
                 static_cast<unsigned long long>(diff.from),
-                static_cast<unsigned long long>(diff.to), -range, range);
+                static_cast<unsigned long long>(diff.to), -range, range, t.volumeGained,
+                t.volumeLost, t.changedArea, t.significantArea);
   return text;
 }
 

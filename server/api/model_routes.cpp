@@ -6,6 +6,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <numbers>
 #include <optional>
 
@@ -133,17 +134,18 @@ class DiffStop final : public core::Progress {
 };
 
 /// The working memory of a diff with a map of `mapSize` pixels along its longer side, allocated
-/// outside the cache: the map's floats, the RGBA picture and, at most as large again, the PNG.
+/// outside the cache: the spatial index (core::kDiffIndexBytes at most, the CLI's bound too), and
+/// the map's floats, the RGBA picture and, at most as large again, the PNG.
 std::size_t diffWorkBytes(int mapSize) {
   const auto pixels = static_cast<std::size_t>(mapSize) * static_cast<std::size_t>(mapSize);
-  return pixels * (sizeof(float) + 4 + 4);
+  return core::kDiffIndexBytes + pixels * (sizeof(float) + 4 + 4);
 }
 
 /// The diff a request asks for: between the kept revisions ?from=A and ?to=B of model {m}, with a
 /// map of `mapSize` pixels along its longer side when > 0. Runs inside the gate (a slot held
-/// throughout, 503 when none is free), with the map's memory charged to the budget
-/// (Encoding::DiffWork) while it is drawn and encoded, and stops at the slot's deadline (503) or
-/// when its client closes the connection (Cancelled, answered to nobody).
+/// throughout, 503 when none is free), with its work memory (diffWorkBytes) charged to the budget
+/// (Encoding::DiffWork) while it runs, is drawn and encoded, and stops at the slot's deadline (503)
+/// or when its client closes the connection (Cancelled, answered to nobody).
 /// `finish` turns the diff into the response while the slot and the charge are held. Throws
 /// Error(InvalidArgument) for a missing or malformed revision, NotFound for one not kept,
 /// Unavailable when every slot is taken or the deadline passed, ResourceExhausted when the map
@@ -162,12 +164,21 @@ http::Response runDiff(const ModelContext& c, const http::Request& request, int 
   const std::uint64_t to = parseRevision("query parameter 'to'", *toText);
   const std::unique_ptr<DiffGate::Slot> slot = c.diffs->enter();
   const std::shared_ptr<const void> charged =
-      mapSize > 0 ? served.encoded->reserve(models::Encoding::DiffWork, diffWorkBytes(mapSize))
-                  : nullptr;
+      served.encoded->reserve(models::Encoding::DiffWork, diffWorkBytes(mapSize));
   core::CancelToken cancel;
   DiffStop stop(slot->deadline(), request, cancel);
   core::DiffOptions options;
   options.mapSize = mapSize;
+  if (const auto error = request.queryParam("registration_error")) {
+    char* end = nullptr;
+    const std::string text(*error);
+    options.registrationError = std::strtod(text.c_str(), &end);
+    if (text.empty() || end != text.c_str() + text.size() ||
+        !(options.registrationError >= 0 && options.registrationError < 1e7)) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "query parameter 'registration_error' must be a length in metres >= 0");
+    }
+  }
   options.cancel = &cancel;
   options.progress = &stop;
   try {

@@ -46,11 +46,15 @@ const std::string_view kUsage =
     "                                              file <out>.pgw (lon/lat for ECEF models)\n"
     "  diff <opc> --from A --to B [--json <out>] [--png <out>] [--geotiff <out>] [--size N]\n"
     "       [--memory-budget SIZE]                 what changed between two kept revisions: the\n"
-    "                                              displacement of the surface along its normal\n"
-    "                                              (m, + = outward) per changed patch and in\n"
-    "                                              total; a map (PNG blue-white-red with a world\n"
-    "                                              file, float32 GeoTIFF in lon/lat for ECEF\n"
-    "                                              models), N pixels on the longer side (1024)\n"
+    "       [--registration-error M]               displacement of the surface along A's normal\n"
+    "       [--search-distance M]                  (m, + = outward; M3C2-like), the area changed,\n"
+    "                                              the volume gained and lost beyond the level\n"
+    "                                              of detection (raised by the registration\n"
+    "                                              error between A and B, m) per changed patch\n"
+    "                                              and in total; a map (PNG blue-white-red with\n"
+    "                                              a world file, float32 GeoTIFF in lon/lat for\n"
+    "                                              ECEF models), N pixels on the longer side\n"
+    "                                              (1024)\n"
     "  help                                        this text\n";
 
 ConsoleProgress::ConsoleProgress(std::uintmax_t inputBytes)

@@ -8,8 +8,10 @@
 #include <atomic>
 #include <charconv>
 #include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <cstdio>
+#include <cstdlib>
 #include <exception>
 #include <filesystem>
 #include <functional>
@@ -412,6 +414,16 @@ int runDiff(const std::vector<std::string_view>& args) {
       geotiff = fs::path(optionValue(args, i));
     } else if (args[i] == "--memory-budget") {
       budget = budgetOption(args, i);
+    } else if (args[i] == "--registration-error" || args[i] == "--search-distance") {
+      const std::string name(args[i]);
+      const std::string text(optionValue(args, i));
+      char* end = nullptr;
+      const double value = std::strtod(text.c_str(), &end);
+      if (text.empty() || end != text.c_str() + text.size() || !(value >= 0) ||
+          !std::isfinite(value)) {
+        throw UsageError{name + " needs a length in metres >= 0"};
+      }
+      (name == "--registration-error" ? options.registrationError : options.searchDistance) = value;
     } else {
       return false;
     }
@@ -473,6 +485,11 @@ int runDiff(const std::vector<std::string_view>& args) {
   if (t.samples > 0) {
     std::printf("displacement m: min %.6g, max %.6g, mean %.6g, rms %.6g\n", t.min, t.max, t.mean(),
                 t.rms());
+    std::printf(
+        "beyond the level of detection (mean %.3g m, largest %.3g m, registration error %g m): "
+        "%.6g m^2 significant, volume gained %.6g m^3, lost %.6g m^3\n",
+        t.lodMean(), t.lodMax, diff.registrationError, t.significantArea, t.volumeGained,
+        t.volumeLost);
   }
   if (diff.map) {
     std::printf("map: %d x %d pixels, %s; %s\n", diff.map->grid.width, diff.map->grid.height,

@@ -177,7 +177,9 @@ class Diffs(Fixture):
         self.assertIsNotNone(hold.wait_held(n + 1))
         memory = stats(daemon)["memory"]
         charged = memory["encoded_bytes_by_encoding"].get("diff")
-        self.assertEqual(charged, PNG_SIZE * PNG_SIZE * 12, memory)
+        # The map's floats, RGBA and PNG (12 bytes a pixel) and the spatial indexes' bound
+        # (core/diff, kDiffIndexBytes: 96 MiB, 48 a side).
+        self.assertEqual(charged, PNG_SIZE * PNG_SIZE * 12 + (96 << 20), memory)
         self.assertGreaterEqual(memory["pinned_bytes"], charged)
         self.assertEqual(reads(daemon, "diffs", "running"), 1)
         # A second diff while the first runs: refused at once (without a bound it would read

@@ -297,7 +297,9 @@ class Diff(unittest.TestCase):
 
     def test_4_http(self):
         start = time.monotonic()
-        status, _, body = self.daemon.get_json("/v1/models/prism/diff?from=1&to=2")
+        # The diff along the normal takes seconds on this model (2.4 s of CPU, the CLI's 18 s on a
+        # loaded machine): a wait for the answer, not a verdict on its speed.
+        status, _, body = self.daemon.get_json("/v1/models/prism/diff?from=1&to=2", timeout=300)
         seconds = time.monotonic() - start
         self.assertEqual(status, 200, body)
         # The CLI's, less its map's georeference (the route draws none).
@@ -306,8 +308,8 @@ class Diff(unittest.TestCase):
         self.assertEqual(totals["max_abs"], max(abs(totals["min"]), abs(totals["max"])))
 
         start = time.monotonic()
-        status, headers, png = self.daemon.request("GET",
-                                                   "/v1/models/prism/diff.png?from=1&to=2&size=700")
+        status, headers, png = self.daemon.request(
+            "GET", "/v1/models/prism/diff.png?from=1&to=2&size=700", timeout=300)
         png_seconds = time.monotonic() - start
         self.assertEqual(status, 200, png[:300])
         self.assertEqual(headers["Content-Type"], "image/png")

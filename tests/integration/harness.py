@@ -144,9 +144,9 @@ class Daemon:
         finally:
             conn.close()
 
-    def get_json(self, path):
+    def get_json(self, path, timeout=10):
         """GET `path`: (status, headers, the body parsed)."""
-        status, headers, body = self.request("GET", path)
+        status, headers, body = self.request("GET", path, timeout=timeout)
         return status, headers, json.loads(body)
 
     def json(self, method, path, body=None, timeout=60):
