@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <numbers>
+#include <optional>
 #include <utility>
 
 #include "core/common/error.hpp"
@@ -64,7 +65,7 @@ Vec3d geodeticOf(const Vec3d& p) {
 
 void paintHeights(const Model& model, const std::vector<PatchKey>& sources, const TopDownGrid& view,
                   const GeoRect& area, const TerrainGridLoader& load, std::span<double> heights,
-                  std::span<std::uint8_t> painted) {
+                  std::span<std::uint8_t> painted, double edgeTolerance) {
   if (heights.size() != view.pixels() || painted.size() != view.pixels()) {
     throw Error(ErrorCode::InvalidArgument, "paintHeights: the buffers do not match the picture");
   }
@@ -151,13 +152,15 @@ void paintHeights(const Model& model, const std::vector<PatchKey>& sources, cons
           const Vec3d a = convert(x, y), b = convert(x + 1, y), c = convert(x, y + 1),
                       d = convert(x + 1, y + 1);
           const auto paint = [&](const Vec3d& p, const Vec3d& q, const Vec3d& r) {
-            forEachPixelInTriangle({p.x, p.y}, {q.x, q.y}, {r.x, r.y}, width, height,
-                                   [&](int col, int row, double wa, double wb, double wc) {
-                                     const auto i = static_cast<std::size_t>(row) * width +
-                                                    static_cast<std::size_t>(col);
-                                     heights[i] = wa * p.z + wb * q.z + wc * r.z;
-                                     painted[i] = 1;
-                                   });
+            forEachPixelInTriangle(
+                {p.x, p.y}, {q.x, q.y}, {r.x, r.y}, width, height,
+                [&](int col, int row, double wa, double wb, double wc) {
+                  const auto i =
+                      static_cast<std::size_t>(row) * width + static_cast<std::size_t>(col);
+                  heights[i] = wa * p.z + wb * q.z + wc * r.z;
+                  painted[i] = 1;
+                },
+                edgeTolerance);
           };
           paint(a, c, d);
           paint(a, d, b);
@@ -178,7 +181,7 @@ std::vector<HeightSample> sampleHeights(const Model& model, const TerrainLayer& 
     for (const PatchKey& source : heightSources(model, layer, area, -1)) {
       double h = 0;
       std::uint8_t painted = 0;
-      paintHeights(model, {source}, view, area, load, {&h, 1}, {&painted, 1});
+      paintHeights(model, {source}, view, area, load, {&h, 1}, {&painted, 1}, kQueryEdgeTolerance);
       if (painted != 0) {
         out[i] = {h, source.depth, model.at(source).resolution};
       }
@@ -195,11 +198,47 @@ void sampleHeightGrid(const Model& model, const TerrainLayer& layer, const TopDo
   std::vector<double> heights(view.pixels(), 0.0);
   std::vector<std::uint8_t> painted(view.pixels(), 0);
   const GeoRect area = viewRect(view, 1);
-  paintHeights(model, heightSources(model, layer, area, -1), view, area, load, heights, painted);
+  paintHeights(model, heightSources(model, layer, area, -1), view, area, load, heights, painted,
+               kQueryEdgeTolerance);
   for (std::size_t i = 0; i < out.size(); ++i) {
     out[i] =
         painted[i] != 0 ? static_cast<float>(heights[i]) : std::numeric_limits<float>::quiet_NaN();
   }
+}
+
+TopDownGrid heightPicture(const GeoRect& bounds, double resolution, std::size_t maxPixels) {
+  if (!(bounds.west < bounds.east) || !(bounds.south < bounds.north)) {
+    throw Error(ErrorCode::InvalidArgument,
+                "the box must have west < east and south < north (it is inverted or empty)");
+  }
+  if (!(resolution > 0) || !std::isfinite(resolution)) {
+    throw Error(ErrorCode::InvalidArgument, "the resolution must be a positive number");
+  }
+  const double cols = std::max(1.0, std::round((bounds.east - bounds.west) / resolution));
+  const double rows = std::max(1.0, std::round((bounds.north - bounds.south) / resolution));
+  if (cols * rows > static_cast<double>(maxPixels)) {
+    throw Error(ErrorCode::InvalidArgument,
+                "the picture would have " + std::to_string(static_cast<long long>(cols)) + " x " +
+                    std::to_string(static_cast<long long>(rows)) + " pixels, more than the " +
+                    std::to_string(maxPixels) +
+                    " allowed; ask for a smaller box or a coarser "
+                    "resolution");
+  }
+  TopDownGrid view;
+  view.geographic = true;
+  view.x0 = bounds.west;
+  view.y0 = bounds.north;
+  view.dx = view.dy = resolution;
+  view.width = static_cast<int>(cols);
+  view.height = static_cast<int>(rows);
+  return view;
+}
+
+TopDownGrid pictureRows(const TopDownGrid& view, int row, int rows) {
+  TopDownGrid strip = view;
+  strip.y0 = view.y0 - row * view.dy;
+  strip.height = rows;
+  return strip;
 }
 
 double finestResolution(const Model& model, const TerrainLayer& layer, const GeoRect& area) {
@@ -211,6 +250,32 @@ double finestResolution(const Model& model, const TerrainLayer& layer, const Geo
     }
   }
   return finest;
+}
+
+double finestSpacingDegrees(const Model& model, const TerrainLayer& layer, const GeoRect& area,
+                            const TerrainGridLoader& load) {
+  std::optional<PatchKey> finest;
+  for (const PatchKey& leaf : heightSources(model, layer, area, -1)) {
+    if (!finest || model.at(leaf).resolution < model.at(*finest).resolution) {
+      finest = leaf;
+    }
+  }
+  if (!finest) {
+    return 0;
+  }
+  const auto grid = load(model.at(*finest));
+  const int n = grid->size();
+  for (int y = 0; y + 1 < n; ++y) {
+    for (int x = 0; x + 1 < n; ++x) {
+      if (grid->defined(x, y) && grid->defined(x + 1, y) && grid->defined(x, y + 1)) {
+        const Vec3d p = geodeticOf(grid->global(x, y));
+        const Vec3d e = geodeticOf(grid->global(x + 1, y));
+        const Vec3d s = geodeticOf(grid->global(x, y + 1));
+        return std::max(std::hypot(e.x - p.x, e.y - p.y), std::hypot(s.x - p.x, s.y - p.y));
+      }
+    }
+  }
+  return 0;
 }
 
 double greatCircleDistance(const GeoPoint& a, const GeoPoint& b) {

@@ -32,10 +32,17 @@ Vec3d geodeticOf(const Vec3d& ecef);
 /// paint over earlier ones. Blocks of 16 x 16 cells whose corners (padded by half the block) lie
 /// outside `area` are skipped before any conversion, so `area` must hold the view. `heights` and
 /// `painted` have view.pixels() entries; painted pixels get their height and painted = 1, the
-/// others are left as they were. Throws what `load` throws.
+/// others are left as they were. `edgeTolerance` is forEachPixelInTriangle's: how far outside a
+/// triangle, relative to its size, a pixel centre still counts. Throws what `load` throws.
 void paintHeights(const Model& model, const std::vector<PatchKey>& sources, const TopDownGrid& view,
                   const GeoRect& area, const TerrainGridLoader& load, std::span<double> heights,
-                  std::span<std::uint8_t> painted);
+                  std::span<std::uint8_t> painted, double edgeTolerance = 1e-9);
+
+/// The edge tolerance of the GIS queries: a point within 1e-4 of a cell outside the surface's
+/// border still gets the border's height. A point on an outer vertex (a raster's edge pixel)
+/// lands that far off after the round trip through the patch's float32 positions and the
+/// geodetic conversion (measured: up to a few 1e-6 of a cell); the terrain tiles keep 1e-9.
+inline constexpr double kQueryEdgeTolerance = 1e-4;
 
 // ---- what GIS clients ask for -------------------------------------------------------------------
 
@@ -66,6 +73,20 @@ std::vector<HeightSample> sampleHeights(const Model& model, const TerrainLayer& 
 /// Memory: one double and one byte per pixel besides `out`, and the leaves `load` keeps.
 void sampleHeightGrid(const Model& model, const TerrainLayer& layer, const TopDownGrid& view,
                       const TerrainGridLoader& load, std::span<float> out);
+
+/// The geographic picture of an area: pixel edges at `bounds` (degrees; west and north exact,
+/// east and south rounded to whole pixels of `resolution` degrees, at least one pixel each way).
+/// Throws Error(InvalidArgument) for an empty or inverted box, a resolution that is not positive,
+/// or more than `maxPixels` pixels (naming both).
+TopDownGrid heightPicture(const GeoRect& bounds, double resolution, std::size_t maxPixels);
+/// Rows [row, row + rows) of `view` as a picture of their own (a strip of an export).
+TopDownGrid pictureRows(const TopDownGrid& view, int row, int rows);
+
+/// The vertex spacing in degrees of the finest leaf meeting `area` (the larger of its longitude
+/// and latitude steps between neighbouring defined vertices): an export at it puts a pixel on
+/// every vertex of a raster imported in lon/lat. 0 when no leaf meets the area.
+double finestSpacingDegrees(const Model& model, const TerrainLayer& layer, const GeoRect& area,
+                            const TerrainGridLoader& load);
 
 /// The finest resolution (m) of the leaves whose footprint meets `area`; 0 when none does.
 double finestResolution(const Model& model, const TerrainLayer& layer, const GeoRect& area);

@@ -51,6 +51,12 @@ const std::string_view kUsage =
     "                                              total; a map (PNG blue-white-red with a world\n"
     "                                              file, float32 GeoTIFF in lon/lat for ECEF\n"
     "                                              models), N pixels on the longer side (1024)\n"
+    "  export <opc> <out.tif> [--bounds w,s,e,n] [--resolution DEG] [--crs EPSG:4326]\n"
+    "         [--rev N] [--memory-budget SIZE]     heights from the finest leaves as a float32\n"
+    "                                              cloud-optimised GeoTIFF (lon/lat, NaN "
+    "no-data);\n"
+    "                                              default: the whole model at its finest\n"
+    "                                              resolution, pixel centres on its vertices\n"
     "  help                                        this text\n";
 
 ConsoleProgress::ConsoleProgress(std::uintmax_t inputBytes)

@@ -124,7 +124,8 @@ int main(int argc, char** argv) {
     if (command == "validate") {
       return runValidate(args);
     }
-    if (command == "import" || command == "merge" || command == "render-lod" || command == "diff") {
+    if (command == "import" || command == "merge" || command == "render-lod" || command == "diff" ||
+        command == "export") {
       execHeavy(command, argv);
     }
     throw UsageError{"unknown command '" + std::string(command) + "'"};
