@@ -9,7 +9,7 @@ default 257).
    raster to the same grid (-te, -ts, bilinear, float32, DEFLATE tiled: the nearest equivalent
    product), both under `taskset -c <cpu>`, median of --repeat wall times each. The ratio is
    vsm / gdalwarp (target <= 2).
-2. points: vsmd pinned to one CPU (one network and one CPU-pool thread), POSTs of 1000 random
+2. points: vsmd pinned to one CPU (one I/O and one CPU-pool thread), POSTs of 1000 random
    points over Jacksboro (a GeoJSON MultiPoint) for --seconds on one keep-alive connection:
    points per second, and the latency per request.
 
@@ -90,10 +90,12 @@ def main():
         port_file = os.path.join(root, "port")
         daemon = subprocess.Popen(["taskset", "-c", str(args.cpu), args.vsmd, "--listen",
                                    "127.0.0.1:0", "--data-root", root, "--port-file", port_file,
-                                   "--set", "threads.cpu=1", "--set", "threads.network=1"],
+                                   "--set", "threads.cpu=1", "--set", "threads.io=1"],
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         try:
             while not os.path.exists(port_file):
+                if daemon.poll() is not None:
+                    raise SystemExit("vsmd exited with %d" % daemon.returncode)
                 time.sleep(0.02)
             time.sleep(0.1)
             port = int(open(port_file).read())
