@@ -1,6 +1,6 @@
 // vsm-heavy: the commands of `vsm` that need GDAL, PCL or OpenImageIO (import, merge, render-lod,
-// diff).
-// `vsm` execs it for them (main.cpp), so that info and validate load none of those libraries.
+// export, diff). `vsm` execs it for them (main.cpp), so that info and validate load none of those
+// libraries.
 #include <malloc.h>
 #include <unistd.h>
 
