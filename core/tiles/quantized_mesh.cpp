@@ -15,6 +15,7 @@
 #include "core/grid/patch_grid.hpp"
 #include "core/grid/vec_ops.hpp"
 #include "core/pyramid/model.hpp"
+#include "core/tiles/heights.hpp"
 #include "core/tiles/lod_render.hpp"
 #include "core/tiles/top_down.hpp"
 
@@ -29,35 +30,9 @@ constexpr double kA = 6378137.0;
 constexpr double kF = 1.0 / 298.257223563;
 constexpr double kB = kA * (1 - kF);
 constexpr double kE2 = kF * (2 - kF);
-constexpr double kEp2 = kE2 / (1 - kE2);
 constexpr double kRad = std::numbers::pi / 180.0;
 constexpr int kCells = kTerrainGridSize - 1;  // 64
 constexpr int kQuantMax = 32767;
-
-/// Lon/lat (degrees) and height of an ECEF point by Bowring's formula: one step, well below a
-/// millimetre for points within tens of kilometres of the ellipsoid, and with two atan2 and three
-/// square roots about 3x faster than ecefToGeodetic's iteration (this runs for every vertex a tile
-/// samples): the parametric latitude's sine and cosine and the latitude's come from their
-/// tangents, not from trigonometric calls.
-Vec3d toGeodetic(const Vec3d& p) {
-  const double r = std::sqrt(p.x * p.x + p.y * p.y);
-  const double lon = std::atan2(p.y, p.x);
-  // tan(theta) = z a / (r b)
-  const double tz = p.z * kA, tr = r * kB;
-  const double tn = std::sqrt(tz * tz + tr * tr);
-  if (!(tn > 0)) {
-    return {lon / kRad, 0, -kA};
-  }
-  const double st = tz / tn, ct = tr / tn;
-  const double num = p.z + kEp2 * kB * st * st * st;
-  const double den = r - kE2 * kA * ct * ct * ct;
-  const double lat = std::atan2(num, den);
-  const double len = std::sqrt(num * num + den * den);
-  const double sl = num / len, cl = den / len;
-  const double n = kA / std::sqrt(1 - kE2 * sl * sl);
-  const double h = std::abs(cl) > 1e-9 ? r / cl - n : std::abs(p.z) - n * (1 - kE2);
-  return {lon / kRad, lat / kRad, h};
-}
 
 double tileSpan(int z) {
   return 180.0 / static_cast<double>(std::uint64_t{1} << z);
@@ -112,7 +87,7 @@ std::string heightFieldProblem(const PatchGrid& root) {
   for (int y = 0; y < n; ++y) {
     for (int x = 0; x < n; ++x) {
       if (root.defined(x, y)) {
-        geo[static_cast<std::size_t>(y) * n + x] = toGeodetic(root.global(x, y));
+        geo[static_cast<std::size_t>(y) * n + x] = geodeticOf(root.global(x, y));
       }
     }
   }
@@ -303,7 +278,7 @@ TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load
     for (int y = 0; y < grid->size(); ++y) {
       for (int x = 0; x < grid->size(); ++x) {
         if (grid->defined(x, y)) {
-          const Vec3d g = toGeodetic(grid->global(x, y));
+          const Vec3d g = geodeticOf(grid->global(x, y));
           rect.extend(g.x, g.y);
         }
       }
@@ -391,15 +366,12 @@ std::string terrainMetadataJson(const TerrainLayer& layer, const TerrainTileKey&
   return nlohmann::json{{"available", std::move(available)}}.dump();
 }
 
-std::vector<PatchKey> terrainSources(const Model& model, const TerrainLayer& layer,
-                                     const TerrainTileKey& key) {
+std::vector<PatchKey> heightSources(const Model& model, const TerrainLayer& layer,
+                                    const GeoRect& area, double spacing) {
   std::vector<PatchKey> sources;
   if (!layer.heightField || model.empty()) {
     return sources;
   }
-  // The ring of one vertex beyond the edges, and a little more for rounding.
-  const GeoRect area = grownRect(key, 1.01);
-  const double spacing = terrainVertexSpacing(key.z);
   std::vector<PatchKey> stack{PatchKey::root()};
   while (!stack.empty()) {
     const PatchKey at = stack.back();
@@ -409,7 +381,7 @@ std::vector<PatchKey> terrainSources(const Model& model, const TerrainLayer& lay
       continue;
     }
     const PatchInfo& info = model.at(at);
-    if (effectiveResolution(model, at, fp->second) <= spacing || info.isLeaf()) {
+    if (info.isLeaf() || effectiveResolution(model, at, fp->second) <= spacing) {
       sources.push_back(at);
       continue;
     }
@@ -419,6 +391,12 @@ std::vector<PatchKey> terrainSources(const Model& model, const TerrainLayer& lay
   }
   std::sort(sources.begin(), sources.end());  // coarse first (by depth, then row, column)
   return sources;
+}
+
+std::vector<PatchKey> terrainSources(const Model& model, const TerrainLayer& layer,
+                                     const TerrainTileKey& key) {
+  // The ring of one vertex beyond the edges, and a little more for rounding.
+  return heightSources(model, layer, grownRect(key, 1.01), terrainVertexSpacing(key.z));
 }
 
 // ---- sampling ----------------------------------------------------------------------------------
@@ -440,103 +418,18 @@ TerrainHeights sampleTerrain(const Model& model, const std::vector<PatchKey>& so
   view.y0 =
       -90.0 + static_cast<double>(std::int64_t{key.y} * kCells + kCells) * view.dy + 1.5 * view.dy;
   view.width = view.height = kSize;
-  const GeoRect area = grownRect(key, 1.5);
-
-  for (const PatchKey& patchKey : sources) {
-    const auto grid = load(model.at(patchKey));
-    const int n = grid->size();
-    // Blocks of the grid whose four corners lie far from the tile are skipped unconverted. The
-    // corners' lon/lat, once per lattice point (shared by up to four blocks).
-    const int block = std::min(16, n - 1);
-    const int lattice = (n - 2) / block + 2;
-    std::vector<Point2d> corner(static_cast<std::size_t>(lattice) * lattice);
-    const auto cornerAt = [&](int x, int y) -> Point2d& {
-      return corner[static_cast<std::size_t>(y == n - 1 ? lattice - 1 : y / block) * lattice +
-                    static_cast<std::size_t>(x == n - 1 ? lattice - 1 : x / block)];
-    };
-    for (int y = 0;; y = std::min(y + block, n - 1)) {
-      for (int x = 0;; x = std::min(x + block, n - 1)) {
-        if (grid->defined(x, y)) {
-          const Vec3d g = toGeodetic(grid->global(x, y));
-          cornerAt(x, y) = {g.x, g.y};
-        }
-        if (x == n - 1) {
-          break;
-        }
-      }
-      if (y == n - 1) {
-        break;
-      }
-    }
-    std::vector<std::pair<int, int>> blocks;  // the kept blocks' first vertices
-    int x0 = n, y0 = n, x1 = -1, y1 = -1;     // the vertices they span
-    for (int by = 0; by < n - 1; by += block) {
-      for (int bx = 0; bx < n - 1; bx += block) {
-        const int ex = std::min(bx + block, n - 1), ey = std::min(by + block, n - 1);
-        if (grid->defined(bx, by) && grid->defined(ex, by) && grid->defined(bx, ey) &&
-            grid->defined(ex, ey)) {
-          GeoRect corners;
-          for (const auto& [cx, cy] : {std::pair{bx, by}, {ex, by}, {bx, ey}, {ex, ey}}) {
-            const Point2d& g = cornerAt(cx, cy);
-            corners.extend(g.x, g.y);
-          }
-          // The block's surface bulges little beyond its corners: half its size is ample.
-          const double padX = (corners.east - corners.west) * 0.5 + 1e-9;
-          const double padY = (corners.north - corners.south) * 0.5 + 1e-9;
-          if (corners.east - corners.west < 180 &&
-              !GeoRect{corners.west - padX, corners.south - padY, corners.east + padX,
-                       corners.north + padY}
-                   .intersects(area)) {
-            continue;
-          }
-        }
-        blocks.emplace_back(bx, by);
-        x0 = std::min(x0, bx);
-        y0 = std::min(y0, by);
-        x1 = std::max(x1, ex);
-        y1 = std::max(y1, ey);
-      }
-    }
-    if (blocks.empty()) {
-      continue;
-    }
-    // Pixel position (x, y) and height per vertex of the kept blocks' span, NaN until converted.
-    const int spanX = x1 - x0 + 1;
-    std::vector<Vec3d> pix(static_cast<std::size_t>(spanX) * (y1 - y0 + 1),
-                           Vec3d{std::nan(""), 0, 0});
-    const auto convert = [&](int x, int y) -> const Vec3d& {
-      Vec3d& p = pix[static_cast<std::size_t>(y - y0) * spanX + static_cast<std::size_t>(x - x0)];
-      if (std::isnan(p.x)) {
-        const Vec3d g = toGeodetic(grid->global(x, y));
-        const Point2d q = view.pixel({g.x, g.y});
-        p = {q.x, q.y, g.z};
-      }
-      return p;
-    };
-    for (const auto& [bx, by] : blocks) {
-      const int ex = std::min(bx + block, n - 1), ey = std::min(by + block, n - 1);
-      for (int y = by; y < ey; ++y) {
-        for (int x = bx; x < ex; ++x) {
-          if (!grid->defined(x, y) || !grid->defined(x + 1, y) || !grid->defined(x, y + 1) ||
-              !grid->defined(x + 1, y + 1)) {
-            continue;
-          }
-          const Vec3d a = convert(x, y), b = convert(x + 1, y), c = convert(x, y + 1),
-                      d = convert(x + 1, y + 1);
-          const auto paint = [&](const Vec3d& p, const Vec3d& q, const Vec3d& r) {
-            forEachPixelInTriangle({p.x, p.y}, {q.x, q.y}, {r.x, r.y}, kSize, kSize,
-                                   [&](int col, int row, double wa, double wb, double wc) {
-                                     // Pixel row 0 is the north ring; storage row 0 the south.
-                                     const auto i =
-                                         static_cast<std::size_t>(kSize - 1 - row) * kSize +
-                                         static_cast<std::size_t>(col);
-                                     out.h[i] = wa * p.z + wb * q.z + wc * r.z;
-                                     painted[i] = 1;
-                                   });
-          };
-          paint(a, c, d);
-          paint(a, d, b);
-        }
+  // Pixel row 0 is the north ring; storage row 0 the south.
+  std::vector<double> north(out.h.size(), std::nan(""));
+  std::vector<std::uint8_t> paintedNorth(out.h.size(), 0);
+  paintHeights(model, sources, view, grownRect(key, 1.5), load, north, paintedNorth);
+  for (int row = 0; row < kSize; ++row) {
+    for (int col = 0; col < kSize; ++col) {
+      const auto from = static_cast<std::size_t>(row) * kSize + static_cast<std::size_t>(col);
+      const auto to =
+          static_cast<std::size_t>(kSize - 1 - row) * kSize + static_cast<std::size_t>(col);
+      if (paintedNorth[from] != 0) {
+        out.h[to] = north[from];
+        painted[to] = 1;
       }
     }
   }

@@ -129,6 +129,13 @@ TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load
 std::vector<PatchKey> terrainSources(const Model& model, const TerrainLayer& layer,
                                      const TerrainTileKey& key);
 
+/// The patches a picture over `area` is sampled from, coarse to fine (sorted by key): from the root
+/// down through patches whose footprint meets `area`, taking a patch when it has no children or
+/// its resolution is at most `spacing` (metres), else descending. A negative spacing takes the
+/// finest leaves only. Metadata only. terrainSources is this for a tile and its level.
+std::vector<PatchKey> heightSources(const Model& model, const TerrainLayer& layer,
+                                    const GeoRect& area, double spacing);
+
 /// Heights of one tile on its 65 x 65 vertex grid plus a ring of one vertex beyond each edge
 /// (67 x 67, so normals at the edges see the neighbours' surface and agree with them).
 struct TerrainHeights {

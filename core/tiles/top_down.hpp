@@ -49,9 +49,11 @@ inline double edge(const Point2d& a, const Point2d& b, const Point2d& p) {
 
 /// Calls visit(col, row, wa, wb, wc) for every pixel of a width x height picture whose centre lies
 /// in the triangle (a, b, c) given in pixel coordinates, edges included (with a relative
-/// tolerance, so triangles sharing an edge leave no gap), with the centre's barycentric weights.
+/// tolerance, so triangles sharing an edge leave no gap: a centre up to about `tolerance` x the
+/// triangle's size outside an edge counts), with the centre's barycentric weights.
 template <typename Visit>
-void forEachPixelInTriangle(Point2d a, Point2d b, Point2d c, int width, int height, Visit&& visit) {
+void forEachPixelInTriangle(Point2d a, Point2d b, Point2d c, int width, int height, Visit&& visit,
+                            double tolerance = 1e-9) {
   double area = detail::edge(a, b, c);
   if (area == 0 || !std::isfinite(area)) {
     return;
@@ -62,7 +64,7 @@ void forEachPixelInTriangle(Point2d a, Point2d b, Point2d c, int width, int heig
     area = -area;
     swapped = true;
   }
-  const double tolerance = -1e-9 * area;
+  const double slack = -tolerance * area;
   const int x0 = std::max(0, static_cast<int>(std::floor(std::min({a.x, b.x, c.x}) - 0.5)));
   const int x1 = std::min(width - 1, static_cast<int>(std::ceil(std::max({a.x, b.x, c.x}) - 0.5)));
   const int y0 = std::max(0, static_cast<int>(std::floor(std::min({a.y, b.y, c.y}) - 0.5)));
@@ -72,7 +74,7 @@ void forEachPixelInTriangle(Point2d a, Point2d b, Point2d c, int width, int heig
       const Point2d p{x + 0.5, y + 0.5};
       const double ea = detail::edge(b, c, p), eb = detail::edge(c, a, p),
                    ec = detail::edge(a, b, p);
-      if (ea >= tolerance && eb >= tolerance && ec >= tolerance) {
+      if (ea >= slack && eb >= slack && ec >= slack) {
         const double wa = ea / area, wb = eb / area, wc = ec / area;
         if (swapped) {
           visit(x, y, wa, wc, wb);

@@ -22,6 +22,7 @@
 #include "core/store/live_model.hpp"
 #include "server/api/diff_gate.hpp"
 #include "server/api/event_routes.hpp"
+#include "server/api/gis_routes.hpp"
 #include "server/api/job_routes.hpp"
 #include "server/api/model_routes.hpp"
 #include "server/api/static_routes.hpp"
@@ -270,6 +271,7 @@ Application::Application(Config config) : config_(std::move(config)) {
   api::addJobRoutes(*router_, {*models_, *jobs_, coordinator_.get(), diffs, data});
   api::addTilesRoutes(*router_, *models_, data);
   api::addTerrainRoutes(*router_, *models_, data);
+  api::addGisRoutes(*router_, *models_, data);
   api::addEventRoutes(*router_, *events_);
   if (!config_.viewerDir.empty()) {
     api::addStaticRoutes(*router_, "/viewer", config_.viewerDir);

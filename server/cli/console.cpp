@@ -55,6 +55,12 @@ const std::string_view kUsage =
     "                                              a world file, float32 GeoTIFF in lon/lat for\n"
     "                                              ECEF models), N pixels on the longer side\n"
     "                                              (1024)\n"
+    "  export <opc> <out.tif> [--bounds w,s,e,n] [--resolution DEG] [--crs EPSG:4326]\n"
+    "         [--rev N] [--memory-budget SIZE]     heights from the finest leaves as a float32\n"
+    "                                              cloud-optimised GeoTIFF (lon/lat, NaN "
+    "no-data);\n"
+    "                                              default: the whole model at its finest\n"
+    "                                              resolution, pixel centres on its vertices\n"
     "  help                                        this text\n";
 
 ConsoleProgress::ConsoleProgress(std::uintmax_t inputBytes)

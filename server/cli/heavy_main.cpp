@@ -1,6 +1,6 @@
 // vsm-heavy: the commands of `vsm` that need GDAL, PCL or OpenImageIO (import, merge, render-lod,
-// diff).
-// `vsm` execs it for them (main.cpp), so that info and validate load none of those libraries.
+// export, diff). `vsm` execs it for them (main.cpp), so that info and validate load none of those
+// libraries.
 #include <malloc.h>
 #include <unistd.h>
 
@@ -38,7 +38,9 @@
 #include "core/opc/texture_file.hpp"
 #include "core/store/live_model.hpp"
 #include "core/store/model_edit.hpp"
+#include "core/tiles/heights.hpp"
 #include "core/tiles/lod_render.hpp"
+#include "core/tiles/quantized_mesh.hpp"
 #include "server/cli/console.hpp"
 #include "server/config/config.hpp"
 
@@ -391,6 +393,112 @@ int runRenderLod(const std::vector<std::string_view>& args) {
   return 0;
 }
 
+/// Four comma-separated numbers "w,s,e,n".
+GeoRect boundsOption(const std::vector<std::string_view>& args, std::size_t& i) {
+  const std::string_view text = optionValue(args, i);
+  double v[4] = {0, 0, 0, 0};
+  std::size_t at = 0;
+  for (int k = 0; k < 4; ++k) {
+    const std::size_t comma = k < 3 ? text.find(',', at) : text.size();
+    const auto parsed =
+        comma == std::string_view::npos ? std::nullopt : parseDouble(text.substr(at, comma - at));
+    if (!parsed || !std::isfinite(*parsed) || (k == 3 && comma != text.size())) {
+      throw UsageError{"--bounds takes west,south,east,north in degrees, not '" +
+                       std::string(text) + "'"};
+    }
+    v[k] = *parsed;
+    at = comma + 1;
+  }
+  return {v[0], v[1], v[2], v[3]};
+}
+
+/// `vsm export`: the model's heights from its finest leaves as a float32 cloud-optimised GeoTIFF
+/// in lon/lat (EPSG:4326), sampled in strips so memory stays bounded.
+int runExport(const std::vector<std::string_view>& args) {
+  std::vector<std::string_view> positional;
+  std::optional<GeoRect> bounds;
+  std::optional<double> resolution;
+  std::optional<std::uint64_t> rev;
+  std::size_t budget = std::size_t{1} << 30;
+  for (std::size_t i = 0; i < args.size(); ++i) {
+    if (args[i] == "--bounds") {
+      bounds = boundsOption(args, i);
+    } else if (args[i] == "--resolution") {
+      const std::string_view text = optionValue(args, i);
+      resolution = parseDouble(text);
+      if (!resolution || !(*resolution > 0)) {
+        throw UsageError{"--resolution takes a positive number of degrees, not '" +
+                         std::string(text) + "'"};
+      }
+    } else if (args[i] == "--crs") {
+      const std::string_view crs = optionValue(args, i);
+      if (crs != "EPSG:4326" && crs != "epsg:4326" && crs != "OGC:CRS84") {
+        throw UsageError{"--crs " + std::string(crs) +
+                         ": only EPSG:4326 (longitude/latitude on WGS 84) is written; reproject "
+                         "with gdalwarp"};
+      }
+    } else if (args[i] == "--rev") {
+      rev = static_cast<std::uint64_t>(integerOption(args, i, 1, INT64_MAX));
+    } else if (args[i] == "--memory-budget") {
+      budget = budgetOption(args, i);
+    } else if (args[i].starts_with("--")) {
+      throw UsageError{"unknown option " + std::string(args[i])};
+    } else {
+      positional.push_back(args[i]);
+    }
+  }
+  if (positional.size() != 2) {
+    throw UsageError{"export needs <opc> and <out.tif>"};
+  }
+  PatchCache cache(budget);
+  const fs::path dir = fs::path(positional[0]).lexically_normal();
+  const std::string name = (dir.has_filename() ? dir : dir.parent_path()).filename().string();
+  auto live = LiveModel::open(dir, name, cache, LiveModel::Access::Read);
+  const auto snapshot = rev ? live->snapshotAt(*rev) : live->snapshot();
+  const Model& model = *snapshot->model;
+  const TerrainGridLoader load = [&](const PatchInfo& info) {
+    return live->positions(*snapshot, info.key).get<PatchGrid>();
+  };
+  const auto start = std::chrono::steady_clock::now();
+  const TerrainLayer layer = buildTerrainLayer(model, load);
+  if (!layer.heightField) {
+    throw Error(ErrorCode::InvalidArgument,
+                "model '" + name + "' is no height field: " + layer.reason);
+  }
+  if (!resolution) {
+    resolution = finestSpacingDegrees(model, layer, layer.bounds, load);
+  }
+  if (!bounds) {
+    // The pixel centres on the outermost vertices.
+    const GeoRect& b = layer.bounds;
+    const double half = *resolution / 2;
+    bounds = GeoRect{b.west - half, b.south - half, b.east + half, b.north + half};
+  }
+  const TopDownGrid view = heightPicture(*bounds, *resolution, std::size_t{1} << 34);
+  StripRaster raster;
+  raster.width = view.width;
+  raster.height = view.height;
+  raster.geoTransform = {view.x0, view.dx, 0, view.y0, 0, -view.dy};
+  raster.wgs84 = true;
+  std::size_t defined = 0;
+  raster.fill = [&](int row, int rows, std::span<float> values) {
+    sampleHeightGrid(model, layer, pictureRows(view, row, rows), load, values);
+    for (const float v : values) {
+      defined += std::isnan(v) ? 0 : 1;
+    }
+  };
+  writeCogGeoTiff(positional[1], raster);
+  const double seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  std::printf(
+      "%s: %d x %d pixels of %.10g deg, lon %.10g .. %.10g, lat %.10g .. %.10g, revision "
+      "%llu, %zu pixels with a height, %.2f s\n",
+      std::string(positional[1]).c_str(), view.width, view.height, view.dx, view.x0,
+      view.x0 + view.width * view.dx, view.y0 - view.height * view.dy, view.y0,
+      static_cast<unsigned long long>(snapshot->version), defined, seconds);
+  return 0;
+}
+
 /// `vsm diff`: what changed between two kept revisions of a model, as numbers (stdout, --json),
 /// a picture (--png, with a world file) and a float32 GeoTIFF of the displacement (--geotiff).
 int runDiff(const std::vector<std::string_view>& args) {
@@ -526,6 +634,9 @@ int main(int argc, char** argv) {
     }
     if (command == "diff") {
       return runDiff(args);
+    }
+    if (command == "export") {
+      return runExport(args);
     }
     throw UsageError{"unknown command '" + std::string(command) + "'"};
   });

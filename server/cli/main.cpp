@@ -2,9 +2,9 @@
 //
 // Only help, info and validate run here: this binary links the OPC reader and none of GDAL, PCL
 // or OpenImageIO, whose ~300 shared libraries took ld.so 0.1-1.5 s to load before main on every
-// start (tests/bench/startup_bench.sh). import, merge, render-lod and diff need them: they are run
-// by exec'ing `vsm-heavy` from the directory of this binary, with the same arguments (same process,
-// same exit code and signals).
+// start (tests/bench/startup_bench.sh). import, merge, render-lod, diff and export need them: they
+// are run by exec'ing `vsm-heavy` from the directory of this binary, with the same arguments (same
+// process, same exit code and signals).
 #include <unistd.h>
 
 #include <cerrno>
@@ -124,7 +124,8 @@ int main(int argc, char** argv) {
     if (command == "validate") {
       return runValidate(args);
     }
-    if (command == "import" || command == "merge" || command == "render-lod" || command == "diff") {
+    if (command == "import" || command == "merge" || command == "render-lod" || command == "diff" ||
+        command == "export") {
       execHeavy(command, argv);
     }
     throw UsageError{"unknown command '" + std::string(command) + "'"};

@@ -38,6 +38,8 @@ std::string_view toString(Encoding encoding) {
       return "json_gzip";
     case Encoding::DiffWork:
       return "diff";
+    case Encoding::HeightWork:
+      return "heights";
   }
   return "unknown";
 }

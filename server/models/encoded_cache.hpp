@@ -44,13 +44,16 @@ enum class Encoding : std::uint8_t {
   /// Not a body: the working memory of a diff in progress (its map and picture, allocated outside
   /// the cache), charged while the diff runs (reserve()).
   DiffWork = 7,
+  /// Not a body: the working memory of a height coverage being sampled and encoded (its strip
+  /// buffers and the GeoTIFF), charged while it is made (reserve()).
+  HeightWork = 8,
 };
 
-inline constexpr std::array<Encoding, 7> kEncodings{
+inline constexpr std::array<Encoding, 8> kEncodings{
     Encoding::PositionsAara, Encoding::Glb,      Encoding::TexturePng, Encoding::Terrain,
-    Encoding::GlbMeshopt,    Encoding::JsonGzip, Encoding::DiffWork};
+    Encoding::GlbMeshopt,    Encoding::JsonGzip, Encoding::DiffWork,   Encoding::HeightWork};
 /// The name /v1/stats and the metrics give an encoding: "aara", "glb", "png", "terrain",
-/// "glb_meshopt", "json_gzip", "diff".
+/// "glb_meshopt", "json_gzip", "diff", "heights".
 std::string_view toString(Encoding encoding);
 
 /// The stored files of a patch the server sends as they are (sendfile(2)).

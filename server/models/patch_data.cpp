@@ -298,6 +298,13 @@ std::shared_ptr<const core::TerrainLayer> PatchData::terrainLayer(
                                        : layers_->get(*served.live, snapshot);
 }
 
+std::function<std::shared_ptr<const core::PatchGrid>(const core::PatchInfo&)> PatchData::gridLoader(
+    const ModelRegistry::Served& served, const core::ModelSnapshot& snapshot) const {
+  return [&served, &snapshot](const core::PatchInfo& info) {
+    return served.live->positions(snapshot, info.key).get<core::PatchGrid>();
+  };
+}
+
 std::shared_ptr<const EncodedCache::Body> PatchData::terrainTile(
     const ModelRegistry::Served& served, const core::ModelSnapshot& snapshot,
     const TerrainTile& tile, Asker asker) const {

@@ -13,6 +13,7 @@
 #include "server/models/model_registry.hpp"
 
 namespace vsm::core {
+class PatchGrid;
 struct ModelSnapshot;
 struct PatchInfo;
 struct TerrainLayer;
@@ -101,6 +102,13 @@ class PatchData {
   std::shared_ptr<const core::TerrainLayer> terrainLayer(
       const ModelRegistry::Served& served,
       const std::shared_ptr<const core::ModelSnapshot>& snapshot, Asker asker);
+
+  /// Patch grids of `snapshot` through the patch cache (LiveModel::positions): what the height
+  /// sampler (core/tiles/heights.hpp: the terrain tiles, point and profile queries, coverages)
+  /// reads. Blocks on the disk: the CPU pool only. The loader holds `served` and `snapshot` by
+  /// reference: it must not outlive them.
+  std::function<std::shared_ptr<const core::PatchGrid>(const core::PatchInfo&)> gridLoader(
+      const ModelRegistry::Served& served, const core::ModelSnapshot& snapshot) const;
 
   /// What a quantized-mesh tile is made of, as the route resolved it.
   struct TerrainTile {

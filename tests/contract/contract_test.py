@@ -307,6 +307,41 @@ def exercise_main(r, d):
     r.call(d, "terrain tile outside the scheme", "GET", m + "/terrain/25/0/0.terrain", 400)
     r.call(d, "terrain tile of no model", "GET", "/v1/models/nope/terrain/0/0/0.terrain", 404)
 
+    # Heights for GIS clients (issue 29).
+    points = "36.3,-84.2|36.31,-84.21"
+    r.call(d, "elevation", "GET", m + "/elevation?locations=" + points + "&samples=3", 200)
+    r.call(d, "elevation outside the world", "GET", m + "/elevation?locations=95,10", 400)
+    r.call(d, "elevation of no model", "GET", "/v1/models/nope/elevation?locations=1,1", 404)
+    geojson = {"type": "MultiPoint", "coordinates": [[-84.2, 36.3], [-84.21, 36.31]]}
+    r.call(d, "elevation posted", "POST", m + "/elevation", 200, body=geojson, headers=AUTH)
+    r.call(d, "elevation posted without the token", "POST", m + "/elevation", 401, body=geojson)
+    r.call(d, "elevation posted, no points", "POST", m + "/elevation", 400, body={"x": 1},
+           headers=AUTH)
+    r.call(d, "elevation posted to no model", "POST", "/v1/models/nope/elevation", 404,
+           body=geojson, headers=AUTH)
+    r.call(d, "profile", "GET", m + "/profile?line=" + points, 200)
+    r.call(d, "profile of one point", "GET", m + "/profile?line=36.3,-84.2", 400)
+    r.call(d, "profile of no model", "GET", "/v1/models/nope/profile?line=" + points, 404)
+    cov = m + "/coverage?bbox=-84.3,36.2,-84.2,36.3&width=64&height=64"
+    r.call(d, "coverage", "GET", cov, 200)
+    r.call(d, "coverage revalidated", "GET", cov, 304, headers=etag_of(cov))
+    r.call(d, "coverage, unknown CRS", "GET", cov + "&crs=EPSG:32616", 400)
+    r.call(d, "coverage of no model", "GET", "/v1/models/nope/coverage", 404)
+    for target in ("/ogcapi", "/ogcapi/conformance", "/ogcapi/collections",
+                   "/ogcapi/collections/prism/coverage/rangetype"):
+        r.call(d, "OGC API document", "GET", target, 200)
+        r.raw(d, "header over limits.header_bytes", "GET", target, oversize_header(target), 431)
+    r.call(d, "OGC API collection", "GET", "/ogcapi/collections/prism", 200)
+    r.call(d, "OGC API collection of no model", "GET", "/ogcapi/collections/nope", 404)
+    ogc = "/ogcapi/collections/prism/coverage"
+    r.call(d, "OGC API coverage", "GET",
+           ogc + "?subset=Lon(-84.3:-84.2),Lat(36.2:36.3)&scaleSize=Lon(32),Lat(32)", 200)
+    r.call(d, "OGC API coverage, inverted", "GET", ogc + "?subset=Lon(-84.2:-84.3)", 400)
+    r.call(d, "OGC API coverage of no model", "GET", "/ogcapi/collections/nope/coverage", 404)
+    r.call(d, "OGC API domain set", "GET", ogc + "/domainset", 200)
+    r.call(d, "OGC API domain set of no model", "GET",
+           "/ogcapi/collections/nope/coverage/domainset", 404)
+
     r.call(d, "revisions", "GET", m + "/revisions", 200)
     r.call(d, "revisions of no model", "GET", "/v1/models/nope/revisions", 404)
 

@@ -10,8 +10,10 @@
 #include <numbers>
 #include <vector>
 
+#include "core/common/error.hpp"
 #include "core/grid/patch_grid.hpp"
 #include "core/pyramid/model.hpp"
+#include "core/tiles/heights.hpp"
 #include "core/tiles/quantized_mesh.hpp"
 #include "core/tiles/top_down.hpp"
 #include "server/api/terrain_routes.hpp"
@@ -412,6 +414,84 @@ TEST(QuantizedMesh, NeighboursAgreeOnTheirSharedEdge) {
     const Vec3d a = value.second, b = west.at(v).second;
     EXPECT_GT(a.x * b.x + a.y * b.y + a.z * b.z, std::cos(1.5 * std::numbers::pi / 180));
   }
+}
+
+// ---- heights for GIS clients (core/tiles/heights.hpp) -------------------------------------------
+
+TEST(Heights, PointsAtVerticesAndBetweenThemFollowTheSurfaceAndAreNaNOutside) {
+  const GeoModel geo;
+  const TerrainLayer layer = buildTerrainLayer(geo.model, geo.loader());
+  std::vector<GeoPoint> points;
+  for (int j = 0; j < GeoModel::kSize; j += 4) {
+    for (int i = 0; i < GeoModel::kSize; i += 4) {  // vertices, the border included
+      points.push_back(
+          {kWest + kSpan * i / (GeoModel::kSize - 1), kSouth + kSpan * j / (GeoModel::kSize - 1)});
+    }
+  }
+  points.push_back({kWest + 0.1234, kSouth + 0.321});  // inside a cell
+  points.push_back({kWest - 0.01, kSouth + 0.1});      // outside, west
+  const auto heights = sampleHeights(geo.model, layer, points, geo.loader());
+  ASSERT_EQ(heights.size(), points.size());
+  for (std::size_t k = 0; k + 1 < points.size(); ++k) {
+    ASSERT_NEAR(heights[k].height, heightAt(points[k].lon, points[k].lat), 2e-3) << k;
+    EXPECT_EQ(heights[k].depth, 0);
+  }
+  EXPECT_TRUE(std::isnan(heights.back().height));
+  EXPECT_EQ(heights.back().depth, -1);
+}
+
+TEST(Heights, AGridAtTheVerticesIsTheSurfaceAndNaNBeyondIt) {
+  const GeoModel geo;
+  const TerrainLayer layer = buildTerrainLayer(geo.model, geo.loader());
+  const double cell = kSpan / (GeoModel::kSize - 1);
+  // Pixel centres on the vertices, and one column of pixels beyond the east edge.
+  const TopDownGrid view = heightPicture(
+      {kWest - cell / 2, kSouth - cell / 2, kWest + kSpan + 1.5 * cell, kSouth + kSpan + cell / 2},
+      cell, 1 << 20);
+  ASSERT_EQ(view.width, GeoModel::kSize + 1);
+  ASSERT_EQ(view.height, GeoModel::kSize);
+  std::vector<float> values(view.pixels());
+  // In two strips, as an export samples them.
+  sampleHeightGrid(geo.model, layer, pictureRows(view, 0, 10), geo.loader(),
+                   std::span(values).first(10 * static_cast<std::size_t>(view.width)));
+  sampleHeightGrid(geo.model, layer, pictureRows(view, 10, view.height - 10), geo.loader(),
+                   std::span(values).subspan(10 * static_cast<std::size_t>(view.width)));
+  for (int row = 0; row < view.height; ++row) {
+    for (int col = 0; col < view.width; ++col) {
+      const float v = values[static_cast<std::size_t>(row) * view.width + col];
+      if (col == GeoModel::kSize) {
+        EXPECT_TRUE(std::isnan(v)) << row;
+        continue;
+      }
+      const double lon = kWest + col * cell, lat = kSouth + kSpan - row * cell;
+      ASSERT_NEAR(v, heightAt(lon, lat), 2e-3) << row << "," << col;
+    }
+  }
+  EXPECT_THROW(heightPicture({1, 0, 0, 1}, 0.1, 100), Error);    // inverted
+  EXPECT_THROW(heightPicture({0, 0, 1, 1}, 0.001, 100), Error);  // too many pixels
+  EXPECT_THROW(heightPicture({0, 0, 1, 1}, -1, 100), Error);     // resolution
+  // Measured between neighbouring vertices, whose positions are float32 relative to the patch:
+  // within about 1e-6 of the cell.
+  EXPECT_NEAR(finestSpacingDegrees(geo.model, layer, layer.bounds, geo.loader()), cell,
+              cell * 1e-6);
+}
+
+TEST(Heights, APathIsSampledEvenlyByDistanceFromEndToEnd) {
+  const std::vector<GeoPoint> path{{0, 0}, {1, 0}, {1, 1}};
+  const auto samples = samplePath(path, 5);
+  ASSERT_EQ(samples.size(), 5u);
+  const double leg = greatCircleDistance({0, 0}, {1, 0});
+  EXPECT_NEAR(leg, 111195.08, 0.01);  // one degree on the mean radius
+  EXPECT_EQ(samples.front().distance, 0);
+  EXPECT_DOUBLE_EQ(samples.back().point.lon, 1);
+  EXPECT_DOUBLE_EQ(samples.back().point.lat, 1);
+  for (std::size_t k = 1; k < samples.size(); ++k) {
+    EXPECT_GT(samples[k].distance, samples[k - 1].distance);
+  }
+  // The middle sample lies at the corner (the two legs are about equally long).
+  EXPECT_NEAR(samples[2].point.lon, 1, 1e-3);
+  EXPECT_NEAR(samples[2].point.lat, 0, 1e-3);
+  EXPECT_EQ(samplePath(std::vector<GeoPoint>{{3, 4}}, 10).size(), 1u);
 }
 
 }  // namespace
