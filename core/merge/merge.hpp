@@ -91,7 +91,8 @@ struct MergeResult {
 ///
 /// 1. matching: A's bottom patches near B (found by descending A's tree through boxes grown by
 ///    what their balls can reach, so the cost does not grow with A), paired with B's bottom
-///    patches whose balls meet theirs within the search distance (4 of the A leaf's spacings);
+///    patches whose balls meet theirs within the search distance (4 of the A leaf's spacings,
+///    at least 16 of B's finest);
 ///    B's outer border must lie on A's surface (cast along B's normals into A), else the merge
 ///    is refused with where it leaves A;
 /// 2. placing: under each matched leaf a, k new levels with 2^k >= res(a) / res(B's matched

@@ -19,9 +19,12 @@ namespace {
 constexpr int kMaxNewLevels = 16;
 
 /// A new vertex looks for B's surface this many of its target leaf's spacings either way along
-/// its normal: B's features (a bump, a registration offset) may lie farther from A's coarse
-/// surface than one of its cells (merge.border's details are 5 to 9 m off a 3.4 m target).
+/// its normal, and at least kSearchDetailSpacings of B's finest spacing: B's features and
+/// changes (a bump, a rockfall's cavity, a registration offset) may lie farther from A's surface
+/// than one of its cells (merge.border's details are 5 to 9 m off a 3.4 m target; a 0.5 m
+/// cavity scanned at 6 cm, merged into a model already that fine, needs 8 of its spacings).
 constexpr double kSearchSpacings = 4;
+constexpr double kSearchDetailSpacings = 16;
 
 Box3d transformed(const Box3d& box, const std::optional<Mat4d>& transform) {
   if (!transform || box.empty()) {
@@ -158,7 +161,7 @@ void checkBorderOnTarget(MergeTarget& target, PatchSource& detail, const MergePl
       if (!west && !east && !south && !north) {
         return;
       }
-      const std::shared_ptr<const PatchGrid> grid = detail.positions(key);
+      std::shared_ptr<const PatchGrid> grid = detail.positions(key);
       const int s = grid->size();
       auto at = [&](int x, int y) {
         return options.transform ? options.transform->apply(grid->global(x, y))
@@ -225,11 +228,18 @@ void checkBorderOnTarget(MergeTarget& target, PatchSource& detail, const MergePl
       if (rays.empty()) {
         return;
       }
+      // The A leaves within reach, each copied and unpinned at once (the caster keeps its own
+      // copy of what it uses): a tight budget need not hold them all at a time.
+      grid.reset();
+      const Box3d clip = grown(reach, search);
       std::vector<std::shared_ptr<const PatchGrid>> grids;
       for (const std::size_t a : aOfB[i]) {
-        grids.push_back(target.positions(aLeaves[a].key));
+        if (aLeaves[a].box.intersects(clip)) {
+          grids.push_back(std::make_shared<const PatchGrid>(*target.positions(aLeaves[a].key)));
+        }
       }
-      const SurfaceCaster onA(grids, std::nullopt, SurfaceCaster::Clip{grown(reach, search)});
+      const SurfaceCaster onA(grids, std::nullopt, SurfaceCaster::Clip{clip});
+      grids.clear();
       std::vector<std::optional<CastHit>> hits(rays.size());
       onA.cast(rays, hits);
       for (std::size_t r = 0; r < rays.size(); ++r) {
@@ -289,10 +299,19 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
     }
   }
 
+  // B's finest level's resolution (its metadata, a property of the surface alone).
+  double bFinest = 0;
+  for (const LevelSummary& level : b.levels()) {
+    if (level.depth == b.maxDepth()) {
+      bFinest = level.resolution;
+    }
+  }
+  const double bSearch = kSearchDetailSpacings * bFinest;
+
   // Candidates by boxes, a superset of the pairs the balls decide below: a leaf's Ball lies in
-  // its box grown by the box's diagonal, and its search distance (kSearchSpacings spacings) is
-  // at most kSearchSpacings diagonals / (grid size - 1) for a regular grid, so a target leaf whose
-  // box grown by that much misses every B leaf's box grown by that leaf's diagonal meets nothing.
+  // its box grown by the box's diagonal, and its search distance is at most kSearchSpacings
+  // diagonals / (grid size - 1) for a regular grid, or bSearch, so a target leaf whose box grown
+  // by that much misses every B leaf's box grown by that leaf's diagonal meets nothing.
   // Descending from the root through such boxes keeps the cost with the affected subtree, not A's
   // size (a parent's box holds its children's).
   std::vector<TargetLeaf> aLeaves;
@@ -301,7 +320,8 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
     const PatchKey key = pending.back();
     pending.pop_back();
     const PatchInfo& info = a.at(key);
-    const double aReach = diagonal(info.globalBox) * (1 + kSearchSpacings / (a.gridSize() - 1));
+    const double aReach =
+        diagonal(info.globalBox) * (1 + kSearchSpacings / (a.gridSize() - 1)) + bSearch;
     const Box3d reach = grown(info.globalBox, aReach + bReach);
     if (!reach.intersects(bBox)) {
       continue;
@@ -352,7 +372,7 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
         const std::shared_ptr<const PatchGrid> grid = target.positions(leaf.key);
         leaf.ball = ballOf(*grid);
         leaf.spacing = gridSpacing(*grid).mean;
-        leaf.search = kSearchSpacings * leaf.spacing;
+        leaf.search = std::max(kSearchSpacings * leaf.spacing, bSearch);
       });
     }
     runTasks(options.executor, std::move(tasks));

@@ -231,6 +231,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
           clip.blocks.emplace_back(bLeaves[i].blocks);
         }
         caster.emplace(grids, options.transform, std::move(clip));
+        grids.clear();  // the caster holds its own copy: unpinned while the rays are cast
         const std::vector<Vec3d> normals = subdivider->normals(leaf.level, leaf.i, leaf.j);
         std::vector<CastRay> rays(positions.size());
         for (std::size_t v = 0; v < positions.size(); ++v) {

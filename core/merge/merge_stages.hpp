@@ -36,7 +36,8 @@ struct Match {
   std::vector<std::size_t> detail;
   int levels = 1;
   /// How far along its normal a new vertex looks for B's surface (either way): 4 of the target
-  /// leaf's spacings on the surface (gridSpacing().mean; merge_matching.cpp says why 4).
+  /// leaf's spacings on the surface (gridSpacing().mean), at least 16 of B's finest spacing
+  /// (merge_matching.cpp says why).
   double search = 0;
   /// The target's vertices around the leaf, from its neighbours at the same depth.
   Ring ring;
