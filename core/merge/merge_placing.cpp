@@ -31,13 +31,15 @@ std::shared_ptr<const TextureTile> textureOf(PatchSource& source, const PatchKey
 
 /// The texture of new patch (i, j) of `level` below a's leaf, whose vertices are `grid`: per
 /// texel, B's texture where a textured part of B lies at the texel's centre (level k only,
-/// `detail` given, with `onDetail`: where on B each vertex of the patch was placed), else
+/// `detail` given, with `normals`: the patch's vertices' normals, and `onDetail`: where on B each
+/// vertex of the patch was placed), else
 /// a's tile upsampled (`aTile`, may be null), else the patch's own shaded relief (so every patch a
 /// merge writes has a tile, whichever model had none).
 std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, int level,
                                                 std::uint32_t i, std::uint32_t j,
                                                 const PatchGrid& grid, const TextureTile* aTile,
                                                 const SurfaceCaster* detail, double search,
+                                                const std::vector<Vec3d>& normals,
                                                 const std::vector<std::optional<CastHit>>& onDetail,
                                                 const std::vector<const TextureTile*>& bTiles) {
   const bool fromDetail =
@@ -77,15 +79,18 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
         y += (*h)->y * 0.25;
       }
     } else {
+      // Along the mean of the corners' normals, scaled so the ray's ends are the means of the
+      // corners' ray ends: inside the caster's clip, as those are.
       const Vec3d p00 = subdivider.interpolate(u0 + p, v0 + q);
       const Vec3d p10 = subdivider.interpolate(u0 + p + 1, v0 + q);
       const Vec3d p01 = subdivider.interpolate(u0 + p, v0 + q + 1);
       const Vec3d p11 = subdivider.interpolate(u0 + p + 1, v0 + q + 1);
-      const Vec3d d1 = p11 - p00, d2 = p01 - p10;
-      const Vec3d normal{d1.y * d2.z - d1.z * d2.y, d1.z * d2.x - d1.x * d2.z,
-                         d1.x * d2.y - d1.y * d2.x};
+      const Vec3d normal =
+          (normals[corner] + normals[corner + 1] + normals[corner + n] + normals[corner + n + 1]) *
+          0.25;
+      const double reach = search * normal.norm();
       const std::optional<CastHit> hit =
-          detail->cast(CastRay{(p00 + p10 + p01 + p11) * 0.25, normal, -search, search});
+          detail->cast(CastRay{(p00 + p10 + p01 + p11) * 0.25, normal, -reach, reach});
       if (!hit) {
         return {0, 0, 0, 0};
       }
@@ -213,15 +218,22 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
     std::vector<std::shared_ptr<const TextureTile>> textures;
     std::vector<const TextureTile*> tiles;
     std::vector<std::optional<CastHit>> onDetail;
+    std::vector<Vec3d> normals;
     if (leaf.level == k) {
       const std::vector<std::size_t> near = detailNear(leaf.ball);
       if (!near.empty()) {
         std::vector<std::shared_ptr<const PatchGrid>> grids;
-        // Every ray starts in the box of a's vertices around the patch and goes at most `search`
-        // either way.
-        Box3d reach = subdivider->box(leaf.level, leaf.i, leaf.j);
-        reach.min = reach.min - Vec3d{search, search, search};
-        reach.max = reach.max + Vec3d{search, search, search};
+        // The box of the rays' ends: every ray (and every texel's, between its corners') lies
+        // in it, and B's cells outside it are not built (a box grown by the search distance on
+        // every side would hold all of a small B under a coarse target, for every new patch).
+        normals = subdivider->normals(leaf.level, leaf.i, leaf.j);
+        Box3d reach;
+        for (std::size_t v = 0; v < positions.size(); ++v) {
+          if (positions[v].finite() && normals[v].finite()) {
+            reach.extend(positions[v] + normals[v] * search);
+            reach.extend(positions[v] - normals[v] * search);
+          }
+        }
         SurfaceCaster::Clip clip{reach};
         grids.reserve(near.size());
         for (const std::size_t i : near) {
@@ -232,7 +244,6 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
         }
         caster.emplace(grids, options.transform, std::move(clip));
         grids.clear();  // the caster holds its own copy: unpinned while the rays are cast
-        const std::vector<Vec3d> normals = subdivider->normals(leaf.level, leaf.i, leaf.j);
         std::vector<CastRay> rays(positions.size());
         for (std::size_t v = 0; v < positions.size(); ++v) {
           // An undefined origin or normal casts nothing (the caster answers nullopt).
@@ -260,7 +271,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
     out.firstDefined = *first;
     out.grid = std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions));
     out.texture = placeTexture(*subdivider, leaf.level, leaf.i, leaf.j, *out.grid, aTexture.get(),
-                               surface, search, onDetail, tiles);
+                               surface, search, normals, onDetail, tiles);
   };
 
   // Inserted in plan order; a refined patch goes in, as a placeholder, just before its first
