@@ -8,6 +8,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/opc/opc_index.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/opc/texture_file.hpp"
@@ -51,10 +52,17 @@ void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSna
       namedTiles.insert(normalisedEntry(textureEntryFor(folder)));
     }
   }
+  std::set<std::string> indexes{indexFileName("patchhierarchy.xml")};  // indexes of kept files
+  for (const auto& [number, file] : revisionFiles(patches)) {
+    if (number <= current.version) {
+      indexes.insert(indexFileName(file.filename().string()));
+    }
+  }
   for (const auto& entry : fs::directory_iterator(patches)) {
     const std::string folder = entry.path().filename().string();
     if ((entry.is_directory() && isOurFolderName(folder) && named.count(folder) == 0) ||
-        (entry.is_regular_file() && durable::isTempFileName(folder))) {
+        (entry.is_regular_file() && durable::isTempFileName(folder)) ||
+        (entry.is_regular_file() && isIndexFileName(folder) && indexes.count(folder) == 0)) {
       orphans.push_back(entry.path());
     }
   }
