@@ -1,4 +1,4 @@
-// vsm's binary index of a hierarchy file (docs/opc-index.md has the format).
+// vsm's binary index of a hierarchy file (core/opc/README.md, "The index", has the format).
 #include "core/opc/opc_index.hpp"
 
 #include <sys/stat.h>

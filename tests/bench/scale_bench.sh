@@ -42,18 +42,19 @@ if [[ -n "${2:-}" ]]; then
   mkdir -p "$WORK"
 else
   WORK=$(mktemp -d)
-  trap 'rm -rf "$WORK"' EXIT
+  REMOVE_WORK=1
 fi
 TOKEN=bench
 PIDS=()
 cleanup_daemons() {
-  for pid in "${PIDS[@]}"; do
+  for pid in "${PIDS[@]+"${PIDS[@]}"}"; do
     kill "$pid" 2>/dev/null || true
     wait "$pid" 2>/dev/null || true
   done
   PIDS=()
+  [[ -z ${REMOVE_WORK:-} ]] || rm -rf "$WORK"
 }
-trap 'cleanup_daemons' ERR
+trap 'cleanup_daemons' ERR EXIT
 
 now() { date +%s.%N; }
 elapsed() { awk -v a="$1" -v b="$2" 'BEGIN { printf "%.3f", b - a }'; }
@@ -71,7 +72,7 @@ time_info() {  # time_info <opc> <runs>: median seconds of `vsm info`
   done | median
 }
 
-start_vsmd() {  # start_vsmd <data-root> <tag>: sets DPID, DURL; prints seconds to ready
+start_vsmd() {  # start_vsmd <data-root> <tag>: sets DPID, DURL and READY (seconds to ready)
   local port=$WORK/$2.port
   rm -f "$port"
   local t0 t1
@@ -86,10 +87,10 @@ start_vsmd() {  # start_vsmd <data-root> <tag>: sets DPID, DURL; prints seconds 
   done
   t1=$(now)
   DURL=http://127.0.0.1:$(cat "$port")
-  elapsed "$t0" "$t1"
+  READY=$(elapsed "$t0" "$t1")
 }
 
-stop_vsmd() {  # stop_vsmd <pid>
+stop_vsmd() {  # stop_vsmd <pid>: SIGTERM, then waits until it is gone (it holds the writer lock)
   kill "$1" 2>/dev/null || true
   wait "$1" 2>/dev/null || true
   local kept=()
@@ -127,20 +128,21 @@ for depth in $DEPTHS; do
   # Before the index: the full read.
   mv "$idx" "$WORK/saved.vsmidx"
   info_full=$(time_info "$data/$name" 3)
-  ready_full=$(start_vsmd "$data" full-$depth)
-  sleep 0.3
-  rss_full=$(rss_mb "$(pgrep -n -f "port-file $WORK/full-$depth.port")")
-  stop_vsmd "$(pgrep -n -f "port-file $WORK/full-$depth.port")"
+  start_vsmd "$data" full-$depth
+  ready_full=$READY
+  rss_full=$(rss_mb "$DPID")
+  stop_vsmd "$DPID"
   mv "$WORK/saved.vsmidx" "$idx"
   info_idx=$(time_info "$data/$name" 5)
   # With the index: the writer, then its replica.
-  ready=$(start_vsmd "$data" writer-$depth)
-  wpid=$(pgrep -n -f "port-file $WORK/writer-$depth.port")
-  wurl=http://127.0.0.1:$(cat "$WORK/writer-$depth.port")
+  start_vsmd "$data" writer-$depth
+  ready=$READY
+  wpid=$DPID
+  wurl=$DURL
   rss=$(rss_mb "$wpid")
-  start_vsmd "$data" replica-$depth >/dev/null
-  rpid=$(pgrep -n -f "port-file $WORK/replica-$depth.port")
-  rurl=http://127.0.0.1:$(cat "$WORK/replica-$depth.port")
+  start_vsmd "$data" replica-$depth
+  rpid=$DPID
+  rurl=$DURL
   merges=""
   follows=""
   for i in $(seq "$MERGES"); do
@@ -150,7 +152,7 @@ for depth in $DEPTHS; do
     while :; do
       state=$(api "$wurl" GET "/v1/jobs/$job" | python3 -c 'import json,sys; print(json.load(sys.stdin)["state"])')
       [[ $state == succeeded ]] && break
-      [[ $state == failed || $state == cancelled ]] && { api "$wurl" GET "/v1/jobs/$job" >&2; exit 1; }
+      [[ $state == queued || $state == running ]] || { api "$wurl" GET "/v1/jobs/$job" >&2; exit 1; }
       sleep 0.02
     done
     t1=$(now)

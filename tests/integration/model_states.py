@@ -19,7 +19,7 @@ TEMP = re.compile(r"\..+\.tmp-[0-9]+-[0-9]+")
 # A kept revision's hierarchy (docs: core/store/README.md), and the record of a revision in a
 # hierarchy: when and by which job differ between two runs of the same write.
 REVISION_FILE = re.compile(r"vsm-revision-([0-9]+)\.xml")
-# The index of a hierarchy file (docs/opc-index.md): "patchhierarchy.vsmidx" beside the hierarchy,
+# The index of a hierarchy file (core/opc/README.md, "The index"): "patchhierarchy.vsmidx" beside the hierarchy,
 # "vsm-revision-N.vsmidx" beside a kept revision's; one beside no hierarchy file is an orphan.
 INDEX_FILE = re.compile(r"(patchhierarchy|vsm-revision-[0-9]+)\.vsmidx")
 PARENT = re.compile(rb"<Revision>\s*<Parent>([0-9]+)</Parent>")

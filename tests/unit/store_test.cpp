@@ -1188,5 +1188,68 @@ TEST_F(StoreTest, OpeningForWritingRemovesIndexesOfNoKeptHierarchy) {
   EXPECT_TRUE(readOpcIndex(dir_).has_value());
 }
 
+TEST(OpcIndex, RoundTripsAHundredThousandPatchesExactly) {
+  // Depth 8, full: 87,381 patches with distinct boxes, transforms, versions and names (foreign
+  // folders, a non-translation transform, textured and cropped patches among them).
+  Model model(kSize);
+  for (int depth = 0; depth <= 8; ++depth) {
+    for (std::uint32_t y = 0; y < (1u << depth); ++y) {
+      for (std::uint32_t x = 0; x < (1u << depth); ++x) {
+        PatchInfo info;
+        info.key = {depth, x, y};
+        const double u = x * 1.25 + depth, w = y * 0.75 - depth;
+        info.folder = (x + y) % 7 == 0 ? "foreign-" + info.key.toString() : info.key.toString();
+        info.globalBox.extend(Vec3d{u, w, 0.1 * depth});
+        info.globalBox.extend(Vec3d{u + 1.0 / 3, w + 2.0 / 3, 1e6 + x});
+        info.localBox.extend(Vec3d{-u / 7, -w / 9, -1});
+        info.localBox.extend(Vec3d{u / 7, w / 9, 1});
+        info.local2global = Mat4d::translation({6.4e6 + u, -1e5 + w, 3.2e6 / (1 + y)});
+        if (x == 3 && y == 1) {
+          info.local2global.m[1] = 0.25;  // not a translation: all 16 stored
+        }
+        info.resolution = 1.0 / (1 + x + y);
+        info.version = 1 + (x * 31 + y) % 5;
+        info.stored = {static_cast<int>(x % 2), 0, kSize, kSize - static_cast<int>(y % 3)};
+        if ((x + 2 * y) % 11 == 0) {
+          info.coordinatesFile = "Coordinates.aara";
+          info.textureFile = textureEntryFor(info.folder);
+        }
+        if (x == 5) {
+          info.positionsFile = "positions.AARA";
+        }
+        model.insert(std::move(info));
+      }
+    }
+  }
+  ASSERT_EQ(model.patchCount(), 87381u);
+  RevisionRecord record;
+  record.parent = 41;
+  record.time = "2026-12-03T16:00:00Z";
+  record.job = "j-1";
+  record.changed = 12;
+  record.removed = 3;
+  record.nonce = "0a1b2c3d";
+  record.fence = FencingToken{77, 9};
+  const HierarchyStamp stamp{1, 123456, 4200000, 1'700'000'000'123'456'789};
+  const std::vector<std::byte> bytes = encodeOpcIndex(stamp, model, &record);
+  const std::optional<OpcRevision> read = decodeOpcIndex(bytes, stamp);
+  ASSERT_TRUE(read.has_value());
+  expectSameModel(*read, OpcRevision{model, record});
+  // Another stamp (any of its parts but the device) and a damaged or cut file are refused.
+  HierarchyStamp other = stamp;
+  other.device = 99;
+  EXPECT_TRUE(decodeOpcIndex(bytes, other).has_value()) << "the device may change on a remount";
+  for (auto change : {+[](HierarchyStamp& s) { ++s.inode; }, +[](HierarchyStamp& s) { ++s.size; },
+                      +[](HierarchyStamp& s) { ++s.modifiedNs; }}) {
+    other = stamp;
+    change(other);
+    EXPECT_FALSE(decodeOpcIndex(bytes, other).has_value());
+  }
+  std::vector<std::byte> damaged = bytes;
+  damaged[bytes.size() / 2] ^= std::byte{1};
+  EXPECT_FALSE(decodeOpcIndex(damaged, stamp).has_value());
+  EXPECT_FALSE(decodeOpcIndex(std::span(bytes).first(bytes.size() - 9), stamp).has_value());
+}
+
 }  // namespace
 }  // namespace vsm::core
