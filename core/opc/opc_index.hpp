@@ -13,8 +13,8 @@
 
 namespace vsm::core {
 
-/// vsm's index of one hierarchy file (core/opc/README.md, "The index"): every PatchInfo field a full read
-/// derives from the hierarchy and the Patch.xml files (key, folder, boxes, Local2Global,
+/// vsm's index of one hierarchy file (core/opc/README.md, "The index"): every PatchInfo field a
+/// full read derives from the hierarchy and the Patch.xml files (key, folder, boxes, Local2Global,
 /// resolution, version, stored rectangle, file names) and the revision record, in one binary file
 /// beside the hierarchy, `Patches/<stem>.vsmidx` ("patchhierarchy.vsmidx",
 /// "vsm-revision-7.vsmidx"). It records the stamp (inode, size, modification time) of the
