@@ -93,6 +93,7 @@ class Decoder {
     return b;
   }
   bool ok() const { return ok_; }
+  std::size_t remaining() const { return bytes_.size() - pos_; }
   bool atEnd() const { return pos_ == bytes_.size(); }
 
  private:
@@ -142,6 +143,19 @@ std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& 
   out.put(kFormat);
   putStamp(out, stamp);
   out.put(static_cast<std::int32_t>(model.gridSize()));
+  // The summary `vsm info` prints, with its own checksum: read without the patches.
+  const std::vector<LevelSummary> levels = model.levels();
+  out.put(static_cast<std::uint64_t>(model.patchCount()));
+  out.putBox(model.empty() ? Box3d{} : model.at(PatchKey::root()).globalBox);
+  out.put(static_cast<std::uint32_t>(levels.size()));
+  for (const LevelSummary& level : levels) {
+    out.put(static_cast<std::int32_t>(level.depth));
+    out.put(static_cast<std::uint64_t>(level.patches));
+    out.put(static_cast<std::uint64_t>(level.leaves));
+    out.putBox(level.bounds);
+    out.put(level.resolution);
+  }
+  out.put(checksum(out.bytes()));
   out.put(static_cast<std::uint8_t>(record != nullptr));
   if (record != nullptr) {
     out.put(record->parent);
@@ -210,6 +224,20 @@ std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
   }
   try {
     const auto gridSize = in.get<std::int32_t>();
+    in.get<std::uint64_t>();
+    in.getBox();
+    const auto levels = in.get<std::uint32_t>();
+    if (!in.ok() || levels > 64) {
+      return std::nullopt;
+    }
+    for (std::uint32_t i = 0; i < levels; ++i) {
+      in.get<std::int32_t>();
+      in.get<std::uint64_t>();
+      in.get<std::uint64_t>();
+      in.getBox();
+      in.get<double>();
+    }
+    in.get<std::uint64_t>();  // the summary's checksum (the file's covers it)
     if (!in.ok()) {
       return std::nullopt;
     }
@@ -277,6 +305,53 @@ std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
     return read;
   } catch (const Error&) {
     return std::nullopt;  // a key twice, a child without its parent: not an index we wrote
+  }
+}
+
+std::optional<OpcSummary> readOpcIndexSummary(const fs::path& dir) {
+  const auto patches = detail::findEntry(dir, "Patches");
+  const auto hierarchy = patches ? detail::findEntry(*patches, "patchhierarchy.xml") : std::nullopt;
+  if (!hierarchy) {
+    return std::nullopt;
+  }
+  try {
+    const HierarchyStamp stamp = fileStamp(*hierarchy);
+    // The header and the summary only: 64 levels at most, well within 8 KiB.
+    const std::vector<std::byte> bytes =
+        detail::readFile(*patches / indexFileName("patchhierarchy.xml"), 8192);
+    if (bytes.size() < sizeof(kMagic) || std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) != 0) {
+      return std::nullopt;
+    }
+    Decoder in{std::span<const std::byte>(bytes).subspan(sizeof(kMagic))};
+    if (in.get<std::uint32_t>() != kFormat || in.get<std::uint64_t>() != stamp.inode ||
+        in.get<std::uint64_t>() != stamp.size || in.get<std::int64_t>() != stamp.modifiedNs) {
+      return std::nullopt;
+    }
+    OpcSummary summary;
+    summary.gridSize = in.get<std::int32_t>();
+    summary.patches = in.get<std::uint64_t>();
+    summary.bounds = in.getBox();
+    const auto levels = in.get<std::uint32_t>();
+    if (!in.ok() || levels > 64) {
+      return std::nullopt;
+    }
+    for (std::uint32_t i = 0; i < levels; ++i) {
+      LevelSummary level;
+      level.depth = in.get<std::int32_t>();
+      level.patches = in.get<std::uint64_t>();
+      level.leaves = in.get<std::uint64_t>();
+      level.bounds = in.getBox();
+      level.resolution = in.get<double>();
+      summary.levels.push_back(level);
+    }
+    const std::size_t end = bytes.size() - in.remaining();
+    const auto sum = in.get<std::uint64_t>();
+    if (!in.ok() || checksum(std::span<const std::byte>(bytes).first(end)) != sum) {
+      return std::nullopt;
+    }
+    return summary;
+  } catch (const Error&) {
+    return std::nullopt;
   }
 }
 

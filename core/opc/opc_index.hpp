@@ -40,6 +40,17 @@ std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& 
 std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
                                           const HierarchyStamp& stamp);
 
+/// What `vsm info` prints of a model, from the head of its index alone (a few kB read).
+struct OpcSummary {
+  int gridSize = 0;
+  std::uint64_t patches = 0;
+  Box3d bounds;  // the root's
+  std::vector<LevelSummary> levels;
+};
+
+/// The summary of the current hierarchy of `dir` when it has a current index; nullopt otherwise.
+std::optional<OpcSummary> readOpcIndexSummary(const std::filesystem::path& dir);
+
 /// The hierarchy `hierarchyName` of `dir` from its index, when it has a current one; nullopt when
 /// there is none, it is stale or unreadable (the caller reads the hierarchy in full).
 std::optional<OpcRevision> readOpcIndex(const std::filesystem::path& dir,
