@@ -33,11 +33,14 @@ namespace {
 /// drafts look the same.
 void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSnapshot& current) {
   const fs::path patches = patchesDirOf(dir);
+  const fs::path tiles = dir / "Images" / std::string(kTextureLayer);
+  // Tile names only where there are tiles: 3 names a patch per kept revision, 10^5 patches.
+  const bool textured = fs::is_directory(tiles);
   std::set<std::string> named;
   std::set<std::string> namedTiles;
   for (const auto& [key, info] : current.model->patches()) {
     named.insert(info.folder);
-    if (!info.textureFile.empty()) {
+    if (textured && !info.textureFile.empty()) {
       namedTiles.insert(normalisedEntry(info.textureFile));
     }
   }
@@ -49,7 +52,9 @@ void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSna
     }
     for (const std::string& folder : namedFolders(file)) {
       named.insert(folder);
-      namedTiles.insert(normalisedEntry(textureEntryFor(folder)));
+      if (textured) {
+        namedTiles.insert(normalisedEntry(textureEntryFor(folder)));
+      }
     }
   }
   std::set<std::string> indexes{indexFileName("patchhierarchy.xml")};  // indexes of kept files
@@ -66,8 +71,7 @@ void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSna
       orphans.push_back(entry.path());
     }
   }
-  const fs::path tiles = dir / "Images" / std::string(kTextureLayer);
-  if (fs::is_directory(tiles)) {
+  if (textured) {
     for (const auto& entry : fs::directory_iterator(tiles)) {
       const std::string file = entry.path().filename().string();
       if (entry.is_regular_file() &&
