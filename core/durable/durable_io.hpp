@@ -52,6 +52,9 @@ class PendingFile {
   void commit();
 
   const std::filesystem::path& target() const { return target_; }
+  /// The temporary file holding the bytes until commit() (its inode, size and modification time
+  /// are the target's after the rename).
+  const std::filesystem::path& staged() const { return temp_; }
 
  private:
   std::filesystem::path target_;

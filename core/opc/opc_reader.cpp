@@ -17,6 +17,7 @@
 #include "core/common/text.hpp"
 #include "core/opc/aara.hpp"
 #include "core/opc/opc_detail.hpp"
+#include "core/opc/opc_index.hpp"
 
 namespace vsm::core {
 namespace fs = std::filesystem;
@@ -549,10 +550,16 @@ std::optional<HierarchyStamp> hierarchyStamp(const fs::path& dir) {
 }
 
 Model readOpcModel(const fs::path& dir) {
+  if (std::optional<OpcRevision> indexed = readOpcIndex(dir)) {
+    return std::move(indexed->model);
+  }
   return std::move(detail::readOpc(dir).model);
 }
 
 OpcRevision readOpcRevision(const fs::path& dir, std::string_view hierarchyName) {
+  if (std::optional<OpcRevision> indexed = readOpcIndex(dir, hierarchyName)) {
+    return std::move(*indexed);
+  }
   detail::OpcContents contents = detail::readOpc(dir, hierarchyName);
   return {std::move(contents.model), std::move(contents.revision)};
 }

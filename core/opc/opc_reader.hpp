@@ -12,7 +12,8 @@
 namespace vsm::core {
 
 /// Reads an OPC directory's metadata: Patches/patchhierarchy.xml and every patch's Patch.xml
-/// (no vertex data). Lenient as OPC.md says: either letter case for file and folder names,
+/// (no vertex data), or vsm's index of the hierarchy (opc_index.hpp) when it has a current one:
+/// then no Patch.xml is read. Lenient as OPC.md says: either letter case for file and folder names,
 /// optional elements missing, V3d positions, foreign folder names (keys are assigned by position in
 /// the quadtree, the root being 0_0_0). Our extension elements are used when present, never
 /// required.
@@ -57,7 +58,8 @@ struct RevisionRecord {
 inline constexpr unsigned kDefaultKeepRevisions = 8;
 
 /// The model one hierarchy file of `dir` describes (Patches/`hierarchyName`: the current one, or a
-/// kept revision's) with its revision record when it has one. Throws as readOpcModel.
+/// kept revision's) with its revision record when it has one; from its index when current, as
+/// readOpcModel. Throws as readOpcModel.
 struct OpcRevision {
   Model model;
   std::optional<RevisionRecord> record;

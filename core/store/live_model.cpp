@@ -8,6 +8,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/opc/opc_index.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/opc/texture_file.hpp"
@@ -32,11 +33,14 @@ namespace {
 /// drafts look the same.
 void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSnapshot& current) {
   const fs::path patches = patchesDirOf(dir);
+  const fs::path tiles = dir / "Images" / std::string(kTextureLayer);
+  // Tile names only where there are tiles: 3 names a patch per kept revision, 10^5 patches.
+  const bool textured = fs::is_directory(tiles);
   std::set<std::string> named;
   std::set<std::string> namedTiles;
   for (const auto& [key, info] : current.model->patches()) {
     named.insert(info.folder);
-    if (!info.textureFile.empty()) {
+    if (textured && !info.textureFile.empty()) {
       namedTiles.insert(normalisedEntry(info.textureFile));
     }
   }
@@ -48,18 +52,26 @@ void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSna
     }
     for (const std::string& folder : namedFolders(file)) {
       named.insert(folder);
-      namedTiles.insert(normalisedEntry(textureEntryFor(folder)));
+      if (textured) {
+        namedTiles.insert(normalisedEntry(textureEntryFor(folder)));
+      }
+    }
+  }
+  std::set<std::string> indexes{indexFileName("patchhierarchy.xml")};  // indexes of kept files
+  for (const auto& [number, file] : revisionFiles(patches)) {
+    if (number <= current.version) {
+      indexes.insert(indexFileName(file.filename().string()));
     }
   }
   for (const auto& entry : fs::directory_iterator(patches)) {
     const std::string folder = entry.path().filename().string();
     if ((entry.is_directory() && isOurFolderName(folder) && named.count(folder) == 0) ||
-        (entry.is_regular_file() && durable::isTempFileName(folder))) {
+        (entry.is_regular_file() && durable::isTempFileName(folder)) ||
+        (entry.is_regular_file() && isIndexFileName(folder) && indexes.count(folder) == 0)) {
       orphans.push_back(entry.path());
     }
   }
-  const fs::path tiles = dir / "Images" / std::string(kTextureLayer);
-  if (fs::is_directory(tiles)) {
+  if (textured) {
     for (const auto& entry : fs::directory_iterator(tiles)) {
       const std::string file = entry.path().filename().string();
       if (entry.is_regular_file() &&

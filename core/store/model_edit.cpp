@@ -113,7 +113,9 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
   info.version = id.version;
   info.folder = draftFolder(key, id.version, nonce_);
   info.positionsFile = "Positions.aara";
-  info.coordinatesFile.clear();
+  // As OpcWriter::writePatch names them: the snapshot (and the index written from it) says what
+  // the files say.
+  info.coordinatesFile = texture ? "Coordinates.aara" : std::string();
   info.textureFile = texture ? textureEntryFor(info.folder) : std::string();
   model_->describe(key, *grid);
   model_->markChanged(key);

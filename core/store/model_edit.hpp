@@ -142,6 +142,9 @@ class ModelEdit {
   friend class LiveModel;
   ModelEdit(LiveModel& live, std::shared_ptr<const ModelSnapshot> base);
   ObjectId draftId(const PatchKey& key) const;
+  /// Keeps the base's hierarchy (and its index) as Patches/`baseName`, durable: a hard link where
+  /// the file system allows, else a copy. Throws Error(Io).
+  void keepBaseHierarchy(const std::filesystem::path& patches, const std::string& baseName);
 
   LiveModel& live_;
   /// Opened when the edit begins: syncfs on it reports every write-back error since.

@@ -5,6 +5,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/opc/opc_index.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/store/model_edit.hpp"
@@ -49,6 +50,44 @@ void checkToken(const fs::path& file, const FencingToken& token) {
 
 }  // namespace
 
+void ModelEdit::keepBaseHierarchy(const fs::path& patches, const std::string& baseName) {
+  // A hard link to the base's hierarchy file and its index where the file system allows: no copy,
+  // and the index stays current for it (a link has the file's stamp). The link is checked to be
+  // the base this edit began from (another writer may have replaced the file); else a copy.
+  durable::DraftWriter links;
+  const fs::path current = patches / "patchhierarchy.xml";
+  const fs::path kept = patches / baseName;
+  const std::optional<HierarchyStamp> baseStamp = [&] {
+    std::lock_guard lock(live_.mutex_);
+    return live_.readStamp_;
+  }();
+  if (baseStamp && links.link(current, kept)) {
+    const std::optional<HierarchyStamp> linked = [&]() -> std::optional<HierarchyStamp> {
+      try {
+        return fileStamp(kept);
+      } catch (const Error&) {
+        return std::nullopt;
+      }
+    }();
+    if (linked && linked->inode == baseStamp->inode && linked->size == baseStamp->size &&
+        linked->modifiedNs == baseStamp->modifiedNs) {
+      if (readOpcIndex(live_.dir_, "patchhierarchy.xml")) {
+        links.link(patches / indexFileName("patchhierarchy.xml"),
+                   patches / indexFileName(baseName));
+      }
+      durable::syncDirectory(patches);
+      return;
+    }
+    std::error_code ec;
+    fs::remove(kept, ec);  // another file: a copy replaces it below
+  }
+  const std::unique_ptr<durable::PendingFile> copy =
+      stageHierarchy(live_.dir_, *base_->model, &base_->revision, baseName);
+  stageOpcIndex(live_.dir_, baseName, copy->staged(), *base_->model, &base_->revision)->commit();
+  copy->commit();
+  durable::syncDirectory(patches);
+}
+
 void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options) {
   if (published_) {
     throw Error(ErrorCode::Conflict, "edit already published");
@@ -82,8 +121,7 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   const fs::path patches = patchesDirOf(live_.dir_);
   const std::string baseName = revisionFileName(base_->version);
   if (!fs::exists(patches / baseName)) {
-    stageHierarchy(live_.dir_, *base_->model, &base_->revision, baseName)->commit();
-    durable::syncDirectory(patches);
+    keepBaseHierarchy(patches, baseName);
   }
   const std::uint64_t version = base_->version + 1;
   auto next = std::make_shared<Model>(*model_);
@@ -93,6 +131,11 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
                         nonce_,          options.token};
   const std::unique_ptr<durable::PendingFile> hierarchy =
       stageHierarchy(live_.dir_, *next, &snapshot->revision);
+  // Its index (opc_index.hpp), for the staged file's stamp, which the rename keeps: committed just
+  // before the hierarchy, both made durable by the one sync of Patches/ in step 4. A crash between
+  // the two renames leaves the old hierarchy with an index of another stamp: read in full once.
+  const std::unique_ptr<durable::PendingFile> index = stageOpcIndex(
+      live_.dir_, "patchhierarchy.xml", hierarchy->staged(), *next, &snapshot->revision);
   snapshot->model = std::move(next);
   snapshot->version = version;
 
@@ -113,6 +156,7 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   if (options.fence) {
     options.fence();
   }
+  index->commit();
   hierarchy->commit();
   published_ = true;
   const std::optional<HierarchyStamp> stamp = hierarchyStamp(live_.dir_);

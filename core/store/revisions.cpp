@@ -13,6 +13,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/opc/opc_index.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/store/live_model.hpp"
 #include "core/store/model_store.hpp"
@@ -265,6 +266,9 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
         throw Error(ErrorCode::Io,
                     "cannot remove " + oldest->second.string() + ": " + std::strerror(errno));
       }
+      // Its index after it: one left by a crash between the two is an orphan the next open
+      // removes (never an index taken for a hierarchy it does not describe: it has a stamp).
+      ::unlink((patches / indexFileName(oldest->second.filename().string())).c_str());
       durable::syncDirectory(patches);
       files.erase(oldest);
       log::info("model=" + name_ + " dropped revision " + std::to_string(number) + " (" +

@@ -4,6 +4,7 @@
 // lookups are in model_registry.cpp.
 #include "server/models/model_following.hpp"
 
+#include <chrono>
 #include <algorithm>
 #include <exception>
 #include <memory>
@@ -194,9 +195,14 @@ std::size_t ModelRegistry::follow() {
       continue;  // refused as it is (a stale fencing token): read again once it changes
     }
     bool refused = false;
+    const auto start = std::chrono::steady_clock::now();
     if (const auto version = replace(live, id, "after another writer published", &refused)) {
       log::info("model=" + id + " read again from disk after another writer published: version " +
-                std::to_string(*version));
+                std::to_string(*version) + " (" +
+                std::to_string(std::chrono::duration_cast<std::chrono::milliseconds>(
+                                   std::chrono::steady_clock::now() - start)
+                                   .count()) +
+                " ms)");
       ++followed;
       followSchedule_.followed(id);
     } else if (refused) {

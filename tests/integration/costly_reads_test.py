@@ -93,7 +93,7 @@ class Fixture(unittest.TestCase):
         cls.root = root
         revisions = sorted(int(n[len("vsm-revision-"):-len(".xml")])
                            for n in os.listdir(os.path.join(root, MODEL, "Patches"))
-                           if n.startswith("vsm-revision-"))
+                           if n.startswith("vsm-revision-") and n.endswith(".xml"))
         assert revisions == [1, 2, 3], revisions
 
     def start(self, hold, *flags):

@@ -19,6 +19,9 @@ TEMP = re.compile(r"\..+\.tmp-[0-9]+-[0-9]+")
 # A kept revision's hierarchy (docs: core/store/README.md), and the record of a revision in a
 # hierarchy: when and by which job differ between two runs of the same write.
 REVISION_FILE = re.compile(r"vsm-revision-([0-9]+)\.xml")
+# The index of a hierarchy file (core/opc/README.md, "The index"): "patchhierarchy.vsmidx" beside the hierarchy,
+# "vsm-revision-N.vsmidx" beside a kept revision's; one beside no hierarchy file is an orphan.
+INDEX_FILE = re.compile(r"(patchhierarchy|vsm-revision-[0-9]+)\.vsmidx")
 PARENT = re.compile(rb"<Revision>\s*<Parent>([0-9]+)</Parent>")
 VERSIONED = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v([0-9]+)(?:-[0-9a-f]{8})?")
 REVISION_RECORD = re.compile(rb"<Revision>.*?</Revision>", re.S)
@@ -87,9 +90,12 @@ def version_of(opc):
             kept |= reachable_folders(opc, name)
     folders = {without_nonce(folder): folder_digest(os.path.join(patches_dir, folder), True)
                for folder in reachable}
-    orphans = sorted(e for e in os.listdir(patches_dir)
+    entries = os.listdir(patches_dir)
+    orphans = sorted(e for e in entries
                      if e not in reachable | kept and e.lower() != "patchhierarchy.xml"
-                     and not REVISION_FILE.fullmatch(e))
+                     and not REVISION_FILE.fullmatch(e)
+                     and not (INDEX_FILE.fullmatch(e) and
+                              INDEX_FILE.fullmatch(e).group(1) + ".xml" in entries))
     tiles = os.path.join(opc, "Images", "Diffuse")
     if os.path.isdir(tiles):
         orphans += ["Images/Diffuse/" + t for t in sorted(os.listdir(tiles))

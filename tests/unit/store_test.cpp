@@ -9,6 +9,8 @@
 #include <vector>
 
 #include "core/common/error.hpp"
+#include "core/opc/opc_detail.hpp"
+#include "core/opc/opc_index.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/opc/validate.hpp"
@@ -1061,6 +1063,192 @@ TEST_F(TexturedStoreTest, OpenRemovesTilesOfInterruptedEdits) {
   EXPECT_TRUE(fs::exists(dir_ / "Images" / "Diffuse" / "foreign.tif"));
   fs::remove(dir_ / "Images" / "Diffuse" / "foreign.tif");
   EXPECT_EQ(filesUnder(dir_), before);
+}
+
+// ---- the index (issue 31): written by each publish, read instead of every Patch.xml ------------
+
+/// Every field a reader uses, patch by patch, and the records: the index must answer as the full
+/// read does.
+void expectSameModel(const OpcRevision& a, const OpcRevision& b) {
+  ASSERT_EQ(a.model.gridSize(), b.model.gridSize());
+  ASSERT_EQ(a.model.patchCount(), b.model.patchCount());
+  for (const auto& [key, x] : a.model.patches()) {
+    const PatchInfo* y = b.model.find(key);
+    ASSERT_NE(y, nullptr) << key.toString();
+    EXPECT_EQ(x.folder, y->folder) << key.toString();
+    EXPECT_EQ(x.childMask, y->childMask) << key.toString();
+    EXPECT_EQ(x.globalBox, y->globalBox) << key.toString();
+    EXPECT_EQ(x.localBox, y->localBox) << key.toString();
+    EXPECT_EQ(x.local2global.m, y->local2global.m) << key.toString();
+    EXPECT_EQ(x.resolution, y->resolution) << key.toString();
+    EXPECT_EQ(x.version, y->version) << key.toString();
+    EXPECT_EQ(x.stored, y->stored) << key.toString();
+    EXPECT_EQ(x.positionsFile, y->positionsFile) << key.toString();
+    EXPECT_EQ(x.coordinatesFile, y->coordinatesFile) << key.toString();
+    EXPECT_EQ(x.textureFile, y->textureFile) << key.toString();
+  }
+  ASSERT_EQ(a.record.has_value(), b.record.has_value());
+  if (a.record) {
+    EXPECT_EQ(a.record->parent, b.record->parent);
+    EXPECT_EQ(a.record->time, b.record->time);
+    EXPECT_EQ(a.record->job, b.record->job);
+    EXPECT_EQ(a.record->changed, b.record->changed);
+    EXPECT_EQ(a.record->removed, b.record->removed);
+    EXPECT_EQ(a.record->nonce, b.record->nonce);
+    EXPECT_EQ(a.record->fence, b.record->fence);
+  }
+}
+
+/// The full read, whatever index there is.
+OpcRevision fullRead(const fs::path& dir, std::string_view name = "patchhierarchy.xml") {
+  detail::OpcContents contents = detail::readOpc(dir, name);
+  return {std::move(contents.model), std::move(contents.revision)};
+}
+
+TEST_F(StoreTest, APublishWritesAnIndexThatAnswersAsTheFullReadForItAndItsKeptRevision) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v = live->snapshot()->version;
+  EXPECT_FALSE(readOpcIndex(dir_).has_value()) << "an import writes none";
+  publishLeaf(*live, {2, 1, 2}, 3.0, 8, "first");
+  publishLeaf(*live, {2, 0, 0}, 5.0, 8, "second");
+  const fs::path patches = dir_ / "Patches";
+  for (const std::string& name : {std::string("patchhierarchy.xml"), revisionFileName(v + 1)}) {
+    const std::optional<OpcRevision> indexed = readOpcIndex(dir_, name);
+    ASSERT_TRUE(indexed.has_value()) << name;
+    expectSameModel(*indexed, fullRead(dir_, name));
+  }
+  // The kept revision is the file that was published, not a copy: a hard link (the inode the
+  // current hierarchy had before the second publish), and its index is a link too.
+  EXPECT_EQ(fs::hard_link_count(patches / revisionFileName(v + 1)), 1u)
+      << "the hierarchy it was linked from was replaced";
+  EXPECT_TRUE(fs::exists(patches / indexFileName(revisionFileName(v + 1))));
+  // The revision read back through the store is the index's (same answers as the file).
+  EXPECT_EQ(live->snapshotAt(v + 1)->model->patchCount(), 21u);
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+TEST_F(StoreTest, OpeningWithACurrentIndexReadsNoPatchXmlAndAStaleIndexIsNotUsed) {
+  PatchCache cache(64 << 20);
+  {
+    auto live = LiveModel::open(dir_, "m", cache);
+    publishLeaf(*live, {2, 1, 2}, 3.0, 8);
+  }
+  const fs::path patches = dir_ / "Patches";
+  const OpcRevision full = fullRead(dir_);
+  // An unchanged patch's Patch.xml made unreadable: the index is read instead, so opening (and a
+  // reader's metadata) never looks at it; the patch's data is read on first use, from its files.
+  const fs::path xml = patches / "2_3_3" / "Patch.xml";
+  const std::string saved = [&] {
+    std::ifstream in(xml);
+    return std::string(std::istreambuf_iterator<char>(in), {});
+  }();
+  std::ofstream(xml) << "not XML";
+  {
+    auto live = LiveModel::open(dir_, "m", cache, LiveModel::Access::Read);
+    EXPECT_EQ(live->snapshot()->model->patchCount(), full.model.patchCount());
+    EXPECT_NEAR(leafZ(*live, *live->snapshot(), {2, 3, 3}), height(3 * 16 + 3, 3 * 16 + 3, 0),
+                1e-3);
+    expectSameModel({Model(*live->snapshot()->model), live->snapshot()->revision}, full);
+  }
+  // A hierarchy replaced by someone else (same bytes, another inode): the index is stale, the
+  // full read runs and finds the damage.
+  fs::copy_file(patches / "patchhierarchy.xml", patches / "copy.xml");
+  fs::rename(patches / "copy.xml", patches / "patchhierarchy.xml");
+  EXPECT_FALSE(readOpcIndex(dir_).has_value());
+  EXPECT_EQ(codeOf([&] { LiveModel::open(dir_, "m", cache, LiveModel::Access::Read); }),
+            ErrorCode::Corrupt);
+  std::ofstream(xml) << saved;
+  // `vsm index` writes it again; a damaged index is not used.
+  EXPECT_EQ(writeOpcIndex(dir_), full.model.patchCount());
+  ASSERT_TRUE(readOpcIndex(dir_).has_value());
+  expectSameModel(*readOpcIndex(dir_), full);
+  {
+    std::fstream f(patches / "patchhierarchy.vsmidx",
+                   std::ios::in | std::ios::out | std::ios::binary);
+    f.seekp(200);
+    f.put('\x5a');
+  }
+  EXPECT_FALSE(readOpcIndex(dir_).has_value()) << "the checksum";
+  fs::resize_file(patches / "patchhierarchy.vsmidx", 100);
+  EXPECT_FALSE(readOpcIndex(dir_).has_value()) << "truncated";
+}
+
+TEST_F(StoreTest, OpeningForWritingRemovesIndexesOfNoKeptHierarchy) {
+  PatchCache cache(64 << 20);
+  {
+    auto live = LiveModel::open(dir_, "m", cache);
+    publishLeaf(*live, {2, 1, 2}, 3.0, 8);
+  }
+  const fs::path patches = dir_ / "Patches";
+  fs::copy_file(patches / "patchhierarchy.vsmidx", patches / "vsm-revision-99.vsmidx");
+  auto live = LiveModel::open(dir_, "m", cache);
+  EXPECT_FALSE(fs::exists(patches / "vsm-revision-99.vsmidx"));
+  EXPECT_TRUE(fs::exists(patches / "patchhierarchy.vsmidx"));
+  EXPECT_TRUE(readOpcIndex(dir_).has_value());
+}
+
+TEST(OpcIndex, RoundTripsAHundredThousandPatchesExactly) {
+  // Depth 8, full: 87,381 patches with distinct boxes, transforms, versions and names (foreign
+  // folders, a non-translation transform, textured and cropped patches among them).
+  Model model(kSize);
+  for (int depth = 0; depth <= 8; ++depth) {
+    for (std::uint32_t y = 0; y < (1u << depth); ++y) {
+      for (std::uint32_t x = 0; x < (1u << depth); ++x) {
+        PatchInfo info;
+        info.key = {depth, x, y};
+        const double u = x * 1.25 + depth, w = y * 0.75 - depth;
+        info.folder = (x + y) % 7 == 0 ? "foreign-" + info.key.toString() : info.key.toString();
+        info.globalBox.extend(Vec3d{u, w, 0.1 * depth});
+        info.globalBox.extend(Vec3d{u + 1.0 / 3, w + 2.0 / 3, 1e6 + x});
+        info.localBox.extend(Vec3d{-u / 7, -w / 9, -1});
+        info.localBox.extend(Vec3d{u / 7, w / 9, 1});
+        info.local2global = Mat4d::translation({6.4e6 + u, -1e5 + w, 3.2e6 / (1 + y)});
+        if (x == 3 && y == 1) {
+          info.local2global.m[1] = 0.25;  // not a translation: all 16 stored
+        }
+        info.resolution = 1.0 / (1 + x + y);
+        info.version = 1 + (x * 31 + y) % 5;
+        info.stored = {static_cast<int>(x % 2), 0, kSize, kSize - static_cast<int>(y % 3)};
+        if ((x + 2 * y) % 11 == 0) {
+          info.coordinatesFile = "Coordinates.aara";
+          info.textureFile = textureEntryFor(info.folder);
+        }
+        if (x == 5) {
+          info.positionsFile = "positions.AARA";
+        }
+        model.insert(std::move(info));
+      }
+    }
+  }
+  ASSERT_EQ(model.patchCount(), 87381u);
+  RevisionRecord record;
+  record.parent = 41;
+  record.time = "2026-12-03T16:00:00Z";
+  record.job = "j-1";
+  record.changed = 12;
+  record.removed = 3;
+  record.nonce = "0a1b2c3d";
+  record.fence = FencingToken{77, 9};
+  const HierarchyStamp stamp{1, 123456, 4200000, 1'700'000'000'123'456'789};
+  const std::vector<std::byte> bytes = encodeOpcIndex(stamp, model, &record);
+  const std::optional<OpcRevision> read = decodeOpcIndex(bytes, stamp);
+  ASSERT_TRUE(read.has_value());
+  expectSameModel(*read, OpcRevision{model, record});
+  // Another stamp (any of its parts but the device) and a damaged or cut file are refused.
+  HierarchyStamp other = stamp;
+  other.device = 99;
+  EXPECT_TRUE(decodeOpcIndex(bytes, other).has_value()) << "the device may change on a remount";
+  for (auto change : {+[](HierarchyStamp& s) { ++s.inode; }, +[](HierarchyStamp& s) { ++s.size; },
+                      +[](HierarchyStamp& s) { ++s.modifiedNs; }}) {
+    other = stamp;
+    change(other);
+    EXPECT_FALSE(decodeOpcIndex(bytes, other).has_value());
+  }
+  std::vector<std::byte> damaged = bytes;
+  damaged[bytes.size() / 2] ^= std::byte{1};
+  EXPECT_FALSE(decodeOpcIndex(damaged, stamp).has_value());
+  EXPECT_FALSE(decodeOpcIndex(std::span(bytes).first(bytes.size() - 9), stamp).has_value());
 }
 
 }  // namespace

@@ -1,0 +1,405 @@
+// vsm's binary index of a hierarchy file (core/opc/README.md, "The index", has the format).
+#include "core/opc/opc_index.hpp"
+
+#include <sys/stat.h>
+
+#include <cerrno>
+#include <cstdint>
+#include <cstring>
+
+#include "core/common/error.hpp"
+#include "core/opc/opc_detail.hpp"
+
+namespace vsm::core {
+namespace fs = std::filesystem;
+
+namespace {
+
+constexpr char kMagic[8] = {'V', 'S', 'M', 'I', 'D', 'X', '\n', '\0'};
+constexpr std::uint32_t kFormat = 1;
+constexpr std::string_view kIndexSuffix = ".vsmidx";
+constexpr std::string_view kDefaultPositions = "Positions.aara";
+
+/// A 64-bit checksum over 8-byte words (the tail zero-padded): fast enough to cost little next to
+/// reading the file, and catches a truncated or damaged file.
+std::uint64_t checksum(std::span<const std::byte> bytes) {
+  std::uint64_t h = 0x9e3779b97f4a7c15ULL ^ bytes.size();
+  std::size_t i = 0;
+  for (; i + 8 <= bytes.size(); i += 8) {
+    std::uint64_t w;
+    std::memcpy(&w, bytes.data() + i, 8);
+    h = (h ^ w) * 0xff51afd7ed558ccdULL;
+    h ^= h >> 29;
+  }
+  std::uint64_t w = 0;
+  std::memcpy(&w, bytes.data() + i, bytes.size() - i);
+  h = (h ^ w) * 0xc4ceb9fe1a85ec53ULL;
+  return h ^ (h >> 32);
+}
+
+class Encoder {
+ public:
+  template <typename T>
+  void put(const T& value) {
+    static_assert(std::is_trivially_copyable_v<T>);
+    const auto* p = reinterpret_cast<const std::byte*>(&value);
+    bytes_.insert(bytes_.end(), p, p + sizeof(T));
+  }
+  void putString(std::string_view s) {
+    put(static_cast<std::uint32_t>(s.size()));
+    const auto* p = reinterpret_cast<const std::byte*>(s.data());
+    bytes_.insert(bytes_.end(), p, p + s.size());
+  }
+  void putBox(const Box3d& b) {
+    for (const double v : {b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z}) {
+      put(v);
+    }
+  }
+  std::vector<std::byte>& bytes() { return bytes_; }
+
+ private:
+  std::vector<std::byte> bytes_;
+};
+
+/// Reads what Encoder wrote; `ok()` turns false at the first read past the end.
+class Decoder {
+ public:
+  explicit Decoder(std::span<const std::byte> bytes) : bytes_(bytes) {}
+  template <typename T>
+  T get() {
+    T value{};
+    if (pos_ + sizeof(T) > bytes_.size()) {
+      ok_ = false;
+      return value;
+    }
+    std::memcpy(&value, bytes_.data() + pos_, sizeof(T));
+    pos_ += sizeof(T);
+    return value;
+  }
+  std::string getString() {
+    const auto n = get<std::uint32_t>();
+    if (!ok_ || n > bytes_.size() - pos_) {
+      ok_ = false;
+      return {};
+    }
+    std::string s(reinterpret_cast<const char*>(bytes_.data() + pos_), n);
+    pos_ += n;
+    return s;
+  }
+  Box3d getBox() {
+    Box3d b;
+    b.min = {get<double>(), get<double>(), get<double>()};
+    b.max = {get<double>(), get<double>(), get<double>()};
+    return b;
+  }
+  bool ok() const { return ok_; }
+  std::size_t remaining() const { return bytes_.size() - pos_; }
+  bool atEnd() const { return pos_ == bytes_.size(); }
+
+ private:
+  std::span<const std::byte> bytes_;
+  std::size_t pos_ = 0;
+  bool ok_ = true;
+};
+
+void putStamp(Encoder& out, const HierarchyStamp& stamp) {
+  // The device number is left out: it may differ after a remount while the file is the same.
+  out.put(stamp.inode);
+  out.put(stamp.size);
+  out.put(stamp.modifiedNs);
+}
+
+}  // namespace
+
+std::string indexFileName(std::string_view hierarchyName) {
+  std::string_view stem = hierarchyName;
+  if (const auto dot = stem.rfind('.'); dot != std::string_view::npos) {
+    stem = stem.substr(0, dot);
+  }
+  return std::string(stem) + std::string(kIndexSuffix);
+}
+
+bool isIndexFileName(std::string_view name) {
+  return name.size() > kIndexSuffix.size() && name.ends_with(kIndexSuffix);
+}
+
+HierarchyStamp fileStamp(const fs::path& file) {
+  struct stat st {};
+  if (::stat(file.c_str(), &st) != 0) {
+    throw Error(ErrorCode::Io, "cannot stat " + file.string() + ": " + std::strerror(errno));
+  }
+  return HierarchyStamp{static_cast<std::uint64_t>(st.st_dev),
+                        static_cast<std::uint64_t>(st.st_ino),
+                        static_cast<std::uint64_t>(st.st_size),
+                        std::int64_t{st.st_mtim.tv_sec} * 1'000'000'000 + st.st_mtim.tv_nsec};
+}
+
+std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& model,
+                                      const RevisionRecord* record) {
+  Encoder out;
+  for (const char c : kMagic) {
+    out.put(c);
+  }
+  out.put(kFormat);
+  putStamp(out, stamp);
+  out.put(static_cast<std::int32_t>(model.gridSize()));
+  // The summary `vsm info` prints, with its own checksum: read without the patches.
+  const std::vector<LevelSummary> levels = model.levels();
+  out.put(static_cast<std::uint64_t>(model.patchCount()));
+  out.putBox(model.empty() ? Box3d{} : model.at(PatchKey::root()).globalBox);
+  out.put(static_cast<std::uint32_t>(levels.size()));
+  for (const LevelSummary& level : levels) {
+    out.put(static_cast<std::int32_t>(level.depth));
+    out.put(static_cast<std::uint64_t>(level.patches));
+    out.put(static_cast<std::uint64_t>(level.leaves));
+    out.putBox(level.bounds);
+    out.put(level.resolution);
+  }
+  out.put(checksum(out.bytes()));
+  out.put(static_cast<std::uint8_t>(record != nullptr));
+  if (record != nullptr) {
+    out.put(record->parent);
+    out.putString(record->time);
+    out.putString(record->job);
+    out.put(record->changed);
+    out.put(record->removed);
+    out.put(record->restoredFrom);
+    out.putString(record->nonce);
+    out.put(static_cast<std::uint8_t>(record->fence.has_value()));
+    if (record->fence) {
+      out.put(record->fence->takeover);
+      out.put(record->fence->lease);
+    }
+  }
+  out.put(static_cast<std::uint64_t>(model.patchCount()));
+  out.bytes().reserve(out.bytes().size() + model.patchCount() * 200 + 8);
+  for (const auto& [key, info] : model.patches()) {
+    out.put(static_cast<std::uint8_t>(key.depth));
+    out.put(key.x);
+    out.put(key.y);
+    out.putString(info.folder == key.toString() ? std::string_view() : info.folder);
+    out.putBox(info.globalBox);
+    out.putBox(info.localBox);
+    const bool translation = info.local2global.isTranslation();
+    out.put(static_cast<std::uint8_t>(translation));
+    if (translation) {
+      const Vec3d t = info.local2global.translationPart();
+      out.put(t.x);
+      out.put(t.y);
+      out.put(t.z);
+    } else {
+      for (const double v : info.local2global.m) {
+        out.put(v);
+      }
+    }
+    out.put(info.resolution);
+    out.put(info.version);
+    out.put(static_cast<std::int32_t>(info.stored.x0));
+    out.put(static_cast<std::int32_t>(info.stored.y0));
+    out.put(static_cast<std::int32_t>(info.stored.x1));
+    out.put(static_cast<std::int32_t>(info.stored.y1));
+    // The usual name as an empty string: most patches store Positions.aara.
+    out.putString(info.positionsFile == kDefaultPositions ? std::string_view()
+                                                          : std::string_view(info.positionsFile));
+    out.putString(info.coordinatesFile);
+    out.putString(info.textureFile);
+  }
+  out.put(checksum(out.bytes()));
+  return std::move(out.bytes());
+}
+
+std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
+                                          const HierarchyStamp& stamp) {
+  if (bytes.size() < sizeof(kMagic) + 8 || std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) != 0) {
+    return std::nullopt;
+  }
+  std::uint64_t sum;
+  std::memcpy(&sum, bytes.data() + bytes.size() - 8, 8);
+  const std::span<const std::byte> body = bytes.first(bytes.size() - 8);
+  Decoder in(body.subspan(sizeof(kMagic)));
+  if (in.get<std::uint32_t>() != kFormat || in.get<std::uint64_t>() != stamp.inode ||
+      in.get<std::uint64_t>() != stamp.size || in.get<std::int64_t>() != stamp.modifiedNs ||
+      !in.ok() || checksum(body) != sum) {
+    return std::nullopt;
+  }
+  try {
+    const auto gridSize = in.get<std::int32_t>();
+    in.get<std::uint64_t>();
+    in.getBox();
+    const auto levels = in.get<std::uint32_t>();
+    if (!in.ok() || levels > 64) {
+      return std::nullopt;
+    }
+    for (std::uint32_t i = 0; i < levels; ++i) {
+      in.get<std::int32_t>();
+      in.get<std::uint64_t>();
+      in.get<std::uint64_t>();
+      in.getBox();
+      in.get<double>();
+    }
+    in.get<std::uint64_t>();  // the summary's checksum (the file's covers it)
+    if (!in.ok()) {
+      return std::nullopt;
+    }
+    OpcRevision read{Model(gridSize), std::nullopt};
+    if (in.get<std::uint8_t>() != 0) {
+      RevisionRecord record;
+      record.parent = in.get<std::uint64_t>();
+      record.time = in.getString();
+      record.job = in.getString();
+      record.changed = in.get<std::uint64_t>();
+      record.removed = in.get<std::uint64_t>();
+      record.restoredFrom = in.get<std::uint64_t>();
+      record.nonce = in.getString();
+      if (in.get<std::uint8_t>() != 0) {
+        FencingToken token;
+        token.takeover = in.get<std::uint64_t>();
+        token.lease = in.get<std::int64_t>();
+        record.fence = token;
+      }
+      read.record = std::move(record);
+    }
+    const auto count = in.get<std::uint64_t>();
+    if (!in.ok() || count == 0 || count > body.size()) {
+      return std::nullopt;
+    }
+    for (std::uint64_t i = 0; i < count; ++i) {
+      PatchInfo info;
+      info.key.depth = in.get<std::uint8_t>();
+      info.key.x = in.get<std::uint32_t>();
+      info.key.y = in.get<std::uint32_t>();
+      info.folder = in.getString();
+      if (info.folder.empty()) {
+        info.folder = info.key.toString();
+      }
+      info.globalBox = in.getBox();
+      info.localBox = in.getBox();
+      if (in.get<std::uint8_t>() != 0) {
+        const Vec3d t{in.get<double>(), in.get<double>(), in.get<double>()};
+        info.local2global = Mat4d::translation(t);
+      } else {
+        for (double& v : info.local2global.m) {
+          v = in.get<double>();
+        }
+      }
+      info.resolution = in.get<double>();
+      info.version = in.get<std::uint64_t>();
+      info.stored.x0 = in.get<std::int32_t>();
+      info.stored.y0 = in.get<std::int32_t>();
+      info.stored.x1 = in.get<std::int32_t>();
+      info.stored.y1 = in.get<std::int32_t>();
+      info.positionsFile = in.getString();
+      if (info.positionsFile.empty()) {
+        info.positionsFile = kDefaultPositions;
+      }
+      info.coordinatesFile = in.getString();
+      info.textureFile = in.getString();
+      if (!in.ok() || info.key.depth > PatchKey::kMaxDepth) {
+        return std::nullopt;
+      }
+      read.model.insert(std::move(info));  // parents first: the index is in key order
+    }
+    if (!in.atEnd()) {
+      return std::nullopt;
+    }
+    return read;
+  } catch (const Error&) {
+    return std::nullopt;  // a key twice, a child without its parent: not an index we wrote
+  }
+}
+
+std::optional<OpcSummary> readOpcIndexSummary(const fs::path& dir) {
+  const auto patches = detail::findEntry(dir, "Patches");
+  const auto hierarchy = patches ? detail::findEntry(*patches, "patchhierarchy.xml") : std::nullopt;
+  if (!hierarchy) {
+    return std::nullopt;
+  }
+  try {
+    const HierarchyStamp stamp = fileStamp(*hierarchy);
+    // The header and the summary only: 64 levels at most, well within 8 KiB.
+    const std::vector<std::byte> bytes =
+        detail::readFile(*patches / indexFileName("patchhierarchy.xml"), 8192);
+    if (bytes.size() < sizeof(kMagic) || std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) != 0) {
+      return std::nullopt;
+    }
+    Decoder in{std::span<const std::byte>(bytes).subspan(sizeof(kMagic))};
+    if (in.get<std::uint32_t>() != kFormat || in.get<std::uint64_t>() != stamp.inode ||
+        in.get<std::uint64_t>() != stamp.size || in.get<std::int64_t>() != stamp.modifiedNs) {
+      return std::nullopt;
+    }
+    OpcSummary summary;
+    summary.gridSize = in.get<std::int32_t>();
+    summary.patches = in.get<std::uint64_t>();
+    summary.bounds = in.getBox();
+    const auto levels = in.get<std::uint32_t>();
+    if (!in.ok() || levels > 64) {
+      return std::nullopt;
+    }
+    for (std::uint32_t i = 0; i < levels; ++i) {
+      LevelSummary level;
+      level.depth = in.get<std::int32_t>();
+      level.patches = in.get<std::uint64_t>();
+      level.leaves = in.get<std::uint64_t>();
+      level.bounds = in.getBox();
+      level.resolution = in.get<double>();
+      summary.levels.push_back(level);
+    }
+    const std::size_t end = bytes.size() - in.remaining();
+    const auto sum = in.get<std::uint64_t>();
+    if (!in.ok() || checksum(std::span<const std::byte>(bytes).first(end)) != sum) {
+      return std::nullopt;
+    }
+    return summary;
+  } catch (const Error&) {
+    return std::nullopt;
+  }
+}
+
+std::optional<OpcRevision> readOpcIndex(const fs::path& dir, std::string_view hierarchyName) {
+  const auto patches = detail::findEntry(dir, "Patches");
+  if (!patches) {
+    return std::nullopt;
+  }
+  const auto hierarchy = detail::findEntry(*patches, hierarchyName);
+  const fs::path index = *patches / indexFileName(hierarchyName);
+  struct stat st {};
+  if (!hierarchy || ::stat(index.c_str(), &st) != 0) {
+    return std::nullopt;
+  }
+  try {
+    const HierarchyStamp stamp = fileStamp(*hierarchy);
+    return decodeOpcIndex(detail::readFile(index), stamp);
+  } catch (const Error&) {
+    return std::nullopt;  // unreadable: the full read says what is wrong, if anything
+  }
+}
+
+std::unique_ptr<durable::PendingFile> stageOpcIndex(const fs::path& dir,
+                                                    std::string_view hierarchyName,
+                                                    const fs::path& hierarchyFile,
+                                                    const Model& model,
+                                                    const RevisionRecord* record) {
+  const std::vector<std::byte> bytes = encodeOpcIndex(fileStamp(hierarchyFile), model, record);
+  return std::make_unique<durable::PendingFile>(patchesDirOf(dir) / indexFileName(hierarchyName),
+                                                bytes);
+}
+
+std::size_t writeOpcIndex(const fs::path& dir, std::string_view hierarchyName) {
+  const fs::path patches = patchesDirOf(dir);
+  const auto hierarchy = detail::findEntry(patches, hierarchyName);
+  if (!hierarchy) {
+    throw Error(ErrorCode::NotFound,
+                "no OPC at '" + dir.string() + "' (no Patches/" + std::string(hierarchyName) + ")");
+  }
+  const HierarchyStamp before = fileStamp(*hierarchy);
+  detail::OpcContents contents = detail::readOpc(dir, hierarchyName);
+  if (fileStamp(*hierarchy) != before) {
+    throw Error(ErrorCode::Conflict, hierarchy->string() + " changed while it was read");
+  }
+  const std::vector<std::byte> bytes =
+      encodeOpcIndex(before, contents.model, contents.revision ? &*contents.revision : nullptr);
+  durable::writeFileAtomically(patches / indexFileName(hierarchyName), bytes);
+  return contents.model.patchCount();
+}
+
+}  // namespace vsm::core
