@@ -4,8 +4,8 @@
 // lookups are in model_registry.cpp.
 #include "server/models/model_following.hpp"
 
-#include <chrono>
 #include <algorithm>
+#include <chrono>
 #include <exception>
 #include <memory>
 #include <mutex>
