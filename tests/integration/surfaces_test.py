@@ -12,7 +12,8 @@ ICP must find it back for the checks to hold (issue 33, item 6).
 
 Prints one line per surface and check (a refused merge fails every check of its surface) and a
 table; exit 0 only when every check of every surface holds. These are the checks issue 33's
-merge must pass; today's merge, which sees B as a height field along +z, fails most of them.
+merge must pass (the merge before issue 33, which saw B as a height field along +z, failed most
+of them).
 
 With --control, each surface's ideal merge result (surfaces.Surface.ideal_points: A's lattice
 refined 4x, on B's true surface over B, on A's elsewhere) is imported as one cloud and checked
