@@ -10,6 +10,7 @@
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
+#include "core/grid/vec_ops.hpp"
 #include "core/merge/merge.hpp"
 #include "core/merge/surface_sampler.hpp"  // Rect2d
 #include "core/opc/texture_file.hpp"
@@ -23,13 +24,9 @@ namespace {
 
 constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 
-double dot(const Vec3d& a, const Vec3d& b) {
-  return a.x * b.x + a.y * b.y + a.z * b.z;
-}
-
-Vec3d cross(const Vec3d& a, const Vec3d& b) {
-  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
+using vec::cross;
+using vec::dot;
+using vec::vertexNormal;
 
 /// The leaves of `model` whose global box meets `box`: a descent from the root through patches
 /// whose box meets it (a parent's box holds its children's).
@@ -79,35 +76,6 @@ std::vector<Vec3d> globalPositions(const PatchGrid& grid) {
     }
   }
   return out;
-}
-
-/// The unit normal of `grid` at vertex (x, y) at the scale of its spacing: the cross product of
-/// the central differences along x and y (one-sided at a border or beside an undefined vertex),
-/// on the side of the grid's winding times `sign`; NaN when either direction has no neighbour.
-template <class Grid>
-Vec3d vertexNormal(const Grid& grid, int x, int y, double sign) {
-  const int s = grid.size();
-  const auto along = [&](int dx, int dy) -> Vec3d {
-    const int x0 = x - dx, y0 = y - dy, x1 = x + dx, y1 = y + dy;
-    const bool lo = x0 >= 0 && y0 >= 0 && grid.defined(x0, y0);
-    const bool hi = x1 < s && y1 < s && grid.defined(x1, y1);
-    if (lo && hi) {
-      return grid.global(x1, y1) - grid.global(x0, y0);
-    }
-    if (hi) {
-      return grid.global(x1, y1) - grid.global(x, y);
-    }
-    if (lo) {
-      return grid.global(x, y) - grid.global(x0, y0);
-    }
-    return {kNaN, kNaN, kNaN};
-  };
-  const Vec3d n = cross(along(1, 0), along(0, 1));
-  const double length = n.norm();
-  if (!(length > 0)) {
-    return {kNaN, kNaN, kNaN};
-  }
-  return n * (sign / length);
 }
 
 /// The corners of cell (x, y) of `grid` that are defined, in winding order ((x, y), (x+1, y),

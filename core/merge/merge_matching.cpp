@@ -9,6 +9,7 @@
 #include <vector>
 
 #include "core/common/error.hpp"
+#include "core/grid/vec_ops.hpp"
 #include "core/merge/merge_stages.hpp"
 #include "core/merge/surface_caster.hpp"
 
@@ -171,35 +172,19 @@ void checkBorderOnTarget(MergeTarget& target, PatchSource& detail, const MergePl
       for (const std::size_t a : aOfB[i]) {
         search = std::max(search, aLeaves[a].search);
       }
-      // B's normal at (x, y): differences to its neighbours in the grid (one-sided on its sides
-      // and next to holes); nullopt where there are none.
+      // B's normal at (x, y): vec::vertexNormal of the grid as the merge sees it (transformed).
+      struct Transformed {
+        const PatchGrid& grid;
+        const std::function<Vec3d(int, int)>& at;
+        int size() const { return grid.size(); }
+        bool defined(int x, int y) const { return grid.defined(x, y); }
+        Vec3d global(int x, int y) const { return at(x, y); }
+      };
+      const std::function<Vec3d(int, int)> global = at;
+      const Transformed view{*grid, global};
       auto normalAt = [&](int x, int y) -> std::optional<Vec3d> {
-        auto difference = [&](int x0, int y0, int x1, int y1) -> std::optional<Vec3d> {
-          const bool before = x0 >= 0 && y0 >= 0 && grid->defined(x0, y0);
-          const bool after = x1 < s && y1 < s && grid->defined(x1, y1);
-          if (before && after) {
-            return at(x1, y1) - at(x0, y0);
-          }
-          if (after) {
-            return at(x1, y1) - at(x, y);
-          }
-          if (before) {
-            return at(x, y) - at(x0, y0);
-          }
-          return std::nullopt;
-        };
-        const std::optional<Vec3d> du = difference(x - 1, y, x + 1, y);
-        const std::optional<Vec3d> dv = difference(x, y - 1, x, y + 1);
-        if (!du || !dv) {
-          return std::nullopt;
-        }
-        const Vec3d n{du->y * dv->z - du->z * dv->y, du->z * dv->x - du->x * dv->z,
-                      du->x * dv->y - du->y * dv->x};
-        const double length = n.norm();
-        if (!(length > 0)) {
-          return std::nullopt;
-        }
-        return n * (1 / length);
+        const Vec3d n = vec::vertexNormal(view, x, y);
+        return n.finite() ? std::optional<Vec3d>(n) : std::nullopt;
       };
       // The leaf's mean normal, for the vertices whose own normal is no guide: at the foot of a
       // groove or on a rough scan a border vertex's normal may run along A instead of across it.

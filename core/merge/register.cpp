@@ -26,6 +26,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
+#include "core/grid/vec_ops.hpp"
 #include "core/merge/merge.hpp"
 #include "core/merge/surface_caster.hpp"
 
@@ -89,17 +90,17 @@ int closestDepth(const std::vector<double>& resolutions, double resolution) {
 
 /// A grid's vertices in global coordinates, each transformed once (a normal needs up to five).
 struct GlobalGrid {
-  int size = 0;
+  int side = 0;
   std::vector<Vec3d> points;        // row by row; meaningful where defined
   std::vector<std::uint8_t> valid;  // 1 where defined
 
   /// Takes `g`'s vertices (reusing the buffers: one GlobalGrid serves a model's grids in turn).
   void assign(const PatchGrid& g) {
-    size = g.size();
-    points.resize(static_cast<std::size_t>(size) * size);
-    valid.assign(static_cast<std::size_t>(size) * size, 0);
-    for (int y = 0; y < size; ++y) {
-      for (int x = 0; x < size; ++x) {
+    side = g.size();
+    points.resize(static_cast<std::size_t>(side) * side);
+    valid.assign(static_cast<std::size_t>(side) * side, 0);
+    for (int y = 0; y < side; ++y) {
+      for (int x = 0; x < side; ++x) {
         if (g.defined(x, y)) {
           points[index(x, y)] = g.global(x, y);
           valid[index(x, y)] = 1;
@@ -107,46 +108,23 @@ struct GlobalGrid {
       }
     }
   }
-  std::size_t index(int x, int y) const { return static_cast<std::size_t>(y) * size + x; }
+  std::size_t index(int x, int y) const { return static_cast<std::size_t>(y) * side + x; }
   bool defined(int x, int y) const {
-    return x >= 0 && y >= 0 && x < size && y < size && valid[index(x, y)] != 0;
+    return x >= 0 && y >= 0 && x < side && y < side && valid[index(x, y)] != 0;
   }
   const Vec3d& at(int x, int y) const { return points[index(x, y)]; }
+  const Vec3d& global(int x, int y) const { return at(x, y); }
+  int size() const { return side; }
 };
 
-/// A grid vertex's normal from its neighbours (central differences, one-sided at borders and
-/// holes), oriented along `up`; nullopt when the neighbourhood is too sparse.
+/// A grid vertex's normal (vec::vertexNormal), oriented along `up`; nullopt when the
+/// neighbourhood is too sparse.
 std::optional<Vec3d> normalAt(const GlobalGrid& g, int x, int y, const Vec3d& up) {
-  auto diff = [&](int x0, int y0, int x1, int y1) -> std::optional<Vec3d> {
-    const bool d0 = g.defined(x0, y0);
-    const bool d1 = g.defined(x1, y1);
-    if (d0 && d1) {
-      return g.at(x1, y1) - g.at(x0, y0);
-    }
-    if (d1) {
-      return g.at(x1, y1) - g.at(x, y);
-    }
-    if (d0) {
-      return g.at(x, y) - g.at(x0, y0);
-    }
-    return std::nullopt;
-  };
-  const auto du = diff(x - 1, y, x + 1, y);
-  const auto dv = diff(x, y - 1, x, y + 1);
-  if (!du || !dv) {
+  const Vec3d n = vec::vertexNormal(g, x, y);
+  if (!n.finite()) {
     return std::nullopt;
   }
-  Vec3d n{du->y * dv->z - du->z * dv->y, du->z * dv->x - du->x * dv->z,
-          du->x * dv->y - du->y * dv->x};
-  const double len = n.norm();
-  if (!(len > 0)) {
-    return std::nullopt;
-  }
-  n = n * (1.0 / len);
-  if (n.x * up.x + n.y * up.y + n.z * up.z < 0) {
-    n = n * -1.0;
-  }
-  return n;
+  return vec::dot(n, up) < 0 ? n * -1.0 : n;
 }
 
 struct Cloud {
@@ -166,8 +144,8 @@ Cloud cloudOf(const Grids& grids, const Vec3d& up, const Keep& keep) {
       if (g.valid[i] == 0) {
         continue;
       }
-      const int x = static_cast<int>(i % static_cast<std::size_t>(g.size));
-      const int y = static_cast<int>(i / static_cast<std::size_t>(g.size));
+      const int x = static_cast<int>(i % static_cast<std::size_t>(g.side));
+      const int y = static_cast<int>(i / static_cast<std::size_t>(g.side));
       if (const auto n = normalAt(g, x, y, up); n && keep(g.points[i], *n)) {
         cloud.points.push_back(g.points[i]);
         cloud.normals.push_back(*n);
