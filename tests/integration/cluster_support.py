@@ -6,7 +6,7 @@ deploy/local-cluster.sh (real etcd, three vsmd nodes over one data root, real ng
     ...
     cluster.down()
 
-Used by cluster_test.py and nemesis_test.py.
+Used by cluster_test.py and the nemesis (nemesis_cluster.py and the other nemesis_*.py).
 """
 
 import base64
