@@ -11,8 +11,9 @@ against the surface's closed form (surfaces.py: coords, f_A, f_B), never against
   projected onto a horizontal plane (which would be about half of it on a wall); revision 1 (A)
   says A's; the bounds are the wall's (16 x 16 m, upright, a bump's depth thick).
 - GET /v1/models/{m}/hierarchy: every leaf over B is at A's depth + k (2^k >= A's spacing / B's),
-  and some of A's leaves away from B are left at A's depth; GET /v1/models/{m}/lod?box=(around the bump's top)&resolution=(B's spacing) ends in a
-  leaf of that depth holding the bump's top, and at a coarse resolution stops above it.
+  and some of A's leaves away from B are left at A's depth; GET /v1/models/{m}/lod?box=(around
+  the bump's top)&resolution=(B's spacing) ends in a leaf of that depth holding the bump's top,
+  and at A's spacing stops at A's depth.
 - GET /v1/models/{m}/patches/{p}/positions of every leaf over B (.aara, X-VSM-Local2Global): each
   vertex over B (shrunk by one A sample) lies within 1 cm of B's true surface along the normal,
   each comes from a leaf of the new finest depth, and the bump's highest vertex reads at least
