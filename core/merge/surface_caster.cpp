@@ -124,8 +124,9 @@ struct SurfaceCaster::Impl {
   float tSlack = 0;
   std::vector<Vec3d> vertices;  // global (transformed) double positions of the cells' corners
   std::vector<Cell> cells;      // in grid order
-  std::vector<std::uint32_t> triangleCell;  // per Embree triangle (primID), its cell
-  std::size_t surfaceTriangles = 0;         // the cells' (the rest are skirts)
+  std::vector<std::uint32_t> quadCell;  // per Embree quad (primID), its cell
+  std::size_t surfaceTriangles = 0;     // the cells' (a full cell's two, a 3-corner cell's one)
+  std::size_t triangles = 0;            // the cells' and the skirts'
   // Seams between B's grids: per vertex on a grid's border that coincides (within rounding) with
   // a vertex of another grid, its group (index into seamCells, else kNone), and per group the
   // cells with a corner in it.
@@ -522,39 +523,40 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
 
   // The float geometry's origin: the clip's centre (a patch-local origin), else B's.
   m.origin = clip && !clip->box.empty() ? clip->box.center() : m.bounds.center();
-  // Triangles: a full cell along its shorter diagonal in 3D, a 3-corner cell as one.
-  std::vector<std::array<std::uint32_t, 3>> triangles;
-  triangles.reserve(2 * m.cells.size());
-  m.triangleCell.reserve(2 * m.cells.size());
+  // One Embree quad per cell: half the primitives of two triangles, so the hierarchy builds in
+  // about 0.6 of the time (tests/bench/caster_bench.sh). Embree splits a quad (v0, v1, v2, v3)
+  // into the triangles (v0, v1, v3) and (v2, v3, v1), along v1-v3: a full cell is given so that
+  // this is its shorter diagonal in 3D; a 3-corner cell is its triangle with the last corner
+  // repeated (Embree's encoding of a triangle: the second one is a line, never hit).
+  std::vector<std::array<std::uint32_t, 4>> quads;
+  quads.reserve(m.cells.size());
+  m.quadCell.reserve(m.cells.size());
   for (std::size_t c = 0; c < m.cells.size(); ++c) {
     const auto& k = m.cells[c].corners;
-    const auto cellIndex = static_cast<std::uint32_t>(c);
     if (k[0] != kNone && k[1] != kNone && k[2] != kNone && k[3] != kNone) {
       const double d02 = (m.vertices[k[2]] - m.vertices[k[0]]).norm();
       const double d13 = (m.vertices[k[3]] - m.vertices[k[1]]).norm();
       if (d02 <= d13) {
-        triangles.push_back({k[0], k[1], k[2]});
-        triangles.push_back({k[0], k[2], k[3]});
+        quads.push_back({k[1], k[2], k[3], k[0]});
       } else {
-        triangles.push_back({k[0], k[1], k[3]});
-        triangles.push_back({k[1], k[2], k[3]});
+        quads.push_back({k[0], k[1], k[2], k[3]});
       }
-      m.triangleCell.push_back(cellIndex);
-      m.triangleCell.push_back(cellIndex);
+      m.surfaceTriangles += 2;
     } else {
-      std::array<std::uint32_t, 3> t{};
+      std::array<std::uint32_t, 4> t{};
       int n = 0;
       for (const std::uint32_t v : k) {
         if (v != kNone) {
           t[n++] = v;
         }
       }
-      triangles.push_back(t);
-      m.triangleCell.push_back(cellIndex);
+      t[3] = t[2];
+      quads.push_back(t);
+      m.surfaceTriangles += 1;
     }
+    m.quadCell.push_back(static_cast<std::uint32_t>(c));
   }
-
-  m.surfaceTriangles = triangles.size();
+  m.triangles = m.surfaceTriangles;
   // Skirts: every edge of a cell on B's border (no cell across it in its grid, and not a welded
   // seam) gets a strip of two triangles outside it, owned by the cell, so that a ray within
   // kBorderTolerance of the cell (SurfaceSampler's measure: the parameter clamped onto a full
@@ -577,10 +579,9 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
       const auto ea = vertexCount + static_cast<std::uint32_t>(skirt.size());
       skirt.push_back(pa + awayA * width);
       skirt.push_back(pb + awayB * width);
-      triangles.push_back({a, b, ea + 1});
-      triangles.push_back({a, ea + 1, ea});
-      m.triangleCell.push_back(cellIndex);
-      m.triangleCell.push_back(cellIndex);
+      quads.push_back({b, a, ea, ea + 1});  // the triangles (b, a, ea + 1) and (ea, ea + 1, a)
+      m.quadCell.push_back(cellIndex);
+      m.triangles += 2;
     };
     for (std::size_t c = 0; c < m.cells.size(); ++c) {
       const Impl::Cell& cell = m.cells[c];
@@ -628,13 +629,13 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   }
 
   const RTCDevice dev = device();
-  RTCGeometry geometry = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
+  RTCGeometry geometry = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_QUAD);
   auto* vertexBuffer = static_cast<float*>(
       rtcSetNewGeometryBuffer(geometry, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
                               3 * sizeof(float), m.vertices.size() + skirt.size()));
   auto* indexBuffer = static_cast<unsigned*>(
-      rtcSetNewGeometryBuffer(geometry, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
-                              3 * sizeof(unsigned), triangles.size()));
+      rtcSetNewGeometryBuffer(geometry, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT4,
+                              4 * sizeof(unsigned), quads.size()));
   if (vertexBuffer == nullptr || indexBuffer == nullptr) {
     rtcReleaseGeometry(geometry);
     checkEmbree("allocating the geometry");
@@ -655,10 +656,10 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     f[1] = static_cast<float>(p.y);
     f[2] = static_cast<float>(p.z);
   }
-  for (std::size_t t = 0; t < triangles.size(); ++t) {
-    for (int k = 0; k < 3; ++k) {
-      const std::uint32_t v = triangles[t][k];
-      indexBuffer[3 * t + k] = v < vertexCount ? weld[v] : v;
+  for (std::size_t q = 0; q < quads.size(); ++q) {
+    for (int k = 0; k < 4; ++k) {
+      const std::uint32_t v = quads[q][k];
+      indexBuffer[4 * q + k] = v < vertexCount ? weld[v] : v;
     }
   }
   m.tSlack = static_cast<float>(largest * 0x1p-16);
@@ -692,13 +693,13 @@ std::size_t SurfaceCaster::bytes() const {
   const Impl& m = *impl_;
   std::size_t own = m.vertices.capacity() * sizeof(Vec3d) +
                     m.cells.capacity() * sizeof(Impl::Cell) +
-                    m.triangleCell.capacity() * sizeof(std::uint32_t);
+                    m.quadCell.capacity() * sizeof(std::uint32_t);
   for (const Impl::GridCells& g : m.gridCells) {
     own += g.index.capacity() * sizeof(std::uint32_t);
   }
   // Embree's float vertices and indices, and its hierarchy (measured by caster_bench: about
   // 100 bytes per triangle with the vertex and index buffers).
-  return own + m.triangleCell.size() * 100;
+  return own + m.triangles * 100;
 }
 
 std::optional<CastHit> SurfaceCaster::cast(const CastRay& ray) const {
@@ -772,7 +773,7 @@ void SurfaceCaster::cast(std::span<const CastRay> rays, std::span<std::optional<
       const CastRay& ray = rays[first + i];
       for (int attempt = 0; attempt < 4 && rh.hit.geomID != RTC_INVALID_GEOMETRY_ID; ++attempt) {
         if (std::optional<CastHit> hit =
-                m.resolve(m.triangleCell[rh.hit.primID], line, ray.tmin, ray.tmax)) {
+                m.resolve(m.quadCell[rh.hit.primID], line, ray.tmin, ray.tmax)) {
           return hit;
         }
         rh.ray.tnear = rh.ray.tfar + m.tSlack;  // past the rejected hit
