@@ -19,6 +19,32 @@ namespace {
 
 constexpr int kMaxNewLevels = 16;
 
+/// The Balls of `grid`'s blocks of SurfaceCaster::kBlockCells cells (the blocks blockBoxes()
+/// describes, in its order): of each block's defined vertices, in global coordinates (after
+/// `transform`). Empty for a block without any.
+std::vector<Ball> blockBalls(const PatchGrid& grid, const std::optional<Mat4d>& transform) {
+  constexpr int kCells = SurfaceCaster::kBlockCells;
+  const int s = grid.size();
+  const int perSide = (s - 1 + kCells - 1) / kCells;
+  std::vector<Ball> balls;
+  balls.reserve(static_cast<std::size_t>(perSide) * perSide);
+  std::vector<Vec3d> points;
+  for (int by = 0; by < perSide; ++by) {
+    for (int bx = 0; bx < perSide; ++bx) {
+      points.clear();
+      for (int y = by * kCells; y <= std::min((by + 1) * kCells, s - 1); ++y) {
+        for (int x = bx * kCells; x <= std::min((bx + 1) * kCells, s - 1); ++x) {
+          if (grid.defined(x, y)) {
+            points.push_back(transform ? transform->apply(grid.global(x, y)) : grid.global(x, y));
+          }
+        }
+      }
+      balls.push_back(ballOf(points));
+    }
+  }
+  return balls;
+}
+
 /// A new vertex looks for B's surface this many of its target leaf's spacings either way along
 /// its normal, and at least kSearchDetailSpacings of B's finest spacing: B's features and
 /// changes (a bump, a rockfall's cavity, a registration offset) may lie farther from A's surface
@@ -279,7 +305,7 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
   for (const PatchKey& key : b.leaves()) {
     const Box3d box = transformed(b.at(key).globalBox, options.transform);
     if (!box.empty()) {
-      bLeaves.push_back({key, box, false, {}, 0, {}});
+      bLeaves.push_back({key, box, false, {}, 0, {}, {}});
       bReach = std::max(bReach, diagonal(box));
     }
   }
@@ -347,6 +373,7 @@ MergePlan matchLeaves(MergeTarget& target, PatchSource& detail, const MergeOptio
           leaf.ball = ballOf(*grid, options.transform);
           leaf.spacing = gridSpacing(*grid, options.transform).mean;
           leaf.blocks = SurfaceCaster::blockBoxes(*grid, options.transform);
+          leaf.blockBalls = blockBalls(*grid, options.transform);
           leaf.read = true;
         });
       }

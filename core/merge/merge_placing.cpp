@@ -164,6 +164,48 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
     }
     return near;
   };
+  // Whether a ray of new patch (level, i, j), or of a patch below it, can meet B: a block of a B
+  // leaf near it (its Ball) within reach of the rays. A ray leaves a vertex of the patch (inside
+  // its Ball) along a normal inside the patch's normal cone, for at most `search`: it stays within
+  // `search` of the Ball along the cone's axis and within `search` times the cone's sine across
+  // it. On terrain that is a thin slab, so the new levels stay over B and do not spread `search`
+  // sideways, as a test of Balls alone would make them (render-lod and terrain measure it).
+  // Where the cone is unknown (holes) or too wide, any direction. A hit may lie a border
+  // tolerance outside B's cells: one B spacing is allowed for it. A function of the surfaces (no
+  // axis of the scene), as matching's decisions are.
+  constexpr double kConeMargin = 10 * M_PI / 180;
+  constexpr int kParts = 8;  // the patch's vertices in up to 8 x 8 Balls
+  auto reaches = [&](int level, std::uint32_t i, std::uint32_t j) {
+    const std::vector<std::size_t> near = detailNear(subdivider->ball(level, i, j));
+    if (near.empty()) {
+      return false;
+    }
+    const std::optional<Subdivider::Cone> cone =
+        subdivider->normalCone(level, i, j, kConeMargin);
+    for (const Ball& part : subdivider->balls(level, i, j, kParts)) {
+      for (const std::size_t b : near) {
+        for (const Ball& block : bLeaves[b].blockBalls) {
+          if (block.empty()) {
+            continue;
+          }
+          const double slack = part.radius + block.radius + bLeaves[b].spacing;
+          const Vec3d d = block.centre - part.centre;
+          if (!cone) {
+            if (d.norm() <= search + slack) {
+              return true;
+            }
+            continue;
+          }
+          const double along = d.x * cone->axis.x + d.y * cone->axis.y + d.z * cone->axis.z;
+          const double across = (d - cone->axis * along).norm();
+          if (std::fabs(along) <= search + slack && across <= search * cone->sine + slack) {
+            return true;
+          }
+        }
+      }
+    }
+    return false;
+  };
   const std::shared_ptr<const TextureTile> aTexture = textureOf(target, match.target);
   const PatchKey& top = match.target;
 
@@ -181,7 +223,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
   std::function<void(int, std::uint32_t, std::uint32_t)> plan = [&](int level, std::uint32_t i,
                                                                     std::uint32_t j) {
     const Ball ball = subdivider->ball(level, i, j);
-    if (level == k || detailNear(ball).empty()) {
+    if (level == k || !reaches(level, i, j)) {
       leaves.push_back({level, i, j, ball});
       return;
     }
@@ -192,7 +234,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
   };
   if (k == 0) {
     plan(0, 0, 0);  // resampled in place
-  } else {
+  } else if (reaches(0, 0, 0)) {
     for (const Quadrant q : kQuadrants) {
       const auto qi = static_cast<std::uint32_t>(q);
       plan(1, qi & 1, qi >> 1);

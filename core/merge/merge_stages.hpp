@@ -21,11 +21,13 @@ struct DetailLeaf {
   /// Its box in global coordinates (after MergeOptions::transform), from B's metadata.
   Box3d box;
   /// Read from its grid for the leaves near A only (`read`): its Ball, its spacing on the
-  /// surface, and its SurfaceCaster::blockBoxes.
+  /// surface, its SurfaceCaster::blockBoxes, and the Balls of the same blocks (placing refines a
+  /// new patch only where one of these is within reach of its rays).
   bool read = false;
   Ball ball;
   double spacing = 0;
   std::vector<Box3d> blocks;
+  std::vector<Ball> blockBalls;
 };
 
 /// A bottom patch of the target that B's surface meets.

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <optional>
 #include <string>
 
 #include "core/common/error.hpp"
@@ -244,6 +245,116 @@ std::vector<Vec3d> Subdivider::around(int level, std::uint32_t i, std::uint32_t 
 
 Ball Subdivider::ball(int level, std::uint32_t i, std::uint32_t j) const {
   return ballOf(around(level, i, j));
+}
+
+std::vector<Ball> Subdivider::balls(int level, std::uint32_t i, std::uint32_t j, int parts) const {
+  if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0 || parts < 1) {
+    throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
+  }
+  // The cells around the patch, as around() finds them.
+  const std::int64_t cells = size_ - 1;
+  const std::int64_t scale = std::int64_t{1} << (k_ - level);
+  const std::int64_t unit = std::int64_t{1} << k_;
+  auto range = [&](std::uint32_t index, std::int64_t& lo, std::int64_t& hi) {
+    const std::int64_t u0 = static_cast<std::int64_t>(index) * cells * scale;
+    const std::int64_t u1 = u0 + cells * scale;
+    lo = u0 / unit;
+    hi = std::min<std::int64_t>((u1 + unit - 1) / unit, cells);
+  };
+  std::int64_t x0, x1, y0, y1;
+  range(i, x0, x1);
+  range(j, y0, y1);
+  const std::int64_t nx = std::min<std::int64_t>(parts, std::max<std::int64_t>(x1 - x0, 1));
+  const std::int64_t ny = std::min<std::int64_t>(parts, std::max<std::int64_t>(y1 - y0, 1));
+  std::vector<Ball> result;
+  std::vector<Vec3d> points;
+  for (std::int64_t gy = 0; gy < ny; ++gy) {
+    for (std::int64_t gx = 0; gx < nx; ++gx) {
+      points.clear();
+      const std::int64_t ya = y0 + (y1 - y0) * gy / ny, yb = y0 + (y1 - y0) * (gy + 1) / ny;
+      const std::int64_t xa = x0 + (x1 - x0) * gx / nx, xb = x0 + (x1 - x0) * (gx + 1) / nx;
+      for (std::int64_t y = ya; y <= yb; ++y) {
+        for (std::int64_t x = xa; x <= xb; ++x) {
+          const Vec3d& p =
+              global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
+          if (p.finite()) {
+            points.push_back(p);
+          }
+        }
+      }
+      if (const Ball b = ballOf(points); !b.empty()) {
+        result.push_back(b);
+      }
+    }
+  }
+  return result;
+}
+
+std::optional<Subdivider::Cone> Subdivider::normalCone(int level, std::uint32_t i,
+                                                       std::uint32_t j, double margin) const {
+  if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
+    throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
+  }
+  // a's cells under the patch (as around()), and one more on every side.
+  const std::int64_t cells = size_ - 1;
+  const std::int64_t scale = std::int64_t{1} << (k_ - level);
+  const std::int64_t unit = std::int64_t{1} << k_;
+  auto range = [&](std::uint32_t index, std::int64_t& lo, std::int64_t& hi) {
+    const std::int64_t u0 = static_cast<std::int64_t>(index) * cells * scale;
+    const std::int64_t u1 = u0 + cells * scale;
+    lo = std::max<std::int64_t>(u0 / unit - 1, 0);
+    hi = std::min<std::int64_t>((u1 + unit - 1) / unit + 1, cells);  // cells [lo, hi)
+  };
+  std::int64_t x0, x1, y0, y1;
+  range(i, x0, x1);
+  range(j, y0, y1);
+  auto at = [&](std::int64_t x, std::int64_t y) -> const Vec3d& {
+    return global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
+  };
+  auto cross = [](const Vec3d& a, const Vec3d& b) {
+    return Vec3d{a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+  };
+  std::vector<Vec3d> normals;
+  normals.reserve(static_cast<std::size_t>(4 * (x1 - x0) * (y1 - y0)));
+  Vec3d sum;
+  for (std::int64_t y = y0; y < y1; ++y) {
+    for (std::int64_t x = x0; x < x1; ++x) {
+      const Vec3d& p00 = at(x, y);
+      const Vec3d& p10 = at(x + 1, y);
+      const Vec3d& p01 = at(x, y + 1);
+      const Vec3d& p11 = at(x + 1, y + 1);
+      if (!p00.finite() || !p10.finite() || !p01.finite() || !p11.finite()) {
+        return std::nullopt;
+      }
+      const Vec3d u[2] = {p10 - p00, p11 - p01};
+      const Vec3d v[2] = {p01 - p00, p11 - p10};
+      for (const Vec3d& eu : u) {
+        for (const Vec3d& ev : v) {
+          const Vec3d n = cross(eu, ev);
+          const double length = n.norm();
+          if (!(length > 0) || !std::isfinite(length)) {
+            return std::nullopt;
+          }
+          normals.push_back(n * (1.0 / length));
+          sum = sum + normals.back();
+        }
+      }
+    }
+  }
+  const double length = sum.norm();
+  if (normals.empty() || !(length > 0)) {
+    return std::nullopt;
+  }
+  const Vec3d axis = sum * (1.0 / length);
+  double cosine = 1;
+  for (const Vec3d& n : normals) {
+    cosine = std::min(cosine, n.x * axis.x + n.y * axis.y + n.z * axis.z);
+  }
+  const double angle = std::acos(std::clamp(cosine, -1.0, 1.0)) + margin;
+  if (!(angle < M_PI / 2)) {
+    return std::nullopt;
+  }
+  return Cone{axis, std::sin(angle)};
 }
 
 Box3d Subdivider::box(int level, std::uint32_t i, std::uint32_t j) const {

@@ -82,6 +82,24 @@ class Subdivider {
   /// covers: every position interpolated there lies inside both.
   Ball ball(int level, std::uint32_t i, std::uint32_t j) const;
   Box3d box(int level, std::uint32_t i, std::uint32_t j) const;
+  /// The same vertices split into up to `parts` x `parts` groups of neighbouring cells (sharing
+  /// their border vertices), a Ball each (empty ones left out): tighter than ball() for a large
+  /// patch.
+  std::vector<Ball> balls(int level, std::uint32_t i, std::uint32_t j, int parts) const;
+
+  /// A cone holding every normal() of patch (i, j) of `level`: the unit axis and the sine of its
+  /// half-angle. The normal of a bilinear cell anywhere in it lies in the convex cone of its four
+  /// corners' cross products (its edge vectors crossed), and a normal() on a border between cells
+  /// crosses edges of the cells meeting there, so the cone of the cells around the patch's (one
+  /// more cell on every side) holds them, and `margin` radians more cover the ring from the
+  /// neighbouring leaves. Empty (nullopt) where a cell there has an undefined corner or the cone
+  /// reaches 90 degrees: a ray's direction is then anything.
+  struct Cone {
+    Vec3d axis;
+    double sine = 0;
+  };
+  std::optional<Cone> normalCone(int level, std::uint32_t i, std::uint32_t j,
+                                 double margin) const;
 
  private:
   /// at(u, v) for each union vertex of patch (i, j) of `level`, row-major.
