@@ -180,8 +180,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
     if (near.empty()) {
       return false;
     }
-    const std::optional<Subdivider::Cone> cone =
-        subdivider->normalCone(level, i, j, kConeMargin);
+    const std::optional<Subdivider::Cone> cone = subdivider->normalCone(level, i, j, kConeMargin);
     for (const Ball& part : subdivider->balls(level, i, j, kParts)) {
       for (const std::size_t b : near) {
         for (const Ball& block : bLeaves[b].blockBalls) {

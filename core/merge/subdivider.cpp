@@ -290,8 +290,8 @@ std::vector<Ball> Subdivider::balls(int level, std::uint32_t i, std::uint32_t j,
   return result;
 }
 
-std::optional<Subdivider::Cone> Subdivider::normalCone(int level, std::uint32_t i,
-                                                       std::uint32_t j, double margin) const {
+std::optional<Subdivider::Cone> Subdivider::normalCone(int level, std::uint32_t i, std::uint32_t j,
+                                                       double margin) const {
   if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
     throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
   }

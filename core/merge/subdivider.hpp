@@ -98,8 +98,7 @@ class Subdivider {
     Vec3d axis;
     double sine = 0;
   };
-  std::optional<Cone> normalCone(int level, std::uint32_t i, std::uint32_t j,
-                                 double margin) const;
+  std::optional<Cone> normalCone(int level, std::uint32_t i, std::uint32_t j, double margin) const;
 
  private:
   /// at(u, v) for each union vertex of patch (i, j) of `level`, row-major.

@@ -633,9 +633,8 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   auto* vertexBuffer = static_cast<float*>(
       rtcSetNewGeometryBuffer(geometry, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
                               3 * sizeof(float), m.vertices.size() + skirt.size()));
-  auto* indexBuffer = static_cast<unsigned*>(
-      rtcSetNewGeometryBuffer(geometry, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT4,
-                              4 * sizeof(unsigned), quads.size()));
+  auto* indexBuffer = static_cast<unsigned*>(rtcSetNewGeometryBuffer(
+      geometry, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT4, 4 * sizeof(unsigned), quads.size()));
   if (vertexBuffer == nullptr || indexBuffer == nullptr) {
     rtcReleaseGeometry(geometry);
     checkEmbree("allocating the geometry");
