@@ -41,6 +41,7 @@
 #include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
 #include "server/models/patch_data.hpp"
+#include "tests/unit/test_support.hpp"
 
 namespace fs = std::filesystem;
 
@@ -49,22 +50,12 @@ namespace {
 
 using core::Error;
 using core::ErrorCode;
+using core::test::codeOf;
 using nlohmann::json;
 using namespace std::chrono_literals;
 
 constexpr int kSize = 17;  // 2^4 + 1
 constexpr std::size_t kMiB = 1024 * 1024;
-
-template <typename F>
-ErrorCode codeOf(F&& f) {
-  try {
-    f();
-  } catch (const Error& e) {
-    return e.code();
-  }
-  ADD_FAILURE() << "no core::Error thrown";
-  return ErrorCode::Internal;
-}
 
 /// Leaf (x, y) at depth 2 of a 4x4 bottom level on a 1 m lattice; leaf (3, 3) is left out.
 std::shared_ptr<core::PatchGrid> leafGrid(std::uint32_t x, std::uint32_t y) {
