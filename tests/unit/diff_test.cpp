@@ -8,6 +8,7 @@
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
+#include "core/diff/diff_picture.hpp"
 #include "core/diff/revision_diff.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/store/live_model.hpp"
