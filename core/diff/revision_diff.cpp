@@ -2,18 +2,15 @@
 
 #include <algorithm>
 #include <cmath>
-#include <cstdio>
 #include <limits>
 #include <map>
 #include <tuple>
 
-#include <nlohmann/json.hpp>
-
 #include "core/common/error.hpp"
+#include "core/diff/draw_leaf.hpp"
 #include "core/grid/vec_ops.hpp"
 #include "core/merge/merge.hpp"
 #include "core/merge/surface_sampler.hpp"  // Rect2d
-#include "core/opc/texture_file.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
 #include "core/tiles/lod_render.hpp"
@@ -600,158 +597,305 @@ struct Work {
   bool onFrom = false;
 };
 
-/// Fills the cells of `grid` whose corners all have a displacement into `map`, interpolated
-/// linearly over each cell's two triangles (a 3-corner cell: its triangle).
-void drawLeaf(const PatchGrid& grid, const std::vector<double>& d, DisplacementMap& map) {
+/// Throws Error(InvalidArgument) unless `from` (a) and `to` (b) can be compared with `options`.
+void checkComparable(const Model& a, const Model& b, const DiffOptions& options) {
+  if (a.empty() || b.empty()) {
+    throw Error(ErrorCode::InvalidArgument, "diff: a revision is empty");
+  }
+  if (a.gridSize() != b.gridSize()) {
+    throw Error(ErrorCode::InvalidArgument, "diff: the revisions have different grid sizes");
+  }
+  if (!(options.epsilon >= 0)) {
+    throw Error(ErrorCode::InvalidArgument, "diff: epsilon must be >= 0");
+  }
+  if (!(options.registrationError >= 0) || !std::isfinite(options.registrationError)) {
+    throw Error(ErrorCode::InvalidArgument, "diff: the registration error must be >= 0 metres");
+  }
+  if (!(options.searchDistance >= 0) || !std::isfinite(options.searchDistance)) {
+    throw Error(ErrorCode::InvalidArgument, "diff: the search distance must be >= 0 metres");
+  }
+  if (options.mapSize < 0 || options.mapSize > 16384) {
+    throw Error(ErrorCode::InvalidArgument, "diff: the map size must be 0..16384 pixels");
+  }
+}
+
+/// What changed from `from` (a) to `to` (b), from the metadata alone.
+struct Changes {
+  /// The changed and removed patches by key, their statistics still empty.
+  std::map<PatchKey, PatchDisplacement> patches;
+  /// The leaves to sample, shallow to deep.
+  std::vector<Work> work;
+  /// Patches of `to` shared with `from` (same key and version).
+  std::size_t shared = 0;
+};
+
+Changes findChanges(const Model& a, const Model& b) {
+  Changes out;
+  for (const auto& [key, info] : b.patches()) {
+    const PatchInfo* old = a.find(key);
+    if (old != nullptr && old->version == info.version) {
+      ++out.shared;
+      continue;
+    }
+    out.patches[key] = {key, info.globalBox, false, info.isLeaf(), {}};
+    if (info.isLeaf()) {
+      out.work.push_back({key, false, old != nullptr && old->isLeaf()});
+    }
+  }
+  for (const auto& [key, info] : a.patches()) {
+    if (b.find(key) == nullptr) {
+      out.patches[key] = {key, info.globalBox, true, info.isLeaf(), {}};
+      if (info.isLeaf()) {
+        out.work.push_back({key, true, true});
+      }
+    }
+  }
+  // Shallow to deep: where both revisions' leaves overlap on the map, the finer one is drawn last.
+  std::stable_sort(out.work.begin(), out.work.end(), [](const Work& x, const Work& y) {
+    return x.key.depth != y.key.depth ? x.key.depth < y.key.depth : x.key < y.key;
+  });
+  return out;
+}
+
+/// n's side, the model's front (outside): one sign for the whole model, never per patch or per
+/// vertex. In a local frame it is the grids' winding (the cross product of the grid's x and y
+/// directions), whatever way the scene is turned: a face turned 135 degrees is an overhang whose
+/// front still faces out of the rock. Only a body-centred model (ECEF: its root farther than
+/// kBodyCentredRadius from the origin) is placed on a planet, where out is away from its centre:
+/// its winding is turned when its root's faces point to the centre (rasters' rows run north to
+/// south, so their winding faces down), so on georeferenced terrain + is up.
+double frontSign(const Model& a, PatchSource& sourceA) {
+  const Vec3d centre = a.at(PatchKey::root()).globalBox.center();
+  if (centre.norm() > kBodyCentredRadius) {
+    const auto root = sourceA.positions(PatchKey::root());
+    Vec3d total;
+    for (const Vec3d& area : vertexAreas(*root)) {
+      total = total + area;
+    }
+    if (dot(total, upAt(centre)) < 0) {
+      return -1;
+    }
+  }
+  return 1;
+}
+
+/// One leaf sampled: its grid (pinned) and the displacement at each vertex (NaN where none).
+struct Sampled {
+  std::shared_ptr<const PatchGrid> grid;
+  std::vector<double> d;
+  DisplacementStats stats;
+};
+
+/// Samples the leaves of either revision against the other one's surface. Both sides' indexes
+/// live at once (the leaves of either revision are sampled in depth order): each gets half the
+/// bound.
+class LeafSampler {
+ public:
+  LeafSampler(PatchSource& sourceA, PatchSource& sourceB, double sign, const DiffOptions& options)
+      : sourceA_(sourceA),
+        sourceB_(sourceB),
+        sign_(sign),
+        options_(options),
+        surfaceA_(sourceA, sign, options.indexBytes / 2),
+        surfaceB_(sourceB, sign, options.indexBytes / 2) {}
+
+  /// The displacement at each vertex of `w`'s leaf. Throws Error(Cancelled) and what reading
+  /// patches throws.
+  Sampled sample(const Work& w);
+
+  /// Releases both indexes' pins.
+  void clear() {
+    surfaceA_.clear();
+    surfaceB_.clear();
+  }
+
+ private:
+  PatchSource& sourceA_;
+  PatchSource& sourceB_;
+  const double sign_;
+  const DiffOptions& options_;
+  SurfaceIndex surfaceA_, surfaceB_;
+};
+
+Sampled LeafSampler::sample(const Work& w) {
+  if (options_.cancel != nullptr) {
+    options_.cancel->throwIfCancelled();
+  }
+  // The leaf's own revision and the other one.
+  PatchSource& own = w.onFrom ? sourceA_ : sourceB_;
+  SurfaceIndex& other = w.onFrom ? surfaceB_ : surfaceA_;
+  const PatchInfo& info = own.model().at(w.key);
+  Sampled out{own.positions(w.key), {}, {}};
+  const PatchGrid& grid = *out.grid;
+  const double spacing = grid.resolution();
+  const std::vector<Vec3d> areas = vertexAreas(grid);
+  // The reach: the leaf's box grown along its mean normal by the search distance, and by a
+  // twentieth of it (and two samples) across, where lines from its vertices may go.
+  Vec3d mean;
+  for (const Vec3d& area : areas) {
+    mean = mean + area;
+  }
+  mean = mean * (mean.norm() > 0 ? 1 / mean.norm() : 0.0);
+  const double reach = options_.searchDistance > 0 ? options_.searchDistance : 64 * spacing;
+  Box3d box = info.globalBox;
+  const double across = 0.05 * reach + 2 * spacing;
+  const Vec3d grow{reach * std::abs(mean.x) + across, reach * std::abs(mean.y) + across,
+                   reach * std::abs(mean.z) + across};
+  box.min = box.min - grow;
+  box.max = box.max + grow;
+  const bool found = !box.empty() && other.around(box);
+  out.d.assign(grid.vertexCount(), kNaN);
+  if (found) {
+    out.stats.noise = storageNoise(info.localBox) + other.noise();
+  }
+  const double threshold = std::max(options_.epsilon, out.stats.noise);
   const int s = grid.size();
-  const TopDownGrid& view = map.grid;
-  std::vector<Point2d> pixel(grid.vertexCount());
+  // The leaf's positions, once (NaN where undefined).
+  const std::vector<Vec3d> positions = globalPositions(grid);
+  const Points points{positions.data(), s};
+  std::vector<Vec3d> inside;
   for (int y = 0; y < s; ++y) {
     for (int x = 0; x < s; ++x) {
-      const std::size_t i = static_cast<std::size_t>(y) * s + x;
-      if (std::isfinite(d[i])) {
-        pixel[i] = view.pixel(view.plane(grid.global(x, y)));
-      }
-    }
-  }
-  const auto triangle = [&](std::size_t a, std::size_t b, std::size_t c) {
-    forEachPixelInTriangle(pixel[a], pixel[b], pixel[c], view.width, view.height,
-                           [&](int col, int row, double wa, double wb, double wc) {
-                             map.values[static_cast<std::size_t>(row) * view.width + col] =
-                                 static_cast<float>(wa * d[a] + wb * d[b] + wc * d[c]);
-                           });
-  };
-  for (int y = 0; y + 1 < s; ++y) {
-    for (int x = 0; x + 1 < s; ++x) {
-      const std::size_t a = static_cast<std::size_t>(y) * s + x, b = a + 1, c = a + s, e = c + 1;
-      const bool fa = std::isfinite(d[a]), fb = std::isfinite(d[b]), fc = std::isfinite(d[c]),
-                 fe = std::isfinite(d[e]);
-      if (fa && fb && fc && fe) {
-        triangle(a, c, e);
-        triangle(a, e, b);
-      } else if (fa + fb + fc + fe == 3) {
-        std::vector<std::size_t> rest;
-        for (const auto& [k, f] : {std::pair{a, fa}, {b, fb}, {e, fe}, {c, fc}}) {
-          if (f) {
-            rest.push_back(k);
-          }
-        }
-        triangle(rest[0], rest[1], rest[2]);
-      }
-    }
-  }
-}
-
-nlohmann::json number(double v) {
-  return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr);
-}
-
-nlohmann::json boxJson(const Box3d& box) {
-  if (box.empty()) {
-    return nullptr;
-  }
-  return {{"min", {box.min.x, box.min.y, box.min.z}}, {"max", {box.max.x, box.max.y, box.max.z}}};
-}
-
-nlohmann::json statsJson(const DisplacementStats& s) {
-  const bool any = s.samples > 0;
-  return {{"samples", s.samples},
-          {"skipped", s.skipped},
-          {"area", s.area},
-          {"changed_area", s.changedArea},
-          {"noise", s.noise},
-          {"min", any ? number(s.min) : nullptr},
-          {"max", any ? number(s.max) : nullptr},
-          {"mean", number(s.mean())},
-          {"rms", number(s.rms())},
-          {"max_abs", any ? number(s.maxAbs()) : nullptr},
-          {"significant_area", s.significantArea},
-          {"volume_gained", s.volumeGained},
-          {"volume_lost", s.volumeLost},
-          {"lod_mean", number(s.lodMean())},
-          {"lod_max", any ? number(s.lodMax) : nullptr}};
-}
-
-/// 3 x 5 pixel glyphs of what a legend's numbers need, a row per 3 bits (top row first).
-struct Glyph {
-  char c;
-  std::array<std::uint8_t, 5> rows;
-};
-constexpr std::array<Glyph, 16> kGlyphs{{
-    {'0', {7, 5, 5, 5, 7}},
-    {'1', {2, 6, 2, 2, 7}},
-    {'2', {7, 1, 7, 4, 7}},
-    {'3', {7, 1, 7, 1, 7}},
-    {'4', {5, 5, 7, 1, 1}},
-    {'5', {7, 4, 7, 1, 7}},
-    {'6', {7, 4, 7, 5, 7}},
-    {'7', {7, 1, 1, 1, 1}},
-    {'8', {7, 5, 7, 5, 7}},
-    {'9', {7, 5, 7, 1, 7}},
-    {'-', {0, 0, 7, 0, 0}},
-    {'+', {0, 2, 7, 2, 0}},
-    {'.', {0, 0, 0, 0, 2}},
-    {'m', {0, 0, 7, 7, 5}},
-    {'e', {0, 7, 7, 4, 7}},
-    {' ', {0, 0, 0, 0, 0}},
-}};
-
-/// Draws the legend into the lower left corner of `rgba` (width x height): a white panel with
-/// the colour bar from -range to +range and its ends and middle labelled ("-R m", "0", "+R m"),
-/// scaled with the picture; nothing when the picture is too small for it.
-void drawLegend(std::vector<std::uint8_t>& rgba, int width, int height, double range) {
-  const int s = std::max(1, std::min(width, height) / 256);
-  const int pad = 3 * s, barWidth = 100 * s, barHeight = 6 * s, glyph = 5 * s;
-  const int panelWidth = barWidth + 2 * pad;
-  const int panelHeight = 2 * pad + glyph + 2 * s + barHeight;
-  if (width < panelWidth + 8 || height < panelHeight + 8) {
-    return;
-  }
-  const int left = 4, top = height - 4 - panelHeight;
-  const auto put = [&](int x, int y, std::array<std::uint8_t, 4> c) {
-    std::copy(c.begin(), c.end(), rgba.begin() + (static_cast<std::ptrdiff_t>(y) * width + x) * 4);
-  };
-  for (int y = 0; y < panelHeight; ++y) {
-    for (int x = 0; x < panelWidth; ++x) {
-      const bool border = x == 0 || y == 0 || x == panelWidth - 1 || y == panelHeight - 1;
-      put(left + x, top + y,
-          border ? std::array<std::uint8_t, 4>{96, 96, 96, 255}
-                 : std::array<std::uint8_t, 4>{255, 255, 255, 255});
-    }
-  }
-  const int barTop = top + pad + glyph + 2 * s;
-  for (int x = 0; x < barWidth; ++x) {
-    const double t = (x + 0.5) / barWidth * 2 - 1;
-    for (int y = 0; y < barHeight; ++y) {
-      put(left + pad + x, barTop + y, divergingColour(t * range, range));
-    }
-  }
-  const auto text = [&](const std::string& label, int x0) {
-    for (std::size_t k = 0; k < label.size(); ++k) {
-      const auto* g = std::find_if(kGlyphs.begin(), kGlyphs.end(),
-                                   [&](const Glyph& c) { return c.c == label[k]; });
-      if (g == kGlyphs.end()) {
+      if (!grid.defined(x, y)) {
         continue;
       }
-      for (int row = 0; row < 5 * s; ++row) {
-        for (int col = 0; col < 3 * s; ++col) {
-          if ((g->rows[row / s] >> (2 - col / s)) & 1) {
-            put(x0 + static_cast<int>(k) * 4 * s + col, top + pad + row, {0, 0, 0, 255});
+      const Vec3d p = positions[static_cast<std::size_t>(y) * s + x];
+      const Vec3d ownNormal = vertexNormal(points, x, y, sign_);
+      std::optional<SurfaceIndex::Hit> hit;
+      Vec3d n = ownNormal;
+      double d = kNaN;
+      if (found && ownNormal.finite()) {
+        hit = other.cast(p, ownNormal, reach);
+      }
+      if (hit && w.onFrom) {
+        // p is a core point on `from`, n its normal: `to` is where the axis meets it.
+        d = hit->t;
+      } else if (hit) {
+        // p is on `to`: `from` is at a = p + t n0 along p's own normal; the axis is from's
+        // normal there and d is p's distance from from's tangent plane at a (as a core point at
+        // a would measure p, to first order; exact on a plane).
+        n = hit->normal;
+        d = -hit->t * dot(ownNormal, n);
+      }
+      if (!std::isfinite(d)) {
+        ++out.stats.skipped;
+        continue;
+      }
+      // `to` minus `from` along from's normal n.
+      const std::size_t i = static_cast<std::size_t>(y) * s + x;
+      out.d[i] = d;
+      // M3C2's level of detection: each side's spread along n in the cylinder around the axis.
+      // The cylinder's radius: 1.5 times the coarser side's spacing (3 x 3 vertices of a grid).
+      const double otherSpacing = other.resolutionOf(hit->grid);
+      const double radius = 1.5 * std::max(spacing, otherSpacing);
+      const int window =
+          std::clamp(static_cast<int>(std::ceil(radius / std::max(spacing, 1e-300))), 1, 3);
+      inside.clear();
+      for (int v = std::max(0, y - window); v <= std::min(s - 1, y + window); ++v) {
+        for (int u = std::max(0, x - window); u <= std::min(s - 1, x + window); ++u) {
+          const Vec3d q = positions[static_cast<std::size_t>(v) * s + u];
+          if (q.finite()) {
+            const Vec3d r = q - p;
+            const double along = dot(r, n);
+            if (dot(r, r) - along * along <= radius * radius) {
+              inside.push_back(r);
+            }
           }
         }
       }
+      const int otherWindow =
+          std::clamp(static_cast<int>(std::ceil(radius / std::max(otherSpacing, 1e-300))), 1, 3);
+      const auto [otherVariance, otherCount] = other.spread(p, n, *hit, radius, otherWindow);
+      double spread = 0;
+      if (!inside.empty()) {
+        spread += roughness(inside, n) / static_cast<double>(inside.size());
+      }
+      if (otherCount > 0) {
+        spread += otherVariance / otherCount;
+      }
+      const double lod = 1.96 * (std::sqrt(spread) + options_.registrationError);
+      out.stats.add(out.d[i], std::abs(dot(areas[i], n)), threshold, lod);
     }
+  }
+  return out;
+}
+
+/// The statistics: every leaf of `changes.work` sampled, its numbers added to the totals of
+/// `diff` and to each changed patch at or above it. Returns which leaves changed (changedArea >
+/// 0), in the order of `changes.work`.
+std::vector<bool> addStatistics(LeafSampler& sampler, Changes& changes, RevisionDiff& diff,
+                                Progress* progress) {
+  const std::vector<Work>& work = changes.work;
+  std::vector<bool> leafChanged(work.size(), false);
+  for (std::size_t i = 0; i < work.size(); ++i) {
+    const DisplacementStats stats = sampler.sample(work[i]).stats;
+    leafChanged[i] = stats.changedArea > 0;
+    diff.totals.merge(stats);
+    for (std::optional<PatchKey> k = work[i].key; k; k = k->parent()) {
+      const auto it = changes.patches.find(*k);
+      if (it != changes.patches.end()) {
+        it->second.stats.merge(stats);
+      }
+    }
+    if (progress != nullptr) {
+      progress->report("sampling", static_cast<double>(i + 1) / static_cast<double>(work.size()));
+    }
+  }
+  return leafChanged;
+}
+
+/// The map, over the changed area: the leaves that changed (or every sampled one when none did),
+/// and a tenth of that around them for context; their leaves are sampled again to be drawn.
+/// Nullopt when none of them has an extent on the map.
+std::optional<DisplacementMap> drawMap(LeafSampler& sampler, const Model& a, const Model& b,
+                                       PatchSource& sourceB, const std::vector<Work>& work,
+                                       const std::vector<bool>& leafChanged,
+                                       const DiffOptions& options) {
+  const bool any = std::find(leafChanged.begin(), leafChanged.end(), true) != leafChanged.end();
+  TopDownGrid view;
+  view.geographic = looksEcef(*sourceB.positions(PatchKey::root()));
+  const auto extent = [&](const Work& w) {
+    const Box3d& box = (w.onFrom ? a : b).at(w.key).globalBox;
+    Rect2d r;
+    for (int c = 0; c < 8 && !box.empty(); ++c) {
+      const Point2d p =
+          view.plane({(c & 1) ? box.max.x : box.min.x, (c & 2) ? box.max.y : box.min.y,
+                      (c & 4) ? box.max.z : box.min.z});
+      r.extend({p.x, p.y});
+    }
+    return r;
   };
-  const auto labelWidth = [&](const std::string& label) {
-    return static_cast<int>(label.size()) * 4 * s - s;
-  };
-  char number[32];
-  std::snprintf(number, sizeof number, "%.4g", range);
-  const std::string low = std::string(range > 0 ? "-" : "") + number + " m";
-  const std::string high = std::string(range > 0 ? "+" : "") + number + " m";
-  text(low, left + pad);
-  text("0", left + pad + barWidth / 2 - labelWidth("0") / 2);
-  text(high, left + pad + barWidth - labelWidth(high));
+  Rect2d area;
+  for (std::size_t i = 0; i < work.size(); ++i) {
+    if (leafChanged[i] || !any) {
+      const Rect2d r = extent(work[i]);
+      if (!r.empty()) {
+        area.extend(r.min);
+        area.extend(r.max);
+      }
+    }
+  }
+  if (area.empty()) {
+    return std::nullopt;
+  }
+  const double gu = 0.1 * (area.max.u - area.min.u), gv = 0.1 * (area.max.v - area.min.v);
+  area.min = {area.min.u - gu, area.min.v - gv};
+  area.max = {area.max.u + gu, area.max.v + gv};
+  DisplacementMap map;
+  map.grid = TopDownGrid::fit(view.geographic, area.min.u, area.max.u, area.min.v, area.max.v,
+                              options.mapSize);
+  map.values.assign(map.grid.pixels(), std::numeric_limits<float>::quiet_NaN());
+  for (std::size_t i = 0; i < work.size(); ++i) {
+    if (extent(work[i]).intersects(area)) {
+      const Sampled leaf = sampler.sample(work[i]);
+      diff_detail::drawLeaf(*leaf.grid, leaf.d, map);
+    }
+    if (options.progress != nullptr) {
+      options.progress->report("drawing",
+                               static_cast<double>(i + 1) / static_cast<double>(work.size()));
+    }
+  }
+  return map;
 }
 
 }  // namespace
@@ -829,24 +973,7 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
                            std::shared_ptr<const ModelSnapshot> to, const DiffOptions& options) {
   const Model& a = *from->model;
   const Model& b = *to->model;
-  if (a.empty() || b.empty()) {
-    throw Error(ErrorCode::InvalidArgument, "diff: a revision is empty");
-  }
-  if (a.gridSize() != b.gridSize()) {
-    throw Error(ErrorCode::InvalidArgument, "diff: the revisions have different grid sizes");
-  }
-  if (!(options.epsilon >= 0)) {
-    throw Error(ErrorCode::InvalidArgument, "diff: epsilon must be >= 0");
-  }
-  if (!(options.registrationError >= 0) || !std::isfinite(options.registrationError)) {
-    throw Error(ErrorCode::InvalidArgument, "diff: the registration error must be >= 0 metres");
-  }
-  if (!(options.searchDistance >= 0) || !std::isfinite(options.searchDistance)) {
-    throw Error(ErrorCode::InvalidArgument, "diff: the search distance must be >= 0 metres");
-  }
-  if (options.mapSize < 0 || options.mapSize > 16384) {
-    throw Error(ErrorCode::InvalidArgument, "diff: the map size must be 0..16384 pixels");
-  }
+  checkComparable(a, b, options);
   RevisionDiff diff;
   diff.from = from->version;
   diff.to = to->version;
@@ -854,331 +981,19 @@ RevisionDiff diffRevisions(LiveModel& live, std::shared_ptr<const ModelSnapshot>
   diff.registrationError = options.registrationError;
   const auto sourceA = liveSource(live, from);
   const auto sourceB = liveSource(live, to);
-
-  // What changed, from the metadata alone.
-  std::map<PatchKey, PatchDisplacement> changed;
-  std::vector<Work> work;
-  for (const auto& [key, info] : b.patches()) {
-    const PatchInfo* old = a.find(key);
-    if (old != nullptr && old->version == info.version) {
-      ++diff.sharedPatches;
-      continue;
-    }
-    changed[key] = {key, info.globalBox, false, info.isLeaf(), {}};
-    if (info.isLeaf()) {
-      work.push_back({key, false, old != nullptr && old->isLeaf()});
-    }
+  Changes changes = findChanges(a, b);
+  diff.sharedPatches = changes.shared;
+  LeafSampler sampler(*sourceA, *sourceB, frontSign(a, *sourceA), options);
+  const std::vector<bool> leafChanged = addStatistics(sampler, changes, diff, options.progress);
+  if (options.mapSize > 0 && !changes.work.empty()) {
+    diff.map = drawMap(sampler, a, b, *sourceB, changes.work, leafChanged, options);
   }
-  for (const auto& [key, info] : a.patches()) {
-    if (b.find(key) == nullptr) {
-      changed[key] = {key, info.globalBox, true, info.isLeaf(), {}};
-      if (info.isLeaf()) {
-        work.push_back({key, true, true});
-      }
-    }
-  }
-  // Shallow to deep: where both revisions' leaves overlap on the map, the finer one is drawn last.
-  std::stable_sort(work.begin(), work.end(), [](const Work& x, const Work& y) {
-    return x.key.depth != y.key.depth ? x.key.depth < y.key.depth : x.key < y.key;
-  });
-
-  // n's side, the model's front (outside): one sign for the whole model, never per patch or per
-  // vertex. In a local frame it is the grids' winding (the cross product of the grid's x and y
-  // directions), whatever way the scene is turned: a face turned 135 degrees is an overhang whose
-  // front still faces out of the rock. Only a body-centred model (ECEF: its root farther than
-  // kBodyCentredRadius from the origin) is placed on a planet, where out is away from its centre:
-  // its winding is turned when its root's faces point to the centre (rasters' rows run north to
-  // south, so their winding faces down), so on georeferenced terrain + is up.
-  double sign = 1;
-  {
-    const Vec3d centre = a.at(PatchKey::root()).globalBox.center();
-    if (centre.norm() > kBodyCentredRadius) {
-      const auto root = sourceA->positions(PatchKey::root());
-      Vec3d total;
-      for (const Vec3d& area : vertexAreas(*root)) {
-        total = total + area;
-      }
-      if (dot(total, upAt(centre)) < 0) {
-        sign = -1;
-      }
-    }
-  }
-  // Both sides' indexes live at once (the leaves of either revision are sampled in depth order):
-  // each gets half the bound.
-  SurfaceIndex surfaceA(*sourceA, sign, options.indexBytes / 2),
-      surfaceB(*sourceB, sign, options.indexBytes / 2);
-  // One leaf sampled: its grid (pinned) and the displacement at each vertex (NaN where none).
-  struct Sampled {
-    std::shared_ptr<const PatchGrid> grid;
-    std::vector<double> d;
-    DisplacementStats stats;
-  };
-  const auto sample = [&](const Work& w) {
-    if (options.cancel != nullptr) {
-      options.cancel->throwIfCancelled();
-    }
-    // The leaf's own revision and the other one.
-    PatchSource& own = w.onFrom ? *sourceA : *sourceB;
-    SurfaceIndex& other = w.onFrom ? surfaceB : surfaceA;
-    const PatchInfo& info = own.model().at(w.key);
-    Sampled out{own.positions(w.key), {}, {}};
-    const PatchGrid& grid = *out.grid;
-    const double spacing = grid.resolution();
-    const std::vector<Vec3d> areas = vertexAreas(grid);
-    // The reach: the leaf's box grown along its mean normal by the search distance, and by a
-    // twentieth of it (and two samples) across, where lines from its vertices may go.
-    Vec3d mean;
-    for (const Vec3d& area : areas) {
-      mean = mean + area;
-    }
-    mean = mean * (mean.norm() > 0 ? 1 / mean.norm() : 0.0);
-    const double reach = options.searchDistance > 0 ? options.searchDistance : 64 * spacing;
-    Box3d box = info.globalBox;
-    const double across = 0.05 * reach + 2 * spacing;
-    const Vec3d grow{reach * std::abs(mean.x) + across, reach * std::abs(mean.y) + across,
-                     reach * std::abs(mean.z) + across};
-    box.min = box.min - grow;
-    box.max = box.max + grow;
-    const bool found = !box.empty() && other.around(box);
-    out.d.assign(grid.vertexCount(), kNaN);
-    if (found) {
-      out.stats.noise = storageNoise(info.localBox) + other.noise();
-    }
-    const double threshold = std::max(options.epsilon, out.stats.noise);
-    const int s = grid.size();
-    // The leaf's positions, once (NaN where undefined).
-    const std::vector<Vec3d> positions = globalPositions(grid);
-    const Points points{positions.data(), s};
-    std::vector<Vec3d> inside;
-    for (int y = 0; y < s; ++y) {
-      for (int x = 0; x < s; ++x) {
-        if (!grid.defined(x, y)) {
-          continue;
-        }
-        const Vec3d p = positions[static_cast<std::size_t>(y) * s + x];
-        const Vec3d ownNormal = vertexNormal(points, x, y, sign);
-        std::optional<SurfaceIndex::Hit> hit;
-        Vec3d n = ownNormal;
-        double d = kNaN;
-        if (found && ownNormal.finite()) {
-          hit = other.cast(p, ownNormal, reach);
-        }
-        if (hit && w.onFrom) {
-          // p is a core point on `from`, n its normal: `to` is where the axis meets it.
-          d = hit->t;
-        } else if (hit) {
-          // p is on `to`: `from` is at a = p + t n0 along p's own normal; the axis is from's
-          // normal there and d is p's distance from from's tangent plane at a (as a core point at
-          // a would measure p, to first order; exact on a plane).
-          n = hit->normal;
-          d = -hit->t * dot(ownNormal, n);
-        }
-        if (!std::isfinite(d)) {
-          ++out.stats.skipped;
-          continue;
-        }
-        // `to` minus `from` along from's normal n.
-        const std::size_t i = static_cast<std::size_t>(y) * s + x;
-        out.d[i] = d;
-        // M3C2's level of detection: each side's spread along n in the cylinder around the axis.
-        // The cylinder's radius: 1.5 times the coarser side's spacing (3 x 3 vertices of a grid).
-        const double otherSpacing = other.resolutionOf(hit->grid);
-        const double radius = 1.5 * std::max(spacing, otherSpacing);
-        const int window =
-            std::clamp(static_cast<int>(std::ceil(radius / std::max(spacing, 1e-300))), 1, 3);
-        inside.clear();
-        for (int v = std::max(0, y - window); v <= std::min(s - 1, y + window); ++v) {
-          for (int u = std::max(0, x - window); u <= std::min(s - 1, x + window); ++u) {
-            const Vec3d q = positions[static_cast<std::size_t>(v) * s + u];
-            if (q.finite()) {
-              const Vec3d r = q - p;
-              const double along = dot(r, n);
-              if (dot(r, r) - along * along <= radius * radius) {
-                inside.push_back(r);
-              }
-            }
-          }
-        }
-        const int otherWindow =
-            std::clamp(static_cast<int>(std::ceil(radius / std::max(otherSpacing, 1e-300))), 1, 3);
-        const auto [otherVariance, otherCount] = other.spread(p, n, *hit, radius, otherWindow);
-        double spread = 0;
-        if (!inside.empty()) {
-          spread += roughness(inside, n) / static_cast<double>(inside.size());
-        }
-        if (otherCount > 0) {
-          spread += otherVariance / otherCount;
-        }
-        const double lod = 1.96 * (std::sqrt(spread) + options.registrationError);
-        out.stats.add(out.d[i], std::abs(dot(areas[i], n)), threshold, lod);
-      }
-    }
-    return out;
-  };
-
-  // The statistics.
-  std::vector<bool> leafChanged(work.size(), false);
-  for (std::size_t i = 0; i < work.size(); ++i) {
-    const DisplacementStats stats = sample(work[i]).stats;
-    leafChanged[i] = stats.changedArea > 0;
-    diff.totals.merge(stats);
-    for (std::optional<PatchKey> k = work[i].key; k; k = k->parent()) {
-      const auto it = changed.find(*k);
-      if (it != changed.end()) {
-        it->second.stats.merge(stats);
-      }
-    }
-    if (options.progress != nullptr) {
-      options.progress->report("sampling",
-                               static_cast<double>(i + 1) / static_cast<double>(work.size()));
-    }
-  }
-
-  // The map, over the changed area: the leaves that changed (or every sampled one when none did),
-  // and a tenth of that around them for context; their leaves are sampled again to be drawn.
-  if (options.mapSize > 0 && !work.empty()) {
-    const bool any = std::find(leafChanged.begin(), leafChanged.end(), true) != leafChanged.end();
-    TopDownGrid view;
-    view.geographic = looksEcef(*sourceB->positions(PatchKey::root()));
-    const auto extent = [&](const Work& w) {
-      const Box3d& box = (w.onFrom ? a : b).at(w.key).globalBox;
-      Rect2d r;
-      for (int c = 0; c < 8 && !box.empty(); ++c) {
-        const Point2d p =
-            view.plane({(c & 1) ? box.max.x : box.min.x, (c & 2) ? box.max.y : box.min.y,
-                        (c & 4) ? box.max.z : box.min.z});
-        r.extend({p.x, p.y});
-      }
-      return r;
-    };
-    Rect2d area;
-    for (std::size_t i = 0; i < work.size(); ++i) {
-      if (leafChanged[i] || !any) {
-        const Rect2d r = extent(work[i]);
-        if (!r.empty()) {
-          area.extend(r.min);
-          area.extend(r.max);
-        }
-      }
-    }
-    if (!area.empty()) {
-      const double gu = 0.1 * (area.max.u - area.min.u), gv = 0.1 * (area.max.v - area.min.v);
-      area.min = {area.min.u - gu, area.min.v - gv};
-      area.max = {area.max.u + gu, area.max.v + gv};
-      DisplacementMap& map = diff.map.emplace();
-      map.grid = TopDownGrid::fit(view.geographic, area.min.u, area.max.u, area.min.v, area.max.v,
-                                  options.mapSize);
-      map.values.assign(map.grid.pixels(), std::numeric_limits<float>::quiet_NaN());
-      for (std::size_t i = 0; i < work.size(); ++i) {
-        if (extent(work[i]).intersects(area)) {
-          const Sampled leaf = sample(work[i]);
-          drawLeaf(*leaf.grid, leaf.d, map);
-        }
-        if (options.progress != nullptr) {
-          options.progress->report("drawing",
-                                   static_cast<double>(i + 1) / static_cast<double>(work.size()));
-        }
-      }
-    }
-  }
-  surfaceA.clear();
-  surfaceB.clear();
-  diff.patches.reserve(changed.size());
-  for (auto& [key, patch] : changed) {
+  sampler.clear();
+  diff.patches.reserve(changes.patches.size());
+  for (auto& [key, patch] : changes.patches) {
     diff.patches.push_back(std::move(patch));
   }
   return diff;
-}
-
-std::string diffJson(const RevisionDiff& diff, std::string_view model) {
-  nlohmann::json patches = nlohmann::json::array();
-  std::size_t removed = 0;
-  for (const PatchDisplacement& p : diff.patches) {
-    removed += p.removed ? 1 : 0;
-    nlohmann::json entry = statsJson(p.stats);
-    entry["key"] = p.key.toString();
-    entry["box"] = boxJson(p.box);
-    entry["removed"] = p.removed;
-    entry["leaf"] = p.leaf;
-    patches.push_back(std::move(entry));
-  }
-  nlohmann::json totals = statsJson(diff.totals);
-  totals["shared_patches"] = diff.sharedPatches;
-  totals["changed_patches"] = diff.patches.size() - removed;
-  totals["removed_patches"] = removed;
-  nlohmann::json body = {{"model", model},
-                         {"from", diff.from},
-                         {"to", diff.to},
-                         {"epsilon", diff.epsilon},
-                         {"registration_error", diff.registrationError},
-                         {"totals", totals},
-                         {"patches", std::move(patches)}};
-  if (diff.map) {
-    const TopDownGrid& g = diff.map->grid;
-    body["map"] = {{"geographic", g.geographic},
-                   {"width", g.width},
-                   {"height", g.height},
-                   {"x0", g.x0},
-                   {"y0", g.y0},
-                   {"dx", g.dx},
-                   {"dy", g.dy}};
-  }
-  return body.dump();
-}
-
-std::array<std::uint8_t, 4> divergingColour(double d, double range) {
-  if (!std::isfinite(d)) {
-    return {0, 0, 0, 0};
-  }
-  // ColorBrewer RdBu's ends (#2166ac, #b2182b) through white, linear in sRGB.
-  constexpr std::array<double, 3> kBlue{0x21, 0x66, 0xac};
-  constexpr std::array<double, 3> kRed{0xb2, 0x18, 0x2b};
-  const double t = range > 0 ? std::clamp(d / range, -1.0, 1.0) : 0.0;
-  const std::array<double, 3>& end = t < 0 ? kBlue : kRed;
-  const double w = std::abs(t);
-  std::array<std::uint8_t, 4> out{0, 0, 0, 255};
-  for (int c = 0; c < 3; ++c) {
-    out[c] = static_cast<std::uint8_t>(std::lround(255 * (1 - w) + end[c] * w));
-  }
-  return out;
-}
-
-std::vector<std::uint8_t> colourMap(const DisplacementMap& map, double range) {
-  std::vector<std::uint8_t> rgba(map.values.size() * 4);
-  for (std::size_t i = 0; i < map.values.size(); ++i) {
-    const auto c = divergingColour(map.values[i], range);
-    std::copy(c.begin(), c.end(), rgba.begin() + static_cast<std::ptrdiff_t>(i * 4));
-  }
-  return rgba;
-}
-
-std::string diffLegend(const RevisionDiff& diff) {
-  const double range = diff.totals.maxAbs();
-  const DisplacementStats& t = diff.totals;
-  char text[512];
-  std::snprintf(text, sizeof text,
-                "displacement from revision %llu to %llu along the surface normal, metres: blue "
-                "%.6g, white 0, red %+.6g; volume gained %.6g m^3, lost %.6g m^3, changed %.6g "
-                "m^2 (significant %.6g m^2)",
-                static_cast<unsigned long long>(diff.from),
-                static_cast<unsigned long long>(diff.to), -range, range, t.volumeGained,
-                t.volumeLost, t.changedArea, t.significantArea);
-  return text;
-}
-
-std::vector<std::byte> diffPng(const RevisionDiff& diff, int emptySize) {
-  const double range = diff.totals.maxAbs();
-  char rangeText[64];
-  std::snprintf(rangeText, sizeof rangeText, "%.9g", range);
-  const std::vector<std::pair<std::string, std::string>> text{{"Description", diffLegend(diff)},
-                                                              {"vsm:range", rangeText}};
-  if (!diff.map) {
-    const std::vector<std::uint8_t> clear(static_cast<std::size_t>(emptySize) * emptySize * 4, 0);
-    return encodePng(clear.data(), emptySize, emptySize, text);
-  }
-  std::vector<std::uint8_t> rgba = colourMap(*diff.map, range);
-  drawLegend(rgba, diff.map->grid.width, diff.map->grid.height, range);
-  return encodePng(rgba.data(), diff.map->grid.width, diff.map->grid.height, text);
 }
 
 }  // namespace vsm::core

@@ -14,6 +14,8 @@
 
 #include "core/common/error.hpp"
 #include "core/common/progress.hpp"
+#include "core/diff/diff_json.hpp"
+#include "core/diff/diff_picture.hpp"
 #include "core/diff/revision_diff.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"

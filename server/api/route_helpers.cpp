@@ -18,11 +18,12 @@ using core::Error;
 using core::ErrorCode;
 using nlohmann::json;
 
-core::PatchKey parseKey(std::string_view text) {
+core::PatchKey parseKey(std::string_view text, std::string_view form, std::string_view suffix) {
   const auto key = core::PatchKey::parse(text);
   if (!key) {
-    throw Error(ErrorCode::InvalidArgument, "patch key must be depth_x_y (e.g. 2_1_3), not '" +
-                                                std::string(text.substr(0, 64)) + "'");
+    throw Error(ErrorCode::InvalidArgument, std::string(form) + ", not '" +
+                                                std::string(text.substr(0, 64)) +
+                                                std::string(suffix) + "'");
   }
   return *key;
 }

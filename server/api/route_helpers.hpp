@@ -143,8 +143,12 @@ http::Response gzippedJson(const models::PatchData& data,
 /// 307 to `location`, with an error body (code "temporary_redirect") saying `why`.
 http::Response temporaryRedirect(const std::string& location, std::string_view why);
 
-/// The patch key of a route's {p}. Throws core::Error(InvalidArgument) unless it is depth_x_y.
-core::PatchKey parseKey(std::string_view text);
+/// The patch key of a route's {p}. Throws core::Error(InvalidArgument) unless it is depth_x_y,
+/// with the message "<form>, not '<text><suffix>'": a route whose {p} stands in a longer name
+/// (e.g. "{p}.glb") passes its own `form` and the `suffix` the router took off.
+core::PatchKey parseKey(std::string_view text,
+                        std::string_view form = "patch key must be depth_x_y (e.g. 2_1_3)",
+                        std::string_view suffix = {});
 /// Patch `key` of `snapshot` of model `id`. Throws core::Error(NotFound).
 const core::PatchInfo& findPatch(std::string_view id, const core::ModelSnapshot& snapshot,
                                  const core::PatchKey& key);

@@ -78,15 +78,6 @@ json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre, const
   return tile;
 }
 
-core::PatchKey parseGlbKey(std::string_view text) {
-  const auto key = core::PatchKey::parse(text);
-  if (!key) {
-    throw Error(ErrorCode::InvalidArgument, "tile must be {depth_x_y}.glb (e.g. 2_1_3.glb), not '" +
-                                                std::string(text.substr(0, 64)) + ".glb'");
-  }
-  return *key;
-}
-
 http::Response withTileCache(http::Response response, std::string_view etag) {
   response.set("Cache-Control", std::string(kTileCacheControl));
   response.set("ETag", std::string(etag));
@@ -158,7 +149,8 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const models::P
                                   const http::Request& request, bool onNetworkThread) {
   const std::string& id = request.param("m");
   const models::ModelRegistry::Served served = models.getServed(id);
-  const core::PatchKey key = parseGlbKey(request.param("p"));
+  const core::PatchKey key =
+      parseKey(request.param("p"), "tile must be {depth_x_y}.glb (e.g. 2_1_3.glb)", ".glb");
   const std::optional<VersionedPatch> read =
       versionedPatch(*served.live, request, key, onNetworkThread);
   if (!read) {

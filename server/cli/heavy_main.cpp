@@ -26,6 +26,8 @@
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
+#include "core/diff/diff_json.hpp"
+#include "core/diff/diff_picture.hpp"
 #include "core/diff/revision_diff.hpp"
 #include "core/durable/durable_io.hpp"
 #include "core/io/geotiff.hpp"

@@ -32,16 +32,17 @@ using core::ErrorCode;
 
 namespace {
 
-/// The one rule of where a body is made (Asker): `find(countMiss)` looks in the budget; found, or
-/// on a network thread, that is the answer (null when missing); on the pool `make()` makes it and
-/// puts it there. The pool's look after a network thread's counts no second miss.
+/// The one rule of where a body is made (Asker): `find(countMiss)` looks in the budget (in one
+/// place or several, counting at most one miss) and returns what it holds, empty (a null pointer,
+/// nullopt) when missing; found, or on a network thread, that is the answer; on the pool `make()`
+/// makes it and puts it there. The pool's look after a network thread's counts no second miss.
 template <typename Find, typename Make>
 auto lookOrMake(Asker asker, Find&& find, Make&& make) {
   auto held = find(asker != Asker::PoolAfterNetwork);
-  if (held != nullptr || asker == Asker::NetworkThread) {
+  if (held || asker == Asker::NetworkThread) {
     return held;
   }
-  return make();
+  return decltype(held)(make());
 }
 
 /// lookOrMake for an encoded body: `make()` returns its bytes. Throws ResourceExhausted (503,
@@ -214,25 +215,29 @@ std::optional<PatchData::Positions> PatchData::positions(const ModelRegistry::Se
   const bool asStored = info.stored == core::GridRect{0, 0, n, n};
   // A patch stored whole is cached as its open file, or as a body when the file cannot be sent as
   // it is (V3d): one look for either, one miss counted when neither is there.
-  Positions out;
-  if (asStored) {
-    out.file = encoded.findFile(key, info.version, StoredKind::Positions, false);
-  }
-  if (out.file == nullptr) {
-    out.body = encoded.find(key, info.version, Encoding::PositionsAara, false);
-  }
-  if (out.file == nullptr && out.body == nullptr) {
-    if (asker != Asker::PoolAfterNetwork) {
-      encoded.countMiss();
+  const auto find = [&](bool countMiss) -> std::optional<Positions> {
+    Positions held;
+    if (asStored) {
+      held.file = encoded.findFile(key, info.version, StoredKind::Positions, false);
     }
-    if (asker == Asker::NetworkThread) {
+    if (held.file == nullptr) {
+      held.body = encoded.find(key, info.version, Encoding::PositionsAara, false);
+    }
+    if (held.file == nullptr && held.body == nullptr) {
+      if (countMiss) {
+        encoded.countMiss();
+      }
       return std::nullopt;
     }
+    return held;
+  };
+  const auto make = [&] {
+    Positions made;
     if (asStored) {
       if (std::unique_ptr<core::StoredFile> stored =
               core::openFullGridPositions(served.live->dir(), n, info)) {
         try {
-          out.file = encoded.putFile(key, info.version, StoredKind::Positions, std::move(stored));
+          made.file = encoded.putFile(key, info.version, StoredKind::Positions, std::move(stored));
         } catch (const Error& e) {
           if (e.code() != ErrorCode::ResourceExhausted) {
             throw;
@@ -241,14 +246,18 @@ std::optional<PatchData::Positions> PatchData::positions(const ModelRegistry::Se
         }
       }
     }
-    if (out.file == nullptr) {
+    if (made.file == nullptr) {
       auto [bytes, local2global] = encodePositions(*served.live, snapshot, info);
-      out.body = encoded.put(key, info.version, Encoding::PositionsAara, std::move(bytes),
-                             std::move(local2global));
+      made.body = encoded.put(key, info.version, Encoding::PositionsAara, std::move(bytes),
+                              std::move(local2global));
     }
+    return made;
+  };
+  std::optional<Positions> out = lookOrMake(asker, find, make);
+  if (out) {
+    out->local2global =
+        out->file != nullptr ? matrixText(info.local2global) : std::string(out->body->note());
   }
-  out.local2global =
-      out.file != nullptr ? matrixText(info.local2global) : std::string(out.body->note());
   return out;
 }
 

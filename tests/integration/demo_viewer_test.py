@@ -44,9 +44,10 @@ import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import harness  # noqa: E402
-import viewer_test  # noqa: E402  (browser_check, screen_samples, Raster, dem_points)
+import browser_support  # noqa: E402
+from browser_support import (PALETTE, Raster, assert_not_blank, dem_points,  # noqa: E402
+                             load_page, overlay_mask, read_png, screen_samples)
 from harness import Daemon  # noqa: E402
-from viewer_test import Raster, dem_points, load_page, read_png, screen_samples  # noqa: E402
 
 ARGS = None
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -148,7 +149,7 @@ class Demo(unittest.TestCase):
         self.assertEqual(state["mode"], "texture")
         self.assertGreater(state["loaded"], 1)
         self.assertEqual(state["textured"], state["loaded"], state)
-        viewer_test.Browser.assert_not_blank(self, pixels, "demo")
+        assert_not_blank(self, pixels, "demo")
 
         # The legend: every level of the model, named, with its resolution.
         levels = self.model(PRISM)["levels"]
@@ -163,7 +164,7 @@ class Demo(unittest.TestCase):
             s = entry["swatch"]
             colour = pixels[int(s["y"] + s["height"] / 2), int(s["x"] + s["width"] / 2)]
             self.assertEqual("%02x%02x%02x" % tuple(colour), entry["colour"][1:], entry)
-            self.assertEqual(entry["colour"][1:], viewer_test.PALETTE[level["depth"]])
+            self.assertEqual(entry["colour"][1:], PALETTE[level["depth"]])
         # Resolutions halve per depth, and the finest is the DEM's own sample spacing (GDAL's
         # geotransform at PRISM's mean latitude; ~4.2 km).
         import math
@@ -243,7 +244,7 @@ class Demo(unittest.TestCase):
         self.assertEqual(after["exaggeration"], 4)
         self.assertEqual(after["failed"], 0, after["errors"])
         pixels4 = read_png(lower)
-        model_area = ~viewer_test.overlay_mask(after, pixels.shape)
+        model_area = ~overlay_mask(after, pixels.shape)
         diff = float(numpy.abs(pixels4.astype(float) - pixels.astype(float))[model_area].mean())
         numbers4 = self.relief_numbers("relief x4", after, pixels4, shade4, exaggeration=4.0)
         gain = numbers4["grey_spread"] / numbers["grey_spread"]
@@ -359,7 +360,7 @@ def main():
     ARGS, rest = parser.parse_known_args()
     ARGS.dem = os.path.join(ARGS.data, "PRISMelevation.tif")
     harness.configure(ARGS)
-    viewer_test.ARGS = ARGS
+    browser_support.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 

@@ -43,9 +43,8 @@ import time
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import fault_sweep_test  # noqa: E402
 import harness  # noqa: E402
-from fault_sweep_test import PATCH, CliMerge, DaemonMerge, Scenario  # noqa: E402
+from fault_support import PATCH, CliMerge, DaemonMerge, Scenario  # noqa: E402
 from model_states import (  # noqa: E402
                           assert_no_failures, check_valid_and_reopened, crop, digest_tree,
                           make_outside_model, version_of, which)
@@ -425,7 +424,6 @@ def main():
     parser.add_argument("--scenarios", default="merge,vsmd,merge-out,import")
     ARGS, rest = parser.parse_known_args()
     harness.configure(ARGS)
-    fault_sweep_test.ARGS = ARGS  # DaemonMerge starts ARGS.vsmd
     harness.run_tests(rest, skip_code=SKIP)
 
 

@@ -210,22 +210,8 @@ class Fence(unittest.TestCase):
                         + log_of(self.dir, "n1")[-3000:])
         self.assertEqual(self.writer("prism"), "n2")
         # n2 writes prism: a merge through it succeeds.
-        def merge():
-            status, body = request(self.urls["n2"] + "/v1/jobs", "POST",
-                                   {"type": "merge", "target": "prism", "source": "jacksboro"})
-            return json.loads(body) if status == 202 else None
-        job = poll(merge, timeout=120, interval=0.2)
-        self.assertIsNotNone(job, "n2 took no merge into prism")
-
-        def final():
-            status, body = request(self.urls["n2"] + "/v1/jobs/" + job["id"])
-            state = json.loads(body) if status == 200 else None
-            return state if state and state["state"] in ("succeeded", "failed",
-                                                         "cancelled") else None
-        done = poll(final, timeout=600, interval=0.2)
-        self.assertIsNotNone(done)
-        self.assertEqual(done["state"], "succeeded", done)
-        Fence.merged = done["result"]["version"]
+        Fence.merged = self.run_job("/v1/jobs", {"type": "merge", "target": "prism",
+                                                 "source": "jacksboro"})
 
     def test_2_a_published_revision_carries_its_writers_token_and_is_followed(self):
         kv = etcd_key(self.etcd, "/vsm/writers/prism")

@@ -415,6 +415,20 @@ def read_raster(path):
     return band_heights(dataset.GetRasterBand(1)), dataset.GetGeoTransform()
 
 
+def bilinear(image, x, y):
+    """image (bands, rows, cols) at pixel-edge coordinates (x, y): bilinear between centres."""
+    cx, cy = x - 0.5, y - 0.5
+    x0, y0 = math.floor(cx), math.floor(cy)
+    fx, fy = cx - x0, cy - y0
+    rows, cols = image.shape[1], image.shape[2]
+
+    def px(i, j):
+        return image[:, min(max(j, 0), rows - 1), min(max(i, 0), cols - 1)].astype(float)
+
+    return ((1 - fy) * ((1 - fx) * px(x0, y0) + fx * px(x0 + 1, y0))
+            + fy * ((1 - fx) * px(x0, y0 + 1) + fx * px(x0 + 1, y0 + 1)))
+
+
 def write_raster(path, heights, west, north, pixel, nodata=None, epsg=4326):
     """A float32 GeoTIFF of a 2-D array (row 0 north), square pixels of `pixel` degrees from
     (west, north), in the CRS of `epsg` (WGS 84; None: no CRS)."""

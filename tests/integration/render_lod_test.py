@@ -14,12 +14,14 @@ The pictures stay in the work directory (CI artefacts). Run by ctest:
 
 import argparse
 import os
-import subprocess
 import sys
 import unittest
 
 from osgeo import gdal
 import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import harness  # noqa: E402
 
 gdal.UseExceptions()
 ARGS = None
@@ -33,10 +35,8 @@ PRISM_PATCH_DEGREES = 64 * 2.5 / 60
 
 
 def render(opc, out, size):
-    result = subprocess.run([ARGS.vsm, "render-lod", opc, out, "--size", str(size)],
-                            capture_output=True, text=True, timeout=300)
-    assert result.returncode == 0, result.stderr
-    return result.stdout
+    """`vsm render-lod opc out --size size`, which must succeed: its output."""
+    return harness.vsm("render-lod", opc, out, "--size", size, check=True, timeout=300).stdout
 
 
 def depth_map(png):
@@ -139,6 +139,7 @@ def main():
     parser.add_argument("--work", required=True, help="holds prism/ and merged/ (tiles.prepare)")
     parser.add_argument("--data", required=True)
     ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 

@@ -26,21 +26,17 @@ import argparse
 import math
 import os
 import shutil
-import subprocess
 import sys
 import time
 
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import harness  # noqa: E402
 import surface_check  # noqa: E402
 import surfaces  # noqa: E402
 
 CHECKS = ["merge", "validate", "on-B", "density", "bump", "on-A", "seam"]
-
-
-def run(args):
-    return subprocess.run(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def misplace(path):
@@ -69,15 +65,15 @@ def one(vsm, name, work, register=False):
     if register:
         misplace(os.path.join(d, "B.pcd"))
     for which in ("A", "B"):
-        r = run([vsm, "import", os.path.join(d, which + ".pcd"), os.path.join(d, which.lower()),
-                 "--patch-size", "17", "--texture", "none"])
+        r = harness.vsm("import", os.path.join(d, which + ".pcd"), os.path.join(d, which.lower()),
+                        "--patch-size", 17, "--texture", "none")
         if r.returncode != 0:
             return [surface_check.Result("merge", False, "vsm import %s exited %d: %s" %
                                          (which, r.returncode, r.stderr.strip()[-300:]))]
     merged = os.path.join(d, "merged")
     start = time.monotonic()
-    r = run([vsm, "merge", os.path.join(d, "a"), os.path.join(d, "b"), "--out", merged] +
-            (["--register"] if register else []))
+    r = harness.vsm("merge", os.path.join(d, "a"), os.path.join(d, "b"), "--out", merged,
+                    *(["--register"] if register else []))
     seconds = time.monotonic() - start
     if r.returncode != 0:
         error = [line for line in r.stderr.splitlines() if "error" in line]
@@ -101,7 +97,7 @@ def control(vsm, name, work):
         cloud = os.path.join(d, kind + ".pcd")
         surfaces.write_pcd(cloud, surface.ideal_points(with_b))
         models[kind] = os.path.join(d, kind)
-        r = run([vsm, "import", cloud, models[kind], "--patch-size", "17", "--texture", "none"])
+        r = harness.vsm("import", cloud, models[kind], "--patch-size", 17, "--texture", "none")
         if r.returncode != 0:
             return [surface_check.Result("merge", False, "vsm import exited %d: %s" %
                                          (r.returncode, r.stderr.strip()[-300:]))]
@@ -127,6 +123,7 @@ def main():
                         help="misplace each detail scan (turned %g degrees, shifted %s m) and "
                         "merge it with --register" % (MISPLACED_DEGREES, MISPLACED_SHIFT))
     args = parser.parse_args()
+    harness.configure(args)
     os.makedirs(args.work, exist_ok=True)
     table = {}
     for name in args.surfaces.split(","):

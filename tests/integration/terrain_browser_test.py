@@ -30,8 +30,9 @@ import tempfile
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import browser_support  # noqa: E402
 import harness  # noqa: E402
-import viewer_test  # noqa: E402  (browser_check.js and the screenshot helpers)
+from browser_support import assert_not_blank, load_page  # noqa: E402
 from harness import Daemon  # noqa: E402
 
 ARGS = None
@@ -107,8 +108,8 @@ class Terrain(unittest.TestCase):
         shutil.rmtree(cls.site, ignore_errors=True)
 
     def page(self, query, name, steps=None):
-        report, pixels = viewer_test.load_page(self, self.base_url, "/viewer/terrain.html?" + query,
-                                               "vsmTerrain", name, PAGE_SECONDS, steps)
+        report, pixels = load_page(self, self.base_url, "/viewer/terrain.html?" + query,
+                                   "vsmTerrain", name, PAGE_SECONDS, steps)
         state = report["state"]
         self.assertIsNone(state["error"], state["error"])
         self.assertTrue(state["ready"])
@@ -132,7 +133,7 @@ class Terrain(unittest.TestCase):
                       ".map((e) => e.name).filter((n) => n.includes('/terrain/'));"})
         report, pixels = self.page("model=%s&imagery=/viewer/conus.png&rect=%s"
                                    % (MODEL, self.image_rect), "terrain-whole", steps)
-        viewer_test.Browser.assert_not_blank(self, pixels, "terrain-whole")
+        assert_not_blank(self, pixels, "terrain-whole")
         done = {step["name"]: step["value"] for step in report["steps"]}
         tiles = [u for u in done["requests"] if ".terrain" in u]
         self.assertTrue(any(u.endswith("layer.json") for u in done["requests"]))
@@ -186,7 +187,7 @@ def main():
     parser.add_argument("--chromium", default=None)
     ARGS, rest = parser.parse_known_args()
     harness.configure(ARGS)
-    viewer_test.ARGS = ARGS
+    browser_support.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 

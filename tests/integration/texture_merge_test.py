@@ -38,9 +38,9 @@ from osgeo import gdal
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import harness  # noqa: E402
 from check_import import QUADRANTS, Failures, check_pro3d, ecef_to_geodetic  # noqa: E402
+from harness import bilinear  # noqa: E402
 from merge_check import load  # noqa: E402
 from model_states import REVISION_FILE, reachable_folders  # noqa: E402
-from texture_test import bilinear  # noqa: E402
 
 gdal.UseExceptions()
 

@@ -36,23 +36,9 @@ from osgeo import gdal
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import harness  # noqa: E402
 from check_import import read_hierarchy  # noqa: E402
-from harness import Daemon, read_aara  # noqa: E402
+from harness import Daemon, bilinear, read_aara  # noqa: E402
 
 gdal.UseExceptions()
-
-def bilinear(image, x, y):
-    """image (bands, rows, cols) at pixel-edge coordinates (x, y): bilinear between centres."""
-    cx, cy = x - 0.5, y - 0.5
-    x0, y0 = int(np.floor(cx)), int(np.floor(cy))
-    fx, fy = cx - x0, cy - y0
-    rows, cols = image.shape[1], image.shape[2]
-
-    def px(i, j):
-        return image[:, min(max(j, 0), rows - 1), min(max(i, 0), cols - 1)].astype(float)
-
-    return ((1 - fy) * ((1 - fx) * px(x0, y0) + fx * px(x0 + 1, y0))
-            + fy * ((1 - fx) * px(x0, y0 + 1) + fx * px(x0 + 1, y0 + 1)))
-
 
 def check_glb(test, opc):
     """The root's GLB from a real vsmd: texture embedded, coordinates in [0, 1], valid glTF."""

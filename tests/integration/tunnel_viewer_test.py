@@ -47,9 +47,10 @@ import sys
 import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import browser_support  # noqa: E402
 import harness  # noqa: E402
 import surfaces  # noqa: E402
-import viewer_test  # noqa: E402  (browser_check.js and the screenshot helpers)
+from browser_support import BACKGROUND, load_page, overlay_mask  # noqa: E402
 from harness import Daemon  # noqa: E402
 
 ARGS = None
@@ -161,8 +162,8 @@ class TunnelView(unittest.TestCase):
              "{code: 'KeyW'})); return true;"},
             {"name": "stopped", "until": "true"},
         ]
-        report, pixels = viewer_test.load_page(self, self.daemon.base, page, "vsmViewer",
-                                               "tunnel-inside", PAGE_SECONDS, steps)
+        report, pixels = load_page(self, self.daemon.base, page, "vsmViewer",
+                                   "tunnel-inside", PAGE_SECONDS, steps)
         state = report["state"]
         self.assertEqual(report["consoleErrors"], [])
         self.assertEqual(state["failed"], 0, state["errors"])
@@ -176,9 +177,9 @@ class TunnelView(unittest.TestCase):
         view = numpy.array(state["camera"]["view"], dtype=float).reshape(4, 4).T
         self.assertLess(numpy.abs(numpy.linalg.inv(view)[:3, 3] - EYE).max(), 1e-3)
 
-        drawn = numpy.abs(pixels.astype(int) - viewer_test.BACKGROUND).sum(axis=2) > DRAWN
+        drawn = numpy.abs(pixels.astype(int) - BACKGROUND).sum(axis=2) > DRAWN
         expected = expected_hits(state, pixels.shape)
-        checked = ~viewer_test.overlay_mask(state, pixels.shape) & ~band(expected, BAND)
+        checked = ~overlay_mask(state, pixels.shape) & ~band(expected, BAND)
         match = float((drawn == expected)[checked].mean())
         turned = float((drawn == expected_hits(state, pixels.shape, math.pi / 2))[checked].mean())
         rows, cols = drawn.shape
@@ -233,7 +234,7 @@ def main():
     parser.add_argument("--chromium", default=None)
     ARGS, rest = parser.parse_known_args()
     harness.configure(ARGS)
-    viewer_test.ARGS = ARGS
+    browser_support.configure(ARGS)
     unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
 
 

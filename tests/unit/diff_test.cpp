@@ -8,6 +8,7 @@
 
 #include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
+#include "core/diff/diff_picture.hpp"
 #include "core/diff/revision_diff.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/store/live_model.hpp"
@@ -41,8 +42,12 @@ std::shared_ptr<PatchGrid> leafGrid(std::uint32_t x, std::uint32_t y, const Heig
   return sampled(x * 16.0, y * 16.0, 1.0, h);
 }
 
-/// Writes a three-level model (16 leaves of depth 2, 4 + 1 overviews) sampling `h`.
-void writeModel(const fs::path& dir, const Height& h) {
+/// Leaf (x, y) of depth 2.
+using LeafOf = std::function<std::shared_ptr<PatchGrid>(std::uint32_t x, std::uint32_t y)>;
+
+/// Writes a three-level model to `dir`: the 16 leaves of depth 2 that `leaf` makes, 4 + 1
+/// overviews.
+void writeLayout(const fs::path& dir, const LeafOf& leaf) {
   Model model(kSize);
   const auto add = [&](const PatchKey& key) {
     PatchInfo info;
@@ -58,7 +63,7 @@ void writeModel(const fs::path& dir, const Height& h) {
   for (std::uint32_t y = 0; y < 4; ++y) {
     for (std::uint32_t x = 0; x < 4; ++x) {
       add({2, x, y});
-      model.setGrid({2, x, y}, leafGrid(x, y, h));
+      model.setGrid({2, x, y}, leaf(x, y));
     }
   }
   model.refreshStale([](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return nullptr; });
@@ -69,6 +74,11 @@ void writeModel(const fs::path& dir, const Height& h) {
     writer.writePatch(info, *info.grid, model.childrenBox(it->first));
   }
   writer.writeHierarchy(model);
+}
+
+/// writeLayout with leaves sampling `h`.
+void writeModel(const fs::path& dir, const Height& h) {
+  writeLayout(dir, [&](std::uint32_t x, std::uint32_t y) { return leafGrid(x, y, h); });
 }
 
 double wavy(double u, double v) {
@@ -94,15 +104,9 @@ double bump(double u, double v) {
   return kBumpHeight * c * c;
 }
 
-class DiffTest : public ::testing::Test {
+class DiffTest : public test::TempDirTest {
  protected:
-  void SetUp() override {
-    dir_ = fs::temp_directory_path() /
-           ("vsm-diff-test-" + std::to_string(::getpid()) + "-" +
-            ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
-  }
-  void TearDown() override { fs::remove_all(dir_); }
+  DiffTest() : TempDirTest("diff") {}
 
   std::unique_ptr<LiveModel> open(const Height& h) {
     writeModel(dir_, h);
@@ -119,7 +123,6 @@ class DiffTest : public ::testing::Test {
     return out;
   }
 
-  fs::path dir_;
   PatchCache cache_{64 << 20};
 };
 
@@ -345,35 +348,7 @@ TEST_P(CavityTest, ReportsTheLostVolumeAndTheChangedAreaAlongTheNormal) {
     return grid;
   };
   // The first revision: writeModel's layout with the face's leaves.
-  {
-    Model model(kSize);
-    const auto add = [&](const PatchKey& key) {
-      PatchInfo info;
-      info.key = key;
-      model.insert(info);
-    };
-    add(PatchKey::root());
-    for (std::uint32_t y = 0; y < 2; ++y) {
-      for (std::uint32_t x = 0; x < 2; ++x) {
-        add({1, x, y});
-      }
-    }
-    for (std::uint32_t y = 0; y < 4; ++y) {
-      for (std::uint32_t x = 0; x < 4; ++x) {
-        add({2, x, y});
-        model.setGrid({2, x, y}, leaf(x, y, false));
-      }
-    }
-    model.refreshStale(
-        [](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return nullptr; });
-    OpcWriter writer(dir_, OpcWriter::Durability::EachFile);
-    for (auto it = model.patches().rbegin(); it != model.patches().rend(); ++it) {
-      PatchInfo& info = model.at(it->first);
-      info.folder = it->first.toString();
-      writer.writePatch(info, *info.grid, model.childrenBox(it->first));
-    }
-    writer.writeHierarchy(model);
-  }
+  writeLayout(dir_, [&](std::uint32_t x, std::uint32_t y) { return leaf(x, y, false); });
   auto live = LiveModel::open(dir_, "m", cache_);
   const std::uint64_t v1 = live->snapshot()->version;
   {

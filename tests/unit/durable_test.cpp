@@ -22,18 +22,9 @@ namespace fs = std::filesystem;
 using test::codeOf;
 using test::messageOf;
 
-class DurableTest : public ::testing::Test {
+class DurableTest : public test::TempDirTest {
  protected:
-  void SetUp() override {
-    dir_ = fs::temp_directory_path() /
-           ("vsm-durable-test-" + std::to_string(::getpid()) + "-" +
-            ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
-    fs::create_directories(dir_);
-  }
-  void TearDown() override { fs::remove_all(dir_); }
-
-  fs::path dir_;
+  DurableTest() : TempDirTest("durable") {}
 };
 
 std::string read(const fs::path& file) {

@@ -1001,6 +1001,25 @@ std::unique_ptr<Model> transformedModel(const Model& model, const Mat4d& transfo
   });
 }
 
+/// The worst distance over the vertices of `model`'s leaves between a vertex and where `recovered`
+/// puts it back after `displacement` moved it.
+double worstRecoveryError(const Model& model, const Mat4d& displacement, const Mat4d& recovered) {
+  double worst = 0;
+  for (const auto& [key, info] : model.patches()) {
+    if (!info.isLeaf()) {
+      continue;
+    }
+    const int size = info.grid->size();
+    for (int y = 0; y < size; ++y) {
+      for (int x = 0; x < size; ++x) {
+        const Vec3d truth = info.grid->global(x, y);
+        worst = std::max(worst, (recovered.apply(displacement.apply(truth)) - truth).norm());
+      }
+    }
+  }
+  return worst;
+}
+
 TEST(Registration, RecoversHalfADegreeAndSeveralCellsWithinAQuarterOfTheDetailSpacing) {
   const Lattice aLattice{1000, 2000, 4, 0, ridgedHeight};
   const Lattice bLattice{1150, 2150, 4.0 / 5.3, std::numbers::pi / 6, ridgedHeight};
@@ -1016,20 +1035,8 @@ TEST(Registration, RecoversHalfADegreeAndSeveralCellsWithinAQuarterOfTheDetailSp
   EXPECT_TRUE(r.converged);
   EXPECT_GE(r.stages, 2);
   EXPECT_LT(r.rms, 0.1);  // vertical residual after alignment, metres
-  double worst = 0;
-  for (const auto& [key, info] : b->patches()) {
-    if (!info.isLeaf()) {
-      continue;
-    }
-    for (int y = 0; y < 33; ++y) {
-      for (int x = 0; x < 33; ++x) {
-        const Vec3d truth = info.grid->global(x, y);
-        const Vec3d recovered = r.transform.apply(displacement.apply(truth));
-        worst = std::max(worst, (recovered - truth).norm());
-      }
-    }
-  }
-  EXPECT_LE(worst, bLattice.spacing / 4) << "fitness " << r.fitness;
+  EXPECT_LE(worstRecoveryError(*b, displacement, r.transform), bLattice.spacing / 4)
+      << "fitness " << r.fitness;
   // Without registration the error is the displacement itself.
   EXPECT_GT((displacement.apply(centre) - centre).norm(), 10.0);
 
@@ -1076,19 +1083,8 @@ TEST(Registration, RecoversTheDisplacementAcrossHolesFromThinnedPoints) {
   const RegistrationResult r = registerModels(target, detail, options);
   EXPECT_TRUE(r.converged);
   EXPECT_LT(r.rms, 0.1);
-  double worst = 0;
-  for (const auto& [key, info] : b->patches()) {
-    if (!info.isLeaf()) {
-      continue;
-    }
-    for (int y = 0; y < 33; ++y) {
-      for (int x = 0; x < 33; ++x) {
-        const Vec3d truth = info.grid->global(x, y);
-        worst = std::max(worst, (r.transform.apply(displacement.apply(truth)) - truth).norm());
-      }
-    }
-  }
-  EXPECT_LE(worst, bLattice.spacing / 4) << "fitness " << r.fitness;
+  EXPECT_LE(worstRecoveryError(*b, displacement, r.transform), bLattice.spacing / 4)
+      << "fitness " << r.fitness;
 }
 
 TEST(Registration, FailsClearlyWithoutOverlap) {
@@ -1113,31 +1109,25 @@ void writeOpc(Model& model, const fs::path& dir) {
   writer.writeHierarchy(model);
 }
 
-class MergeStoreTest : public ::testing::Test {
+class MergeStoreTest : public test::TempDirTest {
  protected:
+  MergeStoreTest() : TempDirTest("merge") {}
   void SetUp() override {
-    root_ = fs::temp_directory_path() /
-            ("vsm-merge-test-" + std::to_string(::getpid()) + "-" +
-             ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(root_);
     SyntheticMerge data;
-    writeOpc(*data.a, root_ / "a");
-    writeOpc(*data.b, root_ / "b");
+    writeOpc(*data.a, dir_ / "a");
+    writeOpc(*data.b, dir_ / "b");
     aLattice_ = data.aLattice;
     bLattice_ = data.bLattice;
   }
-  void TearDown() override { fs::remove_all(root_); }
-
-  fs::path root_;
   Lattice aLattice_, bLattice_;
 };
 
 TEST_F(MergeStoreTest, MergedModelValidatesFollowsTheDetailAndLeavesOtherFilesAlone) {
-  const auto before = filesUnder(root_ / "a");
-  const Model oldModel = readOpcModel(root_ / "a");
+  const auto before = filesUnder(dir_ / "a");
+  const Model oldModel = readOpcModel(dir_ / "a");
   PatchCache cache(64 << 20);
-  auto a = LiveModel::open(root_ / "a", "a", cache);
-  auto b = LiveModel::open(root_ / "b", "b", cache);
+  auto a = LiveModel::open(dir_ / "a", "a", cache);
+  auto b = LiveModel::open(dir_ / "b", "b", cache);
   MergeResult result;
   {
     auto edit = a->beginEdit();
@@ -1145,7 +1135,7 @@ TEST_F(MergeStoreTest, MergedModelValidatesFollowsTheDetailAndLeavesOtherFilesAl
     edit->publish();
   }
   EXPECT_EQ(result.maxLevels, 3);
-  const auto findings = validateOpc(root_ / "a");
+  const auto findings = validateOpc(dir_ / "a");
   for (const Finding& f : findings) {
     ADD_FAILURE() << f.where << ": " << f.message;
   }
@@ -1194,7 +1184,7 @@ TEST_F(MergeStoreTest, MergedModelValidatesFollowsTheDetailAndLeavesOtherFilesAl
   EXPECT_GT(checked, 5000u);
 
   // Patches outside the matched subtrees and their ancestors: same folder, byte-identical files.
-  const auto after = filesUnder(root_ / "a");
+  const auto after = filesUnder(dir_ / "a");
   std::size_t untouched = 0;
   for (const auto& [key, info] : oldModel.patches()) {
     bool affected = false;
@@ -1217,13 +1207,13 @@ TEST_F(MergeStoreTest, MergedModelValidatesFollowsTheDetailAndLeavesOtherFilesAl
 }
 
 TEST_F(MergeStoreTest, DetailOutsideTheTargetLeavesTheTargetUntouched) {
-  fs::remove_all(root_ / "b");
+  fs::remove_all(dir_ / "b");
   auto far = latticeModel({5000, 9000, 1, 0.2}, 17, 1);
-  writeOpc(*far, root_ / "b");
-  const auto before = filesUnder(root_ / "a");
+  writeOpc(*far, dir_ / "b");
+  const auto before = filesUnder(dir_ / "a");
   PatchCache cache(64 << 20);
-  auto a = LiveModel::open(root_ / "a", "a", cache);
-  auto b = LiveModel::open(root_ / "b", "b", cache);
+  auto a = LiveModel::open(dir_ / "a", "a", cache);
+  auto b = LiveModel::open(dir_ / "b", "b", cache);
   const std::uint64_t version = a->snapshot()->version;
   {
     auto edit = a->beginEdit();
@@ -1236,18 +1226,18 @@ TEST_F(MergeStoreTest, DetailOutsideTheTargetLeavesTheTargetUntouched) {
     }
   }  // the edit is discarded
   EXPECT_EQ(a->snapshot()->version, version);
-  EXPECT_EQ(filesUnder(root_ / "a"), before);
+  EXPECT_EQ(filesUnder(dir_ / "a"), before);
 }
 
 TEST_F(MergeStoreTest, WorksUnderATightMemoryBudget) {
   // A detail model at twice A's resolution (one new level, few files to write), and room for 8
   // patches of 17 x 17: the merge must stream (dirty patches get written back early).
-  fs::remove_all(root_ / "b");
+  fs::remove_all(dir_ / "b");
   auto coarser = latticeModel({1100, 2070, 4.0 / 1.8, std::numbers::pi / 6}, 17, 1);
-  writeOpc(*coarser, root_ / "b");
+  writeOpc(*coarser, dir_ / "b");
   PatchCache cache(8 * 17 * 17 * 12);
-  auto a = LiveModel::open(root_ / "a", "a", cache);
-  auto b = LiveModel::open(root_ / "b", "b", cache);
+  auto a = LiveModel::open(dir_ / "a", "a", cache);
+  auto b = LiveModel::open(dir_ / "b", "b", cache);
   {
     auto edit = a->beginEdit();
     const MergeResult result = mergeModels(*edit, *b);
@@ -1256,7 +1246,7 @@ TEST_F(MergeStoreTest, WorksUnderATightMemoryBudget) {
     EXPECT_GT(cache.stats().writeBacks, 0u);
     edit->publish();
   }
-  for (const Finding& f : validateOpc(root_ / "a")) {
+  for (const Finding& f : validateOpc(dir_ / "a")) {
     ADD_FAILURE() << f.where << ": " << f.message;
   }
   EXPECT_LE(cache.stats().residentBytes, cache.budgetBytes());

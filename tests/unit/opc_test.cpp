@@ -260,10 +260,10 @@ std::vector<std::byte> pgmFile() {
 }
 
 /// A scratch directory with Images/Diffuse/ for the texture file tests, removed afterwards.
-class TextureFileTest : public ::testing::Test {
+class TextureFileTest : public test::TempDirTest {
  protected:
+  TextureFileTest() : TempDirTest("texture-file") {}
   void SetUp() override { fs::create_directories(dir_ / "Images" / "Diffuse"); }
-  void TearDown() override { fs::remove_all(dir_); }
   /// The path of `name` in Images/Diffuse/.
   fs::path file(const std::string& name) const { return dir_ / "Images" / "Diffuse" / name; }
   /// `tile` as a PNG file (converted by readPatchTexturePng from our TIFF).
@@ -274,9 +274,6 @@ class TextureFileTest : public ::testing::Test {
     info.textureFile = "Diffuse\\source.tif";
     return readPatchTexturePng(dir_, info);
   }
-
-  const fs::path dir_ =
-      fs::temp_directory_path() / ("vsm-texture-file-test-" + std::to_string(::getpid()));
 };
 
 /// The texels of `tile`, comparable.
@@ -442,22 +439,17 @@ void replaceIn(const fs::path& file, const std::string& from, const std::string&
   writeText(file, text);
 }
 
-class OpcStoreTest : public ::testing::Test {
+class OpcStoreTest : public test::TempDirTest {
  protected:
+  OpcStoreTest() : TempDirTest("opc") {}
   void SetUp() override {
-    dir_ = fs::temp_directory_path() /
-           ("vsm-opc-test-" + std::to_string(::getpid()) + "-" +
-            ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
     model_ = std::make_unique<Model>(makeModel());
     writeModel(*model_, dir_ / "a");
   }
-  void TearDown() override { fs::remove_all(dir_); }
 
   fs::path opc() const { return dir_ / "a"; }
   fs::path patches() const { return opc() / "Patches"; }
 
-  fs::path dir_;
   std::unique_ptr<Model> model_;
 };
 

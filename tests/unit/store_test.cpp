@@ -123,18 +123,10 @@ void writeModel(const fs::path& dir, bool textured = false) {
   writer.writeHierarchy(model);
 }
 
-class StoreTest : public ::testing::Test {
+class StoreTest : public test::TempDirTest {
  protected:
-  void SetUp() override {
-    dir_ = fs::temp_directory_path() /
-           ("vsm-store-test-" + std::to_string(::getpid()) + "-" +
-            ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    fs::remove_all(dir_);
-    writeModel(dir_);
-  }
-  void TearDown() override { fs::remove_all(dir_); }
-
-  fs::path dir_;
+  StoreTest() : TempDirTest("store") {}
+  void SetUp() override { writeModel(dir_); }
 };
 
 double leafZ(LiveModel& live, const ModelSnapshot& snapshot, const PatchKey& key) {

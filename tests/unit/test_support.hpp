@@ -1,7 +1,7 @@
 #pragma once
 
-// Helpers shared by the unit tests: what an operation threw, the files under a directory, and an
-// executor lending one thread per task.
+// Helpers shared by the unit tests: what an operation threw, a temporary file or directory, the
+// files under a directory, and an executor lending one thread per task.
 
 #include <gtest/gtest.h>
 #include <unistd.h>
@@ -13,6 +13,8 @@
 #include <map>
 #include <sstream>
 #include <string>
+#include <string_view>
+#include <system_error>
 #include <thread>
 #include <utility>
 #include <vector>
@@ -74,6 +76,26 @@ class TempFile {
  private:
   static inline int counter_ = 0;
   std::filesystem::path path_;
+};
+
+/// A fixture whose every test has its own empty directory `dir_`,
+/// <tmp>/vsm-<tag>-test-<pid>-<test name>, made before the test (emptied first: a crashed run may
+/// have left it) and removed after the derived fixture's members are gone.
+class TempDirTest : public ::testing::Test {
+ protected:
+  explicit TempDirTest(std::string_view tag)
+      : dir_(std::filesystem::temp_directory_path() /
+             ("vsm-" + std::string(tag) + "-test-" + std::to_string(::getpid()) + "-" +
+              ::testing::UnitTest::GetInstance()->current_test_info()->name())) {
+    std::filesystem::remove_all(dir_);
+    std::filesystem::create_directories(dir_);
+  }
+  ~TempDirTest() override {
+    std::error_code ignored;
+    std::filesystem::remove_all(dir_, ignored);
+  }
+
+  std::filesystem::path dir_;
 };
 
 /// The bytes of `file`.

@@ -1,3 +1,5 @@
+// server/http: gzip, the router, the pipeline (errors, authorization, CORS), messages and
+// requests, and the HTTP server on a real socket.
 #include <gtest/gtest.h>
 
 #include <arpa/inet.h>
@@ -6,23 +8,16 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
-#include <filesystem>
-#include <fstream>
+#include <functional>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
 #include <zlib.h>
 #include <nlohmann/json.hpp>
 
-#include "core/cache/patch_cache.hpp"
 #include "core/common/error.hpp"
-#include "core/opc/texture_file.hpp"
-#include "server/api/diff_gate.hpp"
-#include "server/api/static_routes.hpp"
-#include "server/api/system_routes.hpp"
-#include "server/app/application.hpp"
-#include "server/cluster/etcd_client.hpp"
-#include "server/config/config.hpp"
+#include "core/common/log.hpp"
 #include "server/exec/work_pool.hpp"
 #include "server/http/gzip.hpp"
 #include "server/http/message.hpp"
@@ -30,6 +25,7 @@
 #include "server/http/router.hpp"
 #include "server/http/server.hpp"
 #include "server/metrics/metrics.hpp"
+#include "tests/unit/server_test_support.hpp"
 #include "tests/unit/test_support.hpp"
 
 namespace vsm::server {
@@ -37,15 +33,11 @@ namespace {
 
 using core::Error;
 using core::ErrorCode;
-using namespace std::chrono_literals;
-using nlohmann::json;
-
-constexpr std::size_t kKiB = 1024;
-constexpr std::size_t kMiB = 1024 * kKiB;
-constexpr std::size_t kGiB = 1024 * kMiB;
-
 using core::test::errorOf;
 using core::test::TempFile;
+using namespace std::chrono_literals;
+using nlohmann::json;
+using test::request;
 
 // --- gzip -----------------------------------------------------------------------------------
 
@@ -129,25 +121,6 @@ TEST(Gzip, ResponseHeaders) {
   EXPECT_EQ(*response.header("Content-Encoding"), "gzip");
   ASSERT_NE(response.header("vary"), nullptr);
   EXPECT_EQ(*response.header("Vary"), "Accept-Encoding");
-}
-
-TEST(Base64, MatchesTheVectorsOfRfc4648AndRefusesJunk) {
-  const std::pair<std::string, std::string> vectors[] = {{"", ""},
-                                                         {"f", "Zg=="},
-                                                         {"fo", "Zm8="},
-                                                         {"foo", "Zm9v"},
-                                                         {"foob", "Zm9vYg=="},
-                                                         {"fooba", "Zm9vYmE="},
-                                                         {"foobar", "Zm9vYmFy"}};
-  for (const auto& [plain, encoded] : vectors) {
-    EXPECT_EQ(cluster::base64Encode(plain), encoded);
-    EXPECT_EQ(cluster::base64Decode(encoded), plain);
-  }
-  const std::string bytes{'\0', '\xff', '\x80', '/', '+'};
-  EXPECT_EQ(cluster::base64Decode(cluster::base64Encode(bytes)), bytes);
-  for (const char* junk : {"Zg=", "Z===", "Zg=a", "Zm9v!A==", "=Zm9"}) {
-    EXPECT_THROW(cluster::base64Decode(junk), core::Error) << junk;
-  }
 }
 
 // --- router ---------------------------------------------------------------------------------
@@ -252,15 +225,6 @@ TEST(Router, RejectsMalformedAndDuplicatePatterns) {
 }
 
 // --- pipeline -------------------------------------------------------------------------------
-
-http::Request request(http::Method method, std::string target) {
-  http::Request r;
-  r.method = method;
-  r.methodName = std::string(http::toString(method));
-  r.target = std::move(target);
-  r.id = "req-1";
-  return r;
-}
 
 json errorBody(const http::Response& response) {
   const json body = json::parse(response.body);
@@ -510,152 +474,6 @@ TEST(Request, JsonBodyNestsAtMostMaxDepthLevels) {
   EXPECT_EQ(errorOf([&] { http::jsonBody(r); }).first, ErrorCode::InvalidArgument);
 }
 
-// --- metrics --------------------------------------------------------------------------------
-
-TEST(Metrics, RendersCountersHistogramsAndCollectorsInTextFormat) {
-  metrics::Registry registry;
-  metrics::Counter& requests =
-      registry.counter("vsm_test_requests_total", "Requests", {"route", "status"});
-  metrics::Histogram& latency =
-      registry.histogram("vsm_test_seconds", "Latency", {"route"}, {0.001, 0.1});
-  registry.counter("vsm_test_idle_total", "Never incremented");
-  registry.collector([] {
-    return std::vector<metrics::Snapshot>{
-        {"vsm_test_open", "Open now", metrics::Type::Gauge, {"name"}, {{{"a\"b\\c"}, 2.5}}}};
-  });
-  requests.inc({"/x", "200"});
-  requests.inc({"/x", "200"}, 2);
-  latency.observe({"/x"}, 0.0005);
-  latency.observe({"/x"}, 0.05);
-  latency.observe({"/x"}, 7);
-
-  const std::string text = registry.render();
-  EXPECT_NE(text.find("# TYPE vsm_test_requests_total counter\n"), std::string::npos);
-  EXPECT_NE(text.find("vsm_test_requests_total{route=\"/x\",status=\"200\"} 3\n"),
-            std::string::npos);
-  EXPECT_NE(text.find("vsm_test_idle_total 0\n"), std::string::npos);
-  EXPECT_NE(text.find("# TYPE vsm_test_seconds histogram\n"), std::string::npos);
-  EXPECT_NE(text.find("vsm_test_seconds_bucket{route=\"/x\",le=\"0.001\"} 1\n"), std::string::npos);
-  EXPECT_NE(text.find("vsm_test_seconds_bucket{route=\"/x\",le=\"0.1\"} 2\n"), std::string::npos);
-  EXPECT_NE(text.find("vsm_test_seconds_bucket{route=\"/x\",le=\"+Inf\"} 3\n"), std::string::npos);
-  EXPECT_NE(text.find("vsm_test_seconds_count{route=\"/x\"} 3\n"), std::string::npos);
-  EXPECT_NE(text.find("vsm_test_seconds_sum{route=\"/x\"} 7.0505\n"), std::string::npos);
-  EXPECT_NE(text.find("vsm_test_open{name=\"a\\\"b\\\\c\"} 2.5\n"), std::string::npos);
-  EXPECT_EQ(requests.value({"/x", "200"}), 3.0);
-}
-
-TEST(Metrics, RejectsBadNamesDuplicatesAndWrongLabelCounts) {
-  metrics::Registry registry;
-  metrics::Counter& counter = registry.counter("ok_total", "", {"a"});
-  EXPECT_EQ(errorOf([&] { registry.counter("ok_total", ""); }).first, ErrorCode::InvalidArgument);
-  EXPECT_EQ(errorOf([&] { registry.counter("1bad", ""); }).first, ErrorCode::InvalidArgument);
-  EXPECT_EQ(errorOf([&] { registry.counter("x", "", {"le"}); }).first, ErrorCode::InvalidArgument);
-  EXPECT_EQ(errorOf([&] {
-              registry.histogram("h", "", {}, {1, 0.5});
-            }).first,
-            ErrorCode::InvalidArgument);
-  EXPECT_EQ(errorOf([&] { counter.inc({"a", "b"}); }).first, ErrorCode::Internal);
-}
-
-// --- descriptor plan --------------------------------------------------------------------------
-
-// vsmd.descriptors runs the daemon at 1024; these are the plans at and around the bounds.
-TEST(DescriptorPlan, SharesTheLimitWithoutEverExceedingIt) {
-  // A service's default soft limit with the default 512 connections, 6 threads (2 of them job
-  // threads) and 16 models: 158 kept for the process (64 + 2 x 6 + 64 being refused + a writer
-  // lock per model + an edit's directory per job thread), 512 connections, the rest for cached
-  // files.
-  const DescriptorPlan plan = planDescriptors(1024, 512, 6, 16, 2);
-  EXPECT_EQ(plan.connections, 512u);
-  EXPECT_EQ(plan.cachedFiles, 1024u - 158 - 512);
-  // Every model and job thread allowed takes its descriptor from the cache's share.
-  EXPECT_EQ(planDescriptors(1024, 512, 6, 116, 2).cachedFiles, 1024u - 258 - 512);
-  EXPECT_EQ(planDescriptors(1024, 512, 6, 16, 10).cachedFiles, 1024u - 166 - 512);
-  // A generous hard limit: the cache's share stops at 65536.
-  EXPECT_EQ(planDescriptors(1u << 20, 512, 6, 16, 2).cachedFiles, 65536u);
-  EXPECT_EQ(planDescriptors(1u << 20, 512, 6, 16, 2).connections, 512u);
-  // Too few for both: connections give way so that 64 files can still be cached.
-  const DescriptorPlan tight = planDescriptors(512, 512, 6, 16, 2);
-  EXPECT_EQ(tight.cachedFiles, 64u);
-  EXPECT_EQ(tight.connections, 512u - 158 - 64);
-  for (std::size_t limit = 300; limit <= 70000; limit += 37) {
-    for (const std::size_t connections : {1u, 64u, 512u, 4096u}) {
-      const DescriptorPlan p = planDescriptors(limit, connections, 6, 16, 2);
-      EXPECT_LE(p.connections + p.cachedFiles + 158, limit) << limit << " " << connections;
-      EXPECT_LE(p.connections, connections);
-      EXPECT_GE(p.cachedFiles, 8u);
-      EXPECT_GE(p.connections, std::min<std::size_t>(connections, 8));
-    }
-  }
-  // Below what the process needs for itself the plan still leaves something to run with.
-  const DescriptorPlan starved = planDescriptors(100, 512, 6, 16, 2);
-  EXPECT_GE(starved.connections, 8u);
-  EXPECT_GE(starved.cachedFiles, 8u);
-}
-
-// --- diff gate ------------------------------------------------------------------------------
-
-TEST(DiffGate, RefusesBeyondItsSlotsAndFreesASlotWhenItsDiffEnds) {
-  const auto gate = api::DiffGate::create({2, std::chrono::milliseconds(0)});
-  auto first = gate->enter();
-  auto second = gate->enter();
-  EXPECT_EQ(first->deadline(), std::chrono::steady_clock::time_point::max()) << "no deadline";
-  try {
-    gate->enter();
-    ADD_FAILURE() << "a third diff entered a gate of two";
-  } catch (const core::Error& e) {
-    EXPECT_EQ(e.code(), core::ErrorCode::Unavailable);  // 503 with Retry-After
-  }
-  EXPECT_EQ(gate->stats().running, 2u);
-  EXPECT_EQ(gate->stats().refused, 1u);
-  first.reset();
-  EXPECT_NE(gate->enter(), nullptr);
-  EXPECT_EQ(gate->stats().running, 1u);
-  const auto timed = api::DiffGate::create({1, std::chrono::minutes(1)});
-  const auto before = std::chrono::steady_clock::now();
-  EXPECT_GE(timed->enter()->deadline(), before + std::chrono::minutes(1));
-  EXPECT_EQ(api::DiffGate::create({0, {}})->stats().slots, 0u);
-  EXPECT_THROW(api::DiffGate::create({0, {}})->enter(), core::Error);
-}
-
-// --- system routes --------------------------------------------------------------------------
-
-TEST(SystemRoutes, StatsReportTheBudgetAndEveryCategory) {
-  const core::PatchCache cache(64 * kMiB);
-  const json stats = api::statsJson(cache.stats(), cache.policy());
-  EXPECT_EQ(stats.at("memory").at("budget_bytes"), 64 * kMiB);
-  EXPECT_EQ(stats.at("memory").at("resident_bytes"), 0);
-  EXPECT_EQ(stats.at("memory").at("resident_bytes_by_category").size(), core::kMemoryCategoryCount);
-  EXPECT_EQ(stats.at("memory").at("encoded_bytes_by_encoding"), json({{"aara", 0},
-                                                                      {"glb", 0},
-                                                                      {"png", 0},
-                                                                      {"terrain", 0},
-                                                                      {"glb_meshopt", 0},
-                                                                      {"json_gzip", 0},
-                                                                      {"diff", 0},
-                                                                      {"heights", 0}}));
-  EXPECT_TRUE(stats.at("memory").at("resident_bytes_by_model").is_object());
-  for (const char* key : {"hits", "misses", "evictions", "write_backs", "exhausted"}) {
-    EXPECT_EQ(stats.at("cache").at(key), 0) << key;
-  }
-  EXPECT_EQ(stats.at("cache").at("policy"), "cost-aware-clock");
-}
-
-TEST(SystemRoutes, ReadinessFollowsTheFlag) {
-  const core::PatchCache cache(64 * kMiB);
-  const metrics::Registry registry;
-  bool ready = false;
-  http::Router router;
-  api::addSystemRoutes(router, {cache, registry, [&] { return ready; }});
-  const http::Pipeline pipeline(router, "");
-  auto r = request(http::Method::Get, "/readyz");
-  EXPECT_EQ(pipeline.handle(r).response.status, 503);
-  ready = true;
-  EXPECT_EQ(pipeline.handle(r).response.status, 200);
-}
-
-// --- static files (the viewer at /viewer/) -------------------------------------------------
-
 TEST(Router, ATailParameterTakesTheRestOfThePath) {
   http::Router router;
   router.add(http::Method::Get, "/viewer/{path...}", named("static"));
@@ -680,105 +498,6 @@ TEST(Router, ATailParameterTakesTheRestOfThePath) {
               ErrorCode::InvalidArgument)
         << pattern;
   }
-}
-
-/// A viewer directory with an index, a nested module, a hidden file, a link inside the tree and
-/// links out of it, next to a secret that must never be served.
-class StaticFiles : public ::testing::Test {
- protected:
-  void SetUp() override {
-    base_ = std::filesystem::temp_directory_path() /
-            ("vsm-static-" + std::to_string(::getpid()) + "-" +
-             ::testing::UnitTest::GetInstance()->current_test_info()->name());
-    std::filesystem::remove_all(base_);
-    root_ = base_ / "viewer";
-    std::filesystem::create_directories(root_ / "vendor" / "three");
-    std::filesystem::create_directories(base_ / "viewer-secrets");
-    write(root_ / "index.html", "<!doctype html>");
-    write(root_ / "vendor" / "three" / "three.module.js", "export {};");
-    write(root_ / ".hidden", "no");
-    write(base_ / "secret.txt", "secret");
-    write(base_ / "viewer-secrets" / "key.txt", "secret");
-    std::filesystem::create_symlink(root_ / "index.html", root_ / "inside.html");
-    std::filesystem::create_symlink(base_ / "secret.txt", root_ / "out.txt");
-    std::filesystem::create_directory_symlink(base_, root_ / "up");
-    root_ = std::filesystem::canonical(root_);
-  }
-  void TearDown() override { std::filesystem::remove_all(base_); }
-
-  static void write(const std::filesystem::path& path, const std::string& text) {
-    std::ofstream(path, std::ios::binary) << text;
-  }
-
-  std::filesystem::path base_;
-  std::filesystem::path root_;
-};
-
-TEST_F(StaticFiles, ResolvesFilesAndDirectoryIndexesInsideTheRoot) {
-  EXPECT_EQ(api::resolveStaticFile(root_, ""), root_ / "index.html");
-  EXPECT_EQ(api::resolveStaticFile(root_, "index.html"), root_ / "index.html");
-  EXPECT_EQ(api::resolveStaticFile(root_, "vendor/three/three.module.js"),
-            root_ / "vendor" / "three" / "three.module.js");
-  // A link inside the tree is followed.
-  EXPECT_EQ(api::resolveStaticFile(root_, "inside.html"), root_ / "index.html");
-}
-
-TEST_F(StaticFiles, RefusesTraversalHiddenFilesLinksOutAndDirectories) {
-  for (const char* path :
-       {"..", "../secret.txt", "vendor/../../secret.txt", "./index.html", "vendor/./three", "a//b",
-        "/index.html", ".hidden", "out.txt", "up/secret.txt", "../viewer-secrets/key.txt", "vendor",
-        "vendor/three", "missing.js", "vendor\\..\\x"}) {
-    EXPECT_EQ(api::resolveStaticFile(root_, path), std::nullopt) << path;
-  }
-  EXPECT_EQ(api::resolveStaticFile(root_, std::string("index.html\0x", 12)), std::nullopt);
-  EXPECT_EQ(api::resolveStaticFile(root_, std::string(2000, 'a')), std::nullopt);
-}
-
-TEST_F(StaticFiles, AreServedWithTypesETagsRedirectsAnd404s) {
-  http::Router router;
-  api::addStaticRoutes(router, "/viewer", base_ / "viewer");
-  const http::Pipeline pipeline(router, "");
-
-  http::Request r = request(http::Method::Get, "/viewer/?model=merged");
-  http::Handled handled = pipeline.handle(r);
-  EXPECT_EQ(handled.response.status, 200);
-  EXPECT_EQ(handled.response.bodyText(), "<!doctype html>");
-  EXPECT_EQ(handled.response.contentType, "text/html; charset=utf-8");
-  ASSERT_NE(handled.response.header("ETag"), nullptr);
-  const std::string etag = *handled.response.header("ETag");
-  r = request(http::Method::Get, "/viewer/index.html");
-  r.headers.emplace_back("if-none-match", etag);
-  EXPECT_EQ(pipeline.handle(r).response.status, 304);
-
-  r = request(http::Method::Get, "/viewer/vendor/three/three.module.js");
-  EXPECT_EQ(pipeline.handle(r).response.contentType, "text/javascript; charset=utf-8");
-
-  r = request(http::Method::Get, "/viewer?model=merged");
-  handled = pipeline.handle(r);
-  EXPECT_EQ(handled.response.status, 301);
-  ASSERT_NE(handled.response.header("Location"), nullptr);
-  EXPECT_EQ(*handled.response.header("Location"), "/viewer/?model=merged");
-
-  for (const char* target : {"/viewer/../secret.txt", "/viewer/%2e%2e/secret.txt",
-                             "/viewer/vendor%2F..%2F..%2Fsecret.txt", "/viewer/out.txt",
-                             "/viewer/up/secret.txt", "/viewer/nope.js"}) {
-    r = request(http::Method::Get, target);
-    handled = pipeline.handle(r);
-    EXPECT_EQ(handled.response.status, 404) << target;
-    EXPECT_NE(handled.response.bodyText(), "secret") << target;
-  }
-  EXPECT_EQ(errorOf([&] { api::addStaticRoutes(router, "/x", base_ / "none"); }).first,
-            ErrorCode::NotFound);
-}
-
-TEST(StaticContentType, FollowsTheExtension) {
-  EXPECT_EQ(api::staticContentType("a/index.html"), "text/html; charset=utf-8");
-  EXPECT_EQ(api::staticContentType("main.js"), "text/javascript; charset=utf-8");
-  EXPECT_EQ(api::staticContentType("x.MJS"), "text/javascript; charset=utf-8");
-  EXPECT_EQ(api::staticContentType("widgets.css"), "text/css; charset=utf-8");
-  EXPECT_EQ(api::staticContentType("a.json"), "application/json");
-  EXPECT_EQ(api::staticContentType("draco.wasm"), "application/wasm");
-  EXPECT_EQ(api::staticContentType("LICENSE"), "application/octet-stream");
 }
 
 // --- the HTTP server on a real socket -------------------------------------------------------

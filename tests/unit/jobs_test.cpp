@@ -1,0 +1,163 @@
+// server/jobs: the job registry (stages, cancellation, failures, the queue's bound, cluster ids).
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <chrono>
+#include <condition_variable>
+#include <mutex>
+#include <string>
+#include <thread>
+
+#include <nlohmann/json.hpp>
+
+#include "core/common/error.hpp"
+#include "server/exec/work_pool.hpp"
+#include "server/jobs/job_registry.hpp"
+#include "tests/unit/server_test_support.hpp"
+#include "tests/unit/test_support.hpp"
+
+namespace vsm::server {
+namespace {
+
+using core::Error;
+using core::ErrorCode;
+using core::test::codeOf;
+using nlohmann::json;
+using test::waitFinal;
+using namespace std::chrono_literals;
+
+// ---- jobs ------------------------------------------------------------------------------------
+
+/// A gate a test opens to let a job go on.
+class Gate {
+ public:
+  void open() {
+    {
+      const std::lock_guard lock(mutex_);
+      open_ = true;
+    }
+    cv_.notify_all();
+  }
+  void wait() {
+    std::unique_lock lock(mutex_);
+    cv_.wait(lock, [this] { return open_; });
+  }
+
+ private:
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  bool open_ = false;
+};
+
+TEST(JobRegistry, RunsAJobAndMapsStagesOntoOneRisingFraction) {
+  exec::WorkPool pool("jobs", 1);
+  jobs::JobRegistry registry(pool);
+  Gate halfway;
+  Gate resume;
+  const auto job = registry.submit(
+      "test", {{"a", 1}}, {{"first", 1}, {"second", 3}}, [&](jobs::JobContext& context) {
+        context.report("first", 1);
+        context.report("second", 0.5);
+        context.report("unplanned", 0.1);  // shown, but the fraction stays
+        halfway.open();
+        resume.wait();
+        return json{{"answer", 42}};
+      });
+  EXPECT_EQ(job.state, jobs::JobState::Queued);
+  halfway.wait();
+  const jobs::JobStatus running = registry.get(job.id);
+  EXPECT_EQ(running.state, jobs::JobState::Running);
+  EXPECT_EQ(running.stage, "unplanned");
+  EXPECT_DOUBLE_EQ(running.progress, 0.25 + 0.75 * 0.5);
+  resume.open();
+  const jobs::JobStatus done = waitFinal(registry, job.id);
+  EXPECT_EQ(done.state, jobs::JobState::Succeeded);
+  EXPECT_EQ(done.progress, 1);
+  EXPECT_EQ(done.result, json({{"answer", 42}}));
+  const json wire = jobs::toJson(done);
+  EXPECT_EQ(wire.at("state"), "succeeded");
+  EXPECT_TRUE(wire.at("error").is_null());
+  EXPECT_TRUE(wire.at("finished_at").is_string());
+  EXPECT_EQ(codeOf([&] { registry.cancel(job.id); }), ErrorCode::Conflict);
+  EXPECT_EQ(codeOf([&] { registry.get("nope"); }), ErrorCode::NotFound);
+  pool.join();
+}
+
+TEST(JobRegistry, CancelStopsQueuedJobsAtOnceAndRunningOnesAtTheirNextCheck) {
+  exec::WorkPool pool("jobs", 1);
+  jobs::JobRegistry registry(pool);
+  Gate started;
+  std::atomic<bool> secondRan{false};
+  const auto first = registry.submit("test", json::object(), {}, [&](jobs::JobContext& context) {
+    started.open();
+    while (true) {
+      context.throwIfCancelled();
+      std::this_thread::sleep_for(1ms);
+    }
+    return json();
+  });
+  const auto second = registry.submit("test", json::object(), {}, [&](jobs::JobContext&) {
+    secondRan = true;
+    return json();
+  });
+  started.wait();
+  const auto queued = registry.cancel(second.id);
+  EXPECT_EQ(queued.state, jobs::JobState::Cancelled);
+  const auto running = registry.cancel(first.id);
+  EXPECT_EQ(running.state, jobs::JobState::Running);
+  EXPECT_TRUE(running.cancelRequested);
+  const auto done = waitFinal(registry, first.id);
+  EXPECT_EQ(done.state, jobs::JobState::Cancelled);
+  EXPECT_EQ(done.errorCode, ErrorCode::Cancelled);
+  pool.join();
+  EXPECT_FALSE(secondRan);
+  EXPECT_EQ(registry.counts().at(jobs::JobState::Cancelled), 2u);
+}
+
+TEST(JobRegistry, FailuresKeepTheirCodeAndTheQueueIsBounded) {
+  exec::WorkPool pool("jobs", 1);
+  jobs::JobRegistry registry(pool, {.active = 2, .finished = 1, .node = {}});
+  Gate gate;
+  const auto failing = registry.submit("test", json::object(), {}, [&](jobs::JobContext&) -> json {
+    gate.wait();
+    throw Error(ErrorCode::InvalidArgument, "bad input");
+  });
+  const auto second =
+      registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json::object(); });
+  EXPECT_EQ(codeOf([&] {
+              registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json(); });
+            }),
+            ErrorCode::Unavailable);
+  gate.open();
+  EXPECT_EQ(waitFinal(registry, second.id).state, jobs::JobState::Succeeded);
+  // Only the newest finished job is remembered.
+  EXPECT_EQ(codeOf([&] { registry.get(failing.id); }), ErrorCode::NotFound);
+  registry.cancelAll();
+  EXPECT_EQ(codeOf([&] {
+              registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json(); });
+            }),
+            ErrorCode::Unavailable);
+  pool.join();
+}
+
+TEST(JobRegistry, InAClusterJobIdsNameTheNodeAndALostLeaseCancelsButStillTakesJobs) {
+  exec::WorkPool pool("jobs", 1);
+  jobs::JobRegistry registry(pool, {.active = 4, .finished = 4, .node = "n2"});
+  Gate gate;
+  const auto running = registry.submit("test", json::object(), {}, [&](jobs::JobContext& context) {
+    gate.wait();
+    context.throwIfCancelled();
+    return json::object();
+  });
+  EXPECT_TRUE(running.id.starts_with("n2-")) << running.id;
+  registry.cancelAll(/*refuseNew=*/false);
+  gate.open();
+  EXPECT_EQ(waitFinal(registry, running.id).state, jobs::JobState::Cancelled);
+  const auto next =
+      registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json::object(); });
+  EXPECT_EQ(waitFinal(registry, next.id).state, jobs::JobState::Succeeded);
+  pool.join();
+}
+
+}  // namespace
+}  // namespace vsm::server
