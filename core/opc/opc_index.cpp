@@ -20,23 +20,6 @@ constexpr std::uint32_t kFormat = 1;
 constexpr std::string_view kIndexSuffix = ".vsmidx";
 constexpr std::string_view kDefaultPositions = "Positions.aara";
 
-/// A 64-bit checksum over 8-byte words (the tail zero-padded): fast enough to cost little next to
-/// reading the file, and catches a truncated or damaged file.
-std::uint64_t checksum(std::span<const std::byte> bytes) {
-  std::uint64_t h = 0x9e3779b97f4a7c15ULL ^ bytes.size();
-  std::size_t i = 0;
-  for (; i + 8 <= bytes.size(); i += 8) {
-    std::uint64_t w;
-    std::memcpy(&w, bytes.data() + i, 8);
-    h = (h ^ w) * 0xff51afd7ed558ccdULL;
-    h ^= h >> 29;
-  }
-  std::uint64_t w = 0;
-  std::memcpy(&w, bytes.data() + i, bytes.size() - i);
-  h = (h ^ w) * 0xc4ceb9fe1a85ec53ULL;
-  return h ^ (h >> 32);
-}
-
 class Encoder {
  public:
   template <typename T>
@@ -111,6 +94,22 @@ void putStamp(Encoder& out, const HierarchyStamp& stamp) {
 
 }  // namespace
 
+// Fast enough to cost little next to reading the file, and catches a truncated or damaged file.
+std::uint64_t opcIndexChecksum(std::span<const std::byte> bytes) {
+  std::uint64_t h = 0x9e3779b97f4a7c15ULL ^ bytes.size();
+  std::size_t i = 0;
+  for (; i + 8 <= bytes.size(); i += 8) {
+    std::uint64_t w;
+    std::memcpy(&w, bytes.data() + i, 8);
+    h = (h ^ w) * 0xff51afd7ed558ccdULL;
+    h ^= h >> 29;
+  }
+  std::uint64_t w = 0;
+  std::memcpy(&w, bytes.data() + i, bytes.size() - i);
+  h = (h ^ w) * 0xc4ceb9fe1a85ec53ULL;
+  return h ^ (h >> 32);
+}
+
 std::string indexFileName(std::string_view hierarchyName) {
   std::string_view stem = hierarchyName;
   if (const auto dot = stem.rfind('.'); dot != std::string_view::npos) {
@@ -155,7 +154,7 @@ std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& 
     out.putBox(level.bounds);
     out.put(level.resolution);
   }
-  out.put(checksum(out.bytes()));
+  out.put(opcIndexChecksum(out.bytes()));
   out.put(static_cast<std::uint8_t>(record != nullptr));
   if (record != nullptr) {
     out.put(record->parent);
@@ -204,7 +203,7 @@ std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& 
     out.putString(info.coordinatesFile);
     out.putString(info.textureFile);
   }
-  out.put(checksum(out.bytes()));
+  out.put(opcIndexChecksum(out.bytes()));
   return std::move(out.bytes());
 }
 
@@ -219,7 +218,7 @@ std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
   Decoder in(body.subspan(sizeof(kMagic)));
   if (in.get<std::uint32_t>() != kFormat || in.get<std::uint64_t>() != stamp.inode ||
       in.get<std::uint64_t>() != stamp.size || in.get<std::int64_t>() != stamp.modifiedNs ||
-      !in.ok() || checksum(body) != sum) {
+      !in.ok() || opcIndexChecksum(body) != sum) {
     return std::nullopt;
   }
   try {
@@ -346,7 +345,7 @@ std::optional<OpcSummary> readOpcIndexSummary(const fs::path& dir) {
     }
     const std::size_t end = bytes.size() - in.remaining();
     const auto sum = in.get<std::uint64_t>();
-    if (!in.ok() || checksum(std::span<const std::byte>(bytes).first(end)) != sum) {
+    if (!in.ok() || opcIndexChecksum(std::span<const std::byte>(bytes).first(end)) != sum) {
       return std::nullopt;
     }
     return summary;

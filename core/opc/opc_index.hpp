@@ -1,9 +1,11 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <filesystem>
 #include <memory>
 #include <optional>
+#include <span>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -34,6 +36,10 @@ HierarchyStamp fileStamp(const std::filesystem::path& file);
 /// The bytes of the index of `model` (with `record`) for a hierarchy file of stamp `stamp`.
 std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& model,
                                       const RevisionRecord* record);
+
+/// The checksum that ends the index's summary and the index: 64 bits over 8-byte words, the tail
+/// zero-padded (core/opc/README.md, "The index").
+std::uint64_t opcIndexChecksum(std::span<const std::byte> bytes);
 
 /// The model and record of the index bytes if they describe a hierarchy of `stamp`; nullopt when
 /// they describe another stamp or are malformed (truncated, checksum, unknown format).

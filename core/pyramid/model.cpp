@@ -8,8 +8,10 @@
 namespace vsm::core {
 
 Model::Model(int gridSize) : gridSize_(gridSize) {
-  const int intervals = gridSize - 1;
-  if (intervals < 2 || intervals > (1 << 15) || (intervals & (intervals - 1)) != 0) {
+  // The range first: gridSize - 1 of any int (a size read from a damaged file) must not overflow.
+  const bool inRange = gridSize >= 3 && gridSize <= (1 << 15) + 1;
+  const int intervals = inRange ? gridSize - 1 : 0;
+  if (!inRange || (intervals & (intervals - 1)) != 0) {
     throw Error(ErrorCode::InvalidArgument,
                 "patch size " + std::to_string(gridSize) + " is not 2^n+1 with n in 1..15");
   }

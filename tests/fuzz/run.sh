@@ -2,7 +2,7 @@
 # Builds the fuzz targets (clang-14, libFuzzer + ASan + UBSan, into $VSM_FUZZ_BUILD_DIR, default
 # build-fuzz/) and runs each for SECONDS seconds, one after the other:
 #
-#   tests/fuzz/run.sh SECONDS [TARGET...]     targets: aara opc_xml texture http json_body
+#   tests/fuzz/run.sh SECONDS [TARGET...]     targets: aara opc_xml opc_index texture http json_body
 #                                             lod_query config (default: all)
 #
 # Each target first replays tests/fuzz/regressions/<target>/ (inputs that once crashed it) and
@@ -22,7 +22,7 @@ ROOT=$(cd "$(dirname "$0")/../.." && pwd)
 HERE="$ROOT/tests/fuzz"
 SECONDS_EACH=${1:?usage: tests/fuzz/run.sh SECONDS [TARGET...]}
 shift
-ALL=(aara opc_xml texture http json_body lod_query config)
+ALL=(aara opc_xml opc_index texture http json_body lod_query config)
 TARGETS=("${@:-${ALL[@]}}")
 BUILD=${VSM_FUZZ_BUILD_DIR:-$ROOT/build-fuzz}
 CXX=${VSM_FUZZ_CXX:-clang++-14}

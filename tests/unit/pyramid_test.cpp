@@ -1,6 +1,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 #include <memory>
 
 #include "core/common/error.hpp"
@@ -152,6 +153,11 @@ PatchInfo infoFor(const PatchKey& key) {
 TEST(Model, RejectsPatchSizesThatAreNotPowerOfTwoPlusOne) {
   EXPECT_THROW(Model(256), Error);
   EXPECT_THROW(Model(2), Error);
+  // Sizes read from a damaged index: any int is refused without overflowing (fuzz opc_index).
+  EXPECT_THROW(Model(std::numeric_limits<int>::min()), Error);
+  EXPECT_THROW(Model(std::numeric_limits<int>::max()), Error);
+  EXPECT_THROW(Model((1 << 16) + 1), Error);
+  EXPECT_NO_THROW(Model((1 << 15) + 1));
   EXPECT_NO_THROW(Model(257));
   EXPECT_NO_THROW(Model(65));
 }
