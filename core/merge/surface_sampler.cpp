@@ -113,60 +113,19 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   }
 
   constexpr std::uint32_t kNone = kNoVertex;
-  // With a grid's block footprints, only the blocks that may hold a wanted cell (see `wanted`
-  // below) are looked at: a block farther from the clip than the largest margin of a cell in it
-  // (plus the rounding of projecting around another origin) holds none. Per grid: its blocks'
-  // verdicts (empty: every block).
-  if (clip && !clip->blocks.empty() && clip->blocks.size() != grids.size()) {
-    throw Error(ErrorCode::InvalidArgument,
-                "surface sampler: the clip's block footprints do not match the grids");
-  }
-  std::vector<std::vector<char>> blockWanted(grids.size());
-  // The vertices (and so cells) the wanted blocks hold at most: reserved once (samplers are built
-  // per new patch of a merge, so growing these vectors by doubling cost more than the rest of the
-  // construction).
+  // Every vertex of every grid at most: reserved once.
   std::size_t vertexBound = 0;
-  for (std::size_t g = 0; g < grids.size(); ++g) {
-    if (!grids[g]) {
-      continue;
-    }
-    const int s = grids[g]->size();
-    const int blocksPerSide = (s - 1 + kBlockCells - 1) / kBlockCells;
-    if (!clip || clip->blocks.empty()) {
-      vertexBound += static_cast<std::size_t>(s) * s;
-      continue;
-    }
-    const std::span<const Rect2d> blocks = clip->blocks[g];
-    if (blocks.size() != static_cast<std::size_t>(blocksPerSide) * blocksPerSide) {
-      throw Error(ErrorCode::InvalidArgument,
-                  "surface sampler: the clip's block footprints do not match the grids");
-    }
-    const Rect2d& c = clip->rect;
-    blockWanted[g].assign(blocks.size(), 0);
-    for (std::size_t b = 0; b < blocks.size(); ++b) {
-      const Rect2d& r = blocks[b];
-      if (r.empty()) {
-        continue;  // no defined vertex, so no cell
-      }
-      const double rounding = 1e-9 * (std::fabs(r.min.u) + std::fabs(r.max.u) + std::fabs(r.min.v) +
-                                      std::fabs(r.max.v) + std::fabs(c.min.u) + std::fabs(c.max.u) +
-                                      std::fabs(c.min.v) + std::fabs(c.max.v) +
-                                      std::fabs(offset.u) + std::fabs(offset.v));
-      const double margin =
-          2 * kBorderTolerance * (r.max.u - r.min.u + r.max.v - r.min.v) + rounding;
-      if (r.min.u - margin <= c.max.u && c.min.u <= r.max.u + margin &&
-          r.min.v - margin <= c.max.v && c.min.v <= r.max.v + margin) {
-        blockWanted[g][b] = 1;
-        vertexBound += (kBlockCells + 1) * (kBlockCells + 1);
-      }
+  for (const auto& grid : grids) {
+    if (grid) {
+      vertexBound += static_cast<std::size_t>(grid->size()) * grid->size();
     }
   }
   vertices_.reserve(vertexBound);
   projected_.reserve(vertexBound);
   origins_.reserve(vertexBound);
   cells_.reserve(4 * vertexBound);
-  // Per grid vertex, set only in the blocks looked at: its projection (u NaN when undefined), and
-  // its vertices_ index once a cell uses it.
+  // Per grid vertex: its projection (u NaN when undefined), and its vertices_ index once a cell
+  // uses it.
   std::vector<Vec2d> projected;
   std::vector<std::uint32_t> index;
   for (std::size_t gridIndex = 0; gridIndex < grids.size(); ++gridIndex) {
@@ -178,11 +137,6 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
     auto global = [&](int x, int y) {
       const Vec3d g = grid->global(x, y);
       return transform ? transform->apply(g) : g;
-    };
-    const int blocksPerSide = (s - 1 + kBlockCells - 1) / kBlockCells;
-    const std::vector<char>& wantedBlocks = blockWanted[gridIndex];
-    auto blockOf = [&](int x, int y) {
-      return static_cast<std::size_t>(y / kBlockCells) * blocksPerSide + x / kBlockCells;
     };
     projected.resize(static_cast<std::size_t>(s) * s);
     index.resize(projected.size());
@@ -196,19 +150,7 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
         }
       }
     };
-    if (wantedBlocks.empty()) {
-      projectRange(0, 0, s - 1, s - 1);
-    } else {
-      for (int by = 0; by < blocksPerSide; ++by) {
-        for (int bx = 0; bx < blocksPerSide; ++bx) {
-          if (wantedBlocks[static_cast<std::size_t>(by) * blocksPerSide + bx]) {
-            projectRange(bx * kBlockCells, by * kBlockCells,
-                         std::min((bx + 1) * kBlockCells, s - 1),
-                         std::min((by + 1) * kBlockCells, s - 1));
-          }
-        }
-      }
-    }
+    projectRange(0, 0, s - 1, s - 1);
     auto vertex = [&](std::size_t i) {
       if (index[i] == kNone) {
         const int x = static_cast<int>(i % s), y = static_cast<int>(i / s);
@@ -240,9 +182,6 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
     };
     for (int y = 0; y + 1 < s; ++y) {
       for (int x = 0; x + 1 < s; ++x) {
-        if (!wantedBlocks.empty() && !wantedBlocks[blockOf(x, y)]) {
-          continue;
-        }
         const std::size_t i = static_cast<std::size_t>(y) * s + x;
         const std::size_t corners[4] = {i, i + 1, i + s + 1, i + s};  // (0,0) (1,0) (1,1) (0,1)
         std::size_t rest[4];
@@ -347,31 +286,6 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
       }
     }
   }
-}
-
-std::vector<Rect2d> SurfaceSampler::blockFootprints(const PatchGrid& grid, const UpFrame& frame,
-                                                    const std::optional<Mat4d>& transform) {
-  const int s = grid.size();
-  const int blocksPerSide = (s - 1 + kBlockCells - 1) / kBlockCells;
-  std::vector<Rect2d> blocks(static_cast<std::size_t>(blocksPerSide) * blocksPerSide);
-  for (int y = 0; y < s; ++y) {
-    for (int x = 0; x < s; ++x) {
-      if (!grid.defined(x, y)) {
-        continue;
-      }
-      const Vec3d g = grid.global(x, y);
-      const Vec2d p = frame.project(transform ? transform->apply(g) : g);
-      // A vertex on a block's border is a corner of the cells on both sides.
-      for (int by = std::max(0, (y - 1) / kBlockCells); by <= std::min(y, s - 2) / kBlockCells;
-           ++by) {
-        for (int bx = std::max(0, (x - 1) / kBlockCells); bx <= std::min(x, s - 2) / kBlockCells;
-             ++bx) {
-          blocks[static_cast<std::size_t>(by) * blocksPerSide + bx].extend(p);
-        }
-      }
-    }
-  }
-  return blocks;
 }
 
 std::optional<SurfaceSampler::CellHit> SurfaceSampler::onTriangle(const std::uint32_t* t,

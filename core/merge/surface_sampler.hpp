@@ -109,25 +109,11 @@ class SurfaceSampler {
   /// below half a cell, so a lattice half a sample off B's border is decided by its geometry.
   static constexpr double kBorderTolerance = 1.0 / 32;
 
-  /// Cells per side of the blocks blockFootprints() describes.
-  static constexpr int kBlockCells = 16;
-
-  /// Footprints (in `frame`) of `grid`'s blocks of kBlockCells x kBlockCells cells (the last
-  /// ones in a row or column may be smaller), row by row: the rectangle of the projections of
-  /// each block's defined vertices (after `transform` when given), empty when it has none. A
-  /// merge computes them once per grid of B, so that the many clipped samplers it builds over the
-  /// same grids need not project the vertices that lie far from their clips.
-  static std::vector<Rect2d> blockFootprints(const PatchGrid& grid, const UpFrame& frame,
-                                             const std::optional<Mat4d>& transform);
-
   /// Where queries will come from: a rectangle in the plane of `frame`, whose up must be the
   /// sampler's. Cells farther from it than kBorderTolerance are left out of the index.
   struct Clip {
     UpFrame frame;
     Rect2d rect;
-    /// Per grid (empty, or one per grid): its blockFootprints() in `frame`. Blocks far from
-    /// `rect` are then skipped whole; the cells indexed, and so every answer, are the same.
-    std::vector<std::span<const Rect2d>> blocks = {};
   };
 
   /// `grids`: B's bottom grids (their vertex data is copied, in double, after `transform` when

@@ -334,25 +334,13 @@ TEST(SurfaceSampler, AClippedSamplerAnswersInItsClipAsTheWholeOneDoes) {
   const SurfaceSampler clipped(grids, up, std::nullopt, SurfaceSampler::Clip{frame, clip});
   EXPECT_LT(clipped.cellCount(), whole.cellCount() / 2);
   EXPECT_GT(clipped.cellCount(), 0u);
-  // With the grids' block footprints (as a merge gives them) it skips the blocks far from the
-  // clip, and indexes the same cells.
-  std::vector<std::vector<Rect2d>> footprints;
-  SurfaceSampler::Clip byBlocks{frame, clip};
-  for (const auto& grid : grids) {
-    footprints.push_back(SurfaceSampler::blockFootprints(*grid, frame, std::nullopt));
-  }
-  for (const auto& f : footprints) {
-    byBlocks.blocks.emplace_back(f);
-  }
-  const SurfaceSampler blocked(grids, up, std::nullopt, byBlocks);
-  EXPECT_EQ(blocked.cellCount(), clipped.cellCount());
 
   auto at = [&](double u, double v, double h) {
     return frame.origin + frame.e1 * u + frame.e2 * v + frame.up * h;
   };
   auto same = [&](const Vec3d& p) {
     const auto w = whole.locate(p);
-    for (const SurfaceSampler* sampler : {&clipped, &blocked}) {
+    for (const SurfaceSampler* sampler : {&clipped}) {
       const auto c = sampler->locate(p);
       ASSERT_EQ(w.has_value(), c.has_value()) << p.x << " " << p.y << " " << p.z;
       if (w) {
@@ -409,48 +397,6 @@ TEST(SurfaceSampler, AClippedSamplerAnswersInItsClipAsTheWholeOneDoes) {
   }
   EXPECT_THROW(SurfaceSampler(grids, {0, 0, 1}, std::nullopt, SurfaceSampler::Clip{frame, clip}),
                Error);
-  byBlocks.blocks.pop_back();  // block footprints for three grids of four
-  EXPECT_THROW(SurfaceSampler(grids, up, std::nullopt, byBlocks), Error);
-}
-
-TEST(SurfaceSampler, BlockFootprintsHoldTheProjectionsOfTheirCellsCorners) {
-  // 41 x 41 (40 cells: blocks of 16, 16 and 8 per side) on a rotated lattice, with holes.
-  const Lattice b{10, -20, 0.7, 0.3};
-  auto grid = latticeGrid(b, 41, 0, 0);
-  grid->setUndefined(16, 16);  // a corner of four blocks
-  for (int y = 32; y <= 40; ++y) {
-    for (int x = 32; x <= 40; ++x) {
-      grid->setUndefined(x, y);  // the last block has no defined vertex
-    }
-  }
-  const Mat4d shift = Mat4d::translation({5, -3, 2});
-  const UpFrame frame({0, 0, 0}, {0.2, 0.1, 1});
-  const std::vector<Rect2d> blocks = SurfaceSampler::blockFootprints(*grid, frame, shift);
-  ASSERT_EQ(blocks.size(), 9u);
-  const int k = SurfaceSampler::kBlockCells;
-  for (int by = 0; by < 3; ++by) {
-    for (int bx = 0; bx < 3; ++bx) {
-      // Brute force: the defined corners of the block's cells.
-      Rect2d expected;
-      for (int y = by * k; y <= std::min((by + 1) * k, 40); ++y) {
-        for (int x = bx * k; x <= std::min((bx + 1) * k, 40); ++x) {
-          if (grid->defined(x, y)) {
-            expected.extend(frame.project(shift.apply(grid->global(x, y))));
-          }
-        }
-      }
-      const Rect2d& got = blocks[static_cast<std::size_t>(by) * 3 + bx];
-      EXPECT_EQ(got.empty(), expected.empty()) << bx << " " << by;
-      if (!expected.empty()) {
-        EXPECT_EQ(got.min.u, expected.min.u);
-        EXPECT_EQ(got.min.v, expected.min.v);
-        EXPECT_EQ(got.max.u, expected.max.u);
-        EXPECT_EQ(got.max.v, expected.max.v);
-      }
-    }
-  }
-  EXPECT_TRUE(blocks[8].empty());
-  EXPECT_FALSE(blocks[4].empty());
 }
 
 TEST(SurfaceSampler, WorksInEarthCentredCoordinatesAlongTheLocalVertical) {
