@@ -9,6 +9,7 @@
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
 #include "core/grid/shaded_relief.hpp"
+#include "core/grid/vec_ops.hpp"
 #include "core/merge/merge_stages.hpp"
 #include "core/merge/subdivider.hpp"
 #include "core/merge/surface_caster.hpp"
@@ -195,7 +196,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
             }
             continue;
           }
-          const double along = d.x * cone->axis.x + d.y * cone->axis.y + d.z * cone->axis.z;
+          const double along = vec::dot(d, cone->axis);
           const double across = (d - cone->axis * along).norm();
           if (std::fabs(along) <= search + slack && across <= search * cone->sine + slack) {
             return true;

@@ -7,6 +7,7 @@
 #include <string>
 
 #include "core/common/error.hpp"
+#include "core/grid/vec_ops.hpp"
 
 namespace vsm::core {
 
@@ -213,7 +214,7 @@ std::vector<Vec3d> Subdivider::lattice(int level, std::uint32_t i, std::uint32_t
   return out;
 }
 
-std::vector<Vec3d> Subdivider::around(int level, std::uint32_t i, std::uint32_t j) const {
+Subdivider::Vertices Subdivider::vertexRange(int level, std::uint32_t i, std::uint32_t j) const {
   if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
     throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
   }
@@ -228,9 +229,14 @@ std::vector<Vec3d> Subdivider::around(int level, std::uint32_t i, std::uint32_t 
     lo = u0 / unit;
     hi = std::min<std::int64_t>((u1 + unit - 1) / unit, cells);
   };
-  std::int64_t x0, x1, y0, y1;
-  range(i, x0, x1);
-  range(j, y0, y1);
+  Vertices r;
+  range(i, r.x0, r.x1);
+  range(j, r.y0, r.y1);
+  return r;
+}
+
+std::vector<Vec3d> Subdivider::around(int level, std::uint32_t i, std::uint32_t j) const {
+  const auto [x0, x1, y0, y1] = vertexRange(level, i, j);
   std::vector<Vec3d> points;
   for (std::int64_t y = y0; y <= y1; ++y) {
     for (std::int64_t x = x0; x <= x1; ++x) {
@@ -248,22 +254,10 @@ Ball Subdivider::ball(int level, std::uint32_t i, std::uint32_t j) const {
 }
 
 std::vector<Ball> Subdivider::balls(int level, std::uint32_t i, std::uint32_t j, int parts) const {
-  if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0 || parts < 1) {
-    throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
+  if (parts < 1) {
+    throw Error(ErrorCode::InvalidArgument, "subdivide: no parts");
   }
-  // The cells around the patch, as around() finds them.
-  const std::int64_t cells = size_ - 1;
-  const std::int64_t scale = std::int64_t{1} << (k_ - level);
-  const std::int64_t unit = std::int64_t{1} << k_;
-  auto range = [&](std::uint32_t index, std::int64_t& lo, std::int64_t& hi) {
-    const std::int64_t u0 = static_cast<std::int64_t>(index) * cells * scale;
-    const std::int64_t u1 = u0 + cells * scale;
-    lo = u0 / unit;
-    hi = std::min<std::int64_t>((u1 + unit - 1) / unit, cells);
-  };
-  std::int64_t x0, x1, y0, y1;
-  range(i, x0, x1);
-  range(j, y0, y1);
+  const auto [x0, x1, y0, y1] = vertexRange(level, i, j);
   const std::int64_t nx = std::min<std::int64_t>(parts, std::max<std::int64_t>(x1 - x0, 1));
   const std::int64_t ny = std::min<std::int64_t>(parts, std::max<std::int64_t>(y1 - y0, 1));
   std::vector<Ball> result;
@@ -292,27 +286,14 @@ std::vector<Ball> Subdivider::balls(int level, std::uint32_t i, std::uint32_t j,
 
 std::optional<Subdivider::Cone> Subdivider::normalCone(int level, std::uint32_t i, std::uint32_t j,
                                                        double margin) const {
-  if (level < 0 || level > k_ || (i >> level) != 0 || (j >> level) != 0) {
-    throw Error(ErrorCode::InvalidArgument, "subdivide: patch outside the new levels");
-  }
-  // a's cells under the patch (as around()), and one more on every side.
-  const std::int64_t cells = size_ - 1;
-  const std::int64_t scale = std::int64_t{1} << (k_ - level);
-  const std::int64_t unit = std::int64_t{1} << k_;
-  auto range = [&](std::uint32_t index, std::int64_t& lo, std::int64_t& hi) {
-    const std::int64_t u0 = static_cast<std::int64_t>(index) * cells * scale;
-    const std::int64_t u1 = u0 + cells * scale;
-    lo = std::max<std::int64_t>(u0 / unit - 1, 0);
-    hi = std::min<std::int64_t>((u1 + unit - 1) / unit + 1, cells);  // cells [lo, hi)
-  };
-  std::int64_t x0, x1, y0, y1;
-  range(i, x0, x1);
-  range(j, y0, y1);
+  // a's cells under the patch (those of vertexRange), and one more on every side.
+  const Vertices r = vertexRange(level, i, j);
+  const std::int64_t x0 = std::max<std::int64_t>(r.x0 - 1, 0);
+  const std::int64_t x1 = std::min<std::int64_t>(r.x1 + 1, size_ - 1);
+  const std::int64_t y0 = std::max<std::int64_t>(r.y0 - 1, 0);
+  const std::int64_t y1 = std::min<std::int64_t>(r.y1 + 1, size_ - 1);
   auto at = [&](std::int64_t x, std::int64_t y) -> const Vec3d& {
     return global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
-  };
-  auto cross = [](const Vec3d& a, const Vec3d& b) {
-    return Vec3d{a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
   };
   std::vector<Vec3d> normals;
   normals.reserve(static_cast<std::size_t>(4 * (x1 - x0) * (y1 - y0)));
@@ -330,7 +311,7 @@ std::optional<Subdivider::Cone> Subdivider::normalCone(int level, std::uint32_t 
       const Vec3d v[2] = {p01 - p00, p11 - p10};
       for (const Vec3d& eu : u) {
         for (const Vec3d& ev : v) {
-          const Vec3d n = cross(eu, ev);
+          const Vec3d n = vec::cross(eu, ev);
           const double length = n.norm();
           if (!(length > 0) || !std::isfinite(length)) {
             return std::nullopt;
@@ -348,7 +329,7 @@ std::optional<Subdivider::Cone> Subdivider::normalCone(int level, std::uint32_t 
   const Vec3d axis = sum * (1.0 / length);
   double cosine = 1;
   for (const Vec3d& n : normals) {
-    cosine = std::min(cosine, n.x * axis.x + n.y * axis.y + n.z * axis.z);
+    cosine = std::min(cosine, vec::dot(n, axis));
   }
   const double angle = std::acos(std::clamp(cosine, -1.0, 1.0)) + margin;
   if (!(angle < M_PI / 2)) {

@@ -104,6 +104,12 @@ class Subdivider {
   /// at(u, v) for each union vertex of patch (i, j) of `level`, row-major.
   template <typename At>
   std::vector<Vec3d> lattice(int level, std::uint32_t i, std::uint32_t j, At at) const;
+  /// The vertices [x0, x1] x [y0, y1] of a around the cells of patch (i, j) of `level` (throws
+  /// Error(InvalidArgument) for a patch outside the new levels).
+  struct Vertices {
+    std::int64_t x0 = 0, x1 = 0, y0 = 0, y1 = 0;
+  };
+  Vertices vertexRange(int level, std::uint32_t i, std::uint32_t j) const;
   /// A's defined vertices around the cells of patch (i, j) of `level`.
   std::vector<Vec3d> around(int level, std::uint32_t i, std::uint32_t j) const;
   /// interpolate(), extended by one level-0 cell beyond a's border into the ring (u or v in
