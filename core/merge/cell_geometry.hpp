@@ -80,13 +80,17 @@ inline std::optional<ClampedPoint> clampOntoTriangle(const std::array<double, 3>
 /// p01), and the parameter (s, t) with q = p00 + s e + t f + s t g, by Newton's method from the
 /// nearer triangle's coordinates (exact for a parallelogram, a close start otherwise, also just
 /// outside). `converged` is false for a cell Newton cannot invert (strongly distorted, or seen
-/// edge-on): callers then fall back to the triangles.
+/// edge-on): callers then fall back to the triangles. (cs, ct) is (s, t) clamped onto the cell,
+/// `outside` the distance between the two in grid units (0 inside).
 struct BilinearPoint {
   std::array<double, 3> first{};
   std::array<double, 3> second{};
   double s = 0;
   double t = 0;
   bool converged = false;
+  double cs = 0;
+  double ct = 0;
+  double outside = 0;
 };
 
 inline BilinearPoint invertBilinear(const Vec2d& p00, const Vec2d& p10, const Vec2d& p11,
@@ -125,6 +129,9 @@ inline BilinearPoint invertBilinear(const Vec2d& p00, const Vec2d& p10, const Ve
   point.s = s;
   point.t = t;
   point.converged = converged;
+  point.cs = std::clamp(s, 0.0, 1.0);
+  point.ct = std::clamp(t, 0.0, 1.0);
+  point.outside = s == point.cs && t == point.ct ? 0.0 : std::hypot(s - point.cs, t - point.ct);
   return point;
 }
 

@@ -204,9 +204,7 @@ struct SurfaceCaster::Impl {
     const auto& l2 = point.second;
     const double s = point.s, t = point.t;
     const bool converged = point.converged;
-    const double cs = std::clamp(s, 0.0, 1.0);
-    const double ct = std::clamp(t, 0.0, 1.0);
-    const double outside = s == cs && t == ct ? 0.0 : std::hypot(s - cs, t - ct);
+    const double cs = point.cs, ct = point.ct, outside = point.outside;
     if (!converged || !std::isfinite(s) || !std::isfinite(t) ||
         !(outside <= SurfaceSampler::kBorderTolerance)) {
       // A cell seen edge-on or strongly distorted across the ray, or a point outside it: its

@@ -317,11 +317,8 @@ std::optional<SurfaceSampler::CellHit> SurfaceSampler::onQuad(const std::uint32_
   const cell_geometry::BilinearPoint point = invertBilinear(p00, p10, p11, p01, q);
   const auto& l1 = point.first;
   const auto& l2 = point.second;
-  const double s = point.s, t = point.t;
   const bool converged = point.converged;
-  const double cs = std::clamp(s, 0.0, 1.0);
-  const double ct = std::clamp(t, 0.0, 1.0);
-  const double outside = s == cs && t == ct ? 0.0 : std::hypot(s - cs, t - ct);
+  const double cs = point.cs, ct = point.ct, outside = point.outside;
   if (!converged || !(outside <= kBorderTolerance)) {
     // A strongly distorted (non-convex) cell, or a point outside it: fall back to its triangles,
     // the nearer one.
