@@ -192,11 +192,11 @@ std::vector<std::byte> diffPng(const RevisionDiff& diff, int emptySize) {
                                                               {"vsm:range", rangeText}};
   if (!diff.map) {
     const std::vector<std::uint8_t> clear(static_cast<std::size_t>(emptySize) * emptySize * 4, 0);
-    return encodePng(clear.data(), emptySize, emptySize, text);
+    return encodePng(clear.data(), emptySize, emptySize, 4, text);
   }
   std::vector<std::uint8_t> rgba = colourMap(*diff.map, range);
   drawLegend(rgba, diff.map->grid.width, diff.map->grid.height, range);
-  return encodePng(rgba.data(), diff.map->grid.width, diff.map->grid.height, text);
+  return encodePng(rgba.data(), diff.map->grid.width, diff.map->grid.height, 4, text);
 }
 
 }  // namespace vsm::core

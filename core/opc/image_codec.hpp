@@ -45,11 +45,12 @@ class Codec {
   };
 
   /// Encodes `pixels` (width x height x channels bytes, top row first) in the format of `name`'s
-  /// extension ("image.png", "lod.tif"), in memory, in the format's default compression, with
-  /// (keyword, value) metadata, into `out`.
+  /// extension ("image.png", "lod.tif"), in memory, with (keyword, value) metadata, into `out`.
+  /// `fastPng`: a PNG compressed fast (zlib level 1, the Sub filter) rather than at OpenImageIO's
+  /// defaults (level 6, libpng's choice of filter per row); other formats ignore it.
   virtual Status encode(const char* name, const std::uint8_t* pixels, int width, int height,
                         int channels, const std::vector<std::pair<std::string, std::string>>& text,
-                        std::vector<std::byte>& out, std::string& error) const = 0;
+                        bool fastPng, std::vector<std::byte>& out, std::string& error) const = 0;
 
   /// Reads `file` with OpenImageIO's reader `reader` alone ("tiff", "dds", "png", "jpeg"; never
   /// another one it would try after a failure), into `out`, refusing before any allocation an image

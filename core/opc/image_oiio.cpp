@@ -15,7 +15,7 @@ namespace {
 class OiioCodec final : public Codec {
  public:
   Status encode(const char* name, const std::uint8_t* pixels, int width, int height, int channels,
-                const std::vector<std::pair<std::string, std::string>>& text,
+                const std::vector<std::pair<std::string, std::string>>& text, bool fastPng,
                 std::vector<std::byte>& out, std::string& error) const override {
     std::vector<unsigned char> buffer;
     OIIO::Filesystem::IOVecOutput proxy(buffer);
@@ -31,6 +31,13 @@ class OiioCodec final : public Codec {
     spec.attribute("DateTime", "");
     for (const auto& [keyword, value] : text) {
       spec.attribute(keyword, value);
+    }
+    if (fastPng) {
+      // Ints: the PNG writer reads them and, unlike string attributes, writes no text chunk of
+      // them. zlib level 1 and libpng's Sub filter alone (PNG_FILTER_SUB) instead of trying all
+      // five per row.
+      spec.attribute("png:compressionLevel", 1);
+      spec.attribute("png:filter", 0x10);
     }
     output->set_ioproxy(&proxy);
     if (!output->open(name, spec) || !output->write_image(OIIO::TypeDesc::UINT8, pixels) ||

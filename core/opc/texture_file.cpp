@@ -26,10 +26,11 @@ namespace {
 /// Encodes `pixels` (width x height x channels bytes) in the format of `name`'s extension.
 std::vector<std::byte> encodeImage(
     const char* name, const std::uint8_t* pixels, int width, int height, int channels,
-    const std::vector<std::pair<std::string, std::string>>& text = {}) {
+    const std::vector<std::pair<std::string, std::string>>& text = {}, bool fastPng = false) {
   std::vector<std::byte> bytes;
   std::string error;
-  switch (image::codec().encode(name, pixels, width, height, channels, text, bytes, error)) {
+  switch (
+      image::codec().encode(name, pixels, width, height, channels, text, fastPng, bytes, error)) {
     case image::Codec::Status::Ok:
       return bytes;
     case image::Codec::Status::NoWriter:
@@ -155,9 +156,11 @@ std::vector<std::byte> encodeImageFile(const std::string& name, const std::uint8
   return encodeImage(name.c_str(), rgba, width, height, 4);
 }
 
-std::vector<std::byte> encodePng(const std::uint8_t* rgba, int width, int height,
-                                 const std::vector<std::pair<std::string, std::string>>& text) {
-  return encodeImage("image.png", rgba, width, height, 4, text);
+std::vector<std::byte> encodePng(const std::uint8_t* pixels, int width, int height, int channels,
+                                 const std::vector<std::pair<std::string, std::string>>& text,
+                                 PngCompression compression) {
+  return encodeImage("image.png", pixels, width, height, channels, text,
+                     compression == PngCompression::Fast);
 }
 
 TextureTile readTextureTile(const fs::path& file, std::uint64_t maxPixels) {

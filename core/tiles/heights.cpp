@@ -136,7 +136,7 @@ void paintHeights(const Model& model, const std::vector<PatchKey>& sources, cons
       Vec3d& p = pix[static_cast<std::size_t>(y - y0) * spanX + static_cast<std::size_t>(x - x0)];
       if (std::isnan(p.x)) {
         const Vec3d g = geodeticOf(grid->global(x, y));
-        const Point2d q = view.pixel({g.x, g.y});
+        const Point2d q = view.pixel(view.planeOfLonLat(g.x, g.y));
         p = {q.x, q.y, g.z};
       }
       return p;

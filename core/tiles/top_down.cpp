@@ -50,9 +50,17 @@ TopDownGrid TopDownGrid::fit(bool geographic, double minX, double maxX, double m
 Point2d TopDownGrid::plane(const Vec3d& global) const {
   if (geographic) {
     const Vec3d g = ecefToGeodetic(global);
-    return {g.x, g.y};
+    return planeOfLonLat(g.x, g.y);
   }
   return {global.x, global.y};
+}
+
+Point2d TopDownGrid::planeOfLonLat(double lon, double lat) const {
+  if (!mercator) {
+    return {lon, lat};
+  }
+  const double phi = std::clamp(lat, -89.9999, 89.9999) / kDegrees;
+  return {kWgs84A * lon / kDegrees, kWgs84A * std::log(std::tan(std::numbers::pi / 4 + phi / 2))};
 }
 
 }  // namespace vsm::core

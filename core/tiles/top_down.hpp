@@ -23,6 +23,9 @@ struct Point2d {
 /// [y0 - (row + 1) * dy, y0 - row * dy].
 struct TopDownGrid {
   bool geographic = false;
+  /// With `geographic`: the plane is Web Mercator (EPSG:3857 metres: x = a lon, y = a ln tan(pi/4 +
+  /// lat/2), a the WGS 84 semi-major axis) instead of lon/lat degrees, as web maps tile it.
+  bool mercator = false;
   double x0 = 0, y0 = 0, dx = 1, dy = 1;
   int width = 0;
   int height = 0;
@@ -33,8 +36,11 @@ struct TopDownGrid {
   static TopDownGrid fit(bool geographic, double minX, double maxX, double minY, double maxY,
                          int size);
 
-  /// Where a global point lies in the picture's plane (lon/lat or x/y).
+  /// Where a global point lies in the picture's plane (lon/lat, Web Mercator or x/y).
   Point2d plane(const Vec3d& global) const;
+  /// Where a geographic point (degrees) lies in the picture's plane: itself, or its Web Mercator
+  /// metres when `mercator` (latitudes clamped to +-89.9999 degrees, where the projection ends).
+  Point2d planeOfLonLat(double lon, double lat) const;
   /// Where a point of the plane lies in pixel units (x right, y down; pixel centres at + 0.5).
   Point2d pixel(const Point2d& p) const { return {(p.x - x0) / dx, (y0 - p.y) / dy}; }
   std::size_t pixels() const { return static_cast<std::size_t>(width) * height; }

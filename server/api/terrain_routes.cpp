@@ -9,9 +9,12 @@
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
+#include "core/common/numbers.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
+#include "core/tiles/heights.hpp"
 #include "core/tiles/quantized_mesh.hpp"
+#include "core/tiles/terrain_rgb.hpp"
 #include "server/api/etags.hpp"
 #include "server/api/route_helpers.hpp"
 #include "server/http/gzip.hpp"
@@ -173,6 +176,186 @@ std::optional<http::Response> getTile(models::ModelRegistry& models, models::Pat
   return response;
 }
 
+// ---- terrain-RGB (MapLibre's raster-dem)
+// ---------------------------------------------------------
+
+constexpr std::string_view kDemCacheControl = kTerrainCacheControl;
+
+/// What a terrain-RGB request asks for besides the tile: `?encoding=` (terrarium, the default, or
+/// mapbox) and `?nodata=` (the height of pixels without data, 0 m by default).
+struct DemQuery {
+  core::DemEncoding encoding = core::DemEncoding::Terrarium;
+  double nodataHeight = 0;
+
+  std::string_view encodingName() const {
+    return encoding == core::DemEncoding::Terrarium ? "terrarium" : "mapbox";
+  }
+  /// The query as the tiles' URLs carry it (empty for the defaults).
+  std::string urlQuery() const {
+    std::string q;
+    if (encoding != core::DemEncoding::Terrarium) {
+      q += "&encoding=" + std::string(encodingName());
+    }
+    if (nodataHeight != 0) {
+      q += "&nodata=" + core::formatDouble(nodataHeight);
+    }
+    return q;
+  }
+};
+
+DemQuery parseDemQuery(const http::Request& request) {
+  DemQuery q;
+  if (const auto encoding = request.queryParam("encoding")) {
+    if (*encoding == "mapbox") {
+      q.encoding = core::DemEncoding::Mapbox;
+    } else if (*encoding != "terrarium") {
+      throw Error(ErrorCode::InvalidArgument, "encoding must be 'terrarium' or 'mapbox', not '" +
+                                                  encoding->substr(0, 40) + "'");
+    }
+  }
+  if (const auto nodata = request.queryParam("nodata")) {
+    const auto value = core::parseDouble(*nodata);
+    const double lo = core::demEncodingMin(q.encoding), hi = core::demEncodingMax(q.encoding);
+    if (!value || !(*value >= lo && *value <= hi)) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "nodata must be a height from " + core::formatDouble(lo) + " to " +
+                      core::formatDouble(hi) + " m (the " + std::string(q.encodingName()) +
+                      " encoding's range), not '" + nodata->substr(0, 40) + "'");
+    }
+    q.nodataHeight = *value;
+  }
+  return q;
+}
+
+core::MercatorTileKey parseDemTile(const http::Request& request) {
+  core::MercatorTileKey key;
+  const std::uint32_t z = parseTileNumber(request.param("z"), "level z");
+  key.x = parseTileNumber(request.param("x"), "column x");
+  key.y = parseTileNumber(request.param("y"), "row y");
+  if (z > static_cast<std::uint32_t>(core::MercatorTileKey::kMaxLevel)) {
+    throw Error(ErrorCode::InvalidArgument,
+                "terrain-RGB tile level " + std::to_string(z) + " is beyond the deepest level (" +
+                    std::to_string(core::MercatorTileKey::kMaxLevel) + ")");
+  }
+  key.z = static_cast<int>(z);
+  if (!key.valid()) {
+    throw Error(ErrorCode::InvalidArgument,
+                "terrain-RGB tile " + key.toString() +
+                    " is outside the Web Mercator tiling scheme (EPSG:3857, XYZ): level " +
+                    std::to_string(z) + " has x and y 0.." +
+                    std::to_string((std::uint64_t{1} << z) - 1));
+  }
+  return key;
+}
+
+/// The Web Mercator projection's latitude limit (degrees).
+constexpr double kMercatorMaxLatitude = 85.0511287798066;
+
+/// GET .../terrain-rgb/tiles.json: the TileJSON a MapLibre `raster-dem` source takes as its `url`.
+/// The tile URLs name the model version (`?v=N`, answered only from that version, as layer.json's)
+/// and are path-absolute: a page of another origin gives the source its `tiles` itself.
+http::Response getDemTileJson(models::ModelRegistry& models, models::PatchData& data,
+                              const http::Request& request) {
+  const std::string& id = request.param("m");
+  const DemQuery query = parseDemQuery(request);
+  const auto [served, snapshot] = *tiledRead(models, request);
+  const auto rev = request.queryParam("rev");
+  const std::string revQuery = rev ? "&rev=" + std::to_string(snapshot->version) : "";
+  const std::string etag = viewEtag(*snapshot, "terrain-rgb-json", query.urlQuery() + revQuery);
+  if (http::ifNoneMatch(request, etag)) {
+    return http::notModified(etag, http::cache_control::kRevalidate);
+  }
+  const auto layer = data.terrainLayer(served, snapshot, models::Asker::Pool);
+  requireHeightField(id, *layer);
+  const core::GeoRect& b = layer->bounds;
+  const double south = std::max(b.south, -kMercatorMaxLatitude);
+  const double north = std::min(b.north, kMercatorMaxLatitude);
+  // The deepest level is the one whose pixels are as fine as the finest data where the ground
+  // pixels are largest, the latitude nearest the equator.
+  const double nearestEquator = south > 0 ? south : (north < 0 ? north : 0.0);
+  const int maxZoom =
+      core::mercatorLevelFor(core::finestResolution(*snapshot->model, *layer, b), nearestEquator);
+  const json body = {{"tilejson", "3.0.0"},
+                     {"name", id},
+                     {"description", "terrain-RGB heights of the vsm model '" + id +
+                                         "' (metres above the WGS 84 ellipsoid)"},
+                     {"version", "1.0.0"},
+                     {"scheme", "xyz"},
+                     {"tiles",
+                      {"/v1/models/" + id + "/terrain-rgb/{z}/{x}/{y}.png?v=" +
+                       std::to_string(snapshot->version) + query.urlQuery() + revQuery}},
+                     {"minzoom", 0},
+                     {"maxzoom", maxZoom},
+                     {"bounds", {b.west, south, b.east, north}},
+                     {"tileSize", core::kDemTileSize},
+                     {"encoding", query.encodingName()},
+                     {"nodata_height", query.nodataHeight},
+                     {"height_reference", "ellipsoid (WGS 84)"},
+                     {"model_version", snapshot->version}};
+  http::Response response = http::jsonResponse(200, body);
+  response.set("Cache-Control", std::string(http::cache_control::kRevalidate));
+  response.set("ETag", etag);
+  response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
+  return response;
+}
+
+/// GET .../terrain-rgb/{z}/{x}/{y}.png[?v=N][&rev=R][&encoding=][&nodata=]: a 256 x 256 RGB PNG of
+/// the heights at its pixel centres, 404 for a tile the model's footprint does not meet. Tagged,
+/// as the quantized-mesh tiles, by the versions of the patches it is sampled from: a merge
+/// changes the tags of the tiles over the patches it rewrote and no others. On a network thread
+/// it answers only a 304 or a cached tile (nullopt otherwise).
+std::optional<http::Response> getDemTile(models::ModelRegistry& models, models::PatchData& data,
+                                         const http::Request& request, bool onNetworkThread) {
+  const models::Asker asker =
+      onNetworkThread ? models::Asker::NetworkThread : models::Asker::PoolAfterNetwork;
+  const std::string& id = request.param("m");
+  const core::MercatorTileKey key = parseDemTile(request);
+  const DemQuery query = parseDemQuery(request);
+  const std::optional<TiledRead> read = tiledRead(models, request, onNetworkThread);
+  if (!read) {
+    return std::nullopt;
+  }
+  const auto& [served, snapshot] = *read;
+  const auto layer = data.terrainLayer(served, snapshot, asker);
+  if (layer == nullptr) {
+    return std::nullopt;
+  }
+  requireHeightField(id, *layer);
+  if (!core::mercatorTileRect(key).intersects(layer->bounds)) {
+    throw Error(ErrorCode::NotFound,
+                "terrain-RGB tile " + key.toString() + " does not meet the model '" + id + "'");
+  }
+  const std::vector<core::PatchKey> sources = core::demTileSources(*snapshot->model, *layer, key);
+  std::vector<const core::PatchInfo*> infos;
+  infos.reserve(sources.size());
+  for (const core::PatchKey& source : sources) {
+    infos.push_back(&snapshot->model->at(source));
+  }
+  const std::string tile = "rgb/" + key.toString();
+  const std::uint64_t version = api::terrainVersion(tile, infos, query.urlQuery());
+  const std::string etag = terrainEtag(tile, version);
+  if (http::ifNoneMatch(request, etag)) {
+    return http::notModified(etag, kDemCacheControl);
+  }
+  models::PatchData::DemTile wanted;
+  wanted.key = &key;
+  wanted.sources = &sources;
+  wanted.version = version;
+  wanted.encoding = query.encoding;
+  wanted.nodataHeight = query.nodataHeight;
+  auto body = data.demTile(served, *snapshot, wanted, asker);
+  if (body == nullptr) {
+    return std::nullopt;
+  }
+  http::Response response;
+  sendBody(response, std::move(body));
+  response.contentType = "image/png";
+  response.set("Cache-Control", std::string(kDemCacheControl));
+  response.set("ETag", etag);
+  response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
+  return response;
+}
+
 }  // namespace
 
 TerrainExtensions parseTerrainAccept(std::string_view accept) {
@@ -274,6 +457,18 @@ void addTerrainRoutes(http::Router& router, models::ModelRegistry& models,
       },
       [&models, data](const http::Request& request) {
         return getTile(models, *data, request, true);
+      });
+  router.add(http::Method::Get, "/v1/models/{m}/terrain-rgb/tiles.json",
+             [&models, data](const http::Request& request) {
+               return getDemTileJson(models, *data, request);
+             });
+  router.add(
+      http::Method::Get, "/v1/models/{m}/terrain-rgb/{z}/{x}/{y}.png",
+      [&models, data](const http::Request& request) {
+        return *getDemTile(models, *data, request, false);
+      },
+      [&models, data](const http::Request& request) {
+        return getDemTile(models, *data, request, true);
       });
 }
 

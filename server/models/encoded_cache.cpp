@@ -40,6 +40,8 @@ std::string_view toString(Encoding encoding) {
       return "diff";
     case Encoding::HeightWork:
       return "heights";
+    case Encoding::TerrainRgb:
+      return "terrain_rgb";
   }
   return "unknown";
 }

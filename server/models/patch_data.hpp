@@ -18,6 +18,8 @@ struct ModelSnapshot;
 struct PatchInfo;
 struct TerrainLayer;
 struct TerrainTileKey;
+struct MercatorTileKey;
+enum class DemEncoding : std::uint8_t;
 enum class GlbCompression : unsigned char;
 }  // namespace vsm::core
 
@@ -128,6 +130,22 @@ class PatchData {
   std::shared_ptr<const EncodedCache::Body> terrainTile(const ModelRegistry::Served& served,
                                                         const core::ModelSnapshot& snapshot,
                                                         const TerrainTile& tile, Asker asker) const;
+
+  /// What a terrain-RGB tile is made of, as the route resolved it.
+  struct DemTile {
+    const core::MercatorTileKey* key = nullptr;
+    /// The patches it samples (core::demTileSources) and its content version over them
+    /// (api::terrainVersion: sources, encoding, no-data height).
+    const std::vector<core::PatchKey>* sources = nullptr;
+    std::uint64_t version = 0;
+    core::DemEncoding encoding{};
+    double nodataHeight = 0;
+  };
+  /// The tile, sampled from `tile.sources` of `snapshot` and encoded as an RGB PNG. Null on a
+  /// network thread when not cached.
+  std::shared_ptr<const EncodedCache::Body> demTile(const ModelRegistry::Served& served,
+                                                    const core::ModelSnapshot& snapshot,
+                                                    const DemTile& tile, Asker asker) const;
 
   /// A model-wide JSON document gzipped (Encoding::JsonGzip): made once per (`variant`, snapshot
   /// `version`) from build().dump(), on the pool only (Asker::Pool).

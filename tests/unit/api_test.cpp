@@ -99,7 +99,8 @@ TEST(SystemRoutes, StatsReportTheBudgetAndEveryCategory) {
                                                                       {"glb_meshopt", 0},
                                                                       {"json_gzip", 0},
                                                                       {"diff", 0},
-                                                                      {"heights", 0}}));
+                                                                      {"heights", 0},
+                                                                      {"terrain_rgb", 0}}));
   EXPECT_TRUE(stats.at("memory").at("resident_bytes_by_model").is_object());
   for (const char* key : {"hits", "misses", "evictions", "write_backs", "exhausted"}) {
     EXPECT_EQ(stats.at("cache").at(key), 0) << key;

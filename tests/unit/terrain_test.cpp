@@ -15,6 +15,7 @@
 #include "core/pyramid/model.hpp"
 #include "core/tiles/heights.hpp"
 #include "core/tiles/quantized_mesh.hpp"
+#include "core/tiles/terrain_rgb.hpp"
 #include "core/tiles/top_down.hpp"
 #include "server/api/terrain_routes.hpp"
 
@@ -474,6 +475,109 @@ TEST(Heights, AGridAtTheVerticesIsTheSurfaceAndNaNBeyondIt) {
   // within about 1e-6 of the cell.
   EXPECT_NEAR(finestSpacingDegrees(geo.model, layer, layer.bounds, geo.loader()), cell,
               cell * 1e-6);
+}
+
+// ---- terrain-RGB: Web Mercator tiles of encoded heights -----------------------------------------
+
+// The slippy-map formulas (OpenStreetMap wiki), written here apart from the code under test.
+double tileLon(double x, int z) {
+  return x / std::ldexp(1.0, z) * 360.0 - 180.0;
+}
+double tileLat(double y, int z) {
+  return std::atan(std::sinh(std::numbers::pi * (1 - 2 * y / std::ldexp(1.0, z)))) * 180.0 /
+         std::numbers::pi;
+}
+
+TEST(MercatorTiling, TilesFollowTheSlippyMapScheme) {
+  EXPECT_TRUE((MercatorTileKey{0, 0, 0}.valid()));
+  EXPECT_FALSE((MercatorTileKey{0, 1, 0}.valid()));
+  EXPECT_FALSE((MercatorTileKey{1, 0, 2}.valid()));
+  EXPECT_TRUE((MercatorTileKey{24, (1u << 24) - 1, 0}.valid()));
+  EXPECT_FALSE((MercatorTileKey{25, 0, 0}.valid()));
+  const GeoRect world = mercatorTileRect({0, 0, 0});
+  EXPECT_NEAR(world.west, -180, 1e-12);
+  EXPECT_NEAR(world.east, 180, 1e-12);
+  EXPECT_NEAR(world.north, 85.0511287798066, 1e-9);
+  EXPECT_NEAR(world.south, -85.0511287798066, 1e-9);
+  for (const MercatorTileKey key :
+       {MercatorTileKey{1, 0, 0}, MercatorTileKey{7, 34, 50}, MercatorTileKey{15, 7000, 12345}}) {
+    const GeoRect r = mercatorTileRect(key);
+    EXPECT_NEAR(r.west, tileLon(key.x, key.z), 1e-9) << key.toString();
+    EXPECT_NEAR(r.east, tileLon(key.x + 1, key.z), 1e-9) << key.toString();
+    EXPECT_NEAR(r.north, tileLat(key.y, key.z), 1e-9) << key.toString();
+    EXPECT_NEAR(r.south, tileLat(key.y + 1, key.z), 1e-9) << key.toString();
+  }
+  // 156,543 m per pixel at level 0 on the equator: 4.6 km data gets level 6 (2,446 m pixels),
+  // and at 60 degrees, where pixels are half as large on the ground, level 5.
+  EXPECT_EQ(mercatorLevelFor(4600, 0), 6);
+  EXPECT_EQ(mercatorLevelFor(4600, 60), 5);
+  EXPECT_EQ(mercatorLevelFor(0, 0), 0);
+  EXPECT_EQ(mercatorLevelFor(1e-6, 0), MercatorTileKey::kMaxLevel);
+}
+
+TEST(DemEncoding, PacksHeightsAsTheFormatsSpecify) {
+  // Terrarium: h = R * 256 + G + B / 256 - 32768.  Mapbox: h = -10000 + (R 65536 + G 256 + B) / 10.
+  EXPECT_EQ(encodeDemHeight(0, DemEncoding::Terrarium), (std::array<std::uint8_t, 3>{128, 0, 0}));
+  EXPECT_EQ(encodeDemHeight(0, DemEncoding::Mapbox), (std::array<std::uint8_t, 3>{1, 134, 160}));
+  EXPECT_EQ(encodeDemHeight(-32768, DemEncoding::Terrarium),
+            (std::array<std::uint8_t, 3>{0, 0, 0}));
+  EXPECT_EQ(encodeDemHeight(1e9, DemEncoding::Mapbox),
+            (std::array<std::uint8_t, 3>{255, 255, 255}));
+  EXPECT_EQ(encodeDemHeight(-1e9, DemEncoding::Mapbox), (std::array<std::uint8_t, 3>{0, 0, 0}));
+  for (const double h : {-412.7, 0.001, 123.456, 4321.0, 8848.86}) {
+    const auto t = encodeDemHeight(h, DemEncoding::Terrarium);
+    EXPECT_NEAR(t[0] * 256.0 + t[1] + t[2] / 256.0 - 32768, h, 0.5 / 256 + 1e-9) << h;
+    EXPECT_NEAR(decodeDemHeight(t[0], t[1], t[2], DemEncoding::Terrarium), h, 0.5 / 256 + 1e-9);
+    const auto m = encodeDemHeight(h, DemEncoding::Mapbox);
+    EXPECT_NEAR(-10000 + (m[0] * 65536.0 + m[1] * 256.0 + m[2]) / 10, h, 0.05 + 1e-9) << h;
+    EXPECT_NEAR(decodeDemHeight(m[0], m[1], m[2], DemEncoding::Mapbox), h, 0.05 + 1e-9);
+  }
+  EXPECT_EQ(demEncodingMin(DemEncoding::Terrarium), -32768);
+  EXPECT_EQ(demEncodingMin(DemEncoding::Mapbox), -10000);
+}
+
+TEST(DemTile, PixelCentresGetTheSurfaceAndNoDataOutsideIt) {
+  const GeoModel geo;
+  const TerrainLayer layer = buildTerrainLayer(geo.model, geo.loader());
+  const int z = 12;
+  const auto column = [&](double lon) {
+    return static_cast<std::uint32_t>((lon + 180) / 360 * std::ldexp(1.0, z));
+  };
+  const auto row = [&](double lat) {
+    const double phi = lat * std::numbers::pi / 180;
+    return static_cast<std::uint32_t>((1 - std::asinh(std::tan(phi)) / std::numbers::pi) / 2 *
+                                      std::ldexp(1.0, z));
+  };
+  // A tile inside the patch, and one over its western edge.
+  const MercatorTileKey inside{z, column(kWest + 0.25), row(kSouth + 0.25)};
+  const MercatorTileKey edge{z, column(kWest), row(kSouth + 0.25)};
+  for (const DemEncoding encoding : {DemEncoding::Terrarium, DemEncoding::Mapbox}) {
+    for (const MercatorTileKey key : {inside, edge}) {
+      const std::vector<PatchKey> sources = demTileSources(geo.model, layer, key);
+      ASSERT_EQ(sources, std::vector<PatchKey>{PatchKey::root()});
+      const double nodata = -123.4;
+      const DemTile tile = sampleDemTile(geo.model, sources, key, geo.loader(), encoding, nodata);
+      ASSERT_EQ(tile.rgb.size(), std::size_t{3} * kDemTileSize * kDemTileSize);
+      const double step = encoding == DemEncoding::Terrarium ? 1.0 / 256 : 0.1;
+      std::size_t covered = 0;
+      for (int j = 0; j < kDemTileSize; ++j) {
+        for (int i = 0; i < kDemTileSize; ++i) {
+          const double lon = tileLon(key.x + (i + 0.5) / kDemTileSize, z);
+          const double lat = tileLat(key.y + (j + 0.5) / kDemTileSize, z);
+          const std::uint8_t* p = &tile.rgb[(static_cast<std::size_t>(j) * kDemTileSize + i) * 3];
+          const double h = decodeDemHeight(p[0], p[1], p[2], encoding);
+          const bool in = lon > kWest + 1e-9 && lat > kSouth && lat < kSouth + kSpan;
+          covered += in;
+          // Linear in lon/lat, sampled barycentrically in the Mercator plane over cells of 0.016
+          // degrees: a few tenths of a millimetre apart.
+          ASSERT_NEAR(h, in ? heightAt(lon, lat) : nodata, step / 2 + 2e-3)
+              << key.toString() << " " << i << "," << j;
+        }
+      }
+      EXPECT_EQ(tile.covered, covered) << key.toString();
+      EXPECT_GT(covered, 0u);
+    }
+  }
 }
 
 TEST(Heights, APathIsSampledEvenlyByDistanceFromEndToEnd) {
