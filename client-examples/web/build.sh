@@ -1,8 +1,9 @@
 #!/bin/sh
-# Builds the browser viewer (index.html, main.js and the modules it imports from js/, and, with
-# --cesium, cesium.html and terrain.html) into <out-dir>, with the ES modules it imports vendored from npm into
-# <out-dir>/vendor, so that vsmd serves it with no network access at runtime
-# (vsmd --viewer-dir <out-dir>, then open /viewer/?model=ID).
+# Builds the browser viewer (index.html, main.js and the modules it imports from js/,
+# maplibre.html with MapLibre GL JS, and, with --cesium, cesium.html and terrain.html) into
+# <out-dir>, with the modules they import vendored from npm into <out-dir>/vendor, so that vsmd
+# serves it with no network access at runtime (vsmd --viewer-dir <out-dir>, then open
+# /viewer/?model=ID).
 # No bundler: index.html maps the bare imports ("three", "3d-tiles-renderer") to the vendored files
 # with an import map.
 #
@@ -17,9 +18,11 @@ set -eu
 THREE=three@0.187.0
 TILES=3d-tiles-renderer@0.5.3
 CESIUM=cesium@1.140.0
+# The last major version with a UMD build that carries its worker (6.x ships ES modules only).
+MAPLIBRE=maplibre-gl@5.24.1
 
 if [ "${1:-}" = "--packages" ]; then
-  echo "$THREE $TILES $CESIUM"
+  echo "$THREE $TILES $CESIUM $MAPLIBRE"
   exit 0
 fi
 out=${1:?usage: build.sh <out-dir> [--npm-prefix DIR] [--cesium]}
@@ -48,7 +51,7 @@ present() {
   [ -f "$prefix/node_modules/$name/package.json" ] &&
     [ "$(node -p "require('$prefix/node_modules/$name/package.json').version")" = "$version" ]
 }
-wanted="$THREE $TILES"
+wanted="$THREE $TILES $MAPLIBRE"
 if $cesium; then wanted="$wanted $CESIUM"; fi
 missing=""
 for p in $wanted; do
@@ -88,6 +91,10 @@ cp "$nm/3d-tiles-renderer/build/index.three.js" "$tmp/vendor/3d-tiles-renderer/b
 for f in "$nm"/3d-tiles-renderer/build/renderer-*.js; do
   cp "$f" "$tmp/vendor/3d-tiles-renderer/build/"
 done
+cp "$src/maplibre.html" "$tmp/"
+mkdir -p "$tmp/vendor/maplibre-gl"
+cp "$nm/maplibre-gl/LICENSE.txt" "$nm/maplibre-gl/dist/maplibre-gl.js" \
+  "$nm/maplibre-gl/dist/maplibre-gl.css" "$tmp/vendor/maplibre-gl/"
 if $cesium; then
   cp "$src/cesium.html" "$src/terrain.html" "$tmp/"
   mkdir -p "$tmp/vendor/cesium"

@@ -9,6 +9,9 @@ Python bindings (never vsm's sampler), and the real GDAL utilities as the OGC AP
 - `gdalinfo` and `gdal_translate OGCAPI:http://.../ogcapi/collections/jack` read the coverage;
 - a profile across Jacksboro merged into PRISM (a merge job) follows the detail, and `?rev=1`
   still answers PRISM's;
+- terrain-RGB tiles (MapLibre's raster-dem, Terrarium and Mapbox) hold the raster's heights at
+  their pixel centres, and after a merge exactly the tiles over the merged area change their
+  ETags and bytes; the others answer 304 to their old tags;
 - bad input gets a 400 naming the problem.
 
     /usr/bin/python3 gis_test.py --vsm <vsm> --vsmd <vsmd> --data <shared/data> --work <dir>
@@ -84,6 +87,8 @@ class GisTest(unittest.TestCase):
                            "--texture", "none")
         harness.import_dem(os.path.join(ARGS.data, PRISM + ".tif"), os.path.join(root, "prism"),
                            65, "--texture", "none")
+        # A second PRISM for the terrain-RGB tiles' tags across a merge of its own.
+        shutil.copytree(os.path.join(root, "prism"), os.path.join(root, "prism_rgb"))
         cls.jack = Dem(os.path.join(ARGS.data, JACK + ".tif"))
         cls.daemon = harness.Daemon("--token", TOKEN, "--set", "threads.cpu=2", root=root)
 
@@ -301,6 +306,152 @@ class GisTest(unittest.TestCase):
         self.assertEqual(status, 200, old)
         self.assertEqual([r["elevation"] for r in old["results"]],
                          [r["elevation"] for r in before["results"]])
+
+    # ---- terrain-RGB --------------------------------------------------------------------------
+
+    def test_terrain_rgb_tiles_hold_the_raster_heights_at_their_pixel_centres(self):
+        import math
+        status, tj = self.get_json("/v1/models/jack/terrain-rgb/tiles.json")
+        self.assertEqual(status, 200, tj)
+        self.assertEqual((tj["scheme"], tj["tileSize"], tj["encoding"], tj["minzoom"]),
+                         ("xyz", 256, "terrarium", 0))
+        w, s, e, n = self.jack.bounds()
+        for got, want in zip(tj["bounds"], (w, s, e, n)):
+            self.assertAlmostEqual(got, want, delta=1e-3)
+        # The first level whose pixels are as fine as Jacksboro's 90 m at its southern edge.
+        self.assertGreaterEqual(tj["maxzoom"], 11)
+        self.assertLessEqual(tj["maxzoom"], 12)
+        z = 12
+        lat0, lon0 = self.jack.centre(self.jack.rows // 2, self.jack.cols // 2)
+        x, y = slippy_tile(lon0, lat0, z)
+        template = tj["tiles"][0]
+        self.assertTrue(template.startswith("/v1/models/jack/terrain-rgb/{z}/{x}/{y}.png?v="))
+        tiles = {}
+        for encoding in ("terrarium", "mapbox"):
+            path = template.replace("{z}/{x}/{y}", "%d/%d/%d" % (z, x, y))
+            if encoding == "mapbox":
+                path += "&encoding=mapbox"
+            status, headers, body = self.daemon.request("GET", path)
+            self.assertEqual(status, 200, body[:200])
+            self.assertEqual(headers["content-type"], "image/png")
+            tiles[encoding] = decode_dem_png(body, encoding)
+            self.assertEqual(tiles[encoding].shape, (256, 256))
+        west, south, east, north = slippy_rect(x, y, z)
+        worst = 0.0
+        for j in range(0, 256, 5):
+            for i in range(0, 256, 5):
+                lon = west + (i + 0.5) / 256 * (east - west)
+                # Pixel rows are even in Mercator y, not in latitude.
+                merc_n = math.asinh(math.tan(math.radians(north)))
+                merc_s = math.asinh(math.tan(math.radians(south)))
+                lat = math.degrees(math.atan(math.sinh(merc_n - (j + 0.5) / 256
+                                                       * (merc_n - merc_s))))
+                h, relief = self.jack.bilinear(lat, lon)
+                got = tiles["terrarium"][j, i]
+                # The surface interpolates the DEM's samples: within the relief of the four
+                # pixels around the point (and the encoding's 1/256 m).
+                worst = max(worst, abs(got - h) - relief)
+                self.assertLessEqual(abs(tiles["mapbox"][j, i] - got), 0.05 + 1 / 256)
+        print("terrain-rgb 12/%d/%d: worst excess over the local relief %.4f m" % (x, y, worst))
+        self.assertLessEqual(worst, 1 / 256 + EXACT)
+
+    def test_terrain_rgb_tags_change_only_over_a_merge(self):
+        z = 8
+        w, s, e, n = self.jack.bounds()
+        x0, y0 = slippy_tile(w, n, z)
+        x1, y1 = slippy_tile(e, s, z)
+        status, tj = self.get_json("/v1/models/prism_rgb/terrain-rgb/tiles.json")
+        self.assertEqual(status, 200, tj)
+
+        def fetch(version):
+            out = {}
+            for x in range(x0 - 5, x1 + 6):
+                for y in range(y0 - 5, y1 + 6):
+                    path = "/v1/models/prism_rgb/terrain-rgb/%d/%d/%d.png?v=%d" % (z, x, y, version)
+                    status, headers, body = self.daemon.request("GET", path)
+                    if status == 404:  # beyond PRISM
+                        continue
+                    self.assertEqual(status, 200, body[:200])
+                    out[(x, y)] = (headers["etag"], body)
+            return out
+
+        before = fetch(tj["model_version"])
+        job = self.daemon.submit({"type": "merge", "target": "prism_rgb", "source": "jack"})
+        job = self.daemon.wait_job(job["id"])
+        self.assertEqual(job["state"], "succeeded", job)
+        status, tj2 = self.get_json("/v1/models/prism_rgb/terrain-rgb/tiles.json")
+        self.assertGreater(tj2["model_version"], tj["model_version"])
+        self.assertGreater(tj2["maxzoom"], tj["maxzoom"])  # Jacksboro's 90 m beside PRISM's 4 km
+        after = fetch(tj2["model_version"])
+        self.assertEqual(set(before), set(after))
+        over, changed, far = 0, 0, 0
+        for key, (etag, body) in after.items():
+            old_etag, old_body = before[key]
+            # A tag names its bytes: the same tag, the same tile; different bytes, another tag.
+            self.assertEqual(etag == old_etag, body == old_body, key)
+            changed += etag != old_etag
+            tw, ts, te, tn = slippy_rect(key[0], key[1], z)
+            if tw <= e and w <= te and ts <= n and s <= tn:
+                over += 1
+                self.assertNotEqual(etag, old_etag, "tile %r over Jacksboro kept its tag" % (key,))
+            # PRISM's leaves are 64 pixels of 0.042 deg (2.7 deg): a tile more than two leaves
+            # away from Jacksboro is sampled from none that the merge rewrote.
+            if te < w - 5.4 or tw > e + 5.4 or tn < s - 5.4 or ts > n + 5.4:
+                far += 1
+                self.assertEqual(etag, old_etag, "tile %r far from Jacksboro changed" % (key,))
+                path = "/v1/models/prism_rgb/terrain-rgb/%d/%d/%d.png" % (z, key[0], key[1])
+                status, _, _ = self.daemon.request("GET", path, headers={"If-None-Match": etag})
+                self.assertEqual(status, 304)
+        print("terrain-rgb level %d: %d tiles, %d over Jacksboro, %d changed, %d far ones kept"
+              % (z, len(after), over, changed, far))
+        self.assertGreater(over, 0)
+        self.assertGreater(far, 0)
+        self.assertLess(changed, len(after))
+
+    def test_terrain_rgb_bad_input_gets_a_clear_answer(self):
+        for path, status, words in [
+                ("/v1/models/jack/terrain-rgb/25/0/0.png", 400, "deepest level"),
+                ("/v1/models/jack/terrain-rgb/3/8/0.png", 400, "outside the Web Mercator"),
+                ("/v1/models/jack/terrain-rgb/3/x/0.png", 400, "non-negative integer"),
+                ("/v1/models/jack/terrain-rgb/3/2/3.png?encoding=png", 400, "terrarium"),
+                ("/v1/models/jack/terrain-rgb/3/2/3.png?nodata=99999", 400, "nodata"),
+                ("/v1/models/jack/terrain-rgb/tiles.json?nodata=abc", 400, "nodata"),
+                ("/v1/models/jack/terrain-rgb/3/0/0.png", 404, "does not meet"),
+                ("/v1/models/nothing/terrain-rgb/tiles.json", 404, "nothing")]:
+            got, body = self.get(path)
+            self.assertEqual(got, status, (path, body))
+            self.assertIn(words, body.decode() if isinstance(body, bytes) else body, path)
+
+
+def slippy_tile(lon, lat, z):
+    """(x, y) of the Web Mercator tile holding a point (the OpenStreetMap wiki's formulas)."""
+    import math
+    n = 2 ** z
+    return (int((lon + 180) / 360 * n),
+            int((1 - math.asinh(math.tan(math.radians(lat))) / math.pi) / 2 * n))
+
+
+def slippy_rect(x, y, z):
+    """west, south, east, north of a tile."""
+    import math
+    n = 2 ** z
+
+    def lat(row):
+        return math.degrees(math.atan(math.sinh(math.pi * (1 - 2 * row / n))))
+
+    return x / n * 360 - 180, lat(y + 1), (x + 1) / n * 360 - 180, lat(y)
+
+
+def decode_dem_png(body, encoding):
+    """Heights of a terrain-RGB PNG, read with GDAL (rows north first)."""
+    path = "/vsimem/dem-tile.png"
+    gdal.FileFromMemBuffer(path, body)
+    try:
+        rgb = gdal.Open(path).ReadAsArray().astype(float)
+    finally:
+        gdal.Unlink(path)
+    n = rgb[0] * 65536 + rgb[1] * 256 + rgb[2]
+    return n / 256 - 32768 if encoding == "terrarium" else n / 10 - 10000
 
 
 def main():
