@@ -307,6 +307,19 @@ def exercise_main(r, d):
     r.call(d, "terrain tile outside the scheme", "GET", m + "/terrain/25/0/0.terrain", 400)
     r.call(d, "terrain tile of no model", "GET", "/v1/models/nope/terrain/0/0/0.terrain", 404)
 
+    # MapLibre's terrain-RGB (issue 29): a level-10 tile over the middle of Jacksboro.
+    rj = m + "/terrain-rgb/tiles.json"
+    r.call(d, "terrain-rgb tilejson", "GET", rj + "?encoding=mapbox", 200)
+    r.call(d, "terrain-rgb tilejson revalidated", "GET", rj, 304, headers=etag_of(rj))
+    r.call(d, "terrain-rgb tilejson, bad no-data", "GET", rj + "?nodata=x", 400)
+    r.call(d, "terrain-rgb tilejson of no model", "GET", "/v1/models/nope/terrain-rgb/tiles.json",
+           404)
+    rgb = m + "/terrain-rgb/10/272/401.png"
+    r.call(d, "terrain-rgb tile", "GET", rgb + "?nodata=-1", 200)
+    r.call(d, "terrain-rgb tile revalidated", "GET", rgb, 304, headers=etag_of(rgb))
+    r.call(d, "terrain-rgb tile, bad encoding", "GET", rgb + "?encoding=rgb", 400)
+    r.call(d, "terrain-rgb tile off the model", "GET", m + "/terrain-rgb/10/0/0.png", 404)
+
     # Heights for GIS clients (issue 29).
     points = "36.3,-84.2|36.31,-84.21"
     r.call(d, "elevation", "GET", m + "/elevation?locations=" + points + "&samples=3", 200)
@@ -454,6 +467,8 @@ def exercise_tiny(r, d):
     r.call(d, "glb over the budget", "GET", m + "/3dtiles/0_0_0.glb", 503)
     r.call(d, "terrain layer over the budget", "GET", m + "/terrain/layer.json", 503)
     r.call(d, "terrain tile over the budget", "GET", m + "/terrain/0/0/0.terrain", 503)
+    r.call(d, "terrain-rgb tilejson over the budget", "GET", m + "/terrain-rgb/tiles.json", 503)
+    r.call(d, "terrain-rgb tile over the budget", "GET", m + "/terrain-rgb/0/0/0.png", 503)
     # This daemon runs no diffs at all (limits.diffs=0): every one is over the bound.
     r.call(d, "diff over limits.diffs", "GET", m + "/diff?from=1&to=2", 503)
     r.call(d, "diff map over limits.diffs", "GET", m + "/diff.png?from=1&to=2&size=64", 503)
