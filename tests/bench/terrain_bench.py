@@ -1,5 +1,5 @@
 #!/usr/bin/python3
-"""Benchmark (not a test): quantized-mesh terrain tiles from vsmd on ONE core.
+"""Benchmark (not a test): quantized-mesh and terrain-RGB tiles from vsmd on ONE core.
 
 The model is REAL: ../shared/data/PRISMelevation.tif and jacksboro_fault_dem.tif imported by
 `vsm import` (default 257 x 257 patches, or --patch-size) and merged with `vsm merge --out`. vsmd
@@ -13,6 +13,9 @@ script, http.client, one keep-alive connection) runs pinned to another CPU when 
    through the patch cache when not resident yet), encoded, gzipped and cached. tiles/s and the
    per-tile latency (median, p90, max) seen by the client over the local connection.
 3. warm: the same tiles again, answered from the encoded-tile cache on the network thread.
+4. The same for the terrain-RGB tiles (MapLibre's raster-dem, Terrarium PNGs): every Web Mercator
+   tile over the model's bounds from --min-level to the TileJSON's maxzoom (at most --max-tiles,
+   spread evenly), cold then warm.
 
     /usr/bin/python3 tests/bench/terrain_bench.py [--vsm build/server/cli/vsm]
         [--vsmd build/server/vsmd] [--data ../shared/data] [--patch-size 257] [--max-tiles 400]
@@ -21,6 +24,7 @@ script, http.client, one keep-alive connection) runs pinned to another CPU when 
 import argparse
 import http.client
 import json
+import math
 import os
 import shutil
 import statistics
@@ -136,6 +140,47 @@ def main():
               "p90 %.3f ms" % (len(tiles) / warm_s, ms(warm, 0.5), ms(warm, 0.9)))
         print("(latencies as the client sees them over one local keep-alive connection, HTTP "
               "included; target: a cold tile <= 5 ms)")
+
+        tilejson = json.loads(get("/v1/models/merged/terrain-rgb/tiles.json"))
+        w, s, e, n = tilejson["bounds"]
+        rgb_tiles = []
+        for z in range(args.min_level, tilejson["maxzoom"] + 1):
+            count = 2 ** z
+
+            def row(lat):
+                return int((1 - math.asinh(math.tan(math.radians(lat))) / math.pi) / 2 * count)
+
+            for y in range(row(n), min(row(s), count - 1) + 1):
+                for x in range(int((w + 180) / 360 * count),
+                               min(int((e + 180) / 360 * count), count - 1) + 1):
+                    rgb_tiles.append((z, x, y))
+        rgb_available = len(rgb_tiles)
+        if len(rgb_tiles) > args.max_tiles:
+            step = len(rgb_tiles) / args.max_tiles
+            rgb_tiles = [rgb_tiles[int(i * step)] for i in range(args.max_tiles)]
+
+        def run_rgb():
+            times, size = [], 0
+            t0 = time.perf_counter()
+            for z, x, y in rgb_tiles:
+                s = time.perf_counter()
+                size += len(get("/v1/models/merged/terrain-rgb/%d/%d/%d.png" % (z, x, y)))
+                times.append(time.perf_counter() - s)
+            return time.perf_counter() - t0, times, size
+
+        cold_s, cold, cold_bytes = run_rgb()
+        warm_s, warm, _ = run_rgb()
+        print("terrain-RGB: %d tiles of levels %d..%d (of %d over the bounds), 256 x 256 "
+              "Terrarium PNG, mean %.1f KiB"
+              % (len(rgb_tiles), args.min_level, tilejson["maxzoom"], rgb_available,
+                 cold_bytes / len(rgb_tiles) / 1024))
+        print("cold (sample + encode + cache):        %7.1f tiles/s   per tile median %.2f ms, "
+              "p90 %.2f ms, max %.2f ms"
+              % (len(rgb_tiles) / cold_s, ms(cold, 0.5), ms(cold, 0.9), max(cold) * 1000))
+        print("warm (from the cache, network thread): %7.1f tiles/s   per tile median %.3f ms, "
+              "p90 %.3f ms" % (len(rgb_tiles) / warm_s, ms(warm, 0.5), ms(warm, 0.9)))
+        load = os.getloadavg()
+        print("load average after: %.2f %.2f %.2f" % load)
     finally:
         if daemon is not None:
             daemon.terminate()
