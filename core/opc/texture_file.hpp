@@ -28,10 +28,9 @@ void loadImageCodec();
 std::vector<std::byte> encodeTextureTiff(const TextureTile& tile);
 
 /// How hard a PNG is compressed: OpenImageIO's defaults (zlib level 6, libpng choosing a filter
-/// per row), or Fast (level 1, the Sub filter). On terrain-RGB tiles of Jacksboro (256 x 256 RGB
-/// of smooth heights, which suit the Sub filter) Fast made a cold tile's answer 3x faster (15.5 ->
-/// 4.9 ms median over 176 tiles) and the files about 10 % smaller; on noisy images it gives larger
-/// files.
+/// per row), or Fast (level 1, the Sub filter). On terrain-RGB tiles of Jacksboro (256 x 256 RGB)
+/// Fast made a cold tile's answer 2.2x faster (10.5 -> 4.6 ms median over 176 tiles, HTTP
+/// included) for files 23 % larger (tests/bench/results/terrain-rgb.txt).
 enum class PngCompression : std::uint8_t { Default, Fast };
 
 /// An 8-bit image of `channels` channels (1..4: grey, grey and alpha, RGB, RGBA; width x height x
