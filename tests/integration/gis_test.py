@@ -402,6 +402,15 @@ class GisTest(unittest.TestCase):
                 path = "/v1/models/prism_rgb/terrain-rgb/%d/%d/%d.png" % (z, key[0], key[1])
                 status, _, _ = self.daemon.request("GET", path, headers={"If-None-Match": etag})
                 self.assertEqual(status, 304)
+        # The revision before the merge still answers the tiles as they were.
+        for key, (etag, body) in after.items():
+            if etag != before[key][0]:
+                path = "/v1/models/prism_rgb/terrain-rgb/%d/%d/%d.png?rev=%d" % (
+                    z, key[0], key[1], tj["model_version"])
+                status, headers, old_body = self.daemon.request("GET", path)
+                self.assertEqual(status, 200, old_body[:200])
+                self.assertEqual(old_body, before[key][1], key)
+                self.assertEqual(headers["etag"], before[key][0], key)
         print("terrain-rgb level %d: %d tiles, %d over Jacksboro, %d changed, %d far ones kept"
               % (z, len(after), over, changed, far))
         self.assertGreater(over, 0)
