@@ -41,33 +41,41 @@ std::uint32_t parseTileNumber(std::string_view text, std::string_view what) {
   std::uint32_t value = 0;
   const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
   if (text.empty() || text.size() > 10 || ec != std::errc() || end != text.data() + text.size()) {
-    throw Error(ErrorCode::InvalidArgument, "terrain tile " + std::string(what) +
+    throw Error(ErrorCode::InvalidArgument, "tile " + std::string(what) +
                                                 " must be a non-negative integer, not '" +
                                                 std::string(text.substr(0, 32)) + "'");
   }
   return value;
 }
 
-core::TerrainTileKey parseTile(const http::Request& request) {
-  core::TerrainTileKey key;
+/// The {z}/{x}/{y} of a tile route as a `Key` (core::TerrainTileKey or core::MercatorTileKey) of
+/// the tiling scheme `scheme`, whose level z has 2^(z + columnShift) columns and 2^z rows. Throws
+/// Error(InvalidArgument) for a part that is not a number, a level beyond Key::kMaxLevel, or a
+/// tile outside the scheme.
+template <typename Key>
+Key parseTile(const http::Request& request, std::string_view scheme, int columnShift) {
+  Key key;
   const std::uint32_t z = parseTileNumber(request.param("z"), "level z");
   key.x = parseTileNumber(request.param("x"), "column x");
   key.y = parseTileNumber(request.param("y"), "row y");
-  if (z > static_cast<std::uint32_t>(core::TerrainTileKey::kMaxLevel)) {
+  if (z > static_cast<std::uint32_t>(Key::kMaxLevel)) {
     throw Error(ErrorCode::InvalidArgument,
-                "terrain tile level " + std::to_string(z) + " is outside the tiling scheme (0.." +
-                    std::to_string(core::TerrainTileKey::kMaxLevel) + ")");
+                "tile level " + std::to_string(z) + " is beyond the deepest level of the " +
+                    std::string(scheme) + " (" + std::to_string(Key::kMaxLevel) + ")");
   }
   key.z = static_cast<int>(z);
   if (!key.valid()) {
     throw Error(ErrorCode::InvalidArgument,
-                "terrain tile " + key.toString() +
-                    " is outside the geographic tiling scheme (EPSG:4326, TMS): level " +
-                    std::to_string(z) + " has x 0.." + std::to_string((std::uint64_t{2} << z) - 1) +
-                    " and y 0.." + std::to_string((std::uint64_t{1} << z) - 1));
+                "tile " + key.toString() + " is outside the " + std::string(scheme) + ": level " +
+                    std::to_string(z) + " has x 0.." +
+                    std::to_string((std::uint64_t{1} << (z + columnShift)) - 1) + " and y 0.." +
+                    std::to_string((std::uint64_t{1} << z) - 1));
   }
   return key;
 }
+
+constexpr std::string_view kGeographicScheme = "geographic tiling scheme (EPSG:4326, TMS)";
+constexpr std::string_view kMercatorScheme = "Web Mercator tiling scheme (EPSG:3857, XYZ)";
 
 void requireHeightField(const std::string& id, const core::TerrainLayer& layer) {
   if (!layer.heightField) {
@@ -116,7 +124,7 @@ std::optional<http::Response> getTile(models::ModelRegistry& models, models::Pat
   const models::Asker asker =
       onNetworkThread ? models::Asker::NetworkThread : models::Asker::PoolAfterNetwork;
   const std::string& id = request.param("m");
-  const core::TerrainTileKey key = parseTile(request);
+  const auto key = parseTile<core::TerrainTileKey>(request, kGeographicScheme, 1);
   const std::optional<TiledRead> read = tiledRead(models, request, onNetworkThread);
   if (!read) {
     return std::nullopt;
@@ -227,27 +235,6 @@ DemQuery parseDemQuery(const http::Request& request) {
   return q;
 }
 
-core::MercatorTileKey parseDemTile(const http::Request& request) {
-  core::MercatorTileKey key;
-  const std::uint32_t z = parseTileNumber(request.param("z"), "level z");
-  key.x = parseTileNumber(request.param("x"), "column x");
-  key.y = parseTileNumber(request.param("y"), "row y");
-  if (z > static_cast<std::uint32_t>(core::MercatorTileKey::kMaxLevel)) {
-    throw Error(ErrorCode::InvalidArgument,
-                "terrain-RGB tile level " + std::to_string(z) + " is beyond the deepest level (" +
-                    std::to_string(core::MercatorTileKey::kMaxLevel) + ")");
-  }
-  key.z = static_cast<int>(z);
-  if (!key.valid()) {
-    throw Error(ErrorCode::InvalidArgument,
-                "terrain-RGB tile " + key.toString() +
-                    " is outside the Web Mercator tiling scheme (EPSG:3857, XYZ): level " +
-                    std::to_string(z) + " has x and y 0.." +
-                    std::to_string((std::uint64_t{1} << z) - 1));
-  }
-  return key;
-}
-
 /// The Web Mercator projection's latitude limit (degrees).
 constexpr double kMercatorMaxLatitude = 85.0511287798066;
 
@@ -309,7 +296,7 @@ std::optional<http::Response> getDemTile(models::ModelRegistry& models, models::
   const models::Asker asker =
       onNetworkThread ? models::Asker::NetworkThread : models::Asker::PoolAfterNetwork;
   const std::string& id = request.param("m");
-  const core::MercatorTileKey key = parseDemTile(request);
+  const auto key = parseTile<core::MercatorTileKey>(request, kMercatorScheme, 0);
   const DemQuery query = parseDemQuery(request);
   const std::optional<TiledRead> read = tiledRead(models, request, onNetworkThread);
   if (!read) {

@@ -106,18 +106,19 @@ def main():
             tiles = [tiles[int(i * step)] for i in range(args.max_tiles)]
         headers = {"Accept": ACCEPT, "Accept-Encoding": "gzip"}
 
-        def run():
+        def run(paths, headers=None):
+            """Each path fetched once: (seconds, per-path seconds, bytes)."""
             times, size = [], 0
             t0 = time.perf_counter()
-            for z, x, y in tiles:
+            for path in paths:
                 s = time.perf_counter()
-                size += len(get("/v1/models/merged/terrain/%d/%d/%d.terrain" % (z, x, y),
-                                headers))
+                size += len(get(path, headers))
                 times.append(time.perf_counter() - s)
             return time.perf_counter() - t0, times, size
 
-        cold_s, cold, cold_bytes = run()
-        warm_s, warm, _ = run()
+        paths = ["/v1/models/merged/terrain/%d/%d/%d.terrain" % t for t in tiles]
+        cold_s, cold, cold_bytes = run(paths, headers)
+        warm_s, warm, _ = run(paths, headers)
         levels = sorted({t[0] for t in tiles})
 
         def ms(values, q):
@@ -159,17 +160,9 @@ def main():
             step = len(rgb_tiles) / args.max_tiles
             rgb_tiles = [rgb_tiles[int(i * step)] for i in range(args.max_tiles)]
 
-        def run_rgb():
-            times, size = [], 0
-            t0 = time.perf_counter()
-            for z, x, y in rgb_tiles:
-                s = time.perf_counter()
-                size += len(get("/v1/models/merged/terrain-rgb/%d/%d/%d.png" % (z, x, y)))
-                times.append(time.perf_counter() - s)
-            return time.perf_counter() - t0, times, size
-
-        cold_s, cold, cold_bytes = run_rgb()
-        warm_s, warm, _ = run_rgb()
+        paths = ["/v1/models/merged/terrain-rgb/%d/%d/%d.png" % t for t in rgb_tiles]
+        cold_s, cold, cold_bytes = run(paths)
+        warm_s, warm, _ = run(paths)
         print("terrain-RGB: %d tiles of levels %d..%d (of %d over the bounds), 256 x 256 "
               "Terrarium PNG, mean %.1f KiB"
               % (len(rgb_tiles), args.min_level, tilejson["maxzoom"], rgb_available,

@@ -103,6 +103,38 @@ class Raster:
         return sum(self.at(lon + dx, lat + dy) for dx in offsets for dy in offsets) / 25
 
 
+def pixel_centres(heights, transform, count, seed, box=None, exclude=None):
+    """`count` random pixels of a DEM with data on all 8 sides, whose centres lie in `box` (W, S,
+    E, N; anywhere when None) and outside `exclude` (W, S, E, N): (lon, lat of their centres,
+    GDAL's height, the pixel's relief: its largest difference to its 8 neighbours)."""
+    import numpy
+    rows, cols = heights.shape
+    rng = numpy.random.default_rng(seed)
+    i0, i1, j0, j1 = 1, cols - 2, 1, rows - 2
+    if box is not None:
+        w, s, e, n = box
+        i0 = max(i0, int((w - transform[0]) / transform[1]))
+        i1 = min(i1, int((e - transform[0]) / transform[1]))
+        j0 = max(j0, int((n - transform[3]) / transform[5]))
+        j1 = min(j1, int((s - transform[3]) / transform[5]))
+        assert i0 < i1 and j0 < j1, box
+    out = []
+    while len(out) < count:
+        j, i = int(rng.integers(j0, j1 + 1)), int(rng.integers(i0, i1 + 1))
+        block = heights[j - 1:j + 2, i - 1:i + 2]
+        if not numpy.isfinite(block).all():
+            continue
+        lon = transform[0] + (i + 0.5) * transform[1]
+        lat = transform[3] + (j + 0.5) * transform[5]
+        if box is not None and not (box[0] <= lon <= box[2] and box[1] <= lat <= box[3]):
+            continue
+        if exclude is not None and (exclude[0] <= lon <= exclude[2]
+                                    and exclude[1] <= lat <= exclude[3]):
+            continue
+        out.append((lon, lat, heights[j, i], float(numpy.abs(block - heights[j, i]).max())))
+    return out
+
+
 def dem_points(dem):
     """(lon, lat, height) of DEM vertices every SAMPLE_STEP samples, with data all around."""
     import numpy

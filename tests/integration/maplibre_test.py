@@ -27,43 +27,13 @@ import unittest
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import browser_support  # noqa: E402
 import harness  # noqa: E402
-from browser_support import load_page  # noqa: E402
+from browser_support import load_page, pixel_centres  # noqa: E402
 from harness import Daemon  # noqa: E402
 
 ARGS = None
 MODEL = "merged"
 PAGE_SECONDS = 90
 SAMPLES = 100
-
-
-def pixel_centres(heights, transform, count, seed, box, exclude=None):
-    """`count` random pixels with data on all 8 sides whose centres lie in `box` (W, S, E, N) and
-    outside `exclude`: (lon, lat of their centres, GDAL's height, the pixel's relief)."""
-    import numpy
-    rows, cols = heights.shape
-    rng = numpy.random.default_rng(seed)
-    w, s, e, n = box
-    # The pixels whose centres can lie in the box.
-    i0 = max(1, int((w - transform[0]) / transform[1]))
-    i1 = min(cols - 2, int((e - transform[0]) / transform[1]))
-    j0 = max(1, int((n - transform[3]) / transform[5]))
-    j1 = min(rows - 2, int((s - transform[3]) / transform[5]))
-    assert i0 < i1 and j0 < j1, box
-    out = []
-    while len(out) < count:
-        j, i = int(rng.integers(j0, j1 + 1)), int(rng.integers(i0, i1 + 1))
-        block = heights[j - 1:j + 2, i - 1:i + 2]
-        if not numpy.isfinite(block).all():
-            continue
-        lon = transform[0] + (i + 0.5) * transform[1]
-        lat = transform[3] + (j + 0.5) * transform[5]
-        if not (w <= lon <= e and s <= lat <= n):
-            continue
-        if exclude is not None and (exclude[0] <= lon <= exclude[2]
-                                    and exclude[1] <= lat <= exclude[3]):
-            continue
-        out.append((lon, lat, heights[j, i], float(numpy.abs(block - heights[j, i]).max())))
-    return out
 
 
 def view_box(lon, lat, zoom, margin=0.8):

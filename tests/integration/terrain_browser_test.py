@@ -32,7 +32,7 @@ import unittest
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import browser_support  # noqa: E402
 import harness  # noqa: E402
-from browser_support import assert_not_blank, load_page  # noqa: E402
+from browser_support import assert_not_blank, load_page, pixel_centres  # noqa: E402
 from harness import Daemon  # noqa: E402
 
 ARGS = None
@@ -43,28 +43,6 @@ SAMPLES = 100
 # at 8:00 local summer time (the sun low in the east-north-east, so slopes shade strongly).
 JACKSBORO_VIEW = "-84.30,36.18,14000,35,-40"
 JACKSBORO_TIME = "2026-06-21T12:00:00Z"
-
-
-def pixel_centres(heights, transform, count, seed, exclude=None):
-    """`count` random pixels with data on all 8 sides (and outside `exclude`, a lon/lat rectangle
-    W,S,E,N): (lon, lat of their centres, GDAL's height, the pixel's relief)."""
-    import numpy
-    rows, cols = heights.shape
-    rng = numpy.random.default_rng(seed)
-    out = []
-    while len(out) < count:
-        j, i = int(rng.integers(1, rows - 1)), int(rng.integers(1, cols - 1))
-        block = heights[j - 1:j + 2, i - 1:i + 2]
-        if not numpy.isfinite(block).all():
-            continue
-        lon = transform[0] + (i + 0.5) * transform[1]
-        lat = transform[3] + (j + 0.5) * transform[5]
-        if exclude is not None:
-            w, s, e, n = exclude
-            if w <= lon <= e and s <= lat <= n:
-                continue
-        out.append((lon, lat, heights[j, i], float(numpy.abs(block - heights[j, i]).max())))
-    return out
 
 
 def bounds(heights, transform, margin_pixels=0):
