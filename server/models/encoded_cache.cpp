@@ -40,6 +40,8 @@ std::string_view toString(Encoding encoding) {
       return "diff";
     case Encoding::HeightWork:
       return "heights";
+    case Encoding::RayWork:
+      return "rays";
   }
   return "unknown";
 }

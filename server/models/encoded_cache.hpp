@@ -47,13 +47,17 @@ enum class Encoding : std::uint8_t {
   /// Not a body: the working memory of a height coverage being sampled and encoded (its strip
   /// buffers and the GeoTIFF), charged while it is made (reserve()).
   HeightWork = 8,
+  /// Not a body: the working memory of a ray query (server/api/ray_routes.cpp), one ray's
+  /// hierarchy at a time, charged while it is built and cast (reserve()).
+  RayWork = 9,
 };
 
-inline constexpr std::array<Encoding, 8> kEncodings{
-    Encoding::PositionsAara, Encoding::Glb,      Encoding::TexturePng, Encoding::Terrain,
-    Encoding::GlbMeshopt,    Encoding::JsonGzip, Encoding::DiffWork,   Encoding::HeightWork};
+inline constexpr std::array<Encoding, 9> kEncodings{
+    Encoding::PositionsAara, Encoding::Glb,        Encoding::TexturePng,
+    Encoding::Terrain,       Encoding::GlbMeshopt, Encoding::JsonGzip,
+    Encoding::DiffWork,      Encoding::HeightWork, Encoding::RayWork};
 /// The name /v1/stats and the metrics give an encoding: "aara", "glb", "png", "terrain",
-/// "glb_meshopt", "json_gzip", "diff", "heights".
+/// "glb_meshopt", "json_gzip", "diff", "heights", "rays".
 std::string_view toString(Encoding encoding);
 
 /// The stored files of a patch the server sends as they are (sendfile(2)).
