@@ -26,30 +26,6 @@ using vec::cross;
 using vec::dot;
 using vec::vertexNormal;
 
-/// The leaves of `model` whose global box meets `box`: a descent from the root through patches
-/// whose box meets it (a parent's box holds its children's).
-inline std::vector<PatchKey> leavesMeeting(const Model& model, const Box3d& box) {
-  std::vector<PatchKey> leaves;
-  std::vector<PatchKey> pending{PatchKey::root()};
-  while (!pending.empty()) {
-    const PatchKey key = pending.back();
-    pending.pop_back();
-    const PatchInfo* info = model.find(key);
-    if (info == nullptr || !info->globalBox.intersects(box)) {
-      continue;
-    }
-    if (info->isLeaf()) {
-      leaves.push_back(key);
-    } else {
-      for (const PatchKey& child : model.children(key)) {
-        pending.push_back(child);
-      }
-    }
-  }
-  std::sort(leaves.begin(), leaves.end());
-  return leaves;
-}
-
 /// A grid's global positions, computed once (NaN where undefined): what the diff reads of a grid
 /// many times, with PatchGrid's interface (size, defined, global).
 struct Points {
@@ -225,7 +201,8 @@ class SurfaceIndex {
 
   /// Prepares the leaves meeting `box`; false when there are none.
   bool around(const Box3d& box) {
-    std::vector<PatchKey> keys = leavesMeeting(source_.model(), box);
+    std::vector<PatchKey> keys =
+        source_.model().leavesWhere([&](const Box3d& b) { return b.intersects(box); });
     if (keys.empty()) {
       return false;
     }

@@ -101,6 +101,28 @@ std::vector<PatchKey> Model::leaves() const {
   return result;
 }
 
+std::vector<PatchKey> Model::leavesWhere(const std::function<bool(const Box3d&)>& meets) const {
+  std::vector<PatchKey> leaves;
+  std::vector<PatchKey> pending{PatchKey::root()};
+  while (!pending.empty()) {
+    const PatchKey key = pending.back();
+    pending.pop_back();
+    const PatchInfo* info = find(key);
+    if (info == nullptr || !meets(info->globalBox)) {
+      continue;
+    }
+    if (info->isLeaf()) {
+      leaves.push_back(key);
+    } else {
+      for (const PatchKey& child : children(key)) {
+        pending.push_back(child);
+      }
+    }
+  }
+  std::sort(leaves.begin(), leaves.end());
+  return leaves;
+}
+
 Box3d Model::childrenBox(const PatchKey& key) const {
   Box3d box;
   for (const Quadrant q : kQuadrants) {

@@ -90,6 +90,10 @@ class Model {
 
   std::vector<PatchKey> children(const PatchKey& key) const;
   std::vector<PatchKey> leaves() const;
+  /// The leaves whose global box `meets` accepts, in key order: a descent from the root through
+  /// the patches whose box it accepts. A parent's box holds its children's, so `meets` must accept
+  /// a box whenever it accepts one inside it (a box or a segment meeting it, say).
+  std::vector<PatchKey> leavesWhere(const std::function<bool(const Box3d&)>& meets) const;
   /// All patches, parents before children (by depth, then row, then column).
   const std::map<PatchKey, PatchInfo>& patches() const { return patches_; }
 

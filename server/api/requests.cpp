@@ -80,6 +80,41 @@ std::array<double, N> parseNumbers(std::string_view text, std::string_view what,
   return v;
 }
 
+/// Checks a ray's direction (`what` names it): not zero, and not so large that its length
+/// overflows.
+void checkDirection(const core::Vec3d& d, const std::string& what) {
+  const double length = d.norm();
+  if (!(length > 0) || !std::isfinite(length)) {
+    throw Error(ErrorCode::InvalidArgument,
+                what + " must not be zero (nor so large that its length overflows)");
+  }
+}
+
+void checkMaxDistance(double value, const std::string& what) {
+  if (!(value >= 0)) {
+    throw Error(ErrorCode::InvalidArgument, what + " must be >= 0 (metres along the ray)");
+  }
+}
+
+/// Member `name` of a ray object (`what` names the ray): an array of three finite numbers.
+core::Vec3d vec3Member(const json& item, const char* name, const std::string& what) {
+  const auto it = item.find(name);
+  if (it == item.end()) {
+    throw Error(ErrorCode::InvalidArgument, what + " has no '" + name + "'");
+  }
+  const json& v = *it;
+  if (!v.is_array() || v.size() != 3 || !v[0].is_number() || !v[1].is_number() ||
+      !v[2].is_number()) {
+    throw Error(ErrorCode::InvalidArgument,
+                what + ": '" + name + "' must be an array of three numbers [x, y, z]");
+  }
+  const core::Vec3d out{v[0].get<double>(), v[1].get<double>(), v[2].get<double>()};
+  if (!out.finite()) {
+    throw Error(ErrorCode::InvalidArgument, what + ": '" + name + "' must be finite");
+  }
+  return out;
+}
+
 }  // namespace
 
 LodQuery parseLodQuery(std::string_view box, std::string_view resolution) {
@@ -194,6 +229,71 @@ MergeRequest parseMergeRequest(const http::Request& request) {
     out.registerFirst = reg->get<bool>();
   }
   return out;
+}
+
+std::vector<core::Ray> parseRayQuery(const http::Request& request, std::size_t maxRays) {
+  std::vector<core::Ray> rays;
+  if (request.method == http::Method::Post) {
+    const json body = objectBody(request, {"rays"});
+    const auto list = body.find("rays");
+    if (list == body.end() || !list->is_array() || list->empty()) {
+      throw Error(ErrorCode::InvalidArgument,
+                  R"('rays' must be a non-empty array of {"origin": [x, y, z], "direction": )"
+                  R"([dx, dy, dz], "max_distance": D})");
+    }
+    if (list->size() > maxRays) {
+      throw Error(ErrorCode::InvalidArgument,
+                  std::to_string(list->size()) + " rays, more than the " + std::to_string(maxRays) +
+                      " of one request; split the request");
+    }
+    for (std::size_t i = 0; i < list->size(); ++i) {
+      const std::string what = "ray " + std::to_string(i + 1);
+      const json& item = (*list)[i];
+      if (!item.is_object()) {
+        throw Error(ErrorCode::InvalidArgument,
+                    what + R"( must be an object {"origin", "direction", "max_distance"})");
+      }
+      for (const auto& [key, value] : item.items()) {
+        if (key != "origin" && key != "direction" && key != "max_distance") {
+          throw Error(ErrorCode::InvalidArgument,
+                      what + ": unknown member '" + key.substr(0, 64) + "'");
+        }
+      }
+      core::Ray ray;
+      ray.origin = vec3Member(item, "origin", what);
+      ray.direction = vec3Member(item, "direction", what);
+      checkDirection(ray.direction, what + ": 'direction'");
+      if (const auto max = item.find("max_distance"); max != item.end()) {
+        if (!max->is_number() || !std::isfinite(max->get<double>())) {
+          throw Error(ErrorCode::InvalidArgument, what + ": 'max_distance' must be a number");
+        }
+        ray.maxDistance = max->get<double>();
+        checkMaxDistance(ray.maxDistance, what + ": 'max_distance'");
+      }
+      rays.push_back(ray);
+    }
+    return rays;
+  }
+  const auto origin = request.queryParam("origin");
+  const auto direction = request.queryParam("direction");
+  if (!origin || !direction) {
+    throw Error(ErrorCode::InvalidArgument,
+                "a ray needs origin=x,y,z&direction=dx,dy,dz (max_distance=D optional), or a "
+                R"(POST of {"rays": [...]}; ')" +
+                    std::string(origin ? "direction" : "origin") + "' is missing");
+  }
+  const auto o = parseNumbers<3>(*origin, "origin", "x,y,z");
+  const auto d = parseNumbers<3>(*direction, "direction", "dx,dy,dz");
+  core::Ray ray;
+  ray.origin = {o[0], o[1], o[2]};
+  ray.direction = {d[0], d[1], d[2]};
+  checkDirection(ray.direction, "direction");
+  if (const auto max = request.queryParam("max_distance")) {
+    ray.maxDistance = parseNumber(*max, "max_distance");
+    checkMaxDistance(ray.maxDistance, "max_distance");
+  }
+  rays.push_back(ray);
+  return rays;
 }
 
 }  // namespace vsm::server::api

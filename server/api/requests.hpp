@@ -4,11 +4,14 @@
 // bodies of the POST routes, parsed and checked. Kept apart from the handlers (and their
 // registries) so the parsing can be tested and fuzzed alone (tests/fuzz/).
 
+#include <cstddef>
 #include <optional>
 #include <string>
 #include <string_view>
+#include <vector>
 
 #include "core/grid/geometry.hpp"
+#include "core/ray/ray_query.hpp"
 #include "core/tiles/lod_cut.hpp"
 #include "server/http/message.hpp"
 
@@ -60,5 +63,14 @@ struct MergeRequest {
 };
 /// Throws core::Error(InvalidArgument) naming the first wrong member.
 MergeRequest parseMergeRequest(const http::Request& request);
+
+/// The rays of a ray query (proto/openapi.yaml, /v1/models/{m}/ray), in the model's global frame:
+/// a GET's one ray, `origin=x,y,z&direction=dx,dy,dz[&max_distance=D]`, or a POST's JSON body
+/// {"rays": [{"origin": [x, y, z], "direction": [dx, dy, dz], "max_distance": D}, ...]} (1 to
+/// `maxRays` rays, no other members). Origins are finite, directions finite and not zero (any
+/// length), max distances finite and >= 0 (infinity when absent: as far as the model reaches).
+/// Throws core::Error(InvalidArgument) naming the parameter, or the ray (counted from 1) and its
+/// member.
+std::vector<core::Ray> parseRayQuery(const http::Request& request, std::size_t maxRays);
 
 }  // namespace vsm::server::api

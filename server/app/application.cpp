@@ -25,6 +25,7 @@
 #include "server/api/gis_routes.hpp"
 #include "server/api/job_routes.hpp"
 #include "server/api/model_routes.hpp"
+#include "server/api/ray_routes.hpp"
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/api/terrain_routes.hpp"
@@ -272,6 +273,7 @@ Application::Application(Config config) : config_(std::move(config)) {
   api::addTilesRoutes(*router_, *models_, data);
   api::addTerrainRoutes(*router_, *models_, data);
   api::addGisRoutes(*router_, *models_, data);
+  api::addRayRoutes(*router_, *models_, data);
   api::addEventRoutes(*router_, *events_);
   if (!config_.viewerDir.empty()) {
     api::addStaticRoutes(*router_, "/viewer", config_.viewerDir);

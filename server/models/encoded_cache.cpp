@@ -42,6 +42,8 @@ std::string_view toString(Encoding encoding) {
       return "heights";
     case Encoding::TerrainRgb:
       return "terrain_rgb";
+    case Encoding::RayWork:
+      return "rays";
   }
   return "unknown";
 }

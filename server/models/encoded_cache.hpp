@@ -50,14 +50,17 @@ enum class Encoding : std::uint8_t {
   /// A terrain-RGB tile as PNG (server/api/terrain_routes.cpp), keyed as Terrain's (the Web
   /// Mercator tile's z, x, y and a digest of its sources' versions and its encoding).
   TerrainRgb = 9,
+  /// Not a body: the working memory of a ray query (server/api/ray_routes.cpp), one ray's
+  /// hierarchy at a time, charged while it is built and cast (reserve()).
+  RayWork = 10,
 };
 
-inline constexpr std::array<Encoding, 9> kEncodings{
-    Encoding::PositionsAara, Encoding::Glb,        Encoding::TexturePng,
-    Encoding::Terrain,       Encoding::GlbMeshopt, Encoding::JsonGzip,
-    Encoding::DiffWork,      Encoding::HeightWork, Encoding::TerrainRgb};
+inline constexpr std::array<Encoding, 10> kEncodings{
+    Encoding::PositionsAara, Encoding::Glb,      Encoding::TexturePng, Encoding::Terrain,
+    Encoding::GlbMeshopt,    Encoding::JsonGzip, Encoding::DiffWork,   Encoding::HeightWork,
+    Encoding::TerrainRgb,    Encoding::RayWork};
 /// The name /v1/stats and the metrics give an encoding: "aara", "glb", "png", "terrain",
-/// "glb_meshopt", "json_gzip", "diff", "heights", "terrain_rgb".
+/// "glb_meshopt", "json_gzip", "diff", "heights", "terrain_rgb", "rays".
 std::string_view toString(Encoding encoding);
 
 /// The stored files of a patch the server sends as they are (sendfile(2)).

@@ -29,6 +29,7 @@ import argparse
 import base64
 import fcntl
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -355,6 +356,28 @@ def exercise_main(r, d):
     r.call(d, "OGC API domain set of no model", "GET",
            "/ogcapi/collections/nope/coverage/domainset", 404)
 
+    # Rays (issue 29): down through PRISM's surface from 10 km above 36.3 N, 84.2 W (ECEF).
+    def ecef(lon, lat, h):
+        lon, lat = math.radians(lon), math.radians(lat)
+        e2 = 6.69437999014e-3
+        n = 6378137.0 / math.sqrt(1 - e2 * math.sin(lat) ** 2)
+        return [(n + h) * math.cos(lat) * math.cos(lon), (n + h) * math.cos(lat) * math.sin(lon),
+                (n * (1 - e2) + h) * math.sin(lat)]
+    ray = {"origin": ecef(-84.2, 36.3, 10000), "direction": [-v for v in ecef(-84.2, 36.3, 0)]}
+    query = "origin=%s&direction=%s" % (",".join("%.3f" % v for v in ray["origin"]),
+                                       ",".join("%.3f" % v for v in ray["direction"]))
+    _, body = r.call(d, "ray", "GET", m + "/ray?" + query + "&max_distance=20000", 200)
+    assert json.loads(body)["results"][0]["hit"] is not None, body
+    r.call(d, "ray, zero direction", "GET", m + "/ray?origin=1,2,3&direction=0,0,0", 400)
+    r.call(d, "ray of no model", "GET", "/v1/models/nope/ray?" + query, 404)
+    rays = {"rays": [ray, {**ray, "max_distance": 10}]}
+    r.call(d, "rays posted", "POST", m + "/ray", 200, body=rays, headers=AUTH)
+    r.call(d, "rays posted without the token", "POST", m + "/ray", 401, body=rays)
+    r.call(d, "rays posted, unknown member", "POST", m + "/ray", 400,
+           body={"rays": [{**ray, "colour": 1}]}, headers=AUTH)
+    r.call(d, "rays posted to no model", "POST", "/v1/models/nope/ray", 404, body=rays,
+           headers=AUTH)
+
     r.call(d, "revisions", "GET", m + "/revisions", 200)
     r.call(d, "revisions of no model", "GET", "/v1/models/nope/revisions", 404)
 
@@ -469,6 +492,14 @@ def exercise_tiny(r, d):
     r.call(d, "terrain tile over the budget", "GET", m + "/terrain/0/0/0.terrain", 503)
     r.call(d, "terrain-rgb tilejson over the budget", "GET", m + "/terrain-rgb/tiles.json", 503)
     r.call(d, "terrain-rgb tile over the budget", "GET", m + "/terrain-rgb/0/0/0.png", 503)
+    # A ray into the patch must read it.
+    centre = [(a + b) / 2 for a, b in zip(patch["box"]["min"], patch["box"]["max"])]
+    ray = {"origin": [c * 1.002 for c in centre], "direction": [-c for c in centre]}
+    query = "origin=%s&direction=%s" % (",".join("%.3f" % v for v in ray["origin"]),
+                                       ",".join("%.3f" % v for v in ray["direction"]))
+    r.call(d, "ray over the budget", "GET", m + "/ray?" + query, 503)
+    r.call(d, "rays posted over the budget", "POST", m + "/ray", 503, body={"rays": [ray]},
+           headers=AUTH)
     # This daemon runs no diffs at all (limits.diffs=0): every one is over the bound.
     r.call(d, "diff over limits.diffs", "GET", m + "/diff?from=1&to=2", 503)
     r.call(d, "diff map over limits.diffs", "GET", m + "/diff.png?from=1&to=2&size=64", 503)

@@ -1,5 +1,7 @@
-// Fuzz target: the JSON bodies of every POST route (POST /v1/models, POST /v1/jobs), through
-// http::jsonBody (the one parser, with its nesting bound) and the routes' body parsers.
+// Fuzz target: the JSON bodies of every POST route (POST /v1/models, POST /v1/jobs, POST
+// /v1/models/{m}/ray), through http::jsonBody (the one parser, with its nesting bound) and the
+// routes' body parsers.
+#include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -27,5 +29,16 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   });
   request.target = "/v1/jobs";
   fuzz::succeeds([&] { server::api::parseMergeRequest(request); });
+  request.target = "/v1/models/m/ray";
+  fuzz::succeeds([&] {
+    const auto rays = server::api::parseRayQuery(request, 8);
+    fuzz::check(!rays.empty() && rays.size() <= 8, "a ray query has 1 to maxRays rays");
+    for (const core::Ray& ray : rays) {
+      const double length = ray.direction.norm();
+      fuzz::check(ray.origin.finite() && length > 0 && std::isfinite(length),
+                  "a ray has a finite origin and a finite, non-zero direction");
+      fuzz::check(ray.maxDistance >= 0, "a ray's max distance is >= 0");
+    }
+  });
   return 0;
 }

@@ -30,6 +30,15 @@ against the surface's closed form (surfaces.py: coords, f_A, f_B), never against
   displacement is the bump's top, in the leaf that holds it.
 - GET /v1/models/{m}/terrain/layer.json: 404 with a JSON error saying the model has no terrain
   because it is not georeferenced (quantized-mesh stays height-field-only).
+- GET and POST /v1/models/{m}/ray (issue 29: a ray query for models that are not height
+  fields): rays shot horizontally (and tilted) at the wall hit it where the PCD points the test
+  wrote say, read back and interpolated bilinearly here, cell by cell (vsm's surface of a grid):
+  on the detail model B and on revision 1 (A) within 0.01 mm, on the merged wall over B within
+  1 cm of B's surface (the bump included: 0.3 m nearer than A there) and away from B within
+  0.01 mm of A's; the normal is the cell's, facing the ray; the leaf named is a leaf of the
+  hierarchy holding the point, at the finest depth over B. Rays going away, stopped short or
+  beside the wall miss; malformed rays are 400s, an unknown model or revision 404, a POST
+  without the token 401.
 
 Run by ctest (routes.wall):
     wall_routes_test.py --vsmd build/server/vsmd --vsm build/server/cli/vsm --work <dir>"""
@@ -70,6 +79,68 @@ POLL_SECONDS = 0.25
 # A box "holds" the bump's top within this (m): the leaves' vertices sample the bump near, not at,
 # its top, so their boxes may end a little short of it along the normal.
 TOUCH = 0.01
+# A ray's hit against a grid's bilinear surface computed here from its PCD points (m): float32
+# positions relative to vsm's patch origins round to well under this.
+ON_GRID_TOLERANCE = 1e-5
+
+
+class PcdWall:
+    """The surface vsm makes of one of the wall's PCD files, from its points alone: on this wall
+    x = u and z = v exactly (the plane y = 0 facing -y; surfaces.py's Face), so a column of the
+    organized cloud has one x, a row one z, and each grid cell's bilinear surface is y(x, z),
+    bilinear in x and z over the cell's rectangle."""
+
+    def __init__(self, points):
+        self.p = points
+        self.x = points[0, :, 0]
+        self.z = points[:, 0, 2]
+        assert np.all(np.diff(self.x) > 0) and np.all(np.diff(self.z) > 0)
+
+    def inside(self, x, z, margin=0.0):
+        return (self.x[0] + margin <= x <= self.x[-1] - margin and
+                self.z[0] + margin <= z <= self.z[-1] - margin)
+
+    def cell(self, x, z):
+        """The cell holding (x, z): (i, j, s, t), s and t in [0, 1] across it."""
+        i = int(np.clip(np.searchsorted(self.x, x) - 1, 0, len(self.x) - 2))
+        j = int(np.clip(np.searchsorted(self.z, z) - 1, 0, len(self.z) - 2))
+        s = (x - self.x[i]) / (self.x[i + 1] - self.x[i])
+        t = (z - self.z[j]) / (self.z[j + 1] - self.z[j])
+        return i, j, s, t
+
+    def y(self, x, z):
+        i, j, s, t = self.cell(x, z)
+        c = self.p[j:j + 2, i:i + 2, 1]
+        return ((1 - s) * (1 - t) * c[0, 0] + s * (1 - t) * c[0, 1] + (1 - s) * t * c[1, 0] +
+                s * t * c[1, 1])
+
+    def normal(self, x, z):
+        """The cell's unit normal at (x, z), facing -y (the side the rays come from)."""
+        i, j, s, t = self.cell(x, z)
+        c = self.p[j:j + 2, i:i + 2, 1]
+        y_x = ((1 - t) * (c[0, 1] - c[0, 0]) + t * (c[1, 1] - c[1, 0])) / (self.x[i + 1] -
+                                                                           self.x[i])
+        y_z = ((1 - s) * (c[1, 0] - c[0, 0]) + s * (c[1, 1] - c[0, 1])) / (self.z[j + 1] -
+                                                                           self.z[j])
+        n = np.array([y_x, -1.0, y_z])
+        return n / np.linalg.norm(n)
+
+    def crossing(self, origin, d, t_end):
+        """Where origin + t d (t in [0, t_end], starting in front of the wall and ending behind
+        it) crosses the surface, by bisection: y(t) - surface y at (x(t), z(t)) rises through 0
+        once (the rays here are far steeper than the surface's slopes)."""
+        def g(t):
+            p = origin + t * d
+            return p[1] - self.y(p[0], p[2])
+        lo, hi = 0.0, t_end
+        assert g(lo) < 0 < g(hi), (origin, d)
+        for _ in range(80):
+            mid = 0.5 * (lo + hi)
+            if g(mid) < 0:
+                lo = mid
+            else:
+                hi = mid
+        return 0.5 * (lo + hi)
 
 
 # ---- an independent reader of GLB and 3D Tiles (numpy) ------------------------------------------
@@ -181,6 +252,8 @@ class WallRoutes(unittest.TestCase):
         shutil.rmtree(work, ignore_errors=True)
         clouds = os.path.join(work, "clouds")
         cls.surface.write(clouds)
+        cls.pcd = {which: PcdWall(surfaces.read_pcd(os.path.join(clouds, which + ".pcd")))
+                   for which in "AB"}
         root = os.path.join(work, "root")
         os.makedirs(root)
         start = time.monotonic()
@@ -474,6 +547,194 @@ class WallRoutes(unittest.TestCase):
         self.assertGreaterEqual(totals["max"], BUMP_FRACTION * surfaces.BUMP_HEIGHT)
         self.assertTrue(box_contains(top["box"], self.bump_top, TOUCH), top)
         self.assertEqual(top["max"], totals["max"])
+
+    # ---- rays (issue 29) -------------------------------------------------------------------------
+
+    def cast(self, rays, model=TARGET, query=""):
+        """POSTs `rays` ((origin, direction[, max_distance]) each) to model's /ray: the results."""
+        body = {"rays": [dict({"origin": list(map(float, r[0])),
+                               "direction": list(map(float, r[1]))},
+                              **({"max_distance": r[2]} if len(r) > 2 else {}))
+                         for r in rays]}
+        status, headers, answer = self.daemon.json("POST", "/v1/models/%s/ray%s" % (model, query),
+                                                   body)
+        self.assertEqual(status, 200, answer)
+        self.assertEqual(answer["status"], "OK")
+        self.assertEqual(answer["model"], model)
+        self.assertEqual(int(headers["X-VSM-Model-Version"]), answer["model_version"])
+        self.assertEqual(len(answer["results"]), len(rays))
+        return [r["hit"] for r in answer["results"]]
+
+    def leaf_of(self, hit, tree):
+        """The hierarchy node of the leaf a hit names, checked: a leaf holding the point."""
+        nodes = {n["key"]: n for n in harness.walk(tree["root"])}
+        self.assertIn(hit["patch"], nodes, hit)
+        node = nodes[hit["patch"]]
+        self.assertTrue(node["leaf"], hit)
+        self.assertEqual(hit["depth"], depth_of(hit["patch"]))
+        self.assertAlmostEqual(hit["resolution"], node["resolution"], places=9)
+        self.assertTrue(box_contains(node["box"], hit["point"], 1e-4), (hit, node["box"]))
+        return node
+
+    def check_horizontal_hits(self, hits, targets, wall, tolerance, normal_tolerance):
+        """Hits of rays along +y from y = -5 at (x, z) = targets: on `wall` at (x, z), the
+        distance from the origin, the cell's normal."""
+        worst, worst_normal = 0.0, 0.0
+        for hit, (x, z) in zip(hits, targets):
+            self.assertIsNotNone(hit, (x, z))
+            y = wall.y(x, z)
+            point = np.array(hit["point"])
+            worst = max(worst, float(np.abs(point - [x, y, z]).max()))
+            self.assertLessEqual(np.abs(point - [x, y, z]).max(), tolerance, (x, z, hit, y))
+            self.assertAlmostEqual(hit["distance"], point[1] + 5, delta=1e-9)
+            off = float(np.linalg.norm(np.array(hit["normal"]) - wall.normal(x, z)))
+            worst_normal = max(worst_normal, off)
+            self.assertLessEqual(off, normal_tolerance, (x, z, hit))
+        return worst, worst_normal
+
+    def test_rays_hit_the_detail_scan_and_the_wall_before_the_merge_where_their_points_say(self):
+        rng = np.random.default_rng(29)
+        s = self.surface
+        for model, query, which, tree in (
+                (DETAIL, "", "B", self.get_json("/v1/models/%s/hierarchy" % DETAIL)),
+                (TARGET, "?rev=%d" % self.before, "A", self.old_tree)):
+            wall = self.pcd[which]
+            grid = s.b if which == "B" else s.a
+            targets = [(rng.uniform(grid.u0 + 0.01, grid.u1 - 0.01),
+                        rng.uniform(grid.v0 + 0.01, grid.v1 - 0.01)) for _ in range(150)]
+            hits = self.cast([((x, -5, z), (0, 1, 0)) for x, z in targets], model, query)
+            worst, _ = self.check_horizontal_hits(hits, targets, wall, ON_GRID_TOLERANCE, 1e-3)
+            for hit in hits:
+                self.leaf_of(hit, tree)
+            # Tilted rays, their crossing found here by bisection on the cells' surface.
+            rays, expected = [], []
+            for _ in range(60):
+                x = rng.uniform(grid.u0 + 1.2, grid.u1 - 1.2)
+                z = rng.uniform(grid.v0 + 1.2, grid.v1 - 1.2)
+                d = np.array([rng.uniform(-0.3, 0.3), 1.0, rng.uniform(-0.3, 0.3)])
+                origin = np.array([x, -1.5, z]) - 1.5 * np.array([d[0], 0, d[2]])
+                t = wall.crossing(origin, d, 3.0)
+                rays.append((origin, d))
+                expected.append((origin + t * d, t * np.linalg.norm(d)))
+            tilted = self.cast(rays, model, query)
+            worst_tilted = 0.0
+            for hit, (point, distance), (origin, d) in zip(tilted, expected, rays):
+                self.assertIsNotNone(hit, (origin, d))
+                off = float(np.linalg.norm(np.array(hit["point"]) - point))
+                worst_tilted = max(worst_tilted, off)
+                self.assertLessEqual(off, ON_GRID_TOLERANCE, (hit, point))
+                self.assertAlmostEqual(hit["distance"], distance, delta=ON_GRID_TOLERANCE)
+                self.assertLess(np.dot(hit["normal"], d), 0, hit)
+            print("rays at %s%s (%s's PCD): 150 horizontal hits within %.2e m, 60 tilted within "
+                  "%.2e m" % (model, query, which, worst, worst_tilted), file=sys.stderr)
+
+    def test_rays_hit_the_merged_detail_and_its_bump_and_the_wall_around_it(self):
+        s = self.surface
+        a, b = self.pcd["A"], self.pcd["B"]
+        margin = 2 * s.b.du
+        # Over B, away from its groove (whose kinks B's lattice resolves and the merged grid,
+        # not aligned with it, cuts by up to a centimetre), the bump's top included.
+        rng = np.random.default_rng(33)
+        over_b = [(s.bump_u, s.bump_v)]
+        while len(over_b) < 100:
+            x, z = rng.uniform(s.b.u0, s.b.u1), rng.uniform(s.b.v0, s.b.v1)
+            if b.inside(x, z, 3 * margin) and abs(x - s.groove_u) > 3 * s.b.du:
+                over_b.append((x, z))
+        # Away from B (by one A sample): A's surface, left or subdivided as it was.
+        away = []
+        while len(away) < 100:
+            x, z = rng.uniform(0.01, 15.99), rng.uniform(0.01, 15.99)
+            if not (s.b.u0 - self.margin <= x <= s.b.u1 + self.margin and
+                    s.b.v0 - self.margin <= z <= s.b.v1 + self.margin):
+                away.append((x, z))
+        hits = self.cast([((x, -5, z), (0, 1, 0)) for x, z in over_b + away])
+        on_b = self.check_horizontal_hits(hits[:len(over_b)], over_b, b, ON_B_TOLERANCE, 0.2)
+        on_a = self.check_horizontal_hits(hits[len(over_b):], away, a, ON_GRID_TOLERANCE, 1e-3)
+        for hit in hits:
+            self.leaf_of(hit, self.tree)
+        depths_b = {h["depth"] for h in hits[:len(over_b)]}
+        depths_a = {h["depth"] for h in hits[len(over_b):]}
+        self.assertEqual(depths_b, {self.finest_depth})
+        self.assertIn(self.a_depth, depths_a)
+
+        # The bump: 0.3 m nearer than the wall before the merge, at its top.
+        before = self.cast([((s.bump_u, -5, s.bump_v), (0, 1, 0))], query="?rev=%d" % self.before)
+        bump = before[0]["distance"] - hits[0]["distance"]
+        print("rays at the merged wall: 100 over B within %.4f m of B's PCD surface (normals "
+              "within %.3f), 100 away within %.2e m of A's (normals within %.1e); at the bump's top "
+              "%.4f m nearer than before the merge (the bump: %.2f m)"
+              % (on_b[0], on_b[1], on_a[0], on_a[1], bump, surfaces.BUMP_HEIGHT), file=sys.stderr)
+        self.assertGreaterEqual(bump, BUMP_FRACTION * surfaces.BUMP_HEIGHT)
+        self.assertLessEqual(bump, surfaces.BUMP_HEIGHT + ON_B_TOLERANCE)
+
+    def test_rays_that_go_away_stop_short_or_pass_beside_miss(self):
+        x, z = 3.0, 12.0
+        y = self.pcd["A"].y(x, z)
+        hits = self.cast([
+            ((x, -5, z), (0, -1, 0)),            # in front, going away
+            ((x, 5, z), (0, 1, 0)),              # behind, going away
+            ((x, -5, z), (0, 1, 0), 4.5 + y),    # stopped short of the wall
+            ((x, -5, z), (0, 1, 0), 5.5 + y),    # reaching it
+            ((x, 5, z), (0, -1, 0)),             # from behind: the back of the wall
+            ((16.5, -5, z), (0, 1, 0)),          # beside the wall
+            ((x, -5, 16.5), (0, 1, 0)),          # above it
+            ((x, -0.5, z), (1, 0, 0)),           # along it, in front of its relief
+        ])
+        self.assertEqual([h is None for h in hits],
+                         [True, True, True, False, False, True, True, True], hits)
+        self.assertAlmostEqual(hits[3]["point"][1], y, delta=ON_GRID_TOLERANCE)
+        self.assertAlmostEqual(hits[4]["point"][1], y, delta=ON_GRID_TOLERANCE)
+        self.assertAlmostEqual(hits[4]["distance"], 5 - y, delta=ON_GRID_TOLERANCE)
+        # Facing the ray from behind: the normal turns with it.
+        self.assertLessEqual(np.linalg.norm(np.array(hits[4]["normal"]) +
+                                            self.pcd["A"].normal(x, z)), 1e-3)
+        # GET answers the same as POST.
+        answer = self.get_json("/v1/models/%s/ray?origin=%r,-5,%r&direction=0,2,0" % (TARGET, x, z))
+        self.assertEqual(answer["results"][0]["hit"]["point"], hits[3]["point"])
+
+    def test_malformed_rays_are_400s_and_unknown_models_404s(self):
+        base = "/v1/models/%s/ray" % TARGET
+        for query, fragment in (
+                ("", "origin=x,y,z&direction=dx,dy,dz"),
+                ("?origin=1,2,3", "'direction' is missing"),
+                ("?origin=1,2&direction=0,1,0", "origin must be 3 numbers"),
+                ("?origin=1,2,x&direction=0,1,0", "origin coordinate must be a finite number"),
+                ("?origin=1,2,3&direction=0,0,0", "direction must not be zero"),
+                ("?origin=1,2,3&direction=nan,1,0", "must be a finite number"),
+                ("?origin=1,2,3&direction=1e308,1e308,0", "direction must not be zero"),
+                ("?origin=1,2,3&direction=0,1,0&max_distance=-1", "max_distance must be >= 0"),
+                ("?origin=1,2,3&direction=0,1,0&max_distance=far", "max_distance must be"),
+                ("?origin=1,2,3&direction=0,1,0&rev=first", "rev")):
+            status, _, body = self.daemon.request("GET", base + query)
+            self.assertEqual(status, 400, (query, body))
+            error = json.loads(body)["error"]
+            self.assertEqual(error["code"], "invalid_argument")
+            self.assertIn(fragment, error["message"], query)
+        ray = {"origin": [1, -5, 1], "direction": [0, 1, 0]}
+        auth = {"Authorization": "Bearer " + TOKEN, "Content-Type": "application/json"}
+        for body, fragment in (
+                (b"{\"rays\": [", "JSON"),
+                (json.dumps({"rays": []}), "non-empty array"),
+                (json.dumps({"rays": [ray], "colour": "red"}), "unknown member 'colour'"),
+                (json.dumps({"rays": [ray, dict(ray, colour=1)]}), "ray 2: unknown member"),
+                (json.dumps({"rays": [ray, {"origin": [1, 2]}]}), "ray 2: 'origin' must be"),
+                (json.dumps({"rays": [dict(ray, direction=[0, 0, 0])]}), "must not be zero"),
+                (json.dumps({"rays": [dict(ray, max_distance=-2)]}), "must be >= 0"),
+                (json.dumps({"rays": [dict(ray, max_distance="far")]}), "must be a number"),
+                (json.dumps({"rays": [ray] * 1001}), "1001 rays, more than the 1000")):
+            status, _, answer = self.daemon.request("POST", base, body=body, headers=auth)
+            self.assertEqual(status, 400, (body[:80], answer))
+            error = json.loads(answer)["error"]
+            self.assertEqual(error["code"], "invalid_argument")
+            self.assertIn(fragment, error["message"], body[:80])
+        status, _, _ = self.daemon.request("POST", base, body=json.dumps({"rays": [ray]}),
+                                           headers={"Content-Type": "application/json"})
+        self.assertEqual(status, 401)
+        for path in ("/v1/models/nothing/ray?origin=1,2,3&direction=0,1,0",
+                     base + "?origin=1,2,3&direction=0,1,0&rev=99"):
+            status, _, body = self.daemon.request("GET", path)
+            self.assertEqual(status, 404, (path, body))
+            self.assertEqual(json.loads(body)["error"]["code"], "not_found")
 
     def test_terrain_is_a_clear_404_for_a_local_frame_wall(self):
         for path in ("terrain/layer.json", "terrain/0/0/0.terrain"):

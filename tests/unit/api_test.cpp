@@ -1,5 +1,5 @@
-// server/api: the diff gate, system and static routes, and the model and job routes through the
-// real Router and Pipeline (no sockets) over a synthetic OPC in a temporary data root.
+// server/api: the diff gate, system and static routes, and the model, job and ray routes
+// through the real Router and Pipeline (no sockets) over a synthetic OPC in a temporary data root.
 #include <gtest/gtest.h>
 
 #include <unistd.h>
@@ -26,6 +26,7 @@
 #include "server/api/diff_gate.hpp"
 #include "server/api/job_routes.hpp"
 #include "server/api/model_routes.hpp"
+#include "server/api/ray_routes.hpp"
 #include "server/api/static_routes.hpp"
 #include "server/api/system_routes.hpp"
 #include "server/api/terrain_routes.hpp"
@@ -100,7 +101,8 @@ TEST(SystemRoutes, StatsReportTheBudgetAndEveryCategory) {
                                                                       {"json_gzip", 0},
                                                                       {"diff", 0},
                                                                       {"heights", 0},
-                                                                      {"terrain_rgb", 0}}));
+                                                                      {"terrain_rgb", 0},
+                                                                      {"rays", 0}}));
   EXPECT_TRUE(stats.at("memory").at("resident_bytes_by_model").is_object());
   for (const char* key : {"hits", "misses", "evictions", "write_backs", "exhausted"}) {
     EXPECT_EQ(stats.at("cache").at(key), 0) << key;
@@ -372,6 +374,60 @@ TEST_F(ModelRoutes, LodStopsAtTheTargetResolutionOrALeafInsideTheBox) {
     EXPECT_EQ(response.status, 400) << bad;
     EXPECT_EQ(codeOf(response), "invalid_argument");
   }
+}
+
+TEST_F(ModelRoutes, RaysAnswerTheFirstHitOnTheLeavesAsJson) {
+  api::addRayRoutes(router_, registry_, nullptr);
+  // The synthetic surface is z = 5 sin(x / 5) on a 1 m lattice: bilinear in x within a cell.
+  const auto surface = [](double x) {
+    const double x0 = std::floor(x), s = x - x0;
+    return 5 * ((1 - s) * std::sin(x0 * 0.2) + s * std::sin((x0 + 1) * 0.2));
+  };
+  const auto down = get("/v1/models/m/ray?origin=10.5,3.5,20&direction=0,0,-2");
+  ASSERT_EQ(down.status, 200) << down.bodyText();
+  const json answer = json::parse(down.body);
+  EXPECT_EQ(*down.header("X-VSM-Model-Version"),
+            std::to_string(answer.at("model_version").get<int>()));
+  EXPECT_EQ(answer.at("status"), "OK");
+  EXPECT_EQ(answer.at("model"), "m");
+  const json& hit = answer.at("results").at(0).at("hit");
+  const double z = surface(10.5);
+  EXPECT_NEAR(hit.at("point")[0].get<double>(), 10.5, 1e-9);
+  EXPECT_NEAR(hit.at("point")[1].get<double>(), 3.5, 1e-9);
+  EXPECT_NEAR(hit.at("point")[2].get<double>(), z, 1e-5);
+  EXPECT_NEAR(hit.at("distance").get<double>(), 20 - z, 1e-5);
+  // The cell's slope along x, the normal facing up (the ray came from above).
+  const double slope = 5 * (std::sin(2.2) - std::sin(2.0));
+  const double length = std::hypot(slope, 1.0);
+  EXPECT_NEAR(hit.at("normal")[0].get<double>(), -slope / length, 1e-5);
+  EXPECT_NEAR(hit.at("normal")[1].get<double>(), 0, 1e-5);
+  EXPECT_NEAR(hit.at("normal")[2].get<double>(), 1 / length, 1e-5);
+  EXPECT_EQ(hit.at("patch"), "2_0_0");
+  EXPECT_EQ(hit.at("depth"), 2);
+  EXPECT_GT(hit.at("resolution").get<double>(), 0.9);
+
+  // POST: the same ray, one into the model's hole (leaf 2_3_3 is missing) and one cut short.
+  const auto posted = send(http::Method::Post, "/v1/models/m/ray",
+                           R"({"rays": [{"origin": [10.5, 3.5, 20], "direction": [0, 0, -2]},
+                                        {"origin": [56, 56, 20], "direction": [0, 0, -1]},
+                                        {"origin": [10.5, 3.5, 20], "direction": [0, 0, -1],
+                                         "max_distance": 10}]})");
+  ASSERT_EQ(posted.status, 200) << posted.bodyText();
+  const json results = json::parse(posted.body).at("results");
+  ASSERT_EQ(results.size(), 3u);
+  EXPECT_EQ(results[0], answer.at("results")[0]);
+  EXPECT_TRUE(results[1].at("hit").is_null());
+  EXPECT_TRUE(results[2].at("hit").is_null());
+
+  const auto bad = send(http::Method::Post, "/v1/models/m/ray",
+                        R"({"rays": [{"origin": [1, 2, 3], "direction": [0, 0, 1]},
+                                     {"origin": [1, 2, 3], "direction": [0, 0, 0]}]})");
+  EXPECT_EQ(bad.status, 400);
+  EXPECT_EQ(codeOf(bad), "invalid_argument");
+  EXPECT_NE(bad.bodyText().find("ray 2: 'direction' must not be zero"), std::string::npos)
+      << bad.bodyText();
+  EXPECT_EQ(get("/v1/models/m/ray?origin=1,2,3&direction=0,0").status, 400);
+  EXPECT_EQ(get("/v1/models/none/ray?origin=1,2,3&direction=0,0,1").status, 404);
 }
 
 TEST_F(ModelRoutes, OpenByPathCloseAndPathTricks) {

@@ -3,6 +3,8 @@
 #include <cmath>
 #include <limits>
 #include <memory>
+#include <utility>
+#include <vector>
 
 #include "core/common/error.hpp"
 #include "core/pyramid/model.hpp"
@@ -234,6 +236,36 @@ TEST(Model, RefreshStaleRecomputesOverviewsBottomUpFromChangedChildren) {
   EXPECT_NEAR(root.grid->global(1, 1).z, surface(4, 4).z, 1e-4);
   EXPECT_NEAR(root.grid->global(0, 0).z, surface(0, 0).z, 1e-4);
   EXPECT_TRUE(root.globalBox.contains(mid.globalBox, 1e-3));
+}
+
+TEST(Model, LeavesWhereDescendsOnlyThroughBoxesItAccepts) {
+  constexpr int kSize = 5;
+  Model model(kSize);
+  model.insert(infoFor(PatchKey::root()));
+  model.insert(infoFor({1, 0, 0}));
+  model.insert(infoFor({1, 1, 1}));
+  model.insert(infoFor({2, 0, 0}));
+  model.insert(infoFor({2, 1, 1}));
+  model.setGrid({2, 0, 0}, sampled(kSize, 0, 0));    // x 1000..1004, y 2000..2004
+  model.setGrid({2, 1, 1}, sampled(kSize, 4, 4));    // x 1004..1008
+  model.setGrid({1, 1, 1}, sampled(kSize, 10, 10));  // x 1010..1014
+  model.refreshStale([](const PatchInfo&) { return nullptr; });
+  const auto meeting = [&](double x0, double x1) {
+    std::vector<Box3d> asked;
+    const auto leaves = model.leavesWhere([&](const Box3d& b) {
+      asked.push_back(b);
+      return b.max.x >= x0 && b.min.x <= x1;
+    });
+    return std::pair{leaves, asked.size()};
+  };
+  EXPECT_EQ(meeting(-1e9, 1e9).first,
+            (std::vector<PatchKey>{{1, 1, 1}, {2, 0, 0}, {2, 1, 1}}));  // in key order
+  EXPECT_EQ(meeting(1010.5, 1011).first, (std::vector<PatchKey>{{1, 1, 1}}));
+  // The root, its two children, and nothing below 1_0_0, whose box the range misses.
+  EXPECT_EQ(meeting(1010.5, 1011).second, 3u);
+  EXPECT_EQ(meeting(1005, 1006).first, (std::vector<PatchKey>{{2, 1, 1}}));
+  EXPECT_TRUE(meeting(2000, 2001).first.empty());
+  EXPECT_EQ(meeting(2000, 2001).second, 1u);
 }
 
 TEST(Model, AvgGeometrySizesRunFinestFirst) {
