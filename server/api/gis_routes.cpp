@@ -13,6 +13,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
+#include "core/io/geoid.hpp"
 #include "core/io/geotiff.hpp"
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
@@ -45,6 +46,35 @@ constexpr std::string_view kCrs84 = "http://www.opengis.net/def/crs/OGC/1.3/CRS8
 constexpr std::string_view kGeoTiff = "image/tiff; application=geotiff";
 constexpr std::string_view kHeightReference =
     "metres above the WGS 84 ellipsoid (no geoid model is applied)";
+
+/// The geoid `?height=orthometric` asks for (the installed grid), or null for `?height=ellipsoid`
+/// and no `?height=`. Throws Error(InvalidArgument) for another value, or for orthometric
+/// heights when no geoid grid is installed.
+std::shared_ptr<const core::GeoidGrid> requestedGeoid(const http::Request& request) {
+  const auto height = request.queryParam("height");
+  if (!height || *height == "ellipsoid") {
+    return nullptr;
+  }
+  if (*height != "orthometric") {
+    throw Error(ErrorCode::InvalidArgument,
+                "height must be 'ellipsoid' or 'orthometric', not '" + height->substr(0, 40) + "'");
+  }
+  auto geoid = core::GeoidGrid::installed();
+  if (geoid == nullptr) {
+    throw Error(ErrorCode::InvalidArgument,
+                "orthometric heights need a geoid grid, and none is installed (Debian: apt-get "
+                "install proj-data, or set VSM_GEOID_GRID)");
+  }
+  return geoid;
+}
+
+/// What the answer says its heights are measured from.
+std::string heightReference(const core::GeoidGrid* geoid) {
+  return geoid == nullptr ? std::string(kHeightReference)
+                          : "metres above the EGM96 geoid (orthometric: the heights above the WGS "
+                            "84 ellipsoid less the undulation of " +
+                                geoid->name() + ")";
+}
 
 /// What a height query answers from: the model as served, the snapshot ?rev= / ?v= name, and its
 /// terrain layer (footprints).
@@ -199,9 +229,12 @@ json locationJson(const GeoPoint& p) {
   return {{"lat", p.lat}, {"lng", p.lon}};
 }
 
-json sampleJson(const std::string& id, const GeoPoint& p, const core::HeightSample& s) {
+/// A result; its elevation above the ellipsoid, or above the geoid when `geoid` is given.
+json sampleJson(const std::string& id, const GeoPoint& p, const core::HeightSample& s,
+                const core::GeoidGrid* geoid) {
+  const double h = geoid == nullptr ? s.height : s.height - geoid->undulation(p.lon, p.lat);
   json out = {{"dataset", id},
-              {"elevation", std::isnan(s.height) ? json(nullptr) : json(s.height)},
+              {"elevation", std::isnan(h) ? json(nullptr) : json(h)},
               {"location", locationJson(p)}};
   if (s.depth >= 0) {
     out["depth"] = s.depth;
@@ -213,12 +246,13 @@ json sampleJson(const std::string& id, const GeoPoint& p, const core::HeightSamp
   return out;
 }
 
-http::Response heightsAnswer(const HeightModel& m, json results, json extra = json::object()) {
+http::Response heightsAnswer(const HeightModel& m, json results, const core::GeoidGrid* geoid,
+                             json extra = json::object()) {
   json body = {{"status", "OK"},
                {"results", std::move(results)},
                {"model", m.id},
                {"model_version", m.snapshot->version},
-               {"height_reference", kHeightReference}};
+               {"height_reference", heightReference(geoid)}};
   body.update(extra);
   http::Response response = http::jsonResponse(200, body);
   response.set("X-VSM-Model-Version", std::to_string(m.snapshot->version));
@@ -228,6 +262,7 @@ http::Response heightsAnswer(const HeightModel& m, json results, json extra = js
 /// GET or POST /v1/models/{m}/elevation.
 http::Response getElevation(models::ModelRegistry& models, models::PatchData& data,
                             const http::Request& request) {
+  const auto geoid = requestedGeoid(request);
   std::optional<std::size_t> samples = parseSamples(request.queryParam("samples"), kMaxPoints);
   std::vector<GeoPoint> points;
   if (const auto locations = request.queryParam("locations")) {
@@ -250,14 +285,15 @@ http::Response getElevation(models::ModelRegistry& models, models::PatchData& da
                                            data.gridLoader(m.served, *m.snapshot));
   json results = json::array();
   for (std::size_t i = 0; i < points.size(); ++i) {
-    results.push_back(sampleJson(m.id, points[i], heights[i]));
+    results.push_back(sampleJson(m.id, points[i], heights[i], geoid.get()));
   }
-  return heightsAnswer(m, std::move(results));
+  return heightsAnswer(m, std::move(results), geoid.get());
 }
 
 /// GET /v1/models/{m}/profile?line=lat,lon|...&samples=N.
 http::Response getProfile(models::ModelRegistry& models, models::PatchData& data,
                           const http::Request& request) {
+  const auto geoid = requestedGeoid(request);
   const auto line = request.queryParam("line");
   if (!line) {
     throw Error(ErrorCode::InvalidArgument, "profile needs ?line=lat,lon|lat,lon...");
@@ -293,11 +329,11 @@ http::Response getProfile(models::ModelRegistry& models, models::PatchData& data
   const auto heights = core::sampleHeights(*m.snapshot->model, *m.layer, points, load);
   json results = json::array();
   for (std::size_t i = 0; i < path.size(); ++i) {
-    json r = sampleJson(m.id, points[i], heights[i]);
+    json r = sampleJson(m.id, points[i], heights[i], geoid.get());
     r["distance"] = path[i].distance;
     results.push_back(std::move(r));
   }
-  return heightsAnswer(m, std::move(results),
+  return heightsAnswer(m, std::move(results), geoid.get(),
                        {{"length", length},
                         {"samples", path.size()},
                         {"finest_resolution", finest > 0 ? json(finest) : json(nullptr)}});

@@ -307,6 +307,45 @@ class GisTest(unittest.TestCase):
         self.assertEqual([r["elevation"] for r in old["results"]],
                          [r["elevation"] for r in before["results"]])
 
+    def test_orthometric_heights_subtract_the_egm96_geoid(self):
+        """?height=orthometric: the heights above the ellipsoid less the EGM96 undulation, read
+        here from PROJ's grid with GDAL and interpolated between its posts by this test."""
+        grid_path = "/usr/share/proj/egm96_15.gtx"
+        grid = gdal.Open(grid_path)
+        n = grid.ReadAsArray().astype(float)
+        t = grid.GetGeoTransform()
+
+        def undulation(lat, lon):
+            x = ((lon - (t[0] + t[1] / 2)) / t[1]) % n.shape[1]
+            y = (lat - (t[3] + t[5] / 2)) / t[5]
+            x0, y0 = int(np.floor(x)), int(np.floor(y))
+            fx, fy = x - x0, y - y0
+            x1 = (x0 + 1) % n.shape[1]
+            return ((1 - fy) * ((1 - fx) * n[y0, x0] + fx * n[y0, x1])
+                    + fy * ((1 - fx) * n[y0 + 1, x0] + fx * n[y0 + 1, x1]))
+
+        points = [self.jack.centre(r, c) for r, c in ((5, 5), (100, 200), (300, 17))]
+        locations = "|".join("%r,%r" % p for p in points)
+        status, ell = self.get_json("/v1/models/jack/elevation?locations=" + locations)
+        self.assertEqual(status, 200, ell)
+        status, orth = self.get_json("/v1/models/jack/elevation?height=orthometric&locations="
+                                     + locations)
+        self.assertEqual(status, 200, orth)
+        self.assertIn("EGM96", orth["height_reference"])
+        self.assertIn("ellipsoid", ell["height_reference"])
+        for (lat, lon), e, o in zip(points, ell["results"], orth["results"]):
+            # EGM96 over Tennessee: about -30 m (the geoid below the ellipsoid).
+            self.assertAlmostEqual(o["elevation"], e["elevation"] - undulation(lat, lon), places=3)
+            self.assertLess(undulation(lat, lon), -20)
+        line = urllib.parse.quote("%r,%r|%r,%r" % (points[0] + points[1]))
+        status, profile = self.get_json("/v1/models/jack/profile?samples=5&height=orthometric"
+                                        "&line=" + line)
+        self.assertEqual(status, 200, profile)
+        self.assertIn("EGM96", profile["height_reference"])
+        status, body = self.get("/v1/models/jack/elevation?height=geoid&locations=36.3,-84.2")
+        self.assertEqual(status, 400)
+        self.assertIn("orthometric", body.decode())
+
     # ---- terrain-RGB --------------------------------------------------------------------------
 
     def test_terrain_rgb_tiles_hold_the_raster_heights_at_their_pixel_centres(self):
