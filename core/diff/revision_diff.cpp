@@ -11,7 +11,6 @@
 #include "core/diff/surface_index.hpp"
 #include "core/grid/vec_ops.hpp"
 #include "core/merge/merge.hpp"
-#include "core/merge/surface_sampler.hpp"  // Rect2d
 #include "core/pyramid/model.hpp"
 #include "core/store/live_model.hpp"
 #include "core/tiles/lod_render.hpp"
@@ -293,10 +292,8 @@ std::optional<DisplacementMap> drawMap(LeafSampler& sampler, const Model& a, con
     const Box3d& box = (w.onFrom ? a : b).at(w.key).globalBox;
     Rect2d r;
     for (int c = 0; c < 8 && !box.empty(); ++c) {
-      const Point2d p =
-          view.plane({(c & 1) ? box.max.x : box.min.x, (c & 2) ? box.max.y : box.min.y,
-                      (c & 4) ? box.max.z : box.min.z});
-      r.extend({p.x, p.y});
+      r.extend(view.plane({(c & 1) ? box.max.x : box.min.x, (c & 2) ? box.max.y : box.min.y,
+                           (c & 4) ? box.max.z : box.min.z}));
     }
     return r;
   };
@@ -313,11 +310,11 @@ std::optional<DisplacementMap> drawMap(LeafSampler& sampler, const Model& a, con
   if (area.empty()) {
     return std::nullopt;
   }
-  const double gu = 0.1 * (area.max.u - area.min.u), gv = 0.1 * (area.max.v - area.min.v);
-  area.min = {area.min.u - gu, area.min.v - gv};
-  area.max = {area.max.u + gu, area.max.v + gv};
+  const double gx = 0.1 * (area.max.x - area.min.x), gy = 0.1 * (area.max.y - area.min.y);
+  area.min = {area.min.x - gx, area.min.y - gy};
+  area.max = {area.max.x + gx, area.max.y + gy};
   DisplacementMap map;
-  map.grid = TopDownGrid::fit(view.geographic, area.min.u, area.max.u, area.min.v, area.max.v,
+  map.grid = TopDownGrid::fit(view.geographic, area.min.x, area.max.x, area.min.y, area.max.y,
                               options.mapSize);
   map.values.assign(map.grid.pixels(), std::numeric_limits<float>::quiet_NaN());
   for (std::size_t i = 0; i < work.size(); ++i) {

@@ -358,7 +358,7 @@ class SurfaceIndex {
     bool onPatch = false;
     if (corners == 4) {
       // A full cell is the bilinear patch B(a, b) through its corners, as the merge subdivides
-      // and SurfaceSampler interpolates (its triangles chord a twisted cell by up to a quarter of
+      // and SurfaceCaster places on B (its triangles chord a twisted cell by up to a quarter of
       // the twist): Newton's method on B(a, b) = p + t dir from the triangle's hit.
       const Vec3d c00 = g.global(x, y), c10 = g.global(x + 1, y), c11 = g.global(x + 1, y + 1),
                   c01 = g.global(x, y + 1);

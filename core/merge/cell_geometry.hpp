@@ -1,17 +1,68 @@
 #pragma once
 
-// Internal to core/merge: the plane geometry of one grid cell that SurfaceSampler (cells
-// projected along up) and SurfaceCaster (cells projected across a ray) share, so that both find
-// the very same point of a cell.
+// Internal to core/merge: the plane geometry of one grid cell with which SurfaceCaster intersects a
+// ray and a cell of B in the plane across the ray, and B's border tolerance. (The unit tests'
+// reference, tests/unit/surface_sampler_reference.hpp, sees the same cells along one up with the
+// same functions, so both find the very same point of a cell.)
 
 #include <algorithm>
 #include <array>
 #include <cmath>
 #include <optional>
 
-#include "core/merge/surface_sampler.hpp"  // Vec2d
+#include "core/common/error.hpp"
+#include "core/grid/geometry.hpp"
+#include "core/grid/vec_ops.hpp"
+
+namespace vsm::core {
+
+/// A 2D point/extent in the plane perpendicular to a frame's up direction.
+struct Vec2d {
+  double u = 0, v = 0;
+};
+
+/// An orthonormal frame (e1, e2, up) around an origin: projects points onto the plane
+/// perpendicular to `up`. SurfaceCaster takes a ray's direction as `up` and its origin as the
+/// origin: the ray projects to (0, 0), and whether it meets a cell is decided in that plane.
+struct UpFrame {
+  Vec3d origin;
+  Vec3d e1{1, 0, 0};
+  Vec3d e2{0, 1, 0};
+  Vec3d up{0, 0, 1};
+
+  /// Throws Error(InvalidArgument) when `up` is zero or not finite (it is normalised here).
+  UpFrame(const Vec3d& originIn, const Vec3d& upIn) : origin(originIn) {
+    const double n = upIn.norm();
+    if (!upIn.finite() || n == 0) {
+      throw Error(ErrorCode::InvalidArgument, "up direction must be finite and non-zero");
+    }
+    up = upIn * (1.0 / n);
+    // e1: the coordinate axis least aligned with up, made perpendicular to it.
+    const Vec3d axis = std::fabs(up.x) <= std::fabs(up.y) && std::fabs(up.x) <= std::fabs(up.z)
+                           ? Vec3d{1, 0, 0}
+                           : (std::fabs(up.y) <= std::fabs(up.z) ? Vec3d{0, 1, 0} : Vec3d{0, 0, 1});
+    const Vec3d t = axis - up * vec::dot(axis, up);
+    e1 = t * (1.0 / t.norm());
+    e2 = vec::cross(up, e1);
+  }
+
+  Vec2d project(const Vec3d& p) const {
+    const Vec3d d = p - origin;
+    return {vec::dot(d, e1), vec::dot(d, e2)};
+  }
+};
+
+}  // namespace vsm::core
 
 namespace vsm::core::cell_geometry {
+
+/// B's border: how far outside a cell of B (in B's grid units, i.e. sample spacings) a point
+/// still takes B's surface, measured in the cell's own parameter space (a full cell's bilinear
+/// (s, t) clamped onto [0, 1]^2, a triangle's barycentric coordinates clamped and re-normalised):
+/// far above float32 rounding (about 1e-5 of a cell for 257 x 257 grids) and the projection
+/// offsets of ECEF merges (about 5e-3 of a cell for the real merge of issue 18), far below half a
+/// cell, so a lattice half a sample off B's border is decided by its geometry.
+inline constexpr double kBorderTolerance = 1.0 / 32;
 
 // Barycentric coordinates may come out a few ulps negative for a point on a shared edge; both
 // neighbours then accept it (and agree on the result), so no point falls between triangles.

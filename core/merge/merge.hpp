@@ -121,7 +121,7 @@ struct MergeResult {
 ///
 /// Memory: the target's and B's patches are read through the cache (charged to its budget, B's
 /// grids pinned only while a task samples them). Beside the cache a merge holds the subdivider of
-/// the current matched leaf (a's vertices in double, 24 B each), per running task one sampler of
+/// the current matched leaf (a's vertices in double, 24 B each), per running task one caster of
 /// the B cells within reach of its new patch (SurfaceCaster clipped to the patch's reach: about
 /// 300 B per B cell there, caster_bench's figure, e.g. 20 MB for 257 x 257 patches of B at the
 /// new level's spacing) and up to kMergeBatch

@@ -165,7 +165,8 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
     }
     return near;
   };
-  // Whether a ray of new patch (level, i, j), or of a patch below it, can meet B: a block of a B
+  // Whether a ray of new patch (level, i, j) of Ball `ball` (subdivider->ball(level, i, j), which
+  // the caller has computed already), or of a patch below it, can meet B: a block of a B
   // leaf near it (its Ball) within reach of the rays. A ray leaves a vertex of the patch (inside
   // its Ball) along a normal inside the patch's normal cone, for at most `search`: it stays within
   // `search` of the Ball along the cone's axis and within `search` times the cone's sine across
@@ -176,8 +177,8 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
   // axis of the scene), as matching's decisions are.
   constexpr double kConeMargin = 10 * M_PI / 180;
   constexpr int kParts = 8;  // the patch's vertices in up to 8 x 8 Balls
-  auto reaches = [&](int level, std::uint32_t i, std::uint32_t j) {
-    const std::vector<std::size_t> near = detailNear(subdivider->ball(level, i, j));
+  auto reaches = [&](int level, std::uint32_t i, std::uint32_t j, const Ball& ball) {
+    const std::vector<std::size_t> near = detailNear(ball);
     if (near.empty()) {
       return false;
     }
@@ -223,7 +224,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
   std::function<void(int, std::uint32_t, std::uint32_t)> plan = [&](int level, std::uint32_t i,
                                                                     std::uint32_t j) {
     const Ball ball = subdivider->ball(level, i, j);
-    if (level == k || !reaches(level, i, j)) {
+    if (level == k || !reaches(level, i, j, ball)) {
       leaves.push_back({level, i, j, ball});
       return;
     }
@@ -234,7 +235,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
   };
   if (k == 0) {
     plan(0, 0, 0);  // resampled in place
-  } else if (reaches(0, 0, 0)) {
+  } else if (reaches(0, 0, 0, subdivider->ball(0, 0, 0))) {
     for (const Quadrant q : kQuadrants) {
       const auto qi = static_cast<std::uint32_t>(q);
       plan(1, qi & 1, qi >> 1);

@@ -10,7 +10,6 @@
 
 #include "core/common/error.hpp"
 #include "core/merge/cell_geometry.hpp"
-#include "core/merge/surface_sampler.hpp"
 
 namespace vsm::core {
 
@@ -150,7 +149,7 @@ struct SurfaceCaster::Impl {
   };
 
   /// The ray's intersection with cell `c`: weights of its corners and how far (grid units) outside
-  /// the cell the intersection lies (0 inside); nullopt beyond SurfaceSampler::kBorderTolerance or
+  /// the cell the intersection lies (0 inside); nullopt beyond kBorderTolerance or
   /// where the cell is degenerate across the ray.
   struct CellHit {
     std::array<double, 4> weights;
@@ -160,12 +159,11 @@ struct SurfaceCaster::Impl {
 
   static std::optional<CellHit> onTriangle(const std::array<int, 3>& which,
                                            const std::array<double, 3>& l) {
-    // As SurfaceSampler::onTriangle: the point clamped onto the triangle, in the cell's grid
-    // units.
+    // The point clamped onto the triangle, in the cell's grid units.
     const std::optional<ClampedPoint> point = clampOntoTriangle(
         l, {double(kCornerX[which[0]]), double(kCornerX[which[1]]), double(kCornerX[which[2]])},
         {double(kCornerY[which[0]]), double(kCornerY[which[1]]), double(kCornerY[which[2]])});
-    if (!point || !(point->outside <= SurfaceSampler::kBorderTolerance)) {
+    if (!point || !(point->outside <= kBorderTolerance)) {
       return std::nullopt;
     }
     CellHit hit{{0, 0, 0, 0}, point->outside, false};
@@ -194,7 +192,7 @@ struct SurfaceCaster::Impl {
       // where no neighbour lies; harmless (the neighbours are just looked at).
       return onTriangle(which, barycentric(p[0], p[1], p[2], q));
     }
-    // The bilinear cell: SurfaceSampler::onQuad's inversion, in the plane across the ray.
+    // The bilinear cell: its (s, t) where the ray meets it, inverted in the plane across the ray.
     const Vec2d p00 = line.frame.project(vertices[cell.corners[0]]);
     const Vec2d p10 = line.frame.project(vertices[cell.corners[1]]);
     const Vec2d p11 = line.frame.project(vertices[cell.corners[2]]);
@@ -205,10 +203,9 @@ struct SurfaceCaster::Impl {
     const double s = point.s, t = point.t;
     const bool converged = point.converged;
     const double cs = point.cs, ct = point.ct, outside = point.outside;
-    if (!converged || !std::isfinite(s) || !std::isfinite(t) ||
-        !(outside <= SurfaceSampler::kBorderTolerance)) {
+    if (!converged || !std::isfinite(s) || !std::isfinite(t) || !(outside <= kBorderTolerance)) {
       // A cell seen edge-on or strongly distorted across the ray, or a point outside it: its
-      // triangles (the same diagonal as SurfaceSampler's fallback), the nearer one.
+      // triangles (split along the (0,0)-(1,1) diagonal), the nearer one.
       std::optional<CellHit> a = onTriangle({0, 1, 2}, l1);
       std::optional<CellHit> b = onTriangle({0, 2, 3}, l2);
       if (a && (!b || a->outside <= b->outside)) {
@@ -290,6 +287,14 @@ struct SurfaceCaster::Impl {
   }
 };
 
+Box3d SurfaceCaster::grownBox(const Box3d& b) {
+  const Vec3d size = b.size();
+  const double margin = 2 * kBorderTolerance * (size.x + size.y + size.z) +
+                        1e-9 * (std::fabs(b.min.x) + std::fabs(b.min.y) + std::fabs(b.min.z) + 1);
+  return {{b.min.x - margin, b.min.y - margin, b.min.z - margin},
+          {b.max.x + margin, b.max.y + margin, b.max.z + margin}};
+}
+
 std::vector<Box3d> SurfaceCaster::blockBoxes(const PatchGrid& grid,
                                              const std::optional<Mat4d>& transform) {
   const int s = grid.size();
@@ -327,12 +332,7 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     if (!clip) {
       return true;
     }
-    const Vec3d size = b.size();
-    const double margin = 2 * SurfaceSampler::kBorderTolerance * (size.x + size.y + size.z) +
-                          1e-9 * (std::fabs(b.min.x) + std::fabs(b.min.y) + std::fabs(b.min.z) + 1);
-    const Box3d grown{{b.min.x - margin, b.min.y - margin, b.min.z - margin},
-                      {b.max.x + margin, b.max.y + margin, b.max.z + margin}};
-    return grown.intersects(clip->box);
+    return grownBox(b).intersects(clip->box);
   };
 
   m.gridCells.resize(grids.size());
@@ -557,7 +557,7 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   m.triangles = m.surfaceTriangles;
   // Skirts: every edge of a cell on B's border (no cell across it in its grid, and not a welded
   // seam) gets a strip of two triangles outside it, owned by the cell, so that a ray within
-  // kBorderTolerance of the cell (SurfaceSampler's measure: the parameter clamped onto a full
+  // kBorderTolerance of the cell (cell_geometry's measure: the parameter clamped onto a full
   // cell, a triangle's barycentric coordinates clamped and re-normalised) meets the hierarchy
   // and resolves to the cell's nearest point. The strip is wider than that (a full cell's sides
   // extended by 1.5 times the tolerance, a triangle scaled about the corner off the edge by 2
@@ -566,8 +566,8 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   const auto vertexCount = static_cast<std::uint32_t>(m.vertices.size());
   std::vector<Vec3d> skirt;
   {
-    constexpr double kQuadSkirt = 1.5 * SurfaceSampler::kBorderTolerance;
-    constexpr double kTriangleSkirt = 2 * SurfaceSampler::kBorderTolerance;
+    constexpr double kQuadSkirt = 1.5 * kBorderTolerance;
+    constexpr double kTriangleSkirt = 2 * kBorderTolerance;
     constexpr int kAcrossX[4] = {0, 1, 0, -1};  // the neighbour across edge e = (e, e + 1)
     constexpr int kAcrossY[4] = {-1, 0, 1, 0};
     auto addStrip = [&](std::uint32_t a, std::uint32_t b, const Vec3d& awayA, const Vec3d& awayB,

@@ -40,8 +40,8 @@ struct CastHit {
   /// double vertices (see SurfaceCaster).
   Vec3d position;
   /// The grid (index into the caster's `grids`) whose cell was hit, and the point's coordinates in
-  /// that grid's vertex space (vertex (x, y) at (x, y)), as SurfaceSampler::locate gives them:
-  /// where a texture tile of that grid is to be sampled.
+  /// that grid's vertex space (vertex (x, y) at (x, y)): where a texture tile of that grid is to
+  /// be sampled.
   std::uint32_t grid = 0;
   double x = 0, y = 0;
   /// Signed distance from the ray's origin along its (normalised) direction.
@@ -50,19 +50,18 @@ struct CastHit {
 
 /// B's surface as a set of triangles in a bounding volume hierarchy (Embree 3), for placing and
 /// comparing along the surface instead of along one up direction (issue 33): it answers "where
-/// does this line, within this distance of its origin, meet B's surface". Unlike SurfaceSampler it
-/// does not see B as a height function: vertical walls, overhangs and tunnels are all surface.
+/// does this line, within this distance of its origin, meet B's surface". It does not see B as a
+/// height function along one up direction: vertical walls, overhangs and tunnels are all surface.
 ///
-/// B's surface is SurfaceSampler's: a cell with four defined corners is the bilinear surface of
-/// its corners, a cell with exactly three the triangle of those three, other cells have none. The
-/// hierarchy holds each full cell as two triangles, split along its shorter diagonal in 3D (the one
-/// nearer to the bilinear surface over a fold), as float32 triangles around an origin of the
-/// caster's own (the centre of the clip's box, else of all of B: a patch-local origin, so ECEF
-/// coordinates keep their precision). A hit found there only names the cell; the answer is then
-/// computed in double from the cell's double vertices: the ray is intersected with the cell's
-/// bilinear surface (Newton's method from the triangle's barycentric start, the very inversion
-/// SurfaceSampler does in the plane across the ray) or triangle, so a hit lies on the ray and
-/// exactly on SurfaceSampler's surface, and a ray along `up` gets the point sample() gives.
+/// B's surface: a cell with four defined corners is the bilinear surface of its corners, a cell
+/// with exactly three the triangle of those three, other cells have none. The hierarchy holds
+/// each full cell as two triangles, split along its shorter diagonal in 3D (the one nearer to the
+/// bilinear surface over a fold), as float32 triangles around an origin of the caster's own (the
+/// centre of the clip's box, else of all of B: a patch-local origin, so ECEF coordinates keep
+/// their precision). A hit found there only names the cell; the answer is then computed in double
+/// from the cell's double vertices: the ray is intersected with the cell's bilinear surface
+/// (Newton's method from the triangle's barycentric start, cell_geometry.hpp's inversion, in the
+/// plane across the ray) or triangle, so a hit lies on the ray and exactly on B's surface.
 ///
 /// The rule for folds, overhangs and tunnels: the hit nearest to the origin (smallest |t|) within
 /// [tmin, tmax] wins, the positive side on a tie. Where the hit lies on or within float32 rounding
@@ -70,14 +69,15 @@ struct CastHit {
 /// either cell), the cell's neighbours in its grid, and across a seam the other grids' cells
 /// sharing a corner with it, are intersected too, and the answer is the smallest (distance outside
 /// the cell in grid units, |t|, cell in grid order): it does not depend on which cell the float
-/// traversal reported, nor on the caster's origin or clip. B's border is SurfaceSampler's: a ray
-/// within kBorderTolerance grid units of a cell (its parameter clamped onto the cell, or a
-/// triangle's barycentric coordinates clamped and re-normalised) takes the cell's nearest point, at
-/// its distance along the ray (the point stays on the ray). The hierarchy finds those through
-/// skirts, strips of triangles outside every border edge of B (its outer border and around holes),
-/// a little wider than the tolerance: a hit the double resolution refuses (there, or out of [tmin,
-/// tmax]) does not hide a farther one, the ray goes on past it. Not covered: the quarter disc of
-/// the tolerance around a convex corner of B, outside both neighbouring edges' strips.
+/// traversal reported, nor on the caster's origin or clip. B's border: a ray within
+/// kBorderTolerance (cell_geometry.hpp: 1/32) grid units of a cell (its parameter clamped onto the
+/// cell, or a triangle's barycentric coordinates clamped and re-normalised) takes the cell's
+/// nearest point, at its distance along the ray (the point stays on the ray). The hierarchy finds
+/// those through skirts, strips of triangles outside every border edge of B (its outer border and
+/// around holes), a little wider than the tolerance: a hit the double resolution refuses (there,
+/// or out of [tmin, tmax]) does not hide a farther one, the ray goes on past it. Not covered: the
+/// quarter disc of the tolerance around a convex corner of B, outside both neighbouring edges'
+/// strips.
 ///
 /// Traversal is watertight within a grid (Embree's robust mode: a ray through a shared edge or
 /// vertex hits one of its triangles) and across the seams between B's grids (their border
@@ -95,6 +95,13 @@ class SurfaceCaster {
   /// builds skip the blocks far from their clips.
   static std::vector<Box3d> blockBoxes(const PatchGrid& grid,
                                        const std::optional<Mat4d>& transform);
+
+  /// `box` grown as the caster grows the box of a cell or a block before testing it against a
+  /// clip: by kBorderTolerance of its size (both ways along each axis, summed) and by rounding
+  /// relative to its coordinates. A cell's grown box lies in its block's, a block's in its
+  /// grid's: a search that grows the boxes it descends through this way finds every cell a clip
+  /// would build.
+  static Box3d grownBox(const Box3d& box);
 
   /// Where rays will go: a box in global coordinates. Only cells whose box, grown by
   /// kBorderTolerance of its size, meets it are built. A ray whose segment [tmin, tmax] lies inside

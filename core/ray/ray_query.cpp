@@ -13,7 +13,6 @@
 #include "core/grid/patch_grid.hpp"
 #include "core/grid/vec_ops.hpp"
 #include "core/merge/surface_caster.hpp"
-#include "core/merge/surface_sampler.hpp"
 
 namespace vsm::core {
 
@@ -36,18 +35,6 @@ constexpr std::size_t kBytesPerReadVertex = 29;
 
 std::string rayName(std::size_t index) {
   return "ray " + std::to_string(index + 1);
-}
-
-/// `b` grown as SurfaceCaster grows the boxes of cells and blocks before it tests them against
-/// its clip (kBorderTolerance of the box's size, and rounding): a cell's grown box lies in its
-/// block's, a block's in its leaf's, a child's in its parent's, so a descent with this growth
-/// keeps everything the caster would build for the segment.
-Box3d grown(const Box3d& b) {
-  const Vec3d size = b.size();
-  const double margin = 2 * SurfaceSampler::kBorderTolerance * (size.x + size.y + size.z) +
-                        1e-9 * (std::fabs(b.min.x) + std::fabs(b.min.y) + std::fabs(b.min.z) + 1);
-  return {{b.min.x - margin, b.min.y - margin, b.min.z - margin},
-          {b.max.x + margin, b.max.y + margin, b.max.z + margin}};
 }
 
 /// The part of [t0, t1] where origin + t d lies in `box` (slab test); nullopt when there is none.
@@ -197,7 +184,7 @@ std::vector<std::optional<RayHit>> castRays(const Model& model, std::span<const 
   if (root == nullptr) {
     return hits;
   }
-  const Box3d rootBox = grown(root->globalBox);
+  const Box3d rootBox = SurfaceCaster::grownBox(root->globalBox);
   constexpr std::size_t kCellsPerBlock =
       std::size_t{SurfaceCaster::kBlockCells} * SurfaceCaster::kBlockCells;
   std::map<PatchKey, std::vector<Box3d>> blockBoxes;
@@ -214,8 +201,9 @@ std::vector<std::optional<RayHit>> castRays(const Model& model, std::span<const 
     }
     const auto [t0, t1] = *segment;
     // The leaves whose grown box the segment meets.
-    const std::vector<PatchKey> leaves = model.leavesWhere(
-        [&](const Box3d& box) { return clipToBox(ray.origin, d, t0, t1, grown(box)).has_value(); });
+    const std::vector<PatchKey> leaves = model.leavesWhere([&](const Box3d& box) {
+      return clipToBox(ray.origin, d, t0, t1, SurfaceCaster::grownBox(box)).has_value();
+    });
     if (leaves.size() > limits.leavesPerRay) {
       throw Error(ErrorCode::InvalidArgument,
                   rayName(i) + " is too long: it meets " + std::to_string(leaves.size()) +
@@ -245,7 +233,7 @@ std::vector<std::optional<RayHit>> castRays(const Model& model, std::span<const 
       std::size_t count = 0;
       for (std::size_t b = 0; b < meeting.size(); ++b) {
         if (!boxes->second[b].empty() &&
-            clipToBox(ray.origin, d, t0, t1, grown(boxes->second[b]))) {
+            clipToBox(ray.origin, d, t0, t1, SurfaceCaster::grownBox(boxes->second[b]))) {
           meeting[b] = boxes->second[b];
           ++count;
         }

@@ -57,8 +57,8 @@ using RayWorkCharge = std::function<std::shared_ptr<const void>(std::size_t byte
 
 /// The first hit of each ray on the model's surface: its finest leaves (the actual surface at
 /// every place; overviews are never hit), cell by cell as SurfaceCaster sees them (a full cell is
-/// the bilinear surface of its corners, a 3-corner cell its triangle, B's border within
-/// SurfaceSampler::kBorderTolerance of a cell). Works for any surface: walls, overhangs, tunnels,
+/// the bilinear surface of its corners, a 3-corner cell its triangle, the border within the
+/// caster's tolerance, 1/32 of a cell). Works for any surface: walls, overhangs, tunnels,
 /// terrain.
 ///
 /// Per ray: its segment, clipped to the root's box, selects the leaves whose global box it meets

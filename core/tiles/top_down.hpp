@@ -17,6 +17,23 @@ struct Point2d {
   double x = 0, y = 0;
 };
 
+/// An axis-aligned rectangle in a picture's plane; empty when min > max (the default).
+struct Rect2d {
+  Point2d min{Box3d::kInf, Box3d::kInf};
+  Point2d max{-Box3d::kInf, -Box3d::kInf};
+
+  bool empty() const { return min.x > max.x || min.y > max.y; }
+  void extend(const Point2d& p) {
+    min = {std::min(min.x, p.x), std::min(min.y, p.y)};
+    max = {std::max(max.x, p.x), std::max(max.y, p.y)};
+  }
+  /// False when either is empty.
+  bool intersects(const Rect2d& r) const {
+    return !empty() && !r.empty() && min.x <= r.max.x && r.min.x <= max.x && min.y <= r.max.y &&
+           r.min.y <= max.y;
+  }
+};
+
 /// A north-up pixel grid over a model seen from above, as `vsm render-lod` and `vsm diff` draw
 /// it: ECEF models in longitude/latitude (degrees, WGS 84), other models in their global x/y.
 /// Pixel (col, row) covers x in [x0 + col * dx, x0 + (col + 1) * dx] and y in

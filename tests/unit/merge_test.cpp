@@ -18,7 +18,6 @@
 #include "core/merge/merge.hpp"
 #include "core/merge/register.hpp"
 #include "core/merge/subdivider.hpp"
-#include "core/merge/surface_sampler.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/opc/validate.hpp"
@@ -26,6 +25,7 @@
 #include "core/pyramid/reduce.hpp"
 #include "core/store/live_model.hpp"
 #include "core/store/model_edit.hpp"
+#include "tests/unit/surface_sampler_reference.hpp"
 #include "tests/unit/test_support.hpp"
 
 namespace vsm::core {
@@ -34,6 +34,7 @@ namespace {
 using test::codeOf;
 using test::filesUnder;
 using test::messageOf;
+using test::SurfaceSampler;
 
 // ---- synthetic data ----------------------------------------------------------------------------
 
@@ -46,7 +47,8 @@ double surfaceHeight(double x, double y) {
 /// -5/625 sin(.) [[1, 1], [1, 1]], of norm 2 * 5 / 625).
 constexpr double kHessianBound = 20.0 / (40 * 40) + 15.0 / (55 * 55) + 2 * 5.0 / (25 * 25);
 
-/// The sampler's error bound (SurfaceSampler): (1/4) M s^2 for cells of side s, plus float32
+/// The interpolation error bound of B's surface, its bilinear cells (derived at SurfaceSampler in
+/// tests/unit/surface_sampler_reference.hpp): (1/4) M s^2 for cells of side s, plus float32
 /// rounding of stored coordinates (locals of at most ~100 m here).
 double samplerBound(double spacing) {
   return 0.25 * kHessianBound * spacing * spacing + 1e-4;
@@ -137,7 +139,13 @@ bool sameBits(const Vec3d& a, const Vec3d& b) {
   return std::memcmp(&a, &b, sizeof(Vec3d)) == 0;
 }
 
-// ---- SurfaceSampler ----------------------------------------------------------------------------
+// ---- SurfaceSampler, the caster tests' reference -----------------------------------------------
+//
+// surface_caster_test holds SurfaceCaster to SurfaceSampler along up (the point, the grid and
+// vertex coordinates it names, B's border); these hold SurfaceSampler to analytic surfaces on the
+// kind of B those tests use: a smooth surface within the interpolation bound (which the merge
+// tests below rely on too), points in their grids' vertex space, B's border within the tolerance
+// (outer border, seams between grids, holes), cells with one corner undefined.
 
 TEST(SurfaceSampler, ReproducesAnalyticSurfaceOnRotatedGridWithinBound) {
   // B: 3 x 3 patches of 17 x 17 on a lattice rotated by 30 degrees, spacing 4 m / 5.3.
@@ -150,7 +158,6 @@ TEST(SurfaceSampler, ReproducesAnalyticSurfaceOnRotatedGridWithinBound) {
   }
   const SurfaceSampler sampler(grids, {0, 0, 1});
   EXPECT_EQ(sampler.cellCount(), 9u * 16 * 16);
-  EXPECT_NEAR(sampler.maxEdge(), b.spacing * std::sqrt(2.0), 1e-3);
 
   const double bound = samplerBound(b.spacing);
   std::mt19937 rng(7);
@@ -169,27 +176,6 @@ TEST(SurfaceSampler, ReproducesAnalyticSurfaceOnRotatedGridWithinBound) {
   EXPECT_LE(maxError, bound);
   // The bound is not vacuous: linear interpolation of this surface does err visibly.
   EXPECT_GT(maxError, bound / 20);
-}
-
-TEST(SurfaceSampler, FollowsTheBilinearSurfaceOfDistortedCells) {
-  // One cell, projected to a general convex quad, with twisted heights: the triangles of the
-  // cell would give other heights; B's bilinear surface P(s, t) is what must come back.
-  const Vec3d c00{0, 0, 0}, c10{10, 1, 0}, c01{-1, 8, 0}, c11{12, 11, 10};
-  auto grid = std::make_shared<PatchGrid>(2, Mat4d::translation({5, 5, 0}));
-  grid->setGlobal(0, 0, c00);
-  grid->setGlobal(1, 0, c10);
-  grid->setGlobal(0, 1, c01);
-  grid->setGlobal(1, 1, c11);
-  const SurfaceSampler sampler({grid}, {0, 0, 1});
-  for (double s = 0; s <= 1.0001; s += 0.125) {
-    for (double t = 0; t <= 1.0001; t += 0.125) {
-      const Vec3d p =
-          c00 * ((1 - s) * (1 - t)) + c10 * (s * (1 - t)) + c01 * ((1 - s) * t) + c11 * (s * t);
-      const auto r = sampler.sample({p.x, p.y, -100});
-      ASSERT_TRUE(r.has_value()) << s << " " << t;
-      EXPECT_LE((*r - p).norm(), 1e-6) << s << " " << t;
-    }
-  }
 }
 
 TEST(SurfaceSampler, LocatesPointsInTheirGridsVertexSpace) {
@@ -307,119 +293,6 @@ TEST(SurfaceSampler, CellWithOneUndefinedCornerKeepsItsOtherTriangle) {
   const SurfaceSampler sparse({grid}, {0, 0, 1});
   EXPECT_FALSE(sparse.sample(b.at(3.5, 3.2)).has_value());
   EXPECT_TRUE(sparse.sample(b.at(2.5, 2.5)).has_value());
-}
-
-TEST(SurfaceSampler, AClippedSamplerAnswersInItsClipAsTheWholeOneDoes) {
-  // B: 2 x 2 grids of 33 x 33 on a rotated lattice, with a hole and a cell missing one corner.
-  const Lattice b{300, 700, 0.8, 0.4};
-  std::vector<std::shared_ptr<const PatchGrid>> grids;
-  for (int y = 0; y < 2; ++y) {
-    for (int x = 0; x < 2; ++x) {
-      auto grid = latticeGrid(b, 33, x * 32, y * 32);
-      if (x == 1 && y == 0) {
-        grid->setUndefined(3, 30);
-        grid->setUndefined(4, 30);
-        grid->setUndefined(20, 7);
-      }
-      grids.push_back(grid);
-    }
-  }
-  const Vec3d up{0.1, -0.05, 1};
-  const SurfaceSampler whole(grids, up);
-  // The clip is given in a frame of the same up around another origin (as a merge's is).
-  const UpFrame frame({250, 760, 40}, up);
-  const Vec2d lo = frame.project(b.at(25, 20)), hi = frame.project(b.at(45, 40));
-  const Rect2d clip{{std::min(lo.u, hi.u), std::min(lo.v, hi.v)},
-                    {std::max(lo.u, hi.u), std::max(lo.v, hi.v)}};
-  const SurfaceSampler clipped(grids, up, std::nullopt, SurfaceSampler::Clip{frame, clip});
-  EXPECT_LT(clipped.cellCount(), whole.cellCount() / 2);
-  EXPECT_GT(clipped.cellCount(), 0u);
-
-  auto at = [&](double u, double v, double h) {
-    return frame.origin + frame.e1 * u + frame.e2 * v + frame.up * h;
-  };
-  auto same = [&](const Vec3d& p) {
-    const auto w = whole.locate(p);
-    for (const SurfaceSampler* sampler : {&clipped}) {
-      const auto c = sampler->locate(p);
-      ASSERT_EQ(w.has_value(), c.has_value()) << p.x << " " << p.y << " " << p.z;
-      if (w) {
-        EXPECT_TRUE(sameBits(w->position, c->position)) << p.x << " " << p.y;
-        EXPECT_EQ(w->grid, c->grid);
-        EXPECT_EQ(w->x, c->x);
-        EXPECT_EQ(w->y, c->y);
-      }
-    }
-  };
-  std::mt19937 rng(5);
-  std::uniform_real_distribution<double> u(clip.min.u, clip.max.u), v(clip.min.v, clip.max.v);
-  for (int n = 0; n < 20000; ++n) {
-    same(at(u(rng), v(rng), n % 2 ? 60.0 : -60.0));
-  }
-  // The clip's border, and B's samples in it approached from just outside their cells (the hole,
-  // the seams between the grids) within and beyond the border tolerance.
-  for (int n = 0; n <= 400; ++n) {
-    const double f = n / 400.0;
-    same(at(clip.min.u + f * (clip.max.u - clip.min.u), clip.min.v, 0));
-    same(at(clip.min.u + f * (clip.max.u - clip.min.u), clip.max.v, 0));
-    same(at(clip.min.u, clip.min.v + f * (clip.max.v - clip.min.v), 0));
-    same(at(clip.max.u, clip.min.v + f * (clip.max.v - clip.min.v), 0));
-  }
-  int nearSamples = 0;
-  for (int i = 20; i <= 50; ++i) {
-    for (int j = 15; j <= 45; ++j) {
-      for (const double offset : {0.0, 0.02, 0.5 * SurfaceSampler::kBorderTolerance, 0.04}) {
-        for (const Vec3d& p : {b.at(i + offset, j - offset), b.at(i - offset, j + offset)}) {
-          const Vec2d q = frame.project(p);
-          if (q.u >= clip.min.u && q.u <= clip.max.u && q.v >= clip.min.v && q.v <= clip.max.v) {
-            same(p);
-            ++nearSamples;
-          }
-        }
-      }
-    }
-  }
-  EXPECT_GT(nearSamples, 1000);
-
-  // A clip just outside B's border, within the tolerance of its cells: they are kept for it.
-  const Lattice square{0, 0, 1, 0};
-  const std::vector<std::shared_ptr<const PatchGrid>> one{latticeGrid(square, 17, 0, 0)};
-  const UpFrame plain({0, 0, 0}, {0, 0, 1});
-  const SurfaceSampler all(one, {0, 0, 1});
-  const SurfaceSampler strip(one, {0, 0, 1}, std::nullopt,
-                             SurfaceSampler::Clip{plain, {{-0.5, 2}, {-0.01, 10}}});
-  EXPECT_LT(strip.cellCount(), all.cellCount() / 4);
-  for (double v = 2; v <= 10; v += 0.25) {
-    const auto w = all.locate({-0.01, v, 0}), c = strip.locate({-0.01, v, 0});
-    ASSERT_TRUE(w.has_value()) << v;
-    ASSERT_TRUE(c.has_value()) << v;
-    EXPECT_TRUE(sameBits(w->position, c->position)) << v;
-  }
-  EXPECT_THROW(SurfaceSampler(grids, {0, 0, 1}, std::nullopt, SurfaceSampler::Clip{frame, clip}),
-               Error);
-}
-
-TEST(SurfaceSampler, WorksInEarthCentredCoordinatesAlongTheLocalVertical) {
-  // A small patch of a sphere of the earth's radius: heights along the radial direction.
-  const double radius = 6378137.0;
-  const double lat0 = 0.7, lon0 = 0.2, step = 1e-6;  // ~6 m
-  auto onSphere = [&](double i, double j, double h) {
-    const double lat = lat0 + j * step, lon = lon0 + i * step, r = radius + h;
-    return Vec3d{r * std::cos(lat) * std::cos(lon), r * std::cos(lat) * std::sin(lon),
-                 r * std::sin(lat)};
-  };
-  const Vec3d centre = onSphere(8, 8, 0);
-  auto grid = std::make_shared<PatchGrid>(17, Mat4d::translation(centre));
-  for (int y = 0; y < 17; ++y) {
-    for (int x = 0; x < 17; ++x) {
-      grid->setGlobal(x, y, onSphere(x, y, 100));  // a flat layer 100 m above the sphere
-    }
-  }
-  const SurfaceSampler sampler({grid}, defaultUp(grid->globalBox()));
-  // A point at height 0 under the middle of a cell: the sample is the layer point above it.
-  const auto s = sampler.sample(onSphere(5.5, 7.25, 0));
-  ASSERT_TRUE(s.has_value());
-  EXPECT_NEAR((*s - onSphere(5.5, 7.25, 100)).norm(), 0, 0.01);
 }
 
 // ---- Subdivider --------------------------------------------------------------------------------

@@ -13,13 +13,14 @@
 #include "core/common/error.hpp"
 #include "core/grid/vec_ops.hpp"
 #include "core/merge/surface_caster.hpp"
-#include "core/merge/surface_sampler.hpp"
+#include "tests/unit/surface_sampler_reference.hpp"
 #include "tests/unit/test_support.hpp"
 
 namespace vsm::core {
 namespace {
 
 using test::codeOf;
+using test::SurfaceSampler;
 using Grids = std::vector<std::shared_ptr<const PatchGrid>>;
 
 using vec::cross;
@@ -91,7 +92,7 @@ TEST(SurfaceCaster, HitsAPlaneExactlyAlongItsNormalAndObliquely) {
 
 TEST(SurfaceCaster, HitsABilinearSurfaceExactlyFromAnyDirection) {
   // z = x y / 4 is bilinear, so B's bilinear cells reproduce it exactly (the triangles of the
-  // hierarchy do not: the answer is the cell's bilinear surface, as SurfaceSampler's).
+  // hierarchy do not: the answer is the cell's bilinear surface).
   const auto grid = makeGrid(17, {0, 0, 0}, [](int i, int j) -> std::optional<Vec3d> {
     const double x = i - 8, y = j - 8;
     return Vec3d{x, y, x * y / 4};
@@ -328,7 +329,7 @@ TEST(SurfaceCaster, InsideATunnelTheNearerWallWins) {
   EXPECT_NEAR(crown->y, 20, 1e-9);
 }
 
-TEST(SurfaceCaster, TransformsBAsTheSamplerDoes) {
+TEST(SurfaceCaster, TransformsBWithItsRays) {
   // The plane turned by a rigid transform: a ray turned with it meets the turned point.
   Mat4d turn;
   const double c = std::cos(0.7), s = std::sin(0.7);
@@ -401,7 +402,7 @@ TEST(SurfaceCaster, BsBorderReachesAsFarAsTheSamplersTolerance) {
   });
   const SurfaceCaster caster({grid});
   const SurfaceSampler sampler({grid}, {0, 0, 1});
-  constexpr double kTolerance = SurfaceSampler::kBorderTolerance;
+  constexpr double kTolerance = cell_geometry::kBorderTolerance;
   auto rayAt = [](double i, double j) {
     const double x = 1000 + i / 2.0, y = 2000 + j / 2.0;
     return CastRay{{x, y, planeZ(x, y) + 0.5}, {0, 0, -1}, -1, 1};

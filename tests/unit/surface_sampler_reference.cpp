@@ -1,116 +1,33 @@
-#include "core/merge/surface_sampler.hpp"
+#include "tests/unit/surface_sampler_reference.hpp"
 
 #include <algorithm>
 #include <array>
 #include <cmath>
 #include <limits>
 
-#include "core/common/error.hpp"
-#include "core/merge/cell_geometry.hpp"
+#include "core/grid/vec_ops.hpp"
 
-namespace vsm::core {
+namespace vsm::core::test {
 
 namespace {
 
 using namespace cell_geometry;
 
-double dot(const Vec3d& a, const Vec3d& b) {
-  return a.x * b.x + a.y * b.y + a.z * b.z;
-}
-
-Vec3d cross(const Vec3d& a, const Vec3d& b) {
-  return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
-}
-
 constexpr std::uint32_t kNoVertex = std::numeric_limits<std::uint32_t>::max();
 
 }  // namespace
 
-bool Rect2d::intersects(const Rect2d& r) const {
-  if (empty() || r.empty()) {
-    return false;
-  }
-  return min.u <= r.max.u && r.min.u <= max.u && min.v <= r.max.v && r.min.v <= max.v;
-}
-
-bool Rect2d::contains(const Rect2d& r, double tolerance) const {
-  if (r.empty()) {
-    return true;
-  }
-  return r.min.u >= min.u - tolerance && r.min.v >= min.v - tolerance &&
-         r.max.u <= max.u + tolerance && r.max.v <= max.v + tolerance;
-}
-
-UpFrame::UpFrame(const Vec3d& originIn, const Vec3d& upIn) : origin(originIn) {
-  const double n = upIn.norm();
-  if (!upIn.finite() || n == 0) {
-    throw Error(ErrorCode::InvalidArgument, "up direction must be finite and non-zero");
-  }
-  up = upIn * (1.0 / n);
-  // e1: the coordinate axis least aligned with up, made perpendicular to it.
-  const Vec3d axis = std::fabs(up.x) <= std::fabs(up.y) && std::fabs(up.x) <= std::fabs(up.z)
-                         ? Vec3d{1, 0, 0}
-                         : (std::fabs(up.y) <= std::fabs(up.z) ? Vec3d{0, 1, 0} : Vec3d{0, 0, 1});
-  const Vec3d t = axis - up * dot(axis, up);
-  e1 = t * (1.0 / t.norm());
-  e2 = cross(up, e1);
-}
-
-Vec2d UpFrame::project(const Vec3d& p) const {
-  const Vec3d d = p - origin;
-  return {dot(d, e1), dot(d, e2)};
-}
-
-double UpFrame::height(const Vec3d& p) const {
-  return dot(p - origin, up);
-}
-
-Rect2d UpFrame::footprint(const Box3d& box) const {
-  Rect2d r;
-  if (box.empty()) {
-    return r;
-  }
-  for (int c = 0; c < 8; ++c) {
-    r.extend(project({(c & 1) ? box.max.x : box.min.x, (c & 2) ? box.max.y : box.min.y,
-                      (c & 4) ? box.max.z : box.min.z}));
-  }
-  return r;
-}
-
 SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid>>& grids,
-                               const Vec3d& up, const std::optional<Mat4d>& transform,
-                               const std::optional<Clip>& clip)
+                               const Vec3d& up)
     : frame_({}, up) {
   // The frame's origin is the centre of B, so projected coordinates stay small (ECEF!).
   Box3d box;
   for (const auto& grid : grids) {
     if (grid) {
-      Box3d b = grid->globalBox();
-      if (transform && !b.empty()) {
-        Box3d t;
-        for (int c = 0; c < 8; ++c) {
-          t.extend(transform->apply({(c & 1) ? b.max.x : b.min.x, (c & 2) ? b.max.y : b.min.y,
-                                     (c & 4) ? b.max.z : b.min.z}));
-        }
-        b = t;
-      }
-      box.extend(b);
+      box.extend(grid->globalBox());
     }
   }
   frame_ = UpFrame(box.empty() ? Vec3d{} : box.center(), up);
-
-  // The clip in this frame: the same axes, so only the origin moves.
-  Rect2d clipRect;
-  Vec2d offset;
-  if (clip) {
-    const UpFrame& f = clip->frame;
-    if (f.up.x != frame_.up.x || f.up.y != frame_.up.y || f.up.z != frame_.up.z) {
-      throw Error(ErrorCode::InvalidArgument, "surface sampler: the clip's frame has another up");
-    }
-    offset = f.project(frame_.origin);
-    clipRect = {{clip->rect.min.u - offset.u, clip->rect.min.v - offset.v},
-                {clip->rect.max.u - offset.u, clip->rect.max.v - offset.v}};
-  }
 
   constexpr std::uint32_t kNone = kNoVertex;
   // Every vertex of every grid at most: reserved once.
@@ -134,28 +51,20 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
       continue;
     }
     const int s = grid->size();
-    auto global = [&](int x, int y) {
-      const Vec3d g = grid->global(x, y);
-      return transform ? transform->apply(g) : g;
-    };
     projected.resize(static_cast<std::size_t>(s) * s);
-    index.resize(projected.size());
-    auto projectRange = [&](int x0, int y0, int x1, int y1) {  // vertices [x0, x1] x [y0, y1]
-      for (int y = y0; y <= y1; ++y) {
-        for (int x = x0; x <= x1; ++x) {
-          const std::size_t i = static_cast<std::size_t>(y) * s + x;
-          projected[i] = grid->defined(x, y) ? frame_.project(global(x, y))
-                                             : Vec2d{std::numeric_limits<double>::quiet_NaN(), 0};
-          index[i] = kNone;
-        }
+    index.assign(projected.size(), kNone);
+    for (int y = 0; y < s; ++y) {
+      for (int x = 0; x < s; ++x) {
+        projected[static_cast<std::size_t>(y) * s + x] =
+            grid->defined(x, y) ? frame_.project(grid->global(x, y))
+                                : Vec2d{std::numeric_limits<double>::quiet_NaN(), 0};
       }
-    };
-    projectRange(0, 0, s - 1, s - 1);
+    }
     auto vertex = [&](std::size_t i) {
       if (index[i] == kNone) {
         const int x = static_cast<int>(i % s), y = static_cast<int>(i / s);
         index[i] = static_cast<std::uint32_t>(vertices_.size());
-        vertices_.push_back(global(x, y));
+        vertices_.push_back(grid->global(x, y));
         projected_.push_back(projected[i]);
         origins_.push_back({static_cast<std::uint32_t>(gridIndex), static_cast<std::uint16_t>(x),
                             static_cast<std::uint16_t>(y)});
@@ -164,21 +73,6 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
     };
     auto area2 = [&](std::size_t a, std::size_t b, std::size_t c) {
       return cross2(sub2(projected[b], projected[a]), sub2(projected[c], projected[a]));
-    };
-    // Whether a cell with these corners may hold a query projecting into the clip: its projected
-    // rectangle, grown by kBorderTolerance grid units (generously: twice its width and height
-    // for one unit), meets the clip.
-    auto wanted = [&](std::initializer_list<std::size_t> corners) {
-      if (!clip) {
-        return true;
-      }
-      Rect2d r;
-      for (const std::size_t c : corners) {
-        r.extend(projected[c]);
-      }
-      const double margin = 2 * kBorderTolerance * (r.max.u - r.min.u + r.max.v - r.min.v);
-      return r.min.u - margin <= clipRect.max.u && clipRect.min.u <= r.max.u + margin &&
-             r.min.v - margin <= clipRect.max.v && clipRect.min.v <= r.max.v + margin;
     };
     for (int y = 0; y + 1 < s; ++y) {
       for (int x = 0; x + 1 < s; ++x) {
@@ -193,13 +87,12 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
         }
         if (n == 4) {
           // A cell that projects to a segment (a vertical wall) has no height to give.
-          if ((area2(rest[0], rest[1], rest[2]) != 0 || area2(rest[0], rest[2], rest[3]) != 0) &&
-              wanted({rest[0], rest[1], rest[2], rest[3]})) {
+          if (area2(rest[0], rest[1], rest[2]) != 0 || area2(rest[0], rest[2], rest[3]) != 0) {
             cells_.insert(cells_.end(),
                           {vertex(rest[0]), vertex(rest[1]), vertex(rest[2]), vertex(rest[3])});
           }
         } else if (n == 3) {
-          if (area2(rest[0], rest[1], rest[2]) != 0 && wanted({rest[0], rest[1], rest[2]})) {
+          if (area2(rest[0], rest[1], rest[2]) != 0) {
             cells_.insert(cells_.end(), {vertex(rest[0]), vertex(rest[1]), vertex(rest[2]), kNone});
           }
         }
@@ -208,57 +101,58 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
   }
 
   // Bucket size: the mean projected extent of a cell, so a query scans a handful of them.
+  const auto extend = [](Extent& e, const Vec2d& p) {
+    e.min = {std::min(e.min.u, p.u), std::min(e.min.v, p.v)};
+    e.max = {std::max(e.max.u, p.u), std::max(e.max.v, p.v)};
+  };
   const std::size_t count = cellCount();
-  cellRects_.assign(count, Rect2d{});
-  std::vector<Rect2d>& rects = cellRects_;
+  cellExtents_.assign(count, Extent{});
   double extentSum = 0;
   double maxEdge2 = 0;
   for (std::size_t t = 0; t < count; ++t) {
     const std::uint32_t* cell = &cells_[4 * t];
     const int corners = cell[3] == kNoVertex ? 3 : 4;
-    Rect2d& r = rects[t];
+    Extent& r = cellExtents_[t];
     for (int c = 0; c < corners; ++c) {
       const Vec2d a = projected_[cell[c]];
-      r.extend(a);
+      extend(r, a);
       for (int e = c + 1; e < corners; ++e) {
         const Vec2d b = projected_[cell[e]];
         maxEdge2 = std::max(maxEdge2, (a.u - b.u) * (a.u - b.u) + (a.v - b.v) * (a.v - b.v));
       }
     }
     extentSum += std::max(r.max.u - r.min.u, r.max.v - r.min.v);
-    bounds_.extend(r.min);
-    bounds_.extend(r.max);
+    extend(bounds_, r.min);
+    extend(bounds_, r.max);
   }
-  maxEdge_ = std::sqrt(maxEdge2);
   if (count == 0) {
     bucketStart_.assign(1, 0);
     return;
   }
-  const double width = bounds_.max.u - bounds_.min.u;
-  const double height = bounds_.max.v - bounds_.min.v;
+  const double spanU = bounds_.max.u - bounds_.min.u;
+  const double spanV = bounds_.max.v - bounds_.min.v;
   bucketSize_ = std::max(extentSum / static_cast<double>(count), 1e-12);
   // Never more buckets than 4 per cell (a sparse B spread over a large area).
   const double maxBuckets = 4.0 * static_cast<double>(count) + 16;
-  while ((std::floor(width / bucketSize_) + 1) * (std::floor(height / bucketSize_) + 1) >
+  while ((std::floor(spanU / bucketSize_) + 1) * (std::floor(spanV / bucketSize_) + 1) >
          maxBuckets) {
     bucketSize_ *= 1.5;
   }
-  bucketsU_ = static_cast<int>(std::floor(width / bucketSize_)) + 1;
-  bucketsV_ = static_cast<int>(std::floor(height / bucketSize_)) + 1;
-  margin_ = kBorderTolerance * maxEdge_ + bucketSize_ * 1e-9;
+  bucketsU_ = static_cast<int>(std::floor(spanU / bucketSize_)) + 1;
+  bucketsV_ = static_cast<int>(std::floor(spanV / bucketSize_)) + 1;
+  margin_ = kBorderTolerance * std::sqrt(maxEdge2) + bucketSize_ * 1e-9;
   // A cell goes into every bucket its rectangle grown by margin_ meets, so that the one bucket
   // holding a query's projection lists every cell that may hold the query (see locate).
   auto bucketRange = [&](std::size_t t, int& u0, int& v0, int& u1, int& v1) {
-    const Rect2d r{{rects[t].min.u - margin_, rects[t].min.v - margin_},
-                   {rects[t].max.u + margin_, rects[t].max.v + margin_}};
-    u0 = std::clamp(static_cast<int>(std::floor((r.min.u - bounds_.min.u) / bucketSize_)), 0,
-                    bucketsU_ - 1);
-    u1 = std::clamp(static_cast<int>(std::floor((r.max.u - bounds_.min.u) / bucketSize_)), 0,
-                    bucketsU_ - 1);
-    v0 = std::clamp(static_cast<int>(std::floor((r.min.v - bounds_.min.v) / bucketSize_)), 0,
-                    bucketsV_ - 1);
-    v1 = std::clamp(static_cast<int>(std::floor((r.max.v - bounds_.min.v) / bucketSize_)), 0,
-                    bucketsV_ - 1);
+    const Extent& r = cellExtents_[t];
+    auto bucket = [&](double value, double origin, int buckets) {
+      return std::clamp(static_cast<int>(std::floor((value - origin) / bucketSize_)), 0,
+                        buckets - 1);
+    };
+    u0 = bucket(r.min.u - margin_, bounds_.min.u, bucketsU_);
+    u1 = bucket(r.max.u + margin_, bounds_.min.u, bucketsU_);
+    v0 = bucket(r.min.v - margin_, bounds_.min.v, bucketsV_);
+    v1 = bucket(r.max.v + margin_, bounds_.min.v, bucketsV_);
   };
   const std::size_t buckets = static_cast<std::size_t>(bucketsU_) * bucketsV_;
   bucketStart_.assign(buckets + 1, 0);
@@ -286,6 +180,10 @@ SurfaceSampler::SurfaceSampler(const std::vector<std::shared_ptr<const PatchGrid
       }
     }
   }
+}
+
+double SurfaceSampler::height(const Vec3d& p) const {
+  return vec::dot(p - frame_.origin, frame_.up);
 }
 
 std::optional<SurfaceSampler::CellHit> SurfaceSampler::onTriangle(const std::uint32_t* t,
@@ -366,10 +264,10 @@ std::optional<SurfacePoint> SurfaceSampler::locate(const Vec3d& p) const {
   std::size_t bestCell = 0;
   double bestOutside = std::numeric_limits<double>::infinity();
   double bestDistance = std::numeric_limits<double>::infinity();
-  const double ph = frame_.height(p);
+  const double ph = height(p);
   for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
     const std::size_t cell = bucketItems_[i];
-    const Rect2d& rect = cellRects_[cell];
+    const Extent& rect = cellExtents_[cell];
     if (q.u < rect.min.u - margin || q.u > rect.max.u + margin || q.v < rect.min.v - margin ||
         q.v > rect.max.v + margin) {
       continue;
@@ -389,8 +287,8 @@ std::optional<SurfacePoint> SurfaceSampler::locate(const Vec3d& p) const {
     }
     // The height there, at p's own projection: only p's height changes, also where the
     // parameter was clamped onto the cell (a point on or just outside its border).
-    hit.position = p + frame_.up * (frame_.height(hit.position) - ph);
-    const double distance = std::fabs(frame_.height(hit.position) - ph);
+    hit.position = p + frame_.up * (height(hit.position) - ph);
+    const double distance = std::fabs(height(hit.position) - ph);
     if (h->outside < bestOutside || distance < bestDistance ||
         (distance == bestDistance && cell < bestCell)) {
       bestOutside = h->outside;
@@ -409,42 +307,4 @@ std::optional<Vec3d> SurfaceSampler::sample(const Vec3d& p) const {
   return std::nullopt;
 }
 
-bool SurfaceSampler::covers(const Rect2d& query) const {
-  if (bucketsU_ == 0 || query.empty()) {
-    return false;
-  }
-  const double margin = kBorderTolerance * maxEdge_;
-  const Rect2d rect{{query.min.u - margin, query.min.v - margin},
-                    {query.max.u + margin, query.max.v + margin}};
-  if (!rect.intersects(bounds_)) {
-    return false;
-  }
-  auto bucket = [&](double value, double origin, int count) {
-    return std::clamp(static_cast<int>(std::floor((value - origin) / bucketSize_)), 0, count - 1);
-  };
-  const int u0 = bucket(rect.min.u, bounds_.min.u, bucketsU_);
-  const int u1 = bucket(rect.max.u, bounds_.min.u, bucketsU_);
-  const int v0 = bucket(rect.min.v, bounds_.min.v, bucketsV_);
-  const int v1 = bucket(rect.max.v, bounds_.min.v, bucketsV_);
-  for (int v = v0; v <= v1; ++v) {
-    for (int u = u0; u <= u1; ++u) {
-      const std::size_t b = static_cast<std::size_t>(v) * bucketsU_ + u;
-      for (std::uint32_t i = bucketStart_[b]; i < bucketStart_[b + 1]; ++i) {
-        if (cellRects_[bucketItems_[i]].intersects(rect)) {
-          return true;
-        }
-      }
-    }
-  }
-  return false;
-}
-
-std::size_t SurfaceSampler::bytes() const {
-  return vertices_.capacity() * sizeof(Vec3d) + projected_.capacity() * sizeof(Vec2d) +
-         origins_.capacity() * sizeof(VertexOrigin) +
-         (cells_.capacity() + bucketStart_.capacity() + bucketItems_.capacity()) *
-             sizeof(std::uint32_t) +
-         cellRects_.capacity() * sizeof(Rect2d);
-}
-
-}  // namespace vsm::core
+}  // namespace vsm::core::test
