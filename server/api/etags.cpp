@@ -107,17 +107,17 @@ std::string staticFileEtag(std::uint64_t size, std::uint64_t mtimeNs, std::uint6
   return http::strongEtag("s-" + hex(size) + "-" + hex(mtimeNs) + "-" + hex(inode));
 }
 
-std::uint64_t terrainVersion(std::string_view tile, std::span<const core::PatchInfo* const> sources,
-                             std::string_view variant) {
+std::uint64_t terrainVersion(std::string_view tile, const core::Model& model,
+                             std::span<const core::PatchKey> sources, std::string_view variant) {
   Digest digest;
   digest.add(kTerrainFormat);
   digest.add(tile);
   digest.add(variant);
-  for (const core::PatchInfo* info : sources) {
-    digest.add(info->key.depth);
-    digest.add(info->key.x);
-    digest.add(info->key.y);
-    digest.add(info->version);
+  for (const core::PatchKey& key : sources) {
+    digest.add(key.depth);
+    digest.add(key.x);
+    digest.add(key.y);
+    digest.add(model.at(key).version);
   }
   return digest.value();
 }

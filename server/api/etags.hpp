@@ -5,7 +5,10 @@
 #include <string>
 #include <string_view>
 
+#include "core/pyramid/patch_key.hpp"
+
 namespace vsm::core {
+class Model;
 struct ModelSnapshot;
 struct PatchInfo;
 }  // namespace vsm::core
@@ -43,12 +46,13 @@ std::string glbEtag(const core::PatchInfo& info, std::string_view variant = {});
 /// what they produce for the same model. q2: layer.json's tile URLs name the model version
 /// ("?v=12", no longer CesiumJS's "{version}" template, which it filled with "1.0.0").
 inline constexpr std::string_view kTerrainFormat = "q2";
-/// A terrain tile's content version: a digest of the tile, the key and version of every patch it
-/// is sampled from (core::terrainSources), kTerrainFormat and `variant` (the representation:
-/// extensions, the metadata extension's text, and content coding). Also its key in the
-/// encoded-response cache.
-std::uint64_t terrainVersion(std::string_view tile, std::span<const core::PatchInfo* const> sources,
-                             std::string_view variant);
+/// A terrain tile's content version (quantized-mesh or terrain-RGB): a digest of the tile, the
+/// key and version in `model` of every patch it is sampled from (core::terrainSources,
+/// core::demTileSources), kTerrainFormat and `variant` (the representation: extensions, the
+/// metadata extension's text, content coding, encoding). Also its key in the encoded-response
+/// cache.
+std::uint64_t terrainVersion(std::string_view tile, const core::Model& model,
+                             std::span<const core::PatchKey> sources, std::string_view variant);
 /// The tag of a terrain tile of that version.
 std::string terrainEtag(std::string_view tile, std::uint64_t version);
 /// A static file (the viewer's): its size, modification time (ns) and inode.

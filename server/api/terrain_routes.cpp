@@ -137,11 +137,6 @@ std::optional<http::Response> getTile(models::ModelRegistry& models, models::Pat
   requireHeightField(id, *layer);
 
   const std::vector<core::PatchKey> sources = core::terrainSources(*snapshot->model, *layer, key);
-  std::vector<const core::PatchInfo*> infos;
-  infos.reserve(sources.size());
-  for (const core::PatchKey& source : sources) {
-    infos.push_back(&snapshot->model->at(source));
-  }
   const std::string* accept = request.header("accept");
   const TerrainExtensions extensions = parseTerrainAccept(accept ? *accept : "");
   const bool gzipped = http::acceptsGzip(request);
@@ -151,7 +146,7 @@ std::optional<http::Response> getTile(models::ModelRegistry& models, models::Pat
   const std::string variant = std::string(extensions.normals ? "n" : "") +
                               (extensions.metadata ? "m" + metadata : "") + (gzipped ? "-gz" : "");
   const std::string tile = key.toString();
-  const std::uint64_t version = api::terrainVersion(tile, infos, variant);
+  const std::uint64_t version = api::terrainVersion(tile, *snapshot->model, sources, variant);
   const std::string etag = terrainEtag(tile, version);
   if (http::ifNoneMatch(request, etag)) {
     http::Response response = http::notModified(etag, kTerrainCacheControl);
@@ -313,13 +308,9 @@ std::optional<http::Response> getDemTile(models::ModelRegistry& models, models::
                 "terrain-RGB tile " + key.toString() + " does not meet the model '" + id + "'");
   }
   const std::vector<core::PatchKey> sources = core::demTileSources(*snapshot->model, *layer, key);
-  std::vector<const core::PatchInfo*> infos;
-  infos.reserve(sources.size());
-  for (const core::PatchKey& source : sources) {
-    infos.push_back(&snapshot->model->at(source));
-  }
   const std::string tile = "rgb/" + key.toString();
-  const std::uint64_t version = api::terrainVersion(tile, infos, query.urlQuery());
+  const std::uint64_t version =
+      api::terrainVersion(tile, *snapshot->model, sources, query.urlQuery());
   const std::string etag = terrainEtag(tile, version);
   if (http::ifNoneMatch(request, etag)) {
     return http::notModified(etag, kDemCacheControl);
