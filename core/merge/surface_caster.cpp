@@ -1,12 +1,12 @@
 #include "core/merge/surface_caster.hpp"
 
-#include <embree3/rtcore.h>
-
 #include <algorithm>
 #include <array>
 #include <cmath>
 #include <limits>
 #include <string>
+
+#include <Eigen/Eigenvalues>
 
 #include "core/common/error.hpp"
 #include "core/merge/cell_geometry.hpp"
@@ -23,9 +23,6 @@ constexpr std::uint32_t kNone = std::numeric_limits<std::uint32_t>::max();
 // cell's neighbours: far above kBarycentricSlack, so a neighbour that could tie is always looked
 // at.
 constexpr double kNearBorder = 1e-6;
-// Rays go through Embree in chunks of this many (each as a forward and a backward ray).
-constexpr std::size_t kChunk = 128;
-
 double dot(const Vec3d& a, const Vec3d& b) {
   return a.x * b.x + a.y * b.y + a.z * b.z;
 }
@@ -33,28 +30,6 @@ double dot(const Vec3d& a, const Vec3d& b) {
 // Grid offsets of a cell's corners, in the order (0,0), (1,0), (1,1), (0,1).
 constexpr int kCornerX[4] = {0, 1, 1, 0};
 constexpr int kCornerY[4] = {0, 0, 1, 1};
-
-/// The one Embree device: created on first use, with threads=1 (builds and casts run on the
-/// calling thread; core creates no threads). Never released.
-RTCDevice device() {
-  static const RTCDevice d = [] {
-    RTCDevice created = rtcNewDevice("threads=1,set_affinity=0");
-    if (created == nullptr) {
-      throw Error(ErrorCode::Internal,
-                  "embree: cannot create a device: " + std::to_string(rtcGetDeviceError(nullptr)));
-    }
-    return created;
-  }();
-  return d;
-}
-
-void checkEmbree(const char* what) {
-  const RTCError error = rtcGetDeviceError(device());
-  if (error != RTC_ERROR_NONE) {
-    throw Error(ErrorCode::Internal,
-                std::string("embree: ") + what + " failed (error " + std::to_string(error) + ")");
-  }
-}
 
 }  // namespace
 
@@ -117,15 +92,9 @@ struct SurfaceCaster::Impl {
     }
   };
 
-  Vec3d origin;  // the float geometry's origin
-  // Far beyond float32 rounding of a distance along a ray in the float geometry: 2^-16 of its
-  // largest coordinate (rounding is 2^-24 of it per coordinate and operation).
-  float tSlack = 0;
-  std::vector<Vec3d> vertices;  // global (transformed) double positions of the cells' corners
-  std::vector<Cell> cells;      // in grid order
-  std::vector<std::uint32_t> quadCell;  // per Embree quad (primID), its cell
-  std::size_t surfaceTriangles = 0;     // the cells' (a full cell's two, a 3-corner cell's one)
-  std::size_t triangles = 0;            // the cells' and the skirts'
+  std::vector<Vec3d> vertices;       // global (transformed) double positions of the cells' corners
+  std::vector<Cell> cells;           // in grid order
+  std::size_t surfaceTriangles = 0;  // the cells' (a full cell's two, a 3-corner cell's one)
   // Seams between B's grids: per vertex on a grid's border that coincides (within rounding) with
   // a vertex of another grid, its group (index into seamCells, else kNone), and per group the
   // cells with a corner in it.
@@ -133,12 +102,54 @@ struct SurfaceCaster::Impl {
   std::vector<std::vector<std::uint32_t>> seamCells;
   std::vector<GridCells> gridCells;
   Box3d bounds;
-  RTCScene scene = nullptr;
 
-  ~Impl() {
-    if (scene != nullptr) {
-      rtcReleaseScene(scene);
+  /// The bins: the cells projected along `axis` (binFrame's up: the cells' dominant normal) onto
+  /// the plane across it, each cell's projected box grown by its border reach (cellBoxes), and a
+  /// uniform grid of square bins over them (binsU x binsV of side binSize from (binU0, binV0))
+  /// listing, per bin, the cells whose box meets it (binCells[binStart[b]..binStart[b + 1]]).
+  struct Box2 {
+    double u0, v0, u1, v1;
+  };
+  UpFrame binFrame{Vec3d{}, Vec3d{0, 0, 1}};
+  std::vector<Box2> cellBoxes;
+  double binU0 = 0, binV0 = 0, binSize = 1;
+  int binsU = 0, binsV = 0;
+  std::vector<std::uint32_t> binStart;
+  std::vector<std::uint32_t> binCells;
+
+  /// A cell's area-weighted normal: the cross product of a full cell's diagonals, of a 3-corner
+  /// cell's two sides (twice the area of what it spans, in the grid's orientation).
+  Vec3d normal(const Cell& c) const {
+    const auto& k = c.corners;
+    if (k[0] != kNone && k[1] != kNone && k[2] != kNone && k[3] != kNone) {
+      return vec::cross(vertices[k[2]] - vertices[k[0]], vertices[k[3]] - vertices[k[1]]);
     }
+    std::array<std::uint32_t, 3> t{};
+    int n = 0;
+    for (const std::uint32_t v : k) {
+      if (v != kNone) {
+        t[n++] = v;
+      }
+    }
+    return vec::cross(vertices[t[1]] - vertices[t[0]], vertices[t[2]] - vertices[t[0]]);
+  }
+
+  /// The bins a projected box meets (inclusive), clamped onto the grid of bins; empty (u0 > u1)
+  /// when it lies off the grid or is not finite.
+  struct BinRange {
+    int u0 = 0, v0 = 0, u1 = -1, v1 = -1;
+  };
+  BinRange binRange(const Box2& b) const {
+    const double fu0 = std::floor((b.u0 - binU0) / binSize);
+    const double fv0 = std::floor((b.v0 - binV0) / binSize);
+    const double fu1 = std::floor((b.u1 - binU0) / binSize);
+    const double fv1 = std::floor((b.v1 - binV0) / binSize);
+    if (!(fu1 >= 0 && fv1 >= 0 && fu0 < binsU && fv0 < binsV)) {
+      return {};
+    }
+    return {static_cast<int>(std::max(fu0, 0.0)), static_cast<int>(std::max(fv0, 0.0)),
+            static_cast<int>(std::min(fu1, binsU - 1.0)),
+            static_cast<int>(std::min(fv1, binsV - 1.0))};
   }
 
   /// A ray in double: origin, unit direction, and the frame across it (origin at the ray's).
@@ -174,6 +185,30 @@ struct SurfaceCaster::Impl {
     return hit;
   }
 
+  /// Whether the ray (the origin of the plane across it) may take a point of a cell whose
+  /// projected corners are `corners`: it lies in their box grown, per coordinate, by
+  /// kBorderTolerance times the sum of |reach| (how far the cell's border measure lets a point
+  /// move per unit of it), plus rounding. A cheap refusal before the inversion.
+  static bool mayMeet(const Vec2d* corners, int n, const Vec2d* reach, int m) {
+    double u0 = corners[0].u, u1 = u0, v0 = corners[0].v, v1 = v0;
+    for (int k = 1; k < n; ++k) {
+      u0 = std::min(u0, corners[k].u);
+      u1 = std::max(u1, corners[k].u);
+      v0 = std::min(v0, corners[k].v);
+      v1 = std::max(v1, corners[k].v);
+    }
+    double mu = 0, mv = 0;
+    for (int k = 0; k < m; ++k) {
+      mu += std::fabs(reach[k].u);
+      mv += std::fabs(reach[k].v);
+    }
+    const double round = 1e-9 * (std::fabs(u0) + std::fabs(u1) + std::fabs(v0) + std::fabs(v1));
+    mu = kBorderTolerance * mu + round;
+    mv = kBorderTolerance * mv + round;
+    // Not finite (a degenerate projection): let the inversion decide.
+    return !(u0 - mu > 0 || u1 + mu < 0 || v0 - mv > 0 || v1 + mv < 0);
+  }
+
   std::optional<CellHit> intersect(const Cell& cell, const Line& line) const {
     const Vec2d q{0, 0};  // the ray, projected across itself
     if (cell.corners[3] == kNone || cell.corners[0] == kNone || cell.corners[1] == kNone ||
@@ -188,6 +223,12 @@ struct SurfaceCaster::Impl {
           ++n;
         }
       }
+      // A point within kBorderTolerance (grid units) of the triangle moves by at most that
+      // times each of its sides' extents away from the corners' box.
+      const Vec2d sides[3] = {sub2(p[1], p[0]), sub2(p[2], p[1]), sub2(p[0], p[2])};
+      if (!mayMeet(p.data(), 3, sides, 3)) {
+        return std::nullopt;
+      }
       // Triangles' sides: for a corner cell, "near the border" also holds along its diagonal,
       // where no neighbour lies; harmless (the neighbours are just looked at).
       return onTriangle(which, barycentric(p[0], p[1], p[2], q));
@@ -197,6 +238,19 @@ struct SurfaceCaster::Impl {
     const Vec2d p10 = line.frame.project(vertices[cell.corners[1]]);
     const Vec2d p11 = line.frame.project(vertices[cell.corners[2]]);
     const Vec2d p01 = line.frame.project(vertices[cell.corners[3]]);
+    {
+      // p(s, t) = p00 + s e + t f + s t g. Within kBorderTolerance of the cell, (s, t) and s t move
+      // by at most the tolerance and three times it from the cell's: the point by at most
+      // tolerance * (|e| + |f| + 3 |g|) per coordinate from the corners' box (also for the
+      // triangles the fallback below uses, whose sides are e, f + g, e + g and f).
+      const Vec2d e = sub2(p10, p00), f = sub2(p01, p00);
+      const Vec2d g{p11.u - p10.u - p01.u + p00.u, p11.v - p10.v - p01.v + p00.v};
+      const Vec2d corners[4] = {p00, p10, p11, p01};
+      const Vec2d reach[4] = {e, f, g, Vec2d{2 * g.u, 2 * g.v}};
+      if (!mayMeet(corners, 4, reach, 4)) {
+        return std::nullopt;
+      }
+    }
     const cell_geometry::BilinearPoint point = invertBilinear(p00, p10, p11, p01, q);
     const auto& l1 = point.first;
     const auto& l2 = point.second;
@@ -220,31 +274,42 @@ struct SurfaceCaster::Impl {
     return hit;
   }
 
-  /// The answer for a hit Embree reported in `cellIndex`: the best of that cell and (near its
-  /// border) its neighbours, by (outside, |t|, cell); nullopt when none is within tolerance or
-  /// the best lies outside [tmin, tmax].
-  std::optional<CastHit> resolve(std::uint32_t cellIndex, const Line& line, double tmin,
-                                 double tmax) const {
+  /// Where along the line (signed distance from its origin) the cell's point of `hit` lies, and
+  /// (when asked) that point's grid coordinates.
+  double distance(const Cell& cell, const CellHit& hit, const Line& line, double* x = nullptr,
+                  double* y = nullptr) const {
+    Vec3d p{0, 0, 0};
+    double gx = 0, gy = 0;
+    for (int k = 0; k < 4; ++k) {
+      if (hit.weights[k] != 0) {
+        p = p + vertices[cell.corners[k]] * hit.weights[k];
+        gx += (cell.x + kCornerX[k]) * hit.weights[k];
+        gy += (cell.y + kCornerY[k]) * hit.weights[k];
+      }
+    }
+    if (x != nullptr) {
+      *x = gx;
+      *y = gy;
+    }
+    return dot(p - line.origin, line.direction);
+  }
+
+  /// The answer for a ray that meets cell `cellIndex` (`hit`: intersect() of that cell): the best
+  /// of that cell and (near its border) its neighbours, by (outside, |t|, cell); nullopt when the
+  /// best lies outside [tmin, tmax].
+  std::optional<CastHit> resolve(std::uint32_t cellIndex, const CellHit& hit, const Line& line,
+                                 double tmin, double tmax) const {
     std::optional<CastHit> best;
     double bestOutside = std::numeric_limits<double>::infinity();
     double bestAbs = std::numeric_limits<double>::infinity();
     std::uint32_t bestCell = kNone;
-    auto consider = [&](std::uint32_t index) -> bool {  // returns nearBorder
+    auto consider = [&](std::uint32_t index, std::optional<CellHit> h) -> bool {  // nearBorder
       const Cell& cell = cells[index];
-      const std::optional<CellHit> h = intersect(cell, line);
       if (!h) {
         return false;
       }
-      Vec3d p{0, 0, 0};
       double x = 0, y = 0;
-      for (int k = 0; k < 4; ++k) {
-        if (h->weights[k] != 0) {
-          p = p + vertices[cell.corners[k]] * h->weights[k];
-          x += (cell.x + kCornerX[k]) * h->weights[k];
-          y += (cell.y + kCornerY[k]) * h->weights[k];
-        }
-      }
-      const double t = dot(p - line.origin, line.direction);
+      const double t = distance(cell, *h, line, &x, &y);
       const double a = std::fabs(t);
       if (h->outside < bestOutside ||
           (h->outside == bestOutside && (a < bestAbs || (a == bestAbs && index < bestCell)))) {
@@ -257,7 +322,7 @@ struct SurfaceCaster::Impl {
       }
       return h->nearBorder;
     };
-    if (consider(cellIndex)) {
+    if (consider(cellIndex, hit)) {
       const Cell& cell = cells[cellIndex];
       const GridCells& grid = gridCells[cell.grid];
       for (int dy = -1; dy <= 1; ++dy) {
@@ -265,7 +330,7 @@ struct SurfaceCaster::Impl {
           const std::uint32_t n =
               grid.at(static_cast<int>(cell.x) + dx, static_cast<int>(cell.y) + dy);
           if ((dx != 0 || dy != 0) && n != kNone) {
-            consider(n);
+            consider(n, intersect(cells[n], line));
           }
         }
       }
@@ -274,7 +339,7 @@ struct SurfaceCaster::Impl {
         if (corner != kNone && seamGroup[corner] != kNone) {
           for (const std::uint32_t n : seamCells[seamGroup[corner]]) {
             if (cells[n].grid != cell.grid) {
-              consider(n);
+              consider(n, intersect(cells[n], line));
             }
           }
         }
@@ -449,9 +514,8 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
 
   // Seams: B's grids share their border lines, each rounded to float32 around its own origin, so
   // the "same" vertex differs by rounding from grid to grid. Border vertices of different grids
-  // within kWeld of the cells' mean edge are one vertex of the hierarchy (so the float traversal is
-  // watertight across seams too) and one seam group (so a hit there is resolved among the cells of
-  // both grids). Weld: the lowest index of a group.
+  // within kWeld of the cells' mean edge are one seam group (so a hit there is resolved among the
+  // cells of both grids). Weld: a union-find over the vertices, the lowest index of a group.
   std::vector<std::uint32_t> weld(m.vertices.size());
   for (std::uint32_t v = 0; v < weld.size(); ++v) {
     weld[v] = v;
@@ -519,155 +583,123 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     }
   }
 
-  // The float geometry's origin: the clip's centre (a patch-local origin), else B's.
-  m.origin = clip && !clip->box.empty() ? clip->box.center() : m.bounds.center();
-  // One Embree quad per cell: half the primitives of two triangles, so the hierarchy builds in
-  // about 0.6 of the time (tests/bench/caster_bench.sh). Embree splits a quad (v0, v1, v2, v3)
-  // into the triangles (v0, v1, v3) and (v2, v3, v1), along v1-v3: a full cell is given so that
-  // this is its shorter diagonal in 3D; a 3-corner cell is its triangle with the last corner
-  // repeated (Embree's encoding of a triangle: the second one is a line, never hit).
-  std::vector<std::array<std::uint32_t, 4>> quads;
-  quads.reserve(m.cells.size());
-  m.quadCell.reserve(m.cells.size());
-  for (std::size_t c = 0; c < m.cells.size(); ++c) {
-    const auto& k = m.cells[c].corners;
-    if (k[0] != kNone && k[1] != kNone && k[2] != kNone && k[3] != kNone) {
-      const double d02 = (m.vertices[k[2]] - m.vertices[k[0]]).norm();
-      const double d13 = (m.vertices[k[3]] - m.vertices[k[1]]).norm();
-      if (d02 <= d13) {
-        quads.push_back({k[1], k[2], k[3], k[0]});
-      } else {
-        quads.push_back({k[0], k[1], k[2], k[3]});
-      }
-      m.surfaceTriangles += 2;
-    } else {
-      std::array<std::uint32_t, 4> t{};
-      int n = 0;
-      for (const std::uint32_t v : k) {
-        if (v != kNone) {
-          t[n++] = v;
-        }
-      }
-      t[3] = t[2];
-      quads.push_back(t);
-      m.surfaceTriangles += 1;
-    }
-    m.quadCell.push_back(static_cast<std::uint32_t>(c));
-  }
-  m.triangles = m.surfaceTriangles;
-  // Skirts: every edge of a cell on B's border (no cell across it in its grid, and not a welded
-  // seam) gets a strip of two triangles outside it, owned by the cell, so that a ray within
-  // kBorderTolerance of the cell (cell_geometry's measure: the parameter clamped onto a full
-  // cell, a triangle's barycentric coordinates clamped and re-normalised) meets the hierarchy
-  // and resolves to the cell's nearest point. The strip is wider than that (a full cell's sides
-  // extended by 1.5 times the tolerance, a triangle scaled about the corner off the edge by 2
-  // times it, which covers the re-normalised measure): resolve() refuses the rest and the ray
-  // goes on past it. Float vertices only.
-  const auto vertexCount = static_cast<std::uint32_t>(m.vertices.size());
-  std::vector<Vec3d> skirt;
-  {
-    constexpr double kQuadSkirt = 1.5 * kBorderTolerance;
-    constexpr double kTriangleSkirt = 2 * kBorderTolerance;
-    constexpr int kAcrossX[4] = {0, 1, 0, -1};  // the neighbour across edge e = (e, e + 1)
-    constexpr int kAcrossY[4] = {-1, 0, 1, 0};
-    auto addStrip = [&](std::uint32_t a, std::uint32_t b, const Vec3d& awayA, const Vec3d& awayB,
-                        double width, std::uint32_t cellIndex) {
-      const Vec3d& pa = m.vertices[a];
-      const Vec3d& pb = m.vertices[b];
-      const auto ea = vertexCount + static_cast<std::uint32_t>(skirt.size());
-      skirt.push_back(pa + awayA * width);
-      skirt.push_back(pb + awayB * width);
-      quads.push_back({b, a, ea, ea + 1});  // the triangles (b, a, ea + 1) and (ea, ea + 1, a)
-      m.quadCell.push_back(cellIndex);
-      m.triangles += 2;
-    };
-    for (std::size_t c = 0; c < m.cells.size(); ++c) {
-      const Impl::Cell& cell = m.cells[c];
-      const auto& k = cell.corners;
-      const auto cellIndex = static_cast<std::uint32_t>(c);
-      const bool full = k[0] != kNone && k[1] != kNone && k[2] != kNone && k[3] != kNone;
-      std::uint32_t opposite = kNone;  // a triangle's: the corner off a given edge
-      for (int e = 0; e < 4; ++e) {
-        const std::uint32_t a = k[e], b = k[(e + 1) % 4];
-        if (a == kNone || b == kNone) {
-          continue;
-        }
-        const bool across =
-            m.gridCells[cell.grid].at(static_cast<int>(cell.x) + kAcrossX[e],
-                                      static_cast<int>(cell.y) + kAcrossY[e]) != kNone;
-        const bool seam = m.seamGroup[a] != kNone && m.seamGroup[b] != kNone;
-        if (across || seam) {
-          continue;
-        }
-        if (full) {
-          const Vec3d& innerA = m.vertices[k[(e + 3) % 4]];
-          const Vec3d& innerB = m.vertices[k[(e + 2) % 4]];
-          addStrip(a, b, m.vertices[a] - innerA, m.vertices[b] - innerB, kQuadSkirt, cellIndex);
-        } else {
-          for (const std::uint32_t v : k) {
-            if (v != kNone && v != a && v != b) {
-              opposite = v;
-            }
-          }
-          const Vec3d& o = m.vertices[opposite];
-          addStrip(a, b, m.vertices[a] - o, m.vertices[b] - o, kTriangleSkirt, cellIndex);
-        }
-      }
-      if (!full) {  // the diagonal of a 3-corner cell is always B's border
-        // The corners off the diagonal: the missing corner's neighbours in the cycle.
-        int missing = 0;
-        while (k[missing] != kNone) {
-          ++missing;
-        }
-        const std::uint32_t a = k[(missing + 1) % 4], b = k[(missing + 3) % 4];
-        const Vec3d& o = m.vertices[k[(missing + 2) % 4]];
-        addStrip(a, b, m.vertices[a] - o, m.vertices[b] - o, kTriangleSkirt, cellIndex);
-      }
-    }
+  for (const Impl::Cell& c : m.cells) {
+    m.surfaceTriangles += c.corners[0] != kNone && c.corners[1] != kNone && c.corners[2] != kNone &&
+                                  c.corners[3] != kNone
+                              ? 2
+                              : 1;
   }
 
-  const RTCDevice dev = device();
-  RTCGeometry geometry = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_QUAD);
-  auto* vertexBuffer = static_cast<float*>(
-      rtcSetNewGeometryBuffer(geometry, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
-                              3 * sizeof(float), m.vertices.size() + skirt.size()));
-  auto* indexBuffer = static_cast<unsigned*>(rtcSetNewGeometryBuffer(
-      geometry, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT4, 4 * sizeof(unsigned), quads.size()));
-  if (vertexBuffer == nullptr || indexBuffer == nullptr) {
-    rtcReleaseGeometry(geometry);
-    checkEmbree("allocating the geometry");
-    throw Error(ErrorCode::Internal, "embree: allocating the geometry failed");
+  // The bins' axis: the cells' dominant normal, the eigenvector of the largest eigenvalue of
+  // sum(n n^T) over their area-weighted normals n (blind to their sign). Rays along it, as a
+  // merge's along the target's normals over B mostly are, cast point-sized shadows.
+  Eigen::Matrix3d moments = Eigen::Matrix3d::Zero();
+  for (const Impl::Cell& c : m.cells) {
+    const Vec3d n = m.normal(c);
+    const Eigen::Vector3d e(n.x, n.y, n.z);
+    moments += e * e.transpose();
   }
-  double largest = 0;
+  Vec3d axis{0, 0, 1};
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver(moments);
+  if (solver.info() == Eigen::Success && solver.eigenvectors().col(2).allFinite() &&
+      solver.eigenvalues()(2) > 0) {
+    const Eigen::Vector3d e = solver.eigenvectors().col(2);
+    axis = {e.x(), e.y(), e.z()};
+  }
+  m.binFrame = UpFrame(m.bounds.center(), axis);
+  std::vector<Vec2d> projected(m.vertices.size());
   for (std::size_t v = 0; v < m.vertices.size(); ++v) {
-    const Vec3d p = m.vertices[v] - m.origin;
-    largest = std::max({largest, std::fabs(p.x), std::fabs(p.y), std::fabs(p.z)});
-    vertexBuffer[3 * v] = static_cast<float>(p.x);
-    vertexBuffer[3 * v + 1] = static_cast<float>(p.y);
-    vertexBuffer[3 * v + 2] = static_cast<float>(p.z);
+    projected[v] = m.binFrame.project(m.vertices[v]);
   }
-  for (std::size_t v = 0; v < skirt.size(); ++v) {
-    const Vec3d p = skirt[v] - m.origin;
-    float* f = vertexBuffer + 3 * (vertexCount + v);
-    f[0] = static_cast<float>(p.x);
-    f[1] = static_cast<float>(p.y);
-    f[2] = static_cast<float>(p.z);
+  // Each cell's projected box, grown by its border reach: a ray that takes a point C of the cell
+  // (within kBorderTolerance outside it, at a point X of the cell's surface extended) reports the
+  // point of the ray nearest to C, no farther from C than X is, by at most the tolerance times
+  // |e| + |f| + 3 |g| of a full cell (p(s, t) = p00 + s e + t f + s t g), the sum of the sides of
+  // a 3-corner one; the projection along the axis moves nothing apart. Plus rounding, relative to
+  // the coordinates.
+  m.cellBoxes.resize(m.cells.size());
+  double sizeSum = 0;
+  for (std::size_t c = 0; c < m.cells.size(); ++c) {
+    const auto& k = m.cells[c].corners;
+    Impl::Box2 flat{
+        std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
+        -std::numeric_limits<double>::infinity(), -std::numeric_limits<double>::infinity()};
+    std::array<std::uint32_t, 4> present{};
+    int n = 0;
+    for (const std::uint32_t v : k) {
+      if (v != kNone) {
+        present[n++] = v;
+        flat.u0 = std::min(flat.u0, projected[v].u);
+        flat.v0 = std::min(flat.v0, projected[v].v);
+        flat.u1 = std::max(flat.u1, projected[v].u);
+        flat.v1 = std::max(flat.v1, projected[v].v);
+      }
+    }
+    double reach = 0;
+    if (n == 4) {
+      const Vec3d& p00 = m.vertices[k[0]];
+      const Vec3d& p10 = m.vertices[k[1]];
+      const Vec3d& p11 = m.vertices[k[2]];
+      const Vec3d& p01 = m.vertices[k[3]];
+      reach = (p10 - p00).norm() + (p01 - p00).norm() + 3 * (p11 - p10 - p01 + p00).norm();
+    } else {
+      for (int i = 0; i < 3; ++i) {
+        reach += (m.vertices[present[(i + 1) % 3]] - m.vertices[present[i]]).norm();
+      }
+    }
+    const double margin =
+        kBorderTolerance * reach + 1e-9 * (std::fabs(flat.u0) + std::fabs(flat.v0) +
+                                           std::fabs(flat.u1) + std::fabs(flat.v1) + reach + 1);
+    flat = {flat.u0 - margin, flat.v0 - margin, flat.u1 + margin, flat.v1 + margin};
+    m.cellBoxes[c] = flat;
+    sizeSum += std::max(flat.u1 - flat.u0, flat.v1 - flat.v0);
   }
-  for (std::size_t q = 0; q < quads.size(); ++q) {
-    for (int k = 0; k < 4; ++k) {
-      const std::uint32_t v = quads[q][k];
-      indexBuffer[4 * q + k] = v < vertexCount ? weld[v] : v;
+  // Square bins about as wide as a cell's box (each cell in a few bins, a few cells per bin), at
+  // most kBinsPerCell per cell however the boxes spread.
+  double u0 = std::numeric_limits<double>::infinity(), v0 = u0, u1 = -u0, v1 = -u0;
+  for (const Impl::Box2& b : m.cellBoxes) {
+    u0 = std::min(u0, b.u0);
+    v0 = std::min(v0, b.v0);
+    u1 = std::max(u1, b.u1);
+    v1 = std::max(v1, b.v1);
+  }
+  constexpr double kBinsPerCell = 4;
+  const double maxBins = kBinsPerCell * static_cast<double>(m.cells.size()) + 64;
+  double side = sizeSum / static_cast<double>(m.cells.size());
+  side = std::max({side, std::sqrt((u1 - u0) * (v1 - v0) / maxBins), (u1 - u0) / maxBins,
+                   (v1 - v0) / maxBins, std::numeric_limits<double>::min()});
+  m.binU0 = u0;
+  m.binV0 = v0;
+  m.binSize = side;
+  m.binsU = std::max(1, static_cast<int>(std::min(maxBins, std::ceil((u1 - u0) / side))));
+  m.binsV = std::max(1, static_cast<int>(std::min(maxBins, std::ceil((v1 - v0) / side))));
+  m.binStart.assign(static_cast<std::size_t>(m.binsU) * m.binsV + 1, 0);
+  for (int pass = 0; pass < 2; ++pass) {
+    if (pass == 1) {
+      for (std::size_t b = 1; b < m.binStart.size(); ++b) {
+        m.binStart[b] += m.binStart[b - 1];
+      }
+      m.binCells.resize(m.binStart.back());
+    }
+    for (std::size_t c = 0; c < m.cells.size(); ++c) {
+      const Impl::BinRange r = m.binRange(m.cellBoxes[c]);
+      for (int j = r.v0; j <= r.v1; ++j) {
+        for (int i = r.u0; i <= r.u1; ++i) {
+          const std::size_t b = static_cast<std::size_t>(j) * m.binsU + i;
+          if (pass == 0) {
+            ++m.binStart[b + 1];
+          } else {
+            m.binCells[m.binStart[b]++] = static_cast<std::uint32_t>(c);
+          }
+        }
+      }
     }
   }
-  m.tSlack = static_cast<float>(largest * 0x1p-16);
-  rtcCommitGeometry(geometry);
-  m.scene = rtcNewScene(dev);
-  rtcSetSceneFlags(m.scene, RTC_SCENE_FLAG_ROBUST);
-  rtcSetSceneBuildQuality(m.scene, RTC_BUILD_QUALITY_MEDIUM);
-  rtcAttachGeometry(m.scene, geometry);
-  rtcReleaseGeometry(geometry);
-  rtcCommitScene(m.scene);
-  checkEmbree("building the hierarchy");
+  // The fill moved each start to the next bin's: shift back.
+  for (std::size_t b = m.binStart.size() - 1; b > 0; --b) {
+    m.binStart[b] = m.binStart[b - 1];
+  }
+  m.binStart[0] = 0;
 }
 
 SurfaceCaster::~SurfaceCaster() = default;
@@ -688,135 +720,135 @@ const Box3d& SurfaceCaster::bounds() const {
 
 std::size_t SurfaceCaster::bytes() const {
   const Impl& m = *impl_;
-  std::size_t own = m.vertices.capacity() * sizeof(Vec3d) +
-                    m.cells.capacity() * sizeof(Impl::Cell) +
-                    m.quadCell.capacity() * sizeof(std::uint32_t);
+  std::size_t own =
+      m.vertices.capacity() * sizeof(Vec3d) + m.cells.capacity() * sizeof(Impl::Cell) +
+      m.seamGroup.capacity() * sizeof(std::uint32_t) + m.cellBoxes.capacity() * sizeof(Impl::Box2) +
+      (m.binStart.capacity() + m.binCells.capacity()) * sizeof(std::uint32_t);
   for (const Impl::GridCells& g : m.gridCells) {
     own += g.index.capacity() * sizeof(std::uint32_t);
   }
-  // Embree's float vertices and indices, and its hierarchy (measured by caster_bench: about
-  // 100 bytes per triangle with the vertex and index buffers).
-  return own + m.triangles * 100;
+  for (const std::vector<std::uint32_t>& s : m.seamCells) {
+    own += s.capacity() * sizeof(std::uint32_t);
+  }
+  return own;
 }
 
 std::optional<CastHit> SurfaceCaster::cast(const CastRay& ray) const {
   std::optional<CastHit> hit;
-  cast(std::span<const CastRay>(&ray, 1), std::span<std::optional<CastHit>>(&hit, 1),
-       Batch::Single);
+  cast(std::span<const CastRay>(&ray, 1), std::span<std::optional<CastHit>>(&hit, 1));
   return hit;
 }
 
-void SurfaceCaster::cast(std::span<const CastRay> rays, std::span<std::optional<CastHit>> hits,
-                         Batch batch) const {
+void SurfaceCaster::cast(std::span<const CastRay> rays,
+                         std::span<std::optional<CastHit>> hits) const {
   if (hits.size() != rays.size()) {
     throw Error(ErrorCode::InvalidArgument, "surface caster: hits and rays differ in number");
   }
   const Impl& m = *impl_;
   std::fill(hits.begin(), hits.end(), std::nullopt);
-  if (m.scene == nullptr) {
+  if (m.cells.empty()) {
     return;
   }
-  RTCIntersectContext context;
-  rtcInitIntersectContext(&context);
-  context.flags = RTC_INTERSECT_CONTEXT_FLAG_COHERENT;
-  // Per ray of a chunk, a forward ray (along the direction, t in [max(tmin, 0), tmax]) and a
-  // backward one (against it, for t in [tmin, min(tmax, 0)]), next to each other. An unused one
-  // has tnear > tfar (inactive). The far end is widened a little for float rounding: the answer is
-  // checked against [tmin, tmax] in double.
-  std::array<RTCRayHit, 2 * kChunk> stream;
-  std::array<float, 2 * kChunk> far;  // each ray's end of the search (Embree moves tfar to a hit)
-  for (std::size_t first = 0; first < rays.size(); first += kChunk) {
-    const std::size_t n = std::min(kChunk, rays.size() - first);
-    for (std::size_t i = 0; i < n; ++i) {
-      const CastRay& ray = rays[first + i];
-      const double length = ray.direction.norm();
-      const bool valid = ray.origin.finite() && ray.direction.finite() && length > 0 &&
-                         std::isfinite(ray.tmin) && std::isfinite(ray.tmax) && ray.tmin <= ray.tmax;
-      const Vec3d d = valid ? ray.direction * (1.0 / length) : Vec3d{0, 0, 1};
-      const Vec3d o = valid ? ray.origin - m.origin : Vec3d{};
-      for (int side = 0; side < 2; ++side) {
-        RTCRayHit& rh = stream[2 * i + side];
-        const double sign = side == 0 ? 1.0 : -1.0;
-        rh.ray.org_x = static_cast<float>(o.x);
-        rh.ray.org_y = static_cast<float>(o.y);
-        rh.ray.org_z = static_cast<float>(o.z);
-        rh.ray.dir_x = static_cast<float>(sign * d.x);
-        rh.ray.dir_y = static_cast<float>(sign * d.y);
-        rh.ray.dir_z = static_cast<float>(sign * d.z);
-        const double lo = side == 0 ? std::max(ray.tmin, 0.0) : std::max(-ray.tmax, 0.0);
-        const double hi = side == 0 ? ray.tmax : -ray.tmin;
-        if (valid && hi >= lo) {
-          rh.ray.tnear = static_cast<float>(lo);
-          rh.ray.tfar = static_cast<float>(hi + 1e-5 * std::fabs(hi) + m.tSlack);
-        } else {
-          rh.ray.tnear = 1;
-          rh.ray.tfar = 0;
-        }
-        far[2 * i + side] = rh.ray.tfar;
-        rh.ray.time = 0;
-        rh.ray.mask = 0xFFFFFFFFu;
-        rh.ray.id = 0;
-        rh.ray.flags = 0;
-        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-        rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
-        rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
-      }
+  // A cell the line meets (within B's border tolerance), at signed distance t.
+  struct Found {
+    double t;
+    std::uint32_t cell;
+    Impl::CellHit hit;
+  };
+  auto nearer = [](const Found& x, const Found& y) {
+    // The nearest first, the positive side on a tie, then the cell in grid order.
+    const double ax = std::fabs(x.t), ay = std::fabs(y.t);
+    if (ax != ay) {
+      return ax < ay;
     }
-    // Resolves side `side` of ray i (already intersected): a hit the double resolution rejects
-    // (beyond the tolerance, out of [tmin, tmax], or a triangle the bilinear cell does not meet)
-    // does not hide a farther one: the ray goes on past it, a few times at most.
-    auto settle = [&](std::size_t i, int side, const Impl::Line& line) -> std::optional<CastHit> {
-      RTCRayHit& rh = stream[2 * i + side];
-      const CastRay& ray = rays[first + i];
-      for (int attempt = 0; attempt < 4 && rh.hit.geomID != RTC_INVALID_GEOMETRY_ID; ++attempt) {
-        if (std::optional<CastHit> hit =
-                m.resolve(m.quadCell[rh.hit.primID], line, ray.tmin, ray.tmax)) {
-          return hit;
+    return x.t != y.t ? x.t > y.t : x.cell < y.cell;
+  };
+  std::vector<std::uint32_t> tested, added;
+  std::vector<Found> found;
+  for (std::size_t r = 0; r < rays.size(); ++r) {
+    const CastRay& ray = rays[r];
+    const double length = ray.direction.norm();
+    if (!ray.origin.finite() || !ray.direction.finite() || !(length > 0) ||
+        !std::isfinite(ray.tmin) || !std::isfinite(ray.tmax) || !(ray.tmin <= ray.tmax)) {
+      continue;
+    }
+    const Vec3d d = ray.direction * (1.0 / length);
+    const Impl::Line line{ray.origin, d, UpFrame(ray.origin, d)};
+    // The line's shadow in the bins' plane: s0 + t * w.
+    const Vec2d s0 = m.binFrame.project(ray.origin);
+    const Vec2d w{dot(d, m.binFrame.e1), dot(d, m.binFrame.e2)};
+    const double slack =
+        1e-9 * (std::fabs(s0.u) + std::fabs(s0.v) + std::fabs(ray.tmin) + std::fabs(ray.tmax) + 1);
+    // Whether the shadow of [lo, hi] meets a box (grown by slack), in the plane.
+    const double from[2] = {s0.u, s0.v}, along[2] = {w.u, w.v};
+    const double inverse[2] = {w.u == 0 ? 0 : 1 / w.u, w.v == 0 ? 0 : 1 / w.v};
+    auto meets = [&](const Impl::Box2& box, double lo, double hi) {
+      const double bmin[2] = {box.u0 - slack, box.v0 - slack};
+      const double bmax[2] = {box.u1 + slack, box.v1 + slack};
+      for (int k = 0; k < 2; ++k) {
+        if (along[k] == 0) {
+          if (from[k] < bmin[k] || from[k] > bmax[k]) {
+            return false;
+          }
+          continue;
         }
-        rh.ray.tnear = rh.ray.tfar + m.tSlack;  // past the rejected hit
-        rh.ray.tfar = far[2 * i + side];
-        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-        if (rh.ray.tnear <= rh.ray.tfar) {
-          rtcIntersect1(m.scene, &context, &rh);
+        double t0 = (bmin[k] - from[k]) * inverse[k], t1 = (bmax[k] - from[k]) * inverse[k];
+        if (t0 > t1) {
+          std::swap(t0, t1);
         }
+        lo = std::max(lo, t0);
+        hi = std::min(hi, t1);
       }
-      return std::nullopt;
+      return lo <= hi;
     };
-    if (batch == Batch::Stream) {
-      rtcIntersect1M(m.scene, &context, stream.data(), static_cast<unsigned>(2 * n),
-                     sizeof(RTCRayHit));
-    }
-    for (std::size_t i = 0; i < n; ++i) {
-      RTCRayHit& forward = stream[2 * i];
-      RTCRayHit& backward = stream[2 * i + 1];
-      if (forward.ray.tnear > forward.ray.tfar && backward.ray.tnear > backward.ray.tfar) {
-        continue;  // invalid, or nothing to search
-      }
-      const CastRay& ray = rays[first + i];
-      const Vec3d d = ray.direction * (1.0 / ray.direction.norm());
-      const Impl::Line line{ray.origin, d, UpFrame(ray.origin, d)};
-      if (batch == Batch::Single && forward.ray.tnear <= forward.ray.tfar) {
-        rtcIntersect1(m.scene, &context, &forward);
-      }
-      const std::optional<CastHit> a = settle(i, 0, line);
-      if (batch == Batch::Single) {
-        // Only a backward hit about as near as the forward one can win.
-        if (a) {
-          far[2 * i + 1] = std::min(
-              far[2 * i + 1], static_cast<float>(std::fabs(a->distance)) * (1 + 1e-5f) + m.tSlack);
-          backward.ray.tfar = far[2 * i + 1];
+    // Rounds over a growing stretch [-reach, reach] of the ray: once every cell the stretch can
+    // meet is intersected, a hit within it is final (no farther cell can be nearer), so a ray
+    // that meets B near its origin, as a merge's mostly do, looks at a few cells only.
+    tested.clear();
+    found.clear();
+    std::size_t settled = 0;  // found[0, settled) were resolved and refused
+    const double farthest = std::max(std::fabs(ray.tmin), std::fabs(ray.tmax));
+    for (double reach = m.binSize / 4;; reach *= 4) {
+      const bool last = reach >= farthest;
+      const double lo = last ? ray.tmin : std::max(ray.tmin, -reach);
+      const double hi = last ? ray.tmax : std::min(ray.tmax, reach);
+      if (lo <= hi) {
+        const Vec2d a{s0.u + w.u * lo, s0.v + w.v * lo}, b{s0.u + w.u * hi, s0.v + w.v * hi};
+        const Impl::BinRange bins =
+            m.binRange({std::min(a.u, b.u) - slack, std::min(a.v, b.v) - slack,
+                        std::max(a.u, b.u) + slack, std::max(a.v, b.v) + slack});
+        added.clear();
+        for (int j = bins.v0; j <= bins.v1; ++j) {
+          for (int i = bins.u0; i <= bins.u1; ++i) {
+            const std::size_t bin = static_cast<std::size_t>(j) * m.binsU + i;
+            for (std::uint32_t e = m.binStart[bin]; e < m.binStart[bin + 1]; ++e) {
+              const std::uint32_t c = m.binCells[e];
+              if (meets(m.cellBoxes[c], lo, hi) &&
+                  (tested.empty() || !std::binary_search(tested.begin(), tested.end(), c)) &&
+                  std::find(added.begin(), added.end(), c) == added.end()) {
+                added.push_back(c);
+                if (const std::optional<Impl::CellHit> h = m.intersect(m.cells[c], line)) {
+                  found.push_back({m.distance(m.cells[c], *h, line), c, *h});
+                }
+              }
+            }
+          }
         }
-        if (backward.ray.tnear <= backward.ray.tfar) {
-          rtcIntersect1(m.scene, &context, &backward);
+        tested.insert(tested.end(), added.begin(), added.end());
+        std::sort(tested.begin(), tested.end());
+        std::sort(found.begin() + static_cast<std::ptrdiff_t>(settled), found.end(), nearer);
+      }
+      // Hits within the stretch, nearest first; one whose neighbourhood's best answer lies
+      // outside [tmin, tmax] gives way to the next.
+      for (; settled < found.size() && (last || std::fabs(found[settled].t) <= reach); ++settled) {
+        const Found& f = found[settled];
+        if (std::optional<CastHit> hit = m.resolve(f.cell, f.hit, line, ray.tmin, ray.tmax)) {
+          hits[r] = hit;
+          break;
         }
       }
-      const std::optional<CastHit> b = settle(i, 1, line);
-      // The nearest wins, the positive side on a tie.
-      if (a && b) {
-        const double da = std::fabs(a->distance), db = std::fabs(b->distance);
-        hits[first + i] = db < da || (db == da && b->distance > a->distance) ? b : a;
-      } else {
-        hits[first + i] = a ? a : b;
+      if (hits[r] || last) {
+        break;
       }
     }
   }

@@ -48,42 +48,40 @@ struct CastHit {
   double distance = 0;
 };
 
-/// B's surface as a set of triangles in a bounding volume hierarchy (Embree 3), for placing and
-/// comparing along the surface instead of along one up direction (issue 33): it answers "where
-/// does this line, within this distance of its origin, meet B's surface". It does not see B as a
-/// height function along one up direction: vertical walls, overhangs and tunnels are all surface.
+/// B's surface, indexed for placing and comparing along the surface instead of along one up
+/// direction (issue 33): it answers "where does this line, within this distance of its origin,
+/// meet B's surface". It does not see B as a height function along one up direction: vertical
+/// walls, overhangs and tunnels are all surface.
 ///
 /// B's surface: a cell with four defined corners is the bilinear surface of its corners, a cell
-/// with exactly three the triangle of those three, other cells have none. The hierarchy holds
-/// each full cell as two triangles, split along its shorter diagonal in 3D (the one nearer to the
-/// bilinear surface over a fold), as float32 triangles around an origin of the caster's own (the
-/// centre of the clip's box, else of all of B: a patch-local origin, so ECEF coordinates keep
-/// their precision). A hit found there only names the cell; the answer is then computed in double
-/// from the cell's double vertices: the ray is intersected with the cell's bilinear surface
-/// (Newton's method from the triangle's barycentric start, cell_geometry.hpp's inversion, in the
-/// plane across the ray) or triangle, so a hit lies on the ray and exactly on B's surface.
+/// with exactly three the triangle of those three, other cells have none. The ray is intersected
+/// with a cell in double, from the cell's double vertices: with its bilinear surface (Newton's
+/// method from the triangles' barycentric start, cell_geometry.hpp's inversion, in the plane
+/// across the ray) or its triangle, so a hit lies on the ray and exactly on B's surface.
+///
+/// The index: a bounding volume hierarchy that needs no build, B's grid itself seen along one
+/// axis. The cells are projected along their dominant normal onto the plane across it, and a
+/// uniform grid of bins lists the cells whose projected box (grown by B's border tolerance) meets
+/// each bin. A ray's segment [tmin, tmax] casts a shadow in that plane; every cell whose box meets
+/// the shadow is intersected. Rays along the axis (a merge's, along the target's normals over a
+/// B of about its orientation) have point-sized shadows and meet one or two cells; others meet
+/// more, and every answer is exact whatever the axis. (Embree, which the first version used,
+/// spent more time building its hierarchy per clipped caster than casting: see
+/// tests/bench/results/caster.txt.)
 ///
 /// The rule for folds, overhangs and tunnels: the hit nearest to the origin (smallest |t|) within
-/// [tmin, tmax] wins, the positive side on a tie. Where the hit lies on or within float32 rounding
-/// of a cell's border (a ray through a shared edge or vertex, which the hierarchy may report in
-/// either cell), the cell's neighbours in its grid, and across a seam the other grids' cells
-/// sharing a corner with it, are intersected too, and the answer is the smallest (distance outside
-/// the cell in grid units, |t|, cell in grid order): it does not depend on which cell the float
-/// traversal reported, nor on the caster's origin or clip. B's border: a ray within
-/// kBorderTolerance (cell_geometry.hpp: 1/32) grid units of a cell (its parameter clamped onto the
-/// cell, or a triangle's barycentric coordinates clamped and re-normalised) takes the cell's
-/// nearest point, at its distance along the ray (the point stays on the ray). The hierarchy finds
-/// those through skirts, strips of triangles outside every border edge of B (its outer border and
-/// around holes), a little wider than the tolerance: a hit the double resolution refuses (there,
-/// or out of [tmin, tmax]) does not hide a farther one, the ray goes on past it. Not covered: the
-/// quarter disc of the tolerance around a convex corner of B, outside both neighbouring edges'
-/// strips.
+/// [tmin, tmax] wins, the positive side on a tie. Where the hit lies on or near a cell's border
+/// (a ray through a shared edge or vertex), the cell's neighbours in its grid, and across a seam
+/// the other grids' cells sharing a corner with it, are intersected too, and the answer is the
+/// smallest (distance outside the cell in grid units, |t|, cell in grid order): it does not depend
+/// on the caster's clip. B's border: a ray within kBorderTolerance (cell_geometry.hpp: 1/32) grid
+/// units of a cell (its parameter clamped onto the cell, or a triangle's barycentric coordinates
+/// clamped and re-normalised) takes the cell's nearest point, at its distance along the ray (the
+/// point stays on the ray).
 ///
-/// Traversal is watertight within a grid (Embree's robust mode: a ray through a shared edge or
-/// vertex hits one of its triangles) and across the seams between B's grids (their border
-/// vertices within 1e-4 of a cell edge of each other are one vertex of the float mesh). The
-/// hierarchy is built and cast on the calling thread (Embree runs with threads=1: core creates no
-/// threads). Thread-safe for concurrent const calls.
+/// Seams between B's grids: their border vertices within 1e-4 of a cell edge of each other are
+/// one seam group, so a hit there is resolved among the cells of both grids. Everything runs on
+/// the calling thread. Thread-safe for concurrent const calls.
 class SurfaceCaster {
  public:
   /// Cells per side of the blocks blockBoxes() describes.
@@ -115,7 +113,7 @@ class SurfaceCaster {
 
   /// `grids`: B's bottom grids (vertex data copied in double, after `transform` when given; null
   /// entries are skipped). Throws Error(InvalidArgument) when `clip`'s blocks do not match the
-  /// grids, Error(Internal) when Embree fails.
+  /// grids.
   explicit SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>& grids,
                          const std::optional<Mat4d>& transform = std::nullopt,
                          const std::optional<Clip>& clip = std::nullopt);
@@ -125,17 +123,10 @@ class SurfaceCaster {
   SurfaceCaster(const SurfaceCaster&) = delete;
   SurfaceCaster& operator=(const SurfaceCaster&) = delete;
 
-  /// How a batch goes through Embree: rtcIntersect1 per ray (the default: the backward ray is then
-  /// cut at the forward hit's distance, and tests/bench/caster_bench.sh measured it faster, in
-  /// grid and in random order), or rtcIntersect1M over chunks of rays (a stream).
-  enum class Batch { Single, Stream };
-
   /// The nearest hit of each ray (see the class comment); nullopt where there is none within
   /// [tmin, tmax], or for a ray with an undefined or zero direction or origin. `hits` must have
-  /// rays.size() elements (Error(InvalidArgument) otherwise). Rays in grid order (neighbours
-  /// after each other) traverse coherently, several times faster than in random order.
-  void cast(std::span<const CastRay> rays, std::span<std::optional<CastHit>> hits,
-            Batch batch = Batch::Single) const;
+  /// rays.size() elements (Error(InvalidArgument) otherwise).
+  void cast(std::span<const CastRay> rays, std::span<std::optional<CastHit>> hits) const;
   std::optional<CastHit> cast(const CastRay& ray) const;
 
   /// Cells built (full quads and 3-corner triangles), and their triangles (without skirts).
@@ -143,7 +134,7 @@ class SurfaceCaster {
   std::size_t triangleCount() const;
   /// Box of the cells built (global).
   const Box3d& bounds() const;
-  /// Bytes held by the caster's own arrays, plus an estimate of the hierarchy's.
+  /// Bytes held by the caster's arrays (vertices, cells, bins).
   std::size_t bytes() const;
 
  private:

@@ -1,11 +1,10 @@
-// Benchmark (not a test): SurfaceCaster (core/merge/surface_caster.hpp, Embree 3) on one core.
+// Benchmark (not a test): SurfaceCaster (core/merge/surface_caster.hpp) on one core.
 // B is a wavy, tilted surface in grids x grids patches of 257 x 257 sharing their borders
-// (4 x 2 patches: 1,048,576 triangles). Measures the construction (vertex copy, seam welding,
-// Embree's hierarchy) and the rays per second of rays cast along the surface's normal from
-// points up to one spacing off it (search distance two spacings, both directions), one per
-// vertex of a lattice twice as fine as B's, in grid order (row by row, as a merge places a new
-// patch) and in random order, through rtcIntersect1M (stream) and rtcIntersect1 per ray (single).
-// Each figure is the median of --repeat runs.
+// (4 x 2 patches: 1,048,576 triangles). Measures the construction (vertex copy, seam groups, the
+// bins) and the rays per second of rays cast along the surface's normal from points up to one
+// spacing off it (search distance two spacings, both directions), one per vertex of a lattice
+// twice as fine as B's, in grid order (row by row, as a merge places a new patch) and in random
+// order. Each figure is the median of --repeat runs.
 //
 //   caster_bench [--grids-x N] [--grids-y N] [--repeat N]
 #include <unistd.h>
@@ -139,30 +138,26 @@ int main(int argc, char** argv) {
               caster->cellCount(), grids.size(), kSize, kSize, kSpacing);
   std::printf(
       "build: median %.3f s CPU (%.3f s wall) of %d; resident growth %.1f MB "
-      "(%.0f bytes/triangle), bytes() estimate %.1f MB\n",
+      "(%.0f bytes/triangle), bytes() %.1f MB\n",
       median(buildCpu), median(build), repeat, static_cast<double>(rssGrowth) / 1e6,
       static_cast<double>(rssGrowth) / static_cast<double>(triangles),
       static_cast<double>(bytesEstimate) / 1e6);
   for (const bool random : {false, true}) {
-    for (const SurfaceCaster::Batch batch :
-         {SurfaceCaster::Batch::Stream, SurfaceCaster::Batch::Single}) {
-      const std::vector<CastRay>& set = random ? shuffled : rays;
-      std::vector<double> rates, cpuRates;
-      std::size_t hitCount = 0;
-      for (int r = 0; r < repeat; ++r) {
-        const auto start = std::chrono::steady_clock::now();
-        const double cpu = cpuSeconds();
-        caster->cast(set, hits, batch);
-        cpuRates.push_back(static_cast<double>(set.size()) / (cpuSeconds() - cpu));
-        rates.push_back(static_cast<double>(set.size()) / seconds(start));
-        hitCount = static_cast<std::size_t>(
-            std::count_if(hits.begin(), hits.end(), [](const auto& h) { return h.has_value(); }));
-      }
-      std::printf(
-          "%-6s order, %-6s: median %.2f M rays/s CPU (%.2f M/s wall) of %d (%zu rays, %zu hit)\n",
-          random ? "random" : "grid", batch == SurfaceCaster::Batch::Stream ? "stream" : "single",
-          median(cpuRates) / 1e6, median(rates) / 1e6, repeat, set.size(), hitCount);
+    const std::vector<CastRay>& set = random ? shuffled : rays;
+    std::vector<double> rates, cpuRates;
+    std::size_t hitCount = 0;
+    for (int r = 0; r < repeat; ++r) {
+      const auto start = std::chrono::steady_clock::now();
+      const double cpu = cpuSeconds();
+      caster->cast(set, hits);
+      cpuRates.push_back(static_cast<double>(set.size()) / (cpuSeconds() - cpu));
+      rates.push_back(static_cast<double>(set.size()) / seconds(start));
+      hitCount = static_cast<std::size_t>(
+          std::count_if(hits.begin(), hits.end(), [](const auto& h) { return h.has_value(); }));
     }
+    std::printf("%-6s order: median %.2f M rays/s CPU (%.2f M/s wall) of %d (%zu rays, %zu hit)\n",
+                random ? "random" : "grid", median(cpuRates) / 1e6, median(rates) / 1e6, repeat,
+                set.size(), hitCount);
   }
   return 0;
 }

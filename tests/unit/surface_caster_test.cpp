@@ -510,9 +510,12 @@ TEST(SurfaceCaster, RaysThroughEdgesAndVerticesHitAndClipsChangeNothing) {
       rays.push_back({q + Vec3d{-0.3, 0.1, 1}, {-0.3, 0.1, 1}, -2, 2});
     }
   }
+  // Cast as one batch and one by one.
   std::vector<std::optional<CastHit>> stream(rays.size()), single(rays.size());
-  whole.cast(rays, stream, SurfaceCaster::Batch::Stream);
-  whole.cast(rays, single, SurfaceCaster::Batch::Single);
+  whole.cast(rays, stream);
+  for (std::size_t r = 0; r < rays.size(); ++r) {
+    single[r] = whole.cast(rays[r]);
+  }
   // A clipped caster (the box around one quarter of B, rays inside it) answers bit-identically.
   SurfaceCaster::Clip clip{Box3d{{7, 9, -100}, {17, 22, 100}}, {}};
   for (const auto& b : blocks) {
