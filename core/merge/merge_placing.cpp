@@ -269,7 +269,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
         // The box of the rays' ends: every ray (and every texel's, between its corners') lies
         // in it, and B's cells outside it are not built (a box grown by the search distance on
         // every side would hold all of a small B under a coarse target, for every new patch).
-        normals = subdivider->normals(leaf.level, leaf.i, leaf.j);
+        normals = subdivider->normals(leaf.level, leaf.i, leaf.j, positions);
         Box3d reach;
         for (std::size_t v = 0; v < positions.size(); ++v) {
           if (positions[v].finite() && normals[v].finite()) {

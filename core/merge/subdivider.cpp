@@ -154,9 +154,9 @@ Vec3d Subdivider::extended(std::int64_t u, std::int64_t v) const {
   return weights == 1 ? sum : sum * (1.0 / weights);
 }
 
-Vec3d Subdivider::normal(std::int64_t u, std::int64_t v) const {
+Vec3d Subdivider::normalFrom(const Vec3d& p, const Vec3d& west, const Vec3d& east,
+                             const Vec3d& south, const Vec3d& north) {
   const Vec3d nan{kNaN, kNaN, kNaN};
-  const Vec3d p = interpolate(u, v);
   if (!p.finite()) {
     return nan;
   }
@@ -174,8 +174,8 @@ Vec3d Subdivider::normal(std::int64_t u, std::int64_t v) const {
     }
     return std::nullopt;
   };
-  const std::optional<Vec3d> du = across(extended(u - 1, v), extended(u + 1, v));
-  const std::optional<Vec3d> dv = across(extended(u, v - 1), extended(u, v + 1));
+  const std::optional<Vec3d> du = across(west, east);
+  const std::optional<Vec3d> dv = across(south, north);
   if (!du || !dv) {
     return nan;
   }
@@ -188,12 +188,44 @@ Vec3d Subdivider::normal(std::int64_t u, std::int64_t v) const {
   return n * (1.0 / length);
 }
 
+Vec3d Subdivider::normal(std::int64_t u, std::int64_t v) const {
+  const Vec3d p = interpolate(u, v);
+  if (!p.finite()) {
+    return p;
+  }
+  return normalFrom(p, extended(u - 1, v), extended(u + 1, v), extended(u, v - 1),
+                    extended(u, v + 1));
+}
+
 std::vector<Vec3d> Subdivider::positions(int level, std::uint32_t i, std::uint32_t j) const {
   return lattice(level, i, j, [this](std::int64_t u, std::int64_t v) { return interpolate(u, v); });
 }
 
-std::vector<Vec3d> Subdivider::normals(int level, std::uint32_t i, std::uint32_t j) const {
-  return lattice(level, i, j, [this](std::int64_t u, std::int64_t v) { return normal(u, v); });
+std::vector<Vec3d> Subdivider::normals(int level, std::uint32_t i, std::uint32_t j,
+                                       const std::vector<Vec3d>& positions) const {
+  const auto n = static_cast<std::size_t>(size_);
+  if (positions.size() != n * n) {
+    throw Error(ErrorCode::InvalidArgument, "subdivide: positions of another patch size");
+  }
+  if (level != k_) {  // the lattice's neighbours are not level-k steps apart
+    return lattice(level, i, j, [this](std::int64_t u, std::int64_t v) { return normal(u, v); });
+  }
+  const std::int64_t cells = size_ - 1;
+  const std::int64_t u0 = static_cast<std::int64_t>(i) * cells;
+  const std::int64_t v0 = static_cast<std::int64_t>(j) * cells;
+  std::vector<Vec3d> out(n * n);
+  for (int y = 0; y < size_; ++y) {
+    for (int x = 0; x < size_; ++x) {
+      const std::size_t at = static_cast<std::size_t>(y) * n + static_cast<std::size_t>(x);
+      const std::int64_t u = u0 + x, v = v0 + y;
+      const Vec3d& p = positions[at];
+      out[at] = normalFrom(p, x > 0 ? positions[at - 1] : extended(u - 1, v),
+                           x < size_ - 1 ? positions[at + 1] : extended(u + 1, v),
+                           y > 0 ? positions[at - n] : extended(u, v - 1),
+                           y < size_ - 1 ? positions[at + n] : extended(u, v + 1));
+    }
+  }
+  return out;
 }
 
 template <typename At>
@@ -235,22 +267,40 @@ Subdivider::Vertices Subdivider::vertexRange(int level, std::uint32_t i, std::ui
   return r;
 }
 
-std::vector<Vec3d> Subdivider::around(int level, std::uint32_t i, std::uint32_t j) const {
-  const auto [x0, x1, y0, y1] = vertexRange(level, i, j);
-  std::vector<Vec3d> points;
+Ball Subdivider::ballOver(std::int64_t x0, std::int64_t x1, std::int64_t y0,
+                          std::int64_t y1) const {
+  auto at = [&](std::int64_t x, std::int64_t y) -> const Vec3d& {
+    return global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
+  };
+  Vec3d sum;
+  std::size_t count = 0;
   for (std::int64_t y = y0; y <= y1; ++y) {
     for (std::int64_t x = x0; x <= x1; ++x) {
-      const Vec3d& p = global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
-      if (p.finite()) {
-        points.push_back(p);
+      if (const Vec3d& p = at(x, y); p.finite()) {
+        sum = sum + p;
+        ++count;
       }
     }
   }
-  return points;
+  Ball ball;
+  if (count == 0) {
+    return ball;
+  }
+  ball.centre = sum * (1.0 / static_cast<double>(count));
+  ball.radius = 0;
+  for (std::int64_t y = y0; y <= y1; ++y) {
+    for (std::int64_t x = x0; x <= x1; ++x) {
+      if (const Vec3d& p = at(x, y); p.finite()) {
+        ball.radius = std::max(ball.radius, (p - ball.centre).norm());
+      }
+    }
+  }
+  return ball;
 }
 
 Ball Subdivider::ball(int level, std::uint32_t i, std::uint32_t j) const {
-  return ballOf(around(level, i, j));
+  const auto [x0, x1, y0, y1] = vertexRange(level, i, j);
+  return ballOver(x0, x1, y0, y1);
 }
 
 std::vector<Ball> Subdivider::balls(int level, std::uint32_t i, std::uint32_t j, int parts) const {
@@ -261,22 +311,11 @@ std::vector<Ball> Subdivider::balls(int level, std::uint32_t i, std::uint32_t j,
   const std::int64_t nx = std::min<std::int64_t>(parts, std::max<std::int64_t>(x1 - x0, 1));
   const std::int64_t ny = std::min<std::int64_t>(parts, std::max<std::int64_t>(y1 - y0, 1));
   std::vector<Ball> result;
-  std::vector<Vec3d> points;
   for (std::int64_t gy = 0; gy < ny; ++gy) {
     for (std::int64_t gx = 0; gx < nx; ++gx) {
-      points.clear();
       const std::int64_t ya = y0 + (y1 - y0) * gy / ny, yb = y0 + (y1 - y0) * (gy + 1) / ny;
       const std::int64_t xa = x0 + (x1 - x0) * gx / nx, xb = x0 + (x1 - x0) * (gx + 1) / nx;
-      for (std::int64_t y = ya; y <= yb; ++y) {
-        for (std::int64_t x = xa; x <= xb; ++x) {
-          const Vec3d& p =
-              global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
-          if (p.finite()) {
-            points.push_back(p);
-          }
-        }
-      }
-      if (const Ball b = ballOf(points); !b.empty()) {
+      if (const Ball b = ballOver(xa, xb, ya, yb); !b.empty()) {
         result.push_back(b);
       }
     }
@@ -339,9 +378,16 @@ std::optional<Subdivider::Cone> Subdivider::normalCone(int level, std::uint32_t 
 }
 
 Box3d Subdivider::box(int level, std::uint32_t i, std::uint32_t j) const {
+  const auto [x0, x1, y0, y1] = vertexRange(level, i, j);
   Box3d box;
-  for (const Vec3d& p : around(level, i, j)) {
-    box.extend(p);
+  for (std::int64_t y = y0; y <= y1; ++y) {
+    for (std::int64_t x = x0; x <= x1; ++x) {
+      if (const Vec3d& p =
+              global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
+          p.finite()) {
+        box.extend(p);
+      }
+    }
   }
   return box;
 }

@@ -75,8 +75,11 @@ class Subdivider {
   /// Global positions (row-major, size x size, NaN = undefined) of patch (i, j) of level `level`
   /// (0..k; 0 <= i, j < 2^level): A's surface interpolated there.
   std::vector<Vec3d> positions(int level, std::uint32_t i, std::uint32_t j) const;
-  /// The normals at those positions (row-major as positions()).
-  std::vector<Vec3d> normals(int level, std::uint32_t i, std::uint32_t j) const;
+  /// The normals at those positions (row-major as positions()); `positions` must be
+  /// positions(level, i, j): at level k its neighbours inside the patch are taken from it (the
+  /// very values normal() would interpolate again), the rest is computed.
+  std::vector<Vec3d> normals(int level, std::uint32_t i, std::uint32_t j,
+                             const std::vector<Vec3d>& positions) const;
 
   /// The Ball and the box of a's defined vertices around the cells patch (i, j) of `level`
   /// covers: every position interpolated there lies inside both.
@@ -110,8 +113,11 @@ class Subdivider {
     std::int64_t x0 = 0, x1 = 0, y0 = 0, y1 = 0;
   };
   Vertices vertexRange(int level, std::uint32_t i, std::uint32_t j) const;
-  /// A's defined vertices around the cells of patch (i, j) of `level`.
-  std::vector<Vec3d> around(int level, std::uint32_t i, std::uint32_t j) const;
+  /// The Ball of a's defined vertices [x0, x1] x [y0, y1] (ballOf()'s, without a copy).
+  Ball ballOver(std::int64_t x0, std::int64_t x1, std::int64_t y0, std::int64_t y1) const;
+  /// normal()'s rule from the position at the vertex and its four neighbours.
+  static Vec3d normalFrom(const Vec3d& p, const Vec3d& west, const Vec3d& east, const Vec3d& south,
+                          const Vec3d& north);
   /// interpolate(), extended by one level-0 cell beyond a's border into the ring (u or v in
   /// [-2^k, 0) or ((s-1) 2^k, s 2^k]); NaN beyond that or where the ring is undefined.
   Vec3d extended(std::int64_t u, std::int64_t v) const;

@@ -112,7 +112,7 @@ struct SurfaceCaster::Impl {
   };
   UpFrame binFrame{Vec3d{}, Vec3d{0, 0, 1}};
   std::vector<Box2> cellBoxes;
-  double binU0 = 0, binV0 = 0, binSize = 1;
+  double binU0 = 0, binV0 = 0, binSize = 1, perBin = 1;  // perBin = 1 / binSize
   int binsU = 0, binsV = 0;
   std::vector<std::uint32_t> binStart;
   std::vector<std::uint32_t> binCells;
@@ -140,10 +140,10 @@ struct SurfaceCaster::Impl {
     int u0 = 0, v0 = 0, u1 = -1, v1 = -1;
   };
   BinRange binRange(const Box2& b) const {
-    const double fu0 = std::floor((b.u0 - binU0) / binSize);
-    const double fv0 = std::floor((b.v0 - binV0) / binSize);
-    const double fu1 = std::floor((b.u1 - binU0) / binSize);
-    const double fv1 = std::floor((b.v1 - binV0) / binSize);
+    const double fu0 = std::floor((b.u0 - binU0) * perBin);
+    const double fv0 = std::floor((b.v0 - binV0) * perBin);
+    const double fu1 = std::floor((b.u1 - binU0) * perBin);
+    const double fv1 = std::floor((b.v1 - binV0) * perBin);
     if (!(fu1 >= 0 && fv1 >= 0 && fu0 < binsU && fv0 < binsV)) {
       return {};
     }
@@ -406,7 +406,6 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     std::uint32_t vertex, grid;
   };
   std::vector<BorderVertex> border;  // vertices on their grid's border
-  std::vector<Vec3d> global;
   for (std::size_t gridIndex = 0; gridIndex < grids.size(); ++gridIndex) {
     const auto& grid = grids[gridIndex];
     if (!grid) {
@@ -423,71 +422,80 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
       }
     }
     index.assign(static_cast<std::size_t>(s) * s, kNone);
-    global.assign(index.size(), Vec3d{});
-    std::vector<char> computed(index.size(), 0);
-    auto at = [&](int x, int y) -> const Vec3d& {
-      const std::size_t i = static_cast<std::size_t>(y) * s + x;
-      if (!computed[i]) {
-        const Vec3d g = grid->global(x, y);
-        global[i] = transform ? transform->apply(g) : g;
-        computed[i] = 1;
-      }
-      return global[i];
+    auto at = [&](int x, int y) {
+      const Vec3d g = grid->global(x, y);
+      return transform ? transform->apply(g) : g;
     };
     auto vertex = [&](int x, int y) {
       const std::size_t i = static_cast<std::size_t>(y) * s + x;
       if (index[i] == kNone) {
         index[i] = static_cast<std::uint32_t>(m.vertices.size());
         m.vertices.push_back(at(x, y));
+        m.bounds.extend(m.vertices.back());  // every vertex is a built cell's corner
         if (x == 0 || y == 0 || x == s - 1 || y == s - 1) {
           border.push_back({index[i], static_cast<std::uint32_t>(gridIndex)});
         }
       }
       return index[i];
     };
-    const std::size_t firstCell = m.cells.size();
-    for (int by = 0; by < blocksPerSide; ++by) {
-      for (int bx = 0; bx < blocksPerSide; ++bx) {
-        if (!blocks.empty()) {
-          const Box3d& b = blocks[static_cast<std::size_t>(by) * blocksPerSide + bx];
-          if (b.empty() || !wanted(b)) {
-            continue;
-          }
-        }
-        for (int y = by * kBlockCells; y < std::min((by + 1) * kBlockCells, s - 1); ++y) {
-          for (int x = bx * kBlockCells; x < std::min((bx + 1) * kBlockCells, s - 1); ++x) {
-            int defined = 0;
-            Box3d box;
-            for (int k = 0; k < 4; ++k) {
-              if (grid->defined(x + kCornerX[k], y + kCornerY[k])) {
-                ++defined;
-                box.extend(at(x + kCornerX[k], y + kCornerY[k]));
-              }
-            }
-            if (defined < 3 || !wanted(box)) {
-              continue;
-            }
-            Impl::Cell cell{{kNone, kNone, kNone, kNone},
-                            static_cast<std::uint32_t>(gridIndex),
-                            static_cast<std::uint32_t>(x),
-                            static_cast<std::uint32_t>(y)};
-            for (int k = 0; k < 4; ++k) {
-              if (grid->defined(x + kCornerX[k], y + kCornerY[k])) {
-                cell.corners[k] = vertex(x + kCornerX[k], y + kCornerY[k]);
-              }
-            }
-            m.cells.push_back(cell);
-            m.bounds.extend(box);
-          }
+    // Per block: 0 skipped, 1 its cells tested one by one against the clip, 2 all wanted (no
+    // clip, or the block's grown box inside the clip's box: a cell's grown box lies in its
+    // block's).
+    std::vector<char> state(static_cast<std::size_t>(blocksPerSide) * blocksPerSide, clip ? 1 : 2);
+    if (clip && !blocks.empty()) {
+      const Box3d& c = clip->box;
+      for (std::size_t i = 0; i < state.size(); ++i) {
+        const Box3d& b = blocks[i];
+        if (b.empty() || !wanted(b)) {
+          state[i] = 0;
+        } else if (const Box3d g = grownBox(b); c.min.x <= g.min.x && c.min.y <= g.min.y &&
+                                                c.min.z <= g.min.z && g.max.x <= c.max.x &&
+                                                g.max.y <= c.max.y && g.max.z <= c.max.z) {
+          state[i] = 2;
         }
       }
     }
-    // Blocks were visited block by block: put the grid's cells in grid order (row by row), which
-    // the tie rule (smallest cell) and coherent traversal want.
-    std::sort(m.cells.begin() + static_cast<std::ptrdiff_t>(firstCell), m.cells.end(),
-              [](const Impl::Cell& a, const Impl::Cell& b) {
-                return a.y != b.y ? a.y < b.y : a.x < b.x;
-              });
+    // Row by row (grid order, which the tie rule (smallest cell) wants), over the wanted blocks.
+    const std::size_t firstCell = m.cells.size();
+    for (int y = 0; y < s - 1; ++y) {
+      const int by = y / kBlockCells;
+      for (int bx = 0; bx < blocksPerSide; ++bx) {
+        const char blockState = state[static_cast<std::size_t>(by) * blocksPerSide + bx];
+        if (blockState == 0) {
+          continue;
+        }
+        for (int x = bx * kBlockCells; x < std::min((bx + 1) * kBlockCells, s - 1); ++x) {
+          int defined = 0;
+          for (int k = 0; k < 4; ++k) {
+            defined += grid->defined(x + kCornerX[k], y + kCornerY[k]) ? 1 : 0;
+          }
+          if (defined < 3) {
+            continue;
+          }
+          if (blockState == 1) {
+            Box3d box;
+            for (int k = 0; k < 4; ++k) {
+              if (grid->defined(x + kCornerX[k], y + kCornerY[k])) {
+                box.extend(at(x + kCornerX[k], y + kCornerY[k]));
+              }
+            }
+            if (!wanted(box)) {
+              continue;
+            }
+          }
+          Impl::Cell cell{{kNone, kNone, kNone, kNone},
+                          static_cast<std::uint32_t>(gridIndex),
+                          static_cast<std::uint32_t>(x),
+                          static_cast<std::uint32_t>(y)};
+          for (int k = 0; k < 4; ++k) {
+            if (grid->defined(x + kCornerX[k], y + kCornerY[k])) {
+              cell.corners[k] = vertex(x + kCornerX[k], y + kCornerY[k]);
+            }
+          }
+          m.cells.push_back(cell);
+        }
+      }
+    }
     if (m.cells.size() > firstCell) {
       Impl::GridCells& gc = m.gridCells[gridIndex];
       int x0 = s, y0 = s, x1 = -1, y1 = -1;
@@ -671,6 +679,7 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   m.binU0 = u0;
   m.binV0 = v0;
   m.binSize = side;
+  m.perBin = 1 / side;
   m.binsU = std::max(1, static_cast<int>(std::min(maxBins, std::ceil((u1 - u0) / side))));
   m.binsV = std::max(1, static_cast<int>(std::min(maxBins, std::ceil((v1 - v0) / side))));
   m.binStart.assign(static_cast<std::size_t>(m.binsU) * m.binsV + 1, 0);
@@ -765,6 +774,7 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
   };
   std::vector<std::uint32_t> tested, added;
   std::vector<Found> found;
+  double lastDistance = 0;
   for (std::size_t r = 0; r < rays.size(); ++r) {
     const CastRay& ray = rays[r];
     const double length = ray.direction.norm();
@@ -803,12 +813,14 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
     };
     // Rounds over a growing stretch [-reach, reach] of the ray: once every cell the stretch can
     // meet is intersected, a hit within it is final (no farther cell can be nearer), so a ray
-    // that meets B near its origin, as a merge's mostly do, looks at a few cells only.
+    // that meets B near its origin, as a merge's mostly do, looks at a few cells only. The first
+    // stretch: twice the last hit's distance (rays in grid order meet B at about the same), at
+    // least an eighth of a bin. (Only the work depends on it, never the answer.)
     tested.clear();
     found.clear();
     std::size_t settled = 0;  // found[0, settled) were resolved and refused
     const double farthest = std::max(std::fabs(ray.tmin), std::fabs(ray.tmax));
-    for (double reach = m.binSize / 4;; reach *= 4) {
+    for (double reach = std::max(m.binSize / 8, 2 * lastDistance);; reach *= 4) {
       const bool last = reach >= farthest;
       const double lo = last ? ray.tmin : std::max(ray.tmin, -reach);
       const double hi = last ? ray.tmax : std::min(ray.tmax, reach);
@@ -843,6 +855,7 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
       for (; settled < found.size() && (last || std::fabs(found[settled].t) <= reach); ++settled) {
         const Found& f = found[settled];
         if (std::optional<CastHit> hit = m.resolve(f.cell, f.hit, line, ray.tmin, ray.tmax)) {
+          lastDistance = std::fabs(hit->distance);
           hits[r] = hit;
           break;
         }

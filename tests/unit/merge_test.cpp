@@ -310,7 +310,14 @@ TEST(Subdivider, NewPatchesShareBitIdenticalBorders) {
   for (std::uint32_t j = 0; j < 4; ++j) {
     for (std::uint32_t i = 0; i < 4; ++i) {
       patches[{i, j}] = sub.positions(k, i, j);
-      normals[{i, j}] = sub.normals(k, i, j);
+      normals[{i, j}] = sub.normals(k, i, j, patches[{i, j}]);
+      // The same, bit for bit, as normal() at each union vertex.
+      for (int y = 0; y < 17; ++y) {
+        for (int x = 0; x < 17; ++x) {
+          ASSERT_TRUE(sameBits(normals[{i, j}][y * 17 + x], sub.normal(16 * i + x, 16 * j + y)))
+              << i << "," << j << " " << x << "," << y;
+        }
+      }
     }
   }
   const int s = 17;
