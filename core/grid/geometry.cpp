@@ -4,11 +4,6 @@
 
 namespace vsm::core {
 
-void Box3d::extend(const Vec3d& p) {
-  min = {std::min(min.x, p.x), std::min(min.y, p.y), std::min(min.z, p.z)};
-  max = {std::max(max.x, p.x), std::max(max.y, p.y), std::max(max.z, p.z)};
-}
-
 void Box3d::extend(const Box3d& b) {
   if (!b.empty()) {
     extend(b.min);

@@ -1,5 +1,7 @@
 #pragma once
 
+#include <algorithm>
+
 #include <array>
 #include <cmath>
 #include <limits>
@@ -28,7 +30,10 @@ struct Box3d {
   Vec3d max{-kInf, -kInf, -kInf};
 
   bool empty() const { return min.x > max.x || min.y > max.y || min.z > max.z; }
-  void extend(const Vec3d& p);
+  void extend(const Vec3d& p) {
+    min = {std::min(min.x, p.x), std::min(min.y, p.y), std::min(min.z, p.z)};
+    max = {std::max(max.x, p.x), std::max(max.y, p.y), std::max(max.z, p.z)};
+  }
   void extend(const Box3d& b);
   Vec3d center() const { return (min + max) * 0.5; }
   Vec3d size() const { return max - min; }
