@@ -3,6 +3,7 @@
 #include <functional>
 #include <memory>
 #include <optional>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -287,13 +288,20 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
         }
         caster.emplace(grids, options.transform, std::move(clip));
         grids.clear();  // the caster holds its own copy: unpinned while the rays are cast
-        std::vector<CastRay> rays(positions.size());
-        for (std::size_t v = 0; v < positions.size(); ++v) {
-          // An undefined origin or normal casts nothing (the caster answers nullopt).
-          rays[v] = {positions[v], normals[v], -search, search};
-        }
+        // In chunks of rays (in grid order), so that no array of all of them is made.
+        constexpr std::size_t kRays = 1024;
+        std::vector<CastRay> rays;
+        rays.reserve(kRays);
         onDetail.resize(positions.size());
-        caster->cast(rays, onDetail);
+        for (std::size_t first = 0; first < positions.size(); first += kRays) {
+          const std::size_t end = std::min(positions.size(), first + kRays);
+          rays.clear();
+          for (std::size_t v = first; v < end; ++v) {
+            // An undefined origin or normal casts nothing (the caster answers nullopt).
+            rays.push_back({positions[v], normals[v], -search, search});
+          }
+          caster->cast(rays, std::span(onDetail).subspan(first, end - first));
+        }
         for (std::size_t v = 0; v < positions.size(); ++v) {
           if (onDetail[v]) {
             positions[v] = onDetail[v]->position;
@@ -302,10 +310,8 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
         }
       }
     }
+    // Without a caster, placeTexture reads neither normals nor onDetail (both empty).
     const SurfaceCaster* surface = caster ? &*caster : nullptr;
-    if (!surface) {
-      onDetail.assign(positions.size(), std::nullopt);
-    }
     const auto first =
         std::find_if(positions.begin(), positions.end(), [](const Vec3d& p) { return p.finite(); });
     if (first == positions.end()) {

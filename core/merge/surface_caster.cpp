@@ -102,6 +102,7 @@ struct SurfaceCaster::Impl {
   std::vector<std::vector<std::uint32_t>> seamCells;
   std::vector<GridCells> gridCells;
   Box3d bounds;
+  Box3d reachBox;  // holds every point a hit can report (bounds grown by the cells' margins)
 
   /// The bins: the cells projected along `axis` (binFrame's up: the cells' dominant normal) onto
   /// the plane across it, each cell's projected box grown by its border reach (cellBoxes), and a
@@ -631,6 +632,7 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   // the coordinates.
   m.cellBoxes.resize(m.cells.size());
   double sizeSum = 0;
+  double largestMargin = 0;
   for (std::size_t c = 0; c < m.cells.size(); ++c) {
     const auto& k = m.cells[c].corners;
     Impl::Box2 flat{
@@ -664,7 +666,17 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
                                            std::fabs(flat.u1) + std::fabs(flat.v1) + reach + 1);
     flat = {flat.u0 - margin, flat.v0 - margin, flat.u1 + margin, flat.v1 + margin};
     m.cellBoxes[c] = flat;
+    largestMargin = std::max(largestMargin, kBorderTolerance * reach);
     sizeSum += std::max(flat.u1 - flat.u0, flat.v1 - flat.v0);
+  }
+  // Every point a hit reports lies in the cells' bounds grown by the largest such margin.
+  {
+    const Box3d& b = m.bounds;
+    const double grow =
+        largestMargin + 1e-9 * (std::fabs(b.min.x) + std::fabs(b.min.y) + std::fabs(b.min.z) +
+                                std::fabs(b.max.x) + std::fabs(b.max.y) + std::fabs(b.max.z) + 1);
+    m.reachBox = {{b.min.x - grow, b.min.y - grow, b.min.z - grow},
+                  {b.max.x + grow, b.max.y + grow, b.max.z + grow}};
   }
   // Square bins about as wide as a cell's box (each cell in a few bins, a few cells per bin), at
   // most kBinsPerCell per cell however the boxes spread.
@@ -822,14 +834,38 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
     // stretch: twice the last hit's distance (rays in grid order meet B at about the same), at
     // least a quarter of a bin; then 8 times longer each round. (Only the work depends on them,
     // never the answer.)
+    // Only the part of [tmin, tmax] inside reachBox can hold a hit's point.
+    double searchMin = ray.tmin, searchMax = ray.tmax;
+    {
+      const double o[3] = {ray.origin.x, ray.origin.y, ray.origin.z}, dd[3] = {d.x, d.y, d.z};
+      const double bmin[3] = {m.reachBox.min.x, m.reachBox.min.y, m.reachBox.min.z};
+      const double bmax[3] = {m.reachBox.max.x, m.reachBox.max.y, m.reachBox.max.z};
+      for (int k = 0; k < 3; ++k) {
+        if (dd[k] == 0) {
+          if (o[k] < bmin[k] || o[k] > bmax[k]) {
+            searchMax = -std::numeric_limits<double>::infinity();
+          }
+          continue;
+        }
+        double t0 = (bmin[k] - o[k]) / dd[k], t1 = (bmax[k] - o[k]) / dd[k];
+        if (t0 > t1) {
+          std::swap(t0, t1);
+        }
+        searchMin = std::max(searchMin, t0 - slack);
+        searchMax = std::min(searchMax, t1 + slack);
+      }
+    }
+    if (!(searchMin <= searchMax)) {
+      continue;
+    }
     tested.clear();
     found.clear();
     std::size_t settled = 0;  // found[0, settled) were resolved and refused
-    const double farthest = std::max(std::fabs(ray.tmin), std::fabs(ray.tmax));
+    const double farthest = std::max(std::fabs(searchMin), std::fabs(searchMax));
     for (double reach = std::max(m.binSize / 4, 2 * lastDistance);; reach *= 8) {
       const bool last = reach >= farthest;
-      const double lo = last ? ray.tmin : std::max(ray.tmin, -reach);
-      const double hi = last ? ray.tmax : std::min(ray.tmax, reach);
+      const double lo = last ? searchMin : std::max(searchMin, -reach);
+      const double hi = last ? searchMax : std::min(searchMax, reach);
       if (lo <= hi) {
         const Vec2d a{s0.u + w.u * lo, s0.v + w.v * lo}, b{s0.u + w.u * hi, s0.v + w.v * hi};
         const Impl::BinRange bins =
