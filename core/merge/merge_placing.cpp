@@ -19,6 +19,15 @@ namespace vsm::core::merge_stages {
 
 namespace {
 
+/// Where on B a vertex of a new patch was placed: B's grid (index into the caster's grids;
+/// kNotPlaced when the vertex was not placed on B) and the point's coordinates in that grid's
+/// vertex space (CastHit's), kept for the patch's texture.
+constexpr std::uint32_t kNotPlaced = 0xFFFFFFFFu;
+struct Placed {
+  std::uint32_t grid = kNotPlaced;
+  double x = 0, y = 0;
+};
+
 /// A's texture tile of a patch when it is in vsm's layout (one texel per grid quad); null
 /// otherwise (none, or a foreign tile of another size, which the merge cannot place).
 std::shared_ptr<const TextureTile> textureOf(PatchSource& source, const PatchKey& key) {
@@ -42,7 +51,7 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
                                                 const PatchGrid& grid, const TextureTile* aTile,
                                                 const SurfaceCaster* detail, double search,
                                                 const std::vector<Vec3d>& normals,
-                                                const std::vector<std::optional<CastHit>>& onDetail,
+                                                const std::vector<Placed>& onDetail,
                                                 const std::vector<const TextureTile*>& bTiles) {
   const bool fromDetail =
       detail != nullptr && level == subdivider.k() &&
@@ -69,16 +78,17 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
   // bilinear centre) is cast onto B along the quad's normal (the cross product of its diagonals).
   auto detailColour = [&](int p, int q) -> std::array<std::uint8_t, 4> {
     const std::size_t corner = static_cast<std::size_t>(q) * n + static_cast<std::size_t>(p);
-    const std::optional<CastHit>* c[4] = {&onDetail[corner], &onDetail[corner + 1],
-                                          &onDetail[corner + n], &onDetail[corner + n + 1]};
+    const Placed* c[4] = {&onDetail[corner], &onDetail[corner + 1], &onDetail[corner + n],
+                          &onDetail[corner + n + 1]};
     std::uint32_t b = 0;
     double x = 0, y = 0;
-    if (std::all_of(std::begin(c), std::end(c),
-                    [&](const auto* h) { return h->has_value() && (*h)->grid == (*c[0])->grid; })) {
-      b = (*c[0])->grid;
-      for (const auto* h : c) {
-        x += (*h)->x * 0.25;
-        y += (*h)->y * 0.25;
+    if (std::all_of(std::begin(c), std::end(c), [&](const Placed* h) {
+          return h->grid != kNotPlaced && h->grid == c[0]->grid;
+        })) {
+      b = c[0]->grid;
+      for (const Placed* h : c) {
+        x += h->x * 0.25;
+        y += h->y * 0.25;
       }
     } else {
       // Along the mean of the corners' normals, scaled so the ray's ends are the means of the
@@ -261,7 +271,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
     std::optional<SurfaceCaster> caster;
     std::vector<std::shared_ptr<const TextureTile>> textures;
     std::vector<const TextureTile*> tiles;
-    std::vector<std::optional<CastHit>> onDetail;
+    std::vector<Placed> onDetail;
     std::vector<Vec3d> normals;
     if (leaf.level == k) {
       const std::vector<std::size_t> near = detailNear(leaf.ball);
@@ -288,9 +298,11 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
         }
         caster.emplace(grids, options.transform, std::move(clip));
         grids.clear();  // the caster holds its own copy: unpinned while the rays are cast
-        // In chunks of rays (in grid order), so that no array of all of them is made.
+        // In chunks of rays (in grid order), so that no array of all of them (nor of their
+        // hits) is made.
         constexpr std::size_t kRays = 1024;
         std::vector<CastRay> rays;
+        std::vector<std::optional<CastHit>> hits;
         rays.reserve(kRays);
         onDetail.resize(positions.size());
         for (std::size_t first = 0; first < positions.size(); first += kRays) {
@@ -300,12 +312,14 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
             // An undefined origin or normal casts nothing (the caster answers nullopt).
             rays.push_back({positions[v], normals[v], -search, search});
           }
-          caster->cast(rays, std::span(onDetail).subspan(first, end - first));
-        }
-        for (std::size_t v = 0; v < positions.size(); ++v) {
-          if (onDetail[v]) {
-            positions[v] = onDetail[v]->position;
-            ++out.taken;
+          hits.resize(rays.size());
+          caster->cast(rays, hits);
+          for (std::size_t v = first; v < end; ++v) {
+            if (const std::optional<CastHit>& hit = hits[v - first]) {
+              positions[v] = hit->position;
+              onDetail[v] = {hit->grid, hit->x, hit->y};
+              ++out.taken;
+            }
           }
         }
       }

@@ -46,16 +46,38 @@ Ball ballOf(const std::vector<Vec3d>& points) {
 }
 
 Ball ballOf(const PatchGrid& grid, const std::optional<Mat4d>& transform) {
-  std::vector<Vec3d> points;
-  points.reserve(static_cast<std::size_t>(grid.size()) * grid.size());
+  // ballOf(points) over the defined vertices in row order, without copying them: two passes.
+  auto at = [&](int x, int y) {
+    return transform ? transform->apply(grid.global(x, y)) : grid.global(x, y);
+  };
+  Vec3d sum;
+  std::size_t count = 0;
   for (int y = 0; y < grid.size(); ++y) {
     for (int x = 0; x < grid.size(); ++x) {
       if (grid.defined(x, y)) {
-        points.push_back(transform ? transform->apply(grid.global(x, y)) : grid.global(x, y));
+        if (const Vec3d p = at(x, y); p.finite()) {
+          sum = sum + p;
+          ++count;
+        }
       }
     }
   }
-  return ballOf(points);
+  Ball ball;
+  if (count == 0) {
+    return ball;
+  }
+  ball.centre = sum * (1.0 / static_cast<double>(count));
+  ball.radius = 0;
+  for (int y = 0; y < grid.size(); ++y) {
+    for (int x = 0; x < grid.size(); ++x) {
+      if (grid.defined(x, y)) {
+        if (const Vec3d p = at(x, y); p.finite()) {
+          ball.radius = std::max(ball.radius, (p - ball.centre).norm());
+        }
+      }
+    }
+  }
+  return ball;
 }
 
 Subdivider::Subdivider(const PatchGrid& a, int k, const Ring& ring)
