@@ -356,42 +356,50 @@ std::optional<Subdivider::Cone> Subdivider::normalCone(int level, std::uint32_t 
   auto at = [&](std::int64_t x, std::int64_t y) -> const Vec3d& {
     return global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
   };
-  std::vector<Vec3d> normals;
-  normals.reserve(static_cast<std::size_t>(4 * (x1 - x0) * (y1 - y0)));
-  Vec3d sum;
-  for (std::int64_t y = y0; y < y1; ++y) {
-    for (std::int64_t x = x0; x < x1; ++x) {
-      const Vec3d& p00 = at(x, y);
-      const Vec3d& p10 = at(x + 1, y);
-      const Vec3d& p01 = at(x, y + 1);
-      const Vec3d& p11 = at(x + 1, y + 1);
-      if (!p00.finite() || !p10.finite() || !p01.finite() || !p11.finite()) {
-        return std::nullopt;
-      }
-      const Vec3d u[2] = {p10 - p00, p11 - p01};
-      const Vec3d v[2] = {p01 - p00, p11 - p10};
-      for (const Vec3d& eu : u) {
-        for (const Vec3d& ev : v) {
-          const Vec3d n = vec::cross(eu, ev);
-          const double length = n.norm();
-          if (!(length > 0) || !std::isfinite(length)) {
-            return std::nullopt;
+  // Calls f with each unit normal of those cells (four per cell: its edge vectors crossed);
+  // false when a cell has an undefined corner or a degenerate normal. Run twice (the sum, then
+  // the widest angle) rather than keeping the normals: at level 0 they are 4 x (s-1)^2.
+  auto eachNormal = [&](auto&& f) {
+    for (std::int64_t y = y0; y < y1; ++y) {
+      for (std::int64_t x = x0; x < x1; ++x) {
+        const Vec3d& p00 = at(x, y);
+        const Vec3d& p10 = at(x + 1, y);
+        const Vec3d& p01 = at(x, y + 1);
+        const Vec3d& p11 = at(x + 1, y + 1);
+        if (!p00.finite() || !p10.finite() || !p01.finite() || !p11.finite()) {
+          return false;
+        }
+        const Vec3d u[2] = {p10 - p00, p11 - p01};
+        const Vec3d v[2] = {p01 - p00, p11 - p10};
+        for (const Vec3d& eu : u) {
+          for (const Vec3d& ev : v) {
+            const Vec3d n = vec::cross(eu, ev);
+            const double length = n.norm();
+            if (!(length > 0) || !std::isfinite(length)) {
+              return false;
+            }
+            f(n * (1.0 / length));
           }
-          normals.push_back(n * (1.0 / length));
-          sum = sum + normals.back();
         }
       }
     }
+    return true;
+  };
+  Vec3d sum;
+  std::size_t count = 0;
+  if (!eachNormal([&](const Vec3d& n) {
+        sum = sum + n;
+        ++count;
+      })) {
+    return std::nullopt;
   }
   const double length = sum.norm();
-  if (normals.empty() || !(length > 0)) {
+  if (count == 0 || !(length > 0)) {
     return std::nullopt;
   }
   const Vec3d axis = sum * (1.0 / length);
   double cosine = 1;
-  for (const Vec3d& n : normals) {
-    cosine = std::min(cosine, vec::dot(n, axis));
-  }
+  eachNormal([&](const Vec3d& n) { cosine = std::min(cosine, vec::dot(n, axis)); });
   const double angle = std::acos(std::clamp(cosine, -1.0, 1.0)) + margin;
   if (!(angle < M_PI / 2)) {
     return std::nullopt;

@@ -868,16 +868,19 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
       const double hi = last ? searchMax : std::min(searchMax, reach);
       if (lo <= hi) {
         const Vec2d a{s0.u + w.u * lo, s0.v + w.v * lo}, b{s0.u + w.u * hi, s0.v + w.v * hi};
-        const Impl::BinRange bins =
-            m.binRange({std::min(a.u, b.u) - slack, std::min(a.v, b.v) - slack,
-                        std::max(a.u, b.u) + slack, std::max(a.v, b.v) + slack});
+        // The shadow's box: a cell's box must meet it (cheap) before the exact slab test.
+        const Impl::Box2 shadow{std::min(a.u, b.u) - slack, std::min(a.v, b.v) - slack,
+                                std::max(a.u, b.u) + slack, std::max(a.v, b.v) + slack};
+        const Impl::BinRange bins = m.binRange(shadow);
         added.clear();
         for (int j = bins.v0; j <= bins.v1; ++j) {
           for (int i = bins.u0; i <= bins.u1; ++i) {
             const std::size_t bin = static_cast<std::size_t>(j) * m.binsU + i;
             for (std::uint32_t e = m.binStart[bin]; e < m.binStart[bin + 1]; ++e) {
               const std::uint32_t c = m.binCells[e];
-              if (meets(m.cellBoxes[c], lo, hi) &&
+              const Impl::Box2& box = m.cellBoxes[c];
+              if (box.u0 <= shadow.u1 && shadow.u0 <= box.u1 && box.v0 <= shadow.v1 &&
+                  shadow.v0 <= box.v1 && meets(box, lo, hi) &&
                   (tested.empty() || !std::binary_search(tested.begin(), tested.end(), c)) &&
                   std::find(added.begin(), added.end(), c) == added.end()) {
                 added.push_back(c);
