@@ -14,8 +14,6 @@ PACKAGES=(
   libgtest-dev libgdal-dev zlib1g-dev libtiff-dev
   # the 3D Tiles GLBs' EXT_meshopt_compression codecs (encoder in vsmd, decoder in the unit tests)
   libmeshoptimizer-dev
-  # ray casting into the detail surface when merging along the surface (core/merge/surface_caster)
-  libembree-dev
   # tests: gdaladdo (benchmark), GDAL's Python bindings for the independent import checker,
   # a comma-decimal locale (numbers in XML must not follow the locale), clang-format
   gdal-bin python3 python3-gdal python3-numpy locales clang-format

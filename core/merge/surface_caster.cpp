@@ -296,8 +296,8 @@ struct SurfaceCaster::Impl {
   }
 
   /// The answer for a ray that meets cell `cellIndex` (`hit`: intersect() of that cell): the best
-  /// of that cell and (near its border) its neighbours, by (outside, |t|, cell); nullopt when the
-  /// best lies outside [tmin, tmax].
+  /// of that cell and (near its border) its neighbours whose points lie within [tmin, tmax], by
+  /// (outside, |t|, cell); nullopt when none does.
   std::optional<CastHit> resolve(std::uint32_t cellIndex, const CellHit& hit, const Line& line,
                                  double tmin, double tmax) const {
     std::optional<CastHit> best;
@@ -312,6 +312,10 @@ struct SurfaceCaster::Impl {
       double x = 0, y = 0;
       const double t = distance(cell, *h, line, &x, &y);
       const double a = std::fabs(t);
+      // Out of [tmin, tmax] a neighbour takes no part (a clip need not have built it).
+      if (!(t >= tmin && t <= tmax)) {
+        return h->nearBorder;
+      }
       if (h->outside < bestOutside ||
           (h->outside == bestOutside && (a < bestAbs || (a == bestAbs && index < bestCell)))) {
         bestOutside = h->outside;
@@ -345,9 +349,6 @@ struct SurfaceCaster::Impl {
           }
         }
       }
-    }
-    if (best && !(best->distance >= tmin && best->distance <= tmax)) {
-      return std::nullopt;
     }
     return best;
   }
@@ -793,19 +794,50 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
   double lastDistance = 0;
   for (std::size_t r = 0; r < rays.size(); ++r) {
     const CastRay& ray = rays[r];
-    const double length = ray.direction.norm();
-    if (!ray.origin.finite() || !ray.direction.finite() || !(length > 0) ||
+    // The direction scaled by its largest component first, so that its length neither
+    // overflows nor underflows.
+    const double largest = std::max(
+        {std::fabs(ray.direction.x), std::fabs(ray.direction.y), std::fabs(ray.direction.z)});
+    if (!ray.origin.finite() || !ray.direction.finite() || !(largest > 0) ||
         !std::isfinite(ray.tmin) || !std::isfinite(ray.tmax) || !(ray.tmin <= ray.tmax)) {
       continue;
     }
-    const Vec3d d = ray.direction * (1.0 / length);
+    const Vec3d scaled = ray.direction * (1.0 / largest);
+    const Vec3d d = scaled * (1.0 / scaled.norm());
+    // Only the part of [tmin, tmax] inside reachBox can hold a hit's point.
+    double searchMin = ray.tmin, searchMax = ray.tmax;
+    {
+      const double o[3] = {ray.origin.x, ray.origin.y, ray.origin.z}, dd[3] = {d.x, d.y, d.z};
+      const double bmin[3] = {m.reachBox.min.x, m.reachBox.min.y, m.reachBox.min.z};
+      const double bmax[3] = {m.reachBox.max.x, m.reachBox.max.y, m.reachBox.max.z};
+      const double round = 1e-9 * (std::fabs(o[0]) + std::fabs(o[1]) + std::fabs(o[2]) +
+                                   std::fabs(bmin[0]) + std::fabs(bmin[1]) + std::fabs(bmin[2]) +
+                                   std::fabs(bmax[0]) + std::fabs(bmax[1]) + std::fabs(bmax[2]));
+      for (int k = 0; k < 3; ++k) {
+        if (dd[k] == 0) {
+          if (o[k] < bmin[k] || o[k] > bmax[k]) {
+            searchMax = -std::numeric_limits<double>::infinity();
+          }
+          continue;
+        }
+        double t0 = (bmin[k] - o[k]) / dd[k], t1 = (bmax[k] - o[k]) / dd[k];
+        if (t0 > t1) {
+          std::swap(t0, t1);
+        }
+        searchMin = std::max(searchMin, t0 - round);
+        searchMax = std::min(searchMax, t1 + round);
+      }
+    }
+    if (!(searchMin <= searchMax)) {
+      continue;
+    }
     // The frame across the ray, made when a first cell is to be intersected.
     std::optional<Impl::Line> line;
     // The line's shadow in the bins' plane: s0 + t * w.
     const Vec2d s0 = m.binFrame.project(ray.origin);
     const Vec2d w{dot(d, m.binFrame.e1), dot(d, m.binFrame.e2)};
-    const double slack =
-        1e-9 * (std::fabs(s0.u) + std::fabs(s0.v) + std::fabs(ray.tmin) + std::fabs(ray.tmax) + 1);
+    const double slack = 1e-9 * (std::fabs(s0.u) + std::fabs(s0.v) + std::fabs(searchMin) +
+                                 std::fabs(searchMax) + 1);
     // Whether the shadow of [lo, hi] meets a box (grown by slack), in the plane.
     const double from[2] = {s0.u, s0.v}, along[2] = {w.u, w.v};
     const double inverse[2] = {w.u == 0 ? 0 : 1 / w.u, w.v == 0 ? 0 : 1 / w.v};
@@ -828,41 +860,18 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
       }
       return lo <= hi;
     };
-    // Rounds over a growing stretch [-reach, reach] of the ray: once every cell the stretch can
-    // meet is intersected, a hit within it is final (no farther cell can be nearer), so a ray
-    // that meets B near its origin, as a merge's mostly do, looks at a few cells only. The first
-    // stretch: twice the last hit's distance (rays in grid order meet B at about the same), at
-    // least a quarter of a bin; then 8 times longer each round. (Only the work depends on them,
-    // never the answer.)
-    // Only the part of [tmin, tmax] inside reachBox can hold a hit's point.
-    double searchMin = ray.tmin, searchMax = ray.tmax;
-    {
-      const double o[3] = {ray.origin.x, ray.origin.y, ray.origin.z}, dd[3] = {d.x, d.y, d.z};
-      const double bmin[3] = {m.reachBox.min.x, m.reachBox.min.y, m.reachBox.min.z};
-      const double bmax[3] = {m.reachBox.max.x, m.reachBox.max.y, m.reachBox.max.z};
-      for (int k = 0; k < 3; ++k) {
-        if (dd[k] == 0) {
-          if (o[k] < bmin[k] || o[k] > bmax[k]) {
-            searchMax = -std::numeric_limits<double>::infinity();
-          }
-          continue;
-        }
-        double t0 = (bmin[k] - o[k]) / dd[k], t1 = (bmax[k] - o[k]) / dd[k];
-        if (t0 > t1) {
-          std::swap(t0, t1);
-        }
-        searchMin = std::max(searchMin, t0 - slack);
-        searchMax = std::min(searchMax, t1 + slack);
-      }
-    }
-    if (!(searchMin <= searchMax)) {
-      continue;
-    }
+    // Rounds over a growing stretch [-reach, reach] of the ray (within [searchMin, searchMax]):
+    // once every cell the stretch can meet is intersected, a hit within it is final (no farther
+    // cell can be nearer), so a ray that meets B near its origin, as a merge's mostly do, looks
+    // at a few cells only. The first stretch: twice the last hit's distance (rays in grid order
+    // meet B at about the same), at least a quarter of a bin and at least as far as the search
+    // range's nearer end; then 8 times longer each round. (Only the work depends on them, never
+    // the answer.)
     tested.clear();
     found.clear();
-    std::size_t settled = 0;  // found[0, settled) were resolved and refused
     const double farthest = std::max(std::fabs(searchMin), std::fabs(searchMax));
-    for (double reach = std::max(m.binSize / 4, 2 * lastDistance);; reach *= 8) {
+    const double nearest = searchMin > 0 ? searchMin : (searchMax < 0 ? -searchMax : 0);
+    for (double reach = std::max({m.binSize / 4, 2 * lastDistance, nearest});; reach *= 8) {
       const bool last = reach >= farthest;
       const double lo = last ? searchMin : std::max(searchMin, -reach);
       const double hi = last ? searchMax : std::min(searchMax, reach);
@@ -880,32 +889,44 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
               const std::uint32_t c = m.binCells[e];
               const Impl::Box2& box = m.cellBoxes[c];
               if (box.u0 <= shadow.u1 && shadow.u0 <= box.u1 && box.v0 <= shadow.v1 &&
-                  shadow.v0 <= box.v1 && meets(box, lo, hi) &&
-                  (tested.empty() || !std::binary_search(tested.begin(), tested.end(), c)) &&
-                  std::find(added.begin(), added.end(), c) == added.end()) {
-                added.push_back(c);
-                if (!line) {
-                  line.emplace(Impl::Line{ray.origin, d, UpFrame(ray.origin, d)});
-                }
-                if (const std::optional<Impl::CellHit> h = m.intersect(m.cells[c], *line)) {
-                  found.push_back({m.distance(m.cells[c], *h, *line), c, *h});
-                }
+                  shadow.v0 <= box.v1 && meets(box, lo, hi)) {
+                added.push_back(c);  // a cell listed in several bins comes several times
               }
             }
           }
         }
+        std::sort(added.begin(), added.end());
+        added.erase(std::unique(added.begin(), added.end()), added.end());
+        for (const std::uint32_t c : added) {
+          if (!tested.empty() && std::binary_search(tested.begin(), tested.end(), c)) {
+            continue;
+          }
+          if (!line) {
+            line.emplace(Impl::Line{ray.origin, d, UpFrame(ray.origin, d)});
+          }
+          if (const std::optional<Impl::CellHit> h = m.intersect(m.cells[c], *line)) {
+            // Only hits within [tmin, tmax] compete (one outside must not win through a
+            // neighbour, nor hide a farther one).
+            const double t = m.distance(m.cells[c], *h, *line);
+            if (t >= ray.tmin && t <= ray.tmax) {
+              found.push_back({t, c, *h});
+            }
+          }
+        }
+        const std::size_t before = tested.size();
         tested.insert(tested.end(), added.begin(), added.end());
-        std::sort(tested.begin(), tested.end());
-        std::sort(found.begin() + static_cast<std::ptrdiff_t>(settled), found.end(), nearer);
+        std::inplace_merge(tested.begin(), tested.begin() + static_cast<std::ptrdiff_t>(before),
+                           tested.end());
+        tested.erase(std::unique(tested.begin(), tested.end()), tested.end());
+        std::sort(found.begin(), found.end(), nearer);
       }
-      // Hits within the stretch, nearest first; one whose neighbourhood's best answer lies
-      // outside [tmin, tmax] gives way to the next.
-      for (; settled < found.size() && (last || std::fabs(found[settled].t) <= reach); ++settled) {
-        const Found& f = found[settled];
-        if (std::optional<CastHit> hit = m.resolve(f.cell, f.hit, *line, ray.tmin, ray.tmax)) {
-          lastDistance = std::fabs(hit->distance);
-          hits[r] = hit;
-          break;
+      // The nearest hit, once it lies within the stretch (every hit as near is known then). Its
+      // own point is within [tmin, tmax], so resolve() always answers.
+      if (!found.empty() && (last || std::fabs(found.front().t) <= reach)) {
+        const Found& f = found.front();
+        hits[r] = m.resolve(f.cell, f.hit, *line, ray.tmin, ray.tmax);
+        if (hits[r]) {
+          lastDistance = std::fabs(hits[r]->distance);
         }
       }
       if (hits[r] || last) {

@@ -62,22 +62,24 @@ struct CastHit {
 /// The index: a bounding volume hierarchy that needs no build, B's grid itself seen along one
 /// axis. The cells are projected along their dominant normal onto the plane across it, and a
 /// uniform grid of bins lists the cells whose projected box (grown by B's border tolerance) meets
-/// each bin. A ray's segment [tmin, tmax] casts a shadow in that plane; every cell whose box meets
-/// the shadow is intersected. Rays along the axis (a merge's, along the target's normals over a
-/// B of about its orientation) have point-sized shadows and meet one or two cells; others meet
-/// more, and every answer is exact whatever the axis. (Embree, which the first version used,
-/// spent more time building its hierarchy per clipped caster than casting: see
-/// tests/bench/results/caster.txt.)
+/// each bin. A ray's segment [tmin, tmax] (the part of it in the box of every point a hit can
+/// report) casts a shadow in that plane; every cell whose box meets the shadow is intersected, in
+/// rounds over a growing stretch of the ray around its origin, so that a near hit ends the search.
+/// Rays along the axis (a merge's, along the target's normals over a B of about its orientation)
+/// have point-sized shadows and meet one or two cells; others meet more, and every answer is exact
+/// whatever the axis. (Embree, which the first version used, spent more time building its hierarchy
+/// per clipped caster than casting: see tests/bench/results/caster.txt.)
 ///
 /// The rule for folds, overhangs and tunnels: the hit nearest to the origin (smallest |t|) within
 /// [tmin, tmax] wins, the positive side on a tie. Where the hit lies on or near a cell's border
 /// (a ray through a shared edge or vertex), the cell's neighbours in its grid, and across a seam
 /// the other grids' cells sharing a corner with it, are intersected too, and the answer is the
-/// smallest (distance outside the cell in grid units, |t|, cell in grid order): it does not depend
-/// on the caster's clip. B's border: a ray within kBorderTolerance (cell_geometry.hpp: 1/32) grid
-/// units of a cell (its parameter clamped onto the cell, or a triangle's barycentric coordinates
-/// clamped and re-normalised) takes the cell's nearest point, at its distance along the ray (the
-/// point stays on the ray).
+/// smallest (distance outside the cell in grid units, |t|, cell in grid order) of those whose
+/// points lie within [tmin, tmax]: it depends neither on the caster's clip nor on its axis. B's
+/// border: a ray within kBorderTolerance (cell_geometry.hpp: 1/32) grid units of a cell (its
+/// parameter clamped onto the cell, or a triangle's barycentric coordinates clamped and
+/// re-normalised) takes the cell's nearest point, at its distance along the ray (the point stays on
+/// the ray).
 ///
 /// Seams between B's grids: their border vertices within 1e-4 of a cell edge of each other are
 /// one seam group, so a hit there is resolved among the cells of both grids. Everything runs on

@@ -480,6 +480,72 @@ TEST(SurfaceCaster, MissesBeyondTheSearchDistanceAndOutsideB) {
   EXPECT_EQ(codeOf([&] { caster.cast(rays, hits); }), ErrorCode::InvalidArgument);
 }
 
+/// A zig-zag along x, every row alike: vertex (i, j) at (i, j, heights[i]), 4 x 4.
+std::shared_ptr<PatchGrid> zigZag(const std::array<double, 4>& heights) {
+  return makeGrid(4, {2, 2, 0}, [&](int i, int j) -> std::optional<Vec3d> {
+    return Vec3d{double(i), double(j), heights[i]};
+  });
+}
+
+/// A large flat grid far away: it turns the bins' axis to z without meeting the rays.
+std::shared_ptr<PatchGrid> farFloor() {
+  return makeGrid(65, {132, 32, 0}, [](int i, int j) -> std::optional<Vec3d> {
+    return Vec3d{100.0 + i, double(j), 0};
+  });
+}
+
+TEST(SurfaceCaster, OnlyHitsWithinTheSearchRangeCompeteWhateverTheAxisAndClip) {
+  // Found by review: a cell whose own hit lies outside [tmin, tmax] (the zig-zag's third cell,
+  // 0.25 from the origin, within B's border tolerance) must not decide the answer through a
+  // neighbour. The nearest hit within [1.5, 3] is the plate at x = 1.6 (t = 1.65), with the axis
+  // along x (zig-zag and plate alone), along z (a far floor added) and in a clip around the ray.
+  const auto zig = zigZag({0, 1.2, 0, 0.98});
+  const auto plate = makeGrid(2, {1.6, 1, 1}, [](int i, int j) -> std::optional<Vec3d> {
+    return Vec3d{1.6, 0.5 + i, 0.5 + j};
+  });
+  const CastRay ray{{3.25, 1, 1}, {-1, 0, 0}, 1.5, 3};
+  SurfaceCaster::Clip clip{Box3d{{0.2, 0.9, 0.9}, {1.76, 1.1, 1.1}}};
+  for (const SurfaceCaster& caster :
+       {SurfaceCaster(Grids{zig, plate}), SurfaceCaster(Grids{zig, plate, farFloor()}),
+        SurfaceCaster(Grids{zig, plate}, std::nullopt, clip)}) {
+    const auto hit = caster.cast(ray);
+    ASSERT_TRUE(hit.has_value());
+    EXPECT_EQ(hit->grid, 1u);
+    EXPECT_NEAR(hit->distance, 1.65, 1e-12);
+  }
+}
+
+TEST(SurfaceCaster, NeighboursOutsideTheSearchRangeDoNotVetoAHit) {
+  // Found by review: the ray along the zig-zag's row edge meets its second cell at t = 0.8 within
+  // [0.5, 1]; the first cell's hit at t = -0.2 is nearer but outside the range, and a clip around
+  // the ray does not build it. Whole and clipped, the answer is the hit at 0.8.
+  const auto zig = zigZag({0, 1, 0, 1});
+  const CastRay ray{{0.7, 1, 0.5}, {1, 0, 0}, 0.5, 1};
+  SurfaceCaster::Clip clip{Box3d{{1.19, 0.9, 0.4}, {1.75, 1.1, 0.6}}};
+  for (const SurfaceCaster& caster : {SurfaceCaster(Grids{zig, farFloor()}),
+                                      SurfaceCaster(Grids{zig, farFloor()}, std::nullopt, clip)}) {
+    const auto hit = caster.cast(ray);
+    ASSERT_TRUE(hit.has_value());
+    EXPECT_NEAR(hit->distance, 0.8, 1e-12);
+    EXPECT_NEAR(hit->position.x, 1.5, 1e-12);
+  }
+}
+
+TEST(SurfaceCaster, DirectionsOfAnyFiniteLengthCast) {
+  // Found by review: a direction whose length overflows (or underflows) in double is still a
+  // direction.
+  const SurfaceCaster caster({planeGrid()});
+  const Vec3d onPlane{1005, 2005, planeZ(1005, 2005)};
+  const auto unitHit = caster.cast({onPlane + kPlaneNormal, kPlaneNormal, -2, 2});
+  ASSERT_TRUE(unitHit.has_value());
+  for (const double scale : {1e200, 1e-200}) {
+    const auto hit = caster.cast({onPlane + kPlaneNormal, kPlaneNormal * scale, -2, 2});
+    ASSERT_TRUE(hit.has_value()) << scale;
+    EXPECT_NEAR(hit->distance, unitHit->distance, 1e-12) << scale;
+    EXPECT_LE((hit->position - unitHit->position).norm(), 1e-9) << scale;
+  }
+}
+
 TEST(SurfaceCaster, RaysThroughEdgesAndVerticesHitAndClipsChangeNothing) {
   // B in 2 x 2 grids of a tilted, curved surface sharing their borders.
   auto at = [](int i, int j) {
