@@ -11,10 +11,6 @@
 
 namespace vsm::core {
 
-namespace {
-constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-}
-
 bool Ball::meets(const Ball& other, double gap) const {
   if (empty() || other.empty()) {
     return false;
@@ -22,62 +18,57 @@ bool Ball::meets(const Ball& other, double gap) const {
   return (centre - other.centre).norm() <= radius + gap + other.radius;
 }
 
-Ball ballOf(const std::vector<Vec3d>& points) {
+namespace {
+
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+/// The Ball of the finite points each(f) visits (calling f(p) for each, in the same order on both
+/// of its two calls: the mean, then the radius).
+template <typename Each>
+Ball ballOfEach(const Each& each) {
   Vec3d sum;
   std::size_t count = 0;
-  for (const Vec3d& p : points) {
+  each([&](const Vec3d& p) {
     if (p.finite()) {
       sum = sum + p;
       ++count;
     }
-  }
+  });
   Ball ball;
   if (count == 0) {
     return ball;
   }
   ball.centre = sum * (1.0 / static_cast<double>(count));
   ball.radius = 0;
-  for (const Vec3d& p : points) {
+  each([&](const Vec3d& p) {
     if (p.finite()) {
       ball.radius = std::max(ball.radius, (p - ball.centre).norm());
     }
-  }
+  });
   return ball;
 }
 
+}  // namespace
+
+Ball ballOf(const std::vector<Vec3d>& points) {
+  return ballOfEach([&](const auto& f) {
+    for (const Vec3d& p : points) {
+      f(p);
+    }
+  });
+}
+
 Ball ballOf(const PatchGrid& grid, const std::optional<Mat4d>& transform) {
-  // ballOf(points) over the defined vertices in row order, without copying them: two passes.
-  auto at = [&](int x, int y) {
-    return transform ? transform->apply(grid.global(x, y)) : grid.global(x, y);
-  };
-  Vec3d sum;
-  std::size_t count = 0;
-  for (int y = 0; y < grid.size(); ++y) {
-    for (int x = 0; x < grid.size(); ++x) {
-      if (grid.defined(x, y)) {
-        if (const Vec3d p = at(x, y); p.finite()) {
-          sum = sum + p;
-          ++count;
+  // Over the defined vertices in row order, without copying them.
+  return ballOfEach([&](const auto& f) {
+    for (int y = 0; y < grid.size(); ++y) {
+      for (int x = 0; x < grid.size(); ++x) {
+        if (grid.defined(x, y)) {
+          f(transform ? transform->apply(grid.global(x, y)) : grid.global(x, y));
         }
       }
     }
-  }
-  Ball ball;
-  if (count == 0) {
-    return ball;
-  }
-  ball.centre = sum * (1.0 / static_cast<double>(count));
-  ball.radius = 0;
-  for (int y = 0; y < grid.size(); ++y) {
-    for (int x = 0; x < grid.size(); ++x) {
-      if (grid.defined(x, y)) {
-        if (const Vec3d p = at(x, y); p.finite()) {
-          ball.radius = std::max(ball.radius, (p - ball.centre).norm());
-        }
-      }
-    }
-  }
-  return ball;
+  });
 }
 
 Subdivider::Subdivider(const PatchGrid& a, int k, const Ring& ring)
@@ -291,33 +282,13 @@ Subdivider::Vertices Subdivider::vertexRange(int level, std::uint32_t i, std::ui
 
 Ball Subdivider::ballOver(std::int64_t x0, std::int64_t x1, std::int64_t y0,
                           std::int64_t y1) const {
-  auto at = [&](std::int64_t x, std::int64_t y) -> const Vec3d& {
-    return global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)];
-  };
-  Vec3d sum;
-  std::size_t count = 0;
-  for (std::int64_t y = y0; y <= y1; ++y) {
-    for (std::int64_t x = x0; x <= x1; ++x) {
-      if (const Vec3d& p = at(x, y); p.finite()) {
-        sum = sum + p;
-        ++count;
+  return ballOfEach([&](const auto& f) {
+    for (std::int64_t y = y0; y <= y1; ++y) {
+      for (std::int64_t x = x0; x <= x1; ++x) {
+        f(global_[static_cast<std::size_t>(y) * size_ + static_cast<std::size_t>(x)]);
       }
     }
-  }
-  Ball ball;
-  if (count == 0) {
-    return ball;
-  }
-  ball.centre = sum * (1.0 / static_cast<double>(count));
-  ball.radius = 0;
-  for (std::int64_t y = y0; y <= y1; ++y) {
-    for (std::int64_t x = x0; x <= x1; ++x) {
-      if (const Vec3d& p = at(x, y); p.finite()) {
-        ball.radius = std::max(ball.radius, (p - ball.centre).norm());
-      }
-    }
-  }
-  return ball;
+  });
 }
 
 Ball Subdivider::ball(int level, std::uint32_t i, std::uint32_t j) const {
