@@ -5,6 +5,8 @@
 #include <array>
 #include <cmath>
 #include <limits>
+#include <optional>
+#include <utility>
 
 namespace vsm::core {
 
@@ -42,6 +44,10 @@ struct Box3d {
   bool intersects(const Box3d& b) const;
   friend bool operator==(const Box3d&, const Box3d&) = default;
 };
+
+/// The part of [t0, t1] where origin + t d lies in `box` (slab test); nullopt when there is none.
+std::optional<std::pair<double, double>> clipToBox(const Vec3d& origin, const Vec3d& d, double t0,
+                                                   double t1, const Box3d& box);
 
 /// A 4x4 affine matrix, row-major (m[row * 4 + col]); translation in the last column, as OPC's
 /// Local2Global is written.

@@ -450,9 +450,7 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
         const Box3d& b = blocks[i];
         if (b.empty() || !wanted(b)) {
           state[i] = 0;
-        } else if (const Box3d g = grownBox(b); c.min.x <= g.min.x && c.min.y <= g.min.y &&
-                                                c.min.z <= g.min.z && g.max.x <= c.max.x &&
-                                                g.max.y <= c.max.y && g.max.z <= c.max.z) {
+        } else if (c.contains(grownBox(b))) {
           state[i] = 2;
         }
       }
@@ -804,33 +802,19 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
     }
     const Vec3d scaled = ray.direction * (1.0 / largest);
     const Vec3d d = scaled * (1.0 / scaled.norm());
-    // Only the part of [tmin, tmax] inside reachBox can hold a hit's point.
-    double searchMin = ray.tmin, searchMax = ray.tmax;
-    {
-      const double o[3] = {ray.origin.x, ray.origin.y, ray.origin.z}, dd[3] = {d.x, d.y, d.z};
-      const double bmin[3] = {m.reachBox.min.x, m.reachBox.min.y, m.reachBox.min.z};
-      const double bmax[3] = {m.reachBox.max.x, m.reachBox.max.y, m.reachBox.max.z};
-      const double round = 1e-9 * (std::fabs(o[0]) + std::fabs(o[1]) + std::fabs(o[2]) +
-                                   std::fabs(bmin[0]) + std::fabs(bmin[1]) + std::fabs(bmin[2]) +
-                                   std::fabs(bmax[0]) + std::fabs(bmax[1]) + std::fabs(bmax[2]));
-      for (int k = 0; k < 3; ++k) {
-        if (dd[k] == 0) {
-          if (o[k] < bmin[k] || o[k] > bmax[k]) {
-            searchMax = -std::numeric_limits<double>::infinity();
-          }
-          continue;
-        }
-        double t0 = (bmin[k] - o[k]) / dd[k], t1 = (bmax[k] - o[k]) / dd[k];
-        if (t0 > t1) {
-          std::swap(t0, t1);
-        }
-        searchMin = std::max(searchMin, t0 - round);
-        searchMax = std::min(searchMax, t1 + round);
-      }
-    }
-    if (!(searchMin <= searchMax)) {
+    // Only the part of [tmin, tmax] inside reachBox can hold a hit's point (widened by the
+    // rounding of the slab test, relative to the coordinates).
+    const auto inside = clipToBox(ray.origin, d, ray.tmin, ray.tmax, m.reachBox);
+    if (!inside) {
       continue;
     }
+    const double round =
+        1e-9 *
+        (std::fabs(ray.origin.x) + std::fabs(ray.origin.y) + std::fabs(ray.origin.z) +
+         std::fabs(m.reachBox.min.x) + std::fabs(m.reachBox.min.y) + std::fabs(m.reachBox.min.z) +
+         std::fabs(m.reachBox.max.x) + std::fabs(m.reachBox.max.y) + std::fabs(m.reachBox.max.z));
+    const double searchMin = std::max(ray.tmin, inside->first - round);
+    const double searchMax = std::min(ray.tmax, inside->second + round);
     // The frame across the ray, made when a first cell is to be intersected.
     std::optional<Impl::Line> line;
     // The line's shadow in the bins' plane: s0 + t * w.
