@@ -21,36 +21,6 @@ bool Box3d::contains(const Box3d& b, double tolerance) const {
          b.max.y <= max.y + tolerance && b.max.z <= max.z + tolerance;
 }
 
-std::optional<std::pair<double, double>> clipToBox(const Vec3d& origin, const Vec3d& d, double t0,
-                                                   double t1, const Box3d& box) {
-  if (box.empty()) {
-    return std::nullopt;
-  }
-  const std::array<double, 3> o{origin.x, origin.y, origin.z};
-  const std::array<double, 3> dir{d.x, d.y, d.z};
-  const std::array<double, 3> lo{box.min.x, box.min.y, box.min.z};
-  const std::array<double, 3> hi{box.max.x, box.max.y, box.max.z};
-  for (int a = 0; a < 3; ++a) {
-    if (std::fabs(dir[a]) < 1e-300) {  // parallel to the slab (1 / d would overflow)
-      if (o[a] < lo[a] || o[a] > hi[a]) {
-        return std::nullopt;
-      }
-      continue;
-    }
-    double ta = (lo[a] - o[a]) / dir[a];
-    double tb = (hi[a] - o[a]) / dir[a];
-    if (ta > tb) {
-      std::swap(ta, tb);
-    }
-    t0 = std::max(t0, ta);
-    t1 = std::min(t1, tb);
-    if (!(t0 <= t1)) {
-      return std::nullopt;
-    }
-  }
-  return std::pair{t0, t1};
-}
-
 bool Box3d::intersects(const Box3d& b) const {
   if (empty() || b.empty()) {
     return false;

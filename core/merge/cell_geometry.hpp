@@ -36,19 +36,34 @@ struct UpFrame {
     if (!upIn.finite() || n == 0) {
       throw Error(ErrorCode::InvalidArgument, "up direction must be finite and non-zero");
     }
-    up = upIn * (1.0 / n);
-    // e1: the coordinate axis least aligned with up, made perpendicular to it.
-    const Vec3d axis = std::fabs(up.x) <= std::fabs(up.y) && std::fabs(up.x) <= std::fabs(up.z)
-                           ? Vec3d{1, 0, 0}
-                           : (std::fabs(up.y) <= std::fabs(up.z) ? Vec3d{0, 1, 0} : Vec3d{0, 0, 1});
-    const Vec3d t = axis - up * vec::dot(axis, up);
-    e1 = t * (1.0 / t.norm());
-    e2 = vec::cross(up, e1);
+    setUp(upIn * (1.0 / n));
+  }
+
+  /// The frame around a unit `unitUp` (finite, length 1 within rounding), taken as it is: no
+  /// check, no normalising (SurfaceCaster makes one per ray).
+  static UpFrame aroundUnit(const Vec3d& originIn, const Vec3d& unitUp) {
+    UpFrame frame;
+    frame.origin = originIn;
+    frame.setUp(unitUp);
+    return frame;
   }
 
   Vec2d project(const Vec3d& p) const {
     const Vec3d d = p - origin;
     return {vec::dot(d, e1), vec::dot(d, e2)};
+  }
+
+ private:
+  UpFrame() = default;
+  /// e1 and e2 across a unit `unit`, without a branch on its direction or a square root (Duff et
+  /// al., "Building an Orthonormal Basis, Revisited", JCGT 2017), e2 = up x e1 as before.
+  void setUp(const Vec3d& unit) {
+    up = unit;
+    const double sign = std::copysign(1.0, up.z);
+    const double a = -1.0 / (sign + up.z);
+    const double b = up.x * up.y * a;
+    e1 = {1 + sign * up.x * up.x * a, sign * b, -sign * up.x};
+    e2 = vec::cross(up, e1);
   }
 };
 

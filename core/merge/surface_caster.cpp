@@ -23,6 +23,16 @@ constexpr std::uint32_t kNone = std::numeric_limits<std::uint32_t>::max();
 // cell's neighbours: far above kBarycentricSlack, so a neighbour that could tie is always looked
 // at.
 constexpr double kNearBorder = 1e-6;
+
+/// A float at or below x, at or above x (a float box holding a double one): x moved outwards by
+/// more than float's rounding before it is rounded.
+float below(double x) {
+  return static_cast<float>(x - std::fabs(x) * 0x1p-22 - 0x1p-126);
+}
+float above(double x) {
+  return static_cast<float>(x + std::fabs(x) * 0x1p-22 + 0x1p-126);
+}
+
 double dot(const Vec3d& a, const Vec3d& b) {
   return a.x * b.x + a.y * b.y + a.z * b.z;
 }
@@ -105,18 +115,27 @@ struct SurfaceCaster::Impl {
   Box3d reachBox;  // holds every point a hit can report (bounds grown by the cells' margins)
 
   /// The bins: the cells projected along `axis` (binFrame's up: the cells' dominant normal) onto
-  /// the plane across it, each cell's projected box grown by its border reach (cellBoxes), and a
-  /// uniform grid of square bins over them (binsU x binsV of side binSize from (binU0, binV0))
-  /// listing, per bin, the cells whose box meets it (binCells[binStart[b]..binStart[b + 1]]).
+  /// the plane across it, each cell's projected box grown by its border reach, and a uniform grid
+  /// of square bins over them (binsU x binsV of side binSize from (binU0, binV0)) listing, per
+  /// bin, cells with their boxes (binEntries[binStart[b]..binStart[b + 1]]): a cell whose box is
+  /// no wider than a bin in the bin of its box's centre only, a wider one in every bin its box
+  /// meets. A box meets a region only if the region grown by half a bin holds its centre or
+  /// (a wide one) meets one of its bins.
   struct Box2 {
     double u0, v0, u1, v1;
   };
+  /// A cell in a bin, with its box relative to (binU0, binV0) in float, rounded outwards (it
+  /// holds the cell's box): a ray tests the boxes of a bin's cells without looking them up.
+  struct BinEntry {
+    float u0, v0, u1, v1;
+    std::uint32_t cell;
+  };
   UpFrame binFrame{Vec3d{}, Vec3d{0, 0, 1}};
-  std::vector<Box2> cellBoxes;
   double binU0 = 0, binV0 = 0, binSize = 1, perBin = 1;  // perBin = 1 / binSize
   int binsU = 0, binsV = 0;
   std::vector<std::uint32_t> binStart;
-  std::vector<std::uint32_t> binCells;
+  std::unique_ptr<BinEntry[]> binEntries;  // binStart.back() of them
+  bool anyWide = false;                    // whether a cell is in more than one bin
 
   /// A cell's area-weighted normal: the cross product of a full cell's diagonals, of a 3-corner
   /// cell's two sides (twice the area of what it spans, in the grid's orientation).
@@ -135,16 +154,16 @@ struct SurfaceCaster::Impl {
     return vec::cross(vertices[t[1]] - vertices[t[0]], vertices[t[2]] - vertices[t[0]]);
   }
 
-  /// The bins a projected box meets (inclusive), clamped onto the grid of bins; empty (u0 > u1)
-  /// when it lies off the grid or is not finite.
+  /// The bins a projected box, relative to (binU0, binV0), meets (inclusive), clamped onto the
+  /// grid of bins; empty (u0 > u1) when it lies off the grid or is not finite.
   struct BinRange {
     int u0 = 0, v0 = 0, u1 = -1, v1 = -1;
   };
   BinRange binRange(const Box2& b) const {
-    const double fu0 = std::floor((b.u0 - binU0) * perBin);
-    const double fv0 = std::floor((b.v0 - binV0) * perBin);
-    const double fu1 = std::floor((b.u1 - binU0) * perBin);
-    const double fv1 = std::floor((b.v1 - binV0) * perBin);
+    const double fu0 = std::floor(b.u0 * perBin);
+    const double fv0 = std::floor(b.v0 * perBin);
+    const double fu1 = std::floor(b.u1 * perBin);
+    const double fv1 = std::floor(b.v1 * perBin);
     if (!(fu1 >= 0 && fv1 >= 0 && fu0 < binsU && fv0 < binsV)) {
       return {};
     }
@@ -402,19 +421,27 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     return grownBox(b).intersects(clip->box);
   };
 
-  m.gridCells.resize(grids.size());
-  std::vector<std::uint32_t> index;  // per grid vertex: its vertices index, kNone before use
-  struct BorderVertex {
-    std::uint32_t vertex, grid;
+  // Per grid, per block: 0 skipped, 1 its cells tested one by one against the clip, 2 all wanted
+  // (no clip, or the block's grown box inside the clip's box: a cell's grown box lies in its
+  // block's); and the rectangle of blocks not skipped (none when bx1 < 0).
+  struct GridPlan {
+    std::vector<char> state;
+    int blocksPerSide = 0;
+    int bx0 = 0, by0 = 0, bx1 = -1, by1 = -1;
   };
-  std::vector<BorderVertex> border;  // vertices on their grid's border
+  std::vector<GridPlan> plans(grids.size());
+  // At most this many cells and vertices: reserved once, so that the arrays are neither copied
+  // nor their memory touched twice as they grow (a merge builds a caster per new patch).
+  std::size_t cellBound = 0, vertexBound = 0;
   for (std::size_t gridIndex = 0; gridIndex < grids.size(); ++gridIndex) {
     const auto& grid = grids[gridIndex];
     if (!grid) {
       continue;
     }
+    GridPlan& plan = plans[gridIndex];
     const int s = grid->size();
     const int blocksPerSide = (s - 1 + kBlockCells - 1) / kBlockCells;
+    plan.blocksPerSide = blocksPerSide;
     std::span<const Box3d> blocks;
     if (clip && !clip->blocks.empty()) {
       blocks = clip->blocks[gridIndex];
@@ -423,27 +450,8 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
                     "surface caster: the clip's block footprints do not match the grids");
       }
     }
-    index.assign(static_cast<std::size_t>(s) * s, kNone);
-    auto at = [&](int x, int y) {
-      const Vec3d g = grid->global(x, y);
-      return transform ? transform->apply(g) : g;
-    };
-    auto vertex = [&](int x, int y) {
-      const std::size_t i = static_cast<std::size_t>(y) * s + x;
-      if (index[i] == kNone) {
-        index[i] = static_cast<std::uint32_t>(m.vertices.size());
-        m.vertices.push_back(at(x, y));
-        m.bounds.extend(m.vertices.back());  // every vertex is a built cell's corner
-        if (x == 0 || y == 0 || x == s - 1 || y == s - 1) {
-          border.push_back({index[i], static_cast<std::uint32_t>(gridIndex)});
-        }
-      }
-      return index[i];
-    };
-    // Per block: 0 skipped, 1 its cells tested one by one against the clip, 2 all wanted (no
-    // clip, or the block's grown box inside the clip's box: a cell's grown box lies in its
-    // block's).
-    std::vector<char> state(static_cast<std::size_t>(blocksPerSide) * blocksPerSide, clip ? 1 : 2);
+    std::vector<char>& state = plan.state;
+    state.assign(static_cast<std::size_t>(blocksPerSide) * blocksPerSide, clip ? 1 : 2);
     if (clip && !blocks.empty()) {
       const Box3d& c = clip->box;
       for (std::size_t i = 0; i < state.size(); ++i) {
@@ -455,11 +463,70 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
         }
       }
     }
+    plan.bx0 = plan.by0 = blocksPerSide;
+    for (int by = 0; by < blocksPerSide; ++by) {
+      for (int bx = 0; bx < blocksPerSide; ++bx) {
+        if (state[static_cast<std::size_t>(by) * blocksPerSide + bx] != 0) {
+          plan.bx0 = std::min(plan.bx0, bx);
+          plan.bx1 = std::max(plan.bx1, bx);
+          plan.by0 = std::min(plan.by0, by);
+          plan.by1 = std::max(plan.by1, by);
+        }
+      }
+    }
+    if (plan.bx1 >= 0) {
+      const std::size_t w = static_cast<std::size_t>(plan.bx1 - plan.bx0 + 1) * kBlockCells;
+      const std::size_t h = static_cast<std::size_t>(plan.by1 - plan.by0 + 1) * kBlockCells;
+      cellBound += w * h;
+      vertexBound += (w + 1) * (h + 1);
+    }
+  }
+  m.cells.reserve(cellBound);
+  m.vertices.reserve(vertexBound);
+
+  m.gridCells.resize(grids.size());
+  std::vector<std::uint32_t> index;  // per vertex of a grid's rectangle: its vertices index
+  struct BorderVertex {
+    std::uint32_t vertex, grid;
+  };
+  std::vector<BorderVertex> border;  // vertices on their grid's border
+  for (std::size_t gridIndex = 0; gridIndex < grids.size(); ++gridIndex) {
+    const auto& grid = grids[gridIndex];
+    const GridPlan& plan = plans[gridIndex];
+    if (!grid || plan.bx1 < 0) {
+      continue;
+    }
+    const int s = grid->size();
+    const int blocksPerSide = plan.blocksPerSide;
+    const std::vector<char>& state = plan.state;
+    const int bx0 = plan.bx0, bx1 = plan.bx1;
+    auto at = [&](int x, int y) {
+      const Vec3d g = grid->global(x, y);
+      return transform ? transform->apply(g) : g;
+    };
+    // The vertices of the wanted blocks' rectangle [x0, x1] x [y0, y1] are indexed.
+    const int x0 = plan.bx0 * kBlockCells;
+    const int y0 = plan.by0 * kBlockCells;
+    const int x1 = std::min((plan.bx1 + 1) * kBlockCells, s - 1);
+    const int y1 = std::min((plan.by1 + 1) * kBlockCells, s - 1);
+    index.assign(static_cast<std::size_t>(x1 - x0 + 1) * (y1 - y0 + 1), kNone);
+    auto vertex = [&](int x, int y) {
+      const std::size_t i = static_cast<std::size_t>(y - y0) * (x1 - x0 + 1) + (x - x0);
+      if (index[i] == kNone) {
+        index[i] = static_cast<std::uint32_t>(m.vertices.size());
+        m.vertices.push_back(at(x, y));
+        m.bounds.extend(m.vertices.back());  // every vertex is a built cell's corner
+        if (x == 0 || y == 0 || x == s - 1 || y == s - 1) {
+          border.push_back({index[i], static_cast<std::uint32_t>(gridIndex)});
+        }
+      }
+      return index[i];
+    };
     // Row by row (grid order, which the tie rule (smallest cell) wants), over the wanted blocks.
     const std::size_t firstCell = m.cells.size();
-    for (int y = 0; y < s - 1; ++y) {
+    for (int y = y0; y < y1; ++y) {
       const int by = y / kBlockCells;
-      for (int bx = 0; bx < blocksPerSide; ++bx) {
+      for (int bx = bx0; bx <= bx1; ++bx) {
         const char blockState = state[static_cast<std::size_t>(by) * blocksPerSide + bx];
         if (blockState == 0) {
           continue;
@@ -619,9 +686,10 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     axis = {e.x(), e.y(), e.z()};
   }
   m.binFrame = UpFrame(m.bounds.center(), axis);
-  std::vector<Vec2d> projected(m.vertices.size());
-  for (std::size_t v = 0; v < m.vertices.size(); ++v) {
-    projected[v] = m.binFrame.project(m.vertices[v]);
+  std::vector<Vec2d> projected;
+  projected.reserve(m.vertices.size());
+  for (const Vec3d& v : m.vertices) {
+    projected.push_back(m.binFrame.project(v));
   }
   // Each cell's projected box, grown by its border reach: a ray that takes a point C of the cell
   // (within kBorderTolerance outside it, at a point X of the cell's surface extended) reports the
@@ -629,7 +697,8 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   // |e| + |f| + 3 |g| of a full cell (p(s, t) = p00 + s e + t f + s t g), the sum of the sides of
   // a 3-corner one; the projection along the axis moves nothing apart. Plus rounding, relative to
   // the coordinates.
-  m.cellBoxes.resize(m.cells.size());
+  std::vector<Impl::Box2> cellBoxes;
+  cellBoxes.reserve(m.cells.size());
   double sizeSum = 0;
   double largestMargin = 0;
   for (std::size_t c = 0; c < m.cells.size(); ++c) {
@@ -664,7 +733,7 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
         kBorderTolerance * reach + 1e-9 * (std::fabs(flat.u0) + std::fabs(flat.v0) +
                                            std::fabs(flat.u1) + std::fabs(flat.v1) + reach + 1);
     flat = {flat.u0 - margin, flat.v0 - margin, flat.u1 + margin, flat.v1 + margin};
-    m.cellBoxes[c] = flat;
+    cellBoxes.push_back(flat);
     largestMargin = std::max(largestMargin, kBorderTolerance * reach);
     sizeSum += std::max(flat.u1 - flat.u0, flat.v1 - flat.v0);
   }
@@ -677,10 +746,10 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     m.reachBox = {{b.min.x - grow, b.min.y - grow, b.min.z - grow},
                   {b.max.x + grow, b.max.y + grow, b.max.z + grow}};
   }
-  // Square bins about as wide as a cell's box (each cell in a few bins, a few cells per bin), at
-  // most kBinsPerCell per cell however the boxes spread.
+  // Square bins a little wider than the mean cell's box (so that most are in one bin, and a few
+  // cells per bin), at most kBinsPerCell per cell however the boxes spread.
   double u0 = std::numeric_limits<double>::infinity(), v0 = u0, u1 = -u0, v1 = -u0;
-  for (const Impl::Box2& b : m.cellBoxes) {
+  for (const Impl::Box2& b : cellBoxes) {
     u0 = std::min(u0, b.u0);
     v0 = std::min(v0, b.v0);
     u1 = std::max(u1, b.u1);
@@ -688,7 +757,8 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   }
   constexpr double kBinsPerCell = 4;
   const double maxBins = kBinsPerCell * static_cast<double>(m.cells.size()) + 64;
-  double side = sizeSum / static_cast<double>(m.cells.size());
+  constexpr double kSideOverMean = 1.25;
+  double side = kSideOverMean * sizeSum / static_cast<double>(m.cells.size());
   side = std::max({side, std::sqrt((u1 - u0) * (v1 - v0) / maxBins), (u1 - u0) / maxBins,
                    (v1 - v0) / maxBins, std::numeric_limits<double>::min()});
   m.binU0 = u0;
@@ -703,17 +773,28 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
       for (std::size_t b = 1; b < m.binStart.size(); ++b) {
         m.binStart[b] += m.binStart[b - 1];
       }
-      m.binCells.resize(m.binStart.back());
+      m.binEntries.reset(new Impl::BinEntry[m.binStart.back()]);  // not zeroed: all are set
     }
     for (std::size_t c = 0; c < m.cells.size(); ++c) {
-      const Impl::BinRange r = m.binRange(m.cellBoxes[c]);
+      const Impl::Box2 box{cellBoxes[c].u0 - m.binU0, cellBoxes[c].v0 - m.binV0,
+                           cellBoxes[c].u1 - m.binU0, cellBoxes[c].v1 - m.binV0};
+      Impl::BinRange r;
+      if (std::max(box.u1 - box.u0, box.v1 - box.v0) <= side) {
+        const double cu = 0.5 * (box.u0 + box.u1), cv = 0.5 * (box.v0 + box.v1);
+        r = m.binRange({cu, cv, cu, cv});
+      } else {
+        r = m.binRange(box);
+        m.anyWide = m.anyWide || r.u0 < r.u1 || r.v0 < r.v1;
+      }
+      const Impl::BinEntry entry{below(box.u0), below(box.v0), above(box.u1), above(box.v1),
+                                 static_cast<std::uint32_t>(c)};
       for (int j = r.v0; j <= r.v1; ++j) {
         for (int i = r.u0; i <= r.u1; ++i) {
           const std::size_t b = static_cast<std::size_t>(j) * m.binsU + i;
           if (pass == 0) {
             ++m.binStart[b + 1];
           } else {
-            m.binCells[m.binStart[b]++] = static_cast<std::uint32_t>(c);
+            m.binEntries[m.binStart[b]++] = entry;
           }
         }
       }
@@ -744,10 +825,11 @@ const Box3d& SurfaceCaster::bounds() const {
 
 std::size_t SurfaceCaster::bytes() const {
   const Impl& m = *impl_;
-  std::size_t own =
-      m.vertices.capacity() * sizeof(Vec3d) + m.cells.capacity() * sizeof(Impl::Cell) +
-      m.seamGroup.capacity() * sizeof(std::uint32_t) + m.cellBoxes.capacity() * sizeof(Impl::Box2) +
-      (m.binStart.capacity() + m.binCells.capacity()) * sizeof(std::uint32_t);
+  std::size_t own = m.vertices.capacity() * sizeof(Vec3d) +
+                    m.cells.capacity() * sizeof(Impl::Cell) +
+                    m.seamGroup.capacity() * sizeof(std::uint32_t) +
+                    m.binStart.capacity() * sizeof(std::uint32_t) +
+                    (m.binStart.empty() ? 0 : m.binStart.back()) * sizeof(Impl::BinEntry);
   for (const Impl::GridCells& g : m.gridCells) {
     own += g.index.capacity() * sizeof(std::uint32_t);
   }
@@ -815,32 +897,28 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
          std::fabs(m.reachBox.max.x) + std::fabs(m.reachBox.max.y) + std::fabs(m.reachBox.max.z));
     const double searchMin = std::max(ray.tmin, inside->first - round);
     const double searchMax = std::min(ray.tmax, inside->second + round);
-    // The frame across the ray, made when a first cell is to be intersected.
-    std::optional<Impl::Line> line;
-    // The line's shadow in the bins' plane: s0 + t * w.
-    const Vec2d s0 = m.binFrame.project(ray.origin);
+    const Impl::Line line{ray.origin, d, UpFrame::aroundUnit(ray.origin, d)};
+    // The line's shadow in the bins' plane, relative to the bins' corner: s0 + t * w.
+    const Vec2d projected = m.binFrame.project(ray.origin);
+    const Vec2d s0{projected.u - m.binU0, projected.v - m.binV0};
     const Vec2d w{dot(d, m.binFrame.e1), dot(d, m.binFrame.e2)};
-    const double slack = 1e-9 * (std::fabs(s0.u) + std::fabs(s0.v) + std::fabs(searchMin) +
-                                 std::fabs(searchMax) + 1);
-    // Whether the shadow of [lo, hi] meets a box (grown by slack), in the plane.
+    const double slack =
+        1e-9 * (std::fabs(projected.u) + std::fabs(projected.v) + std::fabs(m.binU0) +
+                std::fabs(m.binV0) + std::fabs(searchMin) + std::fabs(searchMax) + 1);
+    // Whether the shadow of [lo, hi] meets a box (grown by slack) that meets the shadow's box
+    // (so along a coordinate the line does not move in, it lies within the box's), in the plane.
     const double from[2] = {s0.u, s0.v}, along[2] = {w.u, w.v};
     const double inverse[2] = {w.u == 0 ? 0 : 1 / w.u, w.v == 0 ? 0 : 1 / w.v};
-    auto meets = [&](const Impl::Box2& box, double lo, double hi) {
+    auto meets = [&](const Impl::BinEntry& box, double lo, double hi) {
       const double bmin[2] = {box.u0 - slack, box.v0 - slack};
       const double bmax[2] = {box.u1 + slack, box.v1 + slack};
       for (int k = 0; k < 2; ++k) {
-        if (along[k] == 0) {
-          if (from[k] < bmin[k] || from[k] > bmax[k]) {
-            return false;
-          }
-          continue;
+        if (along[k] != 0) {
+          const double t0 = (bmin[k] - from[k]) * inverse[k];
+          const double t1 = (bmax[k] - from[k]) * inverse[k];
+          lo = std::max(lo, std::min(t0, t1));
+          hi = std::min(hi, std::max(t0, t1));
         }
-        double t0 = (bmin[k] - from[k]) * inverse[k], t1 = (bmax[k] - from[k]) * inverse[k];
-        if (t0 > t1) {
-          std::swap(t0, t1);
-        }
-        lo = std::max(lo, t0);
-        hi = std::min(hi, t1);
       }
       return lo <= hi;
     };
@@ -859,56 +937,53 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
       const bool last = reach >= farthest;
       const double lo = last ? searchMin : std::max(searchMin, -reach);
       const double hi = last ? searchMax : std::min(searchMax, reach);
+      added.clear();
       if (lo <= hi) {
         const Vec2d a{s0.u + w.u * lo, s0.v + w.v * lo}, b{s0.u + w.u * hi, s0.v + w.v * hi};
         // The shadow's box: a cell's box must meet it (cheap) before the exact slab test.
         const Impl::Box2 shadow{std::min(a.u, b.u) - slack, std::min(a.v, b.v) - slack,
                                 std::max(a.u, b.u) + slack, std::max(a.v, b.v) + slack};
-        const Impl::BinRange bins = m.binRange(shadow);
-        added.clear();
+        const double half = 0.5 * m.binSize;
+        const Impl::BinRange bins =
+            m.binRange({shadow.u0 - half, shadow.v0 - half, shadow.u1 + half, shadow.v1 + half});
         for (int j = bins.v0; j <= bins.v1; ++j) {
           for (int i = bins.u0; i <= bins.u1; ++i) {
             const std::size_t bin = static_cast<std::size_t>(j) * m.binsU + i;
             for (std::uint32_t e = m.binStart[bin]; e < m.binStart[bin + 1]; ++e) {
-              const std::uint32_t c = m.binCells[e];
-              const Impl::Box2& box = m.cellBoxes[c];
-              if (box.u0 <= shadow.u1 && shadow.u0 <= box.u1 && box.v0 <= shadow.v1 &&
-                  shadow.v0 <= box.v1 && meets(box, lo, hi)) {
-                added.push_back(c);  // a cell listed in several bins comes several times
+              const Impl::BinEntry& box = m.binEntries[e];
+              // One branch for the four comparisons (their outcome is hard to predict).
+              if ((box.u0 <= shadow.u1) & (shadow.u0 <= box.u1) & (box.v0 <= shadow.v1) &
+                      (shadow.v0 <= box.v1) &&
+                  meets(box, lo, hi)) {
+                added.push_back(box.cell);
               }
             }
           }
         }
-        std::sort(added.begin(), added.end());
-        added.erase(std::unique(added.begin(), added.end()), added.end());
+        if (m.anyWide) {  // a wide cell comes once per bin it is in
+          std::sort(added.begin(), added.end());
+          added.erase(std::unique(added.begin(), added.end()), added.end());
+        }
         for (const std::uint32_t c : added) {
           if (!tested.empty() && std::binary_search(tested.begin(), tested.end(), c)) {
             continue;
           }
-          if (!line) {
-            line.emplace(Impl::Line{ray.origin, d, UpFrame(ray.origin, d)});
-          }
-          if (const std::optional<Impl::CellHit> h = m.intersect(m.cells[c], *line)) {
+          if (const std::optional<Impl::CellHit> h = m.intersect(m.cells[c], line)) {
             // Only hits within [tmin, tmax] compete (one outside must not win through a
             // neighbour, nor hide a farther one).
-            const double t = m.distance(m.cells[c], *h, *line);
+            const double t = m.distance(m.cells[c], *h, line);
             if (t >= ray.tmin && t <= ray.tmax) {
               found.push_back({t, c, *h});
             }
           }
         }
-        const std::size_t before = tested.size();
-        tested.insert(tested.end(), added.begin(), added.end());
-        std::inplace_merge(tested.begin(), tested.begin() + static_cast<std::ptrdiff_t>(before),
-                           tested.end());
-        tested.erase(std::unique(tested.begin(), tested.end()), tested.end());
         std::sort(found.begin(), found.end(), nearer);
       }
       // The nearest hit, once it lies within the stretch (every hit as near is known then). Its
       // own point is within [tmin, tmax], so resolve() always answers.
       if (!found.empty() && (last || std::fabs(found.front().t) <= reach)) {
         const Found& f = found.front();
-        hits[r] = m.resolve(f.cell, f.hit, *line, ray.tmin, ray.tmax);
+        hits[r] = m.resolve(f.cell, f.hit, line, ray.tmin, ray.tmax);
         if (hits[r]) {
           lastDistance = std::fabs(hits[r]->distance);
         }
@@ -916,6 +991,13 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
       if (hits[r] || last) {
         break;
       }
+      // Another round: this one's cells are not intersected again.
+      const std::size_t before = tested.size();
+      std::sort(added.begin(), added.end());
+      tested.insert(tested.end(), added.begin(), added.end());
+      std::inplace_merge(tested.begin(), tested.begin() + static_cast<std::ptrdiff_t>(before),
+                         tested.end());
+      tested.erase(std::unique(tested.begin(), tested.end()), tested.end());
     }
   }
 }
