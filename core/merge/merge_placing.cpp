@@ -1,5 +1,6 @@
 #include <algorithm>
 #include <cmath>
+#include <deque>
 #include <functional>
 #include <memory>
 #include <optional>
@@ -144,56 +145,196 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
   return tile;
 }
 
-/// Places the new levels under matched leaf `m` of `matched` (the body of placeDetail's loop).
-/// `finished`: the new leaves of the last batch, which the next batch's tasks store early.
-void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& matched,
-                const MergeOptions& options, std::size_t m, std::vector<PatchKey>& finished,
-                MergeResult& result) {
-  const Model& a = target.model();
-  const std::vector<DetailLeaf>& bLeaves = matched.bLeaves;
-  const Match& match = matched.matches[m];
-  const int k = match.levels;
-  const double search = match.search;
+/// A new leaf under a matched leaf: its level below it, its place at that level, its Ball.
+struct NewLeaf {
+  int level;
+  std::uint32_t i, j;
+  Ball ball;
+};
 
+/// One new leaf as a task computes it: its grid (none when it is empty), its texture, how many
+/// of its vertices were placed on B, and its first defined vertex (for a placeholder parent).
+struct Computed {
+  std::shared_ptr<const PatchGrid> grid;
+  std::shared_ptr<const TextureTile> texture;
+  std::size_t taken = 0;
+  Vec3d firstDefined;
+};
+
+/// A matched leaf being placed: what the calling thread reads of it (its grid, pinned until it is
+/// planned, and its texture), what planning makes (its subdivider and its new leaves, in the order
+/// they are inserted: depth first, quadrant order), and how far its insertion has come.
+struct MatchWork {
+  std::size_t m = 0;
+  std::shared_ptr<const PatchGrid> grid;
+  std::shared_ptr<const TextureTile> aTexture;
   std::optional<Subdivider> subdivider;
-  {
-    const std::shared_ptr<const PatchGrid> grid = target.positions(match.target);
-    if (grid->size() != a.gridSize()) {
-      throw Error(ErrorCode::Corrupt,
-                  "merge: patch " + match.target.toString() + " has a grid of the wrong size");
+  std::vector<NewLeaf> leaves;
+  std::size_t dispatched = 0;  // leaves handed to tasks
+  std::size_t inserted = 0;    // leaves inserted (or found empty)
+  std::size_t added = 0;       // patches inserted, placeholders included
+};
+
+/// Places the new levels under the matched leaves, in batches of up to kMergeBatch new leaves
+/// that run across matched leaves (a batch does not wait for the last, longest leaf of one), the
+/// next matched leaf planned by a task of the batch that dispatches the last leaves before it.
+class Placing {
+ public:
+  Placing(MergeTarget& target, PatchSource& detail, const MergePlan& matched,
+          const MergeOptions& options, MergeResult& result)
+      : target_(target), detail_(detail), matched_(matched), options_(options), result_(result) {}
+
+  void run() {
+    const std::size_t count = matched_.matches.size();
+    std::size_t next = 0;
+    std::vector<PatchKey> finished;  // the last batch's new leaves, stored early by the next
+    std::deque<std::unique_ptr<MatchWork>> open;
+    while (!open.empty() || next < count) {
+      checkCancelled(options_);
+      if (open.empty()) {
+        open.push_back(start(next++));
+        plan(*open.back());
+        continue;
+      }
+      // This batch's leaves, from the open matched leaves in order.
+      struct Item {
+        MatchWork* work;
+        std::size_t leaf;
+      };
+      std::vector<Item> items;
+      for (const std::unique_ptr<MatchWork>& work : open) {
+        while (work->dispatched < work->leaves.size() && items.size() < kMergeBatch) {
+          items.push_back({work.get(), work->dispatched++});
+        }
+      }
+      std::vector<Computed> computed(items.size());
+      std::vector<std::function<void()>> tasks;
+      tasks.reserve(finished.size() + items.size() + 1);
+      for (const PatchKey& key : finished) {
+        tasks.emplace_back([this, key] { target_.writeEarly(key); });
+      }
+      finished.clear();
+      for (std::size_t t = 0; t < items.size(); ++t) {
+        tasks.emplace_back([this, &items, &computed, t] {
+          compute(*items[t].work, items[t].work->leaves[items[t].leaf], computed[t]);
+        });
+      }
+      // Every open leaf dispatched: the next matched leaf is planned beside them.
+      std::unique_ptr<MatchWork> planned;
+      if (next < count && open.back()->dispatched == open.back()->leaves.size()) {
+        planned = start(next++);
+        tasks.emplace_back([this, &planned] { plan(*planned); });
+      }
+      runTasks(options_.executor, std::move(tasks));
+      for (std::size_t t = 0; t < items.size(); ++t) {
+        MatchWork& work = *items[t].work;
+        if (computed[t].grid) {
+          insert(work, work.leaves[items[t].leaf], computed[t], finished);
+        }
+        ++work.inserted;
+      }
+      while (!open.empty() && open.front()->inserted == open.front()->leaves.size()) {
+        finish(*open.front());
+        open.pop_front();
+      }
+      if (planned) {
+        open.push_back(std::move(planned));
+      }
+      const double done = static_cast<double>(next - open.size()) +
+                          (open.empty() || open.front()->leaves.empty()
+                               ? 0.0
+                               : static_cast<double>(open.front()->inserted) /
+                                     static_cast<double>(open.front()->leaves.size()));
+      report(options_, "placing", done / static_cast<double>(count));
     }
-    subdivider.emplace(*grid, k, match.ring);
   }
-  // B's leaves that may have surface within `search` of a new patch of ball `ball` (indices into
-  // bLeaves): a function of the surfaces alone, as matching's decisions are.
-  auto detailNear = [&](const Ball& ball) {
+
+ private:
+  const Match& match(const MatchWork& work) const { return matched_.matches[work.m]; }
+
+  /// On the calling thread: matched leaf `m`'s grid and texture.
+  std::unique_ptr<MatchWork> start(std::size_t m) {
+    auto work = std::make_unique<MatchWork>();
+    work->m = m;
+    const Match& leaf = matched_.matches[m];
+    work->grid = target_.positions(leaf.target);
+    if (work->grid->size() != target_.model().gridSize()) {
+      throw Error(ErrorCode::Corrupt,
+                  "merge: patch " + leaf.target.toString() + " has a grid of the wrong size");
+    }
+    work->aTexture = textureOf(target_, leaf.target);
+    return work;
+  }
+
+  /// On any thread: the subdivider and the new leaves of `work` (its grid then unpinned).
+  void plan(MatchWork& work) const {
+    checkCancelled(options_);
+    const Match& leaf = match(work);
+    const int k = leaf.levels;
+    work.subdivider.emplace(*work.grid, k, leaf.ring);
+    work.grid.reset();
+    // Adaptive refinement: a new patch is refined further only where B may have surface;
+    // elsewhere it stays a leaf holding a's surface interpolated to its level (the actual surface
+    // there is unchanged, only denser), so the cost follows B's area, not a's times 4^k. Every
+    // refined patch gets all its (non-empty) children, so reduction covers its whole area.
+    std::function<void(int, std::uint32_t, std::uint32_t)> refine = [&](int level, std::uint32_t i,
+                                                                        std::uint32_t j) {
+      const Ball ball = work.subdivider->ball(level, i, j);
+      if (level == k || !reaches(work, level, i, j, ball)) {
+        work.leaves.push_back({level, i, j, ball});
+        return;
+      }
+      for (const Quadrant q : kQuadrants) {
+        const auto qi = static_cast<std::uint32_t>(q);
+        refine(level + 1, 2 * i + (qi & 1), 2 * j + (qi >> 1));
+      }
+    };
+    if (k == 0) {
+      refine(0, 0, 0);  // resampled in place
+    } else if (reaches(work, 0, 0, 0, work.subdivider->ball(0, 0, 0))) {
+      for (const Quadrant q : kQuadrants) {
+        const auto qi = static_cast<std::uint32_t>(q);
+        refine(1, qi & 1, qi >> 1);
+      }
+    }
+  }
+
+  /// B's leaves that may have surface within `search` of a new patch of ball `ball` (indices into
+  /// bLeaves): a function of the surfaces alone, as matching's decisions are.
+  std::vector<std::size_t> detailNear(const MatchWork& work, const Ball& ball) const {
+    const Match& leaf = match(work);
     std::vector<std::size_t> near;
-    for (const std::size_t i : match.detail) {
-      if (ball.meets(bLeaves[i].ball, search + bLeaves[i].spacing)) {
+    for (const std::size_t i : leaf.detail) {
+      if (ball.meets(matched_.bLeaves[i].ball, leaf.search + matched_.bLeaves[i].spacing)) {
         near.push_back(i);
       }
     }
     return near;
-  };
-  // Whether a ray of new patch (level, i, j) of Ball `ball` (subdivider->ball(level, i, j), which
-  // the caller has computed already), or of a patch below it, can meet B: a block of a B
-  // leaf near it (its Ball) within reach of the rays. A ray leaves a vertex of the patch (inside
-  // its Ball) along a normal inside the patch's normal cone, for at most `search`: it stays within
-  // `search` of the Ball along the cone's axis and within `search` times the cone's sine across
-  // it. On terrain that is a thin slab, so the new levels stay over B and do not spread `search`
-  // sideways, as a test of Balls alone would make them (render-lod and terrain measure it).
-  // Where the cone is unknown (holes) or too wide, any direction. A hit may lie a border
-  // tolerance outside B's cells: one B spacing is allowed for it. A function of the surfaces (no
-  // axis of the scene), as matching's decisions are.
-  constexpr double kConeMargin = 10 * M_PI / 180;
-  constexpr int kParts = 8;  // the patch's vertices in up to 8 x 8 Balls
-  auto reaches = [&](int level, std::uint32_t i, std::uint32_t j, const Ball& ball) {
-    const std::vector<std::size_t> near = detailNear(ball);
+  }
+
+  /// Whether a ray of new patch (level, i, j) of Ball `ball` (subdivider->ball(level, i, j),
+  /// which the caller has computed already), or of a patch below it, can meet B: a block of a B
+  /// leaf near it (its Ball) within reach of the rays. A ray leaves a vertex of the patch (inside
+  /// its Ball) along a normal inside the patch's normal cone, for at most `search`: it stays within
+  /// `search` of the Ball along the cone's axis and within `search` times the cone's sine across
+  /// it. On terrain that is a thin slab, so the new levels stay over B and do not spread `search`
+  /// sideways, as a test of Balls alone would make them (render-lod and terrain measure it).
+  /// Where the cone is unknown (holes) or too wide, any direction. A hit may lie a border
+  /// tolerance outside B's cells: one B spacing is allowed for it. A function of the surfaces (no
+  /// axis of the scene), as matching's decisions are.
+  bool reaches(const MatchWork& work, int level, std::uint32_t i, std::uint32_t j,
+               const Ball& ball) const {
+    constexpr double kConeMargin = 10 * M_PI / 180;
+    constexpr int kParts = 8;  // the patch's vertices in up to 8 x 8 Balls
+    const std::vector<DetailLeaf>& bLeaves = matched_.bLeaves;
+    const double search = match(work).search;
+    const std::vector<std::size_t> near = detailNear(work, ball);
     if (near.empty()) {
       return false;
     }
-    const std::optional<Subdivider::Cone> cone = subdivider->normalCone(level, i, j, kConeMargin);
-    for (const Ball& part : subdivider->balls(level, i, j, kParts)) {
+    const std::optional<Subdivider::Cone> cone =
+        work.subdivider->normalCone(level, i, j, kConeMargin);
+    for (const Ball& part : work.subdivider->balls(level, i, j, kParts)) {
       for (const std::size_t b : near) {
         for (const Ball& block : bLeaves[b].blockBalls) {
           if (block.empty()) {
@@ -216,56 +357,17 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
       }
     }
     return false;
-  };
-  const std::shared_ptr<const TextureTile> aTexture = textureOf(target, match.target);
-  const PatchKey& top = match.target;
-
-  // Adaptive refinement: a new patch is refined further only where B may have surface;
-  // elsewhere it stays a leaf holding a's surface interpolated to its level (the actual surface
-  // there is unchanged, only denser), so the cost follows B's area, not a's times 4^k. Every
-  // refined patch gets all its (non-empty) children, so reduction covers its whole area. The
-  // new leaves, in the order they are inserted (depth first, quadrant order):
-  struct NewLeaf {
-    int level;
-    std::uint32_t i, j;
-    Ball ball;
-  };
-  std::vector<NewLeaf> leaves;
-  std::function<void(int, std::uint32_t, std::uint32_t)> plan = [&](int level, std::uint32_t i,
-                                                                    std::uint32_t j) {
-    const Ball ball = subdivider->ball(level, i, j);
-    if (level == k || !reaches(level, i, j, ball)) {
-      leaves.push_back({level, i, j, ball});
-      return;
-    }
-    for (const Quadrant q : kQuadrants) {
-      const auto qi = static_cast<std::uint32_t>(q);
-      plan(level + 1, 2 * i + (qi & 1), 2 * j + (qi >> 1));
-    }
-  };
-  if (k == 0) {
-    plan(0, 0, 0);  // resampled in place
-  } else if (reaches(0, 0, 0, subdivider->ball(0, 0, 0))) {
-    for (const Quadrant q : kQuadrants) {
-      const auto qi = static_cast<std::uint32_t>(q);
-      plan(1, qi & 1, qi >> 1);
-    }
   }
-  auto keyOf = [&](int level, std::uint32_t i, std::uint32_t j) {
-    return PatchKey{top.depth + level, (top.x << level) + i, (top.y << level) + j};
-  };
 
-  // One new leaf, computed by a task: its vertices (at level k placed on B's surface along the
-  // subdivided surface's normals, cast into the B leaves near it, read and pinned by this task
-  // only, in a caster clipped to the patch's reach) and its texture; no grid when it is empty.
-  struct Computed {
-    std::shared_ptr<const PatchGrid> grid;
-    std::shared_ptr<const TextureTile> texture;
-    std::size_t taken = 0;
-    Vec3d firstDefined;  // for a placeholder parent without any defined vertex
-  };
-  auto compute = [&](const NewLeaf& leaf, Computed& out) {
-    checkCancelled(options);
+  /// One new leaf, computed by a task: its vertices (at level k placed on B's surface along the
+  /// subdivided surface's normals, cast into the B leaves near it, read and pinned by this task
+  /// only, in a caster clipped to the patch's reach) and its texture; no grid when it is empty.
+  void compute(const MatchWork& work, const NewLeaf& leaf, Computed& out) const {
+    checkCancelled(options_);
+    const Subdivider* subdivider = &*work.subdivider;
+    const std::vector<DetailLeaf>& bLeaves = matched_.bLeaves;
+    const double search = match(work).search;
+    const int k = match(work).levels;
     std::vector<Vec3d> positions = subdivider->positions(leaf.level, leaf.i, leaf.j);
     std::optional<SurfaceCaster> caster;
     std::vector<std::shared_ptr<const TextureTile>> textures;
@@ -273,7 +375,7 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
     std::vector<Placed> onDetail;
     std::vector<Vec3d> normals;
     if (leaf.level == k) {
-      const std::vector<std::size_t> near = detailNear(leaf.ball);
+      const std::vector<std::size_t> near = detailNear(work, leaf.ball);
       if (!near.empty()) {
         std::vector<std::shared_ptr<const PatchGrid>> grids;
         // The box of the rays' ends: every ray (and every texel's, between its corners') lies
@@ -290,12 +392,12 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
         SurfaceCaster::Clip clip{reach};
         grids.reserve(near.size());
         for (const std::size_t i : near) {
-          grids.push_back(detail.positions(bLeaves[i].key));
-          textures.push_back(textureOf(detail, bLeaves[i].key));
+          grids.push_back(detail_.positions(bLeaves[i].key));
+          textures.push_back(textureOf(detail_, bLeaves[i].key));
           tiles.push_back(textures.back().get());
           clip.blocks.emplace_back(bLeaves[i].blocks);
         }
-        caster.emplace(grids, options.transform, std::move(clip));
+        caster.emplace(grids, options_.transform, std::move(clip));
         grids.clear();  // the caster holds its own copy: unpinned while the rays are cast
         // In chunks of rays (in grid order), so that no array of all of them (nor of their
         // hits) is made.
@@ -331,83 +433,71 @@ void placeMatch(MergeTarget& target, PatchSource& detail, const MergePlan& match
       return;  // an empty patch is omitted
     }
     out.firstDefined = *first;
-    out.grid = std::make_shared<const PatchGrid>(gridFromGlobal(a.gridSize(), positions));
-    out.texture = placeTexture(*subdivider, leaf.level, leaf.i, leaf.j, *out.grid, aTexture.get(),
-                               surface, search, normals, onDetail, tiles);
-  };
+    out.grid =
+        std::make_shared<const PatchGrid>(gridFromGlobal(target_.model().gridSize(), positions));
+    out.texture = placeTexture(*subdivider, leaf.level, leaf.i, leaf.j, *out.grid,
+                               work.aTexture.get(), surface, search, normals, onDetail, tiles);
+  }
 
-  // Inserted in plan order; a refined patch goes in, as a placeholder, just before its first
-  // non-empty descendant. Reduction recomputes it from its children (inserting them marks it
-  // stale), and nothing reads it before: one defined vertex, that descendant's first, will do
-  // (a's surface subdivided there cost the single thread that inserts a few ms per patch).
-  std::size_t added = 0;
-  auto insert = [&](const NewLeaf& leaf, Computed& computed) {
+  /// Inserts a computed new leaf (in plan order). A refined patch goes in, as a placeholder, just
+  /// before its first non-empty descendant. Reduction recomputes it from its children (inserting
+  /// them marks it stale), and nothing reads it before: one defined vertex, that descendant's
+  /// first, will do (a's surface subdivided there cost the single thread that inserts a few ms
+  /// per patch).
+  void insert(MatchWork& work, const NewLeaf& leaf, Computed& computed,
+              std::vector<PatchKey>& finished) {
+    const PatchKey& top = match(work).target;
+    auto keyOf = [&](int level, std::uint32_t i, std::uint32_t j) {
+      return PatchKey{top.depth + level, (top.x << level) + i, (top.y << level) + j};
+    };
     for (int level = 1; level < leaf.level; ++level) {
       const int shift = leaf.level - level;
       const std::uint32_t i = leaf.i >> shift, j = leaf.j >> shift;
       const PatchKey parent = keyOf(level, i, j);
-      if (target.model().find(parent) != nullptr) {
+      if (target_.model().find(parent) != nullptr) {
         continue;
       }
-      PatchGrid placeholder(a.gridSize(), Mat4d::translation(computed.firstDefined));
+      PatchGrid placeholder(target_.model().gridSize(), Mat4d::translation(computed.firstDefined));
       placeholder.setGlobal(0, 0, computed.firstDefined);
-      target.setPositions(parent, std::make_shared<const PatchGrid>(std::move(placeholder)),
-                          nullptr);
-      ++added;
+      target_.setPositions(parent, std::make_shared<const PatchGrid>(std::move(placeholder)),
+                           nullptr);
+      ++work.added;
     }
-    target.setPositions(keyOf(leaf.level, leaf.i, leaf.j), std::move(computed.grid),
-                        std::move(computed.texture));
+    target_.setPositions(keyOf(leaf.level, leaf.i, leaf.j), std::move(computed.grid),
+                         std::move(computed.texture));
     finished.push_back(keyOf(leaf.level, leaf.i, leaf.j));
-    ++added;
-    result.verticesFromDetail += computed.taken;
-  };
+    ++work.added;
+    result_.verticesFromDetail += computed.taken;
+  }
 
-  for (std::size_t first = 0; first < leaves.size(); first += kMergeBatch) {
-    const std::size_t count = std::min(kMergeBatch, leaves.size() - first);
-    std::vector<Computed> computed(count);
-    std::vector<std::function<void()>> tasks;
-    tasks.reserve(finished.size() + count);
-    for (const PatchKey& key : finished) {
-      tasks.emplace_back([&target, key] { target.writeEarly(key); });
+  /// A matched leaf's counts, once its last new leaf is inserted.
+  void finish(const MatchWork& work) {
+    if (work.added == 0) {
+      return;
     }
-    finished.clear();
-    for (std::size_t t = 0; t < count; ++t) {
-      tasks.emplace_back([&, t] { compute(leaves[first + t], computed[t]); });
-    }
-    runTasks(options.executor, std::move(tasks));
-    for (std::size_t t = 0; t < count; ++t) {
-      if (computed[t].grid) {
-        insert(leaves[first + t], computed[t]);
-      }
-    }
-    report(options, "placing",
-           (static_cast<double>(m) +
-            static_cast<double>(first + count) / static_cast<double>(leaves.size())) /
-               static_cast<double>(matched.matches.size()));
-  }
-  if (added > 0) {
-    ++result.matchedLeaves;
-    if (k == 0) {
-      ++result.resampledLeaves;
+    const Match& leaf = match(work);
+    ++result_.matchedLeaves;
+    if (leaf.levels == 0) {
+      ++result_.resampledLeaves;
     } else {
-      result.newPatches += added;
+      result_.newPatches += work.added;
     }
-    result.levels[top] = k;
-    result.maxLevels = std::max(result.maxLevels, k);
+    result_.levels[leaf.target] = leaf.levels;
+    result_.maxLevels = std::max(result_.maxLevels, leaf.levels);
   }
-}
+
+  MergeTarget& target_;
+  PatchSource& detail_;
+  const MergePlan& matched_;
+  const MergeOptions& options_;
+  MergeResult& result_;
+};
 
 }  // namespace
 
 void placeDetail(MergeTarget& target, PatchSource& detail, const MergePlan& plan,
                  const MergeOptions& options, MergeResult& result) {
-  // The new leaves of the last batch: final once inserted (only placeholders and overviews change
-  // later, by reduction), so the next batch's tasks store them while it computes.
-  std::vector<PatchKey> finished;
-  for (std::size_t m = 0; m < plan.matches.size(); ++m) {
-    checkCancelled(options);
-    placeMatch(target, detail, plan, options, m, finished, result);
-  }
+  Placing(target, detail, plan, options, result).run();
 }
 
 }  // namespace vsm::core::merge_stages
