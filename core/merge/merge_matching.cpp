@@ -214,12 +214,22 @@ void checkBorderOnTarget(MergeTarget& target, PatchSource& detail, const MergePl
       };
       // The leaf's mean normal, for the vertices whose own normal is no guide: at the foot of a
       // groove or on a rough scan a border vertex's normal may run along A instead of across it.
+      // Over every kMeanStride-th vertex each way and the border's: a direction, not a
+      // measurement.
+      constexpr int kMeanStride = 4;
       Vec3d mean;
       std::vector<CastRay> rays;
       Box3d reach;
       for (int y = 0; y < s; ++y) {
+        const bool row = y % kMeanStride == 0;
+        const bool borderRow = (south && y == 0) || (north && y == s - 1);
+        if (!row && !borderRow && !west && !east) {
+          continue;
+        }
         for (int x = 0; x < s; ++x) {
-          if (!grid->defined(x, y)) {
+          const bool onBorder = borderRow || (west && x == 0) || (east && x == s - 1);
+          const bool inMean = row && x % kMeanStride == 0;
+          if ((!onBorder && !inMean) || !grid->defined(x, y)) {
             continue;
           }
           const std::optional<Vec3d> n = normalAt(x, y);
@@ -227,8 +237,6 @@ void checkBorderOnTarget(MergeTarget& target, PatchSource& detail, const MergePl
             continue;
           }
           mean = mean + *n;
-          const bool onBorder = (west && x == 0) || (east && x == s - 1) || (south && y == 0) ||
-                                (north && y == s - 1);
           if (onBorder) {
             const Vec3d p = at(x, y);
             rays.push_back({p, *n, -search, search});
