@@ -39,6 +39,17 @@ struct UpFrame {
     setUp(upIn * (1.0 / n));
   }
 
+  /// The frame whose e1 is `along` made perpendicular to `up` (where that leaves a direction;
+  /// otherwise the frame above's).
+  UpFrame(const Vec3d& originIn, const Vec3d& upIn, const Vec3d& along) : UpFrame(originIn, upIn) {
+    const Vec3d t = along - up * vec::dot(along, up);
+    const double n = t.norm();
+    if (std::isfinite(n) && n > 1e-9 * along.norm()) {
+      e1 = t * (1.0 / n);
+      e2 = vec::cross(up, e1);
+    }
+  }
+
   /// The frame around a unit `unitUp` (finite, length 1 within rounding), taken as it is: no
   /// check, no normalising (SurfaceCaster makes one per ray).
   static UpFrame aroundUnit(const Vec3d& originIn, const Vec3d& unitUp) {

@@ -668,8 +668,12 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   // The bins' axis: the cells' dominant normal, the eigenvector of the largest eigenvalue of
   // sum(n n^T) over their area-weighted normals n (blind to their sign). Rays along it, as a
   // merge's along the target's normals over B mostly are, cast point-sized shadows.
+  // Across it, e1 along the cells' rows (the sum of their (0,0)-(1,0) edges): a grid's cells
+  // then project to boxes little wider than themselves (turned 45 degrees, theirs would be 1.4
+  // times wider, and hold twice the bins' cells).
   Eigen::Matrix3d moments = Eigen::Matrix3d::Zero();
-  // Every kAxisStride-th cell will do: any axis gives exact answers, this one only fewer cells
+  Vec3d rows;
+  // Every kAxisStride-th cell will do: any frame gives exact answers, this one only fewer cells
   // per ray.
   constexpr std::size_t kAxisStride = 7;
   for (std::size_t i = 0; i < m.cells.size(); i += kAxisStride) {
@@ -677,6 +681,9 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     const Vec3d n = m.normal(c);
     const Eigen::Vector3d e(n.x, n.y, n.z);
     moments += e * e.transpose();
+    if (c.corners[0] != kNone && c.corners[1] != kNone) {
+      rows = rows + (m.vertices[c.corners[1]] - m.vertices[c.corners[0]]);
+    }
   }
   Vec3d axis{0, 0, 1};
   const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> solver(moments);
@@ -685,7 +692,7 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
     const Eigen::Vector3d e = solver.eigenvectors().col(2);
     axis = {e.x(), e.y(), e.z()};
   }
-  m.binFrame = UpFrame(m.bounds.center(), axis);
+  m.binFrame = UpFrame(m.bounds.center(), axis, rows);
   std::vector<Vec2d> projected;
   projected.reserve(m.vertices.size());
   for (const Vec3d& v : m.vertices) {
