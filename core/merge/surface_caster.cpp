@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <initializer_list>
 #include <limits>
 #include <string>
 
@@ -23,6 +24,17 @@ constexpr std::uint32_t kNone = std::numeric_limits<std::uint32_t>::max();
 // cell's neighbours: far above kBarycentricSlack, so a neighbour that could tie is always looked
 // at.
 constexpr double kNearBorder = 1e-6;
+
+/// What rounding may move a value computed from values of these magnitudes (coordinates,
+/// distances; a 1 among them for values near 0): 1e-9 of the sum of their absolute values, far
+/// above double's rounding and far below any length the caster decides by.
+double roundingSlack(std::initializer_list<double> values) {
+  double sum = 0;
+  for (const double v : values) {
+    sum += std::fabs(v);
+  }
+  return 1e-9 * sum;
+}
 
 /// A float at or below x, at or above x (a float box holding a double one): x moved outwards by
 /// more than float's rounding before it is rounded.
@@ -88,6 +100,22 @@ struct SurfaceCaster::Impl {
     std::array<std::uint32_t, 4> corners;
     std::uint32_t grid;
     std::uint32_t x, y;
+    /// Whether all four corners are defined (else the cell is the triangle of the other three).
+    bool full() const {
+      return corners[0] != kNone && corners[1] != kNone && corners[2] != kNone &&
+             corners[3] != kNone;
+    }
+    /// A 3-corner cell's defined corners: their places in `corners`, in order.
+    std::array<int, 3> triangle() const {
+      std::array<int, 3> which{};
+      int n = 0;
+      for (int k = 0; k < 4 && n < 3; ++k) {
+        if (corners[k] != kNone) {
+          which[n++] = k;
+        }
+      }
+      return which;
+    }
   };
   /// Where a grid's built cells are: the rectangle [x0, x0 + width) x [y0, y0 + height) of cells,
   /// and their indices in it (kNone where not built).
@@ -141,17 +169,11 @@ struct SurfaceCaster::Impl {
   /// cell's two sides (twice the area of what it spans, in the grid's orientation).
   Vec3d normal(const Cell& c) const {
     const auto& k = c.corners;
-    if (k[0] != kNone && k[1] != kNone && k[2] != kNone && k[3] != kNone) {
+    if (c.full()) {
       return vec::cross(vertices[k[2]] - vertices[k[0]], vertices[k[3]] - vertices[k[1]]);
     }
-    std::array<std::uint32_t, 3> t{};
-    int n = 0;
-    for (const std::uint32_t v : k) {
-      if (v != kNone) {
-        t[n++] = v;
-      }
-    }
-    return vec::cross(vertices[t[1]] - vertices[t[0]], vertices[t[2]] - vertices[t[0]]);
+    const std::array<int, 3> t = c.triangle();
+    return vec::cross(vertices[k[t[1]]] - vertices[k[t[0]]], vertices[k[t[2]]] - vertices[k[t[0]]]);
   }
 
   /// The bins a projected box, relative to (binU0, binV0), meets (inclusive), clamped onto the
@@ -222,7 +244,7 @@ struct SurfaceCaster::Impl {
       mu += std::fabs(reach[k].u);
       mv += std::fabs(reach[k].v);
     }
-    const double round = 1e-9 * (std::fabs(u0) + std::fabs(u1) + std::fabs(v0) + std::fabs(v1));
+    const double round = roundingSlack({u0, u1, v0, v1});
     mu = kBorderTolerance * mu + round;
     mv = kBorderTolerance * mv + round;
     // Not finite (a degenerate projection): let the inversion decide.
@@ -231,17 +253,11 @@ struct SurfaceCaster::Impl {
 
   std::optional<CellHit> intersect(const Cell& cell, const Line& line) const {
     const Vec2d q{0, 0};  // the ray, projected across itself
-    if (cell.corners[3] == kNone || cell.corners[0] == kNone || cell.corners[1] == kNone ||
-        cell.corners[2] == kNone) {
-      std::array<int, 3> which{};
+    if (!cell.full()) {
+      const std::array<int, 3> which = cell.triangle();
       std::array<Vec2d, 3> p{};
-      int n = 0;
-      for (int k = 0; k < 4; ++k) {
-        if (cell.corners[k] != kNone) {
-          which[n] = k;
-          p[n] = line.frame.project(vertices[cell.corners[k]]);
-          ++n;
-        }
+      for (int n = 0; n < 3; ++n) {
+        p[n] = line.frame.project(vertices[cell.corners[which[n]]]);
       }
       // A point within kBorderTolerance (grid units) of the triangle moves by at most that
       // times each of its sides' extents away from the corners' box.
@@ -376,7 +392,7 @@ struct SurfaceCaster::Impl {
 Box3d SurfaceCaster::grownBox(const Box3d& b) {
   const Vec3d size = b.size();
   const double margin = 2 * kBorderTolerance * (size.x + size.y + size.z) +
-                        1e-9 * (std::fabs(b.min.x) + std::fabs(b.min.y) + std::fabs(b.min.z) + 1);
+                        roundingSlack({b.min.x, b.min.y, b.min.z, 1});
   return {{b.min.x - margin, b.min.y - margin, b.min.z - margin},
           {b.max.x + margin, b.max.y + margin, b.max.z + margin}};
 }
@@ -659,10 +675,7 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   }
 
   for (const Impl::Cell& c : m.cells) {
-    m.surfaceTriangles += c.corners[0] != kNone && c.corners[1] != kNone && c.corners[2] != kNone &&
-                                  c.corners[3] != kNone
-                              ? 2
-                              : 1;
+    m.surfaceTriangles += c.full() ? 2 : 1;
   }
 
   // The bins' axis: the cells' dominant normal, the eigenvector of the largest eigenvalue of
@@ -709,15 +722,13 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   double sizeSum = 0;
   double largestMargin = 0;
   for (std::size_t c = 0; c < m.cells.size(); ++c) {
-    const auto& k = m.cells[c].corners;
+    const Impl::Cell& cell = m.cells[c];
+    const auto& k = cell.corners;
     Impl::Box2 flat{
         std::numeric_limits<double>::infinity(), std::numeric_limits<double>::infinity(),
         -std::numeric_limits<double>::infinity(), -std::numeric_limits<double>::infinity()};
-    std::array<std::uint32_t, 4> present{};
-    int n = 0;
     for (const std::uint32_t v : k) {
       if (v != kNone) {
-        present[n++] = v;
         flat.u0 = std::min(flat.u0, projected[v].u);
         flat.v0 = std::min(flat.v0, projected[v].v);
         flat.u1 = std::max(flat.u1, projected[v].u);
@@ -725,20 +736,20 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
       }
     }
     double reach = 0;
-    if (n == 4) {
+    if (cell.full()) {
       const Vec3d& p00 = m.vertices[k[0]];
       const Vec3d& p10 = m.vertices[k[1]];
       const Vec3d& p11 = m.vertices[k[2]];
       const Vec3d& p01 = m.vertices[k[3]];
       reach = (p10 - p00).norm() + (p01 - p00).norm() + 3 * (p11 - p10 - p01 + p00).norm();
     } else {
+      const std::array<int, 3> t = cell.triangle();
       for (int i = 0; i < 3; ++i) {
-        reach += (m.vertices[present[(i + 1) % 3]] - m.vertices[present[i]]).norm();
+        reach += (m.vertices[k[t[(i + 1) % 3]]] - m.vertices[k[t[i]]]).norm();
       }
     }
     const double margin =
-        kBorderTolerance * reach + 1e-9 * (std::fabs(flat.u0) + std::fabs(flat.v0) +
-                                           std::fabs(flat.u1) + std::fabs(flat.v1) + reach + 1);
+        kBorderTolerance * reach + roundingSlack({flat.u0, flat.v0, flat.u1, flat.v1, reach, 1});
     flat = {flat.u0 - margin, flat.v0 - margin, flat.u1 + margin, flat.v1 + margin};
     cellBoxes.push_back(flat);
     largestMargin = std::max(largestMargin, kBorderTolerance * reach);
@@ -748,8 +759,7 @@ SurfaceCaster::SurfaceCaster(const std::vector<std::shared_ptr<const PatchGrid>>
   {
     const Box3d& b = m.bounds;
     const double grow =
-        largestMargin + 1e-9 * (std::fabs(b.min.x) + std::fabs(b.min.y) + std::fabs(b.min.z) +
-                                std::fabs(b.max.x) + std::fabs(b.max.y) + std::fabs(b.max.z) + 1);
+        largestMargin + roundingSlack({b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z, 1});
     m.reachBox = {{b.min.x - grow, b.min.y - grow, b.min.z - grow},
                   {b.max.x + grow, b.max.y + grow, b.max.z + grow}};
   }
@@ -897,11 +907,10 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
     if (!inside) {
       continue;
     }
-    const double round =
-        1e-9 *
-        (std::fabs(ray.origin.x) + std::fabs(ray.origin.y) + std::fabs(ray.origin.z) +
-         std::fabs(m.reachBox.min.x) + std::fabs(m.reachBox.min.y) + std::fabs(m.reachBox.min.z) +
-         std::fabs(m.reachBox.max.x) + std::fabs(m.reachBox.max.y) + std::fabs(m.reachBox.max.z));
+    const Vec3d& low = m.reachBox.min;
+    const Vec3d& high = m.reachBox.max;
+    const double round = roundingSlack(
+        {ray.origin.x, ray.origin.y, ray.origin.z, low.x, low.y, low.z, high.x, high.y, high.z});
     const double searchMin = std::max(ray.tmin, inside->first - round);
     const double searchMax = std::min(ray.tmax, inside->second + round);
     const Impl::Line line{ray.origin, d, UpFrame::aroundUnit(ray.origin, d)};
@@ -910,8 +919,7 @@ void SurfaceCaster::cast(std::span<const CastRay> rays,
     const Vec2d s0{projected.u - m.binU0, projected.v - m.binV0};
     const Vec2d w{dot(d, m.binFrame.e1), dot(d, m.binFrame.e2)};
     const double slack =
-        1e-9 * (std::fabs(projected.u) + std::fabs(projected.v) + std::fabs(m.binU0) +
-                std::fabs(m.binV0) + std::fabs(searchMin) + std::fabs(searchMax) + 1);
+        roundingSlack({projected.u, projected.v, m.binU0, m.binV0, searchMin, searchMax, 1});
     // Whether the shadow of [lo, hi] meets a box (grown by slack) that meets the shadow's box
     // (so along a coordinate the line does not move in, it lies within the box's), in the plane.
     const double from[2] = {s0.u, s0.v}, along[2] = {w.u, w.v};
