@@ -37,7 +37,7 @@ ModelEdit::ModelEdit(LiveModel& live, std::shared_ptr<const ModelSnapshot> base)
     : live_(live),
       sync_(live.dir_),
       base_(std::move(base)),
-      model_(std::make_unique<Model>(*base_->model)),
+      model_(std::make_shared<Model>(*base_->model)),
       nonce_(randomHex()) {}
 
 ModelEdit::~ModelEdit() {
@@ -60,6 +60,12 @@ ModelEdit::~ModelEdit() {
   }
   std::lock_guard lock(live_.writer_->mutex);
   live_.writer_->editing = false;
+}
+
+void ModelEdit::requireOpen() const {
+  if (published_) {
+    throw Error(ErrorCode::Conflict, "edit already published");
+  }
 }
 
 ObjectId ModelEdit::draftId(const PatchKey& key) const {
@@ -85,6 +91,7 @@ PatchCache::Pin ModelEdit::texture(const PatchKey& key) {
 
 void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid,
                              std::shared_ptr<const TextureTile> texture) {
+  requireOpen();
   if (grid->size() != model_->gridSize()) {
     throw Error(ErrorCode::InvalidArgument, "patch " + key.toString() + " has a grid of " +
                                                 std::to_string(grid->size()) + " instead of " +
@@ -140,6 +147,7 @@ void ModelEdit::writeEarly(const PatchKey& key) {
 }
 
 void ModelEdit::refreshStale(const CancelToken* cancel) {
+  requireOpen();
   std::vector<PatchKey> stale;
   for (const auto& [key, info] : model_->patches()) {
     if (info.stale) {
@@ -204,6 +212,7 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
 }
 
 void ModelEdit::restore(const ModelSnapshot& from, const CancelToken* cancel) {
+  requireOpen();
   const Model& target = *from.model;
   if (target.gridSize() != model_->gridSize()) {
     throw Error(ErrorCode::InvalidArgument, "a revision of another patch size cannot be restored");

@@ -142,6 +142,8 @@ class ModelEdit {
   friend class LiveModel;
   ModelEdit(LiveModel& live, std::shared_ptr<const ModelSnapshot> base);
   ObjectId draftId(const PatchKey& key) const;
+  /// Throws Error(Conflict) once published: the model is then the published version's.
+  void requireOpen() const;
   /// Keeps the base's hierarchy (and its index) as Patches/`baseName`, durable: a hard link where
   /// the file system allows, else a copy. Throws Error(Io).
   void keepBaseHierarchy(const std::filesystem::path& patches, const std::string& baseName);
@@ -150,7 +152,8 @@ class ModelEdit {
   /// Opened when the edit begins: syncfs on it reports every write-back error since.
   durable::FileSystemSync sync_;
   std::shared_ptr<const ModelSnapshot> base_;
-  std::unique_ptr<Model> model_;
+  /// Shared with the published snapshot from the commit point on (and then never changed).
+  std::shared_ptr<Model> model_;
   std::set<PatchKey> changed_;
   std::set<PatchKey> removed_;
   bool published_ = false;
