@@ -187,6 +187,16 @@ TEST_F(StoreTest, ReadersSeeTheOldVersionUntilPublishAndTheNewOneAfter) {
     EXPECT_EQ(live->snapshot()->version, v0);
     EXPECT_DOUBLE_EQ(leafZ(*live, *live->snapshot(), leaf), oldZ);
     edit->publish();
+    // The published version's metadata is the edit's own: the edit takes no change after it.
+    const std::size_t published = live->snapshot()->model->patchCount();
+    EXPECT_EQ(codeOf([&] {
+                edit->setPositions({2, 0, 0}, leafGrid(0, 0, 50.0));
+              }),
+              ErrorCode::Conflict);
+    EXPECT_EQ(codeOf([&] { edit->refreshStale(); }), ErrorCode::Conflict);
+    EXPECT_EQ(codeOf([&] { edit->publish(); }), ErrorCode::Conflict);
+    EXPECT_EQ(live->snapshot()->model->patchCount(), published);
+    EXPECT_EQ(live->snapshot()->model->at({2, 0, 0}).version, before->model->at({2, 0, 0}).version);
   }
   const auto after = live->snapshot();
   EXPECT_EQ(after->version, v0 + 1);
