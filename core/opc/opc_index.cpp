@@ -1,11 +1,14 @@
 // vsm's binary index of a hierarchy file (core/opc/README.md, "The index", has the format).
 #include "core/opc/opc_index.hpp"
 
+#include <sys/mman.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 #include <cerrno>
 #include <cstdint>
 #include <cstring>
+#include <functional>
 
 #include "core/common/error.hpp"
 #include "core/opc/opc_detail.hpp"
@@ -83,6 +86,46 @@ class Decoder {
   std::span<const std::byte> bytes_;
   std::size_t pos_ = 0;
   bool ok_ = true;
+};
+
+/// An index file mapped read-only (an index is 200 bytes a patch: mapping it spares copying tens
+/// of MB and faulting in a buffer for them). Index files are replaced by renames, never rewritten
+/// in place, so the mapping does not change under its reader.
+class MappedIndex {
+ public:
+  /// Throws Error(NotFound) when there is no such file, Error(Io) when it cannot be mapped.
+  explicit MappedIndex(const fs::path& file) {
+    const int fd = detail::openForReading(file);
+    struct stat st {};
+    if (::fstat(fd, &st) != 0) {
+      const int errnum = errno;
+      ::close(fd);
+      throw Error(ErrorCode::Io, "cannot stat " + file.string() + ": " + std::strerror(errnum));
+    }
+    size_ = static_cast<std::size_t>(st.st_size);
+    if (size_ > 0) {
+      void* map = ::mmap(nullptr, size_, PROT_READ, MAP_PRIVATE | MAP_POPULATE, fd, 0);
+      if (map == MAP_FAILED) {
+        const int errnum = errno;
+        ::close(fd);
+        throw Error(ErrorCode::Io, "cannot map " + file.string() + ": " + std::strerror(errnum));
+      }
+      data_ = static_cast<const std::byte*>(map);
+    }
+    ::close(fd);
+  }
+  ~MappedIndex() {
+    if (data_ != nullptr) {
+      ::munmap(const_cast<std::byte*>(data_), size_);
+    }
+  }
+  MappedIndex(const MappedIndex&) = delete;
+  MappedIndex& operator=(const MappedIndex&) = delete;
+  std::span<const std::byte> bytes() const { return {data_, size_}; }
+
+ private:
+  const std::byte* data_ = nullptr;
+  std::size_t size_ = 0;
 };
 
 void putStamp(Encoder& out, const HierarchyStamp& stamp) {
@@ -207,93 +250,127 @@ std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& 
   return std::move(out.bytes());
 }
 
-std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
-                                          const HierarchyStamp& stamp) {
-  if (bytes.size() < sizeof(kMagic) + 8 || std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) != 0) {
+namespace {
+
+/// The index's head up to its patches, checked against `stamp` and the checksum: the grid size,
+/// the revision record and the number of patches; nullopt when it is not an index of `stamp`.
+struct IndexHead {
+  int gridSize = 0;
+  std::optional<RevisionRecord> record;
+  std::uint64_t count = 0;
+};
+
+std::optional<IndexHead> decodeHead(std::span<const std::byte> bytes, const HierarchyStamp& stamp,
+                                    Decoder& in) {
+  if (in.get<std::uint32_t>() != kFormat || in.get<std::uint64_t>() != stamp.inode ||
+      in.get<std::uint64_t>() != stamp.size || in.get<std::int64_t>() != stamp.modifiedNs ||
+      !in.ok()) {
     return std::nullopt;
   }
   std::uint64_t sum;
   std::memcpy(&sum, bytes.data() + bytes.size() - 8, 8);
-  const std::span<const std::byte> body = bytes.first(bytes.size() - 8);
-  Decoder in(body.subspan(sizeof(kMagic)));
-  if (in.get<std::uint32_t>() != kFormat || in.get<std::uint64_t>() != stamp.inode ||
-      in.get<std::uint64_t>() != stamp.size || in.get<std::int64_t>() != stamp.modifiedNs ||
-      !in.ok() || opcIndexChecksum(body) != sum) {
+  if (opcIndexChecksum(bytes.first(bytes.size() - 8)) != sum) {
+    return std::nullopt;
+  }
+  IndexHead head;
+  head.gridSize = in.get<std::int32_t>();
+  in.get<std::uint64_t>();
+  in.getBox();
+  const auto levels = in.get<std::uint32_t>();
+  if (!in.ok() || levels > 64) {
+    return std::nullopt;
+  }
+  for (std::uint32_t i = 0; i < levels; ++i) {
+    in.get<std::int32_t>();
+    in.get<std::uint64_t>();
+    in.get<std::uint64_t>();
+    in.getBox();
+    in.get<double>();
+  }
+  in.get<std::uint64_t>();  // the summary's checksum (the file's covers it)
+  if (!in.ok()) {
+    return std::nullopt;
+  }
+  if (in.get<std::uint8_t>() != 0) {
+    RevisionRecord record;
+    record.parent = in.get<std::uint64_t>();
+    record.time = in.getString();
+    record.job = in.getString();
+    record.changed = in.get<std::uint64_t>();
+    record.removed = in.get<std::uint64_t>();
+    record.restoredFrom = in.get<std::uint64_t>();
+    record.nonce = in.getString();
+    if (in.get<std::uint8_t>() != 0) {
+      FencingToken token;
+      token.takeover = in.get<std::uint64_t>();
+      token.lease = in.get<std::int64_t>();
+      record.fence = token;
+    }
+    head.record = std::move(record);
+  }
+  head.count = in.get<std::uint64_t>();
+  if (!in.ok() || head.count == 0 || head.count > bytes.size()) {
+    return std::nullopt;
+  }
+  return head;
+}
+
+/// One patch of the index into `info`; false past the end or for a key out of range.
+bool decodePatch(Decoder& in, PatchInfo& info) {
+  info.key.depth = in.get<std::uint8_t>();
+  info.key.x = in.get<std::uint32_t>();
+  info.key.y = in.get<std::uint32_t>();
+  info.folder = in.getString();
+  if (info.folder.empty()) {
+    info.folder = info.key.toString();
+  }
+  info.globalBox = in.getBox();
+  info.localBox = in.getBox();
+  if (in.get<std::uint8_t>() != 0) {
+    const Vec3d t{in.get<double>(), in.get<double>(), in.get<double>()};
+    info.local2global = Mat4d::translation(t);
+  } else {
+    for (double& v : info.local2global.m) {
+      v = in.get<double>();
+    }
+  }
+  info.resolution = in.get<double>();
+  info.version = in.get<std::uint64_t>();
+  info.stored.x0 = in.get<std::int32_t>();
+  info.stored.y0 = in.get<std::int32_t>();
+  info.stored.x1 = in.get<std::int32_t>();
+  info.stored.y1 = in.get<std::int32_t>();
+  info.positionsFile = in.getString();
+  if (info.positionsFile.empty()) {
+    info.positionsFile = kDefaultPositions;
+  }
+  info.coordinatesFile = in.getString();
+  info.textureFile = in.getString();
+  return in.ok() && info.key.depth <= PatchKey::kMaxDepth;
+}
+
+bool hasMagic(std::span<const std::byte> bytes) {
+  return bytes.size() >= sizeof(kMagic) + 8 &&
+         std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) == 0;
+}
+
+}  // namespace
+
+std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
+                                          const HierarchyStamp& stamp) {
+  if (!hasMagic(bytes)) {
+    return std::nullopt;
+  }
+  Decoder in(bytes.subspan(sizeof(kMagic), bytes.size() - sizeof(kMagic) - 8));
+  std::optional<IndexHead> head = decodeHead(bytes, stamp, in);
+  if (!head) {
     return std::nullopt;
   }
   try {
-    const auto gridSize = in.get<std::int32_t>();
-    in.get<std::uint64_t>();
-    in.getBox();
-    const auto levels = in.get<std::uint32_t>();
-    if (!in.ok() || levels > 64) {
-      return std::nullopt;
-    }
-    for (std::uint32_t i = 0; i < levels; ++i) {
-      in.get<std::int32_t>();
-      in.get<std::uint64_t>();
-      in.get<std::uint64_t>();
-      in.getBox();
-      in.get<double>();
-    }
-    in.get<std::uint64_t>();  // the summary's checksum (the file's covers it)
-    if (!in.ok()) {
-      return std::nullopt;
-    }
-    OpcRevision read{Model(gridSize), std::nullopt};
-    if (in.get<std::uint8_t>() != 0) {
-      RevisionRecord record;
-      record.parent = in.get<std::uint64_t>();
-      record.time = in.getString();
-      record.job = in.getString();
-      record.changed = in.get<std::uint64_t>();
-      record.removed = in.get<std::uint64_t>();
-      record.restoredFrom = in.get<std::uint64_t>();
-      record.nonce = in.getString();
-      if (in.get<std::uint8_t>() != 0) {
-        FencingToken token;
-        token.takeover = in.get<std::uint64_t>();
-        token.lease = in.get<std::int64_t>();
-        record.fence = token;
-      }
-      read.record = std::move(record);
-    }
-    const auto count = in.get<std::uint64_t>();
-    if (!in.ok() || count == 0 || count > body.size()) {
-      return std::nullopt;
-    }
-    for (std::uint64_t i = 0; i < count; ++i) {
+    OpcRevision read{Model(head->gridSize), std::move(head->record)};
+    for (std::uint64_t i = 0; i < head->count; ++i) {
       PatchInfo info;
-      info.key.depth = in.get<std::uint8_t>();
-      info.key.x = in.get<std::uint32_t>();
-      info.key.y = in.get<std::uint32_t>();
-      info.folder = in.getString();
-      if (info.folder.empty()) {
-        info.folder = info.key.toString();
-      }
-      info.globalBox = in.getBox();
-      info.localBox = in.getBox();
-      if (in.get<std::uint8_t>() != 0) {
-        const Vec3d t{in.get<double>(), in.get<double>(), in.get<double>()};
-        info.local2global = Mat4d::translation(t);
-      } else {
-        for (double& v : info.local2global.m) {
-          v = in.get<double>();
-        }
-      }
-      info.resolution = in.get<double>();
-      info.version = in.get<std::uint64_t>();
-      info.stored.x0 = in.get<std::int32_t>();
-      info.stored.y0 = in.get<std::int32_t>();
-      info.stored.x1 = in.get<std::int32_t>();
-      info.stored.y1 = in.get<std::int32_t>();
-      info.positionsFile = in.getString();
-      if (info.positionsFile.empty()) {
-        info.positionsFile = kDefaultPositions;
-      }
-      info.coordinatesFile = in.getString();
-      info.textureFile = in.getString();
-      if (!in.ok() || info.key.depth > PatchKey::kMaxDepth) {
+      if (!decodePatch(in, info)) {
         return std::nullopt;
       }
       read.model.insert(std::move(info));  // parents first: the index is in key order
@@ -304,6 +381,36 @@ std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
     return read;
   } catch (const Error&) {
     return std::nullopt;  // a key twice, a child without its parent: not an index we wrote
+  }
+}
+
+bool forEachIndexedFolder(const fs::path& hierarchyFile,
+                          const std::function<void(std::string_view)>& fn) {
+  try {
+    const HierarchyStamp stamp = fileStamp(hierarchyFile);
+    const MappedIndex index(hierarchyFile.parent_path() /
+                            indexFileName(hierarchyFile.filename().string()));
+    const std::span<const std::byte> bytes = index.bytes();
+    if (!hasMagic(bytes)) {
+      return false;
+    }
+    Decoder in(bytes.subspan(sizeof(kMagic), bytes.size() - sizeof(kMagic) - 8));
+    const std::optional<IndexHead> head = decodeHead(bytes, stamp, in);
+    if (!head) {
+      return false;
+    }
+    // The checksum held: every record is as encodeOpcIndex wrote it, so a decode error below is
+    // a bug, not damage (decodePatch still stops at the end).
+    PatchInfo info;
+    for (std::uint64_t i = 0; i < head->count; ++i) {
+      if (!decodePatch(in, info)) {
+        return false;
+      }
+      fn(info.folder);
+    }
+    return in.atEnd();
+  } catch (const Error&) {
+    return false;  // none, or unreadable: the caller reads the hierarchy
   }
 }
 
@@ -367,7 +474,7 @@ std::optional<OpcRevision> readOpcIndex(const fs::path& dir, std::string_view hi
   }
   try {
     const HierarchyStamp stamp = fileStamp(*hierarchy);
-    return decodeOpcIndex(detail::readFile(index), stamp);
+    return decodeOpcIndex(MappedIndex(index).bytes(), stamp);
   } catch (const Error&) {
     return std::nullopt;  // unreadable: the full read says what is wrong, if anything
   }

@@ -3,6 +3,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <span>
@@ -45,6 +46,12 @@ std::uint64_t opcIndexChecksum(std::span<const std::byte> bytes);
 /// they describe another stamp or are malformed (truncated, checksum, unknown format).
 std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
                                           const HierarchyStamp& stamp);
+
+/// Calls `fn` with the folder of each patch of the hierarchy file `hierarchyFile`, from its index
+/// beside it (in key order), when it has a current one, and returns true; false when it has none
+/// (`fn` may have been called for some folders when the index ends early).
+bool forEachIndexedFolder(const std::filesystem::path& hierarchyFile,
+                          const std::function<void(std::string_view)>& fn);
 
 /// What `vsm info` prints of a model, from the head of its index alone (a few kB read).
 struct OpcSummary {

@@ -568,18 +568,21 @@ std::optional<RevisionRecord> readRevisionRecord(const fs::path& hierarchyFile) 
   return detail::parseHierarchy(hierarchyFile).revision;
 }
 
-std::set<std::string> namedFolders(const fs::path& hierarchyFile) {
+void forEachNamedFolder(const fs::path& hierarchyFile,
+                        const std::function<void(std::string_view)>& fn) {
+  if (forEachIndexedFolder(hierarchyFile, fn)) {
+    return;
+  }
   const detail::ParsedHierarchy parsed = detail::parseHierarchy(hierarchyFile);
-  std::set<std::string> folders{parsed.rootFolder};
+  fn(parsed.rootFolder);
   for (const auto& [folder, children] : parsed.subPatches) {
-    folders.insert(folder);
+    fn(folder);
     for (const std::string& child : children) {
       if (!child.empty()) {
-        folders.insert(child);
+        fn(child);
       }
     }
   }
-  return folders;
 }
 
 PatchGrid readPatchGrid(const fs::path& dir, const Model& model, const PatchInfo& info) {

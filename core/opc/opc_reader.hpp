@@ -2,6 +2,7 @@
 
 #include <cstdint>
 #include <filesystem>
+#include <functional>
 #include <optional>
 #include <set>
 #include <string>
@@ -71,9 +72,14 @@ OpcRevision readOpcRevision(const std::filesystem::path& dir,
 /// Throws Error(NotFound / Io / Corrupt) as readOpcModel.
 std::optional<RevisionRecord> readRevisionRecord(const std::filesystem::path& hierarchyFile);
 
-/// The patch folders a hierarchy file names (its root and every SubPatchMap entry), read from that
-/// file alone. Throws Error(NotFound / Io / Corrupt) as readOpcModel.
-std::set<std::string> namedFolders(const std::filesystem::path& hierarchyFile);
+/// A set of patch folder names, searchable by string_view.
+using FolderSet = std::set<std::string, std::less<>>;
+
+/// Calls `fn` with each patch folder a hierarchy file names (its root and every SubPatchMap entry),
+/// at least once each, in no particular order: from its index when it has a current one, else
+/// from the file alone. Throws Error(NotFound / Io / Corrupt) as readOpcModel.
+void forEachNamedFolder(const std::filesystem::path& hierarchyFile,
+                        const std::function<void(std::string_view)>& fn);
 
 /// `dir`/Patches in whatever letter case it exists. Throws Error(NotFound) when there is none.
 std::filesystem::path patchesDirOf(const std::filesystem::path& dir);

@@ -3,6 +3,8 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <string_view>
+#include <unordered_set>
 #include <utility>
 #include <vector>
 
@@ -34,52 +36,87 @@ namespace {
 void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSnapshot& current) {
   const fs::path patches = patchesDirOf(dir);
   const fs::path tiles = dir / "Images" / std::string(kTextureLayer);
-  // Tile names only where there are tiles: 3 names a patch per kept revision, 10^5 patches.
-  const bool textured = fs::is_directory(tiles);
-  std::set<std::string> named;
-  std::set<std::string> namedTiles;
+  // By the change: the folders and tiles the current model does not name are the candidates, and
+  // only they are looked up in the kept revisions (which name them when an edit replaced them).
+  std::unordered_set<std::string_view> named;
+  named.reserve(current.model->patchCount());
   for (const auto& [key, info] : current.model->patches()) {
     named.insert(info.folder);
-    if (textured && !info.textureFile.empty()) {
-      namedTiles.insert(normalisedEntry(info.textureFile));
-    }
   }
   std::vector<fs::path> orphans;
-  for (const auto& [number, file] : revisionFiles(patches)) {
-    if (number > current.version) {
-      orphans.push_back(file);
+  std::map<std::string, fs::path, std::less<>> candidates;  // folder -> its path
+  std::map<std::uint64_t, fs::path> kept;                   // revision -> its hierarchy file
+  std::vector<fs::path> indexes;
+  for (const auto& entry : fs::directory_iterator(patches)) {
+    const std::string file = entry.path().filename().string();
+    if (entry.is_directory()) {
+      if (!named.contains(file) && isOurFolderName(file)) {
+        candidates.emplace(file, entry.path());
+      }
+    } else if (!entry.is_regular_file()) {
       continue;
-    }
-    for (const std::string& folder : namedFolders(file)) {
-      named.insert(folder);
-      if (textured) {
-        namedTiles.insert(normalisedEntry(textureEntryFor(folder)));
+    } else if (durable::isTempFileName(file)) {
+      orphans.push_back(entry.path());
+    } else if (isIndexFileName(file)) {
+      indexes.push_back(entry.path());
+    } else if (const std::optional<std::uint64_t> number = revisionOfFile(file)) {
+      if (*number > current.version) {
+        orphans.push_back(entry.path());
+      } else {
+        kept.emplace(*number, entry.path());
       }
     }
   }
-  std::set<std::string> indexes{indexFileName("patchhierarchy.xml")};  // indexes of kept files
-  for (const auto& [number, file] : revisionFiles(patches)) {
-    if (number <= current.version) {
-      indexes.insert(indexFileName(file.filename().string()));
+  // Indexes of no kept hierarchy file.
+  std::unordered_set<std::string> keptIndexes{indexFileName("patchhierarchy.xml")};
+  for (const auto& [number, file] : kept) {
+    keptIndexes.insert(indexFileName(file.filename().string()));
+  }
+  for (const fs::path& index : indexes) {
+    if (!keptIndexes.contains(index.filename().string())) {
+      orphans.push_back(index);
     }
   }
-  for (const auto& entry : fs::directory_iterator(patches)) {
-    const std::string folder = entry.path().filename().string();
-    if ((entry.is_directory() && isOurFolderName(folder) && named.count(folder) == 0) ||
-        (entry.is_regular_file() && durable::isTempFileName(folder)) ||
-        (entry.is_regular_file() && isIndexFileName(folder) && indexes.count(folder) == 0)) {
-      orphans.push_back(entry.path());
+  // Our tiles of folders the current model does not name (by the folder: the current model's own
+  // tile names are its textureFile entries).
+  std::map<std::string, fs::path, std::less<>> tileCandidates;  // folder -> the tile's path
+  if (fs::is_directory(tiles)) {
+    std::unordered_set<std::string> namedTiles;
+    for (const auto& [key, info] : current.model->patches()) {
+      if (!info.textureFile.empty()) {
+        namedTiles.insert(normalisedEntry(info.textureFile));
+      }
     }
-  }
-  if (textured) {
     for (const auto& entry : fs::directory_iterator(tiles)) {
       const std::string file = entry.path().filename().string();
-      if (entry.is_regular_file() &&
-          ((isOurTileName(file) && namedTiles.count(normalisedEntry(
-                                       textureEntryFor(file.substr(0, file.size() - 4)))) == 0) ||
-           durable::isTempFileName(file))) {
-        orphans.push_back(entry.path());
+      if (!entry.is_regular_file()) {
+        continue;
       }
+      if (durable::isTempFileName(file)) {
+        orphans.push_back(entry.path());
+      } else if (isOurTileName(file)) {
+        std::string folder = file.substr(0, file.size() - 4);
+        if (!namedTiles.contains(normalisedEntry(textureEntryFor(folder)))) {
+          tileCandidates.emplace(std::move(folder), entry.path());
+        }
+      }
+    }
+  }
+  if (!candidates.empty() || !tileCandidates.empty()) {
+    for (const auto& [number, file] : kept) {
+      forEachNamedFolder(file, [&](std::string_view folder) {
+        if (const auto it = candidates.find(folder); it != candidates.end()) {
+          candidates.erase(it);
+        }
+        if (const auto it = tileCandidates.find(folder); it != tileCandidates.end()) {
+          tileCandidates.erase(it);
+        }
+      });
+    }
+  }
+  for (auto* left : {&candidates, &tileCandidates}) {
+    for (auto& [folder, path] : *left) {
+      orphans.push_back(std::move(path));
     }
   }
   for (const fs::path& orphan : orphans) {

@@ -265,7 +265,7 @@ struct LiveModel::Writer {
   /// waiting for removeRetiredFolders(). Guarded by retiredMutex, a leaf lock: a reader may let
   /// go anywhere, on any thread, with any other lock held.
   std::mutex retiredMutex;
-  std::vector<std::pair<std::weak_ptr<Store>, std::set<std::string>>> retired;
+  std::vector<std::pair<std::weak_ptr<Store>, FolderSet>> retired;
   std::mutex mutex;  // guards everything below
   bool editing = false;
   /// The newest opening: the only one that may begin an edit.

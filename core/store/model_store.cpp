@@ -38,7 +38,7 @@ void LiveModel::Store::forget(const PatchKey& key, std::uint64_t version) {
   versions_.erase({key, version});
 }
 
-void LiveModel::Store::forgetFolders(const std::set<std::string>& folders) {
+void LiveModel::Store::forgetFolders(const FolderSet& folders) {
   std::vector<std::pair<PatchKey, std::uint64_t>> gone;
   {
     std::lock_guard lock(mutex_);

@@ -34,7 +34,7 @@ class LiveModel::Store final : public PatchStore {
   void add(const PatchInfo& info);
   void forget(const PatchKey& key, std::uint64_t version);
   /// Forgets every version stored in one of `folders` and drops its cached data.
-  void forgetFolders(const std::set<std::string>& folders);
+  void forgetFolders(const FolderSet& folders);
 
   std::size_t expectedBytes(const ObjectId& id) const override;
   CacheValue load(const ObjectId& id) override;

@@ -8,6 +8,9 @@
 #include <functional>
 #include <future>
 #include <optional>
+#include <set>
+#include <string_view>
+#include <unordered_set>
 #include <utility>
 #include <vector>
 
@@ -230,9 +233,6 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
     while (files.size() + 1 > keep) {
       const auto oldest = files.begin();
       const std::uint64_t number = oldest->first;
-      std::set<std::string> only = namedFolders(oldest->second);
-      // Folders are never shared across a gap (a restore copies), so what the next kept revision
-      // does not name, no later one does.
       const auto nextFile = std::next(oldest);
       if (readElsewhere.contains(number)) {
         log::info("model=" + name_ + " keeps revision " + std::to_string(number) +
@@ -251,14 +251,28 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
           break;  // (an unreadable time keeps it: dropping is the irreversible side)
         }
       }
-      if (nextFile != files.end()) {
-        for (const std::string& folder : namedFolders(nextFile->second)) {
-          only.erase(folder);
-        }
-      } else {
+      // Folders are never shared across a gap (a restore copies): what the oldest and the current
+      // model both name, every revision between names, and what the next kept revision does not
+      // name, no later one does. So the oldest's own folders are those neither names.
+      FolderSet only;
+      {
+        std::unordered_set<std::string_view> latestFolders;
+        latestFolders.reserve(latest.patchCount());
         for (const auto& [key, info] : latest.patches()) {
-          only.erase(info.folder);
+          latestFolders.insert(info.folder);
         }
+        forEachNamedFolder(oldest->second, [&](std::string_view folder) {
+          if (!latestFolders.contains(folder)) {
+            only.emplace(folder);
+          }
+        });
+      }
+      if (nextFile != files.end() && !only.empty()) {
+        forEachNamedFolder(nextFile->second, [&](std::string_view folder) {
+          if (const auto it = only.find(folder); it != only.end()) {
+            only.erase(it);
+          }
+        });
       }
       // The file first: a crash after it leaves folders no kept revision names, which the next
       // open removes; never a listed revision without its folders.
@@ -299,7 +313,7 @@ std::size_t LiveModel::removeRetiredFolders() {
   if (!writer_) {
     return 0;
   }
-  std::vector<std::pair<std::weak_ptr<Store>, std::set<std::string>>> retired;
+  std::vector<std::pair<std::weak_ptr<Store>, FolderSet>> retired;
   {
     const std::lock_guard lock(writer_->retiredMutex);
     retired.swap(writer_->retired);

@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cctype>
+#include <charconv>
 #include <cstdio>
 #include <ctime>
 #include <regex>
@@ -28,16 +29,6 @@ std::string isoTime(std::time_t time) {
   return text;
 }
 
-/// The revision a kept hierarchy file holds, from its name ("vsm-revision-<n>.xml").
-std::optional<std::uint64_t> revisionOfFile(const std::string& name) {
-  static const std::regex pattern("vsm-revision-([0-9]{1,19})\\.xml");
-  std::smatch match;
-  if (!std::regex_match(name, match, pattern)) {
-    return std::nullopt;
-  }
-  return std::stoull(match[1].str());
-}
-
 }  // namespace
 
 std::string draftFolder(const PatchKey& key, std::uint64_t version, std::string_view nonce) {
@@ -57,6 +48,23 @@ bool isOurTileName(const std::string& name) {
 
 fs::path ourTileFile(const fs::path& dir, const std::string& folder) {
   return dir / "Images" / std::string(kTextureLayer) / (folder + ".tif");
+}
+
+std::optional<std::uint64_t> revisionOfFile(std::string_view name) {
+  constexpr std::string_view prefix = "vsm-revision-";
+  constexpr std::string_view suffix = ".xml";
+  if (!name.starts_with(prefix) || !name.ends_with(suffix)) {
+    return std::nullopt;
+  }
+  const std::string_view digits =
+      name.substr(prefix.size(), name.size() - prefix.size() - suffix.size());
+  std::uint64_t number = 0;
+  const auto [end, ec] = std::from_chars(digits.data(), digits.data() + digits.size(), number);
+  if (digits.empty() || digits.size() > 19 || ec != std::errc() ||
+      end != digits.data() + digits.size()) {
+    return std::nullopt;
+  }
+  return number;
 }
 
 std::map<std::uint64_t, fs::path> revisionFiles(const fs::path& patches) {
@@ -111,7 +119,7 @@ std::shared_ptr<ModelSnapshot> snapshotOf(OpcRevision read, const fs::path& hier
   return snapshot;
 }
 
-void removeFolders(const fs::path& dir, const std::set<std::string>& folders) {
+void removeFolders(const fs::path& dir, const FolderSet& folders) {
   const fs::path patches = patchesDirOf(dir);
   for (const std::string& folder : folders) {
     std::error_code ec;

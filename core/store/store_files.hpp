@@ -11,6 +11,7 @@
 #include <optional>
 #include <set>
 #include <string>
+#include <string_view>
 
 #include "core/opc/opc_reader.hpp"
 #include "core/pyramid/patch_key.hpp"
@@ -36,6 +37,10 @@ bool isOurTileName(const std::string& name);
 /// The file of a tile OpcWriter::writeTexture wrote for `folder` under the model at `dir`.
 std::filesystem::path ourTileFile(const std::filesystem::path& dir, const std::string& folder);
 
+/// The revision a kept hierarchy file holds, from its name ("vsm-revision-<n>.xml", n of 1 to 19
+/// digits); nullopt for any other name.
+std::optional<std::uint64_t> revisionOfFile(std::string_view name);
+
 /// The kept revision files under `patches` by revision number ("vsm-revision-<n>.xml").
 std::map<std::uint64_t, std::filesystem::path> revisionFiles(const std::filesystem::path& patches);
 
@@ -54,7 +59,7 @@ std::shared_ptr<ModelSnapshot> snapshotOf(OpcRevision read,
 
 /// Removes patch folders (and the tiles vsm named for them) that no kept revision names any more.
 /// Failures are logged (the next open removes what is left).
-void removeFolders(const std::filesystem::path& dir, const std::set<std::string>& folders);
+void removeFolders(const std::filesystem::path& dir, const FolderSet& folders);
 
 /// A texture entry as readers resolve it: either slash, any letter case ("Diffuse/2_0_1.TIF" and
 /// "diffuse\\2_0_1.tif" name the same file).

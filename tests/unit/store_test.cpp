@@ -1,5 +1,6 @@
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <fstream>
 #include <map>
@@ -1119,6 +1120,22 @@ TEST_F(StoreTest, APublishWritesAnIndexThatAnswersAsTheFullReadForItAndItsKeptRe
     const std::optional<OpcRevision> indexed = readOpcIndex(dir_, name);
     ASSERT_TRUE(indexed.has_value()) << name;
     expectSameModel(*indexed, fullRead(dir_, name));
+    // The folders it names, from the index, are the hierarchy file's (a copy has no index).
+    std::vector<std::string> fromIndex;
+    ASSERT_TRUE(forEachIndexedFolder(patches / name, [&](std::string_view folder) {
+      fromIndex.emplace_back(folder);
+    })) << name;
+    fs::copy_file(patches / name, dir_ / "unindexed.xml");
+    std::vector<std::string> fromXml;
+    EXPECT_FALSE(forEachIndexedFolder(dir_ / "unindexed.xml", [](std::string_view) {}));
+    forEachNamedFolder(dir_ / "unindexed.xml",
+                       [&](std::string_view folder) { fromXml.emplace_back(folder); });
+    fs::remove(dir_ / "unindexed.xml");
+    std::sort(fromIndex.begin(), fromIndex.end());
+    std::sort(fromXml.begin(), fromXml.end());
+    fromXml.erase(std::unique(fromXml.begin(), fromXml.end()), fromXml.end());  // "at least once"
+    EXPECT_EQ(fromIndex, fromXml) << name;
+    EXPECT_EQ(fromIndex.size(), indexed->model.patchCount()) << name;
   }
   // The kept revision is the file that was published, not a copy: a hard link (the inode the
   // current hierarchy had before the second publish), and its index is a link too.
