@@ -18,21 +18,13 @@ Model::Model(int gridSize) : gridSize_(gridSize) {
 }
 
 int Model::maxDepth() const {
-  int depth = -1;
-  for (const auto& [key, info] : patches_) {
-    depth = std::max(depth, key.depth);
-  }
-  return depth;
+  // Keys order by depth first.
+  return patches_.empty() ? -1 : patches_.rbegin()->first.depth;
 }
 
 const PatchInfo* Model::find(const PatchKey& key) const {
   const auto it = patches_.find(key);
-  return it == patches_.end() ? nullptr : &it->second;
-}
-
-PatchInfo* Model::find(const PatchKey& key) {
-  const auto it = patches_.find(key);
-  return it == patches_.end() ? nullptr : &it->second;
+  return it == patches_.end() ? nullptr : it->second.get();
 }
 
 const PatchInfo& Model::at(const PatchKey& key) const {
@@ -43,8 +35,26 @@ const PatchInfo& Model::at(const PatchKey& key) const {
   return *info;
 }
 
-PatchInfo& Model::at(const PatchKey& key) {
-  return const_cast<PatchInfo&>(static_cast<const Model*>(this)->at(key));
+PatchInfo& Model::edit(const PatchKey& key) {
+  const auto it = patches_.find(key);
+  if (it == patches_.end()) {
+    throw Error(ErrorCode::NotFound, "no patch " + key.toString());
+  }
+  // Shared: another model holds it too (and may be read elsewhere), so this one takes a copy.
+  // Not shared: only this model can reach it, and no other can start sharing it while this one
+  // is being changed (a copy of a model being changed is a race already).
+  if (it->second.use_count() > 1) {
+    it->second = std::make_shared<PatchInfo>(*it->second);
+  }
+  return *it->second;
+}
+
+std::shared_ptr<const PatchInfo> Model::shared(const PatchKey& key) const {
+  const auto it = patches_.find(key);
+  if (it == patches_.end()) {
+    throw Error(ErrorCode::NotFound, "no patch " + key.toString());
+  }
+  return it->second;
 }
 
 PatchInfo& Model::insert(PatchInfo info) {
@@ -52,12 +62,12 @@ PatchInfo& Model::insert(PatchInfo info) {
     throw Error(ErrorCode::Conflict, "patch " + info.key.toString() + " exists");
   }
   if (const auto parentKey = info.key.parent()) {
-    PatchInfo* parent = find(*parentKey);
-    if (parent == nullptr) {
+    if (find(*parentKey) == nullptr) {
       throw Error(ErrorCode::InvalidArgument,
                   "patch " + info.key.toString() + " has no parent in the model");
     }
-    parent->childMask |= static_cast<std::uint8_t>(1u << static_cast<int>(info.key.quadrant()));
+    edit(*parentKey).childMask |=
+        static_cast<std::uint8_t>(1u << static_cast<int>(info.key.quadrant()));
   }
   info.childMask = 0;
   for (const Quadrant q : kQuadrants) {
@@ -66,7 +76,7 @@ PatchInfo& Model::insert(PatchInfo info) {
     }
   }
   const PatchKey key = info.key;
-  return patches_.emplace(key, std::move(info)).first->second;
+  return *patches_.emplace(key, std::make_shared<PatchInfo>(std::move(info))).first->second;
 }
 
 void Model::eraseLeaf(const PatchKey& key) {
@@ -76,7 +86,8 @@ void Model::eraseLeaf(const PatchKey& key) {
     throw Error(ErrorCode::InvalidArgument,
                 "patch " + key.toString() + " is not a leaf below the root: it cannot be removed");
   }
-  at(*parentKey).childMask &= static_cast<std::uint8_t>(~(1u << static_cast<int>(key.quadrant())));
+  edit(*parentKey).childMask &=
+      static_cast<std::uint8_t>(~(1u << static_cast<int>(key.quadrant())));
   patches_.erase(key);
 }
 
@@ -93,7 +104,7 @@ std::vector<PatchKey> Model::children(const PatchKey& key) const {
 
 std::vector<PatchKey> Model::leaves() const {
   std::vector<PatchKey> result;
-  for (const auto& [key, info] : patches_) {
+  for (const auto& [key, info] : patches()) {
     if (info.isLeaf()) {
       result.push_back(key);
     }
@@ -134,7 +145,7 @@ Box3d Model::childrenBox(const PatchKey& key) const {
 }
 
 void Model::describe(const PatchKey& key, const PatchGrid& grid) {
-  PatchInfo& info = at(key);
+  PatchInfo& info = edit(key);
   if (grid.size() != gridSize_) {
     throw Error(ErrorCode::InvalidArgument, "grid size differs from the model's patch size");
   }
@@ -153,22 +164,22 @@ void Model::describe(const PatchKey& key, const PatchGrid& grid) {
 
 void Model::setGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) {
   describe(key, *grid);
-  PatchInfo& info = at(key);
+  PatchInfo& info = edit(key);
   info.grid = std::move(grid);
   ++info.version;
   markChanged(key);
 }
 
 void Model::markChanged(const PatchKey& key) {
-  at(key).dirty = true;
+  edit(key).dirty = true;
   for (auto parent = key.parent(); parent; parent = parent->parent()) {
-    at(*parent).stale = true;
+    edit(*parent).stale = true;
   }
 }
 
 void Model::refreshStale(const GridLoader& load) {
   std::vector<PatchKey> stale;
-  for (const auto& [key, info] : patches_) {
+  for (const auto& [key, info] : patches()) {
     if (info.stale) {
       stale.push_back(key);
     }
@@ -186,7 +197,7 @@ void Model::refreshStale(const GridLoader& load) {
       }
     }
     setGrid(key, std::make_shared<const PatchGrid>(reduce(children)));
-    at(key).stale = false;
+    edit(key).stale = false;
   }
 }
 
@@ -196,7 +207,7 @@ std::vector<LevelSummary> Model::levels() const {
   for (std::size_t d = 0; d < levels.size(); ++d) {
     levels[d].depth = static_cast<int>(d);
   }
-  for (const auto& [key, info] : patches_) {
+  for (const auto& [key, info] : patches()) {
     LevelSummary& level = levels[static_cast<std::size_t>(key.depth)];
     ++level.patches;
     level.leaves += info.isLeaf() ? 1 : 0;

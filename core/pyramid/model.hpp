@@ -5,7 +5,9 @@
 #include <functional>
 #include <map>
 #include <memory>
+#include <ranges>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "core/grid/patch_grid.hpp"
@@ -62,7 +64,7 @@ struct LevelSummary {
 /// omitted, and variable depth (a leaf is the actual surface at its place, every patch above it an
 /// overview). Holds metadata and states; vertex data is attached per patch when resident.
 ///
-/// Not thread-safe; the owner serialises access.
+/// Not thread-safe; the owner serialises access (copies are independent models).
 class Model {
  public:
   /// Throws Error(InvalidArgument) unless gridSize is 2^n+1 with 1 <= n <= 15.
@@ -75,10 +77,13 @@ class Model {
   int maxDepth() const;
 
   const PatchInfo* find(const PatchKey& key) const;
-  PatchInfo* find(const PatchKey& key);
   /// Throws Error(NotFound) for a key that is not in the model.
   const PatchInfo& at(const PatchKey& key) const;
-  PatchInfo& at(const PatchKey& key);
+  /// The patch to change: its own copy when it was shared with another model. Throws as at().
+  PatchInfo& edit(const PatchKey& key);
+  /// The patch's metadata as a shared, unchanging node (the model takes a copy before it changes
+  /// it: edit()). Throws as at().
+  std::shared_ptr<const PatchInfo> shared(const PatchKey& key) const;
 
   /// Adds a patch. Its parent must exist already (except for the root), and gets the matching
   /// child bit. Throws Error(Conflict) when the key exists, Error(InvalidArgument) when the parent
@@ -94,8 +99,12 @@ class Model {
   /// the patches whose box it accepts. A parent's box holds its children's, so `meets` must accept
   /// a box whenever it accepts one inside it (a box or a segment meeting it, say).
   std::vector<PatchKey> leavesWhere(const std::function<bool(const Box3d&)>& meets) const;
-  /// All patches, parents before children (by depth, then row, then column).
-  const std::map<PatchKey, PatchInfo>& patches() const { return patches_; }
+  /// All patches as (key, info) pairs, parents before children (by depth, then row, then column).
+  auto patches() const {
+    return patches_ | std::views::transform([](const auto& entry) {
+             return std::pair<const PatchKey&, const PatchInfo&>(entry.first, *entry.second);
+           });
+  }
 
   /// Union of the global boxes of the children of `key` (empty for a leaf).
   Box3d childrenBox(const PatchKey& key) const;
@@ -122,7 +131,11 @@ class Model {
 
  private:
   int gridSize_;
-  std::map<PatchKey, PatchInfo> patches_;
+  /// Each patch's metadata is shared by the copies of a model until one of them changes it (copy
+  /// on write, edit()): a copy of a model of 10^5 patches copies pointers, and the versions a
+  /// store keeps hold one PatchInfo per changed patch, not per patch. Nodes are never changed in
+  /// place while shared, so models sharing them may be read on other threads.
+  std::map<PatchKey, std::shared_ptr<PatchInfo>> patches_;
 };
 
 }  // namespace vsm::core

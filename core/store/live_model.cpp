@@ -177,7 +177,7 @@ std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name
   }
   auto store = std::make_shared<Store>(dir, cache, name, model.gridSize(), texturePixels);
   for (const auto& [key, info] : model.patches()) {
-    store->add(info);
+    store->add(model.shared(key));
   }
   const std::uint64_t version = snapshot->version;
   auto live = std::unique_ptr<LiveModel>(

@@ -110,7 +110,7 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
   }
   const ObjectId id = draftId(key);
   const ObjectId textureId{key, id.version, MemoryCategory::Textures};
-  PatchInfo& info = model_->at(key);
+  PatchInfo& info = model_->edit(key);
   LiveModel::Store& store = *live_.store_;
   if (!texture && changed_.count(key) != 0 && !info.textureFile.empty()) {
     // This edit's earlier texture of the patch is obsolete (and may have been written already).
@@ -128,7 +128,7 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
   model_->markChanged(key);
   info.dirty = false;  // the cache tracks dirtiness; the model only needs `changed_`
   changed_.insert(key);
-  store.add(info);
+  store.add(model_->shared(key));
   const std::size_t bytes = grid->bytes();
   store.cache().put(store.id(), id, {std::move(grid), bytes}, true);
   if (texture) {
@@ -207,7 +207,7 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
       parentTexture = std::make_shared<const TextureTile>(downsampleQuadrants(children, size));
     }
     setPositions(key, std::move(parent), std::move(parentTexture));
-    model_->at(key).stale = false;
+    model_->edit(key).stale = false;
   }
 }
 
@@ -264,8 +264,8 @@ void ModelEdit::restore(const ModelSnapshot& from, const CancelToken* cancel) {
     setPositions(key, std::move(grid), std::move(texture));
   }
   // Every overview is `from`'s own now: none is recomputed.
-  for (auto& [key, info] : target.patches()) {
-    model_->at(key).stale = false;
+  for (const auto& [key, info] : target.patches()) {
+    model_->edit(key).stale = false;
   }
 }
 

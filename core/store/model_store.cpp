@@ -26,11 +26,15 @@ LiveModel::Store::~Store() {
   }
 }
 
-void LiveModel::Store::add(const PatchInfo& info) {
-  PatchInfo copy = info;
-  copy.grid.reset();
+void LiveModel::Store::add(std::shared_ptr<const PatchInfo> info) {
+  if (info->grid != nullptr) {  // the cache holds vertex data, within its budget; never the store
+    auto copy = std::make_shared<PatchInfo>(*info);
+    copy->grid.reset();
+    info = std::move(copy);
+  }
+  const std::pair<PatchKey, std::uint64_t> id{info->key, info->version};
   std::lock_guard lock(mutex_);
-  versions_[{info.key, info.version}] = std::move(copy);
+  versions_[id] = std::move(info);
 }
 
 void LiveModel::Store::forget(const PatchKey& key, std::uint64_t version) {
@@ -43,7 +47,7 @@ void LiveModel::Store::forgetFolders(const FolderSet& folders) {
   {
     std::lock_guard lock(mutex_);
     for (auto it = versions_.begin(); it != versions_.end();) {
-      if (folders.count(it->second.folder) != 0) {
+      if (folders.contains(it->second->folder)) {
         gone.push_back(it->first);
         it = versions_.erase(it);
       } else {
@@ -64,7 +68,8 @@ std::size_t LiveModel::Store::expectedBytes(const ObjectId& id) const {
 }
 
 CacheValue LiveModel::Store::load(const ObjectId& id) {
-  const PatchInfo info = lookup(id);
+  const std::shared_ptr<const PatchInfo> held = lookup(id);
+  const PatchInfo& info = *held;
   if (id.category == MemoryCategory::Textures) {
     auto tile =
         std::make_shared<const TextureTile>(readPatchTextureTile(dir_, info, texturePixels_));
@@ -77,7 +82,7 @@ CacheValue LiveModel::Store::load(const ObjectId& id) {
 }
 
 void LiveModel::Store::writeBack(const ObjectId& id, const CacheValue& value) {
-  PatchInfo info = lookup(id);
+  PatchInfo info = *lookup(id);  // the writer fills in what it wrote
   // Only drafts are ever dirty: their folders are invisible until publish() makes them durable
   // (the edit's FileSystemSync) before the hierarchy names them, so no fsync or temp file per
   // file here.
@@ -91,7 +96,7 @@ void LiveModel::Store::writeBack(const ObjectId& id, const CacheValue& value) {
   writer.writePatch(info, *value.object.as<PatchGrid>(), info.globalBox);
 }
 
-PatchInfo LiveModel::Store::lookup(const ObjectId& id) const {
+std::shared_ptr<const PatchInfo> LiveModel::Store::lookup(const ObjectId& id) const {
   std::lock_guard lock(mutex_);
   const auto it = versions_.find({id.key, id.version});
   if (it == versions_.end()) {

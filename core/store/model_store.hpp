@@ -30,8 +30,8 @@ class LiveModel::Store final : public PatchStore {
   PatchCache::ModelId id() const { return id_; }
   const std::filesystem::path& dir() const { return dir_; }
 
-  /// Makes a version loadable (published or draft).
-  void add(const PatchInfo& info);
+  /// Makes a version loadable (published or draft): holds its node (Model::shared).
+  void add(std::shared_ptr<const PatchInfo> info);
   void forget(const PatchKey& key, std::uint64_t version);
   /// Forgets every version stored in one of `folders` and drops its cached data.
   void forgetFolders(const FolderSet& folders);
@@ -43,7 +43,7 @@ class LiveModel::Store final : public PatchStore {
   void writeBack(const ObjectId& id, const CacheValue& value) override;
 
  private:
-  PatchInfo lookup(const ObjectId& id) const;
+  std::shared_ptr<const PatchInfo> lookup(const ObjectId& id) const;
 
   std::filesystem::path dir_;
   PatchCache& cache_;
@@ -51,7 +51,7 @@ class LiveModel::Store final : public PatchStore {
   /// An empty model of the right patch size: what readPatchGrid needs to know of the model.
   const Model shape_;
   mutable std::mutex mutex_;  // guards versions_
-  std::map<std::pair<PatchKey, std::uint64_t>, PatchInfo> versions_;
+  std::map<std::pair<PatchKey, std::uint64_t>, std::shared_ptr<const PatchInfo>> versions_;
   const std::uint64_t texturePixels_;
 };
 

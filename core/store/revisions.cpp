@@ -162,7 +162,7 @@ std::shared_ptr<ModelSnapshot> LiveModel::readRevision(std::uint64_t revision) {
                                         std::to_string(revision) + " of this model");
   }
   for (const auto& [key, info] : read->model->patches()) {
-    store_->add(info);
+    store_->add(read->model->shared(key));
   }
   std::vector<std::shared_ptr<ModelSnapshot>> released;  // let go after the lock
   {

@@ -68,10 +68,10 @@ void writeLayout(const fs::path& dir, const LeafOf& leaf) {
   }
   model.refreshStale([](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return nullptr; });
   OpcWriter writer(dir, OpcWriter::Durability::EachFile);
-  for (auto it = model.patches().rbegin(); it != model.patches().rend(); ++it) {
-    PatchInfo& info = model.at(it->first);
-    info.folder = it->first.toString();
-    writer.writePatch(info, *info.grid, model.childrenBox(it->first));
+  for (const auto& [key, unused] : std::views::reverse(model.patches())) {
+    PatchInfo& info = model.edit(key);
+    info.folder = key.toString();
+    writer.writePatch(info, *info.grid, model.childrenBox(key));
   }
   writer.writeHierarchy(model);
 }

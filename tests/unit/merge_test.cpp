@@ -928,7 +928,7 @@ namespace fs = std::filesystem;
 void writeOpc(Model& model, const fs::path& dir) {
   OpcWriter writer(dir, OpcWriter::Durability::Deferred);
   for (const auto& [key, info] : model.patches()) {
-    PatchInfo& mutableInfo = model.at(key);
+    PatchInfo& mutableInfo = model.edit(key);
     mutableInfo.folder = key.toString();
     writer.writePatch(mutableInfo, *info.grid, model.childrenBox(key));
   }

@@ -414,7 +414,7 @@ void writeModel(Model& model, const fs::path& dir) {
     keys.push_back(key);
   }
   for (auto it = keys.rbegin(); it != keys.rend(); ++it) {
-    PatchInfo& info = model.at(*it);
+    PatchInfo& info = model.edit(*it);
     writer.writePatch(info, *info.grid, model.childrenBox(*it));
   }
   writer.writeHierarchy(model);
@@ -457,7 +457,7 @@ TEST_F(OpcStoreTest, WriteReadWriteGivesIdenticalFiles) {
   Model read = readOpcModel(opc());
   ASSERT_EQ(read.patchCount(), 4u);
   for (const auto& [key, info] : read.patches()) {
-    read.at(key).grid = std::make_shared<const PatchGrid>(readPatchGrid(opc(), read, read.at(key)));
+    read.edit(key).grid = std::make_shared<const PatchGrid>(readPatchGrid(opc(), read, info));
   }
   writeModel(read, dir_ / "b");
   EXPECT_EQ(filesUnder(opc()), filesUnder(dir_ / "b"));
@@ -493,7 +493,7 @@ TEST_F(OpcStoreTest, TheCoordinatesOfWholePatchesAreOneSharedFile) {
       keys.push_back(key);
     }
     for (auto it = keys.rbegin(); it != keys.rend(); ++it) {
-      PatchInfo& info = model.at(*it);
+      PatchInfo& info = model.edit(*it);
       writer.writeTexture(info, TextureTile(textureTileSize(kSize)));
       writer.writePatch(info, *info.grid, model.childrenBox(*it));
     }
@@ -540,7 +540,7 @@ TEST_F(OpcStoreTest, TheCoordinatesOfWholePatchesAreOneSharedFile) {
   fs::rename(damaged, shared);
   {
     OpcWriter writer(out, OpcWriter::Durability::Deferred);
-    PatchInfo& info = model.at(ne.key);
+    PatchInfo& info = model.edit(ne.key);
     writer.writeTexture(info, TextureTile(textureTileSize(kSize)));
     writer.writePatch(info, *info.grid, model.childrenBox(ne.key));
   }

@@ -90,7 +90,7 @@ inline void writeModel(const fs::path& dir) {
   model.refreshStale([](const core::PatchInfo&) { return nullptr; });
   core::OpcWriter writer(dir, core::OpcWriter::Durability::EachFile);
   for (const auto& [key, patch] : model.patches()) {
-    core::PatchInfo& mutableInfo = model.at(key);
+    core::PatchInfo& mutableInfo = model.edit(key);
     mutableInfo.folder = key.toString();
     writer.writePatch(mutableInfo, *patch.grid, model.childrenBox(key));
   }

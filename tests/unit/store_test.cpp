@@ -101,9 +101,8 @@ void writeModel(const fs::path& dir, bool textured = false) {
   OpcWriter writer(dir, OpcWriter::Durability::EachFile);
   std::map<PatchKey, std::shared_ptr<TextureTile>> tiles;
   // Deepest first, so each overview's tile comes from its children's.
-  for (auto it = model.patches().rbegin(); it != model.patches().rend(); ++it) {
-    const PatchKey& key = it->first;
-    PatchInfo& info = model.at(key);
+  for (const auto& [key, unused] : std::views::reverse(model.patches())) {
+    PatchInfo& info = model.edit(key);
     info.folder = key.toString();
     if (textured) {
       if (key.depth == 2) {
