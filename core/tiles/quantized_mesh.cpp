@@ -260,7 +260,21 @@ bool TerrainLayer::isAvailable(const TerrainTileKey& key) const {
   return false;
 }
 
-TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load) {
+namespace {
+
+/// True when `key` names the same stored patch in both models, with the same children: what its
+/// subtree's footprint depends on, as far as the patch itself goes.
+bool samePatch(const PatchInfo& info, const Model& previous) {
+  const PatchInfo* before = previous.find(info.key);
+  return before != nullptr && before->version == info.version && before->folder == info.folder &&
+         before->childMask == info.childMask && before->globalBox == info.globalBox &&
+         before->local2global == info.local2global;
+}
+
+}  // namespace
+
+TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load,
+                               const TerrainLayerBase* previous) {
   if (model.empty()) {
     throw Error(ErrorCode::InvalidArgument, "terrain: the model is empty");
   }
@@ -270,9 +284,26 @@ TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load
     return layer;
   }
   layer.heightField = true;
+  if (previous != nullptr && !previous->layer.heightField) {
+    previous = nullptr;
+  }
 
-  // Footprints: each patch's own defined vertices, then children into parents (deepest first).
-  for (const auto& [key, info] : model.patches()) {
+  // Footprints, deepest first: each patch's own defined vertices and its children's footprints,
+  // or the previous layer's footprint for a subtree unchanged since.
+  std::set<PatchKey> changed;  // the patches whose subtree holds a change (read here)
+  for (const auto& [key, info] : std::views::reverse(model.patches())) {
+    bool unchanged = previous != nullptr && samePatch(info, previous->model);
+    for (const Quadrant q : kQuadrants) {
+      unchanged = unchanged && !(info.hasChild(q) && changed.contains(key.child(q)));
+    }
+    if (unchanged) {
+      if (const auto it = previous->layer.footprint.find(key);
+          it != previous->layer.footprint.end()) {
+        layer.footprint.emplace_hint(layer.footprint.begin(), key, it->second);
+      }
+      continue;
+    }
+    changed.insert(key);
     const auto grid = load(info);
     GeoRect rect;
     for (int y = 0; y < grid->size(); ++y) {
@@ -283,13 +314,13 @@ TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load
         }
       }
     }
-    if (!rect.empty()) {
-      layer.footprint[key] = rect;
+    for (const Quadrant q : kQuadrants) {
+      if (const auto it = layer.footprint.find(key.child(q)); it != layer.footprint.end()) {
+        rect.extend(it->second);
+      }
     }
-  }
-  for (auto it = layer.footprint.rbegin(); it != layer.footprint.rend(); ++it) {
-    if (const auto parent = it->first.parent()) {
-      layer.footprint[*parent].extend(it->second);
+    if (!rect.empty()) {
+      layer.footprint.emplace_hint(layer.footprint.begin(), key, rect);
     }
   }
   for (const auto& [key, rect] : layer.footprint) {

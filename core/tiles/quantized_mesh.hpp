@@ -118,7 +118,17 @@ using TerrainGridLoader = std::function<std::shared_ptr<const PatchGrid>(const P
 /// list over 2^20 tiles ends the list. A model that is not a height field gives heightField false
 /// and nothing else. Throws what `load` throws, and
 /// Error(InvalidArgument) for an empty model.
-TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load);
+///
+/// With `previous` (a layer built before and the model it was built from, such as the last
+/// version's), a subtree whose patches are all unchanged in `previous.model` (the same version,
+/// folder, children and boxes) takes its footprint from `previous.layer` without reading them: a
+/// new version after a small merge reads only the patches the merge changed.
+struct TerrainLayerBase {
+  const Model& model;
+  const TerrainLayer& layer;
+};
+TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load,
+                               const TerrainLayerBase* previous = nullptr);
 
 /// The patches tile `key` is sampled from, coarse to fine (the order they are painted in): from
 /// the root down through patches whose footprint meets the tile (with its one-vertex ring), taking

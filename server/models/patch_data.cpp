@@ -5,9 +5,11 @@
 #include <chrono>
 #include <cstring>
 #include <exception>
+#include <filesystem>
 #include <future>
 #include <map>
 #include <mutex>
+#include <optional>
 #include <span>
 #include <utility>
 
@@ -140,10 +142,28 @@ class TerrainLayers {
     }
     try {
       const auto start = std::chrono::steady_clock::now();
-      auto layer = std::make_shared<const core::TerrainLayer>(
-          core::buildTerrainLayer(*snapshot->model, [&](const core::PatchInfo& info) {
+      // From the last layer built for the model in this directory: only what changed is read.
+      std::optional<Base> base;
+      {
+        const std::lock_guard lock(mutex_);
+        if (const auto it = bases_.find(live.dir()); it != bases_.end()) {
+          base = it->second;
+        }
+      }
+      std::optional<core::TerrainLayerBase> previous;
+      if (base) {
+        previous.emplace(core::TerrainLayerBase{*base->model, *base->layer});
+      }
+      auto layer = std::make_shared<const core::TerrainLayer>(core::buildTerrainLayer(
+          *snapshot->model,
+          [&](const core::PatchInfo& info) {
             return live.positions(*snapshot, info.key).get<core::PatchGrid>();
-          }));
+          },
+          previous ? &*previous : nullptr));
+      {
+        const std::lock_guard lock(mutex_);
+        bases_[live.dir()] = Base{snapshot->model, layer};
+      }
       core::log::info(
           "model=" + live.name() + " terrain layer of version " +
           std::to_string(snapshot->version) + ": " +
@@ -171,8 +191,16 @@ class TerrainLayers {
     std::weak_ptr<const core::ModelSnapshot> snapshot;  // the key's owner, to detect reuse
     std::shared_future<Layer> layer;                    // ready once built
   };
-  mutable std::mutex mutex_;  // guards layers_ (the map; layers are immutable once built)
+  /// The last layer built for a model (by its directory) and the metadata it was built from:
+  /// the base of the next version's layer (kept beyond its snapshot; the metadata shares every
+  /// unchanged patch with the newer versions', so it costs about its changed patches).
+  struct Base {
+    std::shared_ptr<const core::Model> model;
+    Layer layer;
+  };
+  mutable std::mutex mutex_;  // guards layers_ and bases_ (layers are immutable once built)
   std::map<const core::ModelSnapshot*, Entry> layers_;
+  std::map<std::filesystem::path, Base> bases_;
 };
 
 // ---- the service -----------------------------------------------------------------------------

@@ -2,9 +2,11 @@
 // beside tiles_test (the 3D Tiles half of core/tiles), so that the two halves change apart.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <map>
 #include <memory>
 #include <nlohmann/json.hpp>
 #include <numbers>
@@ -304,6 +306,135 @@ TEST(TerrainLayer, AModelInALocalFrameIsNoHeightField) {
   EXPECT_FALSE(layer.heightField);
   EXPECT_NE(layer.reason.find("not earth-centred"), std::string::npos) << layer.reason;
   EXPECT_TRUE(terrainSources(local.model, layer, kInside).empty());
+}
+
+/// A full quadtree of depth 2 over the synthetic surface: each patch's grid covers its share of
+/// the 0.5 degree square at its own spacing.
+struct GeoPyramid {
+  static constexpr int kSize = 17;
+  Model model{kSize};
+  std::map<PatchKey, std::shared_ptr<const PatchGrid>> grids;
+
+  GeoPyramid() {
+    for (int depth = 0; depth <= 2; ++depth) {
+      for (std::uint32_t y = 0; y < (1u << depth); ++y) {
+        for (std::uint32_t x = 0; x < (1u << depth); ++x) {
+          const PatchKey key{depth, x, y};
+          PatchInfo info;
+          info.key = key;
+          model.insert(info);
+          grids[key] = gridOf(key);
+        }
+      }
+    }
+    for (int depth = 2; depth >= 0; --depth) {  // children first: a box holds theirs
+      for (const auto& [key, grid] : grids) {
+        if (key.depth == depth) {
+          model.describe(key, *grid);
+        }
+      }
+    }
+  }
+  static std::shared_ptr<PatchGrid> gridOf(const PatchKey& key) {
+    const double side = kSpan / (1 << key.depth);
+    const double west = kWest + side * key.x;
+    const double north = kSouth + kSpan - side * key.y;
+    std::vector<Vec3d> points;
+    Box3d box;
+    for (int j = 0; j < kSize; ++j) {
+      for (int i = 0; i < kSize; ++i) {
+        const double lon = west + side * i / (kSize - 1);
+        const double lat = north - side * j / (kSize - 1);
+        points.push_back(geodeticToEcef(lon, lat, heightAt(lon, lat)));
+        box.extend(points.back());
+      }
+    }
+    auto grid = std::make_shared<PatchGrid>(kSize, originFor(box));
+    for (int j = 0; j < kSize; ++j) {
+      for (int i = 0; i < kSize; ++i) {
+        grid->setGlobal(i, j, points[static_cast<std::size_t>(j) * kSize + i]);
+      }
+    }
+    return grid;
+  }
+};
+
+void expectSameLayer(const TerrainLayer& a, const TerrainLayer& b) {
+  ASSERT_EQ(a.footprint.size(), b.footprint.size());
+  for (const auto& [key, rect] : a.footprint) {
+    ASSERT_EQ(b.footprint.count(key), 1u) << key.toString();
+    const GeoRect& other = b.footprint.at(key);
+    EXPECT_EQ(rect.west, other.west) << key.toString();
+    EXPECT_EQ(rect.east, other.east) << key.toString();
+    EXPECT_EQ(rect.south, other.south) << key.toString();
+    EXPECT_EQ(rect.north, other.north) << key.toString();
+  }
+  EXPECT_EQ(a.available, b.available);
+  EXPECT_EQ(a.maxZoom, b.maxZoom);
+}
+
+TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLayer) {
+  const GeoPyramid before;
+  std::vector<PatchKey> read;
+  const auto loaderOf = [&](const std::map<PatchKey, std::shared_ptr<const PatchGrid>>& grids) {
+    return [&](const PatchInfo& info) -> std::shared_ptr<const PatchGrid> {
+      read.push_back(info.key);
+      return info.grid != nullptr ? info.grid : grids.at(info.key);
+    };
+  };
+  const TerrainLayer first = buildTerrainLayer(before.model, loaderOf(before.grids));
+  ASSERT_TRUE(first.heightField) << first.reason;
+  EXPECT_EQ(read.size(), 22u) << "every patch, and the root once more for the height field check";
+
+  // A merge's new version: leaf 2_1_2 loses its western half (its footprint and its ancestors'
+  // change), its ancestors are reduced again; every other patch is the same.
+  Model after = before.model;
+  const PatchKey leaf{2, 1, 2};
+  auto cut = GeoPyramid::gridOf(leaf);
+  for (int j = 0; j < GeoPyramid::kSize; ++j) {
+    for (int i = 0; i < GeoPyramid::kSize / 2; ++i) {
+      cut->setUndefined(i, j);
+    }
+  }
+  after.setGrid(leaf, cut);
+  after.refreshStale([&](const PatchInfo& info) { return before.grids.at(info.key); });
+  read.clear();
+  const TerrainLayerBase base{before.model, first};
+  const TerrainLayer incremental = buildTerrainLayer(after, loaderOf(before.grids), &base);
+  std::sort(read.begin(), read.end());
+  read.erase(std::unique(read.begin(), read.end()), read.end());
+  EXPECT_EQ(read, (std::vector<PatchKey>{PatchKey::root(), {1, 0, 1}, leaf}))
+      << "the changed leaf and its ancestors only";
+  read.clear();
+  const TerrainLayer full = buildTerrainLayer(after, loaderOf(before.grids));
+  EXPECT_EQ(read.size(), 22u);
+  expectSameLayer(incremental, full);
+  EXPECT_GT(full.footprint.at(leaf).west, first.footprint.at(leaf).west + kSpan / 4 / 3)
+      << "the cut shows in the layer";
+
+  // A base of another model (same keys, versions and folders, other boxes) is not taken.
+  GeoPyramid other;
+  for (const auto& [key, grid] : other.grids) {
+    auto moved = GeoPyramid::gridOf(key);
+    for (int j = 0; j < GeoPyramid::kSize; ++j) {
+      for (int i = 0; i < GeoPyramid::kSize; ++i) {
+        moved->setGlobal(i, j, moved->global(i, j) * 1.0001);
+      }
+    }
+    other.grids[key] = moved;
+  }
+  for (int depth = 2; depth >= 0; --depth) {
+    for (const auto& [key, grid] : other.grids) {
+      if (key.depth == depth) {
+        other.model.describe(key, *grid);
+      }
+    }
+  }
+  read.clear();
+  const TerrainLayer unrelated = buildTerrainLayer(other.model, loaderOf(other.grids), &base);
+  EXPECT_EQ(read.size(), 22u);
+  read.clear();
+  expectSameLayer(unrelated, buildTerrainLayer(other.model, loaderOf(other.grids)));
 }
 
 TEST(TerrainSampling, HeightsInterpolateTheSurfaceAndAreZeroOutside) {
