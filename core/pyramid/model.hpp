@@ -3,9 +3,9 @@
 #include <cstddef>
 #include <cstdint>
 #include <functional>
+#include <iterator>
 #include <map>
 #include <memory>
-#include <ranges>
 #include <string>
 #include <utility>
 #include <vector>
@@ -99,12 +99,10 @@ class Model {
   /// the patches whose box it accepts. A parent's box holds its children's, so `meets` must accept
   /// a box whenever it accepts one inside it (a box or a segment meeting it, say).
   std::vector<PatchKey> leavesWhere(const std::function<bool(const Box3d&)>& meets) const;
-  /// All patches as (key, info) pairs, parents before children (by depth, then row, then column).
-  auto patches() const {
-    return patches_ | std::views::transform([](const auto& entry) {
-             return std::pair<const PatchKey&, const PatchInfo&>(entry.first, *entry.second);
-           });
-  }
+  /// All patches as (key, info) pairs, parents before children (by depth, then row, then column);
+  /// reversed(): children before parents.
+  class Patches;
+  Patches patches() const;
 
   /// Union of the global boxes of the children of `key` (empty for a leaf).
   Box3d childrenBox(const PatchKey& key) const;
@@ -137,5 +135,62 @@ class Model {
   /// place while shared, so models sharing them may be read on other threads.
   std::map<PatchKey, std::shared_ptr<PatchInfo>> patches_;
 };
+
+/// The patches of a Model as (key, info) pairs (a view: valid while the model is unchanged). Hand
+/// written rather than std::views::transform, which clang 14 (the fuzz build) cannot compile with
+/// libstdc++ 12.
+class Model::Patches {
+ public:
+  using Nodes = std::map<PatchKey, std::shared_ptr<PatchInfo>>;
+  template <typename It>
+  class Iterator {
+   public:
+    using iterator_category = std::bidirectional_iterator_tag;
+    using value_type = std::pair<const PatchKey&, const PatchInfo&>;
+    using difference_type = std::ptrdiff_t;
+    using reference = value_type;
+    using pointer = void;
+    Iterator() = default;
+    explicit Iterator(It it) : it_(it) {}
+    value_type operator*() const { return {it_->first, *it_->second}; }
+    Iterator& operator++() {
+      ++it_;
+      return *this;
+    }
+    Iterator operator++(int) { return Iterator(it_++); }
+    Iterator& operator--() {
+      --it_;
+      return *this;
+    }
+    Iterator operator--(int) { return Iterator(it_--); }
+    friend bool operator==(const Iterator&, const Iterator&) = default;
+
+   private:
+    It it_{};
+  };
+  using iterator = Iterator<Nodes::const_iterator>;
+  using reverse_iterator = Iterator<Nodes::const_reverse_iterator>;
+  struct Reversed {
+    reverse_iterator first, last;
+    reverse_iterator begin() const { return first; }
+    reverse_iterator end() const { return last; }
+  };
+
+  explicit Patches(const Nodes& nodes) : nodes_(&nodes) {}
+  iterator begin() const { return iterator(nodes_->begin()); }
+  iterator end() const { return iterator(nodes_->end()); }
+  std::size_t size() const { return nodes_->size(); }
+  bool empty() const { return nodes_->empty(); }
+  Reversed reversed() const {
+    return {reverse_iterator(nodes_->rbegin()), reverse_iterator(nodes_->rend())};
+  }
+
+ private:
+  const Nodes* nodes_;
+};
+
+inline Model::Patches Model::patches() const {
+  return Patches(patches_);
+}
 
 }  // namespace vsm::core

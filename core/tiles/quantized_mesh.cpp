@@ -291,7 +291,7 @@ TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load
   // Footprints, deepest first: each patch's own defined vertices and its children's footprints,
   // or the previous layer's footprint for a subtree unchanged since.
   std::set<PatchKey> changed;  // the patches whose subtree holds a change (read here)
-  for (const auto& [key, info] : std::views::reverse(model.patches())) {
+  for (const auto& [key, info] : model.patches().reversed()) {
     bool unchanged = previous != nullptr && samePatch(info, previous->model);
     for (const Quadrant q : kQuadrants) {
       unchanged = unchanged && !(info.hasChild(q) && changed.contains(key.child(q)));

@@ -68,7 +68,7 @@ void writeLayout(const fs::path& dir, const LeafOf& leaf) {
   }
   model.refreshStale([](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return nullptr; });
   OpcWriter writer(dir, OpcWriter::Durability::EachFile);
-  for (const auto& [key, unused] : std::views::reverse(model.patches())) {
+  for (const auto& [key, unused] : model.patches().reversed()) {
     PatchInfo& info = model.edit(key);
     info.folder = key.toString();
     writer.writePatch(info, *info.grid, model.childrenBox(key));

@@ -101,7 +101,7 @@ void writeModel(const fs::path& dir, bool textured = false) {
   OpcWriter writer(dir, OpcWriter::Durability::EachFile);
   std::map<PatchKey, std::shared_ptr<TextureTile>> tiles;
   // Deepest first, so each overview's tile comes from its children's.
-  for (const auto& [key, unused] : std::views::reverse(model.patches())) {
+  for (const auto& [key, unused] : model.patches().reversed()) {
     PatchInfo& info = model.edit(key);
     info.folder = key.toString();
     if (textured) {
