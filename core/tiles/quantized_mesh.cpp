@@ -262,7 +262,7 @@ bool TerrainLayer::isAvailable(const TerrainTileKey& key) const {
 
 namespace {
 
-/// True when `key` names the same stored patch in both models, with the same children: what its
+/// True when `previous` holds the same stored patch at info.key, with the same children: what its
 /// subtree's footprint depends on, as far as the patch itself goes.
 bool samePatch(const PatchInfo& info, const Model& previous) {
   const PatchInfo* before = previous.find(info.key);

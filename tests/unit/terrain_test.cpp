@@ -116,29 +116,36 @@ double heightAt(double lon, double lat) {
   return 100.0 + 200.0 * (lon - kWest) + 300.0 * (lat - kSouth);
 }
 
+/// A size x size grid of the synthetic surface over the square of `side` degrees whose north-west
+/// corner is (west, north), row 0 north: in ECEF, or else in a local frame (lon and lat in km).
+std::shared_ptr<PatchGrid> gridOver(int size, double west, double north, double side, bool ecef) {
+  Box3d box;
+  std::vector<Vec3d> points;
+  for (int j = 0; j < size; ++j) {
+    for (int i = 0; i < size; ++i) {
+      const double lon = west + side * i / (size - 1);
+      const double lat = north - side * j / (size - 1);
+      points.push_back(ecef ? geodeticToEcef(lon, lat, heightAt(lon, lat))
+                            : Vec3d{lon * 1000, lat * 1000, heightAt(lon, lat)});
+      box.extend(points.back());
+    }
+  }
+  auto grid = std::make_shared<PatchGrid>(size, originFor(box));
+  for (int j = 0; j < size; ++j) {
+    for (int i = 0; i < size; ++i) {
+      grid->setGlobal(i, j, points[static_cast<std::size_t>(j) * size + i]);
+    }
+  }
+  return grid;
+}
+
 struct GeoModel {
   static constexpr int kSize = 33;
   Model model{kSize};
   std::shared_ptr<const PatchGrid> root;
 
   explicit GeoModel(bool ecef = true) {
-    Box3d box;
-    std::vector<Vec3d> points;
-    for (int j = 0; j < kSize; ++j) {
-      for (int i = 0; i < kSize; ++i) {
-        const double lon = kWest + kSpan * i / (kSize - 1);
-        const double lat = kSouth + kSpan - kSpan * j / (kSize - 1);  // row 0 north
-        points.push_back(ecef ? geodeticToEcef(lon, lat, heightAt(lon, lat))
-                              : Vec3d{lon * 1000, lat * 1000, heightAt(lon, lat)});
-        box.extend(points.back());
-      }
-    }
-    auto grid = std::make_shared<PatchGrid>(kSize, originFor(box));
-    for (int j = 0; j < kSize; ++j) {
-      for (int i = 0; i < kSize; ++i) {
-        grid->setGlobal(i, j, points[static_cast<std::size_t>(j) * kSize + i]);
-      }
-    }
+    const auto grid = gridOver(kSize, kWest, kSouth + kSpan, kSpan, ecef);
     PatchInfo info;
     info.key = PatchKey::root();
     model.insert(info);
@@ -339,23 +346,7 @@ struct GeoPyramid {
     const double side = kSpan / (1 << key.depth);
     const double west = kWest + side * key.x;
     const double north = kSouth + kSpan - side * key.y;
-    std::vector<Vec3d> points;
-    Box3d box;
-    for (int j = 0; j < kSize; ++j) {
-      for (int i = 0; i < kSize; ++i) {
-        const double lon = west + side * i / (kSize - 1);
-        const double lat = north - side * j / (kSize - 1);
-        points.push_back(geodeticToEcef(lon, lat, heightAt(lon, lat)));
-        box.extend(points.back());
-      }
-    }
-    auto grid = std::make_shared<PatchGrid>(kSize, originFor(box));
-    for (int j = 0; j < kSize; ++j) {
-      for (int i = 0; i < kSize; ++i) {
-        grid->setGlobal(i, j, points[static_cast<std::size_t>(j) * kSize + i]);
-      }
-    }
-    return grid;
+    return gridOver(kSize, west, north, side, true);
   }
 };
 
