@@ -2,6 +2,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <string>
+
+#include "core/common/error.hpp"
 
 #include "core/pyramid/model.hpp"
 
@@ -13,33 +16,68 @@ namespace {
 /// resolution.
 constexpr double kMinError = 1e-3;
 
-TileNode build(const Model& model, const PatchInfo& info) {
-  TileNode node;
-  node.key = info.key;
-  node.centre = tileCentre(info);
-  Box3d box = info.globalBox;
-  double childError = 0;
-  for (const Quadrant q : kQuadrants) {
-    if (info.hasChild(q)) {
-      node.children.push_back(build(model, model.at(info.key.child(q))));
-      const TileNode& child = node.children.back();
-      // Children's boxes are padded already: take them as they are, so they stay inside ours.
-      box.extend(child.box);
-      childError = std::max(childError, child.geometricError);
-    }
-  }
+/// A subtree's padded box and geometric error, from the patch's own box and its children's.
+struct Extent {
+  Box3d box;
+  double geometricError = 0;
+};
+
+/// `box`: the patch's global box extended by its children's padded boxes (taken as they are, so
+/// they stay inside ours); `childError` the largest of their errors.
+Extent finish(const PatchInfo& info, const Vec3d& centre, Box3d box, double childError) {
   if (box.empty()) {
-    box.extend(node.centre);
+    box.extend(centre);
   }
   const double pad = tilePadding(box);
   box.min = box.min - Vec3d{pad, pad, pad};
   box.max = box.max + Vec3d{pad, pad, pad};
-  node.box = box;
-  if (!node.children.empty()) {
+  Extent extent{box, 0};
+  if (!info.isLeaf()) {
     const double resolution =
         std::isfinite(info.resolution) && info.resolution > 0 ? info.resolution : kMinError;
-    node.geometricError = std::max({resolution, 2 * childError, kMinError});
+    extent.geometricError = std::max({resolution, 2 * childError, kMinError});
   }
+  return extent;
+}
+
+/// A subtree's extent without building its nodes.
+Extent extentOf(const Model& model, const PatchInfo& info) {
+  Box3d box = info.globalBox;
+  double childError = 0;
+  for (const Quadrant q : kQuadrants) {
+    if (info.hasChild(q)) {
+      const Extent child = extentOf(model, model.at(info.key.child(q)));
+      box.extend(child.box);
+      childError = std::max(childError, child.geometricError);
+    }
+  }
+  return finish(info, tileCentre(info), box, childError);
+}
+
+/// The tile of `info` and, while `levels` > 0, its children's.
+TileNode build(const Model& model, const PatchInfo& info, int levels) {
+  TileNode node;
+  node.key = info.key;
+  node.centre = tileCentre(info);
+  if (levels == 0 && !info.isLeaf()) {
+    const Extent extent = extentOf(model, info);
+    node.box = extent.box;
+    node.geometricError = extent.geometricError;
+    node.external = true;
+    return node;
+  }
+  Box3d box = info.globalBox;
+  double childError = 0;
+  for (const Quadrant q : kQuadrants) {
+    if (info.hasChild(q)) {
+      node.children.push_back(build(model, model.at(info.key.child(q)), levels - 1));
+      box.extend(node.children.back().box);
+      childError = std::max(childError, node.children.back().geometricError);
+    }
+  }
+  const Extent extent = finish(info, node.centre, box, childError);
+  node.box = extent.box;
+  node.geometricError = extent.geometricError;
   return node;
 }
 
@@ -60,8 +98,12 @@ double tilePadding(const Box3d& box) {
   return 1e-3 + 1e-6 * 0.5 * std::max({size.x, size.y, size.z});
 }
 
-TileNode buildTileTree(const Model& model) {
-  return build(model, model.at(PatchKey::root()));
+TileNode buildTileTree(const Model& model, const PatchKey& root, int levels) {
+  if (levels < 1) {
+    throw Error(ErrorCode::InvalidArgument,
+                "a tile tree is at least one level deep, not " + std::to_string(levels));
+  }
+  return build(model, model.at(root), levels);
 }
 
 double tilesetGeometricError(const TileNode& root) {

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <limits>
 #include <vector>
 
 #include "core/grid/geometry.hpp"
@@ -24,6 +25,10 @@ struct TileNode {
   double geometricError = 0;
   /// In quadrant order (NW, NE, SW, SE), missing children left out.
   std::vector<TileNode> children;
+  /// The tile stands for a subtree whose tiles are left out here (`children` is empty, though the
+  /// patch has children): its box and error are the whole subtree's, and its tiles are in a tree
+  /// of their own (buildTileTree from this key).
+  bool external = false;
 };
 
 /// The point a patch's tile content (encodeGlb) is relative to: the centre of its global box, or
@@ -35,8 +40,15 @@ Vec3d tileCentre(const PatchInfo& info);
 /// Grows with the box, so a padded child stays inside its padded parent.
 double tilePadding(const Box3d& box);
 
-/// The tile tree of a model, from its root. Precondition: the model is not empty.
-TileNode buildTileTree(const Model& model);
+/// The tile tree of a model from patch `root` (by default the model's root), `levels` deep: the
+/// tiles of depths root.depth .. root.depth + levels - 1, and at depth root.depth + levels a tile
+/// per patch there, `external` when that patch has children. Boxes and errors are those of the
+/// whole tree, whatever `levels` leaves out, so the trees from every external tile's key put
+/// together give the whole tree. Reads metadata only; an external tile costs a walk of its subtree
+/// (boxes and errors), not a node per patch. Throws Error(NotFound) for a root not in the model,
+/// Error(InvalidArgument) for `levels` < 1.
+TileNode buildTileTree(const Model& model, const PatchKey& root = PatchKey::root(),
+                       int levels = std::numeric_limits<int>::max());
 
 /// The error of the whole tileset (what not rendering the root costs): twice the root's, or the
 /// root's box diagonal for a single-tile model.

@@ -57,8 +57,36 @@ std::string contentUri(const core::PatchKey& key, const core::Model* model, std:
   return uri;
 }
 
-json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre, const core::Model* model,
-              std::uint64_t revision, bool compressedContent) {
+/// What a tileset's URIs name besides the tile: see tilesetJson().
+struct UriParts {
+  const core::Model* model = nullptr;
+  std::uint64_t revision = 0;
+  bool compressedContent = true;
+  std::uint64_t modelVersion = 0;
+  int levels = 0;
+};
+
+/// "tileset.json?root={key}" for an external tile, with the model version ("&v="), revision,
+/// levels and "compress=none" the document's own URI had, so its subtree comes from the same
+/// version and looks the same.
+std::string externalUri(const core::PatchKey& key, const UriParts& parts) {
+  std::string uri = "tileset.json?root=" + key.toString();
+  if (parts.modelVersion != 0) {
+    uri += "&v=" + std::to_string(parts.modelVersion);
+  }
+  if (parts.revision != 0) {
+    uri += "&rev=" + std::to_string(parts.revision);
+  }
+  if (parts.levels != 0) {
+    uri += "&levels=" + std::to_string(parts.levels);
+  }
+  if (!parts.compressedContent) {
+    uri += "&compress=none";
+  }
+  return uri;
+}
+
+json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre, const UriParts& parts) {
   const core::Vec3d c = node.box.center() - node.centre;
   const core::Vec3d half = node.box.size() * 0.5;
   json tile = {{"transform", translationJson(node.centre - parentCentre)},
@@ -66,12 +94,15 @@ json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre, const
                 {{"box", json::array({c.x, c.y, c.z, half.x, 0.0, 0.0, 0.0, half.y, 0.0, 0.0, 0.0,
                                       half.z})}}},
                {"geometricError", node.geometricError},
-               {"refine", "REPLACE"},
-               {"content", {{"uri", contentUri(node.key, model, revision, compressedContent)}}}};
+               {"refine", "REPLACE"}};
+  tile["content"] = {
+      {"uri", node.external
+                  ? externalUri(node.key, parts)
+                  : contentUri(node.key, parts.model, parts.revision, parts.compressedContent)}};
   if (!node.children.empty()) {
     json children = json::array();
     for (const core::TileNode& child : node.children) {
-      children.push_back(tileJson(child, node.centre, model, revision, compressedContent));
+      children.push_back(tileJson(child, node.centre, parts));
     }
     tile["children"] = std::move(children);
   }
@@ -99,22 +130,42 @@ core::GlbCompression requestedCompression(const http::Request& request) {
       "compress must be 'meshopt' (the default) or 'none', not '" + value->substr(0, 32) + "'");
 }
 
-/// GET /v1/models/{m}/3dtiles/tileset.json[?compress=none][&rev=N]. A client that accepts gzip
-/// gets the body gzipped; that body is made once per snapshot version and variant (content
-/// compression, revision URIs) and kept in the model's EncodedCache, within the budget. The
-/// identity body is built per request, as before (serialising the tree is cheaper than
-/// compressing it). Both carry "Vary: Accept-Encoding" and their own ETag.
+/// Levels of tiles in one tileset document by default: the tiles of five depths (up to 341), and
+/// up to 1024 external tiles naming the documents of the depth below. A client that walks the
+/// tree gets 1,365 tiles in the first document, as from a whole model of 1,365 patches, whatever
+/// the model's size.
+constexpr int kTilesetLevels = 5;
+constexpr int kMaxTilesetLevels = 16;
+
+/// GET /v1/models/{m}/3dtiles/tileset.json[?root=d_x_y][&levels=L][&compress=none][&rev=N][&v=V]:
+/// the tiles of `levels` depths from patch `root` (the model's root by default), the patches
+/// below them as external tilesets (core::buildTileTree). A client that accepts gzip gets the
+/// model root's document in the default levels gzipped from the model's EncodedCache (made once
+/// per snapshot version and variant: content compression, revision URIs), within the budget;
+/// a subtree's, or other levels', is small and gzipped per request. Every answer carries
+/// "Vary: Accept-Encoding" and its own ETag.
 http::Response getTileset(models::ModelRegistry& models, const models::PatchData& data,
                           const http::Request& request) {
   const auto [served, snapshot] = *tiledRead(models, request);
   const bool compressedContent = requestedCompression(request) == core::GlbCompression::Meshopt;
   const bool revisionUris = request.queryParam("rev").has_value();
   const bool gzipped = http::acceptsGzip(request);
-  // The representation: content URIs (compressed or "raw", with "&rev=" or not) and encoding.
+  const std::optional<std::string> rootText = request.queryParam("root");
+  const core::PatchKey root =
+      rootText ? parseKey(*rootText, "root must be a patch key depth_x_y (e.g. 2_1_3)")
+               : core::PatchKey::root();
+  const int levels = intQuery(request, "levels", kTilesetLevels, 1, kMaxTilesetLevels);
+  const bool wholeDefault = !rootText && levels == kTilesetLevels;
+  // The representation: content URIs (compressed or "raw", with "&rev=" or not), the part of the
+  // tree and the encoding.
   std::string variant = compressedContent ? "" : "raw";
-  for (const auto& [on, part] : {std::pair{revisionUris, "rev"}, std::pair{gzipped, "gz"}}) {
+  for (const auto& [on, part] :
+       {std::pair{revisionUris, std::string("rev")},
+        std::pair{rootText.has_value(), "root" + root.toString()},
+        std::pair{levels != kTilesetLevels, "levels" + std::to_string(levels)},
+        std::pair{gzipped, std::string("gz")}}) {
     if (on) {
-      variant += (variant.empty() ? "" : "-") + std::string(part);
+      variant += (variant.empty() ? "" : "-") + part;
     }
   }
   const std::string etag = tilesetEtag(*snapshot, variant);
@@ -124,17 +175,26 @@ http::Response getTileset(models::ModelRegistry& models, const models::PatchData
     return response;
   }
   const auto build = [&] {
-    const core::TileNode root = core::buildTileTree(*snapshot->model);
-    return tilesetJson(root, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get(),
-                       revisionUris ? snapshot->version : 0, compressedContent, snapshot->version);
+    const core::TileNode tree = core::buildTileTree(*snapshot->model, root, levels);
+    return tilesetJson(tree, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get(),
+                       revisionUris ? snapshot->version : 0, compressedContent, snapshot->version,
+                       levels == kTilesetLevels ? 0 : levels);
   };
   const GzippedDocument document =
       compressedContent
           ? (revisionUris ? GzippedDocument::TilesetRevision : GzippedDocument::Tileset)
           : (revisionUris ? GzippedDocument::TilesetUncompressedRevision
                           : GzippedDocument::TilesetUncompressed);
-  http::Response response = gzipped ? gzippedJson(data, served, document, snapshot->version, build)
-                                    : http::jsonResponse(200, build());
+  http::Response response;
+  if (gzipped && wholeDefault) {
+    response = gzippedJson(data, served, document, snapshot->version, build);
+  } else {
+    response = http::jsonResponse(200, build());
+    if (gzipped) {
+      response.body = http::gzip(response.body);
+      http::setGzipEncoded(response);
+    }
+  }
   http::varyOnEncoding(response);
   response.set("X-VSM-Model-Version", std::to_string(snapshot->version));
   return withTileCache(std::move(response), etag);
@@ -184,14 +244,18 @@ std::optional<http::Response> glb(models::ModelRegistry& models, const models::P
 
 json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
                  const core::Model* model, std::uint64_t revision, bool compressedContent,
-                 std::uint64_t modelVersion) {
+                 std::uint64_t modelVersion, int levels) {
   json asset = {{"version", "1.1"}, {"tilesetVersion", tilesetVersion}, {"generator", "vsmd"}};
   if (modelVersion != 0) {
     asset["extras"] = {{"model_version", modelVersion}};
   }
+  // An external tileset's root is placed by the tile that names it (3D Tiles: its transform
+  // applies after that tile's), so only the model's root is placed from the origin.
+  const core::Vec3d origin = root.key == core::PatchKey::root() ? core::Vec3d{0, 0, 0} : root.centre;
   return {{"asset", std::move(asset)},
           {"geometricError", core::tilesetGeometricError(root)},
-          {"root", tileJson(root, core::Vec3d{0, 0, 0}, model, revision, compressedContent)}};
+          {"root", tileJson(root, origin,
+                            UriParts{model, revision, compressedContent, modelVersion, levels})}};
 }
 
 void addTilesRoutes(http::Router& router, models::ModelRegistry& models,

@@ -49,8 +49,16 @@ void addTilesRoutes(http::Router& router, models::ModelRegistry& models,
 /// `compressedContent` false (the tileset of ?compress=none) adds "compress=none" to each URI
 /// (after '?' or '&'), which names the uncompressed GLBs; true names the default, compressed
 /// ones. A `modelVersion` other than 0 is named as asset.extras.model_version.
+///
+/// An external tile (TileNode::external) has no children; its content.uri is
+/// "tileset.json?root={key}" with "&v={modelVersion}", "&rev=", "&levels={levels}" (when
+/// `levels` is not 0) and "&compress=none" as this document has them: its subtree's tileset, of
+/// the same version. A tree whose root is not the model's (an external tileset) gives its root a
+/// zero translation: 3D Tiles applies it after the transform of the tile that names the document,
+/// which places it.
 nlohmann::json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
                            const core::Model* model = nullptr, std::uint64_t revision = 0,
-                           bool compressedContent = true, std::uint64_t modelVersion = 0);
+                           bool compressedContent = true, std::uint64_t modelVersion = 0,
+                           int levels = 0);
 
 }  // namespace vsm::server::api

@@ -132,6 +132,38 @@ def walk(tile, parent=IDENTITY, parent_tile=None):
         yield from walk(child, world, tile)
 
 
+def is_external(tile):
+    """Whether a tile names an external tileset (a subtree's document) instead of a GLB."""
+    return tile["content"]["uri"].partition("?")[0].endswith(".json")
+
+
+def assemble(daemon, uri, documents=None):
+    """The tileset at PREFIX + `uri`, each external tile replaced by the root of the document it
+    names, read the same way: the subtree's root keeps the external tile's transform followed by
+    its own (3D Tiles composes them so). `documents`, when given, collects (uri, tileset)."""
+    status, _, body = daemon.request("GET", PREFIX + uri)
+    assert status == 200, (uri, status, body[:200])
+    tileset = json.loads(body)
+    if documents is not None:
+        documents.append((uri, json.loads(body)))
+
+    def expand(tile):
+        if is_external(tile):
+            assert "children" not in tile, tile["content"]["uri"]
+            sub = assemble(daemon, tile["content"]["uri"], documents)["root"]
+            sub = dict(sub, transform=matmul(tile["transform"], sub["transform"]))
+            return expand_children(sub)
+        return expand_children(tile)
+
+    def expand_children(tile):
+        if "children" in tile:
+            tile = dict(tile, children=[expand(child) for child in tile["children"]])
+        return tile
+
+    tileset["root"] = expand(tileset["root"])
+    return tileset
+
+
 def key_of(uri):
     """The patch key of a content URI: "2_1_3.glb?v=4" -> "2_1_3"."""
     path = uri.partition("?")[0]
@@ -172,7 +204,10 @@ class Tiles(unittest.TestCase):
         assert status == 200, body
         cls.tileset_headers = headers
         cls.tileset_bytes = len(body)
-        cls.tileset = json.loads(body)
+        cls.tileset_document = json.loads(body)
+        # The whole tree: the default document names the patches five levels down as external
+        # tilesets.
+        cls.tileset = assemble(cls.daemon, RAW_TILESET)
         cls.tiles = list(walk(cls.tileset["root"]))
         # Every content, fetched once (the URIs relative to the tileset's URL).
         cls.glbs = {}
@@ -190,7 +225,7 @@ class Tiles(unittest.TestCase):
         assert status == 200, body
         cls.packed_tileset_headers = headers
         cls.packed_tileset_body = body
-        cls.packed_tileset = json.loads(body)
+        cls.packed_tileset = assemble(cls.daemon, "tileset.json")
         cls.packed_tiles = list(walk(cls.packed_tileset["root"]))
         cls.packed_glbs = {}
         for tile, _, _ in cls.packed_tiles:
@@ -386,6 +421,47 @@ class Tiles(unittest.TestCase):
               % (len(self.packed_glbs), packed_bytes, raw_bytes, packed_bytes / raw_bytes),
               file=sys.stderr)
 
+    def test_external_tilesets_put_together_give_the_one_document_tree(self):
+        def canonical(tileset):
+            return [(tile["content"]["uri"], tile["geometricError"], tile.get("refine"),
+                     aabb(box_corners(tile["boundingVolume"]["box"], world)),
+                     [c["content"]["uri"] for c in tile.get("children", [])])
+                    for tile, world, _ in walk(tileset["root"])]
+
+        whole_docs, split_docs = [], []
+        whole = assemble(self.daemon, RAW_TILESET + "&levels=16", whole_docs)
+        split = assemble(self.daemon, RAW_TILESET + "&levels=1", split_docs)
+        self.assertEqual(len(whole_docs), 1)  # the model is shallower than 16 levels
+        self.assertEqual(canonical(split), canonical(whole))
+        self.assertEqual(canonical(self.tileset), canonical(whole))
+        status, _, model = self.daemon.get_json("/v1/models/" + MODEL)
+        # One document per patch with children: its tile and, as GLBs or external tiles, its
+        # children's.
+        parents = sum(1 for tile, _, _ in walk(whole["root"]) if "children" in tile)
+        self.assertEqual(len(split_docs), parents)
+        self.assertEqual(len(list(walk(whole["root"]))), model["patches"])
+        for uri, doc in split_docs:
+            root = doc["root"]
+            self.assertEqual(doc["asset"]["version"], "1.1")
+            self.assertEqual(doc["asset"]["extras"]["model_version"], model["version"], uri)
+            self.assertEqual(root["refine"], "REPLACE")
+            if "root=" in uri:  # an external tileset: placed by the tile naming it
+                self.assertEqual(root["transform"][12:15], [0, 0, 0], uri)
+            for child in root.get("children", []):
+                self.assertNotIn("children", child, uri)
+                child_uri = child["content"]["uri"]
+                if is_external(child):
+                    params = dict(p.partition("=")[::2] for p in child_uri.partition("?")[2].split("&"))
+                    self.assertEqual(params, {"root": params["root"], "v": str(model["version"]),
+                                              "levels": "1", "compress": "none"}, child_uri)
+
+    def test_external_tileset_parameters_are_checked(self):
+        for query, expected in (("levels=0", 400), ("levels=17", 400), ("levels=x", 400),
+                                ("root=x_1", 400), ("root=30_0_0", 404), ("root=0_0_0&v=99999", 404)):
+            status, _, body = self.daemon.request("GET", PREFIX + "tileset.json?" + query)
+            self.assertEqual(status, expected, (query, body[:200]))
+            self.assertIn("error", json.loads(body), query)
+
     def test_tileset_json_is_gzipped_once_when_accepted_with_vary(self):
         plain = self.packed_tileset_body
         self.assertIsNone(self.packed_tileset_headers.get("Content-Encoding"))
@@ -426,7 +502,15 @@ class Tiles(unittest.TestCase):
         status, headers5, body5 = self.daemon.request(
             "GET", PREFIX + RAW_TILESET, headers={"Accept-Encoding": "gzip"})
         self.assertEqual(headers5["Content-Encoding"], "gzip")
-        self.assertEqual(json.loads(gzip.decompress(body5)), self.tileset)
+        self.assertEqual(json.loads(gzip.decompress(body5)), self.tileset_document)
+        # A subtree's document, and other levels, are gzipped too (per request: they are small).
+        for query in ("&levels=2", "&root=1_0_0"):
+            status, headers6, body6 = self.daemon.request(
+                "GET", PREFIX + RAW_TILESET + query, headers={"Accept-Encoding": "gzip"})
+            self.assertEqual((status, headers6["Content-Encoding"]), (200, "gzip"), query)
+            self.assertEqual(headers6["Vary"], "Accept-Encoding")
+            status, _, plain6 = self.daemon.request("GET", PREFIX + RAW_TILESET + query)
+            self.assertEqual(json.loads(gzip.decompress(body6)), json.loads(plain6), query)
         status, _, body = self.daemon.request("GET", PREFIX + "tileset.json?compress=zstd")
         self.assertEqual(status, 400)
 
