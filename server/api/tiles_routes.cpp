@@ -95,10 +95,9 @@ json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre, const
                                       half.z})}}},
                {"geometricError", node.geometricError},
                {"refine", "REPLACE"}};
-  tile["content"] = {
-      {"uri", node.external
-                  ? externalUri(node.key, parts)
-                  : contentUri(node.key, parts.model, parts.revision, parts.compressedContent)}};
+  tile["content"] = {{"uri", node.external ? externalUri(node.key, parts)
+                                           : contentUri(node.key, parts.model, parts.revision,
+                                                        parts.compressedContent)}};
   if (!node.children.empty()) {
     json children = json::array();
     for (const core::TileNode& child : node.children) {
@@ -251,7 +250,8 @@ json tilesetJson(const core::TileNode& root, std::string_view tilesetVersion,
   }
   // An external tileset's root is placed by the tile that names it (3D Tiles: its transform
   // applies after that tile's), so only the model's root is placed from the origin.
-  const core::Vec3d origin = root.key == core::PatchKey::root() ? core::Vec3d{0, 0, 0} : root.centre;
+  const core::Vec3d origin =
+      root.key == core::PatchKey::root() ? core::Vec3d{0, 0, 0} : root.centre;
   return {{"asset", std::move(asset)},
           {"geometricError", core::tilesetGeometricError(root)},
           {"root", tileJson(root, origin,
