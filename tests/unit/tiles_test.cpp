@@ -667,6 +667,50 @@ TEST(TileTree, ErrorsFallAndBoxesNestFromRootToLeaves) {
   EXPECT_GT(tilesetGeometricError(root), root.geometricError);
 }
 
+/// Whether two tiles agree in key, centre, box and error (not in their children).
+void expectSameTile(const TileNode& a, const TileNode& b) {
+  EXPECT_EQ(a.key, b.key);
+  EXPECT_EQ(a.centre, b.centre) << a.key.toString();
+  EXPECT_EQ(a.box.min, b.box.min) << a.key.toString();
+  EXPECT_EQ(a.box.max, b.box.max) << a.key.toString();
+  EXPECT_EQ(a.geometricError, b.geometricError) << a.key.toString();
+}
+
+TEST(TileTree, LevelsCutTheTreeIntoExternalTilesWithTheWholeSubtreesBoxAndError) {
+  const Pyramid p;
+  const TileNode whole = buildTileTree(p.model);
+  EXPECT_FALSE(whole.external);
+
+  // One level: the root and a tile per child, external where the child has children (only NW).
+  const TileNode top = buildTileTree(p.model, PatchKey::root(), 1);
+  expectSameTile(top, whole);
+  ASSERT_EQ(top.children.size(), 4u);
+  for (std::size_t i = 0; i < 4; ++i) {
+    const TileNode& cut = top.children[i];
+    expectSameTile(cut, whole.children[i]);
+    EXPECT_TRUE(cut.children.empty());
+    EXPECT_EQ(cut.external, !whole.children[i].children.empty()) << cut.key.toString();
+  }
+
+  // The external tile's own tree is the whole tree's subtree.
+  const PatchKey nw = PatchKey::root().child(Quadrant::NW);
+  const TileNode below = buildTileTree(p.model, nw, 1);
+  expectSameTile(below, whole.children[0]);
+  ASSERT_EQ(below.children.size(), 4u);
+  for (std::size_t i = 0; i < 4; ++i) {
+    expectSameTile(below.children[i], whole.children[0].children[i]);
+    EXPECT_FALSE(below.children[i].external);  // leaves
+  }
+
+  // Enough levels leave nothing external.
+  const TileNode deep = buildTileTree(p.model, PatchKey::root(), 2);
+  ASSERT_EQ(deep.children[0].children.size(), 4u);
+  EXPECT_FALSE(deep.children[0].external);
+
+  EXPECT_THROW(buildTileTree(p.model, PatchKey::root(), 0), Error);
+  EXPECT_THROW(buildTileTree(p.model, nw.child(Quadrant::SE).child(Quadrant::NW)), Error);
+}
+
 TEST(Tileset, TransformsAreColumnMajorTranslationsBetweenCentres) {
   const Pyramid p;
   const TileNode tree = buildTileTree(p.model);
