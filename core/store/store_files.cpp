@@ -1,12 +1,15 @@
 #include "core/store/store_files.hpp"
 
+#include <dirent.h>
 #include <sys/stat.h>
 
 #include <algorithm>
 #include <cctype>
 #include <charconv>
+#include <cerrno>
 #include <cstdio>
 #include <ctime>
+#include <memory>
 #include <regex>
 #include <utility>
 
@@ -68,12 +71,29 @@ std::optional<std::uint64_t> revisionOfFile(std::string_view name) {
 }
 
 std::map<std::uint64_t, fs::path> revisionFiles(const fs::path& patches) {
+  // Read with readdir, not a directory_iterator: Patches/ holds a folder per patch, and only the
+  // few names that parse make a path (87k entries: 25 ms instead of 100 ms, at every publish).
+  const std::unique_ptr<DIR, int (*)(DIR*)> dir(::opendir(patches.c_str()), &::closedir);
+  if (!dir) {
+    throw fs::filesystem_error("cannot list revisions", patches,
+                               std::error_code(errno, std::generic_category()));
+  }
   std::map<std::uint64_t, fs::path> files;
-  for (const auto& entry : fs::directory_iterator(patches)) {
-    if (const auto n = revisionOfFile(entry.path().filename().string());
-        n && entry.is_regular_file()) {
-      files.emplace(*n, entry.path());
+  errno = 0;
+  while (const dirent* entry = ::readdir(dir.get())) {
+    if (const auto n = revisionOfFile(entry->d_name)) {
+      fs::path file = patches / entry->d_name;
+      std::error_code ec;  // a link counts as what it names, as before
+      if (entry->d_type == DT_REG ||
+          (entry->d_type != DT_DIR && fs::is_regular_file(file, ec))) {
+        files.emplace(*n, std::move(file));
+      }
     }
+    errno = 0;
+  }
+  if (errno != 0) {
+    throw fs::filesystem_error("cannot list revisions", patches,
+                               std::error_code(errno, std::generic_category()));
   }
   return files;
 }
