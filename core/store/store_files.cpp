@@ -5,8 +5,8 @@
 
 #include <algorithm>
 #include <cctype>
-#include <charconv>
 #include <cerrno>
+#include <charconv>
 #include <cstdio>
 #include <ctime>
 #include <memory>
@@ -84,8 +84,7 @@ std::map<std::uint64_t, fs::path> revisionFiles(const fs::path& patches) {
     if (const auto n = revisionOfFile(entry->d_name)) {
       fs::path file = patches / entry->d_name;
       std::error_code ec;  // a link counts as what it names, as before
-      if (entry->d_type == DT_REG ||
-          (entry->d_type != DT_DIR && fs::is_regular_file(file, ec))) {
+      if (entry->d_type == DT_REG || (entry->d_type != DT_DIR && fs::is_regular_file(file, ec))) {
         files.emplace(*n, std::move(file));
       }
     }
