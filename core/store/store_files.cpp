@@ -72,7 +72,7 @@ std::optional<std::uint64_t> revisionOfFile(std::string_view name) {
 
 std::map<std::uint64_t, fs::path> revisionFiles(const fs::path& patches) {
   // Read with readdir, not a directory_iterator: Patches/ holds a folder per patch, and only the
-  // few names that parse make a path (87k entries: 25 ms instead of 100 ms, at every publish).
+  // few names that parse make a path (87k entries: 34 ms instead of ~100 ms, at every publish).
   const std::unique_ptr<DIR, int (*)(DIR*)> dir(::opendir(patches.c_str()), &::closedir);
   if (!dir) {
     throw fs::filesystem_error("cannot list revisions", patches,
