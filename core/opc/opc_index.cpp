@@ -19,7 +19,9 @@ namespace fs = std::filesystem;
 namespace {
 
 constexpr char kMagic[8] = {'V', 'S', 'M', 'I', 'D', 'X', '\n', '\0'};
-constexpr std::uint32_t kFormat = 1;
+// 2 adds the retired folders and the head's checksum after the revision record; 1 is still read.
+constexpr std::uint32_t kFormat = 2;
+constexpr std::uint32_t kFirstFormat = 1;
 constexpr std::string_view kIndexSuffix = ".vsmidx";
 constexpr std::string_view kDefaultPositions = "Positions.aara";
 
@@ -79,6 +81,8 @@ class Decoder {
     return b;
   }
   bool ok() const { return ok_; }
+  /// Marks what was read as malformed.
+  void fail() { ok_ = false; }
   std::size_t remaining() const { return bytes_.size() - pos_; }
   bool atEnd() const { return pos_ == bytes_.size(); }
 
@@ -177,7 +181,8 @@ HierarchyStamp fileStamp(const fs::path& file) {
 }
 
 std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& model,
-                                      const RevisionRecord* record) {
+                                      const RevisionRecord* record,
+                                      const std::vector<RetiredFolder>* retired) {
   Encoder out;
   for (const char c : kMagic) {
     out.put(c);
@@ -213,6 +218,19 @@ std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& 
       out.put(record->fence->lease);
     }
   }
+  // The folders retired from the parent, then the head's checksum: dropping the parent revision
+  // reads this far and no further (LiveModel::dropRevisions).
+  out.put(static_cast<std::uint8_t>(retired != nullptr));
+  if (retired != nullptr) {
+    out.put(static_cast<std::uint64_t>(retired->size()));
+    for (const RetiredFolder& entry : *retired) {
+      out.put(static_cast<std::uint8_t>(entry.key.depth));
+      out.put(entry.key.x);
+      out.put(entry.key.y);
+      out.putString(entry.folder);
+    }
+  }
+  out.put(opcIndexChecksum(out.bytes()));
   out.put(static_cast<std::uint64_t>(model.patchCount()));
   out.bytes().reserve(out.bytes().size() + model.patchCount() * 200 + 8);
   for (const auto& [key, info] : model.patches()) {
@@ -252,33 +270,37 @@ std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& 
 
 namespace {
 
-/// The index's head up to its patches, checked against `stamp` and the checksum: the grid size,
-/// the revision record and the number of patches; nullopt when it is not an index of `stamp`.
+/// The index's head up to its patches: the grid size, the revision record, the retired folders
+/// (format 2) and the number of patches.
 struct IndexHead {
   int gridSize = 0;
   std::optional<RevisionRecord> record;
+  std::optional<std::vector<RetiredFolder>> retired;
   std::uint64_t count = 0;
 };
 
-std::optional<IndexHead> decodeHead(std::span<const std::byte> bytes, const HierarchyStamp& stamp,
-                                    Decoder& in) {
-  if (in.get<std::uint32_t>() != kFormat || in.get<std::uint64_t>() != stamp.inode ||
+/// The format (1 or 2) when `in` starts with the format and `stamp` after the magic; else 0.
+std::uint32_t readFormatAndStamp(Decoder& in, const HierarchyStamp& stamp) {
+  const auto format = in.get<std::uint32_t>();
+  if ((format != kFirstFormat && format != kFormat) || in.get<std::uint64_t>() != stamp.inode ||
       in.get<std::uint64_t>() != stamp.size || in.get<std::int64_t>() != stamp.modifiedNs ||
       !in.ok()) {
-    return std::nullopt;
+    return 0;
   }
-  std::uint64_t sum;
-  std::memcpy(&sum, bytes.data() + bytes.size() - 8, 8);
-  if (opcIndexChecksum(bytes.first(bytes.size() - 8)) != sum) {
-    return std::nullopt;
-  }
+  return format;
+}
+
+/// The head after the format and stamp, up to (not including) the head's checksum of format 2 or
+/// the patch count of format 1; !in.ok() when it is cut short.
+IndexHead readHeadFields(Decoder& in, std::uint32_t format) {
   IndexHead head;
   head.gridSize = in.get<std::int32_t>();
   in.get<std::uint64_t>();
   in.getBox();
   const auto levels = in.get<std::uint32_t>();
   if (!in.ok() || levels > 64) {
-    return std::nullopt;
+    in.fail();
+    return head;
   }
   for (std::uint32_t i = 0; i < levels; ++i) {
     in.get<std::int32_t>();
@@ -287,10 +309,7 @@ std::optional<IndexHead> decodeHead(std::span<const std::byte> bytes, const Hier
     in.getBox();
     in.get<double>();
   }
-  in.get<std::uint64_t>();  // the summary's checksum (the file's covers it)
-  if (!in.ok()) {
-    return std::nullopt;
-  }
+  in.get<std::uint64_t>();  // the summary's checksum (readOpcIndexSummary checks it)
   if (in.get<std::uint8_t>() != 0) {
     RevisionRecord record;
     record.parent = in.get<std::uint64_t>();
@@ -307,6 +326,42 @@ std::optional<IndexHead> decodeHead(std::span<const std::byte> bytes, const Hier
       record.fence = token;
     }
     head.record = std::move(record);
+  }
+  if (format >= 2 && in.get<std::uint8_t>() != 0) {
+    const auto count = in.get<std::uint64_t>();
+    // Each entry takes at least 13 bytes: a count beyond what is left is cut short (or damage).
+    if (!in.ok() || count > in.remaining() / 13) {
+      in.fail();
+      return head;
+    }
+    std::vector<RetiredFolder> retired(count);
+    for (RetiredFolder& entry : retired) {
+      entry.key.depth = in.get<std::uint8_t>();
+      entry.key.x = in.get<std::uint32_t>();
+      entry.key.y = in.get<std::uint32_t>();
+      entry.folder = in.getString();
+    }
+    head.retired = std::move(retired);
+  }
+  return head;
+}
+
+/// The head of a whole index `bytes` (whose checksum it checks) read by `in` from after the magic,
+/// up to its patches; nullopt when it is not an index of `stamp`.
+std::optional<IndexHead> decodeHead(std::span<const std::byte> bytes, const HierarchyStamp& stamp,
+                                    Decoder& in) {
+  const std::uint32_t format = readFormatAndStamp(in, stamp);
+  if (format == 0) {
+    return std::nullopt;
+  }
+  std::uint64_t sum;
+  std::memcpy(&sum, bytes.data() + bytes.size() - 8, 8);
+  if (opcIndexChecksum(bytes.first(bytes.size() - 8)) != sum) {
+    return std::nullopt;
+  }
+  IndexHead head = readHeadFields(in, format);
+  if (format >= 2) {
+    in.get<std::uint64_t>();  // the head's checksum (the file's covers it)
   }
   head.count = in.get<std::uint64_t>();
   if (!in.ok() || head.count == 0 || head.count > bytes.size()) {
@@ -429,8 +484,7 @@ std::optional<OpcSummary> readOpcIndexSummary(const fs::path& dir) {
       return std::nullopt;
     }
     Decoder in{std::span<const std::byte>(bytes).subspan(sizeof(kMagic))};
-    if (in.get<std::uint32_t>() != kFormat || in.get<std::uint64_t>() != stamp.inode ||
-        in.get<std::uint64_t>() != stamp.size || in.get<std::int64_t>() != stamp.modifiedNs) {
+    if (readFormatAndStamp(in, stamp) == 0) {
       return std::nullopt;
     }
     OpcSummary summary;
@@ -461,6 +515,43 @@ std::optional<OpcSummary> readOpcIndexSummary(const fs::path& dir) {
   }
 }
 
+std::optional<IndexedRevision> decodeOpcIndexHead(std::span<const std::byte> bytes,
+                                                  const HierarchyStamp& stamp) {
+  if (!hasMagic(bytes)) {
+    return std::nullopt;
+  }
+  Decoder in{bytes.subspan(sizeof(kMagic))};
+  if (readFormatAndStamp(in, stamp) != kFormat) {
+    return std::nullopt;  // format 1 has no head checksum: its head is not trusted alone
+  }
+  IndexHead head = readHeadFields(in, kFormat);
+  const std::size_t end = bytes.size() - in.remaining();
+  const auto sum = in.get<std::uint64_t>();
+  if (!in.ok() || opcIndexChecksum(bytes.first(end)) != sum) {
+    return std::nullopt;
+  }
+  return IndexedRevision{std::move(head.record), std::move(head.retired)};
+}
+
+std::optional<IndexedRevision> readIndexedRevision(const fs::path& hierarchyFile) {
+  try {
+    const HierarchyStamp stamp = fileStamp(hierarchyFile);
+    const fs::path file =
+        hierarchyFile.parent_path() / indexFileName(hierarchyFile.filename().string());
+    // The head grows with the retired folders (a few kB after a small merge): read 64 KiB, and
+    // more only when that does not hold it.
+    for (std::size_t limit = std::size_t{1} << 16;; limit *= 16) {
+      const std::vector<std::byte> bytes = detail::readFile(file, limit);
+      std::optional<IndexedRevision> head = decodeOpcIndexHead(bytes, stamp);
+      if (head || bytes.size() < limit) {
+        return head;
+      }
+    }
+  } catch (const Error&) {
+    return std::nullopt;  // none, or unreadable
+  }
+}
+
 std::optional<OpcRevision> readOpcIndex(const fs::path& dir, std::string_view hierarchyName) {
   const auto patches = detail::findEntry(dir, "Patches");
   if (!patches) {
@@ -480,12 +571,11 @@ std::optional<OpcRevision> readOpcIndex(const fs::path& dir, std::string_view hi
   }
 }
 
-std::unique_ptr<durable::PendingFile> stageOpcIndex(const fs::path& dir,
-                                                    std::string_view hierarchyName,
-                                                    const fs::path& hierarchyFile,
-                                                    const Model& model,
-                                                    const RevisionRecord* record) {
-  const std::vector<std::byte> bytes = encodeOpcIndex(fileStamp(hierarchyFile), model, record);
+std::unique_ptr<durable::PendingFile> stageOpcIndex(
+    const fs::path& dir, std::string_view hierarchyName, const fs::path& hierarchyFile,
+    const Model& model, const RevisionRecord* record, const std::vector<RetiredFolder>* retired) {
+  const std::vector<std::byte> bytes =
+      encodeOpcIndex(fileStamp(hierarchyFile), model, record, retired);
   return std::make_unique<durable::PendingFile>(patchesDirOf(dir) / indexFileName(hierarchyName),
                                                 bytes);
 }

@@ -34,9 +34,20 @@ bool isIndexFileName(std::string_view name);
 /// The stamp of one file (its device, inode, size, modification time). Throws Error(Io).
 HierarchyStamp fileStamp(const std::filesystem::path& file);
 
-/// The bytes of the index of `model` (with `record`) for a hierarchy file of stamp `stamp`.
+/// A folder that a revision no longer names and its parent revision did: the folder of a patch it
+/// replaced (in a new folder) or removed, with that patch's key.
+struct RetiredFolder {
+  PatchKey key;
+  std::string folder;
+  friend bool operator==(const RetiredFolder&, const RetiredFolder&) = default;
+};
+
+/// The bytes of the index of `model` (with `record`) for a hierarchy file of stamp `stamp`, with
+/// the folders the revision retired from its parent (`record->parent`) when the caller knows them
+/// (a publish does; null: not known, e.g. `vsm index`).
 std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& model,
-                                      const RevisionRecord* record);
+                                      const RevisionRecord* record,
+                                      const std::vector<RetiredFolder>* retired = nullptr);
 
 /// The checksum that ends the index's summary and the index: 64 bits over 8-byte words, the tail
 /// zero-padded (core/opc/README.md, "The index").
@@ -64,6 +75,24 @@ struct OpcSummary {
 /// The summary of the current hierarchy of `dir` when it has a current index; nullopt otherwise.
 std::optional<OpcSummary> readOpcIndexSummary(const std::filesystem::path& dir);
 
+/// What the head of a hierarchy file's index says of the revision, without its patches: the record
+/// and, when the publish that wrote it knew them, the folders it retired from its parent.
+struct IndexedRevision {
+  std::optional<RevisionRecord> record;
+  std::optional<std::vector<RetiredFolder>> retired;
+};
+
+/// The head of an index (its first bytes, or all of them) if it describes a hierarchy of `stamp`
+/// and its own checksum holds (format 2 on); nullopt otherwise, also when `bytes` end before the
+/// head does.
+std::optional<IndexedRevision> decodeOpcIndexHead(std::span<const std::byte> bytes,
+                                                  const HierarchyStamp& stamp);
+
+/// The head of the index beside `hierarchyFile` (read up to its own checksum: a few kB after a
+/// small merge) when it is current and of a format that has one; nullopt otherwise (none, stale,
+/// unreadable, damaged, or written before heads had a checksum: the caller reads the hierarchy).
+std::optional<IndexedRevision> readIndexedRevision(const std::filesystem::path& hierarchyFile);
+
 /// The hierarchy `hierarchyName` of `dir` from its index, when it has a current one; nullopt when
 /// there is none, it is stale or unreadable (the caller reads the hierarchy in full).
 std::optional<OpcRevision> readOpcIndex(const std::filesystem::path& dir,
@@ -73,11 +102,10 @@ std::optional<OpcRevision> readOpcIndex(const std::filesystem::path& dir,
 /// the stamp survives the rename) staged as Patches/indexFileName(`hierarchyName`) of `dir`: the
 /// caller commits it (a rename) before the hierarchy's commit and syncs Patches/ after both.
 /// Throws Error(Io).
-std::unique_ptr<durable::PendingFile> stageOpcIndex(const std::filesystem::path& dir,
-                                                    std::string_view hierarchyName,
-                                                    const std::filesystem::path& hierarchyFile,
-                                                    const Model& model,
-                                                    const RevisionRecord* record);
+std::unique_ptr<durable::PendingFile> stageOpcIndex(
+    const std::filesystem::path& dir, std::string_view hierarchyName,
+    const std::filesystem::path& hierarchyFile, const Model& model, const RevisionRecord* record,
+    const std::vector<RetiredFolder>* retired = nullptr);
 
 /// Reads the hierarchy `hierarchyName` of `dir` in full and writes its index, atomically and
 /// durably (`vsm index`); returns the number of patches. Throws as readOpcRevision and Error(Io),

@@ -44,6 +44,10 @@ struct PublishOptions {
   /// when old revisions are dropped: each is kept, with every later one, besides the count and
   /// the time floor. Null: none.
   std::function<std::set<std::uint64_t>()> readElsewhere;
+  /// False: the folders of the revisions the publish drops are removed before it returns. True:
+  /// they wait for LiveModel::removeRetiredFolders(), which the caller runs off the writer's path
+  /// (vsmd's housekeeping, after the job has answered: ~150 ms for a small merge's 57 folders).
+  bool deferFolderRemoval = false;
 };
 
 /// Write-backs a publish runs at once when it has an executor.
@@ -120,7 +124,10 @@ class ModelEdit {
   /// 5. tells the onPublish and onNewVersion observers (what they throw is logged, not thrown);
   /// 6. drops the oldest revisions beyond options.keepRevisions: first its hierarchy file, then
   ///    the folders (and tiles) no later revision names, once no snapshot of it is held through
-  ///    any opening of the model in this process.
+  ///    any opening of the model in this process (and, with options.deferFolderRemoval, when
+  ///    the caller runs LiveModel::removeRetiredFolders()). The folders are those the next
+  ///    revision's index records as retired from it, or, without such a record, those neither
+  ///    the next revision nor the latest names (both trees read).
   ///
   /// A failure before 3 throws and leaves the old version: the edit is then only fit to be
   /// discarded (its drafts are removed; a failed sync is never retried on the same pages).

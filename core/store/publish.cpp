@@ -131,8 +131,20 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   // Its index (opc_index.hpp), for the staged file's stamp, which the rename keeps: committed just
   // before the hierarchy, both made durable by the one sync of Patches/ in step 4. A crash between
   // the two renames leaves the old hierarchy with an index of another stamp: read in full once.
-  const std::unique_ptr<durable::PendingFile> index = stageOpcIndex(
-      live_.dir_, "patchhierarchy.xml", hierarchy->staged(), *model_, &snapshot->revision);
+  // With the folders this version no longer names, which dropping the base revision removes.
+  std::vector<RetiredFolder> retired;
+  for (const PatchKey& key : changed_) {
+    if (const PatchInfo* old = base_->model->find(key);
+        old != nullptr && old->folder != model_->at(key).folder) {
+      retired.push_back({key, old->folder});
+    }
+  }
+  for (const PatchKey& key : removed_) {
+    retired.push_back({key, base_->model->at(key).folder});
+  }
+  const std::unique_ptr<durable::PendingFile> index =
+      stageOpcIndex(live_.dir_, "patchhierarchy.xml", hierarchy->staged(), *model_,
+                    &snapshot->revision, &retired);
   // The new version's metadata is the edit's own, shared, not copied (10^5 patches: tens of MB
   // and a tenth of a second): nothing changes it after the commit point (requireOpen).
   snapshot->model = model_;
@@ -207,6 +219,9 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
                  [&] { readElsewhere = options.readElsewhere(); });
   }
   live_.dropRevisions(*snapshot, options.keepRevisions, options.keepSeconds, readElsewhere);
+  if (!options.deferFolderRemoval) {
+    live_.removeRetiredFolders();
+  }
 }
 
 }  // namespace vsm::core

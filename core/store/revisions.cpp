@@ -221,6 +221,55 @@ std::vector<RevisionSummary> LiveModel::revisions() const {
   return list;
 }
 
+namespace {
+
+/// The folders of `retired` (those a revision no longer names that its parent did) that `latest`
+/// does not name either: the parent's own folders. (No later revision names them, as a restore
+/// copies; checked against the latest all the same, by key, at no cost.)
+FolderSet foldersRetiredBy(const std::vector<RetiredFolder>& retired, const Model& latest) {
+  FolderSet only;
+  for (const RetiredFolder& entry : retired) {
+    const PatchInfo* now = latest.find(entry.key);
+    if (now == nullptr || now->folder != entry.folder) {
+      only.insert(entry.folder);
+    }
+  }
+  return only;
+}
+
+/// The folders the hierarchy file `oldest` names that neither `next` (a later kept revision's
+/// hierarchy file; empty: none) nor `latest` names, read from the files (their indexes when
+/// current): what foldersRetiredBy gives without a record of the change, at the cost of reading
+/// both revisions' trees.
+FolderSet foldersOnlyIn(const fs::path& oldest, const fs::path& next, const Model& latest) {
+  // Folders are never shared across a gap (a restore copies): what the oldest and the current
+  // model both name, every revision between names, and what the next kept revision does not
+  // name, no later one does. So the oldest's own folders are those neither names.
+  FolderSet only;
+  {
+    std::unordered_set<std::string_view> latestFolders;
+    latestFolders.reserve(latest.patchCount());
+    for (const auto& [key, info] : latest.patches()) {
+      latestFolders.insert(info.folder);
+    }
+    forEachNamedFolder(oldest, [&](std::string_view folder) {
+      if (!latestFolders.contains(folder)) {
+        only.emplace(folder);
+      }
+    });
+  }
+  if (!next.empty() && !only.empty()) {
+    forEachNamedFolder(next, [&](std::string_view folder) {
+      if (const auto it = only.find(folder); it != only.end()) {
+        only.erase(it);
+      }
+    });
+  }
+  return only;
+}
+
+}  // namespace
+
 void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
                               std::chrono::seconds keepSeconds,
                               const std::set<std::uint64_t>& readElsewhere) {
@@ -239,41 +288,29 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
                   " beyond the count: another process reads it");
         break;
       }
+      // The next revision's record and the folders it retired from its parent, from its index's
+      // head (a few kB): when its parent is the oldest, those are the oldest's own folders.
+      const std::optional<IndexedRevision> next =
+          nextFile != files.end() ? readIndexedRevision(nextFile->second) : std::nullopt;
       // The time floor: readers elsewhere may still read this revision for that long after the
       // next one replaced it.
       if (keepSeconds.count() > 0) {
-        const std::string replaced =
-            nextFile != files.end()
-                ? readRevisionRecord(nextFile->second).value_or(RevisionRecord{}).time
-                : current.revision.time;
+        std::string replaced = current.revision.time;
+        if (nextFile != files.end()) {
+          replaced = next && next->record
+                         ? next->record->time
+                         : readRevisionRecord(nextFile->second).value_or(RevisionRecord{}).time;
+        }
         const std::optional<std::time_t> when = parseUtcTime(replaced);
         if (!when || now - *when < keepSeconds.count()) {
           break;  // (an unreadable time keeps it: dropping is the irreversible side)
         }
       }
-      // Folders are never shared across a gap (a restore copies): what the oldest and the current
-      // model both name, every revision between names, and what the next kept revision does not
-      // name, no later one does. So the oldest's own folders are those neither names.
-      FolderSet only;
-      {
-        std::unordered_set<std::string_view> latestFolders;
-        latestFolders.reserve(latest.patchCount());
-        for (const auto& [key, info] : latest.patches()) {
-          latestFolders.insert(info.folder);
-        }
-        forEachNamedFolder(oldest->second, [&](std::string_view folder) {
-          if (!latestFolders.contains(folder)) {
-            only.emplace(folder);
-          }
-        });
-      }
-      if (nextFile != files.end() && !only.empty()) {
-        forEachNamedFolder(nextFile->second, [&](std::string_view folder) {
-          if (const auto it = only.find(folder); it != only.end()) {
-            only.erase(it);
-          }
-        });
-      }
+      const FolderSet only =
+          next && next->record && next->record->parent == number && next->retired
+              ? foldersRetiredBy(*next->retired, latest)
+              : foldersOnlyIn(oldest->second,
+                              nextFile != files.end() ? nextFile->second : fs::path(), latest);
       // The file first: a crash after it leaves folders no kept revision names, which the next
       // open removes; never a listed revision without its folders.
       if (::unlink(oldest->second.c_str()) != 0 && errno != ENOENT) {
@@ -287,7 +324,8 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
       files.erase(oldest);
       log::info("model=" + name_ + " dropped revision " + std::to_string(number) + " (" +
                 std::to_string(only.size()) + " folders only it used)");
-      // Letting go queues the folders; removeRetiredFolders() removes them (below, or later).
+      // Letting go queues the folders; removeRetiredFolders() removes them (after the publish,
+      // or the caller's housekeeping later).
       auto removal = std::make_shared<const RunOnRelease>(
           [writer = std::weak_ptr<Writer>(writer_), store = std::weak_ptr<Store>(store_), only] {
             if (const std::shared_ptr<Writer> alive = writer.lock()) {
@@ -306,7 +344,6 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
     log::warn("model=" + name_ + " dropping old revisions: " + e.what() +
               " (retried at the next publish)");
   }
-  removeRetiredFolders();
 }
 
 std::size_t LiveModel::removeRetiredFolders() {

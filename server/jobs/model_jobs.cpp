@@ -133,10 +133,7 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
           options.registerFirst = registerFirst;
           options.progress = &context;
           options.cancel = &context.cancelToken();
-          options.publish.job = context.id();
-          options.publish.keepRevisions = models.keepRevisions();
-          options.publish.keepSeconds = models.keepSeconds();
-          models.fencePublish(target, options.publish);
+          options.publish = models.publishOptions(target, context.id());
           const core::MergeIntoResult merged = core::mergeInto(*targetModel, *sourceModel, options);
           json result = {{"base_version", merged.baseVersion}, {"version", merged.version}};
           if (const auto& registered = merged.registration) {
@@ -184,12 +181,8 @@ JobStatus submitRestore(JobRegistry& jobs, models::ModelRegistry& models, const 
           result["removed_patches"] = edit->removed().size();
           from.reset();
           context.report("publishing", 0);
-          core::PublishOptions options;
-          options.job = context.id();
-          options.keepRevisions = models.keepRevisions();
-          options.keepSeconds = models.keepSeconds();
+          core::PublishOptions options = models.publishOptions(id, context.id());
           options.restoredFrom = revision;
-          models.fencePublish(id, options);
           edit->publish(&context.cancelToken(), options);
           result["version"] = model->snapshot()->version;
           edit.reset();

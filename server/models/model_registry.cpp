@@ -357,7 +357,12 @@ void ModelRegistry::fenceWrites(WriterFence fence) {
   fence_ = std::move(fence);
 }
 
-void ModelRegistry::fencePublish(const std::string& id, core::PublishOptions& options) const {
+core::PublishOptions ModelRegistry::publishOptions(const std::string& id, std::string job) const {
+  core::PublishOptions options;
+  options.job = std::move(job);
+  options.keepRevisions = keepRevisions_;
+  options.keepSeconds = keepSeconds_;
+  options.deferFolderRemoval = true;
   if (fence_.token) {
     options.token = fence_.token(id);
   }
@@ -367,6 +372,7 @@ void ModelRegistry::fencePublish(const std::string& id, core::PublishOptions& op
   if (fence_.readElsewhere) {
     options.readElsewhere = [read = fence_.readElsewhere, id] { return read(id); };
   }
+  return options;
 }
 
 namespace {

@@ -75,8 +75,6 @@ class ModelRegistry {
   const std::filesystem::path& dataRoot() const { return root_; }
   /// Revisions a publish keeps (core::PublishOptions::keepRevisions).
   unsigned keepRevisions() const { return keepRevisions_; }
-  /// The time floor of kept revisions (core::PublishOptions::keepSeconds).
-  std::chrono::seconds keepSeconds() const { return keepSeconds_; }
   /// The one patch cache of every model.
   core::PatchCache& cache() const { return cache_; }
 
@@ -116,9 +114,10 @@ class ModelRegistry {
     std::function<std::set<std::uint64_t>(std::string_view id)> readElsewhere;
   };
   void fenceWrites(WriterFence fence);
-  /// Fences a write into `id` that begins now: sets options.token, options.fence and
-  /// options.readElsewhere from what fenceWrites() set; leaves them unset without it.
-  void fencePublish(const std::string& id, core::PublishOptions& options) const;
+  /// How a job `job` that begins now publishes into `id`: the revisions and time floor kept, the
+  /// dropped revisions' folders left to the housekeeping (removeRetiredFolders), and fenced:
+  /// token, fence and readElsewhere from what fenceWrites() set (unset without it).
+  core::PublishOptions publishOptions(const std::string& id, std::string job) const;
   /// The ids of the open models, in order.
   std::vector<std::string> ids() const;
 

@@ -2,7 +2,8 @@
 // index"). The index is only used when it names the hierarchy's stamp and its checksum holds, so
 // raw mutations would stop there: the target takes the stamp from the input's own header and
 // writes the input's checksum over its last 8 bytes, and the decoder's body parsing is what gets
-// fuzzed. What decodes must encode and decode again to the same patches and record.
+// fuzzed. What decodes must encode and decode again to the same patches and record, and the head
+// alone (decodeOpcIndexHead) to the same record and retired folders.
 #include <cstddef>
 #include <cstdint>
 #include <cstring>
@@ -37,6 +38,10 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
       core::opcIndexChecksum(std::span<const std::byte>(bytes).first(size - 8));
   std::memcpy(bytes.data() + size - 8, &sum, 8);
 
+  // The head alone (what dropping a revision reads): its own checksum rarely holds after a
+  // mutation, but its parsing must never fail otherwise.
+  std::optional<core::IndexedRevision> head;
+  fuzz::succeeds([&] { head = core::decodeOpcIndexHead(bytes, stamp); });
   std::optional<core::OpcRevision> decoded;
   fuzz::succeeds([&] { decoded = core::decodeOpcIndex(bytes, stamp); });
   if (!decoded) {
@@ -45,8 +50,16 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   std::vector<std::byte> again;
   fuzz::succeeds([&] {
     again =
-        core::encodeOpcIndex(stamp, decoded->model, decoded->record ? &*decoded->record : nullptr);
+        core::encodeOpcIndex(stamp, decoded->model, decoded->record ? &*decoded->record : nullptr,
+                             head && head->retired ? &*head->retired : nullptr);
   });
+  std::optional<core::IndexedRevision> headAgain;
+  fuzz::succeeds([&] { headAgain = core::decodeOpcIndexHead(again, stamp); });
+  fuzz::check(headAgain.has_value(), "a re-encoded index has a head that decodes alone");
+  fuzz::check(headAgain->record.has_value() == decoded->record.has_value(),
+              "the re-encoded head has the same record");
+  fuzz::check(!head || headAgain->retired == head->retired,
+              "the re-encoded head has the same retired folders");
   std::optional<core::OpcRevision> redecoded;
   fuzz::succeeds([&] { redecoded = core::decodeOpcIndex(again, stamp); });
   fuzz::check(redecoded.has_value(), "what decodes encodes to an index that decodes");

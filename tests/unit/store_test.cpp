@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <fstream>
 #include <map>
 #include <set>
@@ -293,6 +294,71 @@ TEST_F(StoreTest, RevisionsAreKeptReadableAndDroppedOldestFirstWithTheFoldersOnl
   EXPECT_EQ(list[2].record.job, "job-4");
   EXPECT_TRUE(list[2].latest);
   EXPECT_EQ(list[2].record.time.size(), 20u) << list[2].record.time;
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+// Issue 31: dropping a revision removes the folders its successor's index records as retired from
+// it (the index's head alone is read), or, where there is no such record (an index `vsm index`
+// wrote, or none), what comparing both trees gives: the folders the kept revisions name stay,
+// every other goes, either way. With deferFolderRemoval they wait for removeRetiredFolders().
+TEST_F(StoreTest, ADroppedRevisionsFoldersComeFromItsSuccessorsRecordOrFromBothTrees) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const fs::path patches = dir_ / "Patches";
+  const auto keptFolders = [&] {
+    std::set<std::string> kept;
+    for (const RevisionSummary& r : live->revisions()) {
+      const auto names = foldersOf(*live->snapshotAt(r.number)->model);
+      kept.insert(names.begin(), names.end());
+    }
+    return kept;
+  };
+  const std::uint64_t v = live->snapshot()->version;
+  std::shared_ptr<const ModelSnapshot> imported = live->snapshot();
+  publishLeaf(*live, {2, 1, 2}, 3.0, 3);  // v + 1: the leaf and its overviews 1_0_1 and 0_0_0
+  const std::optional<IndexedRevision> head = readIndexedRevision(patches / "patchhierarchy.xml");
+  ASSERT_TRUE(head && head->record && head->retired);
+  EXPECT_EQ(head->record->parent, v);
+  std::map<PatchKey, std::string> retired;
+  for (const RetiredFolder& entry : *head->retired) {
+    retired.emplace(entry.key, entry.folder);
+  }
+  const std::map<PatchKey, std::string> replaced = {
+      {PatchKey::root(), imported->model->at(PatchKey::root()).folder},
+      {PatchKey{1, 0, 1}, imported->model->at({1, 0, 1}).folder},
+      {PatchKey{2, 1, 2}, imported->model->at({2, 1, 2}).folder}};
+  EXPECT_EQ(retired, replaced);
+  imported.reset();  // a held snapshot keeps its revision's folders
+
+  publishLeaf(*live, {2, 0, 0}, 4.0, 3);  // v + 2
+  publishLeaf(*live, {2, 3, 3}, 5.0, 3);  // v + 3: drops v by v + 1's record
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 1, v + 2, v + 3}));
+  EXPECT_EQ(folders(dir_), keptFolders());
+  EXPECT_FALSE(fs::exists(patches / replaced.at({2, 1, 2})));
+
+  // v + 2's index as `vsm index` writes it, without retired folders: dropping v + 1 compares trees.
+  writeOpcIndex(dir_, revisionFileName(v + 2));
+  const std::optional<IndexedRevision> rewritten =
+      readIndexedRevision(patches / revisionFileName(v + 2));
+  ASSERT_TRUE(rewritten.has_value());
+  EXPECT_FALSE(rewritten->retired.has_value());
+  publishLeaf(*live, {2, 1, 1}, 6.0, 3);  // v + 4
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 2, v + 3, v + 4}));
+  EXPECT_EQ(folders(dir_), keptFolders());
+
+  // No index beside v + 3 (its hierarchy file is read), and the removal deferred.
+  fs::remove(patches / indexFileName(revisionFileName(v + 3)));
+  auto edit = live->beginEdit();
+  edit->setPositions({2, 2, 2}, leafGrid(2, 2, 7.0));
+  PublishOptions deferred = publishing("j", 3);
+  deferred.deferFolderRemoval = true;
+  edit->publish(nullptr, deferred);  // v + 5: drops v + 2
+  EXPECT_EQ(revisionNumbers(*live), (std::vector<std::uint64_t>{v + 3, v + 4, v + 5}));
+  const std::set<std::string> left = folders(dir_);
+  const std::set<std::string> kept = keptFolders();
+  ASSERT_GT(left.size(), kept.size()) << "the deferred folders were removed by the publish";
+  EXPECT_EQ(live->removeRetiredFolders(), left.size() - kept.size());
+  EXPECT_EQ(folders(dir_), kept);
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
@@ -1204,6 +1270,61 @@ TEST_F(StoreTest, OpeningForWritingRemovesIndexesOfNoKeptHierarchy) {
   EXPECT_FALSE(fs::exists(patches / "vsm-revision-99.vsmidx"));
   EXPECT_TRUE(fs::exists(patches / "patchhierarchy.vsmidx"));
   EXPECT_TRUE(readOpcIndex(dir_).has_value());
+}
+
+// The head (record, retired folders) decodes alone, from the index's first bytes, under its own
+// checksum; an index of format 1 (written before heads had one, here a real one from the fuzz
+// corpus) still decodes in full, and its head alone is not trusted.
+TEST(OpcIndex, TheHeadAloneHoldsTheRecordAndRetiredFoldersUnderItsOwnChecksum) {
+  Model model(kSize);
+  model.insert(infoFor(PatchKey::root()));
+  model.edit(PatchKey::root()).folder = "0_0_0-v2";
+  RevisionRecord record;
+  record.parent = 6;
+  record.time = "2026-12-06T04:00:00Z";
+  record.job = "j-9";
+  const std::vector<RetiredFolder> retired = {{PatchKey::root(), "0_0_0"},
+                                              {PatchKey{3, 5, 7}, "foreign folder"}};
+  const HierarchyStamp stamp{1, 42, 1000, 1'700'000'000'000'000'000};
+  const std::vector<std::byte> bytes = encodeOpcIndex(stamp, model, &record, &retired);
+  const std::optional<IndexedRevision> head = decodeOpcIndexHead(bytes, stamp);
+  ASSERT_TRUE(head && head->record && head->retired);
+  EXPECT_EQ(head->record->time, record.time);
+  EXPECT_EQ(head->record->parent, 6u);
+  EXPECT_EQ(*head->retired, retired);
+  // The head ends before the patches: its first bytes are enough, fewer are not.
+  std::size_t headSize = bytes.size();
+  while (headSize > 0 &&
+         decodeOpcIndexHead(std::span(bytes).first(headSize - 1), stamp).has_value()) {
+    --headSize;
+  }
+  EXPECT_LT(headSize, bytes.size() - 8 - 60) << "the head reaches into the one patch";
+  EXPECT_FALSE(decodeOpcIndexHead(std::span(bytes).first(headSize - 1), stamp).has_value());
+  std::vector<std::byte> damaged = bytes;
+  damaged[headSize - 12] ^= std::byte{4};  // in the last retired folder's name
+  EXPECT_FALSE(decodeOpcIndexHead(damaged, stamp).has_value());
+  EXPECT_FALSE(decodeOpcIndexHead(bytes, HierarchyStamp{1, 43, 1000, stamp.modifiedNs}));
+  // Without retired folders (`vsm index`), and without a record.
+  const auto none = decodeOpcIndexHead(encodeOpcIndex(stamp, model, &record), stamp);
+  ASSERT_TRUE(none && none->record);
+  EXPECT_FALSE(none->retired.has_value());
+  EXPECT_FALSE(decodeOpcIndexHead(encodeOpcIndex(stamp, model, nullptr), stamp)->record);
+  // Format 1.
+  const std::string old =
+      test::readFile(fs::path(VSM_SOURCE_DIR) / "tests/fuzz/corpus/opc_index/merged.vsmidx");
+  std::vector<std::byte> oldBytes(old.size());
+  std::memcpy(oldBytes.data(), old.data(), old.size());
+  std::uint32_t format = 0;
+  std::memcpy(&format, oldBytes.data() + 8, 4);
+  ASSERT_EQ(format, 1u);
+  HierarchyStamp oldStamp;
+  std::memcpy(&oldStamp.inode, oldBytes.data() + 12, 8);
+  std::memcpy(&oldStamp.size, oldBytes.data() + 20, 8);
+  std::memcpy(&oldStamp.modifiedNs, oldBytes.data() + 28, 8);
+  const std::optional<OpcRevision> oldRead = decodeOpcIndex(oldBytes, oldStamp);
+  ASSERT_TRUE(oldRead.has_value());
+  EXPECT_GT(oldRead->model.patchCount(), 1u);
+  EXPECT_FALSE(decodeOpcIndexHead(oldBytes, oldStamp).has_value());
 }
 
 TEST(OpcIndex, RoundTripsAHundredThousandPatchesExactly) {
