@@ -5,10 +5,12 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <array>
 #include <cerrno>
 #include <cstdint>
 #include <cstring>
 #include <functional>
+#include <set>
 
 #include "core/common/error.hpp"
 #include "core/opc/opc_detail.hpp"
@@ -20,8 +22,11 @@ namespace {
 
 constexpr char kMagic[8] = {'V', 'S', 'M', 'I', 'D', 'X', '\n', '\0'};
 // 2 adds the retired folders and the head's checksum after the revision record; 1 is still read.
-constexpr std::uint32_t kFormat = 2;
+// 3 is a delta: format 2's head, then what changed since a base (a full index of format 2).
 constexpr std::uint32_t kFirstFormat = 1;
+constexpr std::uint32_t kFormat = 2;
+constexpr std::uint32_t kDeltaFormat = 3;
+constexpr std::string_view kBasePrefix = "vsm-index-base-";
 constexpr std::string_view kIndexSuffix = ".vsmidx";
 constexpr std::string_view kDefaultPositions = "Positions.aara";
 
@@ -139,6 +144,12 @@ void putStamp(Encoder& out, const HierarchyStamp& stamp) {
   out.put(stamp.modifiedNs);
 }
 
+void putKey(Encoder& out, const PatchKey& key) {
+  out.put(static_cast<std::uint8_t>(key.depth));
+  out.put(key.x);
+  out.put(key.y);
+}
+
 }  // namespace
 
 // Fast enough to cost little next to reading the file, and catches a truncated or damaged file.
@@ -180,14 +191,15 @@ HierarchyStamp fileStamp(const fs::path& file) {
                         std::int64_t{st.st_mtim.tv_sec} * 1'000'000'000 + st.st_mtim.tv_nsec};
 }
 
-std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& model,
-                                      const RevisionRecord* record,
-                                      const std::vector<RetiredFolder>* retired) {
-  Encoder out;
+namespace {
+
+/// The head of an index of `format` (2 or 3), up to and with the head's checksum.
+void putHead(Encoder& out, std::uint32_t format, const HierarchyStamp& stamp, const Model& model,
+             const RevisionRecord* record, const std::vector<RetiredFolder>* retired) {
   for (const char c : kMagic) {
     out.put(c);
   }
-  out.put(kFormat);
+  out.put(format);
   putStamp(out, stamp);
   out.put(static_cast<std::int32_t>(model.gridSize()));
   // The summary `vsm info` prints, with its own checksum: read without the patches.
@@ -224,45 +236,76 @@ std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& 
   if (retired != nullptr) {
     out.put(static_cast<std::uint64_t>(retired->size()));
     for (const RetiredFolder& entry : *retired) {
-      out.put(static_cast<std::uint8_t>(entry.key.depth));
-      out.put(entry.key.x);
-      out.put(entry.key.y);
+      putKey(out, entry.key);
       out.putString(entry.folder);
     }
   }
   out.put(opcIndexChecksum(out.bytes()));
+}
+
+void putPatch(Encoder& out, const PatchKey& key, const PatchInfo& info) {
+  putKey(out, key);
+  out.putString(info.folder == key.toString() ? std::string_view() : info.folder);
+  out.putBox(info.globalBox);
+  out.putBox(info.localBox);
+  const bool translation = info.local2global.isTranslation();
+  out.put(static_cast<std::uint8_t>(translation));
+  if (translation) {
+    const Vec3d t = info.local2global.translationPart();
+    out.put(t.x);
+    out.put(t.y);
+    out.put(t.z);
+  } else {
+    for (const double v : info.local2global.m) {
+      out.put(v);
+    }
+  }
+  out.put(info.resolution);
+  out.put(info.version);
+  out.put(static_cast<std::int32_t>(info.stored.x0));
+  out.put(static_cast<std::int32_t>(info.stored.y0));
+  out.put(static_cast<std::int32_t>(info.stored.x1));
+  out.put(static_cast<std::int32_t>(info.stored.y1));
+  // The usual name as an empty string: most patches store Positions.aara.
+  out.putString(info.positionsFile == kDefaultPositions ? std::string_view()
+                                                        : std::string_view(info.positionsFile));
+  out.putString(info.coordinatesFile);
+  out.putString(info.textureFile);
+}
+
+}  // namespace
+
+std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& model,
+                                      const RevisionRecord* record,
+                                      const std::vector<RetiredFolder>* retired) {
+  Encoder out;
+  putHead(out, kFormat, stamp, model, record, retired);
   out.put(static_cast<std::uint64_t>(model.patchCount()));
   out.bytes().reserve(out.bytes().size() + model.patchCount() * 200 + 8);
   for (const auto& [key, info] : model.patches()) {
-    out.put(static_cast<std::uint8_t>(key.depth));
-    out.put(key.x);
-    out.put(key.y);
-    out.putString(info.folder == key.toString() ? std::string_view() : info.folder);
-    out.putBox(info.globalBox);
-    out.putBox(info.localBox);
-    const bool translation = info.local2global.isTranslation();
-    out.put(static_cast<std::uint8_t>(translation));
-    if (translation) {
-      const Vec3d t = info.local2global.translationPart();
-      out.put(t.x);
-      out.put(t.y);
-      out.put(t.z);
-    } else {
-      for (const double v : info.local2global.m) {
-        out.put(v);
-      }
-    }
-    out.put(info.resolution);
-    out.put(info.version);
-    out.put(static_cast<std::int32_t>(info.stored.x0));
-    out.put(static_cast<std::int32_t>(info.stored.y0));
-    out.put(static_cast<std::int32_t>(info.stored.x1));
-    out.put(static_cast<std::int32_t>(info.stored.y1));
-    // The usual name as an empty string: most patches store Positions.aara.
-    out.putString(info.positionsFile == kDefaultPositions ? std::string_view()
-                                                          : std::string_view(info.positionsFile));
-    out.putString(info.coordinatesFile);
-    out.putString(info.textureFile);
+    putPatch(out, key, info);
+  }
+  out.put(opcIndexChecksum(out.bytes()));
+  return std::move(out.bytes());
+}
+
+std::vector<std::byte> encodeOpcIndexDelta(const HierarchyStamp& stamp, const Model& model,
+                                           const RevisionRecord* record,
+                                           const std::vector<RetiredFolder>* retired,
+                                           const IndexBase& base, const std::set<PatchKey>& changed,
+                                           const std::set<PatchKey>& removed) {
+  Encoder out;
+  putHead(out, kDeltaFormat, stamp, model, record, retired);
+  out.putString(base.name);
+  out.put(base.size);
+  out.put(base.checksum);
+  out.put(static_cast<std::uint64_t>(changed.size()));
+  for (const PatchKey& key : changed) {
+    putPatch(out, key, model.at(key));
+  }
+  out.put(static_cast<std::uint64_t>(removed.size()));
+  for (const PatchKey& key : removed) {
+    putKey(out, key);
   }
   out.put(opcIndexChecksum(out.bytes()));
   return std::move(out.bytes());
@@ -279,12 +322,16 @@ struct IndexHead {
   std::uint64_t count = 0;
 };
 
-/// The format (1 or 2) when `in` starts with the format and `stamp` after the magic; else 0.
-std::uint32_t readFormatAndStamp(Decoder& in, const HierarchyStamp& stamp) {
+/// The format (1, 2 or 3) when `in` starts with the format and `stamp` (any stamp when null)
+/// after the magic; else 0.
+std::uint32_t readFormatAndStamp(Decoder& in, const HierarchyStamp* stamp) {
   const auto format = in.get<std::uint32_t>();
-  if ((format != kFirstFormat && format != kFormat) || in.get<std::uint64_t>() != stamp.inode ||
-      in.get<std::uint64_t>() != stamp.size || in.get<std::int64_t>() != stamp.modifiedNs ||
-      !in.ok()) {
+  const auto inode = in.get<std::uint64_t>();
+  const auto size = in.get<std::uint64_t>();
+  const auto modified = in.get<std::int64_t>();
+  if (!in.ok() || format < kFirstFormat || format > kDeltaFormat ||
+      (stamp != nullptr &&
+       (inode != stamp->inode || size != stamp->size || modified != stamp->modifiedNs))) {
     return 0;
   }
   return format;
@@ -348,10 +395,10 @@ IndexHead readHeadFields(Decoder& in, std::uint32_t format) {
 
 /// The head of a whole index `bytes` (whose checksum it checks) read by `in` from after the magic,
 /// up to its patches; nullopt when it is not an index of `stamp`.
-std::optional<IndexHead> decodeHead(std::span<const std::byte> bytes, const HierarchyStamp& stamp,
+std::optional<IndexHead> decodeHead(std::span<const std::byte> bytes, const HierarchyStamp* stamp,
                                     Decoder& in) {
   const std::uint32_t format = readFormatAndStamp(in, stamp);
-  if (format == 0) {
+  if (format == 0 || format == kDeltaFormat) {
     return std::nullopt;
   }
   std::uint64_t sum;
@@ -409,6 +456,81 @@ bool hasMagic(std::span<const std::byte> bytes) {
          std::memcmp(bytes.data(), kMagic, sizeof(kMagic)) == 0;
 }
 
+/// The format of index bytes (after the magic); 0 when they are not an index.
+std::uint32_t formatOf(std::span<const std::byte> bytes) {
+  if (!hasMagic(bytes)) {
+    return 0;
+  }
+  std::uint32_t format;
+  std::memcpy(&format, bytes.data() + sizeof(kMagic), 4);
+  return format;
+}
+
+/// A delta (format 3): its head, and after it the base it builds on and what changed since.
+struct Delta {
+  IndexHead head;
+  IndexBase base;
+  std::vector<PatchInfo> changed;  // in key order
+  std::set<PatchKey> removed;
+};
+
+/// The delta `bytes` if they are one of a hierarchy of `stamp` (any stamp when null) whose
+/// checksum holds; nullopt otherwise.
+std::optional<Delta> decodeDelta(std::span<const std::byte> bytes, const HierarchyStamp* stamp) {
+  if (!hasMagic(bytes)) {
+    return std::nullopt;
+  }
+  Decoder in(bytes.subspan(sizeof(kMagic), bytes.size() - sizeof(kMagic) - 8));
+  if (readFormatAndStamp(in, stamp) != kDeltaFormat) {
+    return std::nullopt;
+  }
+  std::uint64_t sum;
+  std::memcpy(&sum, bytes.data() + bytes.size() - 8, 8);
+  if (opcIndexChecksum(bytes.first(bytes.size() - 8)) != sum) {
+    return std::nullopt;
+  }
+  Delta delta;
+  delta.head = readHeadFields(in, kDeltaFormat);
+  in.get<std::uint64_t>();  // the head's checksum (the file's covers it)
+  delta.base.name = in.getString();
+  delta.base.size = in.get<std::uint64_t>();
+  delta.base.checksum = in.get<std::uint64_t>();
+  const auto changed = in.get<std::uint64_t>();
+  // A patch takes at least 150 bytes, a key 9: counts beyond what is left are damage.
+  if (!in.ok() || !isIndexBaseFileName(delta.base.name) || changed > in.remaining() / 150) {
+    return std::nullopt;
+  }
+  delta.changed.resize(changed);
+  for (std::size_t i = 0; i < delta.changed.size(); ++i) {
+    if (!decodePatch(in, delta.changed[i]) ||
+        (i > 0 && !(delta.changed[i - 1].key < delta.changed[i].key))) {
+      return std::nullopt;
+    }
+  }
+  const auto removed = in.get<std::uint64_t>();
+  if (!in.ok() || removed > in.remaining() / 9) {
+    return std::nullopt;
+  }
+  for (std::uint64_t i = 0; i < removed; ++i) {
+    PatchKey key;
+    key.depth = in.get<std::uint8_t>();
+    key.x = in.get<std::uint32_t>();
+    key.y = in.get<std::uint32_t>();
+    delta.removed.insert(key);
+  }
+  if (!in.ok() || !in.atEnd()) {
+    return std::nullopt;
+  }
+  return delta;
+}
+
+/// The checksum a file of index bytes ends with.
+std::uint64_t trailingChecksum(std::span<const std::byte> bytes) {
+  std::uint64_t sum = 0;
+  std::memcpy(&sum, bytes.data() + bytes.size() - 8, 8);
+  return sum;
+}
+
 }  // namespace
 
 std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
@@ -417,7 +539,7 @@ std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
     return std::nullopt;
   }
   Decoder in(bytes.subspan(sizeof(kMagic), bytes.size() - sizeof(kMagic) - 8));
-  std::optional<IndexHead> head = decodeHead(bytes, stamp, in);
+  std::optional<IndexHead> head = decodeHead(bytes, &stamp, in);
   if (!head) {
     return std::nullopt;
   }
@@ -439,6 +561,95 @@ std::optional<OpcRevision> decodeOpcIndex(std::span<const std::byte> bytes,
   }
 }
 
+std::optional<OpcRevision> decodeOpcIndexDelta(std::span<const std::byte> delta,
+                                               const HierarchyStamp& stamp,
+                                               std::span<const std::byte> base) {
+  std::optional<Delta> read = decodeDelta(delta, &stamp);
+  if (!read || base.size() != read->base.size || !hasMagic(base) ||
+      trailingChecksum(base) != read->base.checksum) {
+    return std::nullopt;
+  }
+  // The base: a full index of another hierarchy (its stamp is not this one's).
+  Decoder in(base.subspan(sizeof(kMagic), base.size() - sizeof(kMagic) - 8));
+  const std::optional<IndexHead> baseHead = decodeHead(base, nullptr, in);
+  if (!baseHead || baseHead->gridSize != read->head.gridSize) {
+    return std::nullopt;
+  }
+  try {
+    // Both in key order (parents first), merged as the base is decoded (one base patch at a
+    // time: no second copy of the model): the base's patches replaced by the changed ones and
+    // without the removed ones.
+    OpcRevision result{Model(read->head.gridSize), std::move(read->head.record)};
+    std::uint64_t left = baseHead->count;
+    PatchInfo from;
+    bool have = false;
+    const auto pull = [&] {
+      have = left > 0;
+      if (have) {
+        --left;
+        from = PatchInfo{};  // every field, not only those the index holds, as a fresh one
+        if (!decodePatch(in, from)) {
+          throw Error(ErrorCode::Corrupt, "index base");
+        }
+      }
+    };
+    pull();
+    auto changed = read->changed.begin();
+    while (have || changed != read->changed.end()) {
+      if (changed == read->changed.end() || (have && from.key < changed->key)) {
+        if (!read->removed.contains(from.key)) {
+          result.model.insert(std::move(from));
+        }
+        pull();
+      } else {
+        if (have && from.key == changed->key) {
+          pull();
+        }
+        result.model.insert(std::move(*changed));
+        ++changed;
+      }
+    }
+    if (!in.atEnd()) {
+      return std::nullopt;
+    }
+    return result;
+  } catch (const Error&) {
+    return std::nullopt;  // cut short, a child without its parent: not a delta we wrote
+  }
+}
+
+bool isIndexBaseFileName(std::string_view name) {
+  return name.starts_with(kBasePrefix) && isIndexFileName(name) && detail::isSafeName(name);
+}
+
+namespace {
+
+/// The index `index` of the hierarchy file `hierarchyFile` (a full one, or a delta with its base
+/// beside it), when current; nullopt otherwise.
+std::optional<OpcRevision> readIndexOf(const fs::path& hierarchyFile, const fs::path& index) {
+  struct stat st {};
+  if (::stat(index.c_str(), &st) != 0) {
+    return std::nullopt;
+  }
+  try {
+    const HierarchyStamp stamp = fileStamp(hierarchyFile);
+    const MappedIndex mapped(index);
+    if (formatOf(mapped.bytes()) != kDeltaFormat) {
+      return decodeOpcIndex(mapped.bytes(), stamp);
+    }
+    const std::optional<Delta> delta = decodeDelta(mapped.bytes(), &stamp);
+    if (!delta) {
+      return std::nullopt;
+    }
+    const MappedIndex base(index.parent_path() / delta->base.name);
+    return decodeOpcIndexDelta(mapped.bytes(), stamp, base.bytes());
+  } catch (const Error&) {
+    return std::nullopt;  // unreadable: the full read says what is wrong, if anything
+  }
+}
+
+}  // namespace
+
 bool forEachIndexedFolder(const fs::path& hierarchyFile,
                           const std::function<void(std::string_view)>& fn) {
   try {
@@ -446,11 +657,22 @@ bool forEachIndexedFolder(const fs::path& hierarchyFile,
     const MappedIndex index(hierarchyFile.parent_path() /
                             indexFileName(hierarchyFile.filename().string()));
     const std::span<const std::byte> bytes = index.bytes();
+    if (formatOf(bytes) == kDeltaFormat) {
+      const std::optional<OpcRevision> read =
+          readIndexOf(hierarchyFile, hierarchyFile.parent_path() /
+                                         indexFileName(hierarchyFile.filename().string()));
+      if (read) {
+        for (const auto& [key, info] : read->model.patches()) {
+          fn(info.folder);
+        }
+      }
+      return read.has_value();
+    }
     if (!hasMagic(bytes)) {
       return false;
     }
     Decoder in(bytes.subspan(sizeof(kMagic), bytes.size() - sizeof(kMagic) - 8));
-    const std::optional<IndexHead> head = decodeHead(bytes, stamp, in);
+    const std::optional<IndexHead> head = decodeHead(bytes, &stamp, in);
     if (!head) {
       return false;
     }
@@ -484,7 +706,7 @@ std::optional<OpcSummary> readOpcIndexSummary(const fs::path& dir) {
       return std::nullopt;
     }
     Decoder in{std::span<const std::byte>(bytes).subspan(sizeof(kMagic))};
-    if (readFormatAndStamp(in, stamp) == 0) {
+    if (readFormatAndStamp(in, &stamp) == 0) {
       return std::nullopt;
     }
     OpcSummary summary;
@@ -521,10 +743,11 @@ std::optional<IndexedRevision> decodeOpcIndexHead(std::span<const std::byte> byt
     return std::nullopt;
   }
   Decoder in{bytes.subspan(sizeof(kMagic))};
-  if (readFormatAndStamp(in, stamp) != kFormat) {
+  const std::uint32_t format = readFormatAndStamp(in, &stamp);
+  if (format < kFormat) {
     return std::nullopt;  // format 1 has no head checksum: its head is not trusted alone
   }
-  IndexHead head = readHeadFields(in, kFormat);
+  IndexHead head = readHeadFields(in, format);
   const std::size_t end = bytes.size() - in.remaining();
   const auto sum = in.get<std::uint64_t>();
   if (!in.ok() || opcIndexChecksum(bytes.first(end)) != sum) {
@@ -558,24 +781,125 @@ std::optional<OpcRevision> readOpcIndex(const fs::path& dir, std::string_view hi
     return std::nullopt;
   }
   const auto hierarchy = detail::findEntry(*patches, hierarchyName);
-  const fs::path index = *patches / indexFileName(hierarchyName);
-  struct stat st {};
-  if (!hierarchy || ::stat(index.c_str(), &st) != 0) {
+  if (!hierarchy) {
     return std::nullopt;
   }
+  return readIndexOf(*hierarchy, *patches / indexFileName(hierarchyName));
+}
+
+std::optional<IndexBase> readIndexBase(const fs::path& index) {
   try {
-    const HierarchyStamp stamp = fileStamp(*hierarchy);
-    return decodeOpcIndex(MappedIndex(index).bytes(), stamp);
+    for (std::size_t limit = std::size_t{1} << 16;; limit *= 16) {
+      const std::vector<std::byte> bytes = detail::readFile(index, limit);
+      if (formatOf(bytes) != kDeltaFormat) {
+        return std::nullopt;
+      }
+      Decoder in{std::span<const std::byte>(bytes).subspan(sizeof(kMagic))};
+      readFormatAndStamp(in, nullptr);
+      readHeadFields(in, kDeltaFormat);
+      in.get<std::uint64_t>();
+      IndexBase base;
+      base.name = in.getString();
+      base.size = in.get<std::uint64_t>();
+      base.checksum = in.get<std::uint64_t>();
+      if (in.ok()) {
+        return isIndexBaseFileName(base.name) ? std::optional(base) : std::nullopt;
+      }
+      if (bytes.size() < limit) {
+        return std::nullopt;
+      }
+    }
   } catch (const Error&) {
-    return std::nullopt;  // unreadable: the full read says what is wrong, if anything
+    return std::nullopt;
   }
 }
 
-std::unique_ptr<durable::PendingFile> stageOpcIndex(
-    const fs::path& dir, std::string_view hierarchyName, const fs::path& hierarchyFile,
-    const Model& model, const RevisionRecord* record, const std::vector<RetiredFolder>* retired) {
-  const std::vector<std::byte> bytes =
-      encodeOpcIndex(fileStamp(hierarchyFile), model, record, retired);
+namespace {
+
+/// True when `base` in `patches` is the file a delta names: its size and final checksum.
+bool baseIsThere(const fs::path& patches, const IndexBase& base) {
+  try {
+    const fs::path file = patches / base.name;
+    struct stat st {};
+    if (::stat(file.c_str(), &st) != 0 || static_cast<std::uint64_t>(st.st_size) != base.size ||
+        base.size < 16) {
+      return false;
+    }
+    const int fd = detail::openForReading(file);
+    std::array<std::byte, 8> tail{};
+    std::size_t got = 0;
+    try {
+      got = detail::readAt(fd, base.size - 8, tail, file.string());
+    } catch (...) {
+      ::close(fd);
+      throw;
+    }
+    ::close(fd);
+    return got == 8 && trailingChecksum(tail) == base.checksum;
+  } catch (const Error&) {
+    return false;
+  }
+}
+
+}  // namespace
+
+StagedIndex stagePublishedIndex(const fs::path& dir, const fs::path& hierarchyFile,
+                                const Model& model, const RevisionRecord& record,
+                                const std::vector<RetiredFolder>& retired,
+                                const std::set<PatchKey>& changed,
+                                const std::set<PatchKey>& removed,
+                                const std::optional<HierarchyStamp>& replaced,
+                                const std::string& baseName) {
+  const fs::path patches = patchesDirOf(dir);
+  const fs::path target = patches / indexFileName("patchhierarchy.xml");
+  const HierarchyStamp stamp = fileStamp(hierarchyFile);
+  // The delta describing the hierarchy this publish replaces, when there is a current one.
+  std::optional<Delta> previous;
+  if (replaced) {
+    try {
+      previous = decodeDelta(detail::readFile(target), &*replaced);
+    } catch (const Error&) {
+      // none, or unreadable: a new base
+    }
+  }
+  if (previous && baseIsThere(patches, previous->base)) {
+    // What differs from the base now: what differed before and what this publish changed.
+    std::set<PatchKey> changedSince;
+    std::set<PatchKey> removedSince;
+    for (const PatchInfo& info : previous->changed) {
+      (model.find(info.key) != nullptr ? changedSince : removedSince).insert(info.key);
+    }
+    for (const PatchKey& key : previous->removed) {
+      (model.find(key) != nullptr ? changedSince : removedSince).insert(key);
+    }
+    for (const PatchKey& key : changed) {
+      changedSince.insert(key);
+    }
+    for (const PatchKey& key : removed) {
+      removedSince.insert(key);
+    }
+    if ((changedSince.size() + removedSince.size()) * kIndexDeltaShare <= model.patchCount()) {
+      return {nullptr,
+              std::make_unique<durable::PendingFile>(
+                  target, encodeOpcIndexDelta(stamp, model, &record, &retired, previous->base,
+                                              changedSince, removedSince))};
+    }
+  }
+  const std::vector<std::byte> full = encodeOpcIndex(stamp, model, &record, &retired);
+  const IndexBase base{baseName, full.size(), trailingChecksum(full)};
+  StagedIndex staged;
+  staged.base = std::make_unique<durable::PendingFile>(patches / baseName, full);
+  staged.index = std::make_unique<durable::PendingFile>(
+      target, encodeOpcIndexDelta(stamp, model, &record, &retired, base, {}, {}));
+  return staged;
+}
+
+std::unique_ptr<durable::PendingFile> stageOpcIndex(const fs::path& dir,
+                                                    std::string_view hierarchyName,
+                                                    const fs::path& hierarchyFile,
+                                                    const Model& model,
+                                                    const RevisionRecord* record) {
+  const std::vector<std::byte> bytes = encodeOpcIndex(fileStamp(hierarchyFile), model, record);
   return std::make_unique<durable::PendingFile>(patchesDirOf(dir) / indexFileName(hierarchyName),
                                                 bytes);
 }

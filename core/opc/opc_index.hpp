@@ -6,6 +6,7 @@
 #include <functional>
 #include <memory>
 #include <optional>
+#include <set>
 #include <span>
 #include <string>
 #include <string_view>
@@ -48,6 +49,62 @@ struct RetiredFolder {
 std::vector<std::byte> encodeOpcIndex(const HierarchyStamp& stamp, const Model& model,
                                       const RevisionRecord* record,
                                       const std::vector<RetiredFolder>* retired = nullptr);
+
+/// What a delta index builds on: a full index in Patches/ (isIndexBaseFileName), its size and the
+/// checksum it ends with.
+struct IndexBase {
+  std::string name;
+  std::uint64_t size = 0;
+  std::uint64_t checksum = 0;
+};
+
+/// True for the name of a base of delta indexes: "vsm-index-base-<...>.vsmidx", inside its
+/// directory.
+bool isIndexBaseFileName(std::string_view name);
+
+/// The bytes of a delta index (format 3) of `model` for a hierarchy of `stamp`: the head of a full
+/// index (summary, record, retired folders), then `base` and the patches that differ from it:
+/// `changed` (in `model`, recorded whole) and `removed` (only their keys).
+std::vector<std::byte> encodeOpcIndexDelta(const HierarchyStamp& stamp, const Model& model,
+                                           const RevisionRecord* record,
+                                           const std::vector<RetiredFolder>* retired,
+                                           const IndexBase& base, const std::set<PatchKey>& changed,
+                                           const std::set<PatchKey>& removed);
+
+/// The model and record of delta bytes `delta` if they describe a hierarchy of `stamp` and `base`
+/// is the base they name (its size and checksum), both whole; nullopt otherwise.
+std::optional<OpcRevision> decodeOpcIndexDelta(std::span<const std::byte> delta,
+                                               const HierarchyStamp& stamp,
+                                               std::span<const std::byte> base);
+
+/// The base the index file `index` builds on when it is a delta (read from its head, whatever
+/// hierarchy it describes); nullopt for a full index, none, or an unreadable one.
+std::optional<IndexBase> readIndexBase(const std::filesystem::path& index);
+
+/// A publish writes a new base when the patches that differ from the current base would be more
+/// than 1/kIndexDeltaShare of the model: a delta stays under ~1/8 of a full index, and a full one
+/// is written once every many small publishes.
+inline constexpr std::size_t kIndexDeltaShare = 8;
+
+/// The index files of a publish: a new base (or none) and the index beside the hierarchy.
+struct StagedIndex {
+  std::unique_ptr<durable::PendingFile> base;
+  std::unique_ptr<durable::PendingFile> index;
+};
+
+/// Stages the index of the hierarchy `hierarchyFile` (staged under its temporary name: the stamp
+/// survives the rename) that a publish is about to commit for `model`, as
+/// Patches/patchhierarchy.vsmidx: a delta over the base the current index builds on (when it is a
+/// delta describing `replaced`, the hierarchy the publish replaces, and its base is there), with
+/// the patches that differ from that base (those it recorded, and `changed`, `removed`) while they
+/// stay within 1/kIndexDeltaShare of the model; else a new base, Patches/`baseName` (a full
+/// index), and an empty delta over it. The caller commits the base and syncs Patches/ first, then
+/// the index just before the hierarchy, and syncs Patches/ after both. Throws Error(Io).
+StagedIndex stagePublishedIndex(
+    const std::filesystem::path& dir, const std::filesystem::path& hierarchyFile,
+    const Model& model, const RevisionRecord& record, const std::vector<RetiredFolder>& retired,
+    const std::set<PatchKey>& changed, const std::set<PatchKey>& removed,
+    const std::optional<HierarchyStamp>& replaced, const std::string& baseName);
 
 /// The checksum that ends the index's summary and the index: 64 bits over 8-byte words, the tail
 /// zero-padded (core/opc/README.md, "The index").
@@ -102,10 +159,11 @@ std::optional<OpcRevision> readOpcIndex(const std::filesystem::path& dir,
 /// the stamp survives the rename) staged as Patches/indexFileName(`hierarchyName`) of `dir`: the
 /// caller commits it (a rename) before the hierarchy's commit and syncs Patches/ after both.
 /// Throws Error(Io).
-std::unique_ptr<durable::PendingFile> stageOpcIndex(
-    const std::filesystem::path& dir, std::string_view hierarchyName,
-    const std::filesystem::path& hierarchyFile, const Model& model, const RevisionRecord* record,
-    const std::vector<RetiredFolder>* retired = nullptr);
+std::unique_ptr<durable::PendingFile> stageOpcIndex(const std::filesystem::path& dir,
+                                                    std::string_view hierarchyName,
+                                                    const std::filesystem::path& hierarchyFile,
+                                                    const Model& model,
+                                                    const RevisionRecord* record);
 
 /// Reads the hierarchy `hierarchyName` of `dir` in full and writes its index, atomically and
 /// durably (`vsm index`); returns the number of patches. Throws as readOpcRevision and Error(Io),

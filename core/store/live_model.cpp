@@ -72,8 +72,18 @@ void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSna
   for (const auto& [number, file] : kept) {
     keptIndexes.insert(indexFileName(file.filename().string()));
   }
+  // And the bases those indexes build on (delta indexes; the others name none).
+  std::unordered_set<std::string> keptBases;
   for (const fs::path& index : indexes) {
-    if (!keptIndexes.contains(index.filename().string())) {
+    if (keptIndexes.contains(index.filename().string())) {
+      if (const std::optional<IndexBase> base = readIndexBase(index)) {
+        keptBases.insert(base->name);
+      }
+    }
+  }
+  for (const fs::path& index : indexes) {
+    const std::string file = index.filename().string();
+    if (!keptIndexes.contains(file) && !keptBases.contains(file)) {
       orphans.push_back(index);
     }
   }

@@ -142,9 +142,19 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   for (const PatchKey& key : removed_) {
     retired.push_back({key, base_->model->at(key).folder});
   }
-  const std::unique_ptr<durable::PendingFile> index =
-      stageOpcIndex(live_.dir_, "patchhierarchy.xml", hierarchy->staged(), *model_,
-                    &snapshot->revision, &retired);
+  // A delta over the current index's base, or a new base when the change since it has grown.
+  const std::optional<HierarchyStamp> replacedStamp = [&] {
+    std::lock_guard lock(live_.mutex_);
+    return live_.readStamp_;
+  }();
+  const StagedIndex index = stagePublishedIndex(
+      live_.dir_, hierarchy->staged(), *model_, snapshot->revision, retired, changed_, removed_,
+      replacedStamp, "vsm-index-base-" + std::to_string(version) + "-" + nonce_ + ".vsmidx");
+  if (index.base) {
+    // Durable before any index names it (a lost rename would leave a delta without its base).
+    index.base->commit();
+    durable::syncDirectory(patches);
+  }
   // The new version's metadata is the edit's own, shared, not copied (10^5 patches: tens of MB
   // and a tenth of a second): nothing changes it after the commit point (requireOpen).
   snapshot->model = model_;
@@ -167,7 +177,7 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   if (options.fence) {
     options.fence();
   }
-  index->commit();
+  index.index->commit();
   hierarchy->commit();
   published_ = true;
   const std::optional<HierarchyStamp> stamp = hierarchyStamp(live_.dir_);

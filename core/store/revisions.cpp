@@ -268,6 +268,20 @@ FolderSet foldersOnlyIn(const fs::path& oldest, const fs::path& next, const Mode
   return only;
 }
 
+/// True when the current index of `patches` or one of the kept revisions' (`kept`) builds on
+/// `base`.
+bool baseNamedBy(const fs::path& patches, const IndexBase& base,
+                 const std::map<std::uint64_t, fs::path>& kept) {
+  std::vector<fs::path> indexes{patches / indexFileName("patchhierarchy.xml")};
+  for (const auto& [number, file] : kept) {
+    indexes.push_back(patches / indexFileName(file.filename().string()));
+  }
+  return std::any_of(indexes.begin(), indexes.end(), [&](const fs::path& index) {
+    const std::optional<IndexBase> named = readIndexBase(index);
+    return named && named->name == base.name;
+  });
+}
+
 }  // namespace
 
 void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
@@ -319,9 +333,16 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
       }
       // Its index after it: one left by a crash between the two is an orphan the next open
       // removes (never an index taken for a hierarchy it does not describe: it has a stamp).
-      ::unlink((patches / indexFileName(oldest->second.filename().string())).c_str());
-      durable::syncDirectory(patches);
+      const fs::path index = patches / indexFileName(oldest->second.filename().string());
+      const std::optional<IndexBase> base = readIndexBase(index);
+      ::unlink(index.c_str());
       files.erase(oldest);
+      // Then the base it built on, when no index left names it (the current one and the kept
+      // revisions': a few heads read). A crash before leaves it to the next open.
+      if (base && !baseNamedBy(patches, *base, files)) {
+        ::unlink((patches / base->name).c_str());
+      }
+      durable::syncDirectory(patches);
       log::info("model=" + name_ + " dropped revision " + std::to_string(number) + " (" +
                 std::to_string(only.size()) + " folders only it used)");
       // Letting go queues the folders; removeRetiredFolders() removes them (after the publish,

@@ -42,6 +42,8 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   // mutation, but its parsing must never fail otherwise.
   std::optional<core::IndexedRevision> head;
   fuzz::succeeds([&] { head = core::decodeOpcIndexHead(bytes, stamp); });
+  // A delta (format 3) parses before its base is looked at: the input stands for both.
+  fuzz::succeeds([&] { core::decodeOpcIndexDelta(bytes, stamp, bytes); });
   std::optional<core::OpcRevision> decoded;
   fuzz::succeeds([&] { decoded = core::decodeOpcIndex(bytes, stamp); });
   if (!decoded) {

@@ -22,6 +22,9 @@ REVISION_FILE = re.compile(r"vsm-revision-([0-9]+)\.xml")
 # The index of a hierarchy file (core/opc/README.md, "The index"): "patchhierarchy.vsmidx" beside the hierarchy,
 # "vsm-revision-N.vsmidx" beside a kept revision's; one beside no hierarchy file is an orphan.
 INDEX_FILE = re.compile(r"(patchhierarchy|vsm-revision-[0-9]+)\.vsmidx")
+# A base of delta indexes (a full index a delta builds on): not an orphan while an index beside a
+# hierarchy file names it (its name is in that index's bytes).
+INDEX_BASE = re.compile(r"vsm-index-base-[0-9]+-[0-9a-f]{8}\.vsmidx")
 PARENT = re.compile(rb"<Revision>\s*<Parent>([0-9]+)</Parent>")
 VERSIONED = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v([0-9]+)(?:-[0-9a-f]{8})?")
 REVISION_RECORD = re.compile(rb"<Revision>.*?</Revision>", re.S)
@@ -91,11 +94,17 @@ def version_of(opc):
     folders = {without_nonce(folder): folder_digest(os.path.join(patches_dir, folder), True)
                for folder in reachable}
     entries = os.listdir(patches_dir)
+    indexes = [e for e in entries
+               if INDEX_FILE.fullmatch(e) and INDEX_FILE.fullmatch(e).group(1) + ".xml" in entries]
+    named_bases = set()
+    for index in indexes:
+        with open(os.path.join(patches_dir, index), "rb") as f:
+            named_bases |= {m.decode() for m in
+                            re.findall(INDEX_BASE.pattern.encode(), f.read(1 << 20))}
     orphans = sorted(e for e in entries
                      if e not in reachable | kept and e.lower() != "patchhierarchy.xml"
-                     and not REVISION_FILE.fullmatch(e)
-                     and not (INDEX_FILE.fullmatch(e) and
-                              INDEX_FILE.fullmatch(e).group(1) + ".xml" in entries))
+                     and not REVISION_FILE.fullmatch(e) and e not in indexes
+                     and not (INDEX_BASE.fullmatch(e) and e in named_bases))
     tiles = os.path.join(opc, "Images", "Diffuse")
     if os.path.isdir(tiles):
         orphans += ["Images/Diffuse/" + t for t in sorted(os.listdir(tiles))

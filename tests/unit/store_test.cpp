@@ -81,21 +81,18 @@ std::array<std::uint8_t, 3> leafColour(std::uint32_t x, std::uint32_t y) {
   return {static_cast<std::uint8_t>(40 * x), static_cast<std::uint8_t>(40 * y), 100};
 }
 
-/// Writes a full three-level model (16 leaves, 4 + 1 overviews) to `dir`; when `textured`, leaf
-/// (x, y) is coloured leafColour(x, y) and the overviews downsampled.
-void writeModel(const fs::path& dir, bool textured = false) {
+/// Writes a full model with leaves at `leafDepth` (2: 16 leaves, 4 + 1 overviews) to `dir`; when
+/// `textured`, leaf (x, y) is coloured leafColour(x, y) and the overviews downsampled.
+void writeModel(const fs::path& dir, bool textured = false, int leafDepth = 2) {
   Model model(kSize);
-  std::map<PatchKey, std::shared_ptr<const PatchGrid>> grids;
-  model.insert(infoFor(PatchKey::root()));
-  for (std::uint32_t y = 0; y < 2; ++y) {
-    for (std::uint32_t x = 0; x < 2; ++x) {
-      model.insert(infoFor({1, x, y}));
-    }
-  }
-  for (std::uint32_t y = 0; y < 4; ++y) {
-    for (std::uint32_t x = 0; x < 4; ++x) {
-      model.insert(infoFor({2, x, y}));
-      model.setGrid({2, x, y}, leafGrid(x, y));
+  for (int depth = 0; depth <= leafDepth; ++depth) {
+    for (std::uint32_t y = 0; y < (1u << depth); ++y) {
+      for (std::uint32_t x = 0; x < (1u << depth); ++x) {
+        model.insert(infoFor({depth, x, y}));
+        if (depth == leafDepth) {
+          model.setGrid({depth, x, y}, leafGrid(x, y));
+        }
+      }
     }
   }
   model.refreshStale([](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return nullptr; });
@@ -106,7 +103,7 @@ void writeModel(const fs::path& dir, bool textured = false) {
     PatchInfo& info = model.edit(key);
     info.folder = key.toString();
     if (textured) {
-      if (key.depth == 2) {
+      if (key.depth == leafDepth) {
         const auto c = leafColour(key.x, key.y);
         tiles[key] = uniformTile(c[0], c[1], c[2]);
       } else {
@@ -1266,10 +1263,140 @@ TEST_F(StoreTest, OpeningForWritingRemovesIndexesOfNoKeptHierarchy) {
   }
   const fs::path patches = dir_ / "Patches";
   fs::copy_file(patches / "patchhierarchy.vsmidx", patches / "vsm-revision-99.vsmidx");
+  const std::optional<IndexBase> base = readIndexBase(patches / "patchhierarchy.vsmidx");
+  ASSERT_TRUE(base.has_value());
+  fs::copy_file(patches / base->name, patches / "vsm-index-base-99-0badf00d.vsmidx");
   auto live = LiveModel::open(dir_, "m", cache);
   EXPECT_FALSE(fs::exists(patches / "vsm-revision-99.vsmidx"));
+  EXPECT_FALSE(fs::exists(patches / "vsm-index-base-99-0badf00d.vsmidx")) << "a base none names";
   EXPECT_TRUE(fs::exists(patches / "patchhierarchy.vsmidx"));
+  EXPECT_TRUE(fs::exists(patches / base->name)) << "the base the current index builds on";
   EXPECT_TRUE(readOpcIndex(dir_).has_value());
+}
+
+// Issue 31: a publish writes the patches that differ from a base (a full index written once) as
+// a delta, a few kB after a small edit, and a new base when the difference grows past 1/8 of
+// the model. Every index (current, kept revisions') reads as the full read of its hierarchy, and
+// a base goes with the last index that names it.
+TEST_F(StoreTest, PublishesWriteDeltasOverABaseAndANewBaseWhenTheChangeGrows) {
+  writeModel(dir_, false, 3);  // 85 patches: a leaf and its 3 overviews are under 1/8 of them
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const fs::path patches = dir_ / "Patches";
+  const fs::path current = patches / "patchhierarchy.vsmidx";
+  const auto expectIndexesRead = [&](const std::string& when) {
+    std::vector<std::string> hierarchies{"patchhierarchy.xml"};
+    for (const RevisionSummary& r : live->revisions()) {
+      if (!r.latest) {
+        hierarchies.push_back(revisionFileName(r.number));
+      }
+    }
+    for (const std::string& name : hierarchies) {
+      if (!fs::exists(patches / indexFileName(name))) {
+        continue;  // the import's revision: an import writes no index
+      }
+      const std::optional<OpcRevision> indexed = readOpcIndex(dir_, name);
+      ASSERT_TRUE(indexed.has_value()) << when << ": " << name;
+      expectSameModel(*indexed, fullRead(dir_, name));
+    }
+  };
+  publishLeaf(*live, {3, 0, 0}, 1.0, 3);  // the import wrote no index: a new base
+  const std::optional<IndexBase> first = readIndexBase(current);
+  ASSERT_TRUE(first.has_value());
+  EXPECT_TRUE(fs::exists(patches / first->name));
+  expectIndexesRead("first");
+  publishLeaf(*live, {3, 7, 7}, 2.0, 3);  // 4 + 4 patches differ from the base: a delta over it
+  ASSERT_TRUE(readIndexBase(current).has_value());
+  EXPECT_EQ(readIndexBase(current)->name, first->name);
+  EXPECT_LT(fs::file_size(current) * 4, first->size) << "the delta holds the change, not the model";
+  expectIndexesRead("a delta");
+  int publishes = 2;
+  while (readIndexBase(current)->name == first->name && publishes < 8) {
+    const auto x = static_cast<std::uint32_t>(publishes);
+    publishLeaf(*live, {3, x, 7 - x}, 3.0, 3);
+    ++publishes;
+    expectIndexesRead("publish " + std::to_string(publishes));
+  }
+  EXPECT_NE(readIndexBase(current)->name, first->name) << "no new base after 8 publishes";
+  // Differing from the first base: 4 patches after the 2nd publish, 7, 8, then 11 after the
+  // 5th, past 85 / 8 (the leaves 3_2_5 and 3_3_4 share their overviews).
+  EXPECT_EQ(publishes, 5);
+  // With 3 revisions kept, the first base goes once no kept index names it.
+  for (int i = 0; i < 3; ++i) {
+    publishLeaf(*live, {3, 1, 1}, 4.0 + i, 3);
+  }
+  EXPECT_FALSE(fs::exists(patches / first->name));
+  std::set<std::string> bases;
+  for (const auto& entry : fs::directory_iterator(patches)) {
+    if (isIndexBaseFileName(entry.path().filename().string())) {
+      bases.insert(entry.path().filename().string());
+    }
+  }
+  std::set<std::string> named;
+  for (const RevisionSummary& r : live->revisions()) {
+    const fs::path index =
+        patches / indexFileName(r.latest ? "patchhierarchy.xml" : revisionFileName(r.number));
+    if (const std::optional<IndexBase> base = readIndexBase(index)) {
+      named.insert(base->name);
+    }
+  }
+  EXPECT_EQ(bases, named);
+  expectIndexesRead("after the drops");
+  live.reset();
+  auto reopened = LiveModel::open(dir_, "m", cache);
+  EXPECT_TRUE(readOpcIndex(dir_).has_value()) << "opening removed a base in use";
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+// A delta and its base decode to the model the delta describes: the base's patches, replaced,
+// added and removed as it says; another base, or a damaged one, is refused.
+TEST(OpcIndex, ADeltaOverItsBaseDecodesToTheModelItDescribes) {
+  Model base(kSize);
+  for (int depth = 0; depth <= 2; ++depth) {
+    for (std::uint32_t y = 0; y < (1u << depth); ++y) {
+      for (std::uint32_t x = 0; x < (1u << depth); ++x) {
+        PatchInfo info = infoFor({depth, x, y});
+        info.folder = info.key.toString();
+        info.resolution = 1.0 + depth;
+        info.version = 1;
+        base.insert(std::move(info));
+      }
+    }
+  }
+  Model now = base;
+  now.edit({2, 1, 1}).folder = "2_1_1-v2-00000001";
+  now.edit({2, 1, 1}).version = 2;
+  now.edit({1, 0, 0}).resolution = 0.25;
+  now.eraseLeaf({2, 3, 3});
+  PatchInfo added = infoFor({3, 0, 0});
+  added.folder = "3_0_0-v2-00000001";
+  added.version = 2;
+  now.insert(std::move(added));
+  const HierarchyStamp baseStamp{1, 10, 100, 1000};
+  const HierarchyStamp stamp{1, 11, 101, 1001};
+  const std::vector<std::byte> full = encodeOpcIndex(baseStamp, base, nullptr);
+  std::uint64_t tail = 0;
+  std::memcpy(&tail, full.data() + full.size() - 8, 8);
+  const IndexBase named{"vsm-index-base-1-00000001.vsmidx", full.size(), tail};
+  RevisionRecord record;
+  record.parent = 1;
+  const std::vector<std::byte> delta =
+      encodeOpcIndexDelta(stamp, now, &record, nullptr, named,
+                          {{0, 0, 0}, {1, 0, 0}, {1, 1, 1}, {2, 1, 1}, {3, 0, 0}}, {{2, 3, 3}});
+  const std::optional<OpcRevision> read = decodeOpcIndexDelta(delta, stamp, full);
+  ASSERT_TRUE(read.has_value());
+  expectSameModel(*read, OpcRevision{now, record});
+  EXPECT_LT(delta.size() * 2, full.size());
+  EXPECT_FALSE(decodeOpcIndex(delta, stamp).has_value()) << "a delta is not a full index";
+  EXPECT_FALSE(decodeOpcIndexDelta(delta, baseStamp, full).has_value()) << "another stamp";
+  const std::vector<std::byte> other = encodeOpcIndex(baseStamp, now, nullptr);
+  EXPECT_FALSE(decodeOpcIndexDelta(delta, stamp, other).has_value()) << "another base";
+  std::vector<std::byte> damaged = full;
+  damaged[full.size() / 2] ^= std::byte{1};
+  EXPECT_FALSE(decodeOpcIndexDelta(delta, stamp, damaged).has_value());
+  EXPECT_FALSE(isIndexBaseFileName("../vsm-index-base-1.vsmidx"));
+  EXPECT_FALSE(isIndexBaseFileName("patchhierarchy.vsmidx"));
+  EXPECT_TRUE(isIndexBaseFileName(named.name));
 }
 
 // The head (record, retired folders) decodes alone, from the index's first bytes, under its own
