@@ -233,6 +233,7 @@ std::string hierarchyXml(const Model& model, const RevisionRecord* revision) {
     throw Error(ErrorCode::InvalidArgument, "cannot write the hierarchy of an empty model");
   }
   detail::XmlWriter xml = startAardvark("PatchHierarchy");
+  xml.reserve(model.patchCount() * 48);  // ~48 bytes a patch: no regrowth of 4 MB at 87k
   std::string sizes = "[";
   for (const double size : model.avgGeometrySizes()) {
     sizes += (sizes.size() > 1 ? ", " : "") + formatDouble(size);

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <cstddef>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -24,6 +25,9 @@ class XmlWriter {
   void text(std::string_view name, std::string_view text);
   /// An element without content.
   void empty(std::string_view name);
+
+  /// Makes room for a document of `bytes` (a hint: it grows past it as needed).
+  void reserve(std::size_t bytes) { out_.reserve(bytes); }
 
   /// Closes every element still open and returns the document.
   std::string finish() &&;

@@ -166,6 +166,11 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
 }
 
 std::unique_ptr<LiveModel> LiveModel::reopen() const {
+  if (writer_) {
+    // Read again after a failure: nothing in memory is trusted, the revision list neither.
+    std::lock_guard lock(writer_->mutex);
+    writer_->revisionFiles.reset();
+  }
   return load(dir_, name_, store_->cache(), writer_, false, texturePixels());
 }
 

@@ -272,6 +272,10 @@ struct LiveModel::Writer {
   const LiveModel* current = nullptr;
   /// Every live opening (each adds itself when made and removes itself when destroyed).
   std::vector<LiveModel*> openings;
+  /// The kept revisions' hierarchy files (number -> path) as the last publish left them: listed
+  /// from Patches/ once (it holds a folder per patch: 34 ms at 87k patches), then kept by each
+  /// publish (dropRevisions). Nullopt: not listed yet, or forgotten after a failure or a reopen.
+  std::optional<std::map<std::uint64_t, std::filesystem::path>> revisionFiles;
 };
 
 }  // namespace vsm::core

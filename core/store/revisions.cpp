@@ -289,9 +289,25 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
                               const std::set<std::uint64_t>& readElsewhere) {
   const Model& latest = *current.model;
   const std::time_t now = std::time(nullptr);
+  const fs::path patches = patchesDirOf(dir_);
+  // The kept revision files as the last publish left them, with the base revision this one kept;
+  // listed from Patches/ the first time (and after a failure).
+  std::optional<std::map<std::uint64_t, fs::path>> listed;
+  {
+    std::lock_guard lock(writer_->mutex);
+    listed.swap(writer_->revisionFiles);
+  }
   try {
-    const fs::path patches = patchesDirOf(dir_);
-    std::map<std::uint64_t, fs::path> files = revisionFiles(patches);
+    std::map<std::uint64_t, fs::path> files;
+    if (listed) {
+      files = std::move(*listed);
+      const std::uint64_t base = current.revision.parent;
+      if (base != 0 && fs::is_regular_file(patches / revisionFileName(base))) {
+        files.emplace(base, patches / revisionFileName(base));
+      }
+    } else {
+      files = revisionFiles(patches);
+    }
     std::erase_if(files, [&](const auto& entry) { return entry.first >= current.version; });
     while (files.size() + 1 > keep) {
       const auto oldest = files.begin();
@@ -361,7 +377,10 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
         opening->holdRemoval(number, removal);
       }
     }
+    std::lock_guard lock(writer_->mutex);
+    writer_->revisionFiles = std::move(files);
   } catch (const std::exception& e) {
+    // The list is listed again next time (it stays forgotten).
     log::warn("model=" + name_ + " dropping old revisions: " + e.what() +
               " (retried at the next publish)");
   }

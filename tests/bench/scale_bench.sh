@@ -139,6 +139,9 @@ for depth in $DEPTHS; do
   patches=$("$GEN" "$data/$name" "$depth" 17 -98.5 33.5 3 | cut -d' ' -f1)
   gen_s=$(elapsed "$t0" "$(now)")
   cp -r "$WORK/detail" "$data/detail"
+  # The generator's writes flushed before anything is timed: else the first merge's syncfs
+  # (core/durable FileSystemSync) writes back its gigabyte and is timed with it.
+  sync
   idx=$data/$name/Patches/patchhierarchy.vsmidx
   # Before the index: the full read.
   mv "$idx" "$WORK/saved.vsmidx"
