@@ -1348,6 +1348,41 @@ TEST_F(StoreTest, PublishesWriteDeltasOverABaseAndANewBaseWhenTheChangeGrows) {
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
+// A delta whose base is gone (a lost file, a copy of the directory without it) or is another
+// file is not used: the model opens by the full read, as it is, and the next publish writes a
+// new base.
+TEST_F(StoreTest, ADeltaWithoutItsBaseIsNotUsedAndTheNextPublishWritesANewBase) {
+  writeModel(dir_, false, 3);
+  PatchCache cache(64 << 20);
+  const fs::path patches = dir_ / "Patches";
+  const fs::path current = patches / "patchhierarchy.vsmidx";
+  {
+    auto live = LiveModel::open(dir_, "m", cache);
+    publishLeaf(*live, {3, 0, 0}, 1.0, 8);
+    publishLeaf(*live, {3, 7, 7}, 2.0, 8);  // a delta over the first publish's base
+  }
+  const std::optional<IndexBase> base = readIndexBase(current);
+  ASSERT_TRUE(base.has_value());
+  const OpcRevision full = fullRead(dir_);
+  ASSERT_TRUE(readOpcIndex(dir_).has_value());
+  // Another file under the base's name: refused by its size and checksum.
+  fs::rename(patches / base->name, dir_ / "saved-base");
+  fs::copy_file(current, patches / base->name);
+  EXPECT_FALSE(readOpcIndex(dir_).has_value());
+  fs::remove(patches / base->name);
+  EXPECT_FALSE(readOpcIndex(dir_).has_value());
+  auto live = LiveModel::open(dir_, "m", cache);
+  expectSameModel(OpcRevision{*live->snapshot()->model, live->snapshot()->revision},
+                  OpcRevision{full.model, full.record});
+  publishLeaf(*live, {3, 1, 1}, 3.0, 8);
+  const std::optional<IndexBase> fresh = readIndexBase(current);
+  ASSERT_TRUE(fresh.has_value());
+  EXPECT_NE(fresh->name, base->name);
+  ASSERT_TRUE(readOpcIndex(dir_).has_value());
+  expectSameModel(*readOpcIndex(dir_), fullRead(dir_));
+  EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
 // A delta and its base decode to the model the delta describes: the base's patches, replaced,
 // added and removed as it says; another base, or a damaged one, is refused.
 TEST(OpcIndex, ADeltaOverItsBaseDecodesToTheModelItDescribes) {
