@@ -43,6 +43,12 @@ class Encoder {
     const auto* p = reinterpret_cast<const std::byte*>(s.data());
     bytes_.insert(bytes_.end(), p, p + s.size());
   }
+  /// A key: depth (u8), x, y (u32).
+  void putKey(const PatchKey& key) {
+    put(static_cast<std::uint8_t>(key.depth));
+    put(key.x);
+    put(key.y);
+  }
   void putBox(const Box3d& b) {
     for (const double v : {b.min.x, b.min.y, b.min.z, b.max.x, b.max.y, b.max.z}) {
       put(v);
@@ -78,6 +84,14 @@ class Decoder {
     std::string s(reinterpret_cast<const char*>(bytes_.data() + pos_), n);
     pos_ += n;
     return s;
+  }
+  /// A key as Encoder::putKey wrote it.
+  PatchKey getKey() {
+    PatchKey key;
+    key.depth = get<std::uint8_t>();
+    key.x = get<std::uint32_t>();
+    key.y = get<std::uint32_t>();
+    return key;
   }
   Box3d getBox() {
     Box3d b;
@@ -142,12 +156,6 @@ void putStamp(Encoder& out, const HierarchyStamp& stamp) {
   out.put(stamp.inode);
   out.put(stamp.size);
   out.put(stamp.modifiedNs);
-}
-
-void putKey(Encoder& out, const PatchKey& key) {
-  out.put(static_cast<std::uint8_t>(key.depth));
-  out.put(key.x);
-  out.put(key.y);
 }
 
 }  // namespace
@@ -236,7 +244,7 @@ void putHead(Encoder& out, std::uint32_t format, const HierarchyStamp& stamp, co
   if (retired != nullptr) {
     out.put(static_cast<std::uint64_t>(retired->size()));
     for (const RetiredFolder& entry : *retired) {
-      putKey(out, entry.key);
+      out.putKey(entry.key);
       out.putString(entry.folder);
     }
   }
@@ -244,7 +252,7 @@ void putHead(Encoder& out, std::uint32_t format, const HierarchyStamp& stamp, co
 }
 
 void putPatch(Encoder& out, const PatchKey& key, const PatchInfo& info) {
-  putKey(out, key);
+  out.putKey(key);
   out.putString(info.folder == key.toString() ? std::string_view() : info.folder);
   out.putBox(info.globalBox);
   out.putBox(info.localBox);
@@ -305,7 +313,7 @@ std::vector<std::byte> encodeOpcIndexDelta(const HierarchyStamp& stamp, const Mo
   }
   out.put(static_cast<std::uint64_t>(removed.size()));
   for (const PatchKey& key : removed) {
-    putKey(out, key);
+    out.putKey(key);
   }
   out.put(opcIndexChecksum(out.bytes()));
   return std::move(out.bytes());
@@ -383,9 +391,7 @@ IndexHead readHeadFields(Decoder& in, std::uint32_t format) {
     }
     std::vector<RetiredFolder> retired(count);
     for (RetiredFolder& entry : retired) {
-      entry.key.depth = in.get<std::uint8_t>();
-      entry.key.x = in.get<std::uint32_t>();
-      entry.key.y = in.get<std::uint32_t>();
+      entry.key = in.getKey();
       entry.folder = in.getString();
     }
     head.retired = std::move(retired);
@@ -419,9 +425,7 @@ std::optional<IndexHead> decodeHead(std::span<const std::byte> bytes, const Hier
 
 /// One patch of the index into `info`; false past the end or for a key out of range.
 bool decodePatch(Decoder& in, PatchInfo& info) {
-  info.key.depth = in.get<std::uint8_t>();
-  info.key.x = in.get<std::uint32_t>();
-  info.key.y = in.get<std::uint32_t>();
+  info.key = in.getKey();
   info.folder = in.getString();
   if (info.folder.empty()) {
     info.folder = info.key.toString();
@@ -512,11 +516,7 @@ std::optional<Delta> decodeDelta(std::span<const std::byte> bytes, const Hierarc
     return std::nullopt;
   }
   for (std::uint64_t i = 0; i < removed; ++i) {
-    PatchKey key;
-    key.depth = in.get<std::uint8_t>();
-    key.x = in.get<std::uint32_t>();
-    key.y = in.get<std::uint32_t>();
-    delta.removed.insert(key);
+    delta.removed.insert(in.getKey());
   }
   if (!in.ok() || !in.atEnd()) {
     return std::nullopt;
