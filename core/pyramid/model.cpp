@@ -1,6 +1,9 @@
 #include "core/pyramid/model.hpp"
 
 #include <algorithm>
+#include <bit>
+#include <cstring>
+#include <string_view>
 
 #include "core/common/error.hpp"
 #include "core/pyramid/reduce.hpp"
@@ -237,6 +240,99 @@ std::vector<double> Model::avgGeometrySizes() const {
     finer = value;
   }
   return sizes;
+}
+
+namespace {
+
+bool sameStoredPatch(const PatchInfo& a, const PatchInfo& b) {
+  return &a == &b ||
+         (a.version == b.version && a.folder == b.folder && a.childMask == b.childMask &&
+          a.globalBox == b.globalBox && a.localBox == b.localBox &&
+          a.local2global == b.local2global && a.resolution == b.resolution &&
+          a.stored == b.stored && a.positionsFile == b.positionsFile &&
+          a.coordinatesFile == b.coordinatesFile && a.textureFile == b.textureFile);
+}
+
+}  // namespace
+
+namespace {
+
+/// Word-at-a-time mixing (a multiply and an xor-shift per 8 bytes), finished by splitmix64's
+/// finaliser so that sums of digests stay well spread.
+class Mixer {
+ public:
+  void add(std::uint64_t word) {
+    h_ = (h_ ^ word) * 0x9e3779b97f4a7c15ull;
+    h_ ^= h_ >> 29;
+  }
+  void add(double value) { add(std::bit_cast<std::uint64_t>(value)); }
+  void add(std::string_view text) {
+    add(std::uint64_t{text.size()});
+    for (std::size_t i = 0; i < text.size(); i += 8) {
+      std::uint64_t word = 0;
+      std::memcpy(&word, text.data() + i, std::min<std::size_t>(8, text.size() - i));
+      add(word);
+    }
+  }
+  std::uint64_t finish() const {
+    std::uint64_t z = h_;
+    z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+    z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+    return z ^ (z >> 31);
+  }
+
+ private:
+  std::uint64_t h_ = 0x243f6a8885a308d3ull;
+};
+
+}  // namespace
+
+std::uint64_t patchDigest(const PatchInfo& info) {
+  Mixer mix;
+  mix.add(std::uint64_t{static_cast<std::uint32_t>(info.key.depth)} << 32 | info.childMask);
+  mix.add(std::uint64_t{info.key.x} << 32 | info.key.y);
+  mix.add(info.version);
+  mix.add(std::string_view(info.folder));
+  for (const double v : {info.globalBox.min.x, info.globalBox.min.y, info.globalBox.min.z,
+                         info.globalBox.max.x, info.globalBox.max.y, info.globalBox.max.z}) {
+    mix.add(v);
+  }
+  for (const double v : info.local2global.m) {
+    mix.add(v);
+  }
+  return mix.finish();
+}
+
+std::uint64_t modelDigest(const Model& model) {
+  std::uint64_t sum = 0;
+  for (const auto& [key, info] : model.patches()) {
+    sum += patchDigest(info);
+  }
+  Mixer mix;
+  mix.add(std::uint64_t{static_cast<std::uint32_t>(model.gridSize())});
+  return sum + mix.finish();
+}
+
+ModelChange modelChange(const Model& before, const Model& after) {
+  ModelChange change;
+  const Model::Patches from = before.patches(), to = after.patches();
+  auto a = from.begin(), b = to.begin();
+  while (a != from.end() || b != to.end()) {
+    if (b == to.end() || (a != from.end() && (*a).first < (*b).first)) {
+      change.removed.push_back((*a).first);
+      ++a;
+    } else if (a == from.end() || (*b).first < (*a).first) {
+      change.changed.push_back((*b).first);
+      ++b;
+    } else {
+      if (!sameStoredPatch((*a).second, (*b).second)) {
+        change.changed.push_back((*b).first);
+      }
+      ++a;
+      ++b;
+    }
+  }
+  return change;
 }
 
 }  // namespace vsm::core

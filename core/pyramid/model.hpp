@@ -193,4 +193,30 @@ inline Model::Patches Model::patches() const {
   return Patches(patches_);
 }
 
+/// A 64-bit digest of what a patch's entity tags name: its key, version, folder, child mask,
+/// global box and Local2Global. The same in every process and build (no addresses, no seeds).
+std::uint64_t patchDigest(const PatchInfo& info);
+/// The digest of a model's content: its grid size mixed with the sum of its patches' digests. The
+/// sum does not depend on order, so a new version's digest follows from the last one's and the
+/// change (subtract the replaced and removed patches', add the changed ones'): ModelSnapshot
+/// keeps it that way from publish to publish.
+std::uint64_t modelDigest(const Model& model);
+
+/// What differs between the metadata of two models, each list in key order.
+struct ModelChange {
+  /// Keys of `after` that `before` lacks or holds another patch at: another node not equal in any
+  /// stored field (folder, child mask, boxes, Local2Global, resolution, version, stored rectangle,
+  /// file names; not the states).
+  std::vector<PatchKey> changed;
+  /// Keys of `before` that `after` lacks.
+  std::vector<PatchKey> removed;
+
+  bool empty() const { return changed.empty() && removed.empty(); }
+};
+/// The change from `before` to `after`, by one walk of both in key order. Nodes the two share
+/// (copy on write: a version of a LiveModel and the next) compare by address, so two versions of
+/// one model cost a pointer comparison a patch; models read apart (a replica's reopen) compare
+/// field by field.
+ModelChange modelChange(const Model& before, const Model& after);
+
 }  // namespace vsm::core

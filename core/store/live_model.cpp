@@ -165,6 +165,13 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
   return load(dir, std::move(name), cache, std::move(writer), true, texturePixels);
 }
 
+ModelChange changeSince(const std::shared_ptr<const Model>& before, const ModelSnapshot& after) {
+  if (after.published && after.published->parent.lock() == before) {
+    return after.published->change;
+  }
+  return modelChange(*before, *after.model);
+}
+
 std::unique_ptr<LiveModel> LiveModel::reopen() const {
   if (writer_) {
     // Read again after a failure: nothing in memory is trusted, the revision list neither.

@@ -36,6 +36,17 @@ struct ModelSnapshot {
   /// Increases with every publish: the newest version of any of its patches (at least 1), so it is
   /// the same in every process that reads the directory and after a restart.
   std::uint64_t version = 1;
+  /// modelDigest(*model): computed once when the version is read, then kept by the change at
+  /// each publish (what the server's entity tags of the whole model are made from).
+  std::uint64_t digest = 0;
+  /// For a version this process published: the metadata of the version it was published over
+  /// (held weakly: no chain of versions is kept alive) and the change from it, which is exactly
+  /// modelChange(parent, *model). Empty for a version read from disk.
+  struct Published {
+    std::weak_ptr<const Model> parent;
+    ModelChange change;
+  };
+  std::optional<Published> published;
   /// What the hierarchy records about this revision (for one without a record, such as an
   /// import's or a foreign OPC's: no parent, the hierarchy file's time, every patch of this
   /// version counted as changed).
@@ -51,6 +62,10 @@ struct ModelSnapshot {
 };
 
 class ModelEdit;
+
+/// The change from `before` to `after`'s metadata: the publish's record when `after` was
+/// published over `before` in this process (no walk), else modelChange(*before, *after.model).
+ModelChange changeSince(const std::shared_ptr<const Model>& before, const ModelSnapshot& after);
 
 /// The file under Patches/ that keeps the hierarchy of revision `number` once a later one is
 /// published: "vsm-revision-<number>.xml".

@@ -159,6 +159,19 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   // and a tenth of a second): nothing changes it after the commit point (requireOpen).
   snapshot->model = model_;
   snapshot->version = version;
+  // The digest by the change: the base's, less the patches replaced or removed, plus the new ones.
+  snapshot->digest = base_->digest;
+  for (const PatchKey& key : removed_) {
+    snapshot->digest -= patchDigest(base_->model->at(key));
+  }
+  for (const PatchKey& key : changed_) {
+    if (const PatchInfo* old = base_->model->find(key); old != nullptr) {
+      snapshot->digest -= patchDigest(*old);
+    }
+    snapshot->digest += patchDigest(model_->at(key));
+  }
+  snapshot->published = ModelSnapshot::Published{
+      base_->model, {{changed_.begin(), changed_.end()}, {removed_.begin(), removed_.end()}}};
 
   // 3. The commit point, fenced: this opening is still the model's and the hierarchy on disk is
   // still the base (no other writer published meanwhile), and the caller's fence (a cluster

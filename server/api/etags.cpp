@@ -1,11 +1,8 @@
 #include "server/api/etags.hpp"
 
 #include <algorithm>
-#include <array>
 #include <cstdint>
 #include <cstdio>
-#include <memory>
-#include <mutex>
 #include <type_traits>
 
 #include "core/pyramid/model.hpp"
@@ -50,57 +47,12 @@ class Digest {
   std::uint64_t hash_ = 14695981039346656037ull;
 };
 
-void addPatch(Digest& digest, const core::PatchInfo& info) {
-  digest.add(info.key.depth);
-  digest.add(info.key.x);
-  digest.add(info.key.y);
-  digest.add(info.version);
-  digest.add(std::string_view(info.folder));
-  digest.add(info.childMask);
-  digest.add(info.globalBox);
-  digest.add(info.local2global.m);
-}
-
-/// The digests of the last models asked about: a model's takes a pass over every patch (about
-/// 40 ms at 87k patches), and every request for the model's metadata or tileset asks for it. A
-/// published model never changes, so its digest is made once; the entries hold the models weakly
-/// (an entry whose model is gone is remade, even if a new model has its address).
-class ModelDigests {
- public:
-  Digest of(const std::shared_ptr<const core::Model>& model) {
-    {
-      const std::lock_guard lock(mutex_);
-      for (const Entry& entry : entries_) {
-        if (entry.model.lock() == model) {
-          return entry.digest;
-        }
-      }
-    }
-    Digest digest;  // made without the lock: concurrent first requests may both make it
-    digest.add(model->gridSize());
-    for (const auto& [key, info] : model->patches()) {
-      addPatch(digest, info);
-    }
-    const std::lock_guard lock(mutex_);
-    entries_[next_] = {model, digest};
-    next_ = (next_ + 1) % entries_.size();
-    return digest;
-  }
-
- private:
-  struct Entry {
-    std::weak_ptr<const core::Model> model;
-    Digest digest;
-  };
-  std::mutex mutex_;
-  /// The models of a few versions of a few models (several models open, kept revisions read).
-  std::array<Entry, 16> entries_;
-  std::size_t next_ = 0;
-};
-
+/// The model's digest as a tag's start: core::modelDigest, which the snapshot keeps (made once
+/// when a version is read, then by the change at each publish), so no request walks the model.
 Digest modelDigest(const core::ModelSnapshot& snapshot) {
-  static ModelDigests digests;
-  return digests.of(snapshot.model);
+  Digest digest;
+  digest.add(snapshot.digest);
+  return digest;
 }
 
 }  // namespace
@@ -119,7 +71,7 @@ std::string viewEtag(const core::ModelSnapshot& snapshot, std::string_view view,
 
 std::string patchEtag(const core::PatchInfo& info) {
   Digest digest;
-  addPatch(digest, info);
+  digest.add(core::patchDigest(info));
   return http::strongEtag(info.key.toString() + "-v" + std::to_string(info.version) + "-" +
                           digest.hex().substr(0, 8));
 }

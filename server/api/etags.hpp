@@ -24,9 +24,10 @@ namespace vsm::server::api {
 /// tileset names its model version (asset.extras.model_version).
 inline constexpr std::string_view kTilesFormat = "t4";
 
-/// A model's published metadata (summary, hierarchy, LOD cuts): a digest of every patch's key,
-/// version, folder, children and box. Derived from content rather than from the snapshot's
-/// version, which restarts at 1 whenever the model is opened.
+/// A model's published metadata (summary, hierarchy, LOD cuts): the snapshot's digest of every
+/// patch's key, version, folder, children, box and Local2Global (core::modelDigest, kept by the
+/// change from publish to publish). Derived from content rather than from the snapshot's version,
+/// which restarts at 1 whenever the model is opened.
 std::string modelEtag(const core::ModelSnapshot& snapshot);
 /// A view of the model chosen by a query (`view` "h": hierarchy, "l": LOD cut).
 std::string viewEtag(const core::ModelSnapshot& snapshot, std::string_view view,

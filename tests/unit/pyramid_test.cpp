@@ -195,6 +195,39 @@ TEST(Model, VariableDepthSubPyramidsHaveLeavesOnSeveralLevels) {
   EXPECT_EQ(model.leaves().size(), 4u);
 }
 
+TEST(Model, ModelChangeListsAddedReplacedAndRemovedKeysAndComparesUnsharedNodesByField) {
+  Model before(5);
+  before.insert(infoFor(PatchKey::root()));
+  for (const Quadrant q : kQuadrants) {
+    before.insert(infoFor(PatchKey::root().child(q)));
+  }
+  before.insert(infoFor({2, 0, 0}));
+  EXPECT_TRUE(modelChange(before, before).empty());
+
+  // The same patches built again (no node shared): equal field by field, so no change; the
+  // states (dirty, stale) are not the model's content.
+  Model rebuilt(5);
+  rebuilt.insert(infoFor(PatchKey::root()));
+  for (const Quadrant q : kQuadrants) {
+    rebuilt.insert(infoFor(PatchKey::root().child(q)));
+  }
+  rebuilt.insert(infoFor({2, 0, 0}));
+  rebuilt.edit({1, 1, 1}).dirty = true;
+  EXPECT_TRUE(modelChange(before, rebuilt).empty());
+
+  // A copy that removes a leaf (its parent's child bit changes), adds one and replaces one.
+  Model after = before;
+  after.eraseLeaf({2, 0, 0});
+  after.insert(infoFor({2, 3, 3}));
+  after.edit({1, 1, 0}).version = 7;
+  const ModelChange change = modelChange(before, after);
+  EXPECT_EQ(change.changed, (std::vector<PatchKey>{{1, 0, 0}, {1, 1, 0}, {1, 1, 1}, {2, 3, 3}}));
+  EXPECT_EQ(change.removed, (std::vector<PatchKey>{{2, 0, 0}}));
+  const ModelChange back = modelChange(after, before);
+  EXPECT_EQ(back.changed, (std::vector<PatchKey>{{1, 0, 0}, {1, 1, 0}, {1, 1, 1}, {2, 0, 0}}));
+  EXPECT_EQ(back.removed, (std::vector<PatchKey>{{2, 3, 3}}));
+}
+
 TEST(Model, ChangingAPatchMarksItDirtyAndEveryAncestorStale) {
   Model model(5);
   model.insert(infoFor(PatchKey::root()));

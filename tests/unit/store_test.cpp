@@ -494,6 +494,56 @@ TEST_F(StoreTest, AReaderPinnedOnADroppedRevisionReadsItUntilItLetsGo) {
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
+TEST_F(StoreTest, APublishRecordsItsExactChangeAndADigestThatAnyReaderOfTheVersionComputes) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  EXPECT_FALSE(live->snapshot()->published) << "read from disk: no change recorded";
+  std::shared_ptr<const Model> parent = live->snapshot()->model;
+  const auto check = [&](const std::string& when) {
+    const auto snapshot = live->snapshot();
+    EXPECT_EQ(snapshot->digest, modelDigest(*snapshot->model)) << when;
+    if (snapshot->published) {
+      EXPECT_EQ(snapshot->published->parent.lock(), parent) << when;
+      const ModelChange walked = modelChange(*parent, *snapshot->model);
+      EXPECT_EQ(snapshot->published->change.changed, walked.changed) << when;
+      EXPECT_EQ(snapshot->published->change.removed, walked.removed) << when;
+      EXPECT_FALSE(walked.empty()) << when;
+      const ModelChange known = changeSince(parent, *snapshot);
+      EXPECT_EQ(known.changed, walked.changed) << when;
+      // From another model (here the version itself: no change) the walk answers.
+      EXPECT_TRUE(changeSince(snapshot->model, *snapshot).empty()) << when;
+    }
+    parent = snapshot->model;
+    // Another process's reading of the same version (a replica, a restart) gives the same digest,
+    // so every node names the version by the same tags.
+    PatchCache other(16 << 20);
+    const auto reader = LiveModel::open(dir_, "r", other, LiveModel::Access::Read);
+    EXPECT_EQ(reader->snapshot()->digest, snapshot->digest) << when;
+    return snapshot->digest;
+  };
+  const std::uint64_t imported = check("as imported");
+  {
+    // A replaced leaf, and a level added below another (its ancestors refreshed).
+    auto edit = live->beginEdit();
+    edit->setPositions({2, 1, 1}, leafGrid(1, 1, 3.0));
+    edit->setPositions({3, 6, 6}, leafGrid(3, 3, 1.0));
+    edit->publish(nullptr, publishing("merge", 8));
+  }
+  ASSERT_TRUE(live->snapshot()->published);
+  const std::uint64_t merged = check("after a merge");
+  EXPECT_NE(merged, imported);
+  {
+    // The added level removed again (a restore of the import's content, in new folders).
+    auto edit = live->beginEdit();
+    edit->restore(*live->snapshotAt(live->snapshot()->version - 1));
+    ASSERT_FALSE(edit->removed().empty());
+    edit->publish(nullptr, publishing("restore", 8));
+  }
+  const std::uint64_t restored = check("after a restore");
+  EXPECT_NE(restored, merged);
+  EXPECT_NE(restored, imported) << "the restored patches are new versions in new folders";
+}
+
 TEST_F(StoreTest, RestoreMakesANewRevisionWithTheOldSurfacePatchForPatch) {
   PatchCache cache(64 << 20);
   auto live = LiveModel::open(dir_, "m", cache);
