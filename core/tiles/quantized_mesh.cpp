@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <map>
 #include <numbers>
 #include <set>
 #include <utility>
@@ -248,6 +249,55 @@ Vec3d geodeticToEcef(double lonDeg, double latDeg, double h) {
 
 // ---- layer -------------------------------------------------------------------------------------
 
+const GeoRect* Footprints::find(const PatchKey& key) const {
+  if (const auto it = changes_.find(key); it != changes_.end()) {
+    return it->second ? &*it->second : nullptr;
+  }
+  const auto it = base_->find(key);
+  return it == base_->end() ? nullptr : &it->second;
+}
+
+void Footprints::set(const PatchKey& key, const GeoRect& rect) {
+  size_ += find(key) == nullptr ? 1 : 0;
+  changes_.insert_or_assign(key, rect);
+}
+
+void Footprints::erase(const PatchKey& key) {
+  if (find(key) == nullptr) {
+    return;
+  }
+  --size_;
+  if (base_->contains(key)) {
+    changes_.insert_or_assign(key, std::nullopt);
+  } else {
+    changes_.erase(key);
+  }
+}
+
+void Footprints::compact() {
+  if (changes_.size() * 32 <= base_->size()) {
+    return;
+  }
+  std::map<PatchKey, GeoRect> merged;
+  auto b = base_->begin();
+  for (const auto& [key, rect] : changes_) {
+    for (; b != base_->end() && b->first < key; ++b) {
+      merged.emplace_hint(merged.end(), *b);
+    }
+    if (b != base_->end() && b->first == key) {
+      ++b;
+    }
+    if (rect) {
+      merged.emplace_hint(merged.end(), key, *rect);
+    }
+  }
+  for (; b != base_->end(); ++b) {
+    merged.emplace_hint(merged.end(), *b);
+  }
+  base_ = std::make_shared<const std::map<PatchKey, GeoRect>>(std::move(merged));
+  changes_.clear();
+}
+
 bool TerrainLayer::isAvailable(const TerrainTileKey& key) const {
   if (!key.valid() || key.z >= static_cast<int>(available.size())) {
     return false;
@@ -262,14 +312,120 @@ bool TerrainLayer::isAvailable(const TerrainTileKey& key) const {
 
 namespace {
 
-/// True when `previous` holds the same stored patch at info.key, with the same children: what its
-/// subtree's footprint depends on, as far as the patch itself goes.
-bool samePatch(const PatchInfo& info, const Model& previous) {
-  const PatchInfo* before = previous.find(info.key);
-  return before != nullptr && before->version == info.version && before->folder == info.folder &&
-         before->childMask == info.childMask && before->globalBox == info.globalBox &&
-         before->local2global == info.local2global;
+/// Tiles of one level as (y, x), in the order layer.json's runs are made from.
+using TileSet = std::set<std::pair<std::uint32_t, std::uint32_t>>;
+
+bool rangeHolds(const TileRange& r, std::uint32_t x, std::uint32_t y) {
+  return x >= r.startX && x <= r.endX && y >= r.startY && y <= r.endY;
 }
+
+double tileCount(const TileRange& r) {
+  return static_cast<double>(r.endX - r.startX + 1) * (r.endY - r.startY + 1);
+}
+
+/// The rectangle of a patch's defined vertices and its children's footprints (already in
+/// `footprint`); empty when none.
+GeoRect footprintOf(const PatchInfo& info, const PatchGrid& grid, const Footprints& footprint) {
+  GeoRect rect;
+  for (int y = 0; y < grid.size(); ++y) {
+    for (int x = 0; x < grid.size(); ++x) {
+      if (grid.defined(x, y)) {
+        const Vec3d g = geodeticOf(grid.global(x, y));
+        rect.extend(g.x, g.y);
+      }
+    }
+  }
+  for (const Quadrant q : kQuadrants) {
+    if (info.hasChild(q)) {
+      if (const GeoRect* child = footprint.find(info.key.child(q))) {
+        rect.extend(*child);
+      }
+    }
+  }
+  return rect;
+}
+
+/// A level's tiles as layer.json lists them: runs along rows, then runs of equal rows merged
+/// north.
+std::vector<TileRange> rangesOf(const TileSet& tiles) {
+  std::vector<TileRange> runs;
+  for (auto it = tiles.begin(); it != tiles.end();) {
+    TileRange run{it->second, it->first, it->second, it->first};
+    for (++it; it != tiles.end() && it->first == run.startY && it->second == run.endX + 1; ++it) {
+      ++run.endX;
+    }
+    runs.push_back(run);
+  }
+  std::vector<TileRange> merged;
+  for (const TileRange& run : runs) {
+    auto open = std::find_if(merged.begin(), merged.end(), [&](const TileRange& m) {
+      return m.startX == run.startX && m.endX == run.endX && m.endY + 1 == run.startY;
+    });
+    if (open != merged.end()) {
+      open->endY = run.endY;
+    } else {
+      merged.push_back(run);
+    }
+  }
+  return merged;
+}
+
+/// The tiles of level z that meet the footprint of a patch qualifying at z (resolution at most
+/// `limit`): from the root down, taking the first qualifying patch of each branch (its footprint
+/// holds its descendants'). Sets `tooMany` when the level would list over kMaxAvailableTiles.
+void qualifyingTiles(const Model& model, const Footprints& footprint, const PatchKey& key, int z,
+                     double limit, TileSet& tiles, bool& tooMany) {
+  const GeoRect* fp = footprint.find(key);
+  if (fp == nullptr || tooMany) {
+    return;
+  }
+  if (effectiveResolution(model, key, *fp) <= limit) {
+    const TileRange r = tilesMeeting(z, *fp);
+    if (tileCount(r) + static_cast<double>(tiles.size()) > kMaxAvailableTiles) {
+      tooMany = true;
+      return;
+    }
+    for (std::uint32_t y = r.startY; y <= r.endY; ++y) {
+      for (std::uint32_t x = r.startX; x <= r.endX; ++x) {
+        tiles.emplace(y, x);
+      }
+    }
+    return;
+  }
+  const PatchInfo& info = model.at(key);
+  for (const Quadrant q : kQuadrants) {
+    if (info.hasChild(q)) {
+      qualifyingTiles(model, footprint, key.child(q), z, limit, tiles, tooMany);
+    }
+  }
+}
+
+/// Whether tile (x, y) of level z meets the footprint of a patch qualifying at z: the descent of
+/// qualifyingTiles through the patches whose footprint meets the tile.
+bool tileQualifies(const Model& model, const Footprints& footprint, const PatchKey& key, int z,
+                   double limit, std::uint32_t x, std::uint32_t y) {
+  const GeoRect* fp = footprint.find(key);
+  if (fp == nullptr || !rangeHolds(tilesMeeting(z, *fp), x, y)) {
+    return false;
+  }
+  if (effectiveResolution(model, key, *fp) <= limit) {
+    return true;
+  }
+  const PatchInfo& info = model.at(key);
+  for (const Quadrant q : kQuadrants) {
+    if (info.hasChild(q) && tileQualifies(model, footprint, key.child(q), z, limit, x, y)) {
+      return true;
+    }
+  }
+  return false;
+}
+
+/// A patch whose footprint or resolution may differ between the previous layer and the new one:
+/// both sides (an empty rectangle where a side has none).
+struct Moved {
+  GeoRect before, after;
+  double resolutionBefore = 0, resolutionAfter = 0;
+};
 
 }  // namespace
 
@@ -288,90 +444,141 @@ TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load
     previous = nullptr;
   }
 
-  // Footprints, deepest first: each patch's own defined vertices and its children's footprints,
-  // or the previous layer's footprint for a subtree unchanged since.
-  std::set<PatchKey> changed;  // the patches whose subtree holds a change (read here)
-  for (const auto& [key, info] : model.patches().reversed()) {
-    bool unchanged = previous != nullptr && samePatch(info, previous->model);
-    for (const Quadrant q : kQuadrants) {
-      unchanged = unchanged && !(info.hasChild(q) && changed.contains(key.child(q)));
-    }
-    if (unchanged) {
-      if (const auto it = previous->layer.footprint.find(key);
-          it != previous->layer.footprint.end()) {
-        layer.footprint.emplace_hint(layer.footprint.begin(), key, it->second);
+  // Footprints, deepest first: each patch's own defined vertices and its children's footprints.
+  // From a previous layer, only the changed patches and their ancestors are read; the rest keep
+  // the previous footprints, and `moved` lists what may differ.
+  std::vector<Moved> moved;
+  if (previous == nullptr) {
+    for (const auto& [key, info] : model.patches().reversed()) {
+      const GeoRect rect = footprintOf(info, *load(info), layer.footprint);
+      if (!rect.empty()) {
+        layer.footprint.set(key, rect);
       }
-      continue;
     }
-    changed.insert(key);
-    const auto grid = load(info);
-    GeoRect rect;
-    for (int y = 0; y < grid->size(); ++y) {
-      for (int x = 0; x < grid->size(); ++x) {
-        if (grid->defined(x, y)) {
-          const Vec3d g = geodeticOf(grid->global(x, y));
-          rect.extend(g.x, g.y);
+  } else {
+    const ModelChange change =
+        previous->change != nullptr ? *previous->change : modelChange(previous->model, model);
+    layer.footprint = previous->layer.footprint;
+    const auto before = [&](const PatchKey& key) {
+      Moved m;
+      if (const GeoRect* was = previous->layer.footprint.find(key)) {
+        m.before = *was;
+        m.resolutionBefore = effectiveResolution(previous->model, key, *was);
+      }
+      return m;
+    };
+    for (const PatchKey& key : change.removed) {
+      moved.push_back(before(key));
+      layer.footprint.erase(key);
+    }
+    // The changed patches and every ancestor of a changed or removed one.
+    std::set<PatchKey> reread(change.changed.begin(), change.changed.end());
+    std::set<PatchKey> climbed;
+    for (const auto* keys : {&change.changed, &change.removed}) {
+      for (const PatchKey& key : *keys) {
+        for (auto up = key.parent(); up && climbed.insert(*up).second; up = up->parent()) {
+          if (model.find(*up) != nullptr) {
+            reread.insert(*up);
+          }
         }
       }
     }
-    for (const Quadrant q : kQuadrants) {
-      if (const auto it = layer.footprint.find(key.child(q)); it != layer.footprint.end()) {
-        rect.extend(it->second);
+    for (auto it = reread.rbegin(); it != reread.rend(); ++it) {
+      const PatchInfo& info = model.at(*it);
+      Moved m = before(*it);
+      m.after = footprintOf(info, *load(info), layer.footprint);
+      if (m.after.empty()) {
+        layer.footprint.erase(*it);
+      } else {
+        layer.footprint.set(*it, m.after);
+        m.resolutionAfter = effectiveResolution(model, *it, m.after);
+      }
+      if (!(m.before == m.after) || m.resolutionBefore != m.resolutionAfter) {
+        moved.push_back(m);
       }
     }
-    if (!rect.empty()) {
-      layer.footprint.emplace_hint(layer.footprint.begin(), key, rect);
-    }
   }
-  for (const auto& [key, rect] : layer.footprint) {
-    layer.bounds.extend(rect);
+  layer.footprint.compact();
+  if (const GeoRect* root = layer.footprint.find(PatchKey::root())) {
+    layer.bounds = *root;  // it holds every other footprint
   }
 
+  // Availability per level. From a previous layer (that listed every level in full), a level
+  // changes only in the tiles met by a moved patch that qualifies there before or after: each is
+  // asked again, and the level's ranges are remade only when one of them flips.
+  const bool byChange = previous != nullptr && !previous->layer.capped;
   layer.available.push_back({TileRange{0, 0, 1, 0}});
   for (int z = 1; z <= TerrainTileKey::kMaxLevel; ++z) {
     const double limit = 2 * terrainVertexSpacing(z);
-    std::set<std::pair<std::uint32_t, std::uint32_t>> tiles;  // (y, x)
+    TileSet tiles;
     bool tooMany = false;
-    for (const auto& [key, rect] : layer.footprint) {
-      if (effectiveResolution(model, key, rect) > limit) {
+    const std::vector<TileRange>* was =
+        byChange && z < static_cast<int>(previous->layer.available.size())
+            ? &previous->layer.available[static_cast<std::size_t>(z)]
+            : nullptr;
+    if (!byChange) {
+      qualifyingTiles(model, layer.footprint, PatchKey::root(), z, limit, tiles, tooMany);
+    } else {
+      TileSet asked;
+      for (const Moved& m : moved) {
+        for (const auto& [rect, resolution] :
+             {std::pair{m.before, m.resolutionBefore}, std::pair{m.after, m.resolutionAfter}}) {
+          if (!rect.empty() && resolution <= limit) {
+            const TileRange r = tilesMeeting(z, rect);
+            for (std::uint32_t y = r.startY; y <= r.endY; ++y) {
+              for (std::uint32_t x = r.startX; x <= r.endX; ++x) {
+                asked.emplace(y, x);
+              }
+            }
+          }
+        }
+      }
+      TileSet added, dropped;
+      for (const auto& [y, x] : asked) {
+        const bool now = tileQualifies(model, layer.footprint, PatchKey::root(), z, limit, x, y);
+        const bool then =
+            was != nullptr && std::any_of(was->begin(), was->end(),
+                                          [&](const TileRange& r) { return rangeHolds(r, x, y); });
+        if (now != then) {
+          (now ? added : dropped).emplace(y, x);
+        }
+      }
+      if (added.empty() && dropped.empty()) {
+        if (was == nullptr || was->empty()) {
+          break;
+        }
+        layer.available.push_back(*was);
+        layer.maxZoom = z;
         continue;
       }
-      const TileRange r = tilesMeeting(z, rect);
-      if (static_cast<double>(r.endX - r.startX + 1) * (r.endY - r.startY + 1) + tiles.size() >
-          kMaxAvailableTiles) {
-        tooMany = true;
-        break;
+      double count = static_cast<double>(added.size());
+      for (const TileRange& r : was != nullptr ? *was : std::vector<TileRange>{}) {
+        count += tileCount(r);
       }
-      for (std::uint32_t y = r.startY; y <= r.endY; ++y) {
-        for (std::uint32_t x = r.startX; x <= r.endX; ++x) {
-          tiles.emplace(y, x);
+      if (count > kMaxAvailableTiles) {
+        tooMany = true;
+      } else {
+        for (const TileRange& r : was != nullptr ? *was : std::vector<TileRange>{}) {
+          for (std::uint32_t y = r.startY; y <= r.endY; ++y) {
+            for (std::uint32_t x = r.startX; x <= r.endX; ++x) {
+              tiles.emplace(y, x);
+            }
+          }
+        }
+        tiles.merge(added);
+        for (const auto& tile : dropped) {
+          tiles.erase(tile);
         }
       }
     }
-    if (tiles.empty() || tooMany) {
+    if (tooMany) {
+      layer.capped = true;
       break;
     }
-    // Runs along rows, then runs of equal rows merged north.
-    std::vector<TileRange> runs;
-    for (auto it = tiles.begin(); it != tiles.end();) {
-      TileRange run{it->second, it->first, it->second, it->first};
-      for (++it; it != tiles.end() && it->first == run.startY && it->second == run.endX + 1; ++it) {
-        ++run.endX;
-      }
-      runs.push_back(run);
+    if (tiles.empty()) {
+      break;
     }
-    std::vector<TileRange> merged;
-    for (const TileRange& run : runs) {
-      auto open = std::find_if(merged.begin(), merged.end(), [&](const TileRange& m) {
-        return m.startX == run.startX && m.endX == run.endX && m.endY + 1 == run.startY;
-      });
-      if (open != merged.end()) {
-        open->endY = run.endY;
-      } else {
-        merged.push_back(run);
-      }
-    }
-    layer.available.push_back(std::move(merged));
+    layer.available.push_back(rangesOf(tiles));
     layer.maxZoom = z;
   }
   return layer;
@@ -407,12 +614,12 @@ std::vector<PatchKey> heightSources(const Model& model, const TerrainLayer& laye
   while (!stack.empty()) {
     const PatchKey at = stack.back();
     stack.pop_back();
-    const auto fp = layer.footprint.find(at);
-    if (fp == layer.footprint.end() || !fp->second.intersects(area)) {
+    const GeoRect* fp = layer.footprint.find(at);
+    if (fp == nullptr || !fp->intersects(area)) {
       continue;
     }
     const PatchInfo& info = model.at(at);
-    if (info.isLeaf() || effectiveResolution(model, at, fp->second) <= spacing) {
+    if (info.isLeaf() || effectiveResolution(model, at, *fp) <= spacing) {
       sources.push_back(at);
       continue;
     }

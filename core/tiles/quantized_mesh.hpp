@@ -16,6 +16,8 @@
 
 namespace vsm::core {
 
+struct ModelChange;
+
 class Model;
 class PatchGrid;
 struct PatchInfo;
@@ -51,6 +53,7 @@ struct GeoRect {
   }
   void extend(double lon, double lat);
   void extend(const GeoRect& o);
+  friend bool operator==(const GeoRect&, const GeoRect&) = default;
 };
 
 /// Vertices per tile side (a tile is a regular 65 x 65 grid, 64 x 64 cells).
@@ -79,20 +82,43 @@ struct TileRange {
   friend bool operator==(const TileRange&, const TileRange&) = default;
 };
 
+/// Per patch with a defined vertex in its subtree: the lon/lat rectangle of the defined vertices
+/// of the patch and its descendants. The layers of successive versions share one base map and
+/// each holds only the entries changed since it, so a new version's copy costs its change; the
+/// changes are folded into a new base once they pass 1/32 of it (compact()).
+class Footprints {
+ public:
+  /// The patch's rectangle; null when it has none.
+  const GeoRect* find(const PatchKey& key) const;
+  void set(const PatchKey& key, const GeoRect& rect);
+  void erase(const PatchKey& key);
+  std::size_t size() const { return size_; }
+  /// A new base of the base and the changes when the changes have grown past 1/32 of the base.
+  void compact();
+
+ private:
+  std::shared_ptr<const std::map<PatchKey, GeoRect>> base_ =
+      std::make_shared<const std::map<PatchKey, GeoRect>>();
+  /// Since the base: a new rectangle, or nullopt where the base's entry is gone.
+  std::map<PatchKey, std::optional<GeoRect>> changes_;
+  std::size_t size_ = 0;
+};
+
 /// Whether a model can be served as terrain, and where at which levels. Built once per published
 /// version of a model (buildTerrainLayer); immutable after.
 struct TerrainLayer {
   /// False when the model is not a height field over the WGS 84 ellipsoid; `reason` says why.
   bool heightField = false;
   std::string reason;
-  /// Per patch with a defined vertex in its subtree: the lon/lat rectangle of the defined vertices
-  /// of the patch and its descendants (exact, from their data).
-  std::map<PatchKey, GeoRect> footprint;
+  /// Exact, from the patches' data.
+  Footprints footprint;
   /// The union of the footprints.
   GeoRect bounds;
   /// Per level 0..maxZoom: the available tiles (level 0: both root tiles always).
   std::vector<std::vector<TileRange>> available;
   int maxZoom = 0;
+  /// True when a level would have listed over 2^20 tiles, so the list ends before it.
+  bool capped = false;
 
   /// True when tile `key` lies in `available`.
   bool isAvailable(const TerrainTileKey& key) const;
@@ -120,12 +146,18 @@ using TerrainGridLoader = std::function<std::shared_ptr<const PatchGrid>(const P
 /// Error(InvalidArgument) for an empty model.
 ///
 /// With `previous` (a layer built before and the model it was built from, such as the last
-/// version's), a subtree whose patches are all unchanged in `previous.model` (the same version,
-/// folder, children and boxes) takes its footprint from `previous.layer` without reading them: a
-/// new version after a small merge reads only the patches the merge changed.
+/// version's), only the patches that differ from `previous.model` (modelChange) and their
+/// ancestors are read; every other footprint is the previous layer's. A level's availability then
+/// changes only in the tiles a changed footprint meets: those are asked again (a descent through
+/// the footprints meeting the tile), and the level's ranges are remade only when one of them
+/// flips. A new version after a small merge so costs about its change (and a copy of the
+/// footprints), not a read or a pass per level of every patch.
 struct TerrainLayerBase {
   const Model& model;
   const TerrainLayer& layer;
+  /// modelChange(model, the new model) when the caller knows it (a publish's record); null: it is
+  /// computed.
+  const ModelChange* change = nullptr;
 };
 TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load,
                                const TerrainLayerBase* previous = nullptr);

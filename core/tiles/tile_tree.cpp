@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <map>
+#include <set>
 #include <string>
 
 #include "core/common/error.hpp"
@@ -54,13 +56,36 @@ Extent extentOf(const Model& model, const PatchInfo& info) {
   return finish(info, tileCentre(info), box, childError);
 }
 
+/// The external tiles of an earlier tree whose extents still hold (TileTreeBase).
+struct Reusable {
+  std::map<PatchKey, const TileNode*> external;
+  /// The keys at the external tiles' depth with a changed or removed key in their subtrees.
+  std::set<PatchKey> changed;
+
+  const TileNode* find(const PatchKey& key) const {
+    const auto it = external.find(key);
+    return it == external.end() || changed.contains(key) ? nullptr : it->second;
+  }
+};
+
+void collectExternal(const TileNode& node, std::map<PatchKey, const TileNode*>& out) {
+  if (node.external) {
+    out.emplace(node.key, &node);
+  }
+  for (const TileNode& child : node.children) {
+    collectExternal(child, out);
+  }
+}
+
 /// The tile of `info` and, while `levels` > 0, its children's.
-TileNode build(const Model& model, const PatchInfo& info, int levels) {
+TileNode build(const Model& model, const PatchInfo& info, int levels, const Reusable* reusable) {
   TileNode node;
   node.key = info.key;
   node.centre = tileCentre(info);
   if (levels == 0 && !info.isLeaf()) {
-    const Extent extent = extentOf(model, info);
+    const TileNode* before = reusable != nullptr ? reusable->find(info.key) : nullptr;
+    const Extent extent =
+        before != nullptr ? Extent{before->box, before->geometricError} : extentOf(model, info);
     node.box = extent.box;
     node.geometricError = extent.geometricError;
     node.external = true;
@@ -70,7 +95,7 @@ TileNode build(const Model& model, const PatchInfo& info, int levels) {
   double childError = 0;
   for (const Quadrant q : kQuadrants) {
     if (info.hasChild(q)) {
-      node.children.push_back(build(model, model.at(info.key.child(q)), levels - 1));
+      node.children.push_back(build(model, model.at(info.key.child(q)), levels - 1, reusable));
       box.extend(node.children.back().box);
       childError = std::max(childError, node.children.back().geometricError);
     }
@@ -98,12 +123,28 @@ double tilePadding(const Box3d& box) {
   return 1e-3 + 1e-6 * 0.5 * std::max({size.x, size.y, size.z});
 }
 
-TileNode buildTileTree(const Model& model, const PatchKey& root, int levels) {
+TileNode buildTileTree(const Model& model, const PatchKey& root, int levels,
+                       const TileTreeBase* previous) {
   if (levels < 1) {
     throw Error(ErrorCode::InvalidArgument,
                 "a tile tree is at least one level deep, not " + std::to_string(levels));
   }
-  return build(model, model.at(root), levels);
+  const PatchInfo& top = model.at(root);
+  if (previous == nullptr || previous->tree.key != root || levels > PatchKey::kMaxDepth) {
+    return build(model, top, levels, nullptr);
+  }
+  Reusable reusable;
+  collectExternal(previous->tree, reusable.external);
+  const int depth = root.depth + levels;  // the external tiles'
+  for (const auto* keys : {&previous->change.changed, &previous->change.removed}) {
+    for (const PatchKey& key : *keys) {
+      if (key.depth >= depth) {
+        const int up = key.depth - depth;
+        reusable.changed.insert(PatchKey{depth, key.x >> up, key.y >> up});
+      }
+    }
+  }
+  return build(model, top, levels, &reusable);
 }
 
 double tilesetGeometricError(const TileNode& root) {

@@ -9,6 +9,7 @@
 namespace vsm::core {
 
 class Model;
+struct ModelChange;
 struct PatchInfo;
 
 /// One tile of the 3D Tiles view of a model: a patch, its children, and what a tileset needs to
@@ -47,8 +48,18 @@ double tilePadding(const Box3d& box);
 /// together give the whole tree. Reads metadata only; an external tile costs a walk of its subtree
 /// (boxes and errors), not a node per patch. Throws Error(NotFound) for a root not in the model,
 /// Error(InvalidArgument) for `levels` < 1.
+///
+/// With `previous` (a tree built before from the same root and levels, and the change from its
+/// model to `model`), an external tile whose subtree holds no changed or removed key takes its box
+/// and error from `previous.tree` without the walk: a new version's tree after a small merge walks
+/// only the subtrees the merge changed.
+struct TileTreeBase {
+  const TileNode& tree;
+  const ModelChange& change;
+};
 TileNode buildTileTree(const Model& model, const PatchKey& root = PatchKey::root(),
-                       int levels = std::numeric_limits<int>::max());
+                       int levels = std::numeric_limits<int>::max(),
+                       const TileTreeBase* previous = nullptr);
 
 /// The error of the whole tileset (what not rendering the root costs): twice the root's, or the
 /// root's box diagonal for a single-tile model.

@@ -174,8 +174,13 @@ http::Response getTileset(models::ModelRegistry& models, const models::PatchData
     return response;
   }
   const auto build = [&] {
-    const core::TileNode tree = core::buildTileTree(*snapshot->model, root, levels);
-    return tilesetJson(tree, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get(),
+    // The model root's default document by the change since the last version's (every viewer
+    // asks for it after each publish); a subtree's walks that subtree alone.
+    const std::shared_ptr<const core::TileNode> tree =
+        wholeDefault ? data.rootTileTree(served, *snapshot, levels)
+                     : std::make_shared<const core::TileNode>(
+                           core::buildTileTree(*snapshot->model, root, levels));
+    return tilesetJson(*tree, http::opaqueOf(modelEtag(*snapshot)), snapshot->model.get(),
                        revisionUris ? snapshot->version : 0, compressedContent, snapshot->version,
                        levels == kTilesetLevels ? 0 : levels);
   };

@@ -150,9 +150,11 @@ class TerrainLayers {
           base = it->second;
         }
       }
+      std::optional<core::ModelChange> change;
       std::optional<core::TerrainLayerBase> previous;
       if (base) {
-        previous.emplace(core::TerrainLayerBase{*base->model, *base->layer});
+        change = core::changeSince(base->model, *snapshot);
+        previous.emplace(core::TerrainLayerBase{*base->model, *base->layer, &*change});
       }
       auto layer = std::make_shared<const core::TerrainLayer>(core::buildTerrainLayer(
           *snapshot->model,
@@ -203,9 +205,55 @@ class TerrainLayers {
   std::map<std::filesystem::path, Base> bases_;
 };
 
+// ---- tile trees --------------------------------------------------------------------------------
+
+/// The last root tile tree made per model (by directory) and levels, with the metadata it was made
+/// from: the base of the next version's (kept beyond its snapshot; the metadata shares every
+/// unchanged patch with the newer versions', so it costs about its changed patches).
+class TileTrees {
+ public:
+  using Tree = std::shared_ptr<const core::TileNode>;
+
+  Tree get(const std::filesystem::path& dir, const core::ModelSnapshot& snapshot, int levels) {
+    const std::shared_ptr<const core::Model>& model = snapshot.model;
+    std::optional<Last> last;
+    {
+      const std::lock_guard lock(mutex_);
+      if (const auto it = last_.find({dir, levels}); it != last_.end()) {
+        last = it->second;
+      }
+    }
+    if (last && last->model == model) {
+      return last->tree;
+    }
+    Tree tree;
+    if (last) {
+      const core::ModelChange change = core::changeSince(last->model, snapshot);
+      const core::TileTreeBase base{*last->tree, change};
+      tree = std::make_shared<const core::TileNode>(
+          core::buildTileTree(*model, core::PatchKey::root(), levels, &base));
+    } else {
+      tree = std::make_shared<const core::TileNode>(
+          core::buildTileTree(*model, core::PatchKey::root(), levels));
+    }
+    const std::lock_guard lock(mutex_);
+    last_[{dir, levels}] = Last{model, tree};
+    return tree;
+  }
+
+ private:
+  struct Last {
+    std::shared_ptr<const core::Model> model;
+    Tree tree;
+  };
+  std::mutex mutex_;
+  std::map<std::pair<std::filesystem::path, int>, Last> last_;
+};
+
 // ---- the service -----------------------------------------------------------------------------
 
-PatchData::PatchData() : layers_(std::make_unique<TerrainLayers>()) {}
+PatchData::PatchData()
+    : layers_(std::make_unique<TerrainLayers>()), trees_(std::make_unique<TileTrees>()) {}
 
 PatchData::~PatchData() = default;
 
@@ -334,6 +382,12 @@ std::shared_ptr<const core::TerrainLayer> PatchData::terrainLayer(
     Asker asker) {
   return asker == Asker::NetworkThread ? layers_->find(snapshot)
                                        : layers_->get(*served.live, snapshot);
+}
+
+std::shared_ptr<const core::TileNode> PatchData::rootTileTree(const ModelRegistry::Served& served,
+                                                              const core::ModelSnapshot& snapshot,
+                                                              int levels) const {
+  return trees_->get(served.live->dir(), snapshot, levels);
 }
 
 std::function<std::shared_ptr<const core::PatchGrid>(const core::PatchInfo&)> PatchData::gridLoader(

@@ -16,7 +16,9 @@ namespace vsm::core {
 class PatchGrid;
 struct ModelSnapshot;
 struct PatchInfo;
+struct PatchKey;
 struct TerrainLayer;
+struct TileNode;
 struct TerrainTileKey;
 struct MercatorTileKey;
 enum class DemEncoding : std::uint8_t;
@@ -26,6 +28,7 @@ enum class GlbCompression : unsigned char;
 namespace vsm::server::models {
 
 class TerrainLayers;
+class TileTrees;
 
 /// Who asks the patch-data service, which decides whether it may block. The one rule of the
 /// server's two kinds of threads (server/README.md): a network thread never reads the disk or
@@ -105,6 +108,14 @@ class PatchData {
       const ModelRegistry::Served& served,
       const std::shared_ptr<const core::ModelSnapshot>& snapshot, Asker asker);
 
+  /// The tile tree (core::buildTileTree) of `snapshot` from the model's root, `levels` deep:
+  /// metadata only, so made on the caller's thread. The last one made for a model (by its
+  /// directory) and its levels is kept as the base of the next version's, which then walks only
+  /// the subtrees that changed (core::TileTreeBase).
+  std::shared_ptr<const core::TileNode> rootTileTree(const ModelRegistry::Served& served,
+                                                     const core::ModelSnapshot& snapshot,
+                                                     int levels) const;
+
   /// Patch grids of `snapshot` through the patch cache (LiveModel::positions): what the height
   /// sampler (core/tiles/heights.hpp: the terrain tiles, point and profile queries, coverages)
   /// reads. Blocks on the disk: the CPU pool only. The loader holds `served` and `snapshot` by
@@ -155,6 +166,7 @@ class PatchData {
 
  private:
   std::unique_ptr<TerrainLayers> layers_;
+  std::unique_ptr<TileTrees> trees_;
 };
 
 /// 16 numbers, row-major, comma-separated, shortest round-trip form ("1,0,0,12.5,..."): the

@@ -350,16 +350,66 @@ struct GeoPyramid {
   }
 };
 
-void expectSameLayer(const TerrainLayer& a, const TerrainLayer& b) {
-  ASSERT_EQ(a.footprint.size(), b.footprint.size());
-  for (const auto& [key, rect] : a.footprint) {
-    ASSERT_EQ(b.footprint.count(key), 1u) << key.toString();
-    const GeoRect& other = b.footprint.at(key);
-    EXPECT_EQ(rect.west, other.west) << key.toString();
-    EXPECT_EQ(rect.east, other.east) << key.toString();
-    EXPECT_EQ(rect.south, other.south) << key.toString();
-    EXPECT_EQ(rect.north, other.north) << key.toString();
+TEST(Footprints, CopiesShareTheBaseSeeOnlyTheirOwnChangesAndCompactToTheSameContent) {
+  const auto rectOf = [](int i, int round) {
+    return GeoRect{i * 0.1, round * 0.1, i * 0.1 + 1, round * 0.1 + 1};
+  };
+  // Keys 0..199 at depth 8; a reference map beside each Footprints.
+  const auto keyOf = [](int i) { return PatchKey{8, static_cast<std::uint32_t>(i), 3}; };
+  Footprints a;
+  std::map<PatchKey, GeoRect> ra;
+  for (int i = 0; i < 200; ++i) {
+    a.set(keyOf(i), rectOf(i, 0));
+    ra[keyOf(i)] = rectOf(i, 0);
   }
+  a.compact();
+  const auto expectHolds = [&](const Footprints& f, const std::map<PatchKey, GeoRect>& r,
+                               const std::string& when) {
+    EXPECT_EQ(f.size(), r.size()) << when;
+    for (int i = -5; i < 260; ++i) {
+      const GeoRect* got = f.find(keyOf(i));
+      const auto want = r.find(keyOf(i));
+      ASSERT_EQ(got != nullptr, want != r.end()) << when << " key " << i;
+      if (got != nullptr) {
+        EXPECT_EQ(*got, want->second) << when << " key " << i;
+      }
+    }
+  };
+  expectHolds(a, ra, "built");
+  // Rounds of changes on a copy (the next version's layer): sets, new keys and erasures, some of
+  // a key set in the same round; every few rounds the changes pass 1/32 and compact() folds them.
+  Footprints b = a;
+  std::map<PatchKey, GeoRect> rb = ra;
+  for (int round = 1; round <= 12; ++round) {
+    for (int j = 0; j < 3; ++j) {
+      const int i = (round * 37 + j * 11) % 250;
+      b.set(keyOf(i), rectOf(i, round));
+      rb[keyOf(i)] = rectOf(i, round);
+    }
+    const int gone = (round * 53) % 250;
+    b.erase(keyOf(gone));
+    rb.erase(keyOf(gone));
+    b.erase(keyOf(-1));  // never there
+    b.compact();
+    expectHolds(b, rb, "round " + std::to_string(round));
+    expectHolds(a, ra, "the copy's source after round " + std::to_string(round));
+  }
+}
+
+/// The same footprint for every patch of `model` (and no other), availability and levels.
+void expectSameLayer(const TerrainLayer& a, const TerrainLayer& b, const Model& model) {
+  ASSERT_EQ(a.footprint.size(), b.footprint.size());
+  std::size_t found = 0;
+  for (const auto& [key, info] : model.patches()) {
+    const GeoRect* rect = a.footprint.find(key);
+    const GeoRect* other = b.footprint.find(key);
+    ASSERT_EQ(rect == nullptr, other == nullptr) << key.toString();
+    if (rect != nullptr) {
+      EXPECT_EQ(*rect, *other) << key.toString();
+      ++found;
+    }
+  }
+  EXPECT_EQ(found, a.footprint.size()) << "a footprint of a patch not in the model";
   EXPECT_EQ(a.available, b.available);
   EXPECT_EQ(a.maxZoom, b.maxZoom);
 }
@@ -399,8 +449,8 @@ TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLay
   read.clear();
   const TerrainLayer full = buildTerrainLayer(after, loaderOf(before.grids));
   EXPECT_EQ(read.size(), 22u);
-  expectSameLayer(incremental, full);
-  EXPECT_GT(full.footprint.at(leaf).west, first.footprint.at(leaf).west + kSpan / 4 / 3)
+  expectSameLayer(incremental, full, after);
+  EXPECT_GT(full.footprint.find(leaf)->west, first.footprint.find(leaf)->west + kSpan / 4 / 3)
       << "the cut shows in the layer";
 
   // A base of another model (same keys, versions and folders, other boxes) is not taken.
@@ -425,7 +475,73 @@ TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLay
   const TerrainLayer unrelated = buildTerrainLayer(other.model, loaderOf(other.grids), &base);
   EXPECT_EQ(read.size(), 22u);
   read.clear();
-  expectSameLayer(unrelated, buildTerrainLayer(other.model, loaderOf(other.grids)));
+  expectSameLayer(unrelated, buildTerrainLayer(other.model, loaderOf(other.grids)), other.model);
+}
+
+TEST(TerrainLayer, ByTheChangeItFollowsNewFinerLevelsAndTheirRemovalAsTheFullBuildDoes) {
+  const GeoPyramid before;
+  std::map<PatchKey, std::shared_ptr<const PatchGrid>> grids = before.grids;
+  const auto load = [&](const PatchInfo& info) -> std::shared_ptr<const PatchGrid> {
+    return info.grid != nullptr ? info.grid : grids.at(info.key);
+  };
+  const TerrainLayer first = buildTerrainLayer(before.model, load);
+  ASSERT_TRUE(first.heightField) << first.reason;
+
+  // Detail below leaf 2_3_0 (the north-east corner): two levels of finer patches, so the layer
+  // gains levels there and only there.
+  Model deeper = before.model;
+  const PatchKey corner{2, 3, 0};
+  std::vector<PatchKey> added;
+  for (const Quadrant q : kQuadrants) {
+    added.push_back(corner.child(q));
+    if (q == Quadrant::SW) {
+      for (const Quadrant r : kQuadrants) {
+        added.push_back(corner.child(q).child(r));
+      }
+    }
+  }
+  std::sort(added.begin(), added.end());
+  for (const PatchKey& key : added) {
+    PatchInfo info;
+    info.key = key;
+    deeper.insert(info);
+  }
+  for (auto it = added.rbegin(); it != added.rend(); ++it) {
+    grids[*it] = GeoPyramid::gridOf(*it);
+    deeper.setGrid(*it, grids[*it]);
+  }
+  deeper.refreshStale(load);
+  const TerrainLayerBase fromFirst{before.model, first};
+  const TerrainLayer grown = buildTerrainLayer(deeper, load, &fromFirst);
+  const TerrainLayer grownFull = buildTerrainLayer(deeper, load);
+  expectSameLayer(grown, grownFull, deeper);
+  EXPECT_EQ(grown.maxZoom, first.maxZoom + 2) << "two finer levels of patches";
+  // The new levels hold the corner's tiles only, and each coarser level its old tiles too.
+  const GeoRect detail = *grownFull.footprint.find(corner);
+  for (int z = first.maxZoom + 1; z <= grown.maxZoom; ++z) {
+    for (const TileRange& r : grown.available[static_cast<std::size_t>(z)]) {
+      EXPECT_TRUE(terrainTileRect({z, r.startX, r.startY}).intersects(detail));
+      EXPECT_TRUE(terrainTileRect({z, r.endX, r.endY}).intersects(detail));
+    }
+  }
+  for (int z = 0; z <= first.maxZoom; ++z) {
+    for (const TileRange& r : first.available[static_cast<std::size_t>(z)]) {
+      EXPECT_TRUE(grown.isAvailable({z, r.startX, r.startY}));
+      EXPECT_TRUE(grown.isAvailable({z, r.endX, r.endY}));
+    }
+  }
+
+  // The detail removed again (leaves first): the layer is the first one's, level for level.
+  Model removed = deeper;
+  for (auto it = added.rbegin(); it != added.rend(); ++it) {
+    removed.eraseLeaf(*it);
+  }
+  removed.setGrid(corner, before.grids.at(corner));
+  removed.refreshStale(load);
+  const TerrainLayerBase fromGrown{deeper, grown};
+  const TerrainLayer shrunk = buildTerrainLayer(removed, load, &fromGrown);
+  expectSameLayer(shrunk, buildTerrainLayer(removed, load), removed);
+  EXPECT_EQ(shrunk.available, first.available);
 }
 
 TEST(TerrainSampling, HeightsInterpolateTheSurfaceAndAreZeroOutside) {

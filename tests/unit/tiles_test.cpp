@@ -711,6 +711,56 @@ TEST(TileTree, LevelsCutTheTreeIntoExternalTilesWithTheWholeSubtreesBoxAndError)
   EXPECT_THROW(buildTileTree(p.model, nw.child(Quadrant::SE).child(Quadrant::NW)), Error);
 }
 
+TEST(TileTree, ANewVersionTakesTheExtentsOfUnchangedExternalTilesFromThePreviousTree) {
+  const Pyramid p;
+  const PatchKey nw = PatchKey::root().child(Quadrant::NW);
+  const TileNode first = buildTileTree(p.model, PatchKey::root(), 1);
+  ASSERT_EQ(first.children.size(), 4u);
+  ASSERT_TRUE(first.children[0].external);
+
+  // A previous tree whose external tile carries a marker error: taken where nothing below it
+  // changed (a copy of the model: no change at all), not where its subtree changed.
+  TileNode marked = first;
+  marked.children[0].geometricError = 12345;
+  const Model same = p.model;
+  const ModelChange none = modelChange(p.model, same);
+  EXPECT_TRUE(none.empty());
+  const TileTreeBase unchanged{marked, none};
+  EXPECT_EQ(buildTileTree(same, PatchKey::root(), 1, &unchanged).children[0].geometricError, 12345)
+      << "the previous tree's extent is taken, not walked again";
+
+  // A leaf below NW raised by 500 m: NW's subtree changed, so its extent is walked again and is
+  // the full build's; the other tiles (leaves, built directly) are the full build's too.
+  Model after = p.model;
+  const PatchKey leaf = nw.child(Quadrant::SE);
+  auto raised = std::make_shared<PatchGrid>(*p.grids.at(leaf));
+  for (int j = 0; j < raised->size(); ++j) {
+    for (int i = 0; i < raised->size(); ++i) {
+      raised->setGlobal(i, j, raised->global(i, j) + Vec3d{0, 0, 500});
+    }
+  }
+  after.setGrid(leaf, raised);
+  after.refreshStale([&](const PatchInfo& info) { return p.grids.at(info.key); });
+  const ModelChange change = modelChange(p.model, after);
+  EXPECT_EQ(change.changed, (std::vector<PatchKey>{PatchKey::root(), nw, leaf}));
+  EXPECT_TRUE(change.removed.empty());
+  const TileTreeBase base{marked, change};
+  const TileNode byChange = buildTileTree(after, PatchKey::root(), 1, &base);
+  const TileNode full = buildTileTree(after, PatchKey::root(), 1);
+  expectSameTile(byChange, full);
+  ASSERT_EQ(byChange.children.size(), full.children.size());
+  for (std::size_t i = 0; i < full.children.size(); ++i) {
+    expectSameTile(byChange.children[i], full.children[i]);
+    EXPECT_EQ(byChange.children[i].external, full.children[i].external);
+  }
+  EXPECT_GT(full.children[0].box.max.z, first.children[0].box.max.z + 400) << "the raise shows";
+
+  // A previous tree of another root is not taken.
+  const TileTreeBase otherRoot{buildTileTree(p.model, nw, 1), none};
+  expectSameTile(buildTileTree(same, PatchKey::root(), 1, &otherRoot).children[0],
+                 first.children[0]);
+}
+
 TEST(Tileset, TransformsAreColumnMajorTranslationsBetweenCentres) {
   const Pyramid p;
   const TileNode tree = buildTileTree(p.model);
