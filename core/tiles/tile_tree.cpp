@@ -81,6 +81,7 @@ void collectExternal(const TileNode& node, std::map<PatchKey, const TileNode*>& 
 TileNode build(const Model& model, const PatchInfo& info, int levels, const Reusable* reusable) {
   TileNode node;
   node.key = info.key;
+  node.version = info.version;
   node.centre = tileCentre(info);
   if (levels == 0 && !info.isLeaf()) {
     const TileNode* before = reusable != nullptr ? reusable->find(info.key) : nullptr;

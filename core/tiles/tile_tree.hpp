@@ -1,5 +1,6 @@
 #pragma once
 
+#include <cstdint>
 #include <limits>
 #include <vector>
 
@@ -16,6 +17,8 @@ struct PatchInfo;
 /// know about it. Built from metadata only (no vertex data).
 struct TileNode {
   PatchKey key;
+  /// The patch's version (PatchInfo::version): what a content URI names.
+  std::uint64_t version = 0;
   /// Global point the tile's content is relative to (tileCentre() of the patch).
   Vec3d centre;
   /// Global axis-aligned box holding the patch's defined vertices and every descendant's box,

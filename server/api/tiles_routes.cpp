@@ -42,11 +42,11 @@ json translationJson(const core::Vec3d& t) {
 /// "{key}.glb", with "?v={patch version}" when `model` is given (the version that wrote the
 /// patch: the GLB route answers it with the patch as in that version, or 404), "&rev={revision}"
 /// for a revision other than 0, and "compress=none" (after '?' or '&') for uncompressed content.
-std::string contentUri(const core::PatchKey& key, const core::Model* model, std::uint64_t revision,
+std::string contentUri(const core::TileNode& node, const core::Model* model, std::uint64_t revision,
                        bool compressedContent) {
-  std::string uri = key.toString() + ".glb";
+  std::string uri = node.key.toString() + ".glb";
   if (model != nullptr) {
-    uri += "?v=" + std::to_string(model->at(key).version);
+    uri += "?v=" + std::to_string(node.version);
     if (revision != 0) {
       uri += "&rev=" + std::to_string(revision);
     }
@@ -96,7 +96,7 @@ json tileJson(const core::TileNode& node, const core::Vec3d& parentCentre, const
                {"geometricError", node.geometricError},
                {"refine", "REPLACE"}};
   tile["content"] = {{"uri", node.external ? externalUri(node.key, parts)
-                                           : contentUri(node.key, parts.model, parts.revision,
+                                           : contentUri(node, parts.model, parts.revision,
                                                         parts.compressedContent)}};
   if (!node.children.empty()) {
     json children = json::array();
