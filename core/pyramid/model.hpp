@@ -128,6 +128,9 @@ class Model {
   std::vector<double> avgGeometrySizes() const;
 
  private:
+  /// The node to change: a copy of its own when another model shares it (edit()).
+  static PatchInfo& writable(std::shared_ptr<PatchInfo>& node);
+
   int gridSize_;
   /// Each patch's metadata is shared by the copies of a model until one of them changes it (copy
   /// on write, edit()): a copy of a model of 10^5 patches copies pointers, and the versions a
