@@ -3,6 +3,10 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <functional>
+#include <iterator>
+#include <map>
+#include <optional>
 #include <string_view>
 #include <unordered_set>
 #include <utility>
@@ -27,6 +31,32 @@ using namespace store;
 ModelSnapshot::~ModelSnapshot() = default;
 
 namespace {
+
+/// The folders the kept revisions (`kept`: number -> hierarchy file, and the current one,
+/// `current`) name and the current one does not are exactly those the publishes after the oldest
+/// kept one retired, which each index's head records: calls `keep` for those, read from the heads
+/// alone (a few kB each), and returns true. False, having called nothing, when a revision after
+/// the oldest has no such head or its parent is not the kept revision before it: the caller reads
+/// every kept revision's folders.
+bool keepRetiredSinceOldest(const std::map<std::uint64_t, fs::path>& kept, std::uint64_t current,
+                            const fs::path& patches,
+                            const std::function<void(std::string_view)>& keep) {
+  std::vector<std::pair<std::uint64_t, fs::path>> chain(kept.begin(), kept.end());
+  chain.emplace_back(current, patches / "patchhierarchy.xml");
+  std::vector<RetiredFolder> retired;
+  for (std::size_t i = 1; i < chain.size(); ++i) {
+    std::optional<IndexedRevision> head = readIndexedRevision(chain[i].second);
+    if (!head || !head->record || !head->retired || head->record->parent != chain[i - 1].first) {
+      return false;
+    }
+    retired.insert(retired.end(), std::make_move_iterator(head->retired->begin()),
+                   std::make_move_iterator(head->retired->end()));
+  }
+  for (const RetiredFolder& r : retired) {
+    keep(r.folder);
+  }
+  return true;
+}
 
 /// Removes what edits interrupted by a crash or a failure left: folders named like ours that no
 /// kept revision names (unpublished drafts, or a dropped revision's folders when the crash came
@@ -112,16 +142,18 @@ void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSna
       }
     }
   }
-  if (!candidates.empty() || !tileCandidates.empty()) {
+  const auto keep = [&](std::string_view folder) {
+    if (const auto it = candidates.find(folder); it != candidates.end()) {
+      candidates.erase(it);
+    }
+    if (const auto it = tileCandidates.find(folder); it != tileCandidates.end()) {
+      tileCandidates.erase(it);
+    }
+  };
+  if ((!candidates.empty() || !tileCandidates.empty()) &&
+      !keepRetiredSinceOldest(kept, current.version, patches, keep)) {
     for (const auto& [number, file] : kept) {
-      forEachNamedFolder(file, [&](std::string_view folder) {
-        if (const auto it = candidates.find(folder); it != candidates.end()) {
-          candidates.erase(it);
-        }
-        if (const auto it = tileCandidates.find(folder); it != tileCandidates.end()) {
-          tileCandidates.erase(it);
-        }
-      });
+      forEachNamedFolder(file, keep);
     }
   }
   for (auto* left : {&candidates, &tileCandidates}) {

@@ -631,6 +631,34 @@ TEST_F(StoreTest, OpenRemovesFoldersNoKeptRevisionNamesAndKeepsTheOthers) {
   EXPECT_FALSE(fs::exists(dir_ / "Patches" / "2_0_0"));
 }
 
+TEST_F(StoreTest, OpenKeepsTheKeptRevisionsFoldersByTheRetiredRecordsOrByReadingThemAll) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  for (int i = 0; i < 4; ++i) {
+    publishLeaf(*live, {2, static_cast<std::uint32_t>(i % 2), 1}, 5.0 + i, 8);
+  }
+  const std::set<std::string> named = folders(dir_);
+  live.reset();
+  // Leftovers named like ours that no revision names: a draft folder and its texture-less kin.
+  const fs::path patches = dir_ / "Patches";
+  for (const bool withIndex : {true, false}) {
+    const std::string when = withIndex ? "with the index" : "without the current index";
+    fs::create_directory(patches / "2_1_1-v77");
+    fs::create_directory(patches / "3_4_4");
+    if (!withIndex) {
+      // The current hierarchy without its index: the sweep reads every kept revision instead.
+      ASSERT_TRUE(fs::remove(patches / "patchhierarchy.vsmidx"));
+    }
+    auto reopened = LiveModel::open(dir_, "m", cache);
+    EXPECT_EQ(folders(dir_), named) << when;
+    for (const RevisionSummary& r : reopened->revisions()) {
+      for (const std::string& folder : foldersOf(*reopened->snapshotAt(r.number)->model)) {
+        EXPECT_TRUE(fs::is_directory(patches / folder)) << when << ": " << folder;
+      }
+    }
+  }
+}
+
 TEST_F(StoreTest, APublishThatChangesNothingOrKeepsTooFewIsRefused) {
   PatchCache cache(64 << 20);
   auto live = LiveModel::open(dir_, "m", cache);
