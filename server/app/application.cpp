@@ -267,7 +267,8 @@ Application::Application(Config config) : config_(std::move(config)) {
   };
   api::addSystemRoutes(*router_, {*cache_, *metrics_, [this] { return ready(); }, reads});
   // One patch-data service for every route that answers with encoded patch data.
-  const auto data = std::make_shared<models::PatchData>();
+  data_ = std::make_shared<models::PatchData>();
+  const std::shared_ptr<models::PatchData>& data = data_;
   api::addModelRoutes(*router_, {*models_, *jobs_, coordinator_.get(), diffs, data});
   api::addJobRoutes(*router_, {*models_, *jobs_, coordinator_.get(), diffs, data});
   api::addTilesRoutes(*router_, *models_, data);
@@ -404,8 +405,8 @@ void Application::start() {
 void Application::run() {
   start();
   // The main thread follows other writers' publishes of models open for reading only (a vsm
-  // merge, another vsmd holding the writer lock), and removes the folders of dropped revisions
-  // whose last reader let go, until asked to stop.
+  // merge, another vsmd holding the writer lock), removes the folders of dropped revisions whose
+  // last reader let go, and frees the derived documents' replaced bases, until asked to stop.
   constexpr auto kFollowEvery = std::chrono::milliseconds(500);
   for (;;) {
     {
@@ -419,6 +420,7 @@ void Application::run() {
     }
     models_->follow();
     models_->removeRetiredFolders();
+    data_->releaseRetired();
   }
   shutdown();
 }

@@ -29,7 +29,8 @@ class Registry;
 }
 namespace models {
 class ModelRegistry;
-}
+class PatchData;
+}  // namespace models
 namespace jobs {
 class JobRegistry;
 }
@@ -117,6 +118,8 @@ class Application {
   std::unique_ptr<jobs::JobRegistry> jobs_;
   /// Null unless cluster.coordinator is set.
   std::unique_ptr<cluster::Coordinator> coordinator_;
+  /// The patch-data service the routes share (its housekeeping runs on the main thread).
+  std::shared_ptr<models::PatchData> data_;
   std::unique_ptr<http::Router> router_;
   std::unique_ptr<http::Pipeline> pipeline_;
   std::unique_ptr<http::Server> server_;

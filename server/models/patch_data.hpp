@@ -27,6 +27,7 @@ enum class GlbCompression : unsigned char;
 
 namespace vsm::server::models {
 
+class Retired;
 class TerrainLayers;
 class TileTrees;
 
@@ -116,6 +117,11 @@ class PatchData {
                                                      const core::ModelSnapshot& snapshot,
                                                      int levels) const;
 
+  /// Releases the layers and tile trees replaced by newer versions' since the last call, and the
+  /// model metadata they held: the housekeeping's work (the main thread), so that no request pays
+  /// for freeing a version's metadata.
+  void releaseRetired();
+
   /// Patch grids of `snapshot` through the patch cache (LiveModel::positions): what the height
   /// sampler (core/tiles/heights.hpp: the terrain tiles, point and profile queries, coverages)
   /// reads. Blocks on the disk: the CPU pool only. The loader holds `served` and `snapshot` by
@@ -165,6 +171,7 @@ class PatchData {
       const std::function<std::string()>& build) const;
 
  private:
+  std::unique_ptr<Retired> retired_;  // before the users that hold it
   std::unique_ptr<TerrainLayers> layers_;
   std::unique_ptr<TileTrees> trees_;
 };
