@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cstring>
 #include <filesystem>
+#include <memory>
 #include <span>
 #include <string>
 #include <vector>
@@ -20,6 +21,7 @@
 #include "core/store/live_model.hpp"
 #include "core/store/model_edit.hpp"
 #include "core/tiles/glb.hpp"
+#include "core/tiles/tile_tree.hpp"
 #include "server/models/encoded_cache.hpp"
 #include "server/models/model_registry.hpp"
 #include "server/models/patch_data.hpp"
@@ -443,6 +445,54 @@ TEST(PatchData, ANetworkThreadOnlyLooksAndThePoolMakesWithOneMissPerRequest) {
   before = misses();
   ASSERT_TRUE(data.positions(served, *snapshot, other, models::Asker::Pool));
   EXPECT_EQ(misses(), before + 1);
+}
+
+/// The model root's tile tree is kept for its version and made for the next from it and the
+/// change (the same as the full build); the version it replaced keeps its metadata alive until the
+/// housekeeping's releaseRetired(), which frees it.
+TEST(PatchData, ARootTileTreeFollowsTheChangeAndTheReplacedVersionGoesAtTheHousekeeping) {
+  const DataRoot root;
+  writeModel(root.path() / "m");
+  core::PatchCache cache(64 * kMiB);
+  models::ModelRegistry registry(root.path(), cache);
+  registry.openAll();
+  const models::ModelRegistry::Served served = registry.getServed("m");
+  models::PatchData data;
+  std::weak_ptr<const core::Model> first;
+  {
+    const auto snapshot = served.live->snapshot();
+    first = snapshot->model;
+    const auto tree = data.rootTileTree(served, *snapshot, 1);
+    ASSERT_EQ(tree->children.size(), 4u);
+    EXPECT_TRUE(tree->children[3].external);
+    EXPECT_EQ(data.rootTileTree(served, *snapshot, 1), tree) << "kept for its version";
+  }
+  {
+    // Leaf 2_3_2 (below 1_1_1) raised by 100 m.
+    auto raised = leafGrid(3, 2);
+    for (int j = 0; j < raised->size(); ++j) {
+      for (int i = 0; i < raised->size(); ++i) {
+        raised->setGlobal(i, j, raised->global(i, j) + core::Vec3d{0, 0, 100});
+      }
+    }
+    auto edit = served.live->beginEdit();
+    edit->setPositions({2, 3, 2}, raised);
+    edit->publish();
+  }
+  const auto second = served.live->snapshot();
+  const auto tree = data.rootTileTree(served, *second, 1);
+  const core::TileNode full = core::buildTileTree(*second->model, core::PatchKey::root(), 1);
+  ASSERT_EQ(tree->children.size(), full.children.size());
+  for (std::size_t i = 0; i < full.children.size(); ++i) {
+    EXPECT_EQ(tree->children[i].box.min, full.children[i].box.min) << i;
+    EXPECT_EQ(tree->children[i].box.max, full.children[i].box.max) << i;
+    EXPECT_EQ(tree->children[i].geometricError, full.children[i].geometricError) << i;
+    EXPECT_EQ(tree->children[i].version, full.children[i].version) << i;
+  }
+  EXPECT_GT(full.children[3].box.max.z, 99.0) << "the raise shows in its external tile";
+  EXPECT_FALSE(first.expired()) << "the replaced version waits for the housekeeping";
+  data.releaseRetired();
+  EXPECT_TRUE(first.expired()) << "and goes with it";
 }
 
 }  // namespace
