@@ -22,12 +22,36 @@ Model::Model(int gridSize) : gridSize_(gridSize) {
 
 int Model::maxDepth() const {
   // Keys order by depth first.
-  return patches_.empty() ? -1 : patches_.rbegin()->first.depth;
+  return size_ == 0 ? -1 : chunks_.back()->back().key.depth;
+}
+
+Model::Place Model::locate(const PatchKey& key) const {
+  // The first chunk whose last key is not before `key`, then the place in it.
+  const auto chunk =
+      std::partition_point(chunks_.begin(), chunks_.end(),
+                           [&key](const std::shared_ptr<Chunk>& c) { return c->back().key < key; });
+  if (chunk == chunks_.end()) {
+    return {chunks_.size(), 0, false};
+  }
+  const auto entry = std::partition_point((*chunk)->begin(), (*chunk)->end(),
+                                          [&key](const Entry& e) { return e.key < key; });
+  return {static_cast<std::size_t>(chunk - chunks_.begin()),
+          static_cast<std::size_t>(entry - (*chunk)->begin()), entry->key == key};
+}
+
+Model::Chunk& Model::writableChunk(std::size_t chunk) {
+  // As writable(): a chunk another model holds is copied (its entries' nodes then count two
+  // owners, so a change to one of them copies it too).
+  std::shared_ptr<Chunk>& held = chunks_[chunk];
+  if (held.use_count() > 1) {
+    held = std::make_shared<Chunk>(*held);
+  }
+  return *held;
 }
 
 const PatchInfo* Model::find(const PatchKey& key) const {
-  const auto it = patches_.find(key);
-  return it == patches_.end() ? nullptr : it->second.get();
+  const Place place = locate(key);
+  return place.found ? (*chunks_[place.chunk])[place.index].node.get() : nullptr;
 }
 
 const PatchInfo& Model::at(const PatchKey& key) const {
@@ -39,11 +63,11 @@ const PatchInfo& Model::at(const PatchKey& key) const {
 }
 
 PatchInfo& Model::edit(const PatchKey& key) {
-  const auto it = patches_.find(key);
-  if (it == patches_.end()) {
+  const Place place = locate(key);
+  if (!place.found) {
     throw Error(ErrorCode::NotFound, "no patch " + key.toString());
   }
-  return writable(it->second);
+  return writable(writableChunk(place.chunk)[place.index].node);
 }
 
 PatchInfo& Model::writable(std::shared_ptr<PatchInfo>& node) {
@@ -57,27 +81,28 @@ PatchInfo& Model::writable(std::shared_ptr<PatchInfo>& node) {
 }
 
 std::shared_ptr<const PatchInfo> Model::shared(const PatchKey& key) const {
-  const auto it = patches_.find(key);
-  if (it == patches_.end()) {
+  const Place place = locate(key);
+  if (!place.found) {
     throw Error(ErrorCode::NotFound, "no patch " + key.toString());
   }
-  return it->second;
+  return (*chunks_[place.chunk])[place.index].node;
 }
 
 PatchInfo& Model::insert(PatchInfo info) {
   // After every key held (a model read in key order, parents first): no child of it can be here
-  // yet, and it goes at the end. An index of 10^5 patches is read in a third of the time.
-  const bool last = patches_.empty() || patches_.rbegin()->first < info.key;
-  if (!last && patches_.count(info.key) != 0) {
+  // yet, and it goes at the end of the last chunk, or starts a new one.
+  const bool last = size_ == 0 || chunks_.back()->back().key < info.key;
+  const Place place = last ? Place{chunks_.size(), 0, false} : locate(info.key);
+  if (place.found) {
     throw Error(ErrorCode::Conflict, "patch " + info.key.toString() + " exists");
   }
   if (const auto parentKey = info.key.parent()) {
-    const auto parent = patches_.find(*parentKey);
-    if (parent == patches_.end()) {
+    const Place parent = locate(*parentKey);
+    if (!parent.found) {
       throw Error(ErrorCode::InvalidArgument,
                   "patch " + info.key.toString() + " has no parent in the model");
     }
-    writable(parent->second).childMask |=
+    writable(writableChunk(parent.chunk)[parent.index].node).childMask |=
         static_cast<std::uint8_t>(1u << static_cast<int>(info.key.quadrant()));
   }
   info.childMask = 0;
@@ -88,9 +113,28 @@ PatchInfo& Model::insert(PatchInfo info) {
   }
   const PatchKey key = info.key;
   auto node = std::make_shared<PatchInfo>(std::move(info));
-  return *(last ? patches_.emplace_hint(patches_.end(), key, std::move(node))
-                : patches_.emplace(key, std::move(node)).first)
-              ->second;
+  PatchInfo& inserted = *node;
+  ++size_;
+  if (last) {
+    if (chunks_.empty() || chunks_.back()->size() >= kChunkSize) {
+      chunks_.push_back(std::make_shared<Chunk>());
+      chunks_.back()->reserve(kChunkSize);
+    }
+    writableChunk(chunks_.size() - 1).push_back({key, std::move(node)});
+    return inserted;
+  }
+  // Not last, so some chunk holds a later key and locate() named it.
+  Chunk& chunk = writableChunk(place.chunk);
+  chunk.insert(chunk.begin() + static_cast<std::ptrdiff_t>(place.index), {key, std::move(node)});
+  if (chunk.size() > kChunkSize) {
+    const auto half = chunk.begin() + static_cast<std::ptrdiff_t>(chunk.size() / 2);
+    auto upper = std::make_shared<Chunk>(std::make_move_iterator(half),
+                                         std::make_move_iterator(chunk.end()));
+    chunk.erase(half, chunk.end());
+    chunks_.insert(chunks_.begin() + static_cast<std::ptrdiff_t>(place.chunk) + 1,
+                   std::move(upper));
+  }
+  return inserted;
 }
 
 void Model::eraseLeaf(const PatchKey& key) {
@@ -102,7 +146,20 @@ void Model::eraseLeaf(const PatchKey& key) {
   }
   edit(*parentKey).childMask &=
       static_cast<std::uint8_t>(~(1u << static_cast<int>(key.quadrant())));
-  patches_.erase(key);
+  const Place place = locate(key);
+  Chunk& chunk = writableChunk(place.chunk);
+  chunk.erase(chunk.begin() + static_cast<std::ptrdiff_t>(place.index));
+  --size_;
+  // An emptied chunk goes; one left small joins its successor when the two fit in one chunk, so
+  // erasing leaves no trail of tiny chunks.
+  if (chunk.empty()) {
+    chunks_.erase(chunks_.begin() + static_cast<std::ptrdiff_t>(place.chunk));
+  } else if (chunk.size() < kChunkSize / 4 && place.chunk + 1 < chunks_.size() &&
+             chunk.size() + chunks_[place.chunk + 1]->size() <= kChunkSize) {
+    const Chunk& next = *chunks_[place.chunk + 1];
+    chunk.insert(chunk.end(), next.begin(), next.end());
+    chunks_.erase(chunks_.begin() + static_cast<std::ptrdiff_t>(place.chunk) + 1);
+  }
 }
 
 std::vector<PatchKey> Model::children(const PatchKey& key) const {
@@ -326,21 +383,36 @@ std::uint64_t modelDigest(const Model& model) {
 
 ModelChange modelChange(const Model& before, const Model& after) {
   ModelChange change;
-  const Model::Patches from = before.patches(), to = after.patches();
-  auto a = from.begin(), b = to.begin();
-  while (a != from.end() || b != to.end()) {
-    if (b == to.end() || (a != from.end() && (*a).first < (*b).first)) {
-      change.removed.push_back((*a).first);
-      ++a;
-    } else if (a == from.end() || (*b).first < (*a).first) {
-      change.changed.push_back((*b).first);
-      ++b;
+  const Model::Chunks& from = before.chunks_;
+  const Model::Chunks& to = after.chunks_;
+  std::size_t ac = 0, ai = 0, bc = 0, bi = 0;
+  const auto advance = [](const Model::Chunks& chunks, std::size_t& c, std::size_t& i) {
+    if (++i == chunks[c]->size()) {
+      ++c;
+      i = 0;
+    }
+  };
+  while (ac < from.size() || bc < to.size()) {
+    // Both at the start of one shared chunk: the same entries, the same nodes.
+    if (ai == 0 && bi == 0 && ac < from.size() && bc < to.size() && from[ac] == to[bc]) {
+      ++ac;
+      ++bc;
+      continue;
+    }
+    const Model::Entry* a = ac < from.size() ? &(*from[ac])[ai] : nullptr;
+    const Model::Entry* b = bc < to.size() ? &(*to[bc])[bi] : nullptr;
+    if (b == nullptr || (a != nullptr && a->key < b->key)) {
+      change.removed.push_back(a->key);
+      advance(from, ac, ai);
+    } else if (a == nullptr || b->key < a->key) {
+      change.changed.push_back(b->key);
+      advance(to, bc, bi);
     } else {
-      if (!sameStoredPatch((*a).second, (*b).second)) {
-        change.changed.push_back((*b).first);
+      if (!sameStoredPatch(*a->node, *b->node)) {
+        change.changed.push_back(b->key);
       }
-      ++a;
-      ++b;
+      advance(from, ac, ai);
+      advance(to, bc, bi);
     }
   }
   return change;

@@ -4,7 +4,6 @@
 #include <cstdint>
 #include <functional>
 #include <iterator>
-#include <map>
 #include <memory>
 #include <string>
 #include <utility>
@@ -14,6 +13,10 @@
 #include "core/pyramid/patch_key.hpp"
 
 namespace vsm::core {
+
+struct ModelChange;
+class Model;
+ModelChange modelChange(const Model& before, const Model& after);
 
 /// Everything known about a patch without its vertex data: always resident.
 struct PatchInfo {
@@ -71,8 +74,8 @@ class Model {
   explicit Model(int gridSize);
 
   int gridSize() const { return gridSize_; }
-  bool empty() const { return patches_.empty(); }
-  std::size_t patchCount() const { return patches_.size(); }
+  bool empty() const { return size_ == 0; }
+  std::size_t patchCount() const { return size_; }
   /// Depth of the deepest leaf; -1 for an empty model.
   int maxDepth() const;
 
@@ -128,72 +131,112 @@ class Model {
   std::vector<double> avgGeometrySizes() const;
 
  private:
+  friend ModelChange modelChange(const Model& before, const Model& after);
+
+  /// A run of consecutive patches in key order. Chunks hold at most kChunkSize entries.
+  struct Entry {
+    PatchKey key;
+    std::shared_ptr<PatchInfo> node;
+  };
+  using Chunk = std::vector<Entry>;
+  using Chunks = std::vector<std::shared_ptr<Chunk>>;
+  static constexpr std::size_t kChunkSize = 256;
+  /// Where a key is or would go: chunk, index in it, and whether the entry there holds the key.
+  struct Place {
+    std::size_t chunk = 0;
+    std::size_t index = 0;
+    bool found = false;
+  };
+  Place locate(const PatchKey& key) const;
+  /// The chunk to change: a copy of its own when another model shares it.
+  Chunk& writableChunk(std::size_t chunk);
   /// The node to change: a copy of its own when another model shares it (edit()).
   static PatchInfo& writable(std::shared_ptr<PatchInfo>& node);
 
   int gridSize_;
-  /// Each patch's metadata is shared by the copies of a model until one of them changes it (copy
-  /// on write, edit()): a copy of a model of 10^5 patches copies pointers, and the versions a
-  /// store keeps hold one PatchInfo per changed patch, not per patch. Nodes are never changed in
-  /// place while shared, so models sharing them may be read on other threads.
-  std::map<PatchKey, std::shared_ptr<PatchInfo>> patches_;
+  std::size_t size_ = 0;
+  /// The patches in key order, in chunks shared by the copies of a model until one of them changes
+  /// a chunk, and each patch's metadata shared until one of them changes the patch (copy on
+  /// write, edit()). A copy of a model of 10^6 patches copies 4,000 chunk pointers; a version a
+  /// store keeps holds the chunks and PatchInfos its change touched, and modelChange skips the
+  /// chunks two versions share. Nothing shared is changed in place, so models sharing chunks and
+  /// nodes may be read on other threads.
+  Chunks chunks_;
 };
 
-/// The patches of a Model as (key, info) pairs (a view: valid while the model is unchanged). Hand
-/// written rather than std::views::transform, which clang 14 (the fuzz build) cannot compile with
-/// libstdc++ 12.
+/// The patches of a Model as (key, info) pairs in key order (a view: valid while the model is
+/// unchanged). Hand written rather than std::views::transform, which clang 14 (the fuzz build)
+/// cannot compile with libstdc++ 12.
 class Model::Patches {
  public:
-  using Nodes = std::map<PatchKey, std::shared_ptr<PatchInfo>>;
-  template <typename It>
-  class Iterator {
+  class iterator {
    public:
     using iterator_category = std::bidirectional_iterator_tag;
     using value_type = std::pair<const PatchKey&, const PatchInfo&>;
     using difference_type = std::ptrdiff_t;
     using reference = value_type;
     using pointer = void;
-    Iterator() = default;
-    explicit Iterator(It it) : it_(it) {}
-    value_type operator*() const { return {it_->first, *it_->second}; }
-    Iterator& operator++() {
-      ++it_;
+    iterator() = default;
+    iterator(const Chunks* chunks, std::size_t chunk, std::size_t index)
+        : chunks_(chunks), chunk_(chunk), index_(index) {}
+    value_type operator*() const {
+      const Entry& entry = (*(*chunks_)[chunk_])[index_];
+      return {entry.key, *entry.node};
+    }
+    iterator& operator++() {
+      if (++index_ == (*chunks_)[chunk_]->size()) {
+        ++chunk_;
+        index_ = 0;
+      }
       return *this;
     }
-    Iterator operator++(int) { return Iterator(it_++); }
-    Iterator& operator--() {
-      --it_;
+    iterator operator++(int) {
+      iterator before = *this;
+      ++*this;
+      return before;
+    }
+    iterator& operator--() {
+      if (index_ == 0) {
+        index_ = (*chunks_)[--chunk_]->size();
+      }
+      --index_;
       return *this;
     }
-    Iterator operator--(int) { return Iterator(it_--); }
-    friend bool operator==(const Iterator&, const Iterator&) = default;
+    iterator operator--(int) {
+      iterator before = *this;
+      --*this;
+      return before;
+    }
+    friend bool operator==(const iterator& a, const iterator& b) {
+      return a.chunk_ == b.chunk_ && a.index_ == b.index_;
+    }
 
    private:
-    It it_{};
+    const Chunks* chunks_ = nullptr;
+    std::size_t chunk_ = 0;
+    std::size_t index_ = 0;
   };
-  using iterator = Iterator<Nodes::const_iterator>;
-  using reverse_iterator = Iterator<Nodes::const_reverse_iterator>;
+  using reverse_iterator = std::reverse_iterator<iterator>;
   struct Reversed {
     reverse_iterator first, last;
     reverse_iterator begin() const { return first; }
     reverse_iterator end() const { return last; }
   };
 
-  explicit Patches(const Nodes& nodes) : nodes_(&nodes) {}
-  iterator begin() const { return iterator(nodes_->begin()); }
-  iterator end() const { return iterator(nodes_->end()); }
-  std::size_t size() const { return nodes_->size(); }
-  bool empty() const { return nodes_->empty(); }
-  Reversed reversed() const {
-    return {reverse_iterator(nodes_->rbegin()), reverse_iterator(nodes_->rend())};
-  }
+  Patches(const Chunks& chunks, std::size_t size) : chunks_(&chunks), size_(size) {}
+  iterator begin() const { return iterator(chunks_, 0, 0); }
+  iterator end() const { return iterator(chunks_, chunks_->size(), 0); }
+  std::size_t size() const { return size_; }
+  bool empty() const { return size_ == 0; }
+  Reversed reversed() const { return {reverse_iterator(end()), reverse_iterator(begin())}; }
 
  private:
-  const Nodes* nodes_;
+  const Chunks* chunks_;
+  std::size_t size_;
 };
 
 inline Model::Patches Model::patches() const {
-  return Patches(patches_);
+  return Patches(chunks_, size_);
 }
 
 /// A 64-bit digest of what a patch's entity tags name: its key, version, folder, child mask,
@@ -216,10 +259,10 @@ struct ModelChange {
 
   bool empty() const { return changed.empty() && removed.empty(); }
 };
-/// The change from `before` to `after`, by one walk of both in key order. Nodes the two share
-/// (copy on write: a version of a LiveModel and the next) compare by address, so two versions of
-/// one model cost a pointer comparison a patch; models read apart (a replica's reopen) compare
-/// field by field.
+/// The change from `before` to `after`, by one walk of both in key order. Chunks the two share
+/// (copy on write: a version of a LiveModel and the next) are skipped whole and nodes they share
+/// compare by address, so two versions of one model cost about the chunks their change touched;
+/// models read apart (a replica's reopen) compare field by field.
 ModelChange modelChange(const Model& before, const Model& after);
 
 }  // namespace vsm::core

@@ -2,7 +2,9 @@
 
 #include <cmath>
 #include <limits>
+#include <map>
 #include <memory>
+#include <random>
 #include <utility>
 #include <vector>
 
@@ -226,6 +228,123 @@ TEST(Model, ModelChangeListsAddedReplacedAndRemovedKeysAndComparesUnsharedNodesB
   const ModelChange back = modelChange(after, before);
   EXPECT_EQ(back.changed, (std::vector<PatchKey>{{1, 0, 0}, {1, 1, 0}, {1, 1, 1}, {2, 0, 0}}));
   EXPECT_EQ(back.removed, (std::vector<PatchKey>{{2, 3, 3}}));
+}
+
+// The model's keys and versions as a plain ordered map: the reference its chunked map is checked
+// against.
+using Reference = std::map<PatchKey, std::uint64_t>;
+
+void expectModelMatches(const Model& model, const Reference& reference) {
+  ASSERT_EQ(model.patchCount(), reference.size());
+  auto expected = reference.begin();
+  for (const auto& [key, info] : model.patches()) {
+    ASSERT_EQ(key, expected->first);
+    EXPECT_EQ(info.key, key);
+    EXPECT_EQ(info.version, expected->second) << key.toString();
+    std::uint8_t mask = 0;
+    for (const Quadrant q : kQuadrants) {
+      mask |= reference.count(key.child(q)) != 0 ? 1u << static_cast<int>(q) : 0u;
+    }
+    EXPECT_EQ(info.childMask, mask) << key.toString();
+    ++expected;
+  }
+  auto backwards = reference.rbegin();
+  for (const auto& [key, info] : model.patches().reversed()) {
+    ASSERT_EQ(key, backwards->first);
+    ++backwards;
+  }
+  EXPECT_EQ(backwards, reference.rend());
+  EXPECT_EQ(model.maxDepth(), reference.rbegin()->first.depth);
+}
+
+TEST(Model, ThousandsOfInsertsErasesAndEditsOnCopiesMatchAPlainMapAndLeaveEarlierCopiesAsTheyWere) {
+  // Enough patches for many chunks; inserts in the middle split chunks, erases empty and join
+  // them, and copies taken along the way share chunks with the model changed after them.
+  std::mt19937 random(31);
+  Model model(5);
+  Reference reference;
+  const auto add = [&](const PatchKey& key) {
+    model.insert(infoFor(key));
+    reference[key] = 1;
+  };
+  add(PatchKey::root());
+  for (int depth = 1; depth <= 5; ++depth) {
+    for (std::uint32_t y = 0; y < (1u << depth); ++y) {
+      for (std::uint32_t x = 0; x < (1u << depth); ++x) {
+        add({depth, x, y});
+      }
+    }
+  }
+  expectModelMatches(model, reference);
+
+  std::vector<std::pair<Model, Reference>> copies;
+  for (int round = 0; round < 6; ++round) {
+    copies.emplace_back(model, reference);
+    for (int step = 0; step < 800; ++step) {
+      auto it = reference.begin();
+      std::advance(it, static_cast<std::ptrdiff_t>(random() % reference.size()));
+      const PatchKey key = it->first;
+      switch (random() % 3) {
+        case 0:  // erase a leaf
+          if (key.depth > 0 && model.at(key).isLeaf()) {
+            model.eraseLeaf(key);
+            reference.erase(key);
+          }
+          break;
+        case 1: {  // a child that is not there yet
+          const PatchKey child = key.child(kQuadrants[random() % 4]);
+          if (key.depth < 8 && reference.count(child) == 0) {
+            add(child);
+          }
+          break;
+        }
+        default:
+          model.edit(key).version = ++it->second;
+      }
+    }
+    expectModelMatches(model, reference);
+  }
+  for (const auto& [copy, held] : copies) {
+    expectModelMatches(copy, held);
+    // The change from the copy to the model, against the plain maps' difference.
+    ModelChange expected;
+    for (const auto& [key, version] : reference) {
+      const auto before = held.find(key);
+      if (before == held.end() || before->second != version ||
+          copy.at(key).childMask != model.at(key).childMask) {
+        expected.changed.push_back(key);
+      }
+    }
+    for (const auto& [key, version] : held) {
+      if (reference.count(key) == 0) {
+        expected.removed.push_back(key);
+      }
+    }
+    const ModelChange change = modelChange(copy, model);
+    EXPECT_EQ(change.changed, expected.changed);
+    EXPECT_EQ(change.removed, expected.removed);
+  }
+}
+
+TEST(Model, ACopySharesEveryPatchItsChangeDidNotTouch) {
+  Model model(5);
+  model.insert(infoFor(PatchKey::root()));
+  for (std::uint32_t i = 0; i < 4; ++i) {
+    model.insert(infoFor({1, i % 2, i / 2}));
+  }
+  for (std::uint32_t y = 0; y < 4; ++y) {
+    for (std::uint32_t x = 0; x < 4; ++x) {
+      model.insert(infoFor({2, x, y}));
+    }
+  }
+  Model copy = model;
+  copy.edit({2, 1, 1}).version = 2;
+  for (const auto& [key, info] : model.patches()) {
+    const bool touched = key == PatchKey{2, 1, 1};
+    EXPECT_EQ(model.shared(key) == copy.shared(key), !touched) << key.toString();
+  }
+  EXPECT_EQ(model.at({2, 1, 1}).version, 1u);
+  EXPECT_EQ(modelChange(model, copy).changed, (std::vector<PatchKey>{{2, 1, 1}}));
 }
 
 TEST(Model, ChangingAPatchMarksItDirtyAndEveryAncestorStale) {
