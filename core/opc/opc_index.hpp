@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <functional>
 #include <memory>
+#include <mutex>
 #include <optional>
 #include <set>
 #include <span>
@@ -150,10 +151,29 @@ std::optional<IndexedRevision> decodeOpcIndexHead(std::span<const std::byte> byt
 /// unreadable, damaged, or written before heads had a checksum: the caller reads the hierarchy).
 std::optional<IndexedRevision> readIndexedRevision(const std::filesystem::path& hierarchyFile);
 
+/// The last base of delta indexes a reader decoded, kept so that the next index over the same base
+/// (a replica following small publishes, a kept revision read) decodes only its delta: its model
+/// is a copy of the base's, sharing the base's chunks and nodes wherever the delta does not reach
+/// (so keeping the base costs the patches its deltas replaced). Thread-safe.
+class IndexBaseMemo {
+ public:
+  /// The model of `base` when it is the one kept (name, size and checksum); null otherwise.
+  std::shared_ptr<const Model> find(const IndexBase& base) const;
+  /// Keeps `model` as the model of `base`, in place of the one kept before.
+  void keep(const IndexBase& base, std::shared_ptr<const Model> model);
+
+ private:
+  mutable std::mutex mutex_;
+  IndexBase base_;
+  std::shared_ptr<const Model> model_;
+};
+
 /// The hierarchy `hierarchyName` of `dir` from its index, when it has a current one; nullopt when
-/// there is none, it is stale or unreadable (the caller reads the hierarchy in full).
+/// there is none, it is stale or unreadable (the caller reads the hierarchy in full). A delta's
+/// base comes from `memo` when it holds it, and is kept there when read (null: no memo).
 std::optional<OpcRevision> readOpcIndex(const std::filesystem::path& dir,
-                                        std::string_view hierarchyName = "patchhierarchy.xml");
+                                        std::string_view hierarchyName = "patchhierarchy.xml",
+                                        IndexBaseMemo* memo = nullptr);
 
 /// The index of the hierarchy file `hierarchyFile` (committed, or staged under its temporary name:
 /// the stamp survives the rename) staged as Patches/indexFileName(`hierarchyName`) of `dir`: the

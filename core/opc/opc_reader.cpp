@@ -556,8 +556,9 @@ Model readOpcModel(const fs::path& dir) {
   return std::move(detail::readOpc(dir).model);
 }
 
-OpcRevision readOpcRevision(const fs::path& dir, std::string_view hierarchyName) {
-  if (std::optional<OpcRevision> indexed = readOpcIndex(dir, hierarchyName)) {
+OpcRevision readOpcRevision(const fs::path& dir, std::string_view hierarchyName,
+                            IndexBaseMemo* memo) {
+  if (std::optional<OpcRevision> indexed = readOpcIndex(dir, hierarchyName, memo)) {
     return std::move(*indexed);
   }
   detail::OpcContents contents = detail::readOpc(dir, hierarchyName);

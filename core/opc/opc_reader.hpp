@@ -58,15 +58,18 @@ struct RevisionRecord {
 /// How many revisions a publish keeps by default, the new one included (core/store).
 inline constexpr unsigned kDefaultKeepRevisions = 8;
 
+class IndexBaseMemo;  // opc_index.hpp
+
 /// The model one hierarchy file of `dir` describes (Patches/`hierarchyName`: the current one, or a
 /// kept revision's) with its revision record when it has one; from its index when current, as
-/// readOpcModel. Throws as readOpcModel.
+/// readOpcModel, and a delta index's base from `memo` as readOpcIndex. Throws as readOpcModel.
 struct OpcRevision {
   Model model;
   std::optional<RevisionRecord> record;
 };
 OpcRevision readOpcRevision(const std::filesystem::path& dir,
-                            std::string_view hierarchyName = "patchhierarchy.xml");
+                            std::string_view hierarchyName = "patchhierarchy.xml",
+                            IndexBaseMemo* memo = nullptr);
 
 /// The revision record of one hierarchy file, read from that file alone; nullopt when it has none.
 /// Throws Error(NotFound / Io / Corrupt) as readOpcModel.

@@ -210,17 +210,23 @@ std::unique_ptr<LiveModel> LiveModel::reopen() const {
     std::lock_guard lock(writer_->mutex);
     writer_->revisionFiles.reset();
   }
-  return load(dir_, name_, store_->cache(), writer_, false, texturePixels());
+  return load(dir_, name_, store_->cache(), writer_, false, texturePixels(), indexBases_);
 }
 
 std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name, PatchCache& cache,
                                            std::shared_ptr<Writer> writer, bool sweep,
-                                           std::uint64_t texturePixels) {
+                                           std::uint64_t texturePixels,
+                                           std::shared_ptr<IndexBaseMemo> indexBases) {
   // Stamped before reading: a publish during the read leaves a stamp that differs from the file's.
   const std::optional<HierarchyStamp> stamp = hierarchyStamp(dir);
   const fs::path patches = patchesDirOf(dir);
-  std::shared_ptr<ModelSnapshot> snapshot =
-      snapshotOf(readOpcRevision(dir), patches / "patchhierarchy.xml");
+  if (writer == nullptr && indexBases == nullptr) {
+    indexBases = std::make_shared<IndexBaseMemo>();
+  } else if (writer != nullptr) {
+    indexBases = nullptr;
+  }
+  std::shared_ptr<ModelSnapshot> snapshot = snapshotOf(
+      readOpcRevision(dir, "patchhierarchy.xml", indexBases.get()), patches / "patchhierarchy.xml");
   const Model& model = *snapshot->model;
   if (writer != nullptr) {
     // A publish interrupted after its commit point left these undone; they are idempotent.
@@ -238,6 +244,7 @@ std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name
       new LiveModel(dir, std::move(name), std::move(store), snapshot, std::move(writer)));
   live->revisionSnapshots_[version] = snapshot;
   live->readStamp_ = stamp;
+  live->indexBases_ = std::move(indexBases);
   return live;
 }
 

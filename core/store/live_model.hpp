@@ -234,9 +234,12 @@ class LiveModel {
   /// Failures are logged, not thrown.
   void dropRevisions(const ModelSnapshot& current, unsigned keep, std::chrono::seconds keepSeconds,
                      const std::set<std::uint64_t>& readElsewhere = {});
+  /// `indexBases`: the memo of a reading opening being read again (reopen()); null for a first
+  /// opening (a reading one makes its own) and for a writer's, which keeps none.
   static std::unique_ptr<LiveModel> load(const std::filesystem::path& dir, std::string name,
                                          PatchCache& cache, std::shared_ptr<Writer> writer,
-                                         bool sweep, std::uint64_t texturePixels);
+                                         bool sweep, std::uint64_t texturePixels,
+                                         std::shared_ptr<IndexBaseMemo> indexBases = nullptr);
 
   std::filesystem::path dir_;
   std::string name_;
@@ -249,6 +252,10 @@ class LiveModel {
   std::shared_ptr<ModelSnapshot> snapshot_;
   /// Null when opened for reading.
   std::shared_ptr<Writer> writer_;
+  /// A reading opening's last decoded index base, passed on by reopen(): following a publish
+  /// decodes only its delta. Null for a writer's (the base it read is soon replaced by its own
+  /// publishes, and would be kept for nothing).
+  std::shared_ptr<IndexBaseMemo> indexBases_;
   std::string readOnlyReason_;
   /// Every snapshot of a revision this opening made that may still be held (guarded by mutex_):
   /// a publish that drops a revision hands its folder removal to it.

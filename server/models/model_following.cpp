@@ -81,23 +81,16 @@ void ModelRegistry::announceFollowed(const core::LiveModel& old,
   if (after->version == before->version) {
     return;  // the same version (read again after a failed write, a change of role)
   }
-  // What the other writer changed: every patch whose version differs, and every patch gone (a
-  // restore removes what the restored revision lacks).
+  // What the other writer changed, as the writer's own publication names it: every patch stored
+  // differently, and every patch gone (a restore removes what the restored revision lacks). One
+  // walk of both versions in key order.
+  core::ModelChange change = core::changeSince(before->model, *after);
   Publication publication;
   publication.model = fresh.name();
   publication.version = after->version;
   publication.followed = true;
-  for (const auto& [key, info] : after->model->patches()) {
-    const core::PatchInfo* was = before->model->find(key);
-    if (was == nullptr || was->version != info.version) {
-      publication.changed.push_back(key);
-    }
-  }
-  for (const auto& [key, info] : before->model->patches()) {
-    if (after->model->find(key) == nullptr) {
-      publication.removed.push_back(key);
-    }
-  }
+  publication.changed = std::move(change.changed);
+  publication.removed = std::move(change.removed);
   onPublished_(publication);
 }
 

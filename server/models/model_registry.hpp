@@ -127,7 +127,7 @@ class ModelRegistry {
     std::string model;
     std::uint64_t version = 0;
     /// The keys of the patches added or replaced, in key order: as the publish made them, or,
-    /// for a version read again, the patches whose version differs between the two openings.
+    /// for a version read again, the patches stored differently in the two openings (modelChange).
     std::vector<core::PatchKey> changed;
     /// The keys of the patches the version no longer has (a restore of a revision without them),
     /// in key order.

@@ -1426,6 +1426,37 @@ TEST_F(StoreTest, PublishesWriteDeltasOverABaseAndANewBaseWhenTheChangeGrows) {
   EXPECT_TRUE(validateOpc(dir_).empty());
 }
 
+// A reading opening keeps the index base it decoded: read again after another small publish over
+// the same base, it applies only the new delta to it, so its model equals the full read and shares
+// every node neither delta touched with the model it read before (and with the base).
+TEST_F(StoreTest, AReadingOpeningReadAgainAppliesTheNewDeltaToTheBaseItKept) {
+  writeModel(dir_, false, 3);  // 85 patches
+  PatchCache cache(64 << 20);
+  auto writer = LiveModel::open(dir_, "m", cache);
+  publishLeaf(*writer, {3, 0, 0}, 1.0, 8);  // the first base: this version in full
+  publishLeaf(*writer, {3, 7, 7}, 2.0, 8);  // a delta over it
+  const std::optional<IndexBase> base = readIndexBase(dir_ / "Patches" / "patchhierarchy.vsmidx");
+  ASSERT_TRUE(base.has_value());
+  auto reader = LiveModel::open(dir_, "r", cache, LiveModel::Access::Read);
+  publishLeaf(*writer, {3, 4, 2}, 3.0, 8);
+  ASSERT_EQ(readIndexBase(dir_ / "Patches" / "patchhierarchy.vsmidx")->name, base->name);
+  const auto before = reader->snapshot();
+  const auto after = reader->reopen()->snapshot();
+  expectSameModel(OpcRevision{*after->model, after->revision}, fullRead(dir_));
+  // Both deltas name 3_7_7 with its three overviews; the new one 3_4_2 and two overviews more
+  // (the root is one of the three). The other 78 are the base's nodes in both models.
+  std::size_t shared = 0;
+  for (const auto& [key, info] : after->model->patches()) {
+    if (before->model->shared(key) == after->model->shared(key)) {
+      ++shared;
+    }
+  }
+  EXPECT_EQ(shared, 85u - 7u);
+  // Opened anew: read from the files, it shares nothing with the first reader's.
+  const auto fresh = LiveModel::open(dir_, "r2", cache, LiveModel::Access::Read)->snapshot();
+  EXPECT_NE(fresh->model->shared({3, 1, 1}), after->model->shared({3, 1, 1}));
+}
+
 // A delta whose base is gone (a lost file, a copy of the directory without it) or is another
 // file is not used: the model opens by the full read, as it is, and the next publish writes a
 // new base.
