@@ -126,6 +126,9 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
   info.textureFile = texture ? textureEntryFor(info.folder) : std::string();
   model_->describe(key, *grid);
   model_->markChanged(key);
+  if (const auto parent = key.parent()) {
+    staleParents_.insert(*parent);
+  }
   info.dirty = false;  // the cache tracks dirtiness; the model only needs `changed_`
   changed_.insert(key);
   store.add(model_->shared(key));
@@ -148,9 +151,17 @@ void ModelEdit::writeEarly(const PatchKey& key) {
 
 void ModelEdit::refreshStale(const CancelToken* cancel) {
   requireOpen();
+  // The stale patches are the ancestors of the patches given data (those a restore removed since
+  // are gone, their ancestors stay stale): a walk up from each, not a look at 10^6 patches.
+  std::set<PatchKey> candidates;
+  for (const PatchKey& first : staleParents_) {
+    for (std::optional<PatchKey> key = first; key && candidates.insert(*key).second;
+         key = key->parent()) {
+    }
+  }
   std::vector<PatchKey> stale;
-  for (const auto& [key, info] : model_->patches()) {
-    if (info.stale) {
+  for (const PatchKey& key : candidates) {
+    if (const PatchInfo* info = model_->find(key); info != nullptr && info->stale) {
       stale.push_back(key);
     }
   }

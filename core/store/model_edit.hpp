@@ -163,6 +163,9 @@ class ModelEdit {
   std::shared_ptr<Model> model_;
   std::set<PatchKey> changed_;
   std::set<PatchKey> removed_;
+  /// The parents of every patch given new data (Model::markChanged marked them and their
+  /// ancestors stale): where refreshStale looks, instead of at every patch of the model.
+  std::set<PatchKey> staleParents_;
   bool published_ = false;
   /// This edit's own: in its draft folders' names and its revision record.
   std::string nonce_;
