@@ -157,6 +157,9 @@ bool createDirectory(const fs::path& dir, bool sync) {
 // ---- PendingFile -----------------------------------------------------------------------------
 
 PendingFile::PendingFile(fs::path target, std::span<const std::byte> bytes)
+    : PendingFile(std::move(target), std::span<const std::span<const std::byte>>(&bytes, 1)) {}
+
+PendingFile::PendingFile(fs::path target, std::span<const std::span<const std::byte>> pieces)
     : target_(std::move(target)) {
   static std::atomic<unsigned> counter{0};
   temp_ = target_.parent_path() / ("." + target_.filename().string() + ".tmp-" +
@@ -169,8 +172,10 @@ PendingFile::PendingFile(fs::path target, std::span<const std::byte> bytes)
     ::unlink(temp_.c_str());
     throwIoError(what, temp_.string(), errnum);
   };
-  if (const int errnum = writeAll(fd.get(), bytes); errnum != 0) {
-    fail("cannot write", errnum);
+  for (const std::span<const std::byte> bytes : pieces) {
+    if (const int errnum = writeAll(fd.get(), bytes); errnum != 0) {
+      fail("cannot write", errnum);
+    }
   }
   if (::fsync(fd.get()) != 0) {
     fail("cannot fsync", errno);

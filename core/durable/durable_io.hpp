@@ -40,6 +40,9 @@ class PendingFile {
  public:
   /// Writes and fsyncs the temporary file. Throws Error(Io); nothing is left behind then.
   PendingFile(std::filesystem::path target, std::span<const std::byte> bytes);
+  /// The same with the bytes in `pieces`, one after the other (a file written from parts kept
+  /// apart, without joining them in memory first).
+  PendingFile(std::filesystem::path target, std::span<const std::span<const std::byte>> pieces);
   ~PendingFile();
   PendingFile(const PendingFile&) = delete;
   PendingFile& operator=(const PendingFile&) = delete;

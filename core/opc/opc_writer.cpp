@@ -4,11 +4,13 @@
 
 #include <unistd.h>
 
+#include <algorithm>
 #include <cerrno>
 #include <cstdint>
 #include <cstring>
 #include <limits>
 #include <string_view>
+#include <unordered_set>
 #include <utility>
 #include <vector>
 
@@ -228,21 +230,14 @@ const std::string& hierarchyName(const PatchInfo& info, std::string& keyText) {
   return keyText;
 }
 
-std::string hierarchyXml(const Model& model, const RevisionRecord* revision) {
-  if (model.empty()) {
-    throw Error(ErrorCode::InvalidArgument, "cannot write the hierarchy of an empty model");
-  }
-  detail::XmlWriter xml = startAardvark("PatchHierarchy");
-  xml.reserve(model.patchCount() * 48);  // ~48 bytes a patch: no regrowth of 4 MB at 87k
-  std::string sizes = "[";
-  for (const double size : model.avgGeometrySizes()) {
-    sizes += (sizes.size() > 1 ? ", " : "") + formatDouble(size);
-  }
-  xml.text("AvgGeometrySizes", sizes + "]");
+/// The <item> elements of the patches with children in `run`, made at nesting `depth`, with the
+/// ids of the runs that hold their children added to `childRuns`.
+std::string runItems(const Model& model, const Model::Run& run, std::size_t depth,
+                     std::vector<std::shared_ptr<const void>>& childRuns) {
+  detail::XmlWriter xml(depth);
   std::string keyText;
-  xml.text("RootPatch", hierarchyName(model.at(PatchKey::root()), keyText));
-  xml.open("SubPatchMap");
-  for (const auto& [key, info] : model.patches()) {
+  for (auto it = run.begin; it != run.end; ++it) {
+    const auto [key, info] = *it;
     if (info.isLeaf()) {
       continue;
     }
@@ -251,11 +246,63 @@ std::string hierarchyXml(const Model& model, const RevisionRecord* revision) {
     xml.open("val");
     for (const Quadrant q : kQuadrants) {
       if (info.hasChild(q)) {
-        xml.text(toString(q), hierarchyName(model.at(key.child(q)), keyText));
+        const PatchKey child = key.child(q);
+        xml.text(toString(q), hierarchyName(model.at(child), keyText));
+        std::shared_ptr<const void> holder = model.runOf(child);
+        if (childRuns.empty() || childRuns.back() != holder) {
+          childRuns.push_back(std::move(holder));
+        }
       }
     }
     xml.close();
     xml.close();
+  }
+  return std::move(xml).finish();
+}
+
+/// A hierarchy document in pieces: its start, SubPatchMap's items (the memo's text, not copied:
+/// 60 MB at 10^6 patches), its end.
+struct HierarchyText {
+  std::string head;
+  std::vector<std::shared_ptr<const std::string>> items;
+  std::string tail;
+
+  std::vector<std::span<const std::byte>> pieces() const {
+    std::vector<std::span<const std::byte>> all{bytesOf(head)};
+    for (const auto& item : items) {
+      all.push_back(bytesOf(*item));
+    }
+    all.push_back(bytesOf(tail));
+    return all;
+  }
+  std::string joined() const {
+    std::string all = head;
+    for (const auto& item : items) {
+      all += *item;
+    }
+    return all + tail;
+  }
+};
+
+HierarchyText hierarchyXml(const Model& model, const RevisionRecord* revision,
+                           HierarchyMemo* memo) {
+  if (model.empty()) {
+    throw Error(ErrorCode::InvalidArgument, "cannot write the hierarchy of an empty model");
+  }
+  HierarchyText text;
+  detail::XmlWriter xml = startAardvark("PatchHierarchy");
+  std::string sizes = "[";
+  for (const double size : model.avgGeometrySizes()) {
+    sizes += (sizes.size() > 1 ? ", " : "") + formatDouble(size);
+  }
+  xml.text("AvgGeometrySizes", sizes + "]");
+  std::string keyText;
+  xml.text("RootPatch", hierarchyName(model.at(PatchKey::root()), keyText));
+  xml.open("SubPatchMap");
+  text.items =
+      memo != nullptr ? memo->items(model, xml.depth()) : HierarchyMemo().items(model, xml.depth());
+  if (!text.items.empty()) {
+    text.head = xml.cut();
   }
   xml.close();
   xml.open("Vsm");
@@ -282,16 +329,74 @@ std::string hierarchyXml(const Model& model, const RevisionRecord* revision) {
     }
     xml.close();
   }
-  return std::move(xml).finish();
+  (text.items.empty() ? text.head : text.tail) = std::move(xml).finish();
+  return text;
 }
 
 }  // namespace
 
+std::vector<std::shared_ptr<const std::string>> HierarchyMemo::items(const Model& model,
+                                                                     std::size_t depth) {
+  std::lock_guard lock(mutex_);
+  if (depth != depth_) {
+    runs_.clear();
+    depth_ = depth;
+  }
+  const std::vector<Model::Run> runs = model.runs();
+  std::unordered_set<const void*> present;
+  present.reserve(runs.size());
+  for (const Model::Run& run : runs) {
+    present.insert(run.id.get());
+  }
+  // A run held is the same keys and nodes (Model::runs); a child run held is the same children,
+  // so the same names under each <val>. The runs held keep their addresses from being reused.
+  std::unordered_map<const void*, Run> kept;
+  kept.reserve(runs.size());
+  std::vector<std::shared_ptr<const std::string>> pieces;
+  lastReused_ = 0;
+  for (const Model::Run& run : runs) {
+    const auto known = runs_.find(run.id.get());
+    if (known != runs_.end() &&
+        std::all_of(known->second.childRuns.begin(), known->second.childRuns.end(),
+                    [&](const std::shared_ptr<const void>& c) { return present.count(c.get()); })) {
+      ++lastReused_;
+      if (!known->second.text->empty()) {
+        pieces.push_back(known->second.text);
+      }
+      kept.emplace(run.id.get(), std::move(known->second));
+      continue;
+    }
+    Run made{run.id, {}, {}};
+    made.text = std::make_shared<const std::string>(runItems(model, run, depth, made.childRuns));
+    if (!made.text->empty()) {
+      pieces.push_back(made.text);
+    }
+    kept.emplace(run.id.get(), std::move(made));
+  }
+  runs_ = std::move(kept);
+  return pieces;
+}
+
+std::pair<std::size_t, std::size_t> HierarchyMemo::lastReused() const {
+  std::lock_guard lock(mutex_);
+  return {lastReused_, runs_.size()};
+}
+
+std::size_t HierarchyMemo::bytes() const {
+  std::lock_guard lock(mutex_);
+  std::size_t total = 0;
+  for (const auto& [id, run] : runs_) {
+    total += run.text->size();
+  }
+  return total;
+}
+
 std::unique_ptr<durable::PendingFile> stageHierarchy(const fs::path& dir, const Model& model,
                                                      const RevisionRecord* revision,
-                                                     std::string_view fileName) {
-  const std::string xml = hierarchyXml(model, revision);
-  return std::make_unique<durable::PendingFile>(patchesDirOf(dir) / fileName, bytesOf(xml));
+                                                     std::string_view fileName,
+                                                     HierarchyMemo* memo) {
+  const HierarchyText text = hierarchyXml(model, revision, memo);
+  return std::make_unique<durable::PendingFile>(patchesDirOf(dir) / fileName, text.pieces());
 }
 
 void finishHierarchy(const fs::path& dir) {
@@ -311,7 +416,7 @@ void OpcWriter::writeHierarchy(const Model& model) {
     stageHierarchy(dir_.parent_path(), model)->commit();
     finishHierarchy(dir_.parent_path());
   } else {
-    writeFile(dir_ / "patchhierarchy.xml", bytesOf(hierarchyXml(model, nullptr)));
+    writeFile(dir_ / "patchhierarchy.xml", bytesOf(hierarchyXml(model, nullptr, nullptr).joined()));
   }
 }
 

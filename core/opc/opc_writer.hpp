@@ -7,6 +7,9 @@
 #include <span>
 #include <string>
 #include <string_view>
+#include <unordered_map>
+#include <utility>
+#include <vector>
 
 #include "core/durable/durable_io.hpp"
 #include "core/grid/texture_tile.hpp"
@@ -81,14 +84,43 @@ class OpcWriter {
   std::set<std::string> sharedFiles_;  // the shared files known to hold what their names say
 };
 
+/// The hierarchy text of a model's runs (Model::runs) as the last hierarchy written through it laid
+/// them out, so that the next one regenerates only the runs a change touched: a run's <item>
+/// elements are reused while the run and every run holding its patches' children are the ones it
+/// was made from (a publish of a small merge into 10^6 patches generates a few runs of its 60 MB).
+/// Holds the text and the runs of the last hierarchy written, no others. Thread-safe.
+class HierarchyMemo {
+ public:
+  /// The <item> elements of `model`'s patches with children (SubPatchMap's content at nesting
+  /// `depth`) in key order, in pieces to be written one after the other (none empty), taken from
+  /// what it holds where it can; keeps what it hands out.
+  std::vector<std::shared_ptr<const std::string>> items(const Model& model, std::size_t depth);
+  /// Bytes of text held.
+  std::size_t bytes() const;
+  /// The runs the last items() took as held, and all it handed out.
+  std::pair<std::size_t, std::size_t> lastReused() const;
+
+ private:
+  struct Run {
+    std::shared_ptr<const void> id;
+    std::vector<std::shared_ptr<const void>> childRuns;
+    std::shared_ptr<const std::string> text;
+  };
+  mutable std::mutex mutex_;
+  std::size_t depth_ = 0;  // the nesting the text was made at
+  std::size_t lastReused_ = 0;
+  std::unordered_map<const void*, Run> runs_;
+};
+
 /// The hierarchy of the OPC at `dir` written and fsynced under a temporary name beside
 /// Patches/patchhierarchy.xml; its commit() (a rename) is the commit point of a new model version.
 /// With `revision`, the hierarchy records it (<Vsm><Revision>); `fileName` names another hierarchy
-/// file under Patches/ (a kept revision's). Throws Error(InvalidArgument) for an empty model,
-/// Error(NotFound) without Patches/, Error(Io).
+/// file under Patches/ (a kept revision's). `memo`: the text of the hierarchy last written through
+/// it, reused where the model's runs are the same (null: made anew). Throws
+/// Error(InvalidArgument) for an empty model, Error(NotFound) without Patches/, Error(Io).
 std::unique_ptr<durable::PendingFile> stageHierarchy(
     const std::filesystem::path& dir, const Model& model, const RevisionRecord* revision = nullptr,
-    std::string_view fileName = "patchhierarchy.xml");
+    std::string_view fileName = "patchhierarchy.xml", HierarchyMemo* memo = nullptr);
 
 /// What follows a committed hierarchy: syncs Patches/ (making the rename durable) and removes a
 /// stale `hierarchy.cache` of other readers. Idempotent: the next open retries it after a

@@ -35,9 +35,16 @@ void appendEscaped(std::string& out, std::string_view text) {
 
 XmlWriter::XmlWriter() : out_("<?xml version=\"1.0\" encoding=\"utf-8\"?>\n") {}
 
+XmlWriter::XmlWriter(std::size_t depth) : depth_(depth) {}
+
 void XmlWriter::startLine() {
   endStartTag();
-  out_.append(2 * open_.size(), ' ');
+  out_.append(2 * depth(), ' ');
+}
+
+std::string XmlWriter::cut() {
+  endStartTag();
+  return std::exchange(out_, {});
 }
 
 void XmlWriter::endStartTag() {
@@ -64,7 +71,7 @@ void XmlWriter::close() {
     startTagOpen_ = false;
     return;
   }
-  out_.append(2 * open_.size(), ' ');
+  out_.append(2 * depth(), ' ');
   out_ += "</";
   out_ += name;
   out_ += ">\n";

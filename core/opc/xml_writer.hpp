@@ -16,6 +16,9 @@ class XmlWriter {
  public:
   /// Starts the document with `<?xml version="1.0" encoding="utf-8"?>`.
   XmlWriter();
+  /// A fragment: elements laid out as inside `depth` open elements of a document (depth()), for
+  /// the content of an element cut() left open. No declaration.
+  explicit XmlWriter(std::size_t depth);
 
   /// Opens element `name`; its content follows until the matching close().
   void open(std::string_view name);
@@ -25,6 +28,12 @@ class XmlWriter {
   void text(std::string_view name, std::string_view text);
   /// An element without content.
   void empty(std::string_view name);
+
+  /// Ends the open start tag and hands out what is written so far; what follows (fragments made
+  /// at depth(), then the rest of this writer) continues it.
+  std::string cut();
+  /// The number of elements open, with a fragment's enclosing ones.
+  std::size_t depth() const { return depth_ + open_.size(); }
 
   /// Makes room for a document of `bytes` (a hint: it grows past it as needed).
   void reserve(std::size_t bytes) { out_.reserve(bytes); }
@@ -37,6 +46,7 @@ class XmlWriter {
   void endStartTag();
 
   std::string out_;
+  std::size_t depth_ = 0;  // a fragment's enclosing elements
   std::vector<std::string> open_;
   /// The last open element's start tag is not yet ended (it may end as `<a />`).
   bool startTagOpen_ = false;

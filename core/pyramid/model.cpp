@@ -162,6 +162,21 @@ void Model::eraseLeaf(const PatchKey& key) {
   }
 }
 
+std::vector<Model::Run> Model::runs() const {
+  std::vector<Run> runs;
+  runs.reserve(chunks_.size());
+  for (std::size_t c = 0; c < chunks_.size(); ++c) {
+    runs.push_back(
+        {chunks_[c], Patches::iterator(&chunks_, c, 0), Patches::iterator(&chunks_, c + 1, 0)});
+  }
+  return runs;
+}
+
+std::shared_ptr<const void> Model::runOf(const PatchKey& key) const {
+  const Place place = locate(key);
+  return place.found ? chunks_[place.chunk] : nullptr;
+}
+
 std::vector<PatchKey> Model::children(const PatchKey& key) const {
   std::vector<PatchKey> result;
   const PatchInfo& info = at(key);

@@ -107,6 +107,15 @@ class Model {
   class Patches;
   Patches patches() const;
 
+  /// The patches in runs: consecutive patches in key order that the copies of a model share until
+  /// one of them changes one (its copy-on-write chunks). A run's `id` stands for its content, the
+  /// same keys and nodes, for as long as it is held (nothing held elsewhere is changed in place):
+  /// what memos of text derived from patches (the hierarchy's) key on.
+  struct Run;
+  std::vector<Run> runs() const;
+  /// The id of the run holding `key`; null when the model has no such patch.
+  std::shared_ptr<const void> runOf(const PatchKey& key) const;
+
   /// Union of the global boxes of the children of `key` (empty for a leaf).
   Box3d childrenBox(const PatchKey& key) const;
 
@@ -238,6 +247,11 @@ class Model::Patches {
 inline Model::Patches Model::patches() const {
   return Patches(chunks_, size_);
 }
+
+struct Model::Run {
+  std::shared_ptr<const void> id;
+  Patches::iterator begin, end;
+};
 
 /// A 64-bit digest of what a patch's entity tags name: its key, version, folder, child mask,
 /// global box and Local2Global. The same in every process and build (no addresses, no seeds).

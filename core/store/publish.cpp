@@ -127,7 +127,8 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
                         changed_.size(), removed_.size(), options.restoredFrom,
                         nonce_,          options.token};
   const std::unique_ptr<durable::PendingFile> hierarchy =
-      stageHierarchy(live_.dir_, *model_, &snapshot->revision);
+      stageHierarchy(live_.dir_, *model_, &snapshot->revision, "patchhierarchy.xml",
+                     &live_.writer_->hierarchyText);
   // Its index (opc_index.hpp), for the staged file's stamp, which the rename keeps: committed just
   // before the hierarchy, both made durable by the one sync of Patches/ in step 4. A crash between
   // the two renames leaves the old hierarchy with an index of another stamp: read in full once.

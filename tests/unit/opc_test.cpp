@@ -8,6 +8,7 @@
 #include <cstring>
 #include <fstream>
 #include <map>
+#include <random>
 #include <sstream>
 #include <string_view>
 
@@ -822,6 +823,70 @@ TEST_F(OpcStoreTest, AFencingTokenRoundTripsAndItsAbsenceIsValid) {
     EXPECT_EQ(codeOf([&] { readRevisionRecord(file); }), ErrorCode::Corrupt) << to;
     EXPECT_EQ(validateOpc(opc()).size(), 1u) << to;
   }
+}
+
+// The hierarchy made through a memo of the last one is the one made anew, publish after publish,
+// whatever changed: folders of children whose parents did not change, leaves added and removed,
+// and an older version written again.
+PatchInfo named(const PatchKey& key, std::string folder) {
+  PatchInfo info;
+  info.key = key;
+  info.folder = std::move(folder);
+  return info;
+}
+
+TEST_F(OpcStoreTest, AHierarchyMadeThroughTheMemoOfTheLastIsTheOneMadeAnew) {
+  Model model(kSize);
+  model.insert(named(PatchKey::root(), "root"));
+  for (int depth = 1; depth <= 6; ++depth) {  // 5,461 patches: many runs
+    for (std::uint32_t y = 0; y < (1u << depth); ++y) {
+      for (std::uint32_t x = 0; x < (1u << depth); ++x) {
+        const PatchKey key{depth, x, y};
+        model.insert(named(key, key.toString()));
+      }
+    }
+  }
+  const auto staged = [&](const Model& m, HierarchyMemo* memo) {
+    return readText(stageHierarchy(opc(), m, nullptr, "patchhierarchy.xml", memo)->staged());
+  };
+  HierarchyMemo memo;
+  std::mt19937 random(7);
+  std::vector<Model> versions{model};
+  std::size_t reused = 0;
+  for (int round = 0; round < 30; ++round) {
+    const std::string made = staged(model, &memo);
+    EXPECT_EQ(made, staged(model, nullptr)) << "round " << round;
+    EXPECT_GT(memo.bytes(), made.size() / 2);
+    reused += memo.lastReused().first;
+    EXPECT_LT(memo.lastReused().first, memo.lastReused().second);
+    versions.push_back(model);
+    for (int step = 0; step < 3; ++step) {
+      std::vector<PatchKey> keys;
+      for (const auto& [key, info] : model.patches()) {
+        keys.push_back(key);
+      }
+      const PatchKey key = keys[random() % keys.size()];
+      switch (random() % 3) {
+        case 0:  // a new folder, the parent as it was
+          model.edit(key).folder = key.toString() + "-r" + std::to_string(round);
+          break;
+        case 1:
+          if (key.depth > 0 && model.at(key).isLeaf()) {
+            model.eraseLeaf(key);
+          }
+          break;
+        default:
+          if (key.depth < 7 && model.find(key.child(Quadrant::SE)) == nullptr) {
+            const PatchKey child = key.child(Quadrant::SE);
+            model.insert(named(child, child.toString()));
+          }
+      }
+    }
+  }
+  EXPECT_GT(reused, 29u * 5u) << "a few changes a round leave many runs as they were";
+  // A restore: an older version's runs, then the newest again.
+  EXPECT_EQ(staged(versions[3], &memo), staged(versions[3], nullptr));
+  EXPECT_EQ(staged(model, &memo), staged(model, nullptr));
 }
 
 TEST_F(OpcStoreTest, APatchXmlThatIsBrokenIsCorrupt) {
