@@ -673,7 +673,7 @@ std::optional<OpcRevision> readIndexOf(const fs::path& hierarchyFile, const fs::
     }
     std::optional<Model> model;
     if (std::shared_ptr<const Model> known = memo != nullptr ? memo->find(delta->base) : nullptr) {
-      model = applyDelta(*known, *delta);  // a copy of 4,000 chunk pointers at 10^6 patches
+      model = applyDelta(*known, *delta);  // a copy of its chunk pointers: ~1/256 of its patches
     } else {
       std::optional<Model> base =
           decodeBase(*delta, MappedIndex(index.parent_path() / delta->base.name).bytes());

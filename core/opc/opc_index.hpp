@@ -152,7 +152,7 @@ std::optional<IndexedRevision> decodeOpcIndexHead(std::span<const std::byte> byt
 std::optional<IndexedRevision> readIndexedRevision(const std::filesystem::path& hierarchyFile);
 
 /// The last base of delta indexes a reader decoded, kept so that the next index over the same base
-/// (a replica following small publishes, a kept revision read) decodes only its delta: its model
+/// (a replica following small publishes: LiveModel::reopen) decodes only its delta: its model
 /// is a copy of the base's, sharing the base's chunks and nodes wherever the delta does not reach
 /// (so keeping the base costs the patches its deltas replaced). Thread-safe.
 class IndexBaseMemo {

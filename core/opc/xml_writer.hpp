@@ -35,9 +35,6 @@ class XmlWriter {
   /// The number of elements open, with a fragment's enclosing ones.
   std::size_t depth() const { return depth_ + open_.size(); }
 
-  /// Makes room for a document of `bytes` (a hint: it grows past it as needed).
-  void reserve(std::size_t bytes) { out_.reserve(bytes); }
-
   /// Closes every element still open and returns the document.
   std::string finish() &&;
 
