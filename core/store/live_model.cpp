@@ -177,7 +177,7 @@ void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSna
 std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name, PatchCache& cache,
                                            Access access, std::uint64_t texturePixels) {
   if (access == Access::Read) {
-    return load(dir, std::move(name), cache, nullptr, false, texturePixels);
+    return load(dir, std::move(name), cache, nullptr, texturePixels);
   }
   patchesDirOf(dir);  // NotFound for a directory without an OPC, before anything is created
   std::shared_ptr<const durable::WriterLock> lock;
@@ -188,13 +188,13 @@ std::unique_ptr<LiveModel> LiveModel::open(const fs::path& dir, std::string name
     if (access != Access::WriteIfPossible || (e.code() != ErrorCode::Conflict && !unwritable)) {
       throw;
     }
-    auto model = load(dir, std::move(name), cache, nullptr, false, texturePixels);
+    auto model = load(dir, std::move(name), cache, nullptr, texturePixels);
     model->readOnlyReason_ = e.what();
     return model;
   }
   auto writer = std::make_shared<Writer>();
   writer->lock = std::move(lock);
-  return load(dir, std::move(name), cache, std::move(writer), true, texturePixels);
+  return load(dir, std::move(name), cache, std::move(writer), texturePixels);
 }
 
 ModelChange changeSince(const std::shared_ptr<const Model>& before, const ModelSnapshot& after) {
@@ -210,11 +210,11 @@ std::unique_ptr<LiveModel> LiveModel::reopen() const {
     std::lock_guard lock(writer_->mutex);
     writer_->revisionFiles.reset();
   }
-  return load(dir_, name_, store_->cache(), writer_, false, texturePixels(), indexBases_);
+  return load(dir_, name_, store_->cache(), writer_, texturePixels(), indexBases_);
 }
 
 std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name, PatchCache& cache,
-                                           std::shared_ptr<Writer> writer, bool sweep,
+                                           std::shared_ptr<Writer> writer,
                                            std::uint64_t texturePixels,
                                            std::shared_ptr<IndexBaseMemo> indexBases) {
   // Stamped before reading: a publish during the read leaves a stamp that differs from the file's.
@@ -227,18 +227,11 @@ std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name
   }
   std::shared_ptr<ModelSnapshot> snapshot = snapshotOf(
       readOpcRevision(dir, "patchhierarchy.xml", indexBases.get()), patches / "patchhierarchy.xml");
-  const Model& model = *snapshot->model;
   if (writer != nullptr) {
     // A publish interrupted after its commit point left these undone; they are idempotent.
     finishHierarchy(dir);
   }
-  if (sweep) {
-    sweepLeftovers(dir, name, *snapshot);
-  }
-  auto store = std::make_shared<Store>(dir, cache, name, model.gridSize(), texturePixels);
-  for (const auto& [key, info] : model.patches()) {
-    store->add(model.shared(key));
-  }
+  auto store = std::make_shared<Store>(dir, cache, name, snapshot->model, texturePixels);
   const std::uint64_t version = snapshot->version;
   auto live = std::unique_ptr<LiveModel>(
       new LiveModel(dir, std::move(name), std::move(store), snapshot, std::move(writer)));
@@ -312,12 +305,24 @@ void LiveModel::onNewVersion(NewVersionObserver observer) {
   onNewVersion_ = std::move(observer);
 }
 
+void LiveModel::removeLeftovers() {
+  if (writer_ == nullptr) {
+    return;
+  }
+  std::lock_guard lock(writer_->leftoversMutex);
+  if (!writer_->leftoversRemoved) {
+    sweepLeftovers(dir_, name_, *snapshot());
+    writer_->leftoversRemoved = true;
+  }
+}
+
 std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
   if (writer_ == nullptr) {
     throw Error(ErrorCode::Conflict,
                 "model '" + name_ + "' is open for reading only" +
                     (readOnlyReason_.empty() ? std::string() : ": " + readOnlyReason_));
   }
+  removeLeftovers();  // before any draft of this process exists
   const std::optional<HierarchyStamp> onDisk = hierarchyStamp(dir_);  // no lock held over I/O
   std::lock_guard lock(writer_->mutex);
   if (writer_->editing) {

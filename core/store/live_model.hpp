@@ -100,10 +100,8 @@ class LiveModel {
   ///
   /// Access::Write takes the writer lock first (Error(Conflict) naming the holder when another
   /// writer has it), then, under it, completes what an interrupted publish left after its commit
-  /// point (OpcWriter::finishHierarchy) and removes what interrupted edits of vsm left behind:
-  /// folders named like vsm's ("d_x_y", "d_x_y-vN") that the hierarchy does not name, their
-  /// texture tiles, and temporary files of interrupted writes (a removal that fails is logged and
-  /// retried at the next open). Throws as readOpcModel, and Error(Io).
+  /// point (OpcWriter::finishHierarchy); what interrupted edits left behind is removed later, by
+  /// removeLeftovers(). Throws as readOpcModel, and Error(Io).
   ///
   /// `texturePixels` bounds the texture files it decodes (readTextureTile's `maxPixels`).
   static std::unique_ptr<LiveModel> open(const std::filesystem::path& dir, std::string name,
@@ -114,8 +112,9 @@ class LiveModel {
   /// the lock, the one edit of the model and the revisions readers hold. After a failed write
   /// nothing this opening holds in memory is trusted. From then on only the new opening can begin
   /// an edit (this one answers Conflict); readers of this one finish on it, and the revisions they
-  /// hold are kept as snapshots are. It does not remove leftovers (readers of this opening may
-  /// still read the old version's folders); the next open() does. Throws as open().
+  /// hold are kept as snapshots are. Leftovers are removed once per open(), before its first
+  /// edit, so never again after a reopen (readers of this opening may still read the old version's
+  /// folders); the next open() removes them. Throws as open().
   std::unique_ptr<LiveModel> reopen() const;
   /// Precondition: no edit open.
   ~LiveModel();
@@ -207,6 +206,16 @@ class LiveModel {
       std::uint64_t version, const std::set<PatchKey>& changed, const std::set<PatchKey>& removed)>;
   void onNewVersion(NewVersionObserver observer);
 
+  /// For an opening that writes: removes what interrupted edits of vsm left behind: folders named
+  /// like vsm's ("d_x_y", "d_x_y-vN") that no kept revision names, their texture tiles, indexes of
+  /// no kept hierarchy, and temporary files of interrupted writes (a removal that fails is logged
+  /// and retried at the next open). Once per open() for writing, before its first edit: beginEdit
+  /// calls it, and a caller that opens many models calls it when it has time (the daemon, once it
+  /// serves: at 10^6 patches this lists a million folders). Later calls, and calls on an opening
+  /// for reading, do nothing. Throws Error(Io) when Patches/ cannot be listed (the next call tries
+  /// again).
+  void removeLeftovers();
+
   /// Removes the folders of dropped revisions whose last reader has let go. Letting go only
   /// queues them (it may happen on a network thread or under a lock, and a removal is slow
   /// I/O); the publish that dropped them and the daemon's housekeeping (ModelRegistry) call
@@ -239,7 +248,7 @@ class LiveModel {
   /// opening (a reading one makes its own) and for a writer's, which keeps none.
   static std::unique_ptr<LiveModel> load(const std::filesystem::path& dir, std::string name,
                                          PatchCache& cache, std::shared_ptr<Writer> writer,
-                                         bool sweep, std::uint64_t texturePixels,
+                                         std::uint64_t texturePixels,
                                          std::shared_ptr<IndexBaseMemo> indexBases = nullptr);
 
   std::filesystem::path dir_;
@@ -289,6 +298,10 @@ struct LiveModel::Writer {
   /// go anywhere, on any thread, with any other lock held.
   std::mutex retiredMutex;
   std::vector<std::pair<std::weak_ptr<Store>, FolderSet>> retired;
+  /// Set once removeLeftovers() has run (guarded by leftoversMutex, held over the removal, which
+  /// takes writer->mutex and mutex_ of the current opening for moments).
+  std::mutex leftoversMutex;
+  bool leftoversRemoved = false;
   std::mutex mutex;  // guards everything below but hierarchyText (its own lock)
   bool editing = false;
   /// The newest opening: the only one that may begin an edit.

@@ -12,9 +12,13 @@ namespace fs = std::filesystem;
 
 namespace vsm::core {
 
-LiveModel::Store::Store(fs::path dir, PatchCache& cache, const std::string& name, int gridSize,
-                        std::uint64_t texturePixels)
-    : dir_(std::move(dir)), cache_(cache), shape_(gridSize), texturePixels_(texturePixels) {
+LiveModel::Store::Store(fs::path dir, PatchCache& cache, const std::string& name,
+                        std::shared_ptr<const Model> current, std::uint64_t texturePixels)
+    : dir_(std::move(dir)),
+      cache_(cache),
+      shape_(current->gridSize()),
+      current_(std::move(current)),
+      texturePixels_(texturePixels) {
   id_ = cache_.addModel(name, *this);
 }
 
@@ -27,29 +31,60 @@ LiveModel::Store::~Store() {
 }
 
 void LiveModel::Store::add(std::shared_ptr<const PatchInfo> info) {
+  std::lock_guard lock(mutex_);
+  addLocked(std::move(info));
+}
+
+void LiveModel::Store::addLocked(std::shared_ptr<const PatchInfo> info) {
   if (info->grid != nullptr) {  // the cache holds vertex data, within its budget; never the store
     auto copy = std::make_shared<PatchInfo>(*info);
     copy->grid.reset();
     info = std::move(copy);
   }
-  const std::pair<PatchKey, std::uint64_t> id{info->key, info->version};
-  std::lock_guard lock(mutex_);
-  versions_[id] = std::move(info);
+  std::pair<PatchKey, std::uint64_t> id{info->key, info->version};
+  others_.insert_or_assign(std::move(id), std::move(info));
 }
 
 void LiveModel::Store::forget(const PatchKey& key, std::uint64_t version) {
   std::lock_guard lock(mutex_);
-  versions_.erase({key, version});
+  others_.erase({key, version});
+}
+
+void LiveModel::Store::addRevision(const Model& revision) {
+  std::lock_guard lock(mutex_);
+  for (const auto& [key, info] : revision.patches()) {
+    const PatchInfo* current = current_->find(key);
+    if (current == nullptr || current->version != info.version) {
+      addLocked(revision.shared(key));
+    }
+  }
+}
+
+void LiveModel::Store::publish(std::shared_ptr<const Model> next, const ModelChange& change) {
+  std::lock_guard lock(mutex_);
+  const auto keepReplaced = [&](const PatchKey& key) {
+    if (current_->find(key) != nullptr) {
+      addLocked(current_->shared(key));
+    }
+  };
+  for (const PatchKey& key : change.changed) {
+    keepReplaced(key);
+    others_.erase({key, next->at(key).version});  // a draft until now
+  }
+  for (const PatchKey& key : change.removed) {
+    keepReplaced(key);
+  }
+  current_ = std::move(next);
 }
 
 void LiveModel::Store::forgetFolders(const FolderSet& folders) {
   std::vector<std::pair<PatchKey, std::uint64_t>> gone;
   {
     std::lock_guard lock(mutex_);
-    for (auto it = versions_.begin(); it != versions_.end();) {
+    for (auto it = others_.begin(); it != others_.end();) {
       if (folders.contains(it->second->folder)) {
         gone.push_back(it->first);
-        it = versions_.erase(it);
+        it = others_.erase(it);
       } else {
         ++it;
       }
@@ -98,8 +133,12 @@ void LiveModel::Store::writeBack(const ObjectId& id, const CacheValue& value) {
 
 std::shared_ptr<const PatchInfo> LiveModel::Store::lookup(const ObjectId& id) const {
   std::lock_guard lock(mutex_);
-  const auto it = versions_.find({id.key, id.version});
-  if (it == versions_.end()) {
+  if (const PatchInfo* current = current_->find(id.key);
+      current != nullptr && current->version == id.version) {
+    return current_->shared(id.key);
+  }
+  const auto it = others_.find({id.key, id.version});
+  if (it == others_.end()) {
     throw Error(ErrorCode::NotFound, "patch " + id.key.toString() + " version " +
                                          std::to_string(id.version) + " is not stored");
   }

@@ -194,6 +194,7 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   index.index->commit();
   hierarchy->commit();
   published_ = true;
+  store.publish(model_, snapshot->published->change);
   const std::optional<HierarchyStamp> stamp = hierarchyStamp(live_.dir_);
   {
     std::lock_guard lock(live_.mutex_);

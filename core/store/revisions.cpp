@@ -161,9 +161,7 @@ std::shared_ptr<ModelSnapshot> LiveModel::readRevision(std::uint64_t revision) {
     throw Error(ErrorCode::Corrupt, file.string() + " does not hold revision " +
                                         std::to_string(revision) + " of this model");
   }
-  for (const auto& [key, info] : read->model->patches()) {
-    store_->add(read->model->shared(key));
-  }
+  store_->addRevision(*read->model);
   std::vector<std::shared_ptr<ModelSnapshot>> released;  // let go after the lock
   {
     std::lock_guard lock(mutex_);

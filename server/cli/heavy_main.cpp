@@ -308,6 +308,7 @@ int runMerge(const std::vector<std::string_view>& args) {
   options.merge.executor = &executor;
   options.publish = publish;
   options.publish.executor = &executor;
+  live->removeLeftovers();  // even when the merge fails before its edit (the detail outside)
   const MergeIntoResult merged = mergeInto(*live, *detail, options);
   if (const auto& r = merged.registration) {
     std::printf("registration: fitness %.6g m^2, rms %.4g m, %s, %d stages, %.2f s\n", r->fitness,

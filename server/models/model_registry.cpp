@@ -388,6 +388,12 @@ namespace {
 std::size_t ModelRegistry::removeRetiredFolders() {
   std::size_t removed = 0;
   for (const std::shared_ptr<core::LiveModel>& model : list()) {
+    try {
+      model->removeLeftovers();  // once per opening for writing, after the daemon is ready
+    } catch (const std::exception& e) {
+      log::warn("model=" + model->name() + " removing leftovers: " + e.what() +
+                " (tried again in a moment)");
+    }
     removed += model->removeRetiredFolders();
   }
   return removed;

@@ -166,9 +166,11 @@ class ModelRegistry {
   /// the version it serves. Versions without a token are followed.
   std::size_t follow();
   /// Removes the folders of dropped revisions whose last reader let go since
-  /// (core::LiveModel::removeRetiredFolders), for every open model: the daemon's housekeeping,
-  /// on its main thread, so that a request letting go of a revision never removes files itself.
-  /// Returns the number of folders removed.
+  /// (core::LiveModel::removeRetiredFolders), for every open model, and, once per opening for
+  /// writing, what interrupted edits left (core::LiveModel::removeLeftovers: after the daemon is
+  /// ready, not before it listens; failures logged): the daemon's housekeeping, on its main
+  /// thread, so that a request letting go of a revision never removes files itself. Returns the
+  /// number of retired folders removed.
   std::size_t removeRetiredFolders();
   /// Versions follow() refused for a stale fencing token, since the registry was made.
   std::uint64_t followsRefused() const { return followsRefused_; }

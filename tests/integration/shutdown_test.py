@@ -148,6 +148,32 @@ class Shutdown(unittest.TestCase):
                      if re.search(r"-v2(-[0-9a-f]{8})?$", n)]
         self.assertEqual(leftovers, [], "the cancelled edit left folders")
 
+    def test_what_an_interrupted_edit_left_goes_once_the_daemon_serves(self):
+        # Leftovers of a killed writer: a draft folder and tile named like vsm's, which no kept
+        # revision names, and a temporary file. vsmd opens without listing Patches/ (a folder per
+        # patch) and removes them in its housekeeping, after it answers; the model is untouched.
+        root = tempfile.mkdtemp(prefix="vsmd-test-")
+        shutil.copytree(os.path.join(self.pristine, "prism"), os.path.join(root, "prism"))
+        patches = os.path.join(root, "prism", "Patches")
+        draft = os.path.join(patches, "1_0_0-v9-0badf00d")
+        os.mkdir(draft)
+        with open(os.path.join(draft, "Patch.xml"), "w") as f:
+            f.write("half written")
+        temp = os.path.join(patches, ".patchhierarchy.xml.tmp-1-0")
+        with open(temp, "w") as f:
+            f.write("<Aard")
+        mine = os.path.join(patches, "notes")  # not named like vsm's: never touched
+        os.mkdir(mine)
+        daemon = self.start(root, models=("prism",))
+        self.assertTrue(poll(lambda: not os.path.exists(draft) and not os.path.exists(temp),
+                             timeout=60), daemon.log())
+        self.assertIn("removing leftover 1_0_0-v9-0badf00d", daemon.log())
+        self.assertTrue(os.path.isdir(mine))
+        os.rmdir(mine)
+        result = harness.vsm("validate", os.path.join(root, "prism"))
+        self.assertEqual(result.returncode, 0, result.stdout + result.stderr)
+        self.model_state(daemon)  # every patch still served
+
     def test_sigterm_after_a_merge_published_reopens_the_new_version(self):
         daemon = self.start()
         before = self.model_state(daemon)
