@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <bit>
+#include <cmath>
 #include <cstring>
 #include <string_view>
 
@@ -39,12 +40,32 @@ Model::Place Model::locate(const PatchKey& key) const {
           static_cast<std::size_t>(entry - (*chunk)->begin()), entry->key == key};
 }
 
+/// What levels() sums of one chunk, per depth in it (keys order by depth first: one or two).
+struct Model::ChunkLevels {
+  struct Level {
+    int depth = 0;
+    std::size_t patches = 0;
+    std::size_t leaves = 0;
+    std::size_t measured = 0;
+    Box3d bounds;
+    std::int64_t nanometres = 0;  // the measured resolutions' sum (< 2^63: 256 of <= 1e7 m each)
+  };
+  std::vector<Level> levels;
+};
+
+Model::Chunk::~Chunk() {
+  delete levels.load();
+}
+
 Model::Chunk& Model::writableChunk(std::size_t chunk) {
   // As writable(): a chunk another model holds is copied (its entries' nodes then count two
-  // owners, so a change to one of them copies it too).
+  // owners, so a change to one of them copies it too). The copy has no levels yet; an unshared
+  // chunk changed in place drops its own.
   std::shared_ptr<Chunk>& held = chunks_[chunk];
   if (held.use_count() > 1) {
     held = std::make_shared<Chunk>(*held);
+  } else {
+    delete held->levels.exchange(nullptr);
   }
   return *held;
 }
@@ -289,24 +310,66 @@ void Model::refreshStale(const GridLoader& load) {
 
 std::vector<LevelSummary> Model::levels() const {
   std::vector<LevelSummary> levels(static_cast<std::size_t>(maxDepth() + 1));
-  std::vector<std::size_t> measured(levels.size(), 0);
   for (std::size_t d = 0; d < levels.size(); ++d) {
     levels[d].depth = static_cast<int>(d);
   }
-  for (const auto& [key, info] : patches()) {
-    LevelSummary& level = levels[static_cast<std::size_t>(key.depth)];
-    ++level.patches;
-    level.leaves += info.isLeaf() ? 1 : 0;
-    level.bounds.extend(info.globalBox);
-    if (info.resolution > 0) {
-      level.resolution += info.resolution;
-      ++measured[static_cast<std::size_t>(key.depth)];
+  // Whole nanometres summed exactly (a __int128: any number of patches of up to 1e7 m, a
+  // resolution no surface has), so the means are the same whichever chunks the sums were kept by.
+  __extension__ using Sum = __int128;
+  std::vector<Sum> nanometres(levels.size(), 0);
+  std::vector<std::size_t> measured(levels.size(), 0);
+  for (const std::shared_ptr<Chunk>& chunk : chunks_) {
+    // The chunk's sums: kept in it when it is shared (a version and the edit over it: all but the
+    // chunks the edit touched), made afresh otherwise. Two readers of a shared chunk may both
+    // make them: the first stored wins.
+    const ChunkLevels* sums = chunk->levels.load(std::memory_order_acquire);
+    std::unique_ptr<const ChunkLevels> made;
+    if (sums == nullptr) {
+      made = std::make_unique<const ChunkLevels>(summarise(*chunk));
+      sums = made.get();
+      const ChunkLevels* stored = nullptr;
+      if (chunk.use_count() > 1) {
+        if (chunk->levels.compare_exchange_strong(stored, sums, std::memory_order_acq_rel)) {
+          made.release();
+        } else {
+          sums = stored;
+        }
+      }
+    }
+    for (const ChunkLevels::Level& part : sums->levels) {
+      const auto d = static_cast<std::size_t>(part.depth);
+      levels[d].patches += part.patches;
+      levels[d].leaves += part.leaves;
+      levels[d].bounds.extend(part.bounds);
+      nanometres[d] += part.nanometres;
+      measured[d] += part.measured;
     }
   }
   for (std::size_t d = 0; d < levels.size(); ++d) {
-    levels[d].resolution = measured[d] == 0 ? 0 : levels[d].resolution / measured[d];
+    levels[d].resolution = measured[d] == 0 ? 0
+                                            : static_cast<double>(nanometres[d]) /
+                                                  static_cast<double>(measured[d]) * 1e-9;
   }
   return levels;
+}
+
+Model::ChunkLevels Model::summarise(const Chunk& chunk) {
+  ChunkLevels sums;
+  for (const Entry& entry : chunk) {
+    if (sums.levels.empty() || sums.levels.back().depth != entry.key.depth) {
+      sums.levels.emplace_back().depth = entry.key.depth;
+    }
+    ChunkLevels::Level& level = sums.levels.back();
+    const PatchInfo& info = *entry.node;
+    ++level.patches;
+    level.leaves += info.isLeaf() ? 1 : 0;
+    level.bounds.extend(info.globalBox);
+    if (info.resolution > 0) {  // NaN is not
+      level.nanometres += std::llround(std::min(info.resolution, 1e7) * 1e9);
+      ++level.measured;
+    }
+  }
+  return sums;
 }
 
 std::vector<double> Model::avgGeometrySizes() const {

@@ -1,5 +1,6 @@
 #pragma once
 
+#include <atomic>
 #include <cstddef>
 #include <cstdint>
 #include <functional>
@@ -59,7 +60,8 @@ struct LevelSummary {
   std::size_t patches = 0;
   std::size_t leaves = 0;
   Box3d bounds;
-  /// Mean of the patches' resolutions at this depth (metres).
+  /// Mean of the patches' resolutions at this depth (metres), each taken in whole nanometres, so
+  /// that it is exactly the same however the sum is grouped.
   double resolution = 0;
 };
 
@@ -147,7 +149,17 @@ class Model {
     PatchKey key;
     std::shared_ptr<PatchInfo> node;
   };
-  using Chunk = std::vector<Entry>;
+  struct ChunkLevels;  // model.cpp
+  /// The entries, and what levels() summed of them, made when a levels() found the chunk shared
+  /// (so never changed in place again: writableChunk copies it) and dropped by writableChunk.
+  struct Chunk : std::vector<Entry> {
+    using std::vector<Entry>::vector;
+    Chunk() = default;
+    Chunk(const Chunk& other) : std::vector<Entry>(other) {}
+    Chunk& operator=(const Chunk&) = delete;
+    ~Chunk();
+    mutable std::atomic<const ChunkLevels*> levels{nullptr};
+  };
   using Chunks = std::vector<std::shared_ptr<Chunk>>;
   static constexpr std::size_t kChunkSize = 256;
   /// Where a key is or would go: chunk, index in it, and whether the entry there holds the key.
@@ -157,6 +169,7 @@ class Model {
     bool found = false;
   };
   Place locate(const PatchKey& key) const;
+  static ChunkLevels summarise(const Chunk& chunk);
   /// The chunk to change: a copy of its own when another model shares it.
   Chunk& writableChunk(std::size_t chunk);
   /// The node to change: a copy of its own when another model shares it (edit()).
