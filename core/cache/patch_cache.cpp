@@ -24,6 +24,8 @@ std::string_view toString(MemoryCategory category) {
       return "encoded";
     case MemoryCategory::OpenFiles:
       return "open_files";
+    case MemoryCategory::Metadata:
+      return "metadata";
   }
   return "unknown";
 }
@@ -79,7 +81,9 @@ struct Entry {
 struct ModelSlot {
   std::string name;
   PatchStore* store = nullptr;
+  /// Its entries' bytes and its metadata charge.
   std::size_t residentBytes = 0;
+  std::size_t metadataBytes = 0;
 };
 
 }  // namespace
@@ -107,6 +111,16 @@ struct PatchCache::Impl {
   void chargeHandles(Entry& e, std::size_t handles) {
     usedHandles = usedHandles - e.handles + handles;
     e.handles = handles;
+  }
+
+  void chargeMetadata(ModelId model, std::size_t bytes) {
+    ModelSlot& held = models.at(model);
+    used = used - held.metadataBytes + bytes;
+    peak = std::max(peak, used);
+    usedByCategory[static_cast<std::size_t>(MemoryCategory::Metadata)] +=
+        bytes - held.metadataBytes;
+    held.residentBytes = held.residentBytes - held.metadataBytes + bytes;
+    held.metadataBytes = bytes;
   }
 
   void charge(Entry& e, std::ptrdiff_t delta) {
@@ -241,6 +255,9 @@ struct PatchCache::Impl {
 
   void makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed, std::size_t budget,
                 EvictionPolicy policy, std::size_t neededHandles = 0);
+  /// makeRoom's evictions: false, having evicted what it could, when what is left is pinned.
+  bool evictUntilFits(std::unique_lock<std::mutex>& lock, std::size_t needed, std::size_t budget,
+                      EvictionPolicy policy, std::size_t neededHandles);
 
   /// The one write-back protocol (an eviction's and a flush's): writes dirty `e` through its
   /// model's store with `lock` released, `e` WritingBack meanwhile (resident and readable, but
@@ -316,7 +333,7 @@ void PatchCache::unpin(void* entry) {
 PatchCache::ModelId PatchCache::addModel(std::string name, PatchStore& store) {
   std::lock_guard lock(impl_->mutex);
   const ModelId id = impl_->nextModel++;
-  impl_->models.emplace(id, ModelSlot{std::move(name), &store, 0});
+  impl_->models.emplace(id, ModelSlot{std::move(name), &store, 0, 0});
   return id;
 }
 
@@ -348,7 +365,15 @@ void PatchCache::removeModel(ModelId model) {
       break;
     }
   }
+  impl_->chargeMetadata(model, 0);
   impl_->models.erase(model);
+}
+
+void PatchCache::chargeMetadata(ModelId model, std::size_t bytes) {
+  std::unique_lock lock(impl_->mutex);
+  impl_->slot(model);  // NotFound for an unknown model
+  impl_->chargeMetadata(model, bytes);
+  impl_->evictUntilFits(lock, 0, budget_, policy_, 0);  // what stays pinned stays
 }
 
 // ---- room ------------------------------------------------------------------------------------
@@ -359,20 +384,42 @@ void PatchCache::removeModel(ModelId model) {
 void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t needed,
                                 std::size_t budget, EvictionPolicy policy,
                                 std::size_t neededHandles) {
-  Impl& impl = *this;
-  if (needed > budget || neededHandles > impl.handleBudget) {
-    ++impl.exhausted;
+  if (needed > budget || neededHandles > handleBudget) {
+    ++exhausted;
     throw Error(ErrorCode::ResourceExhausted,
                 needed > budget
                     ? "object of " + std::to_string(needed) +
                           " bytes exceeds the memory budget of " + std::to_string(budget) + " bytes"
                     : "object holds more descriptors than the cache may");
   }
+  if (!evictUntilFits(lock, needed, budget, policy, neededHandles)) {
+    ++exhausted;
+    const std::size_t metadata = usedByCategory[static_cast<std::size_t>(MemoryCategory::Metadata)];
+    std::string why;
+    if (used + needed <= budget) {
+      why = "every one of the " + std::to_string(handleBudget) +
+            " open files the cache may hold is in use";
+    } else if (metadata + needed > budget) {
+      why = "object of " + std::to_string(needed) + " bytes does not fit in the memory budget of " +
+            std::to_string(budget) + " bytes beside the " + std::to_string(metadata) +
+            " bytes of the open models' metadata: raise the budget";
+    } else {
+      why = "memory budget of " + std::to_string(budget) +
+            " bytes is exhausted: every resident patch is in use";
+    }
+    throw Error(ErrorCode::ResourceExhausted, why);
+  }
+}
+
+bool PatchCache::Impl::evictUntilFits(std::unique_lock<std::mutex>& lock, std::size_t needed,
+                                      std::size_t budget, EvictionPolicy policy,
+                                      std::size_t neededHandles) {
+  Impl& impl = *this;
   for (;;) {
     const bool bytesShort = impl.used + needed > budget;
     const bool handlesShort = impl.usedHandles + neededHandles > impl.handleBudget;
     if (!bytesShort && !handlesShort) {
-      break;
+      return true;
     }
     Entry* victim = impl.chooseVictim(policy, !bytesShort);
     if (victim == nullptr) {
@@ -380,12 +427,7 @@ void PatchCache::Impl::makeRoom(std::unique_lock<std::mutex>& lock, std::size_t 
         impl.changed.wait(lock);
         continue;
       }
-      ++impl.exhausted;
-      throw Error(ErrorCode::ResourceExhausted,
-                  bytesShort ? "memory budget of " + std::to_string(budget) +
-                                   " bytes is exhausted: every resident patch is in use"
-                             : "every one of the " + std::to_string(impl.handleBudget) +
-                                   " open files the cache may hold is in use");
+      return false;
     }
     if (!victim->dirty) {
       ++impl.evictions;

@@ -16,15 +16,17 @@ namespace vsm::core {
 /// store loads it (Positions, Coordinates, Textures); Encoded, data the cache's user derived from
 /// patch data (a file format, a compressed image), its kind told by ObjectId::format; OpenFiles,
 /// stored files the user holds open (their bookkeeping bytes; each holds descriptors, counted
-/// against the handle budget).
+/// against the handle budget); Metadata, what the open models hold in memory besides (their trees
+/// of patch descriptions: PatchCache::chargeMetadata), never an entry.
 enum class MemoryCategory : std::uint8_t {
   Positions = 0,
   Coordinates,
   Textures,
   Encoded,
-  OpenFiles
+  OpenFiles,
+  Metadata
 };
-inline constexpr std::size_t kMemoryCategoryCount = 5;
+inline constexpr std::size_t kMemoryCategoryCount = 6;
 std::string_view toString(MemoryCategory category);
 
 /// What the cache holds: one version of one kind of data of one patch. Versions of a key are
@@ -130,10 +132,12 @@ struct CacheStats {
   std::uint64_t exhausted = 0;
 };
 
-/// One memory budget over every open model. Only objects loaded through the cache count: model
-/// metadata stays outside it. Resident bytes never exceed the budget: room is made *before* a load
-/// by evicting unpinned entries (clean ones dropped, dirty ones written back first); when that is
-/// not enough the caller gets Error(ResourceExhausted), never an allocation failure. A second,
+/// One memory budget over every open model: the objects loaded through the cache, and the models'
+/// metadata as their users charge it (chargeMetadata). Resident bytes never exceed the budget:
+/// room is made *before* a load by evicting unpinned entries (clean ones dropped, dirty ones
+/// written back first); when that is not enough the caller gets Error(ResourceExhausted), never an
+/// allocation failure. Metadata is never evicted: a charge makes room as a load does, and when the
+/// metadata alone leaves no room, loads fail so, saying so. A second,
 /// smaller budget bounds the descriptors entries hold (open files put by the user), so that the
 /// process never runs out of them: beyond it the least recently used unpinned file is closed.
 ///
@@ -180,9 +184,17 @@ class PatchCache {
 
   /// Registers a model; `store` must outlive removeModel(). `name` is for statistics.
   ModelId addModel(std::string name, PatchStore& store);
-  /// Writes back the model's dirty entries and drops all of them. Precondition: none pinned.
-  /// Throws the store's error when a write-back fails (entries stay until a retry succeeds).
+  /// Writes back the model's dirty entries and drops all of them, and its metadata charge.
+  /// Precondition: none pinned. Throws the store's error when a write-back fails (entries stay
+  /// until a retry succeeds).
   void removeModel(ModelId model);
+
+  /// Sets the bytes of metadata the model holds in memory (MemoryCategory::Metadata, replacing its
+  /// last charge) and evicts unpinned entries until everything fits again, as far as they allow:
+  /// metadata is there whether it fits or not, so this never fails for want of room (resident
+  /// bytes then stay above the budget until entries are unpinned). Throws Error(NotFound) for an
+  /// unknown model, and the store's error when a dirty entry's write-back fails.
+  void chargeMetadata(ModelId model, std::size_t bytes);
 
   /// Returns the object, loading it on a miss. Throws Error(ResourceExhausted) when it cannot fit
   /// even after evicting everything unpinned, or the store's error.

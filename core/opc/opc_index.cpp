@@ -641,6 +641,11 @@ std::shared_ptr<const Model> IndexBaseMemo::find(const IndexBase& base) const {
   return same ? model_ : nullptr;
 }
 
+std::shared_ptr<const Model> IndexBaseMemo::model() const {
+  std::lock_guard lock(mutex_);
+  return model_;
+}
+
 void IndexBaseMemo::keep(const IndexBase& base, std::shared_ptr<const Model> model) {
   std::lock_guard lock(mutex_);
   base_ = base;

@@ -161,6 +161,8 @@ class IndexBaseMemo {
   std::shared_ptr<const Model> find(const IndexBase& base) const;
   /// Keeps `model` as the model of `base`, in place of the one kept before.
   void keep(const IndexBase& base, std::shared_ptr<const Model> model);
+  /// The model kept; null when none is.
+  std::shared_ptr<const Model> model() const;
 
  private:
   mutable std::mutex mutex_;

@@ -41,7 +41,7 @@ Model::Place Model::locate(const PatchKey& key) const {
 }
 
 /// What levels() sums of one chunk, per depth in it (keys order by depth first: one or two).
-struct Model::ChunkLevels {
+struct Model::ChunkSums {
   struct Level {
     int depth = 0;
     std::size_t patches = 0;
@@ -51,10 +51,12 @@ struct Model::ChunkLevels {
     std::int64_t nanometres = 0;  // the measured resolutions' sum (< 2^63: 256 of <= 1e7 m each)
   };
   std::vector<Level> levels;
+  /// Heap bytes of the chunk and its nodes (Model::heapBytes).
+  std::size_t bytes = 0;
 };
 
 Model::Chunk::~Chunk() {
-  delete levels.load();
+  delete sums.load();
 }
 
 Model::Chunk& Model::writableChunk(std::size_t chunk) {
@@ -65,7 +67,7 @@ Model::Chunk& Model::writableChunk(std::size_t chunk) {
   if (held.use_count() > 1) {
     held = std::make_shared<Chunk>(*held);
   } else {
-    delete held->levels.exchange(nullptr);
+    delete held->sums.exchange(nullptr);
   }
   return *held;
 }
@@ -319,24 +321,11 @@ std::vector<LevelSummary> Model::levels() const {
   std::vector<Sum> nanometres(levels.size(), 0);
   std::vector<std::size_t> measured(levels.size(), 0);
   for (const std::shared_ptr<Chunk>& chunk : chunks_) {
-    // The chunk's sums: kept in it when it is shared (a version and the edit over it: all but the
-    // chunks the edit touched), made afresh otherwise. Two readers of a shared chunk may both
-    // make them: the first stored wins.
-    const ChunkLevels* sums = chunk->levels.load(std::memory_order_acquire);
-    std::unique_ptr<const ChunkLevels> made;
-    if (sums == nullptr) {
-      made = std::make_unique<const ChunkLevels>(summarise(*chunk));
-      sums = made.get();
-      const ChunkLevels* stored = nullptr;
-      if (chunk.use_count() > 1) {
-        if (chunk->levels.compare_exchange_strong(stored, sums, std::memory_order_acq_rel)) {
-          made.release();
-        } else {
-          sums = stored;
-        }
-      }
-    }
-    for (const ChunkLevels::Level& part : sums->levels) {
+    // Kept in the chunk when it is shared (a version and the edit over it: all but the chunks the
+    // edit touched), made afresh otherwise.
+    std::unique_ptr<const ChunkSums> made;
+    const ChunkSums& sums = sumsOf(chunk, chunk.use_count() > 1, made);
+    for (const ChunkSums::Level& part : sums.levels) {
       const auto d = static_cast<std::size_t>(part.depth);
       levels[d].patches += part.patches;
       levels[d].leaves += part.leaves;
@@ -353,14 +342,56 @@ std::vector<LevelSummary> Model::levels() const {
   return levels;
 }
 
-Model::ChunkLevels Model::summarise(const Chunk& chunk) {
-  ChunkLevels sums;
+std::size_t Model::heapBytes(std::unordered_set<const void*>& counted) const {
+  std::size_t bytes = chunks_.capacity() * sizeof(std::shared_ptr<Chunk>);
+  for (const std::shared_ptr<Chunk>& chunk : chunks_) {
+    if (counted.insert(chunk.get()).second) {
+      std::unique_ptr<const ChunkSums> made;
+      bytes += sumsOf(chunk, true, made).bytes;
+    }
+  }
+  return bytes;
+}
+
+const Model::ChunkSums& Model::sumsOf(const std::shared_ptr<Chunk>& chunk, bool keep,
+                                      std::unique_ptr<const ChunkSums>& made) {
+  // Two readers of a shared chunk may both make them: the first stored wins.
+  const ChunkSums* sums = chunk->sums.load(std::memory_order_acquire);
+  if (sums != nullptr) {
+    return *sums;
+  }
+  made = std::make_unique<const ChunkSums>(summarise(*chunk));
+  const ChunkSums* stored = nullptr;
+  if (keep && chunk->sums.compare_exchange_strong(stored, made.get(), std::memory_order_acq_rel)) {
+    return *made.release();
+  }
+  return stored != nullptr ? *stored : *made;
+}
+
+namespace {
+
+/// Heap bytes of a string's own buffer (none within the small-string buffer), with overhead.
+std::size_t heapOf(const std::string& text) {
+  return text.capacity() > 15 ? text.capacity() + 1 + 16 : 0;
+}
+
+}  // namespace
+
+Model::ChunkSums Model::summarise(const Chunk& chunk) {
+  ChunkSums sums;
+  // The chunk (its control block and vector, one block, and its entries' array), then each node
+  // (one block with its control block) with its strings.
+  constexpr std::size_t kOverhead = 16;
+  sums.bytes = sizeof(Chunk) + 16 + kOverhead + chunk.capacity() * sizeof(Entry) + kOverhead;
   for (const Entry& entry : chunk) {
+    const PatchInfo& info = *entry.node;
+    sums.bytes += sizeof(PatchInfo) + 16 + kOverhead + heapOf(info.folder) +
+                  heapOf(info.positionsFile) + heapOf(info.coordinatesFile) +
+                  heapOf(info.textureFile);
     if (sums.levels.empty() || sums.levels.back().depth != entry.key.depth) {
       sums.levels.emplace_back().depth = entry.key.depth;
     }
-    ChunkLevels::Level& level = sums.levels.back();
-    const PatchInfo& info = *entry.node;
+    ChunkSums::Level& level = sums.levels.back();
     ++level.patches;
     level.leaves += info.isLeaf() ? 1 : 0;
     level.bounds.extend(info.globalBox);

@@ -7,6 +7,7 @@
 #include <iterator>
 #include <memory>
 #include <string>
+#include <unordered_set>
 #include <utility>
 #include <vector>
 
@@ -141,6 +142,13 @@ class Model {
   /// entries. A depth with no measurable patch takes twice the finer depth's value.
   std::vector<double> avgGeometrySizes() const;
 
+  /// The heap bytes of this model's metadata (its chunks, their nodes and the nodes' strings; 16
+  /// bytes of allocator overhead a block), leaving out the chunks in `counted` and adding the
+  /// others to it: the bytes of several models sharing chunks, each chunk once (nodes shared
+  /// between chunks that are not are counted with each: an upper estimate). For a model no one
+  /// changes any more (a published version): each chunk keeps what it found.
+  std::size_t heapBytes(std::unordered_set<const void*>& counted) const;
+
  private:
   friend ModelChange modelChange(const Model& before, const Model& after);
 
@@ -149,16 +157,17 @@ class Model {
     PatchKey key;
     std::shared_ptr<PatchInfo> node;
   };
-  struct ChunkLevels;  // model.cpp
-  /// The entries, and what levels() summed of them, made when a levels() found the chunk shared
-  /// (so never changed in place again: writableChunk copies it) and dropped by writableChunk.
+  struct ChunkSums;  // model.cpp
+  /// The entries, and what levels() and heapBytes() summed of them: kept when a levels() found
+  /// the chunk shared (so never changed in place again: writableChunk copies it) or heapBytes()
+  /// was asked of a model no one changes, and dropped by writableChunk.
   struct Chunk : std::vector<Entry> {
     using std::vector<Entry>::vector;
     Chunk() = default;
     Chunk(const Chunk& other) : std::vector<Entry>(other) {}
     Chunk& operator=(const Chunk&) = delete;
     ~Chunk();
-    mutable std::atomic<const ChunkLevels*> levels{nullptr};
+    mutable std::atomic<const ChunkSums*> sums{nullptr};
   };
   using Chunks = std::vector<std::shared_ptr<Chunk>>;
   static constexpr std::size_t kChunkSize = 256;
@@ -169,7 +178,10 @@ class Model {
     bool found = false;
   };
   Place locate(const PatchKey& key) const;
-  static ChunkLevels summarise(const Chunk& chunk);
+  static ChunkSums summarise(const Chunk& chunk);
+  /// The chunk's sums: kept in it (when `keep`, or found kept), or made into `made`.
+  static const ChunkSums& sumsOf(const std::shared_ptr<Chunk>& chunk, bool keep,
+                                 std::unique_ptr<const ChunkSums>& made);
   /// The chunk to change: a copy of its own when another model shares it.
   Chunk& writableChunk(std::size_t chunk);
   /// The node to change: a copy of its own when another model shares it (edit()).

@@ -237,6 +237,7 @@ std::unique_ptr<LiveModel> LiveModel::load(const fs::path& dir, std::string name
       new LiveModel(dir, std::move(name), std::move(store), snapshot, std::move(writer)));
   live->revisionSnapshots_[version] = snapshot;
   live->readStamp_ = stamp;
+  live->revisionBases_ = indexBases != nullptr ? indexBases : std::make_shared<IndexBaseMemo>();
   live->indexBases_ = std::move(indexBases);
   return live;
 }
@@ -303,6 +304,39 @@ void LiveModel::onPublish(std::function<void(const ReplacedVersions&)> observer)
 void LiveModel::onNewVersion(NewVersionObserver observer) {
   std::lock_guard lock(mutex_);
   onNewVersion_ = std::move(observer);
+}
+
+void LiveModel::chargeMetadata() {
+  std::vector<std::shared_ptr<const ModelSnapshot>> snapshots;  // let go after the lock
+  {
+    std::lock_guard lock(mutex_);
+    snapshots.push_back(snapshot_);
+    for (const auto& [number, weak] : revisionSnapshots_) {
+      if (std::shared_ptr<ModelSnapshot> revision = weak.lock()) {
+        snapshots.push_back(std::move(revision));
+      }
+    }
+  }
+  std::vector<std::shared_ptr<const Model>> held;
+  for (const std::shared_ptr<const ModelSnapshot>& snapshot : snapshots) {
+    held.push_back(snapshot->model);
+  }
+  for (const IndexBaseMemo* memo : {indexBases_.get(), revisionBases_.get()}) {
+    if (memo != nullptr) {
+      if (std::shared_ptr<const Model> base = memo->model()) {
+        held.push_back(std::move(base));
+      }
+    }
+  }
+  std::unordered_set<const void*> counted;
+  std::size_t bytes = store_->otherVersionsBytes();
+  for (const std::shared_ptr<const Model>& model : held) {
+    bytes += model->heapBytes(counted);
+  }
+  if (writer_ != nullptr) {
+    bytes += writer_->hierarchyText.bytes();
+  }
+  store_->cache().chargeMetadata(store_->id(), bytes);
 }
 
 void LiveModel::removeLeftovers() {

@@ -149,7 +149,8 @@ class LiveModel {
   /// again. Thread-safe.
   std::shared_ptr<const ModelSnapshot> snapshotAt(std::uint64_t revision);
   /// How many old revisions snapshotAt keeps read (per opening; their metadata is outside the
-  /// memory budget, as every snapshot's).
+  /// memory budget, as every snapshot's; those whose indexes build on one base share it, and cost
+  /// one model and their deltas).
   static constexpr std::size_t kCachedRevisions = 8;
 
   /// What snapshotAt did, since this opening was made.
@@ -216,6 +217,16 @@ class LiveModel {
   /// again).
   void removeLeftovers();
 
+  /// Charges the metadata this opening holds in memory to the cache's budget
+  /// (PatchCache::chargeMetadata): an estimate, made of Model::heapBytes of every version it
+  /// holds (the current one, kept revisions read and still held, the index bases it keeps), each
+  /// chunk once, the store's table of the versions the current one does not hold, and a writer's
+  /// hierarchy text. The first call walks every patch (~0.3 s at 10^6: the daemon makes it in its
+  /// housekeeping, after it serves), later ones the chunks of those versions that are new since
+  /// (each chunk keeps what it found): the caller charges again often (the daemon: every half
+  /// second). Thread-safe.
+  void chargeMetadata();
+
   /// Removes the folders of dropped revisions whose last reader has let go. Letting go only
   /// queues them (it may happen on a network thread or under a lock, and a removal is slow
   /// I/O); the publish that dropped them and the daemon's housekeeping (ModelRegistry) call
@@ -266,6 +277,10 @@ class LiveModel {
   /// decodes only its delta. Null for a writer's (the base it read is soon replaced by its own
   /// publishes, and would be kept for nothing).
   std::shared_ptr<IndexBaseMemo> indexBases_;
+  /// The index base the revisions snapshotAt reads build on (indexBases_ for a reading opening,
+  /// its own for a writer's): revisions over one base share its chunks and nodes, so the
+  /// kCachedRevisions kept read cost one model and their deltas, not one model each.
+  std::shared_ptr<IndexBaseMemo> revisionBases_;
   std::string readOnlyReason_;
   /// Every snapshot of a revision this opening made that may still be held (guarded by mutex_):
   /// a publish that drops a revision hands its folder removal to it.

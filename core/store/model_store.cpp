@@ -96,6 +96,12 @@ void LiveModel::Store::forgetFolders(const FolderSet& folders) {
   }
 }
 
+std::size_t LiveModel::Store::otherVersionsBytes() const {
+  std::lock_guard lock(mutex_);
+  using Node = decltype(others_)::value_type;
+  return others_.size() * (sizeof(Node) + 32 + 16 + sizeof(PatchInfo) + 32);
+}
+
 std::size_t LiveModel::Store::expectedBytes(const ObjectId& id) const {
   const auto n = static_cast<std::size_t>(shape_.gridSize());
   return id.category == MemoryCategory::Textures ? (n - 1) * (n - 1) * TextureTile::kChannels

@@ -47,6 +47,9 @@ class LiveModel::Store final : public PatchStore {
   void publish(std::shared_ptr<const Model> next, const ModelChange& change);
   /// Forgets every version stored in one of `folders` and drops its cached data.
   void forgetFolders(const FolderSet& folders);
+  /// Heap bytes of the table of the versions the current one does not hold (their nodes counted
+  /// too, though a revision read may hold them as well: an upper estimate).
+  std::size_t otherVersionsBytes() const;
 
   std::size_t expectedBytes(const ObjectId& id) const override;
   CacheValue load(const ObjectId& id) override;

@@ -156,7 +156,7 @@ std::shared_ptr<ModelSnapshot> LiveModel::readRevision(std::uint64_t revision) {
                                          std::to_string(revision) + " (GET its revisions)");
   }
   std::shared_ptr<ModelSnapshot> read =
-      snapshotOf(readOpcRevision(dir_, file.filename().string()), file);
+      snapshotOf(readOpcRevision(dir_, file.filename().string(), revisionBases_.get()), file);
   if (read->version != revision || read->model->gridSize() != current->model->gridSize()) {
     throw Error(ErrorCode::Corrupt, file.string() + " does not hold revision " +
                                         std::to_string(revision) + " of this model");

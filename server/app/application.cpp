@@ -406,7 +406,8 @@ void Application::run() {
   start();
   // The main thread follows other writers' publishes of models open for reading only (a vsm
   // merge, another vsmd holding the writer lock), removes the folders of dropped revisions whose
-  // last reader let go, and frees the derived documents' replaced bases, until asked to stop.
+  // last reader let go, charges the models' metadata to the budget, and frees the derived
+  // documents' replaced bases, until asked to stop.
   constexpr auto kFollowEvery = std::chrono::milliseconds(500);
   for (;;) {
     {
@@ -419,7 +420,7 @@ void Application::run() {
       models_->openAll();  // models other nodes imported
     }
     models_->follow();
-    models_->removeRetiredFolders();
+    models_->housekeeping();
     data_->releaseRetired();
   }
   shutdown();

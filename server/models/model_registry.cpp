@@ -385,7 +385,7 @@ namespace {
 
 }  // namespace
 
-std::size_t ModelRegistry::removeRetiredFolders() {
+std::size_t ModelRegistry::housekeeping() {
   std::size_t removed = 0;
   for (const std::shared_ptr<core::LiveModel>& model : list()) {
     try {
@@ -395,6 +395,7 @@ std::size_t ModelRegistry::removeRetiredFolders() {
                 " (tried again in a moment)");
     }
     removed += model->removeRetiredFolders();
+    model->chargeMetadata();
   }
   return removed;
 }

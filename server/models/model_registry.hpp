@@ -115,7 +115,7 @@ class ModelRegistry {
   };
   void fenceWrites(WriterFence fence);
   /// How a job `job` that begins now publishes into `id`: the revisions and time floor kept, the
-  /// dropped revisions' folders left to the housekeeping (removeRetiredFolders), and fenced:
+  /// dropped revisions' folders left to the housekeeping (housekeeping()), and fenced:
   /// token, fence and readElsewhere from what fenceWrites() set (unset without it).
   core::PublishOptions publishOptions(const std::string& id, std::string job) const;
   /// The ids of the open models, in order.
@@ -165,13 +165,14 @@ class ModelRegistry {
   /// followsRefused(), not read again until the hierarchy file changes) and the model stays at
   /// the version it serves. Versions without a token are followed.
   std::size_t follow();
-  /// Removes the folders of dropped revisions whose last reader let go since
-  /// (core::LiveModel::removeRetiredFolders), for every open model, and, once per opening for
+  /// The daemon's housekeeping, on its main thread, for every open model: removes the folders of
+  /// dropped revisions whose last reader let go since (core::LiveModel::removeRetiredFolders), so
+  /// that a request letting go of a revision never removes files itself; once per opening for
   /// writing, what interrupted edits left (core::LiveModel::removeLeftovers: after the daemon is
-  /// ready, not before it listens; failures logged): the daemon's housekeeping, on its main
-  /// thread, so that a request letting go of a revision never removes files itself. Returns the
-  /// number of retired folders removed.
-  std::size_t removeRetiredFolders();
+  /// ready, not before it listens; failures logged); and charges each model's metadata to the
+  /// budget afresh (core::LiveModel::chargeMetadata). Returns the number of retired folders
+  /// removed.
+  std::size_t housekeeping();
   /// Versions follow() refused for a stale fencing token, since the registry was made.
   std::uint64_t followsRefused() const { return followsRefused_; }
   static constexpr std::chrono::seconds kFollowRetry{5};

@@ -13,7 +13,9 @@
 #   info        `vsm info` with the index (scale_gen writes it, as a publish does); median of 5;
 #   ready-full, ready   vsmd started on a data root holding the model (and the detail), without
 #               and with the index: seconds from exec to the port file (it opens the models before
-#               it listens), and VmRSS then (--memory-budget 64MiB, empty cache);
+#               it listens), and VmRSS then (empty cache; --memory-budget 64MiB up to depth 8,
+#               1GiB beyond: the budget holds the models' metadata, ~500 bytes a patch, since
+#               issue 31, and 64 MiB leaves no room beside 1.4 million patches' 700 MB);
 #   merge1..N   a merge job (POST /v1/jobs, detail into the model) end to end: from the POST to
 #               the job's "succeeded" (polled every 20 ms with curl and grep; a Python per poll
 #               would add 0.3 s to each), then VmRSS; N = VSM_BENCH_MERGES (3);
@@ -77,13 +79,13 @@ time_info() {  # time_info <opc> <runs>: median seconds of `vsm info`
   done | median
 }
 
-start_vsmd() {  # start_vsmd <data-root> <tag>: sets DPID, DURL and READY (seconds to ready)
+start_vsmd() {  # start_vsmd <data-root> <tag> <budget>: sets DPID, DURL and READY (s to ready)
   local port=$WORK/$2.port
   rm -f "$port"
   local t0 t1
   t0=$(now)
   "$VSMD" --listen 127.0.0.1:0 --data-root "$1" --port-file "$port" --token "$TOKEN" \
-    --memory-budget 64MiB --keep-revisions 8 --log-level info >"$WORK/$2.log" 2>&1 &
+    --memory-budget "$3" --keep-revisions 8 --log-level info >"$WORK/$2.log" 2>&1 &
   DPID=$!
   PIDS+=("$DPID")
   while [[ ! -s $port ]]; do
@@ -133,6 +135,8 @@ printf '%-8s %9s %9s %7s %9s %9s %7s %s\n' patches info-full info ready-full rss
   "merges (s, RSS MB after) / follow (s) / layer, tileset (s)"
 for depth in $DEPTHS; do
   name=m$depth
+  budget=64MiB
+  ((depth <= 8)) || budget=1GiB
   data=$WORK/data-$depth
   rm -rf "$data"
   mkdir -p "$data"
@@ -149,7 +153,7 @@ for depth in $DEPTHS; do
   if [[ ${VSM_BENCH_FULL:-1} != 0 ]]; then
     mv "$idx" "$WORK/saved.vsmidx"
     info_full=$(time_info "$data/$name" 3)
-    start_vsmd "$data" full-$depth
+    start_vsmd "$data" full-$depth "$budget"
     ready_full=$READY
     rss_full=$(rss_mb "$DPID")
     stop_vsmd "$DPID"
@@ -157,12 +161,12 @@ for depth in $DEPTHS; do
   fi
   info_idx=$(time_info "$data/$name" 5)
   # With the index: the writer, then its replica.
-  start_vsmd "$data" writer-$depth
+  start_vsmd "$data" writer-$depth "$budget"
   ready=$READY
   wpid=$DPID
   wurl=$DURL
   rss=$(rss_mb "$wpid")
-  start_vsmd "$data" replica-$depth
+  start_vsmd "$data" replica-$depth "$budget"
   rpid=$DPID
   rurl=$DURL
   # A viewer following the model: the first version's documents, then each new version's.

@@ -15,6 +15,9 @@ and the real vsmd on 127.0.0.1:0.
 3. vsmd killed (SIGKILL) and started again opens the model from the index at the same version, and
    answers the same model summary as a vsmd that read it in full (the index moved away).
 
+And the model's metadata is charged to the memory budget: a budget it fills answers patch data
+with 503 saying so.
+
 The fault sweep (fault.sweep, model_states.py) covers a fault in the index write: the index's
 calls come just before the commit point, inside the sweep's window.
 """
@@ -30,6 +33,7 @@ import unittest
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import harness  # noqa: E402
+from hold import poll  # noqa: E402
 
 ARGS = None
 TOKEN = "scale-test-token"
@@ -129,6 +133,47 @@ class Scale(unittest.TestCase):
         finally:
             os.rename(index + ".away", index)
         self.assertEqual(from_index, from_files)
+
+    def test_the_metadata_of_the_open_models_is_charged_to_the_memory_budget(self):
+        # 87,381 patch descriptions take tens of MB: more than a 16 MiB budget, which then has no
+        # room for patch data (503, saying why), while what needs no patch data still answers.
+        daemon = harness.Daemon("--token", TOKEN, "--memory-budget", "16MiB", root=self.root)
+        try:
+            # Charged by the daemon's housekeeping once it serves (every half second).
+            def charged():
+                stats = daemon.get_json("/v1/stats")[2]
+                return stats if stats["memory"]["resident_bytes_by_model"].get("big") else None
+
+            stats = poll(charged, timeout=60)
+            self.assertIsNotNone(stats, "no metadata charged")
+            metadata = stats["memory"]["resident_bytes_by_category"]["metadata"]
+            self.assertGreater(metadata, 16 * 1024 * 1024)
+            self.assertGreater(stats["memory"]["resident_bytes_by_model"]["big"], 16 * 1024 * 1024)
+            status, _, body = daemon.request("GET", "/v1/models/big/patches/0_0_0/positions")
+            self.assertEqual(status, 503, body[:300])
+            self.assertIn(b"metadata", body)
+            status, _, summary = daemon.get_json("/v1/models/big")
+            self.assertEqual(status, 200, summary)
+        finally:
+            daemon.stop()
+        # With room: the same charge (within the half second's change), and the data served.
+        daemon = harness.Daemon("--token", TOKEN, "--memory-budget", "512MiB", root=self.root)
+        try:
+            self.assertIsNotNone(poll(charged, timeout=60), "no metadata charged")
+            status, _, body = daemon.request("GET", "/v1/models/big/patches/0_0_0/positions")
+            self.assertEqual(status, 200, body[:300])
+            _, _, stats = daemon.get_json("/v1/stats")
+            memory = stats["memory"]
+            charged = memory["resident_bytes_by_category"]["metadata"]
+            # Between the bare descriptions (the C++ struct is over 400 bytes) and twice the
+            # first daemon's figure.
+            self.assertGreater(charged, self.patches * 400)
+            self.assertLess(charged, 2 * metadata)
+            self.assertLessEqual(memory["resident_bytes"], memory["budget_bytes"])
+            self.assertEqual(sum(memory["resident_bytes_by_category"].values()),
+                             memory["resident_bytes"])
+        finally:
+            daemon.stop()
 
 
 def main():

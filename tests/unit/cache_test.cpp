@@ -491,6 +491,48 @@ TEST(PatchCache, StatisticsCountByModelAndCategory) {
   cache.removeModel(mb);
 }
 
+// Issue 31: the models' metadata shares the one budget. A charge makes room as a load does
+// (evicting what is not pinned, writing dirty data back first), is never refused itself, and a
+// load that cannot fit beside it says that the metadata takes the room.
+TEST(PatchCache, MetadataIsChargedToTheBudgetEvictsWhatItCanAndLeavesAClearRefusal) {
+  FakeStore store(8, kMiB);
+  PatchCache cache(4 * kMiB);
+  const auto model = cache.addModel("m", store);
+  const auto metadataOf = [&] {
+    return cache.stats().residentByCategory[static_cast<int>(MemoryCategory::Metadata)];
+  };
+  for (int i = 0; i < 4; ++i) {
+    cache.get(model, FakeStore::id(i));
+  }
+  cache.put(model, FakeStore::id(4), {makeBlob(kMiB, 9), kMiB}, true);  // dirty, unpinned
+  cache.chargeMetadata(model, kMiB + kMiB / 2);
+  const CacheStats stats = cache.stats();
+  EXPECT_EQ(metadataOf(), kMiB + kMiB / 2);
+  EXPECT_EQ(stats.residentBytes, 2 * kMiB + kMiB + kMiB / 2) << "two patches made room";
+  EXPECT_EQ(stats.residentByModel.at("m"), stats.residentBytes);
+  // A new charge replaces the last; a pinned patch stays even when the metadata leaves it no room.
+  auto held = cache.get(model, FakeStore::id(5));
+  cache.chargeMetadata(model, 4 * kMiB);
+  EXPECT_TRUE(cache.resident(model, FakeStore::id(5)));
+  EXPECT_EQ(cache.stats().residentBytes, 5 * kMiB) << "above the budget while pinned";
+  EXPECT_EQ(store.stored(FakeStore::key(4)), 9u) << "the dirty entry was written back as it went";
+  held = PatchCache::Pin();
+  try {
+    cache.get(model, FakeStore::id(6));
+    FAIL() << "no exception";
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), ErrorCode::ResourceExhausted);
+    EXPECT_NE(std::string(e.what()).find("metadata"), std::string::npos) << e.what();
+  }
+  EXPECT_LE(cache.stats().residentBytes, 4 * kMiB) << "the unpinned patch made room, in vain";
+  cache.chargeMetadata(model, kMiB);
+  EXPECT_NO_THROW(cache.get(model, FakeStore::id(6)));
+  cache.removeModel(model);
+  EXPECT_EQ(metadataOf(), 0u);
+  EXPECT_EQ(cache.stats().residentBytes, 0u);
+  EXPECT_THROW(cache.chargeMetadata(model, 1), Error) << "a removed model";
+}
+
 TEST(PatchCache, ClockKeepsAHotSetThatFifoEvicts) {
   // A hot patch used between every cold load: CLOCK keeps it (its bit is set each time), FIFO
   // throws it out once it reaches the head of the queue.

@@ -6,6 +6,7 @@
 #include <memory>
 #include <random>
 #include <string>
+#include <unordered_set>
 #include <utility>
 #include <vector>
 
@@ -427,6 +428,35 @@ TEST(Model, LevelsAreTheMeanOfWholeNanometresWhicheverChunksHoldThePatches) {
     EXPECT_EQ(a[d].resolution, b[d].resolution) << d;
     EXPECT_EQ(a[d].leaves, b[d].leaves) << d;
   }
+}
+
+// What vsmd charges to the budget for a model's metadata (issue 31): each version's tree, chunks
+// shared between versions counted once.
+TEST(Model, HeapBytesCountEveryNodeAndEachSharedChunkOnce) {
+  Model model(5);
+  model.insert(infoFor(PatchKey::root()));
+  for (int depth = 1; depth <= 5; ++depth) {
+    for (std::uint32_t y = 0; y < (1u << depth); ++y) {
+      for (std::uint32_t x = 0; x < (1u << depth); ++x) {
+        model.insert(infoFor({depth, x, y}));
+      }
+    }
+  }
+  std::unordered_set<const void*> counted;
+  const std::size_t whole = model.heapBytes(counted);
+  EXPECT_GE(whole, model.patchCount() * sizeof(PatchInfo));
+  EXPECT_LE(whole, model.patchCount() * (sizeof(PatchInfo) + 160));
+  // A copy shares every chunk: only its own vector of them is new.
+  Model copy = model;
+  EXPECT_LE(copy.heapBytes(counted), 64 * sizeof(void*));
+  // A change copies one chunk (its nodes counted again: an upper estimate) and the node's name.
+  copy.edit({5, 3, 3}).folder = std::string(100, 'f');
+  const std::size_t changed = copy.heapBytes(counted);
+  EXPECT_GE(changed, sizeof(PatchInfo) + 100);
+  EXPECT_LE(changed, whole / 4);
+  // Counted afresh, the copy is an unchanged copy plus the name.
+  std::unordered_set<const void*> alone, unchanged;
+  EXPECT_GE(copy.heapBytes(alone), Model(model).heapBytes(unchanged) + 100);
 }
 
 TEST(Model, ACopySharesEveryPatchItsChangeDidNotTouch) {

@@ -1475,6 +1475,40 @@ TEST_F(StoreTest, AReadingOpeningReadAgainAppliesTheNewDeltaToTheBaseItKept) {
   EXPECT_NE(fresh->model->shared({3, 1, 1}), after->model->shared({3, 1, 1}));
 }
 
+// Kept revisions read (snapshotAt) whose indexes are deltas over one base share its nodes: eight
+// of them at 10^6 patches cost one model and their deltas, not 8 models.
+TEST_F(StoreTest, RevisionsReadOverOneIndexBaseShareItsNodes) {
+  writeModel(dir_, false, 3);  // 85 patches
+  PatchCache cache(64 << 20);
+  auto writer = LiveModel::open(dir_, "m", cache);
+  const std::uint64_t v = writer->snapshot()->version;
+  publishLeaf(*writer, {3, 0, 0}, 1.0, 8);  // v + 1: the first base, this version in full
+  publishLeaf(*writer, {3, 7, 7}, 2.0, 8);  // v + 2: a delta over it
+  publishLeaf(*writer, {3, 4, 2}, 3.0, 8);  // v + 3: another
+  publishLeaf(*writer, {3, 1, 6}, 4.0, 8);  // v + 4, current: v + 2 and v + 3 are kept revisions
+  const fs::path patches = dir_ / "Patches";
+  for (const std::uint64_t n : {v + 2, v + 3}) {
+    ASSERT_EQ(readIndexBase(patches / indexFileName(revisionFileName(n)))->name,
+              readIndexBase(patches / "patchhierarchy.vsmidx")->name);
+  }
+  auto reader = LiveModel::open(dir_, "r", cache, LiveModel::Access::Read);
+  for (LiveModel* opening : {writer.get(), reader.get()}) {
+    const auto two = opening->snapshotAt(v + 2);
+    const auto three = opening->snapshotAt(v + 3);
+    for (const auto& read : {two, three}) {
+      expectSameModel(OpcRevision{*read->model, read->revision},
+                      fullRead(dir_, revisionFileName(read->version)));
+    }
+    // v + 2's delta names 3_7_7 and its overviews (4), v + 3's those and 3_4_2 with two more
+    // overviews (7): the other 78 are the base's nodes in both.
+    std::size_t shared = 0;
+    for (const auto& [key, info] : three->model->patches()) {
+      shared += two->model->shared(key) == three->model->shared(key) ? 1 : 0;
+    }
+    EXPECT_EQ(shared, 85u - 7u) << opening->name();
+  }
+}
+
 // A delta whose base is gone (a lost file, a copy of the directory without it) or is another
 // file is not used: the model opens by the full read, as it is, and the next publish writes a
 // new base.
