@@ -241,7 +241,7 @@ std::string runItems(const Model& model, const Model::Run& run, std::size_t dept
     if (info.isLeaf()) {
       continue;
     }
-    xml.open("item");
+    xml.open("item", true);
     xml.text("key", hierarchyName(info, keyText));
     xml.open("val");
     for (const Quadrant q : kQuadrants) {

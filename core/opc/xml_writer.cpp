@@ -1,4 +1,4 @@
-// One-pass XML output in pugixml's indented layout.
+// One-pass XML output in pugixml's indented layout, with elements on one line where asked.
 #include "core/opc/xml_writer.hpp"
 
 #include <cassert>
@@ -39,7 +39,15 @@ XmlWriter::XmlWriter(std::size_t depth) : depth_(depth) {}
 
 void XmlWriter::startLine() {
   endStartTag();
-  out_.append(2 * depth(), ' ');
+  if (!inlined()) {
+    out_.append(2 * depth(), ' ');
+  }
+}
+
+void XmlWriter::endLine() {
+  if (!inlined()) {
+    out_ += '\n';
+  }
 }
 
 std::string XmlWriter::cut() {
@@ -49,32 +57,43 @@ std::string XmlWriter::cut() {
 
 void XmlWriter::endStartTag() {
   if (startTagOpen_) {
-    out_ += ">\n";
+    out_ += '>';
+    endLine();
     startTagOpen_ = false;
   }
 }
 
-void XmlWriter::open(std::string_view name) {
+void XmlWriter::open(std::string_view name, bool oneLine) {
   startLine();
   out_ += '<';
   out_ += name;
   open_.emplace_back(name);
   startTagOpen_ = true;
+  if (oneLine && !inlined()) {
+    inlineFrom_ = open_.size();
+  }
 }
 
 void XmlWriter::close() {
   assert(!open_.empty());
+  const bool endsInline = open_.size() == inlineFrom_;
   std::string name = std::move(open_.back());
   open_.pop_back();
   if (startTagOpen_) {
-    out_ += " />\n";
+    out_ += " />";
     startTagOpen_ = false;
-    return;
+  } else {
+    if (!inlined()) {
+      out_.append(2 * depth(), ' ');
+    }
+    out_ += "</";
+    out_ += name;
+    out_ += '>';
   }
-  out_.append(2 * depth(), ' ');
-  out_ += "</";
-  out_ += name;
-  out_ += ">\n";
+  if (endsInline) {
+    inlineFrom_ = 0;
+  }
+  endLine();
 }
 
 void XmlWriter::text(std::string_view name, std::string_view text) {
@@ -85,14 +104,16 @@ void XmlWriter::text(std::string_view name, std::string_view text) {
   appendEscaped(out_, text);
   out_ += "</";
   out_ += name;
-  out_ += ">\n";
+  out_ += '>';
+  endLine();
 }
 
 void XmlWriter::empty(std::string_view name) {
   startLine();
   out_ += '<';
   out_ += name;
-  out_ += " />\n";
+  out_ += " />";
+  endLine();
 }
 
 std::string XmlWriter::finish() && {

