@@ -40,7 +40,8 @@ Model::Place Model::locate(const PatchKey& key) const {
           static_cast<std::size_t>(entry - (*chunk)->begin()), entry->key == key};
 }
 
-/// What levels() sums of one chunk, per depth in it (keys order by depth first: one or two).
+/// What levels() sums of one chunk, per depth in it (keys order by depth first: one or two), and
+/// what heapBytes() counts of it.
 struct Model::ChunkSums {
   struct Level {
     int depth = 0;

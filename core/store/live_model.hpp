@@ -148,9 +148,9 @@ class LiveModel {
   /// created) and gets its snapshot or its error. A failed read is not kept: the next call reads
   /// again. Thread-safe.
   std::shared_ptr<const ModelSnapshot> snapshotAt(std::uint64_t revision);
-  /// How many old revisions snapshotAt keeps read (per opening; their metadata is outside the
-  /// memory budget, as every snapshot's; those whose indexes build on one base share it, and cost
-  /// one model and their deltas).
+  /// How many old revisions snapshotAt keeps read (per opening; their metadata is charged to the
+  /// memory budget with the rest by chargeMetadata(); those whose indexes build on one base share
+  /// it, and cost one model and their deltas).
   static constexpr std::size_t kCachedRevisions = 8;
 
   /// What snapshotAt did, since this opening was made.
