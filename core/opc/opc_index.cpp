@@ -256,15 +256,15 @@ void putPatch(Encoder& out, const PatchKey& key, const PatchInfo& info) {
   out.putString(info.folder == key.toString() ? std::string_view() : info.folder);
   out.putBox(info.globalBox);
   out.putBox(info.localBox);
-  const bool translation = info.local2global.isTranslation();
+  const bool translation = info.local2global().isTranslation();
   out.put(static_cast<std::uint8_t>(translation));
   if (translation) {
-    const Vec3d t = info.local2global.translationPart();
+    const Vec3d t = info.local2global().translationPart();
     out.put(t.x);
     out.put(t.y);
     out.put(t.z);
   } else {
-    for (const double v : info.local2global.m) {
+    for (const double v : info.local2global().m) {
       out.put(v);
     }
   }
@@ -275,10 +275,10 @@ void putPatch(Encoder& out, const PatchKey& key, const PatchInfo& info) {
   out.put(static_cast<std::int32_t>(info.stored.x1));
   out.put(static_cast<std::int32_t>(info.stored.y1));
   // The usual name as an empty string: most patches store Positions.aara.
-  out.putString(info.positionsFile == kDefaultPositions ? std::string_view()
-                                                        : std::string_view(info.positionsFile));
-  out.putString(info.coordinatesFile);
-  out.putString(info.textureFile);
+  out.putString(info.positionsFile() == kDefaultPositions ? std::string_view()
+                                                          : std::string_view(info.positionsFile()));
+  out.putString(info.coordinatesFile());
+  out.putString(info.textureFile());
 }
 
 }  // namespace
@@ -434,11 +434,13 @@ bool decodePatch(Decoder& in, PatchInfo& info) {
   info.localBox = in.getBox();
   if (in.get<std::uint8_t>() != 0) {
     const Vec3d t{in.get<double>(), in.get<double>(), in.get<double>()};
-    info.local2global = Mat4d::translation(t);
+    info.setLocal2Global(Mat4d::translation(t));
   } else {
-    for (double& v : info.local2global.m) {
+    Mat4d m;
+    for (double& v : m.m) {
       v = in.get<double>();
     }
+    info.setLocal2Global(m);
   }
   info.resolution = in.get<double>();
   info.version = in.get<std::uint64_t>();
@@ -446,12 +448,14 @@ bool decodePatch(Decoder& in, PatchInfo& info) {
   info.stored.y0 = in.get<std::int32_t>();
   info.stored.x1 = in.get<std::int32_t>();
   info.stored.y1 = in.get<std::int32_t>();
-  info.positionsFile = in.getString();
-  if (info.positionsFile.empty()) {
-    info.positionsFile = kDefaultPositions;
+  PatchFiles files;
+  files.positions = in.getString();
+  if (files.positions.empty()) {
+    files.positions = kDefaultPositions;
   }
-  info.coordinatesFile = in.getString();
-  info.textureFile = in.getString();
+  files.coordinates = in.getString();
+  files.texture = in.getString();
+  info.setFiles(std::move(files));
   return in.ok() && info.key.depth <= PatchKey::kMaxDepth;
 }
 

@@ -118,10 +118,12 @@ ParsedPatch readPatchXml(const fs::path& folderDir, const std::string& folder) {
   details.geometryType = textOf(childCi(patch, "GeometryType"));
   if (const pugi::xml_node m = childCi(patch, "Local2Global")) {
     const std::vector<double> v = numbersOf(m, 16, *xmlFile);
-    std::copy(v.begin(), v.end(), info.local2global.m.begin());
-    if (!info.local2global.isAffineInvertible()) {
+    Mat4d local2global;
+    std::copy(v.begin(), v.end(), local2global.m.begin());
+    if (!local2global.isAffineInvertible()) {
       corrupt(*xmlFile, "<Local2Global> is not an invertible affine transform");
     }
+    info.setLocal2Global(local2global);
   }
   const pugi::xml_node global = childCi(patch, "GlobalBoundingBox");
   const pugi::xml_node local = childCi(patch, "LocalBoundingBox");
@@ -131,11 +133,12 @@ ParsedPatch readPatchXml(const fs::path& folderDir, const std::string& folder) {
   } else {
     details.boxesFromData = true;
   }
+  PatchFiles files;
   if (const pugi::xml_node positions = childCi(patch, "Positions")) {
-    info.positionsFile = textOf(positions);
+    files.positions = textOf(positions);
   }
-  if (!detail::isSafeName(info.positionsFile)) {
-    corrupt(*xmlFile, "positions file name '" + info.positionsFile + "' leaves its folder");
+  if (!detail::isSafeName(files.positions)) {
+    corrupt(*xmlFile, "positions file name '" + files.positions + "' leaves its folder");
   }
   // Textures: the first <Textures> entry and the first coordinates (DiffuseColor1Coordinates when
   // present). Unusable names are ignored (lenient): the patch then reads as untextured.
@@ -147,7 +150,7 @@ ParsedPatch readPatchXml(const fs::path& folderDir, const std::string& folder) {
     }
     const std::string name = entry ? textOf(entry) : std::string();
     if (detail::isSafeName(name)) {
-      info.coordinatesFile = name;
+      files.coordinates = name;
     }
   }
   if (const pugi::xml_node textures = childCi(patch, "Textures")) {
@@ -155,12 +158,13 @@ ParsedPatch readPatchXml(const fs::path& folderDir, const std::string& folder) {
       if (entry.type() == pugi::node_element) {
         const std::string name = textOf(entry);
         if (detail::isSafeTexturePath(name)) {
-          info.textureFile = name;
+          files.texture = name;
         }
         break;
       }
     }
   }
+  info.setFiles(std::move(files));
   if (const pugi::xml_node vsm = childCi(patch, "Vsm")) {
     details.hasExtension = true;
     if (const pugi::xml_node key = childCi(vsm, "Key")) {
@@ -203,7 +207,8 @@ ParsedPatch readPatchXml(const fs::path& folderDir, const std::string& folder) {
 fs::path positionsPath(const fs::path& patchesDir, const PatchInfo& info) {
   const fs::path folderDir =
       detail::findEntry(patchesDir, info.folder).value_or(patchesDir / info.folder);
-  return detail::findEntry(folderDir, info.positionsFile).value_or(folderDir / info.positionsFile);
+  return detail::findEntry(folderDir, info.positionsFile())
+      .value_or(folderDir / info.positionsFile());
 }
 
 /// Decodes a positions array into a full grid of `gridSize` at `stored`.
@@ -223,7 +228,7 @@ PatchGrid gridFromArray(const AaraArray& array, int gridSize, const PatchInfo& i
   }
   const std::size_t count = static_cast<std::size_t>(r.width()) * r.height();
   if (array.type == AaraType::V3f) {
-    PatchGrid grid(gridSize, info.local2global);
+    PatchGrid grid(gridSize, info.local2global());
     float v[3];
     for (std::size_t i = 0; i < count; ++i) {
       std::memcpy(v, array.data.data() + i * 12, 12);
@@ -245,7 +250,7 @@ PatchGrid gridFromArray(const AaraArray& array, int gridSize, const PatchInfo& i
     }
   }
   const Vec3d c = box.empty() ? Vec3d{} : box.center();
-  Mat4d l2g = info.local2global;
+  Mat4d l2g = info.local2global();
   for (int row = 0; row < 3; ++row) {
     l2g.m[row * 4 + 3] +=
         l2g.m[row * 4] * c.x + l2g.m[row * 4 + 1] * c.y + l2g.m[row * 4 + 2] * c.z;

@@ -91,7 +91,7 @@ void nameFolder(PatchInfo& info) {
   if (info.folder.empty()) {
     info.folder = info.key.toString();
   }
-  if (!detail::isSafeName(info.folder) || !detail::isSafeName(info.positionsFile)) {
+  if (!detail::isSafeName(info.folder) || !detail::isSafeName(info.positionsFile())) {
     throw Error(ErrorCode::InvalidArgument,
                 "patch folder '" + info.folder + "' is not a plain name");
   }
@@ -106,7 +106,9 @@ std::string textureEntryFor(std::string_view folder) {
 void OpcWriter::writeTexture(PatchInfo& info, const TextureTile& tile) {
   nameFolder(info);
   writeFile(imagesLayerDir() / (info.folder + ".tif"), encodeTextureTiff(tile));
-  info.textureFile = textureEntryFor(info.folder);
+  PatchFiles files = info.files();
+  files.texture = textureEntryFor(info.folder);
+  info.setFiles(std::move(files));
 }
 
 void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox) {
@@ -116,19 +118,19 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
                 "patch " + info.key.toString() + " has no defined vertex to write");
   }
   nameFolder(info);
-  if (!info.textureFile.empty() && info.textureFile != textureEntryFor(info.folder)) {
+  if (!info.textureFile().empty() && info.textureFile() != textureEntryFor(info.folder)) {
     throw Error(ErrorCode::InvalidArgument, "patch " + info.folder + " names texture '" +
-                                                info.textureFile +
+                                                info.textureFile() +
                                                 "', which this writer does not write");
   }
   const fs::path folderDir = dir_ / info.folder;
   durable::createDirectory(folderDir, durability_ == Durability::EachFile);
 
   const PatchGrid::Summary summary = grid.summarize();
-  info.local2global = grid.local2global();
+  info.setLocal2Global(grid.local2global());
   info.localBox = summary.localBox;
   info.globalBox = grid.local2global().isTranslation()
-                       ? transformBox(info.local2global, info.localBox)
+                       ? transformBox(grid.local2global(), info.localBox)
                        : grid.globalBox();
   info.globalBox.extend(childrenBox);
   info.localBox.extend(transformBox(grid.local2global().inverse(), childrenBox));
@@ -161,29 +163,31 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
       std::memcpy(positions.data() + i, v, 12);
     }
   }
-  const fs::path positionsFile = folderDir / info.positionsFile;
+  const fs::path positionsFile = folderDir / info.positionsFile();
   writeFile(positionsFile, positions);
 
-  info.coordinatesFile.clear();
-  if (!info.textureFile.empty()) {
+  PatchFiles files = info.files();
+  files.coordinates.clear();
+  if (!files.texture.empty()) {
     // Texture coordinates of the stored vertices, before the Patch.xml naming them.
-    info.coordinatesFile = "Coordinates.aara";
-    writeCoordinates(folderDir / info.coordinatesFile, grid.size(), r);
+    files.coordinates = "Coordinates.aara";
+    writeCoordinates(folderDir / files.coordinates, grid.size(), r);
   }
+  info.setFiles(std::move(files));
 
   detail::XmlWriter xml = startAardvark("Patch");
   xml.text("QuadVertexSortOrder", "RowMajor");
   xml.text("GeometryType", "QuadList");
-  xml.text("Local2Global", formatMatrix(info.local2global));
+  xml.text("Local2Global", formatMatrix(info.local2global()));
   xml.text("LocalBoundingBox", formatBox(info.localBox));
   xml.text("GlobalBoundingBox", formatBox(info.globalBox));
-  xml.text("Positions", info.positionsFile);
-  if (!info.textureFile.empty()) {
+  xml.text("Positions", info.positionsFile());
+  if (!info.textureFile().empty()) {
     xml.open("Coordinates");
-    xml.text("DiffuseColor1Coordinates", info.coordinatesFile);
+    xml.text("DiffuseColor1Coordinates", info.coordinatesFile());
     xml.close();
     xml.open("Textures");
-    xml.text("DiffuseColor1Texture", info.textureFile);
+    xml.text("DiffuseColor1Texture", info.textureFile());
     xml.close();
   } else {
     xml.empty("Textures");
@@ -213,7 +217,7 @@ fs::path OpcWriter::imagesLayerDir() {
 void OpcWriter::removePatchFiles(const PatchInfo& info) {
   std::error_code ec;
   fs::remove_all(dir_ / info.folder, ec);
-  if (!info.textureFile.empty()) {
+  if (!info.textureFile().empty()) {
     fs::remove(dir_.parent_path() / "Images" / std::string(kTextureLayer) / (info.folder + ".tif"),
                ec);
   }

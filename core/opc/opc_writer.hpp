@@ -43,15 +43,15 @@ class OpcWriter {
   /// vertices and `childrenBox`, the union of the children's global boxes (empty for a leaf).
   /// An empty info.folder becomes info.key.toString(). Precondition: grid.anyDefined().
   ///
-  /// A textured patch (info.textureFile names the tile writeTexture() wrote for this folder, before
-  /// or after this call) also gets Coordinates.aara (V2f per stored vertex, see
+  /// A textured patch (info.textureFile() names the tile writeTexture() wrote for this folder,
+  /// before or after this call) also gets Coordinates.aara (V2f per stored vertex, see
   /// textureCoordinates) in its folder, and Patch.xml names both in <Coordinates> and <Textures>
-  /// (OPC.md); info.coordinatesFile says so. Throws Error(InvalidArgument) when info.textureFile
-  /// names any other file (a texture this writer did not write).
+  /// (OPC.md); info.coordinatesFile() says so. Throws Error(InvalidArgument) when
+  /// info.textureFile() names any other file (a texture this writer did not write).
   void writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox);
 
   /// Writes the texture tile of a patch as Images/Diffuse/<folder>.tif (RGBA 8-bit TIFF) and sets
-  /// info.textureFile to name it (an empty info.folder becomes info.key.toString()).
+  /// info.textureFile() to name it (an empty info.folder becomes info.key.toString()).
   void writeTexture(PatchInfo& info, const TextureTile& tile);
 
   /// Removes every file writePatch wrote for `info` (its folder and its texture tile), ignoring

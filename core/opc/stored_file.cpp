@@ -72,7 +72,7 @@ std::unique_ptr<StoredFile> openFullGridPositions(const fs::path& dir, int gridS
   const std::array<std::int32_t, 2> sizes{gridSize, gridSize};
   const std::vector<std::byte> header = encodeAaraHeader(AaraType::V3f, sizes);
   const auto n = static_cast<std::size_t>(gridSize);
-  const fs::path path = patchFile(dir, info, info.positionsFile);
+  const fs::path path = patchFile(dir, info, info.positionsFile());
   std::unique_ptr<StoredFile> file = openFile(path);
   if (file->size() != header.size() + n * n * elementSize(AaraType::V3f) ||
       readStart(*file, header.size(), path.string()) != header) {
@@ -83,7 +83,7 @@ std::unique_ptr<StoredFile> openFullGridPositions(const fs::path& dir, int gridS
 
 std::optional<std::vector<std::byte>> readFullGridPositions(const fs::path& dir, int gridSize,
                                                             const PatchInfo& info) {
-  const fs::path path = patchFile(dir, info, info.positionsFile);
+  const fs::path path = patchFile(dir, info, info.positionsFile());
   const std::unique_ptr<StoredFile> file = openFile(path);
   const GridRect& r = info.stored;
   const std::array<std::int32_t, 2> storedSizes{r.width(), r.height()};
@@ -129,10 +129,10 @@ std::optional<std::vector<std::byte>> readFullGridPositions(const fs::path& dir,
 }
 
 std::unique_ptr<StoredFile> openCoordinatesFile(const fs::path& dir, const PatchInfo& info) {
-  if (info.coordinatesFile.empty()) {
+  if (info.coordinatesFile().empty()) {
     throw Error(ErrorCode::NotFound, "patch " + info.folder + " has no texture coordinates");
   }
-  const fs::path path = patchFile(dir, info, info.coordinatesFile);
+  const fs::path path = patchFile(dir, info, info.coordinatesFile());
   std::unique_ptr<StoredFile> file = openFile(path);
   // The longest header of a 2-D array: a length byte, a type name of at most 6 letters, the
   // dimension count, two sizes.

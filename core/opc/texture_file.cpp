@@ -190,12 +190,12 @@ namespace {
 /// The texture tile file a patch names; throws Error(NotFound) as readPatchTextureTile.
 fs::path textureFileOf(const fs::path& dir, const PatchInfo& info) {
   const auto file =
-      info.textureFile.empty() ? std::nullopt : detail::findTextureFile(dir, info.textureFile);
+      info.textureFile().empty() ? std::nullopt : detail::findTextureFile(dir, info.textureFile());
   if (!file) {
     throw Error(ErrorCode::NotFound,
                 "patch " + info.folder + " has no texture tile" +
-                    (info.textureFile.empty() ? std::string()
-                                              : " ('" + info.textureFile + "' is missing)"));
+                    (info.textureFile().empty() ? std::string()
+                                                : " ('" + info.textureFile() + "' is missing)"));
   }
   return *file;
 }
@@ -219,12 +219,12 @@ std::vector<std::byte> readPatchTexturePng(const fs::path& dir, const PatchInfo&
 }
 
 std::vector<std::byte> readPatchCoordinates(const fs::path& dir, const PatchInfo& info) {
-  return readStoredFile(*openCoordinatesFile(dir, info), info.coordinatesFile);
+  return readStoredFile(*openCoordinatesFile(dir, info), info.coordinatesFile());
 }
 
 std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& model,
                                              const PatchInfo& info, std::uint64_t maxPixels) {
-  if (info.textureFile.empty()) {
+  if (info.textureFile().empty()) {
     return std::nullopt;
   }
   PatchTexture texture;
@@ -233,7 +233,7 @@ std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& m
   const int n = model.gridSize();
   const GridRect& r = info.stored;
   texture.texcoords.assign(static_cast<std::size_t>(n) * n * 2, 0.0f);
-  if (info.coordinatesFile.empty()) {
+  if (info.coordinatesFile().empty()) {
     // A texture without coordinates: the tile stretched over the grid.
     for (int y = 0; y < n; ++y) {
       for (int x = 0; x < n; ++x) {
@@ -243,7 +243,7 @@ std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& m
     }
     return texture;
   }
-  const AaraArray array = decodeAara(readPatchCoordinates(dir, info), info.coordinatesFile);
+  const AaraArray array = decodeAara(readPatchCoordinates(dir, info), info.coordinatesFile());
   const std::size_t count = static_cast<std::size_t>(r.width()) * r.height();
   for (std::size_t i = 0; i < count; ++i) {
     float uv[2];

@@ -61,7 +61,7 @@ inline constexpr std::uint64_t kDefaultTexturePixels = std::uint64_t{16384} * 16
 TextureTile readTextureTile(const std::filesystem::path& file,
                             std::uint64_t maxPixels = kDefaultTexturePixels);
 
-/// The texture tile a patch of the OPC at `dir` names (info.textureFile). Throws
+/// The texture tile a patch of the OPC at `dir` names (info.textureFile()). Throws
 /// Error(NotFound) when the patch names none or the file is missing, Error(Corrupt) as
 /// readTextureTile.
 TextureTile readPatchTextureTile(const std::filesystem::path& dir, const PatchInfo& info,

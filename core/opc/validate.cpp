@@ -128,11 +128,11 @@ class Validator {
         add(where(info), "GlobalBoundingBox differs from the box of its vertices and children by " +
                              std::to_string(offBy) + " m");
       }
-      // A V3d patch was re-based when read: its file's local frame is info.local2global's.
-      Box3d localBox = g->local2global() == info.local2global
+      // A V3d patch was re-based when read: its file's local frame is info.local2global()'s.
+      Box3d localBox = g->local2global() == info.local2global()
                            ? g->localBox()
-                           : transformBox(info.local2global.inverse(), g->globalBox());
-      localBox.extend(transformBox(info.local2global.inverse(), children));
+                           : transformBox(info.local2global().inverse(), g->globalBox());
+      localBox.extend(transformBox(info.local2global().inverse(), children));
       const double localTolerance =
           std::ldexp(g->maxAbsLocal(), -22) + 1e-9 * magnitude(localBox) + 1e-12;
       const double localOff = faceDistance(localBox, info.localBox);
@@ -155,24 +155,24 @@ class Validator {
   /// A textured patch: its coordinates decode as V2f (V2d) of the stored positions' size with
   /// finite values, and its texture file exists under Images/.
   void checkTexture(const PatchInfo& info) {
-    if (info.textureFile.empty()) {
-      if (!info.coordinatesFile.empty()) {
+    if (info.textureFile().empty()) {
+      if (!info.coordinatesFile().empty()) {
         add(where(info),
-            "<Coordinates> names " + info.coordinatesFile + " but <Textures> is empty");
+            "<Coordinates> names " + info.coordinatesFile() + " but <Textures> is empty");
       }
       return;
     }
-    if (!detail::findTextureFile(dir_, info.textureFile)) {
-      add(where(info), "texture '" + info.textureFile + "' does not exist under Images/");
+    if (!detail::findTextureFile(dir_, info.textureFile())) {
+      add(where(info), "texture '" + info.textureFile() + "' does not exist under Images/");
     }
-    if (info.coordinatesFile.empty()) {
+    if (info.coordinatesFile().empty()) {
       add(where(info), "has a texture but no <Coordinates><DiffuseColor1Coordinates>");
       return;
     }
     const fs::path folder =
         detail::findEntry(c_.patchesDir, info.folder).value_or(c_.patchesDir / info.folder);
     const fs::path file =
-        detail::findEntry(folder, info.coordinatesFile).value_or(folder / info.coordinatesFile);
+        detail::findEntry(folder, info.coordinatesFile()).value_or(folder / info.coordinatesFile());
     AaraArray coordinates;
     try {
       coordinates = readAaraFile(file);
@@ -181,14 +181,14 @@ class Validator {
       return;
     }
     if (coordinates.type != AaraType::V2f && coordinates.type != AaraType::V2d) {
-      add(where(info),
-          info.coordinatesFile + " holds " + std::string(toString(coordinates.type)) + ", not V2f");
+      add(where(info), info.coordinatesFile() + " holds " +
+                           std::string(toString(coordinates.type)) + ", not V2f");
       return;
     }
     const GridRect& r = info.stored;
     if (coordinates.sizes.size() != 2 || coordinates.sizes[0] != r.width() ||
         coordinates.sizes[1] != r.height()) {
-      add(where(info), info.coordinatesFile + " does not have the stored positions' size " +
+      add(where(info), info.coordinatesFile() + " does not have the stored positions' size " +
                            std::to_string(r.width()) + " x " + std::to_string(r.height()));
       return;
     }
@@ -198,7 +198,7 @@ class Validator {
         float v = 0;
         std::memcpy(&v, coordinates.data.data() + i * 4, 4);
         if (!std::isfinite(v)) {
-          add(where(info), info.coordinatesFile + " holds a coordinate that is not finite");
+          add(where(info), info.coordinatesFile() + " holds a coordinate that is not finite");
           break;
         }
       }

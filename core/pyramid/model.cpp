@@ -11,6 +11,50 @@
 
 namespace vsm::core {
 
+const PatchFiles PatchInfo::kUntexturedFiles;
+
+void PatchInfo::setLocal2Global(const Mat4d& m) {
+  // Bit for bit (a -0 in a foreign OPC's linear part is kept, and written back, as it was).
+  const Mat4d shift = Mat4d::translation(m.translationPart());
+  if (std::memcmp(m.m.data(), shift.m.data(), sizeof m.m) == 0) {
+    translation_ = m.translationPart();
+    matrix_.reset();
+  } else {
+    translation_ = {};
+    matrix_ = std::make_shared<const Mat4d>(m);
+  }
+}
+
+void PatchInfo::setFiles(PatchFiles files) {
+  if (files == kUntexturedFiles) {
+    files_.reset();
+  } else {
+    files_ = std::make_shared<const PatchFiles>(std::move(files));
+  }
+}
+
+namespace {
+
+/// Heap bytes of a string's own buffer (none within the small-string buffer), with overhead.
+std::size_t heapOf(const std::string& text) {
+  return text.capacity() > 15 ? text.capacity() + 1 + 16 : 0;
+}
+
+/// A make_shared block of a T: the object, its control block, the allocator's overhead.
+template <typename T>
+constexpr std::size_t sharedBlock = sizeof(T) + 16 + 16;
+
+}  // namespace
+
+std::size_t PatchInfo::ownHeapBytes() const {
+  std::size_t bytes = heapOf(folder) + (matrix_ ? sharedBlock<Mat4d> : 0);
+  if (files_) {
+    bytes += sharedBlock<PatchFiles> + heapOf(files_->positions) + heapOf(files_->coordinates) +
+             heapOf(files_->texture);
+  }
+  return bytes;
+}
+
 Model::Model(int gridSize) : gridSize_(gridSize) {
   // The range first: gridSize - 1 of any int (a size read from a damaged file) must not overflow.
   const bool inRange = gridSize >= 3 && gridSize <= (1 << 15) + 1;
@@ -50,6 +94,7 @@ struct Model::ChunkSums {
     std::size_t measured = 0;
     Box3d bounds;
     std::int64_t nanometres = 0;  // the measured resolutions' sum (< 2^63: 256 of <= 1e7 m each)
+    double finestLeaf = 0;        // 0: no leaf with a resolution
   };
   std::vector<Level> levels;
   /// Heap bytes of the chunk and its nodes (Model::heapBytes).
@@ -267,7 +312,7 @@ void Model::describe(const PatchKey& key, const PatchGrid& grid) {
                        : grid.globalBox();
   info.globalBox.extend(children);
   info.localBox.extend(transformBox(grid.local2global().inverse(), children));
-  info.local2global = grid.local2global();
+  info.setLocal2Global(grid.local2global());
   info.resolution = summary.resolution;
   info.stored = summary.definedRect;
 }
@@ -333,6 +378,10 @@ std::vector<LevelSummary> Model::levels() const {
       levels[d].bounds.extend(part.bounds);
       nanometres[d] += part.nanometres;
       measured[d] += part.measured;
+      if (part.finestLeaf > 0 &&
+          (levels[d].finestLeaf == 0 || part.finestLeaf < levels[d].finestLeaf)) {
+        levels[d].finestLeaf = part.finestLeaf;
+      }
     }
   }
   for (std::size_t d = 0; d < levels.size(); ++d) {
@@ -369,26 +418,15 @@ const Model::ChunkSums& Model::sumsOf(const std::shared_ptr<Chunk>& chunk, bool 
   return stored != nullptr ? *stored : *made;
 }
 
-namespace {
-
-/// Heap bytes of a string's own buffer (none within the small-string buffer), with overhead.
-std::size_t heapOf(const std::string& text) {
-  return text.capacity() > 15 ? text.capacity() + 1 + 16 : 0;
-}
-
-}  // namespace
-
 Model::ChunkSums Model::summarise(const Chunk& chunk) {
   ChunkSums sums;
   // The chunk (its control block and vector, one block, and its entries' array), then each node
   // (one block with its control block) with its strings.
   constexpr std::size_t kOverhead = 16;
-  sums.bytes = sizeof(Chunk) + 16 + kOverhead + chunk.capacity() * sizeof(Entry) + kOverhead;
+  sums.bytes = sharedBlock<Chunk> + chunk.capacity() * sizeof(Entry) + kOverhead;
   for (const Entry& entry : chunk) {
     const PatchInfo& info = *entry.node;
-    sums.bytes += sizeof(PatchInfo) + 16 + kOverhead + heapOf(info.folder) +
-                  heapOf(info.positionsFile) + heapOf(info.coordinatesFile) +
-                  heapOf(info.textureFile);
+    sums.bytes += sharedBlock<PatchInfo> + info.ownHeapBytes();
     if (sums.levels.empty() || sums.levels.back().depth != entry.key.depth) {
       sums.levels.emplace_back().depth = entry.key.depth;
     }
@@ -399,6 +437,9 @@ Model::ChunkSums Model::summarise(const Chunk& chunk) {
     if (info.resolution > 0) {  // NaN is not
       level.nanometres += std::llround(std::min(info.resolution, 1e7) * 1e9);
       ++level.measured;
+      if (info.isLeaf() && (level.finestLeaf == 0 || info.resolution < level.finestLeaf)) {
+        level.finestLeaf = info.resolution;
+      }
     }
   }
   return sums;
@@ -426,9 +467,8 @@ bool sameStoredPatch(const PatchInfo& a, const PatchInfo& b) {
   return &a == &b ||
          (a.version == b.version && a.folder == b.folder && a.childMask == b.childMask &&
           a.globalBox == b.globalBox && a.localBox == b.localBox &&
-          a.local2global == b.local2global && a.resolution == b.resolution &&
-          a.stored == b.stored && a.positionsFile == b.positionsFile &&
-          a.coordinatesFile == b.coordinatesFile && a.textureFile == b.textureFile);
+          a.local2global() == b.local2global() && a.resolution == b.resolution &&
+          a.stored == b.stored && a.files() == b.files());
 }
 
 }  // namespace
@@ -475,7 +515,7 @@ std::uint64_t patchDigest(const PatchInfo& info) {
                          info.globalBox.max.x, info.globalBox.max.y, info.globalBox.max.z}) {
     mix.add(v);
   }
-  for (const double v : info.local2global.m) {
+  for (const double v : info.local2global().m) {
     mix.add(v);
   }
   return mix.finish();

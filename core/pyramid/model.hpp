@@ -20,39 +20,65 @@ struct ModelChange;
 class Model;
 ModelChange modelChange(const Model& before, const Model& after);
 
-/// Everything known about a patch without its vertex data: always resident.
+/// The names of a patch's files in its folder, as Patch.xml gives them.
+struct PatchFiles {
+  std::string positions = "Positions.aara";
+  /// Texture coordinates (V2f per stored vertex): Patch.xml's
+  /// <Coordinates><DiffuseColor1Coordinates>; empty when the patch has no texture.
+  std::string coordinates;
+  /// The texture tile relative to Images/ as Patch.xml names it (backslash-separated, e.g.
+  /// "Diffuse\\2_0_0.tif"): the first <Textures> entry; empty when the patch has no texture.
+  std::string texture;
+  friend bool operator==(const PatchFiles&, const PatchFiles&) = default;
+};
+
+/// Everything known about a patch without its vertex data: always resident, so kept small (a
+/// model of 10^6 patches holds 1.4 million): Local2Global as its translation where it is one (as
+/// vsm writes it) and the file names shared where they are the usual ones.
 struct PatchInfo {
   PatchKey key;
-  /// Directory name under Patches/ (vsm writes key.toString(); foreign OPCs use their own names).
-  std::string folder;
   /// Bit q is set when the child in Quadrant q exists.
   std::uint8_t childMask = 0;
+  /// States (thesis 3.4): changed and not yet written / an overview whose descendants changed, to
+  /// be recomputed before use (and `grid`: the vertex data is in memory).
+  bool dirty = false;
+  bool stale = false;
+  /// Directory name under Patches/ (vsm writes key.toString(); foreign OPCs use their own names).
+  std::string folder;
   Box3d globalBox;
   Box3d localBox;
-  Mat4d local2global;
   /// Mean distance between defined grid neighbours, metres.
   double resolution = 0;
   /// Increases whenever the patch's data changes.
   std::uint64_t version = 1;
   /// The part of the full grid stored on disk (undefined border rows/columns are cropped).
   GridRect stored;
-  std::string positionsFile = "Positions.aara";
-  /// Texture coordinates (V2f per stored vertex) in the patch folder: Patch.xml's
-  /// <Coordinates><DiffuseColor1Coordinates>; empty when the patch has no texture.
-  std::string coordinatesFile;
-  /// The texture tile relative to Images/ as Patch.xml names it (backslash-separated, e.g.
-  /// "Diffuse\\2_0_0.tif"): the first <Textures> entry; empty when the patch has no texture.
-  std::string textureFile;
-
-  /// States (thesis 3.4): the vertex data is in memory / changed and not yet written / an overview
-  /// whose descendants changed, to be recomputed before use.
   std::shared_ptr<const PatchGrid> grid;
-  bool dirty = false;
-  bool stale = false;
+
+  Mat4d local2global() const { return matrix_ ? *matrix_ : Mat4d::translation(translation_); }
+  void setLocal2Global(const Mat4d& m);
+
+  const PatchFiles& files() const { return files_ ? *files_ : kUntexturedFiles; }
+  const std::string& positionsFile() const { return files().positions; }
+  const std::string& coordinatesFile() const { return files().coordinates; }
+  const std::string& textureFile() const { return files().texture; }
+  void setFiles(PatchFiles files);
 
   bool resident() const { return grid != nullptr; }
   bool isLeaf() const { return childMask == 0; }
   bool hasChild(Quadrant q) const { return (childMask >> static_cast<int>(q)) & 1; }
+
+  /// The heap blocks this node holds of its own (its matrix and file names when it has them;
+  /// shared ones counted with each node): Model::heapBytes.
+  std::size_t ownHeapBytes() const;
+
+ private:
+  static const PatchFiles kUntexturedFiles;
+  Vec3d translation_;
+  /// Null when Local2Global is translation_ alone.
+  std::shared_ptr<const Mat4d> matrix_;
+  /// Null for kUntexturedFiles.
+  std::shared_ptr<const PatchFiles> files_;
 };
 
 /// Per-depth summary of a model.
@@ -64,6 +90,8 @@ struct LevelSummary {
   /// Mean of the patches' resolutions at this depth (metres), each taken in whole nanometres, so
   /// that it is exactly the same however the sum is grouped.
   double resolution = 0;
+  /// The least resolution of a leaf at this depth (metres); 0 when no leaf here has one.
+  double finestLeaf = 0;
 };
 
 /// The pyramid: a quadtree of patches with one root, up to four children per patch, empty patches

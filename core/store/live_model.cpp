@@ -123,8 +123,8 @@ void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSna
   if (fs::is_directory(tiles)) {
     std::unordered_set<std::string> namedTiles;
     for (const auto& [key, info] : current.model->patches()) {
-      if (!info.textureFile.empty()) {
-        namedTiles.insert(normalisedEntry(info.textureFile));
+      if (!info.textureFile().empty()) {
+        namedTiles.insert(normalisedEntry(info.textureFile()));
       }
     }
     for (const auto& entry : fs::directory_iterator(tiles)) {
@@ -290,7 +290,7 @@ PatchCache::Pin LiveModel::positions(const ModelSnapshot& snapshot, const PatchK
 
 PatchCache::Pin LiveModel::texture(const ModelSnapshot& snapshot, const PatchKey& key) {
   const PatchInfo& info = snapshot.model->at(key);
-  if (info.textureFile.empty()) {
+  if (info.textureFile().empty()) {
     return {};
   }
   return store_->cache().get(store_->id(), {key, info.version, MemoryCategory::Textures});

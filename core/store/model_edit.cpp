@@ -82,7 +82,7 @@ PatchCache::Pin ModelEdit::positions(const PatchKey& key) {
 
 PatchCache::Pin ModelEdit::texture(const PatchKey& key) {
   const PatchInfo& info = model_->at(key);
-  if (info.textureFile.empty()) {
+  if (info.textureFile().empty()) {
     return {};
   }
   return live_.store_->cache().get(live_.store_->id(),
@@ -112,18 +112,18 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
   const ObjectId textureId{key, id.version, MemoryCategory::Textures};
   PatchInfo& info = model_->edit(key);
   LiveModel::Store& store = *live_.store_;
-  if (!texture && changed_.count(key) != 0 && !info.textureFile.empty()) {
+  if (!texture && changed_.count(key) != 0 && !info.textureFile().empty()) {
     // This edit's earlier texture of the patch is obsolete (and may have been written already).
     store.cache().drop(store.id(), textureId);
     fs::remove(ourTileFile(live_.dir_, info.folder));
   }
   info.version = id.version;
   info.folder = draftFolder(key, id.version, nonce_);
-  info.positionsFile = "Positions.aara";
   // As OpcWriter::writePatch names them: the snapshot (and the index written from it) says what
   // the files say.
-  info.coordinatesFile = texture ? "Coordinates.aara" : std::string();
-  info.textureFile = texture ? textureEntryFor(info.folder) : std::string();
+  info.setFiles(texture
+                    ? PatchFiles{"Positions.aara", "Coordinates.aara", textureEntryFor(info.folder)}
+                    : PatchFiles{});
   model_->describe(key, *grid);
   model_->markChanged(key);
   if (const auto parent = key.parent()) {
@@ -185,7 +185,7 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
           auto& pin = pins[static_cast<int>(q)];
           pin = positions(child);
           children[static_cast<int>(q)] = pin.get<PatchGrid>().get();
-          if (info->textureFile.empty()) {
+          if (info->textureFile().empty()) {
             reliefs[static_cast<int>(q)].emplace(shadedRelief(*children[static_cast<int>(q)]));
           }
         }

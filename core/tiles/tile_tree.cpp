@@ -113,7 +113,7 @@ Vec3d tileCentre(const PatchInfo& info) {
   if (!info.globalBox.empty() && info.globalBox.min.finite() && info.globalBox.max.finite()) {
     return info.globalBox.center();
   }
-  return info.local2global.translationPart();
+  return info.local2global().translationPart();
 }
 
 double tilePadding(const Box3d& box) {

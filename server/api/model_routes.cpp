@@ -407,14 +407,15 @@ json boxJson(const core::Box3d& box) {
 json modelJson(std::string_view id, const core::ModelSnapshot& snapshot, bool details) {
   const core::Model& model = *snapshot.model;
   const core::PatchInfo* root = model.find(core::PatchKey::root());
+  // From the levels' sums, which a model keeps per shared chunk: no walk of every patch (a model
+  // of 10^6 patches is polled for its version).
+  const std::vector<core::LevelSummary> summary = model.levels();
   std::size_t leaves = 0;
   double finest = 0;
-  for (const auto& [key, info] : model.patches()) {
-    if (info.isLeaf()) {
-      ++leaves;
-      if (info.resolution > 0 && (finest == 0 || info.resolution < finest)) {
-        finest = info.resolution;
-      }
+  for (const core::LevelSummary& level : summary) {
+    leaves += level.leaves;
+    if (level.finestLeaf > 0 && (finest == 0 || level.finestLeaf < finest)) {
+      finest = level.finestLeaf;
     }
   }
   json out = {{"id", id},
@@ -429,7 +430,7 @@ json modelJson(std::string_view id, const core::ModelSnapshot& snapshot, bool de
                 {"finest", finest > 0 ? json(finest) : json(nullptr)}}}};
   if (details) {
     json levels = json::array();
-    for (const core::LevelSummary& level : model.levels()) {
+    for (const core::LevelSummary& level : summary) {
       levels.push_back({{"depth", level.depth},
                         {"patches", level.patches},
                         {"leaves", level.leaves},
@@ -450,27 +451,27 @@ json patchJson(std::string_view id, const core::ModelSnapshot& snapshot,
     }
   }
   const auto parent = info.key.parent();
-  return {
-      {"model", id},
-      {"model_version", snapshot.version},
-      {"key", info.key.toString()},
-      {"depth", info.key.depth},
-      {"x", info.key.x},
-      {"y", info.key.y},
-      {"folder", info.folder},
-      {"version", info.version},
-      {"grid_size", snapshot.model->gridSize()},
-      {"box", boxJson(info.globalBox)},
-      {"local_box", boxJson(info.localBox)},
-      {"local2global", json(info.local2global.m)},
-      {"resolution", number(info.resolution)},
-      {"stored", rectJson(info.stored)},
-      {"parent", parent ? json(parent->toString()) : json(nullptr)},
-      {"children", std::move(children)},
-      {"leaf", info.isLeaf()},
-      {"texture", info.textureFile.empty() ? json(nullptr)
-                                           : json{{"layer", textureLayer(info.textureFile)},
-                                                  {"coordinates", !info.coordinatesFile.empty()}}}};
+  return {{"model", id},
+          {"model_version", snapshot.version},
+          {"key", info.key.toString()},
+          {"depth", info.key.depth},
+          {"x", info.key.x},
+          {"y", info.key.y},
+          {"folder", info.folder},
+          {"version", info.version},
+          {"grid_size", snapshot.model->gridSize()},
+          {"box", boxJson(info.globalBox)},
+          {"local_box", boxJson(info.localBox)},
+          {"local2global", json(info.local2global().m)},
+          {"resolution", number(info.resolution)},
+          {"stored", rectJson(info.stored)},
+          {"parent", parent ? json(parent->toString()) : json(nullptr)},
+          {"children", std::move(children)},
+          {"leaf", info.isLeaf()},
+          {"texture", info.textureFile().empty()
+                          ? json(nullptr)
+                          : json{{"layer", textureLayer(info.textureFile())},
+                                 {"coordinates", !info.coordinatesFile().empty()}}}};
 }
 
 json hierarchyJson(const core::Model& model, const core::PatchKey& root, int levels) {

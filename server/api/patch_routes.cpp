@@ -99,12 +99,12 @@ std::optional<http::Response> positions(const ModelContext& c, const http::Reque
 /// requested layer, when the route names one).
 const core::PatchInfo& texturedPatch(std::string_view id, const core::PatchInfo& info,
                                      const http::Request& request) {
-  if (info.textureFile.empty()) {
+  if (info.textureFile().empty()) {
     throw Error(ErrorCode::NotFound, "patch " + info.key.toString() + " of model '" +
                                          std::string(id) + "' has no texture");
   }
   if (const auto it = request.params.find("layer"); it != request.params.end()) {
-    const std::string_view own = textureLayer(info.textureFile);
+    const std::string_view own = textureLayer(info.textureFile());
     const std::string* layer = &it->second;
     const bool same = own.size() == layer->size() &&
                       std::equal(own.begin(), own.end(), layer->begin(), [](char a, char b) {
@@ -150,7 +150,7 @@ std::optional<http::Response> textureData(const ModelContext& c, const http::Req
   http::Response response = patchDataResponse(
       *patch->read.snapshot, info, png ? "image/png" : "application/octet-stream", etag, false);
   if (png) {
-    response.set("X-VSM-Texture-Layer", std::string(textureLayer(info.textureFile)));
+    response.set("X-VSM-Texture-Layer", std::string(textureLayer(info.textureFile())));
     sendBody(response, std::move(body));
   } else {
     sendFile(response, std::move(file));

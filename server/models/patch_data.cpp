@@ -315,7 +315,7 @@ std::pair<std::vector<std::byte>, std::string> encodePositions(const core::LiveM
                                                                const core::PatchInfo& info) {
   if (std::optional<std::vector<std::byte>> bytes =
           core::readFullGridPositions(live.dir(), snapshot.model->gridSize(), info)) {
-    return {std::move(*bytes), matrixText(info.local2global)};
+    return {std::move(*bytes), matrixText(info.local2global())};
   }
   const core::PatchGrid grid = core::readPatchGrid(live.dir(), *snapshot.model, info);
   const std::span<const float> floats = grid.positions();
@@ -381,7 +381,7 @@ std::optional<PatchData::Positions> PatchData::positions(const ModelRegistry::Se
   std::optional<Positions> out = lookOrMake(asker, find, make);
   if (out) {
     out->local2global =
-        out->file != nullptr ? matrixText(info.local2global) : std::string(out->body->note());
+        out->file != nullptr ? matrixText(info.local2global()) : std::string(out->body->note());
   }
   return out;
 }

@@ -35,7 +35,7 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   });
   core::PatchInfo info;
   info.folder = "0_0_0";
-  info.textureFile = "Diffuse\\tile.tif";
+  info.setFiles({"Positions.aara", "", "Diffuse\\tile.tif"});
   fuzz::succeeds([&] {
     const std::vector<std::byte> png = core::readPatchTexturePng(scratch.path(), info, kMaxPixels);
     fuzz::check(png.size() >= 8, "a PNG has its signature");

@@ -730,7 +730,7 @@ TEST(PyramidBuilder, TheReturnedModelIsTheOneOnDisk) {
     ASSERT_NE(other, nullptr) << key.toString();
     EXPECT_EQ(other->childMask, info.childMask) << key.toString();
     EXPECT_EQ(other->stored, info.stored) << key.toString();
-    EXPECT_EQ(other->local2global, info.local2global) << key.toString();
+    EXPECT_EQ(other->local2global(), info.local2global()) << key.toString();
     EXPECT_TRUE(other->globalBox.contains(info.globalBox, 1e-3)) << key.toString();
     EXPECT_TRUE(info.globalBox.contains(other->globalBox, 1e-3)) << key.toString();
     EXPECT_FALSE(info.resident());
@@ -1028,8 +1028,8 @@ TEST(TexturedImport, EveryPatchGetsATileCoordinatesAndXmlAsOpcSays) {
   const Model model = importFile(dir / "dem.tif", dir / "opc", options);
   EXPECT_EQ(model.patchCount(), 5u);
   for (const auto& [key, info] : model.patches()) {
-    EXPECT_EQ(info.textureFile, "Diffuse\\" + key.toString() + ".tif");
-    EXPECT_EQ(info.coordinatesFile, "Coordinates.aara");
+    EXPECT_EQ(info.textureFile(), "Diffuse\\" + key.toString() + ".tif");
+    EXPECT_EQ(info.coordinatesFile(), "Coordinates.aara");
     EXPECT_TRUE(fs::exists(dir / "opc" / "Images" / "Diffuse" / (key.toString() + ".tif")));
     const AaraArray uv =
         readAaraFile(dir / "opc" / "Patches" / key.toString() / "Coordinates.aara");
@@ -1038,7 +1038,7 @@ TEST(TexturedImport, EveryPatchGetsATileCoordinatesAndXmlAsOpcSays) {
   }
   // Read back: the reader sees the same texture entries, and validation passes.
   const Model read = readOpcModel(dir / "opc");
-  EXPECT_EQ(read.at(PatchKey::root()).textureFile, "Diffuse\\0_0_0.tif");
+  EXPECT_EQ(read.at(PatchKey::root()).textureFile(), "Diffuse\\0_0_0.tif");
   EXPECT_TRUE(validateOpc(dir / "opc").empty());
 
   // The root's texel is the mean of the 2 x 2 texels of the child it covers.

@@ -437,7 +437,7 @@ TEST(PatchData, ANetworkThreadOnlyLooksAndThePoolMakesWithOneMissPerRequest) {
   ASSERT_TRUE(positions);
   EXPECT_EQ(misses(), before + 1);
   EXPECT_TRUE(positions->file != nullptr || positions->body != nullptr);
-  EXPECT_EQ(positions->local2global, models::matrixText(leaf.local2global));
+  EXPECT_EQ(positions->local2global, models::matrixText(leaf.local2global()));
   EXPECT_TRUE(data.positions(served, *snapshot, leaf, models::Asker::NetworkThread));
 
   // The pool with no look before counts its own miss, once.

@@ -275,7 +275,7 @@ class TextureFileTest : public test::TempDirTest {
     writeBytes(file("source.tif"), encodeTextureTiff(tile));
     PatchInfo info;
     info.folder = "0_0_0";
-    info.textureFile = "Diffuse\\source.tif";
+    info.setFiles({"Positions.aara", "", "Diffuse\\source.tif"});
     return readPatchTexturePng(dir_, info);
   }
 };
@@ -543,7 +543,7 @@ TEST_F(OpcStoreTest, ReadBackIsWhatWasWritten) {
     EXPECT_EQ(other.folder, key.toString());
     EXPECT_EQ(other.childMask, info.childMask);
     EXPECT_EQ(other.globalBox, info.globalBox);
-    EXPECT_EQ(other.local2global, info.local2global);
+    EXPECT_EQ(other.local2global(), info.local2global());
     EXPECT_EQ(other.stored, info.stored);
     EXPECT_DOUBLE_EQ(other.resolution, info.resolution);
     EXPECT_EQ(readPatchGrid(opc(), read, other), *info.grid) << key.toString();
@@ -582,7 +582,7 @@ TEST_F(OpcStoreTest, TheCoordinatesOfWholePatchesAreOneSharedFile) {
   const Model read = readOpcModel(out);
   for (const auto& [key, info] : read.patches()) {
     const fs::path file = out / "Patches" / info.folder / "Coordinates.aara";
-    ASSERT_EQ(info.coordinatesFile, "Coordinates.aara");
+    ASSERT_EQ(info.coordinatesFile(), "Coordinates.aara");
     const bool whole = info.stored == GridRect{0, 0, kSize, kSize};
     EXPECT_EQ(fs::equivalent(file, shared), whole) << key.toString();
     EXPECT_EQ(fs::hard_link_count(file), whole ? fs::hard_link_count(shared) : 1u);

@@ -364,6 +364,9 @@ TEST(Model, LevelsAreTheMeanOfWholeNanometresWhicheverChunksHoldThePatches) {
       if (info.resolution > 0) {
         sums[key.depth].first += std::llround(info.resolution * 1e9);
         ++sums[key.depth].second;
+        if (info.isLeaf() && (level.finestLeaf == 0 || info.resolution < level.finestLeaf)) {
+          level.finestLeaf = info.resolution;
+        }
       }
     }
     const std::vector<LevelSummary> levels = m.levels();
@@ -374,6 +377,7 @@ TEST(Model, LevelsAreTheMeanOfWholeNanometresWhicheverChunksHoldThePatches) {
       EXPECT_EQ(level.patches, want.patches) << when << " depth " << level.depth;
       EXPECT_EQ(level.leaves, want.leaves) << when << " depth " << level.depth;
       EXPECT_EQ(level.bounds, want.bounds) << when << " depth " << level.depth;
+      EXPECT_EQ(level.finestLeaf, want.finestLeaf) << when << " depth " << level.depth;
       EXPECT_EQ(level.resolution, measured == 0 ? 0.0
                                                 : static_cast<double>(nanometres) /
                                                       static_cast<double>(measured) * 1e-9)
@@ -457,6 +461,49 @@ TEST(Model, HeapBytesCountEveryNodeAndEachSharedChunkOnce) {
   // Counted afresh, the copy is an unchanged copy plus the name.
   std::unordered_set<const void*> alone, unchanged;
   EXPECT_GE(copy.heapBytes(alone), Model(model).heapBytes(unchanged) + 100);
+}
+
+// A model of 10^6 patches holds 1.4 million descriptions: each keeps Local2Global as its
+// translation and shares the usual file names, and gives back exactly what was set.
+TEST(PatchInfo, KeepsWhatWasSetInLessRoom) {
+  EXPECT_LE(sizeof(PatchInfo), 256u);
+  PatchInfo info;
+  info.key = {10, 123, 456};
+  info.folder = info.key.toString();
+  EXPECT_EQ(info.local2global(), Mat4d::identity());
+  EXPECT_EQ(info.files(), PatchFiles{});
+  EXPECT_EQ(info.ownHeapBytes(), 0u);
+
+  const Mat4d shift = Mat4d::translation({6.4e6, -1.5e5, 3.25e6});
+  info.setLocal2Global(shift);
+  EXPECT_EQ(info.local2global(), shift);
+  EXPECT_EQ(info.ownHeapBytes(), 0u);
+  Mat4d general = shift;
+  general.m[1] = 0.25;
+  general.m[8] = -1e-9;
+  info.setLocal2Global(general);
+  EXPECT_EQ(info.local2global(), general);
+  EXPECT_GT(info.ownHeapBytes(), sizeof(Mat4d));
+  // Bit for bit: a -0 in the linear part is not a translation's +0 (it is written back as read).
+  Mat4d negativeZero = shift;
+  negativeZero.m[4] = -0.0;
+  info.setLocal2Global(negativeZero);
+  EXPECT_TRUE(std::signbit(info.local2global().m[4]));
+  info.setLocal2Global(shift);
+  EXPECT_EQ(info.ownHeapBytes(), 0u);
+
+  const PatchFiles textured{"Positions.aara", "Coordinates.aara", "Diffuse\\10_123_456.tif"};
+  info.setFiles(textured);
+  EXPECT_EQ(info.files(), textured);
+  EXPECT_EQ(info.textureFile(), "Diffuse\\10_123_456.tif");
+  EXPECT_GT(info.ownHeapBytes(), sizeof(PatchFiles));
+  PatchInfo copy = info;  // shares the names
+  info.setFiles({"positions.AARA", "", ""});
+  EXPECT_EQ(info.positionsFile(), "positions.AARA");
+  EXPECT_TRUE(info.textureFile().empty());
+  EXPECT_EQ(copy.files(), textured);
+  info.setFiles({});
+  EXPECT_EQ(info.ownHeapBytes(), 0u);
 }
 
 TEST(Model, ACopySharesEveryPatchItsChangeDidNotTouch) {

@@ -1048,7 +1048,7 @@ std::set<std::string> tileFiles(const fs::path& dir) {
 std::set<std::string> namedTiles(const Model& model) {
   std::set<std::string> names;
   for (const auto& [key, info] : model.patches()) {
-    EXPECT_EQ(info.textureFile, "Diffuse\\" + info.folder + ".tif") << key.toString();
+    EXPECT_EQ(info.textureFile(), "Diffuse\\" + info.folder + ".tif") << key.toString();
     names.insert(info.folder + ".tif");
   }
   return names;
@@ -1152,7 +1152,7 @@ TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
     edit->publish(nullptr, publishing("", 2));
   }
   auto after = live->snapshot();
-  EXPECT_TRUE(after->model->at({2, 0, 0}).textureFile.empty());
+  EXPECT_TRUE(after->model->at({2, 0, 0}).textureFile().empty());
   EXPECT_FALSE(live->texture(*after, {2, 0, 0}));
   // Its parent's north-west quadrant shows its shaded relief: the parent texel (2, 2) is the mean
   // of the child's texels (4..5, 4..5), each Lambertian from the surface's normal at its quad's
@@ -1186,7 +1186,7 @@ TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
   std::set<std::string> named = tileFiles(dir_);
   for (const auto* model : {published.get(), third.get()}) {
     for (const auto& [key, info] : model->patches()) {
-      if (!info.textureFile.empty()) {
+      if (!info.textureFile().empty()) {
         named.erase(info.folder + ".tif");
       }
     }
@@ -1239,13 +1239,13 @@ void expectSameModel(const OpcRevision& a, const OpcRevision& b) {
     EXPECT_EQ(x.childMask, y->childMask) << key.toString();
     EXPECT_EQ(x.globalBox, y->globalBox) << key.toString();
     EXPECT_EQ(x.localBox, y->localBox) << key.toString();
-    EXPECT_EQ(x.local2global.m, y->local2global.m) << key.toString();
+    EXPECT_EQ(x.local2global().m, y->local2global().m) << key.toString();
     EXPECT_EQ(x.resolution, y->resolution) << key.toString();
     EXPECT_EQ(x.version, y->version) << key.toString();
     EXPECT_EQ(x.stored, y->stored) << key.toString();
-    EXPECT_EQ(x.positionsFile, y->positionsFile) << key.toString();
-    EXPECT_EQ(x.coordinatesFile, y->coordinatesFile) << key.toString();
-    EXPECT_EQ(x.textureFile, y->textureFile) << key.toString();
+    EXPECT_EQ(x.positionsFile(), y->positionsFile()) << key.toString();
+    EXPECT_EQ(x.coordinatesFile(), y->coordinatesFile()) << key.toString();
+    EXPECT_EQ(x.textureFile(), y->textureFile()) << key.toString();
   }
   ASSERT_EQ(a.record.has_value(), b.record.has_value());
   if (a.record) {
@@ -1665,20 +1665,23 @@ TEST(OpcIndex, RoundTripsAHundredThousandPatchesExactly) {
         info.globalBox.extend(Vec3d{u + 1.0 / 3, w + 2.0 / 3, 1e6 + x});
         info.localBox.extend(Vec3d{-u / 7, -w / 9, -1});
         info.localBox.extend(Vec3d{u / 7, w / 9, 1});
-        info.local2global = Mat4d::translation({6.4e6 + u, -1e5 + w, 3.2e6 / (1 + y)});
+        Mat4d local2global = Mat4d::translation({6.4e6 + u, -1e5 + w, 3.2e6 / (1 + y)});
         if (x == 3 && y == 1) {
-          info.local2global.m[1] = 0.25;  // not a translation: all 16 stored
+          local2global.m[1] = 0.25;  // not a translation: all 16 stored
         }
+        info.setLocal2Global(local2global);
         info.resolution = 1.0 / (1 + x + y);
         info.version = 1 + (x * 31 + y) % 5;
         info.stored = {static_cast<int>(x % 2), 0, kSize, kSize - static_cast<int>(y % 3)};
+        PatchFiles files;
         if ((x + 2 * y) % 11 == 0) {
-          info.coordinatesFile = "Coordinates.aara";
-          info.textureFile = textureEntryFor(info.folder);
+          files.coordinates = "Coordinates.aara";
+          files.texture = textureEntryFor(info.folder);
         }
         if (x == 5) {
-          info.positionsFile = "positions.AARA";
+          files.positions = "positions.AARA";
         }
+        info.setFiles(std::move(files));
         model.insert(std::move(info));
       }
     }
