@@ -12,6 +12,7 @@
 #include <functional>
 #include <set>
 
+#include "core/common/checksum.hpp"
 #include "core/common/error.hpp"
 #include "core/opc/opc_detail.hpp"
 
@@ -162,18 +163,7 @@ void putStamp(Encoder& out, const HierarchyStamp& stamp) {
 
 // Fast enough to cost little next to reading the file, and catches a truncated or damaged file.
 std::uint64_t opcIndexChecksum(std::span<const std::byte> bytes) {
-  std::uint64_t h = 0x9e3779b97f4a7c15ULL ^ bytes.size();
-  std::size_t i = 0;
-  for (; i + 8 <= bytes.size(); i += 8) {
-    std::uint64_t w;
-    std::memcpy(&w, bytes.data() + i, 8);
-    h = (h ^ w) * 0xff51afd7ed558ccdULL;
-    h ^= h >> 29;
-  }
-  std::uint64_t w = 0;
-  std::memcpy(&w, bytes.data() + i, bytes.size() - i);
-  h = (h ^ w) * 0xc4ceb9fe1a85ec53ULL;
-  return h ^ (h >> 32);
+  return checksum64(bytes);
 }
 
 std::string indexFileName(std::string_view hierarchyName) {

@@ -3,6 +3,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <fstream>
 #include <functional>
 #include <iterator>
 #include <map>
@@ -276,6 +277,53 @@ bool LiveModel::changedOnDisk() const {
 
 std::uint64_t LiveModel::texturePixels() const {
   return store_->texturePixels();
+}
+
+namespace {
+
+/// The path of a cache file of the model at `dir` (in Patches/, where an interrupted write's
+/// temporary file is a leftover the sweep removes); throws for a name that is not "vsm-<what>.bin".
+fs::path cacheFilePath(const fs::path& dir, std::string_view name) {
+  const bool plain = name.find_first_of("/\\") == std::string_view::npos;
+  if (!plain || !name.starts_with("vsm-") || !name.ends_with(".bin") || name.size() <= 8) {
+    throw Error(ErrorCode::InvalidArgument, "not a cache file name: '" + std::string(name) + "'");
+  }
+  return patchesDirOf(dir) / name;
+}
+
+}  // namespace
+
+std::optional<std::vector<std::byte>> LiveModel::readCacheFile(std::string_view name,
+                                                               std::size_t maxBytes) const {
+  const fs::path path = cacheFilePath(dir_, name);
+  std::ifstream in(path, std::ios::binary);
+  if (!in) {
+    if (!fs::exists(path)) {
+      return std::nullopt;
+    }
+    throw Error(ErrorCode::Io, "cannot open " + path.string());
+  }
+  in.seekg(0, std::ios::end);
+  const std::streamoff size = in.tellg();
+  if (size < 0 || static_cast<std::uint64_t>(size) > maxBytes) {
+    return std::nullopt;
+  }
+  std::vector<std::byte> bytes(static_cast<std::size_t>(size));
+  in.seekg(0);
+  if (!in.read(reinterpret_cast<char*>(bytes.data()), size)) {
+    throw Error(ErrorCode::Io, "cannot read " + path.string());
+  }
+  return bytes;
+}
+
+void LiveModel::writeCacheFile(std::string_view name, std::span<const std::byte> bytes) {
+  const fs::path path = cacheFilePath(dir_, name);
+  if (!writable()) {
+    throw Error(ErrorCode::Conflict,
+                "model " + name_ + " is open for reading only: its cache files are its writer's");
+  }
+  removeLeftovers();  // the sweep first: it would take this write's temporary file for one
+  durable::writeFileAtomically(path, bytes);
 }
 
 std::shared_ptr<const ModelSnapshot> LiveModel::snapshot() const {

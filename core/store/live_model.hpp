@@ -133,6 +133,17 @@ class LiveModel {
   /// The bound on the pixels of a texture file this model decodes, as open() was given it.
   std::uint64_t texturePixels() const;
 
+  /// A cache file of vsm's beside the model's hierarchy in Patches/ (a name "vsm-<what>.bin", such
+  /// as core::kSavedFootprintsFile; other OPC tools ignore it): its bytes, or nullopt when there is
+  /// none or it holds more than `maxBytes` (a cache's size is the caller's bound). Throws
+  /// Error(InvalidArgument) for another name, Error(Io) when it cannot be read.
+  std::optional<std::vector<std::byte>> readCacheFile(std::string_view name,
+                                                      std::size_t maxBytes) const;
+  /// Replaces that file atomically and durably (durable::writeFileAtomically: a crash leaves the
+  /// old bytes or the new), after removeLeftovers(). Throws Error(Conflict) for an opening for
+  /// reading only, and as readCacheFile, removeLeftovers and the write.
+  void writeCacheFile(std::string_view name, std::span<const std::byte> bytes);
+
   /// The current published version.
   std::shared_ptr<const ModelSnapshot> snapshot() const;
 

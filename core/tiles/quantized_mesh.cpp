@@ -7,6 +7,7 @@
 #include <limits>
 #include <map>
 #include <numbers>
+#include <optional>
 #include <set>
 #include <utility>
 
@@ -18,6 +19,7 @@
 #include "core/pyramid/model.hpp"
 #include "core/tiles/heights.hpp"
 #include "core/tiles/lod_render.hpp"
+#include "core/tiles/terrain_footprints.hpp"
 #include "core/tiles/top_down.hpp"
 
 namespace vsm::core {
@@ -430,7 +432,7 @@ struct Moved {
 }  // namespace
 
 TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load,
-                               const TerrainLayerBase* previous) {
+                               const TerrainLayerBase* previous, const SavedFootprints* saved) {
   if (model.empty()) {
     throw Error(ErrorCode::InvalidArgument, "terrain: the model is empty");
   }
@@ -449,10 +451,24 @@ TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load
   // the previous footprints, and `moved` lists what may differ.
   std::vector<Moved> moved;
   if (previous == nullptr) {
+    // A saved footprint stands for its patch unless a child's was read afresh (its data may
+    // have changed under an unchanged parent only in a model vsm did not write).
+    std::set<PatchKey> read;
     for (const auto& [key, info] : model.patches().reversed()) {
-      const GeoRect rect = footprintOf(info, *load(info), layer.footprint);
-      if (!rect.empty()) {
-        layer.footprint.set(key, rect);
+      std::optional<GeoRect> rect = saved != nullptr ? saved->find(info) : std::nullopt;
+      for (const Quadrant q : kQuadrants) {
+        if (rect && info.hasChild(q) && read.contains(key.child(q))) {
+          rect.reset();
+        }
+      }
+      if (!rect) {
+        rect = footprintOf(info, *load(info), layer.footprint);
+        if (saved != nullptr) {
+          read.insert(key);
+        }
+      }
+      if (!rect->empty()) {
+        layer.footprint.set(key, *rect);
       }
     }
   } else {

@@ -21,6 +21,7 @@ struct ModelChange;
 class Model;
 class PatchGrid;
 struct PatchInfo;
+class SavedFootprints;
 
 // ---- the tiling scheme ------------------------------------------------------------------------
 
@@ -159,8 +160,14 @@ struct TerrainLayerBase {
   /// computed.
   const ModelChange* change = nullptr;
 };
+///
+/// Without `previous`, footprints `saved` by an earlier build (of this or an earlier version, read
+/// from the model's directory) stand for every patch whose data they were saved for and whose
+/// children's footprints were not read afresh: only the others are read (availability is then
+/// derived in full, from metadata only).
 TerrainLayer buildTerrainLayer(const Model& model, const TerrainGridLoader& load,
-                               const TerrainLayerBase* previous = nullptr);
+                               const TerrainLayerBase* previous = nullptr,
+                               const SavedFootprints* saved = nullptr);
 
 /// The patches tile `key` is sampled from, coarse to fine (the order they are painted in): from
 /// the root down through patches whose footprint meets the tile (with its one-vertex ring), taking

@@ -24,6 +24,7 @@
 #include "core/store/live_model.hpp"
 #include "core/tiles/glb.hpp"
 #include "core/tiles/quantized_mesh.hpp"
+#include "core/tiles/terrain_footprints.hpp"
 #include "core/tiles/terrain_rgb.hpp"
 #include "core/tiles/tile_tree.hpp"
 #include "server/http/gzip.hpp"
@@ -179,16 +180,24 @@ class TerrainLayers {
       }
       std::optional<core::ModelChange> change;
       std::optional<core::TerrainLayerBase> previous;
+      std::optional<core::SavedFootprints> saved;
       if (base) {
         change = core::changeSince(base->model, *snapshot);
         previous.emplace(core::TerrainLayerBase{*base->model, *base->layer, &*change});
+      } else {
+        saved = readSavedFootprints(live, *snapshot->model);
       }
+      std::size_t read = 0;
       auto layer = std::make_shared<const core::TerrainLayer>(core::buildTerrainLayer(
           *snapshot->model,
           [&](const core::PatchInfo& info) {
+            ++read;
             return live.positions(*snapshot, info.key).get<core::PatchGrid>();
           },
-          previous ? &*previous : nullptr));
+          previous ? &*previous : nullptr, saved ? &*saved : nullptr));
+      if (!base) {
+        saveFootprints(live, *snapshot->model, *layer, read);
+      }
       {
         const std::lock_guard lock(mutex_);
         Base& held = bases_[live.dir()];
@@ -207,7 +216,8 @@ class TerrainLayers {
           std::to_string(std::chrono::duration_cast<std::chrono::milliseconds>(
                              std::chrono::steady_clock::now() - start)
                              .count()) +
-          " ms");
+          " ms, read " + std::to_string(read) + " of " +
+          std::to_string(snapshot->model->patchCount()) + " patches");
       promise.set_value(layer);
       return layer;
     } catch (...) {
@@ -226,6 +236,38 @@ class TerrainLayers {
     std::weak_ptr<const core::ModelSnapshot> snapshot;  // the key's owner, to detect reuse
     std::shared_future<Layer> layer;                    // ready once built
   };
+  /// The footprints an earlier layer of the model saved (SavedFootprints): none when there is no
+  /// such file, or a damaged one (a warning: the layer reads every patch, and saves afresh).
+  static std::optional<core::SavedFootprints> readSavedFootprints(const core::LiveModel& live,
+                                                                  const core::Model& model) {
+    try {
+      // A file for a version with up to twice as many patches is still of use.
+      const std::size_t bound =
+          64 + (2 * model.patchCount() + 1024) * core::SavedFootprints::kRecordBytes;
+      if (auto bytes = live.readCacheFile(core::kSavedFootprintsFile, bound)) {
+        return core::SavedFootprints(std::move(*bytes), model.gridSize());
+      }
+    } catch (const core::Error& e) {
+      core::log::warn("model=" + live.name() + " " + e.what() + ": terrain footprints are read");
+    }
+    return std::nullopt;
+  }
+
+  /// Saves the layer's footprints when this layer, the first of the process, read more than an
+  /// eighth of the model (a model without saved footprints, or saved long ago): later processes
+  /// then read only what changed since. The writer's alone; a failure is a warning (a cache).
+  static void saveFootprints(core::LiveModel& live, const core::Model& model,
+                             const core::TerrainLayer& layer, std::size_t read) {
+    if (!live.writable() || !layer.heightField || read * 8 <= model.patchCount()) {
+      return;
+    }
+    try {
+      live.writeCacheFile(core::kSavedFootprintsFile, core::SavedFootprints::encode(model, layer));
+    } catch (const core::Error& e) {
+      core::log::warn("model=" + live.name() + " terrain footprints not saved: " + e.what());
+    }
+  }
+
   /// The last layer built for a model (by its directory) and the metadata it was built from:
   /// the base of the next version's layer (kept beyond its snapshot; the metadata shares every
   /// unchanged patch with the newer versions', so it costs about its changed patches).

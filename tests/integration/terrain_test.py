@@ -30,6 +30,7 @@ import gzip
 import json
 import math
 import os
+import re
 import shutil
 import struct
 import sys
@@ -448,6 +449,54 @@ class Terrain(unittest.TestCase):
         return levels
 
     # -- the scenario (one test: the merge divides it into before and after) --
+
+    def test_saved_footprints_spare_the_next_daemon_reading_every_patch(self):
+        # The first layer of a process reads every patch for its footprints (minutes at 10^6
+        # patches); the writer saves them beside the model, and the next daemon reads only the
+        # root (its height field check) when nothing changed. A damaged file is ignored (a
+        # warning), every patch read again and the file saved afresh.
+        root = os.path.join(ARGS.work, "saved-root")
+        shutil.rmtree(root, ignore_errors=True)
+        os.makedirs(root)
+        shutil.copytree(os.path.join(ARGS.work, "root", JACK), os.path.join(root, JACK))
+        saved = os.path.join(root, JACK, "Patches", "vsm-terrain-footprints.bin")
+        if os.path.exists(saved):  # the class's daemon saved them already
+            os.remove(saved)
+        patches = len(self.daemon.keys(JACK))
+        self.assertGreater(patches, 4)
+        path = "/v1/models/%s/terrain/layer.json" % JACK
+        layers, files = [], []
+        for round in ("first", "saved", "damaged"):
+            daemon = harness.Daemon("--token", TOKEN, root=root)
+            try:
+                status, _, body = daemon.request("GET", path)
+                self.assertEqual(status, 200, body[:300])
+                layers.append(json.loads(body))
+            finally:
+                code = daemon.stop()
+            self.assertEqual(code, 0, daemon.log()[-2000:])
+            log = daemon.log()
+            read = re.search(r"read (\d+) of (\d+) patches", log)
+            self.assertIsNotNone(read, log[-2000:])
+            self.assertEqual(int(read.group(2)), patches)
+            if round == "saved":
+                self.assertEqual(int(read.group(1)), 1, "the root's check only")
+            else:
+                self.assertEqual(int(read.group(1)), patches + 1, "every patch, the root twice")
+            if round == "damaged":
+                self.assertIn("saved terrain footprints: checksum mismatch", log)
+            with open(saved, "rb") as f:
+                files.append(f.read())
+            if round == "saved":
+                with open(saved, "r+b") as f:  # a bit flipped in a footprint
+                    f.seek(len(files[-1]) // 2)
+                    byte = f.read(1)[0]
+                    f.seek(len(files[-1]) // 2)
+                    f.write(bytes([byte ^ 0x10]))
+        self.assertEqual(layers[1], layers[0])
+        self.assertEqual(layers[2], layers[0])
+        self.assertEqual(files[1], files[0], "not saved again when nothing was read")
+        self.assertEqual(files[2], files[0], "saved afresh after the damage: the same bytes")
 
     def test_terrain(self):
         prism, jack = self.dems[PRISM], self.dems[JACK]

@@ -17,6 +17,7 @@
 #include "core/pyramid/model.hpp"
 #include "core/tiles/heights.hpp"
 #include "core/tiles/quantized_mesh.hpp"
+#include "core/tiles/terrain_footprints.hpp"
 #include "core/tiles/terrain_rgb.hpp"
 #include "core/tiles/top_down.hpp"
 #include "server/api/terrain_routes.hpp"
@@ -476,6 +477,96 @@ TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLay
   EXPECT_EQ(read.size(), 22u);
   read.clear();
   expectSameLayer(unrelated, buildTerrainLayer(other.model, loaderOf(other.grids)), other.model);
+}
+
+// The first layer of a process at 10^6 patches read every patch (minutes): footprints saved by an
+// earlier build stand for the patches they were saved for, and for those only.
+TEST(TerrainLayer, SavedFootprintsStandForThePatchesTheyWereSavedForAndOnlyThose) {
+  const GeoPyramid before;
+  std::vector<PatchKey> read;
+  const auto loaderOf = [&](const std::map<PatchKey, std::shared_ptr<const PatchGrid>>& grids) {
+    return [&](const PatchInfo& info) -> std::shared_ptr<const PatchGrid> {
+      read.push_back(info.key);
+      return info.grid != nullptr ? info.grid : grids.at(info.key);
+    };
+  };
+  const TerrainLayer first = buildTerrainLayer(before.model, loaderOf(before.grids));
+  ASSERT_TRUE(first.heightField) << first.reason;
+  const std::vector<std::byte> bytes = SavedFootprints::encode(before.model, first);
+  ASSERT_EQ(bytes.size(), 24 + 21 * SavedFootprints::kRecordBytes + 8) << "21 footprints";
+  const SavedFootprints saved(bytes, GeoPyramid::kSize);
+  EXPECT_EQ(saved.size(), 21u);
+
+  // The same version: no patch read but the root's height field check.
+  read.clear();
+  const TerrainLayer again =
+      buildTerrainLayer(before.model, loaderOf(before.grids), nullptr, &saved);
+  EXPECT_EQ(read, std::vector<PatchKey>{PatchKey::root()});
+  expectSameLayer(again, first, before.model);
+
+  // A later version (leaf 2_1_2 cut in half, its ancestors reduced again): that leaf and its
+  // ancestors are read, and the layer is the full build's.
+  Model after = before.model;
+  const PatchKey leaf{2, 1, 2};
+  auto cut = GeoPyramid::gridOf(leaf);
+  for (int j = 0; j < GeoPyramid::kSize; ++j) {
+    for (int i = 0; i < GeoPyramid::kSize / 2; ++i) {
+      cut->setUndefined(i, j);
+    }
+  }
+  after.setGrid(leaf, cut);
+  after.refreshStale([&](const PatchInfo& info) { return before.grids.at(info.key); });
+  read.clear();
+  const TerrainLayer later = buildTerrainLayer(after, loaderOf(before.grids), nullptr, &saved);
+  std::sort(read.begin(), read.end());
+  read.erase(std::unique(read.begin(), read.end()), read.end());
+  EXPECT_EQ(read, (std::vector<PatchKey>{PatchKey::root(), {1, 0, 1}, leaf}));
+  expectSameLayer(later, buildTerrainLayer(after, loaderOf(before.grids)), after);
+
+  // Another model with the same keys, versions and folders but other data (its boxes differ):
+  // every patch is read.
+  GeoPyramid other;
+  for (const auto& [key, grid] : other.grids) {
+    auto moved = GeoPyramid::gridOf(key);
+    for (int j = 0; j < GeoPyramid::kSize; ++j) {
+      for (int i = 0; i < GeoPyramid::kSize; ++i) {
+        moved->setGlobal(i, j, moved->global(i, j) * 1.0001);
+      }
+    }
+    other.grids[key] = moved;
+  }
+  for (int depth = 2; depth >= 0; --depth) {
+    for (const auto& [key, grid] : other.grids) {
+      if (key.depth == depth) {
+        other.model.describe(key, *grid);
+      }
+    }
+  }
+  read.clear();
+  const TerrainLayer unrelated =
+      buildTerrainLayer(other.model, loaderOf(other.grids), nullptr, &saved);
+  EXPECT_EQ(read.size(), 22u);
+  expectSameLayer(unrelated, buildTerrainLayer(other.model, loaderOf(other.grids)), other.model);
+
+  // Damage is refused, saying what is wrong: each byte flipped in turn, a cut, another grid size.
+  for (std::size_t i = 0; i < bytes.size(); i += 7) {
+    std::vector<std::byte> damaged = bytes;
+    damaged[i] ^= std::byte{0x20};
+    EXPECT_THROW(SavedFootprints(std::move(damaged), GeoPyramid::kSize), Error) << "byte " << i;
+  }
+  EXPECT_THROW(
+      SavedFootprints(std::vector<std::byte>(bytes.begin(), bytes.end() - 9), GeoPyramid::kSize),
+      Error);
+  EXPECT_THROW(
+      SavedFootprints(std::vector<std::byte>(bytes.begin(), bytes.begin() + 20), GeoPyramid::kSize),
+      Error);
+  try {
+    SavedFootprints(bytes, 33);
+    ADD_FAILURE() << "another grid size taken";
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), ErrorCode::Corrupt);
+    EXPECT_NE(std::string(e.what()).find("33"), std::string::npos) << e.what();
+  }
 }
 
 TEST(TerrainLayer, ByTheChangeItFollowsNewFinerLevelsAndTheirRemovalAsTheFullBuildDoes) {
