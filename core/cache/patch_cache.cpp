@@ -341,7 +341,8 @@ void PatchCache::removeModel(ModelId model) {
   flush(model);  // throws NotFound for an unknown model
   std::unique_lock lock(impl_->mutex);
   for (;;) {
-    Entry* victim = nullptr;
+    // One pass, as flushEntries: the model's entries, none pinned, removed under the lock.
+    std::vector<Entry*> victims;
     bool waiting = false;
     for (Entry* e : impl_->ring) {
       if (e->id.model != model) {
@@ -354,12 +355,12 @@ void PatchCache::removeModel(ModelId model) {
       if (e->pins > 0) {
         throw Error(ErrorCode::Conflict, "model is still in use");
       }
-      victim = e;
-      break;
+      victims.push_back(e);
     }
-    if (victim != nullptr) {
-      impl_->remove(*victim);
-    } else if (waiting) {
+    for (Entry* e : victims) {
+      impl_->remove(*e);
+    }
+    if (waiting) {
       impl_->changed.wait(lock);
     } else {
       break;
@@ -631,28 +632,48 @@ void PatchCache::flush(ModelId model, const ObjectId& object) {
 void PatchCache::flushEntries(ModelId model, const ObjectId* only) {
   std::unique_lock lock(impl_->mutex);
   impl_->slot(model);  // throws NotFound for a model not in the cache
+  // One object: looked up, not searched for (an edit flushes each patch it writes: a pass over
+  // the ring each took 1.7 s of a merge job at 10^6 patches, the cache holding 10^5 entries).
+  while (only != nullptr) {
+    const auto it = impl_->entries.find(FullKey{model, *only});
+    if (it == impl_->entries.end() || !it->second->dirty) {
+      return;
+    }
+    if (it->second->state != State::Resident) {
+      impl_->changed.wait(lock);
+    } else {
+      impl_->writeBackUnlocked(lock, *it->second, /*pin=*/true);
+    }
+  }
   for (;;) {
-    Entry* target = nullptr;
+    // One pass over the ring collects the model's dirty entries, then each is written back (the
+    // lock released meanwhile, so each is looked up again), not a pass after each write-back.
+    std::vector<FullKey> dirty;
     bool waiting = false;
-    for (Entry* e : impl_->ring) {
-      if (e->id.model != model || !e->dirty || (only != nullptr && !(e->id.object == *only))) {
+    for (const Entry* e : impl_->ring) {
+      if (e->id.model != model || !e->dirty) {
         continue;
       }
       if (e->state != State::Resident) {
         waiting = true;
-        continue;
+      } else {
+        dirty.push_back(e->id);
       }
-      target = e;
-      break;
     }
-    if (target == nullptr) {
+    if (dirty.empty()) {
       if (!waiting) {
         return;
       }
       impl_->changed.wait(lock);
       continue;
     }
-    impl_->writeBackUnlocked(lock, *target, /*pin=*/true);
+    for (const FullKey& id : dirty) {
+      const auto it = impl_->entries.find(id);
+      if (it != impl_->entries.end() && it->second->dirty &&
+          it->second->state == State::Resident) {
+        impl_->writeBackUnlocked(lock, *it->second, /*pin=*/true);
+      }
+    }
   }
 }
 

@@ -27,7 +27,10 @@
 #               tileset.json (curl's total time). As a viewer following the model does, the bench
 #               GETs both after opening and after each merge, so each new version's are made
 #               knowing the previous version's; the first version's (made from nothing) are
-#               printed below the row.
+#               printed below the row;
+#   restart     the writer started again after the merges: its first layer.json and tileset.json,
+#               the layer from the footprints the first process saved (Patches/
+#               vsm-terrain-footprints.bin) and the patches changed since, printed below the row.
 #
 #   tests/bench/scale_bench.sh [build-dir] [work-dir]
 # Defaults: build/ and a temporary directory (removed afterwards; ~1.3 GB at depth 8).
@@ -200,5 +203,12 @@ for depth in $DEPTHS; do
     grep -o '[0-9]* ms' | tr '\n' ' '))"
   stop_vsmd "$rpid"
   stop_vsmd "$wpid"
+  # A restart: the first layer of a new process, from the footprints the first one saved.
+  start_vsmd "$data" restart-$depth "$budget"
+  wurl=$DURL
+  derived
+  echo "         (after a restart: ready $READY s; layer, tileset: $layer, $tileset s; $(grep -o \
+    'read [0-9]* of [0-9]* patches' "$WORK/restart-$depth.log" | head -1))"
+  stop_vsmd "$DPID"
   [[ -n "${2:-}" ]] || rm -rf "$data"
 done
