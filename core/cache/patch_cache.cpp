@@ -669,8 +669,7 @@ void PatchCache::flushEntries(ModelId model, const ObjectId* only) {
     }
     for (const FullKey& id : dirty) {
       const auto it = impl_->entries.find(id);
-      if (it != impl_->entries.end() && it->second->dirty &&
-          it->second->state == State::Resident) {
+      if (it != impl_->entries.end() && it->second->dirty && it->second->state == State::Resident) {
         impl_->writeBackUnlocked(lock, *it->second, /*pin=*/true);
       }
     }

@@ -20,10 +20,10 @@ inline constexpr std::string_view kSavedFootprintsFile = "vsm-terrain-footprints
 
 /// The footprints a terrain layer found by reading every patch of a model, saved so that the first
 /// layer a later process builds reads only the patches changed since (buildTerrainLayer's `saved`):
-/// at 10^6 patches the full read takes minutes. Each footprint is kept with what identifies the data
-/// it was made from: the patch's version, child mask, folder and positions file names and boxes
-/// (vsm writes a changed patch as a new version in a new folder; a tool that rewrites a patch's
-/// positions in place under the same names and boxes must remove the file).
+/// at 10^6 patches the full read takes minutes. Each footprint is kept with what identifies the
+/// data it was made from: the patch's version, child mask, folder and positions file names and
+/// boxes (vsm writes a changed patch as a new version in a new folder; a tool that rewrites a
+/// patch's positions in place under the same names and boxes must remove the file).
 ///
 /// The bytes (little-endian): "VSMFOOT1", u32 format 1, i32 grid size, u64 count, then `count`
 /// records in key order of 58 bytes (u8 depth, u32 x, u32 y, u8 child mask, u64 version, u64 hash
