@@ -3,6 +3,7 @@
 #include <fcntl.h>
 #include <stdio.h>
 #include <sys/stat.h>
+#include <sys/uio.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -13,6 +14,7 @@
 #include <regex>
 #include <string>
 #include <utility>
+#include <vector>
 
 #include "core/common/error.hpp"
 #include "core/common/log.hpp"
@@ -68,6 +70,45 @@ int writeAll(int fd, std::span<const std::byte> bytes) {
     done += static_cast<std::size_t>(n);
   }
   return 0;
+}
+
+/// Writes the pieces one after the other, up to 1024 (Linux's IOV_MAX) a writev: a hierarchy at
+/// 10^6 patches is 43 MB in ~5,500 pieces, and a write each cost ~30 ms of a merge job's publish
+/// (8 KB writes against 1 MB ones, dd + fsync). 0 or the errno of the failure.
+int writePieces(int fd, std::span<const std::span<const std::byte>> pieces) {
+  constexpr std::size_t kBatch = 1024;
+  std::vector<iovec> batch;
+  std::size_t next = 0;
+  for (;;) {
+    while (batch.size() < kBatch && next < pieces.size()) {
+      const std::span<const std::byte> piece = pieces[next++];
+      if (!piece.empty()) {
+        batch.push_back({const_cast<std::byte*>(piece.data()), piece.size()});
+      }
+    }
+    if (batch.empty()) {
+      return 0;
+    }
+    const ssize_t n = ::writev(fd, batch.data(), static_cast<int>(batch.size()));
+    if (n < 0) {
+      if (errno == EINTR) {
+        continue;
+      }
+      return errno;
+    }
+    // Drop what was written: whole pieces, then the front of a piece written in part.
+    auto left = static_cast<std::size_t>(n);
+    std::size_t whole = 0;
+    while (whole < batch.size() && left >= batch[whole].iov_len) {
+      left -= batch[whole].iov_len;
+      ++whole;
+    }
+    if (whole < batch.size()) {
+      batch[whole].iov_base = static_cast<std::byte*>(batch[whole].iov_base) + left;
+      batch[whole].iov_len -= left;
+    }
+    batch.erase(batch.begin(), batch.begin() + static_cast<std::ptrdiff_t>(whole));
+  }
 }
 
 /// Writes `bytes` to `fd`, opened with O_DIRECT: the whole blocks from an aligned copy, straight
@@ -172,10 +213,8 @@ PendingFile::PendingFile(fs::path target, std::span<const std::span<const std::b
     ::unlink(temp_.c_str());
     throwIoError(what, temp_.string(), errnum);
   };
-  for (const std::span<const std::byte> bytes : pieces) {
-    if (const int errnum = writeAll(fd.get(), bytes); errnum != 0) {
-      fail("cannot write", errnum);
-    }
+  if (const int errnum = writePieces(fd.get(), pieces); errnum != 0) {
+    fail("cannot write", errnum);
   }
   if (::fsync(fd.get()) != 0) {
     fail("cannot fsync", errno);

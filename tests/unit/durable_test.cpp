@@ -9,6 +9,7 @@
 #include <fstream>
 #include <sstream>
 #include <string>
+#include <vector>
 
 #include "core/common/error.hpp"
 #include "core/durable/durable_io.hpp"
@@ -58,6 +59,26 @@ TEST_F(DurableTest, APendingFileChangesNothingUntilCommittedAndLeavesNothingWhen
   }
   EXPECT_EQ(read(dir_ / "a.xml"), "new");
   EXPECT_EQ(entries(dir_), 1u);
+}
+
+// A hierarchy is staged from thousands of pieces (its runs' memoised text), written a batch of
+// pieces at a time: every byte in order, the empty pieces and the batches' seams included.
+TEST_F(DurableTest, APendingFileOfManyPiecesHoldsThemAllInOrder) {
+  std::vector<std::string> texts;
+  std::string expected;
+  for (int i = 0; i < 3000; ++i) {
+    texts.push_back(i % 7 == 3 ? std::string() : std::to_string(i) + std::string(i % 13, 'x'));
+    expected += texts.back();
+  }
+  texts.push_back(std::string(3 << 20, 'y'));  // one large piece after the last batch's seam
+  expected += texts.back();
+  std::vector<std::span<const std::byte>> pieces;
+  for (const std::string& text : texts) {
+    pieces.push_back(bytes(text));
+  }
+  PendingFile pending(dir_ / "many.xml", pieces);
+  pending.commit();
+  EXPECT_EQ(read(dir_ / "many.xml"), expected);
 }
 
 TEST_F(DurableTest, TemporaryFilesAreRecognisedByName) {
