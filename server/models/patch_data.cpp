@@ -195,9 +195,7 @@ class TerrainLayers {
             return live.positions(*snapshot, info.key).get<core::PatchGrid>();
           },
           previous ? &*previous : nullptr, saved ? &*saved : nullptr));
-      if (!base) {
-        saveFootprints(live, *snapshot->model, *layer, read);
-      }
+      saved.reset();
       {
         const std::lock_guard lock(mutex_);
         Base& held = bases_[live.dir()];
@@ -219,6 +217,9 @@ class TerrainLayers {
           " ms, read " + std::to_string(read) + " of " +
           std::to_string(snapshot->model->patchCount()) + " patches");
       promise.set_value(layer);
+      if (!base) {
+        saveFootprints(live, *snapshot->model, *layer, read);  // the requests waiting are served
+      }
       return layer;
     } catch (...) {
       promise.set_exception(std::current_exception());
@@ -263,7 +264,7 @@ class TerrainLayers {
     }
     try {
       live.writeCacheFile(core::kSavedFootprintsFile, core::SavedFootprints::encode(model, layer));
-    } catch (const core::Error& e) {
+    } catch (const std::exception& e) {  // the layer is served: nothing to fail
       core::log::warn("model=" + live.name() + " terrain footprints not saved: " + e.what());
     }
   }
