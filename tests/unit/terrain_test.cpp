@@ -320,10 +320,13 @@ TEST(TerrainLayer, AModelInALocalFrameIsNoHeightField) {
 /// the 0.5 degree square at its own spacing.
 struct GeoPyramid {
   static constexpr int kSize = 17;
+  using Grids = std::map<PatchKey, std::shared_ptr<const PatchGrid>>;
   Model model{kSize};
-  std::map<PatchKey, std::shared_ptr<const PatchGrid>> grids;
+  Grids grids;
 
-  GeoPyramid() {
+  /// `scale` moves every vertex that much farther from the earth's centre: another model with the
+  /// same keys, versions and folders, and other data and boxes.
+  explicit GeoPyramid(double scale = 1.0) {
     for (int depth = 0; depth <= 2; ++depth) {
       for (std::uint32_t y = 0; y < (1u << depth); ++y) {
         for (std::uint32_t x = 0; x < (1u << depth); ++x) {
@@ -331,7 +334,13 @@ struct GeoPyramid {
           PatchInfo info;
           info.key = key;
           model.insert(info);
-          grids[key] = gridOf(key);
+          auto grid = gridOf(key);
+          for (int j = 0; scale != 1.0 && j < kSize; ++j) {
+            for (int i = 0; i < kSize; ++i) {
+              grid->setGlobal(i, j, grid->global(i, j) * scale);
+            }
+          }
+          grids[key] = grid;
         }
       }
     }
@@ -415,23 +424,18 @@ void expectSameLayer(const TerrainLayer& a, const TerrainLayer& b, const Model& 
   EXPECT_EQ(a.maxZoom, b.maxZoom);
 }
 
-TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLayer) {
-  const GeoPyramid before;
-  std::vector<PatchKey> read;
-  const auto loaderOf = [&](const std::map<PatchKey, std::shared_ptr<const PatchGrid>>& grids) {
-    return [&](const PatchInfo& info) -> std::shared_ptr<const PatchGrid> {
-      read.push_back(info.key);
-      return info.grid != nullptr ? info.grid : grids.at(info.key);
-    };
+/// A loader of `grids` (or the patch's own grid) that records the keys it loads into `read`.
+TerrainGridLoader countingLoader(const GeoPyramid::Grids& grids, std::vector<PatchKey>& read) {
+  return [&grids, &read](const PatchInfo& info) -> std::shared_ptr<const PatchGrid> {
+    read.push_back(info.key);
+    return info.grid != nullptr ? info.grid : grids.at(info.key);
   };
-  const TerrainLayer first = buildTerrainLayer(before.model, loaderOf(before.grids));
-  ASSERT_TRUE(first.heightField) << first.reason;
-  EXPECT_EQ(read.size(), 22u) << "every patch, and the root once more for the height field check";
+}
 
-  // A merge's new version: leaf 2_1_2 loses its western half (its footprint and its ancestors'
-  // change), its ancestors are reduced again; every other patch is the same.
+/// A merge's new version of `before`: `leaf` loses its western half (its footprint and its
+/// ancestors' change), its ancestors are reduced again; every other patch is the same.
+Model withWesternHalfCut(const GeoPyramid& before, const PatchKey& leaf) {
   Model after = before.model;
-  const PatchKey leaf{2, 1, 2};
   auto cut = GeoPyramid::gridOf(leaf);
   for (int j = 0; j < GeoPyramid::kSize; ++j) {
     for (int i = 0; i < GeoPyramid::kSize / 2; ++i) {
@@ -440,6 +444,21 @@ TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLay
   }
   after.setGrid(leaf, cut);
   after.refreshStale([&](const PatchInfo& info) { return before.grids.at(info.key); });
+  return after;
+}
+
+TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLayer) {
+  const GeoPyramid before;
+  std::vector<PatchKey> read;
+  const auto loaderOf = [&](const GeoPyramid::Grids& grids) { return countingLoader(grids, read); };
+  const TerrainLayer first = buildTerrainLayer(before.model, loaderOf(before.grids));
+  ASSERT_TRUE(first.heightField) << first.reason;
+  EXPECT_EQ(read.size(), 22u) << "every patch, and the root once more for the height field check";
+
+  // A merge's new version: leaf 2_1_2 loses its western half (its footprint and its ancestors'
+  // change), its ancestors are reduced again; every other patch is the same.
+  const PatchKey leaf{2, 1, 2};
+  const Model after = withWesternHalfCut(before, leaf);
   read.clear();
   const TerrainLayerBase base{before.model, first};
   const TerrainLayer incremental = buildTerrainLayer(after, loaderOf(before.grids), &base);
@@ -455,23 +474,7 @@ TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLay
       << "the cut shows in the layer";
 
   // A base of another model (same keys, versions and folders, other boxes) is not taken.
-  GeoPyramid other;
-  for (const auto& [key, grid] : other.grids) {
-    auto moved = GeoPyramid::gridOf(key);
-    for (int j = 0; j < GeoPyramid::kSize; ++j) {
-      for (int i = 0; i < GeoPyramid::kSize; ++i) {
-        moved->setGlobal(i, j, moved->global(i, j) * 1.0001);
-      }
-    }
-    other.grids[key] = moved;
-  }
-  for (int depth = 2; depth >= 0; --depth) {
-    for (const auto& [key, grid] : other.grids) {
-      if (key.depth == depth) {
-        other.model.describe(key, *grid);
-      }
-    }
-  }
+  const GeoPyramid other(1.0001);
   read.clear();
   const TerrainLayer unrelated = buildTerrainLayer(other.model, loaderOf(other.grids), &base);
   EXPECT_EQ(read.size(), 22u);
@@ -484,12 +487,7 @@ TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLay
 TEST(TerrainLayer, SavedFootprintsStandForThePatchesTheyWereSavedForAndOnlyThose) {
   const GeoPyramid before;
   std::vector<PatchKey> read;
-  const auto loaderOf = [&](const std::map<PatchKey, std::shared_ptr<const PatchGrid>>& grids) {
-    return [&](const PatchInfo& info) -> std::shared_ptr<const PatchGrid> {
-      read.push_back(info.key);
-      return info.grid != nullptr ? info.grid : grids.at(info.key);
-    };
-  };
+  const auto loaderOf = [&](const GeoPyramid::Grids& grids) { return countingLoader(grids, read); };
   const TerrainLayer first = buildTerrainLayer(before.model, loaderOf(before.grids));
   ASSERT_TRUE(first.heightField) << first.reason;
   const std::vector<std::byte> bytes = SavedFootprints::encode(before.model, first);
@@ -506,16 +504,8 @@ TEST(TerrainLayer, SavedFootprintsStandForThePatchesTheyWereSavedForAndOnlyThose
 
   // A later version (leaf 2_1_2 cut in half, its ancestors reduced again): that leaf and its
   // ancestors are read, and the layer is the full build's.
-  Model after = before.model;
   const PatchKey leaf{2, 1, 2};
-  auto cut = GeoPyramid::gridOf(leaf);
-  for (int j = 0; j < GeoPyramid::kSize; ++j) {
-    for (int i = 0; i < GeoPyramid::kSize / 2; ++i) {
-      cut->setUndefined(i, j);
-    }
-  }
-  after.setGrid(leaf, cut);
-  after.refreshStale([&](const PatchInfo& info) { return before.grids.at(info.key); });
+  const Model after = withWesternHalfCut(before, leaf);
   read.clear();
   const TerrainLayer later = buildTerrainLayer(after, loaderOf(before.grids), nullptr, &saved);
   std::sort(read.begin(), read.end());
@@ -525,23 +515,7 @@ TEST(TerrainLayer, SavedFootprintsStandForThePatchesTheyWereSavedForAndOnlyThose
 
   // Another model with the same keys, versions and folders but other data (its boxes differ):
   // every patch is read.
-  GeoPyramid other;
-  for (const auto& [key, grid] : other.grids) {
-    auto moved = GeoPyramid::gridOf(key);
-    for (int j = 0; j < GeoPyramid::kSize; ++j) {
-      for (int i = 0; i < GeoPyramid::kSize; ++i) {
-        moved->setGlobal(i, j, moved->global(i, j) * 1.0001);
-      }
-    }
-    other.grids[key] = moved;
-  }
-  for (int depth = 2; depth >= 0; --depth) {
-    for (const auto& [key, grid] : other.grids) {
-      if (key.depth == depth) {
-        other.model.describe(key, *grid);
-      }
-    }
-  }
+  const GeoPyramid other(1.0001);
   read.clear();
   const TerrainLayer unrelated =
       buildTerrainLayer(other.model, loaderOf(other.grids), nullptr, &saved);
