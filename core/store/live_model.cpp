@@ -69,11 +69,7 @@ void sweepLeftovers(const fs::path& dir, const std::string& name, const ModelSna
   const fs::path tiles = dir / "Images" / std::string(kTextureLayer);
   // By the change: the folders and tiles the current model does not name are the candidates, and
   // only they are looked up in the kept revisions (which name them when an edit replaced them).
-  std::unordered_set<std::string_view> named;
-  named.reserve(current.model->patchCount());
-  for (const auto& [key, info] : current.model->patches()) {
-    named.insert(info.folder);
-  }
+  const NamedFolders named(*current.model);
   std::vector<fs::path> orphans;
   std::map<std::string, fs::path, std::less<>> candidates;  // folder -> its path
   std::map<std::uint64_t, fs::path> kept;                   // revision -> its hierarchy file

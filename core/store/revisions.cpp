@@ -10,7 +10,6 @@
 #include <optional>
 #include <set>
 #include <string_view>
-#include <unordered_set>
 #include <utility>
 #include <vector>
 
@@ -245,11 +244,7 @@ FolderSet foldersOnlyIn(const fs::path& oldest, const fs::path& next, const Mode
   // name, no later one does. So the oldest's own folders are those neither names.
   FolderSet only;
   {
-    std::unordered_set<std::string_view> latestFolders;
-    latestFolders.reserve(latest.patchCount());
-    for (const auto& [key, info] : latest.patches()) {
-      latestFolders.insert(info.folder);
-    }
+    const NamedFolders latestFolders(latest);
     forEachNamedFolder(oldest, [&](std::string_view folder) {
       if (!latestFolders.contains(folder)) {
         only.emplace(folder);

@@ -38,6 +38,32 @@ std::string draftFolder(const PatchKey& key, std::uint64_t version, std::string_
   return key.toString() + "-v" + std::to_string(version) + "-" + std::string(nonce);
 }
 
+namespace {
+
+/// The key a folder is named after: the name up to its first '-' read as one; nullopt otherwise.
+std::optional<PatchKey> keyOfFolder(std::string_view folder) {
+  return PatchKey::parse(folder.substr(0, folder.find('-')));
+}
+
+}  // namespace
+
+NamedFolders::NamedFolders(const Model& model) : model_(model) {
+  for (const auto& [key, info] : model.patches()) {
+    if (keyOfFolder(info.folder) != key) {
+      others_.insert(info.folder);
+    }
+  }
+}
+
+bool NamedFolders::contains(std::string_view folder) const {
+  if (const std::optional<PatchKey> key = keyOfFolder(folder)) {
+    if (const PatchInfo* info = model_.find(*key); info != nullptr && info->folder == folder) {
+      return true;
+    }
+  }
+  return others_.contains(folder);
+}
+
 bool isOurFolderName(const std::string& name) {
   // Without a nonce: folders of edits made before nonces, still named by kept revisions.
   static const std::regex pattern("[0-9]+_[0-9]+_[0-9]+(-v[0-9]+(-[0-9a-f]{8})?)?");

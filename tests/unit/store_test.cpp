@@ -633,6 +633,31 @@ TEST_F(StoreTest, RemovingLeftoversRemovesFoldersNoKeptRevisionNamesAndKeepsTheO
   EXPECT_FALSE(fs::exists(dir_ / "Patches" / "2_0_0"));
 }
 
+// A foreign OPC may name a patch's folder like another patch's key: the sweep, which looks our
+// names up by the key they start with, keeps them (and still removes a leftover).
+TEST_F(StoreTest, RemovingLeftoversKeepsFoldersNamedLikeAnotherPatchsKey) {
+  const fs::path patches = dir_ / "Patches";
+  std::string text = test::readFile(patches / "patchhierarchy.xml");
+  for (const auto& [from, to] : {std::pair{"2_0_0", "@"}, {"2_1_0", "2_0_0"}, {"@", "2_1_0"}}) {
+    for (std::size_t at = text.find(from); at != std::string::npos; at = text.find(from, at)) {
+      text.replace(at, std::string_view(from).size(), to);
+      at += std::string_view(to).size();
+    }
+  }
+  std::ofstream(patches / "patchhierarchy.xml", std::ios::trunc) << text;
+  fs::rename(patches / "2_0_0", patches / "swap");
+  fs::rename(patches / "2_1_0", patches / "2_0_0");
+  fs::rename(patches / "swap", patches / "2_1_0");
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  ASSERT_EQ(live->snapshot()->model->at({2, 0, 0}).folder, "2_1_0");
+  ASSERT_EQ(live->snapshot()->model->at({2, 1, 0}).folder, "2_0_0");
+  const std::set<std::string> named = folders(dir_);
+  fs::create_directory(patches / "2_3_3-v9");
+  live->removeLeftovers();
+  EXPECT_EQ(folders(dir_), named);
+}
+
 TEST_F(StoreTest, RemovingLeftoversKeepsTheKeptRevisionsFoldersByTheRetiredRecordsOrByReadingAll) {
   PatchCache cache(64 << 20);
   auto live = LiveModel::open(dir_, "m", cache);
