@@ -79,7 +79,7 @@ Model::Place Model::locate(const PatchKey& key) const {
     return {chunks_.size(), 0, false};
   }
   const auto entry = std::partition_point((*chunk)->begin(), (*chunk)->end(),
-                                          [&key](const Entry& e) { return e.key < key; });
+                                          [&key](const PatchInfo& p) { return p.key < key; });
   return {static_cast<std::size_t>(chunk - chunks_.begin()),
           static_cast<std::size_t>(entry - (*chunk)->begin()), entry->key == key};
 }
@@ -106,9 +106,10 @@ Model::Chunk::~Chunk() {
 }
 
 Model::Chunk& Model::writableChunk(std::size_t chunk) {
-  // As writable(): a chunk another model holds is copied (its entries' nodes then count two
-  // owners, so a change to one of them copies it too). The copy has no levels yet; an unshared
-  // chunk changed in place drops its own.
+  // Shared: another model (or a shared() pointer) holds it too, and may be reading it elsewhere,
+  // so this one takes a copy, without sums yet. Not shared: only this model can reach it, and no
+  // other can start sharing it while this one is being changed (a copy of a model being changed
+  // is a race already); it drops its sums.
   std::shared_ptr<Chunk>& held = chunks_[chunk];
   if (held.use_count() > 1) {
     held = std::make_shared<Chunk>(*held);
@@ -120,7 +121,7 @@ Model::Chunk& Model::writableChunk(std::size_t chunk) {
 
 const PatchInfo* Model::find(const PatchKey& key) const {
   const Place place = locate(key);
-  return place.found ? (*chunks_[place.chunk])[place.index].node.get() : nullptr;
+  return place.found ? &(*chunks_[place.chunk])[place.index] : nullptr;
 }
 
 const PatchInfo& Model::at(const PatchKey& key) const {
@@ -136,17 +137,7 @@ PatchInfo& Model::edit(const PatchKey& key) {
   if (!place.found) {
     throw Error(ErrorCode::NotFound, "no patch " + key.toString());
   }
-  return writable(writableChunk(place.chunk)[place.index].node);
-}
-
-PatchInfo& Model::writable(std::shared_ptr<PatchInfo>& node) {
-  // Shared: another model holds it too (and may be read elsewhere), so this one takes a copy.
-  // Not shared: only this model can reach it, and no other can start sharing it while this one
-  // is being changed (a copy of a model being changed is a race already).
-  if (node.use_count() > 1) {
-    node = std::make_shared<PatchInfo>(*node);
-  }
-  return *node;
+  return writableChunk(place.chunk)[place.index];
 }
 
 std::shared_ptr<const PatchInfo> Model::shared(const PatchKey& key) const {
@@ -154,7 +145,9 @@ std::shared_ptr<const PatchInfo> Model::shared(const PatchKey& key) const {
   if (!place.found) {
     throw Error(ErrorCode::NotFound, "no patch " + key.toString());
   }
-  return (*chunks_[place.chunk])[place.index].node;
+  // Aliasing the chunk: it stays as it is while the pointer is held (writableChunk copies it).
+  const std::shared_ptr<Chunk>& chunk = chunks_[place.chunk];
+  return std::shared_ptr<const PatchInfo>(chunk, &(*chunk)[place.index]);
 }
 
 PatchInfo& Model::insert(PatchInfo info) {
@@ -171,7 +164,7 @@ PatchInfo& Model::insert(PatchInfo info) {
       throw Error(ErrorCode::InvalidArgument,
                   "patch " + info.key.toString() + " has no parent in the model");
     }
-    writable(writableChunk(parent.chunk)[parent.index].node).childMask |=
+    writableChunk(parent.chunk)[parent.index].childMask |=
         static_cast<std::uint8_t>(1u << static_cast<int>(info.key.quadrant()));
   }
   info.childMask = 0;
@@ -180,30 +173,34 @@ PatchInfo& Model::insert(PatchInfo info) {
       info.childMask |= static_cast<std::uint8_t>(1u << static_cast<int>(q));
     }
   }
-  const PatchKey key = info.key;
-  auto node = std::make_shared<PatchInfo>(std::move(info));
-  PatchInfo& inserted = *node;
   ++size_;
   if (last) {
     if (chunks_.empty() || chunks_.back()->size() >= kChunkSize) {
       chunks_.push_back(std::make_shared<Chunk>());
       chunks_.back()->reserve(kChunkSize);
     }
-    writableChunk(chunks_.size() - 1).push_back({key, std::move(node)});
-    return inserted;
+    return writableChunk(chunks_.size() - 1).emplace_back(std::move(info));
   }
-  // Not last, so some chunk holds a later key and locate() named it.
-  Chunk& chunk = writableChunk(place.chunk);
-  chunk.insert(chunk.begin() + static_cast<std::ptrdiff_t>(place.index), {key, std::move(node)});
-  if (chunk.size() > kChunkSize) {
-    const auto half = chunk.begin() + static_cast<std::ptrdiff_t>(chunk.size() / 2);
-    auto upper = std::make_shared<Chunk>(std::make_move_iterator(half),
-                                         std::make_move_iterator(chunk.end()));
-    chunk.erase(half, chunk.end());
-    chunks_.insert(chunks_.begin() + static_cast<std::ptrdiff_t>(place.chunk) + 1,
-                   std::move(upper));
+  // Not last, so some chunk holds a later key and locate() named it. A full chunk is split first,
+  // in halves of their own size (a vector grown past kChunkSize would keep twice the room).
+  std::size_t c = place.chunk;
+  std::size_t index = place.index;
+  if (chunks_[c]->size() >= kChunkSize) {
+    const Chunk& full = *chunks_[c];
+    const auto half = full.begin() + static_cast<std::ptrdiff_t>(full.size() / 2);
+    auto lower = std::make_shared<Chunk>(full.begin(), half);
+    auto upper = std::make_shared<Chunk>(half, full.end());
+    lower->reserve(kChunkSize);
+    upper->reserve(kChunkSize);
+    chunks_[c] = std::move(lower);
+    chunks_.insert(chunks_.begin() + static_cast<std::ptrdiff_t>(c) + 1, std::move(upper));
+    if (index > chunks_[c]->size()) {
+      index -= chunks_[c]->size();
+      ++c;
+    }
   }
-  return inserted;
+  Chunk& chunk = writableChunk(c);
+  return *chunk.insert(chunk.begin() + static_cast<std::ptrdiff_t>(index), std::move(info));
 }
 
 void Model::eraseLeaf(const PatchKey& key) {
@@ -420,15 +417,14 @@ const Model::ChunkSums& Model::sumsOf(const std::shared_ptr<Chunk>& chunk, bool 
 
 Model::ChunkSums Model::summarise(const Chunk& chunk) {
   ChunkSums sums;
-  // The chunk (its control block and vector, one block, and its entries' array), then each node
-  // (one block with its control block) with its strings.
+  // The chunk (its control block and vector, one block, and its patches' array), then what each
+  // patch holds on the heap.
   constexpr std::size_t kOverhead = 16;
-  sums.bytes = sharedBlock<Chunk> + chunk.capacity() * sizeof(Entry) + kOverhead;
-  for (const Entry& entry : chunk) {
-    const PatchInfo& info = *entry.node;
-    sums.bytes += sharedBlock<PatchInfo> + info.ownHeapBytes();
-    if (sums.levels.empty() || sums.levels.back().depth != entry.key.depth) {
-      sums.levels.emplace_back().depth = entry.key.depth;
+  sums.bytes = sharedBlock<Chunk> + chunk.capacity() * sizeof(PatchInfo) + kOverhead;
+  for (const PatchInfo& info : chunk) {
+    sums.bytes += info.ownHeapBytes();
+    if (sums.levels.empty() || sums.levels.back().depth != info.key.depth) {
+      sums.levels.emplace_back().depth = info.key.depth;
     }
     ChunkSums::Level& level = sums.levels.back();
     ++level.patches;
@@ -549,8 +545,8 @@ ModelChange modelChange(const Model& before, const Model& after) {
       ++bc;
       continue;
     }
-    const Model::Entry* a = ac < from.size() ? &(*from[ac])[ai] : nullptr;
-    const Model::Entry* b = bc < to.size() ? &(*to[bc])[bi] : nullptr;
+    const PatchInfo* a = ac < from.size() ? &(*from[ac])[ai] : nullptr;
+    const PatchInfo* b = bc < to.size() ? &(*to[bc])[bi] : nullptr;
     if (b == nullptr || (a != nullptr && a->key < b->key)) {
       change.removed.push_back(a->key);
       advance(from, ac, ai);
@@ -558,7 +554,7 @@ ModelChange modelChange(const Model& before, const Model& after) {
       change.changed.push_back(b->key);
       advance(to, bc, bi);
     } else {
-      if (!sameStoredPatch(*a->node, *b->node)) {
+      if (!sameStoredPatch(*a, *b)) {
         change.changed.push_back(b->key);
       }
       advance(from, ac, ai);

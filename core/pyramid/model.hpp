@@ -113,15 +113,18 @@ class Model {
   const PatchInfo* find(const PatchKey& key) const;
   /// Throws Error(NotFound) for a key that is not in the model.
   const PatchInfo& at(const PatchKey& key) const;
-  /// The patch to change: its own copy when it was shared with another model. Throws as at().
+  /// The patch to change, in a chunk of this model's own (copied when it was shared with another
+  /// model). Throws as at(). Valid until the model's next insert() or eraseLeaf(), which move
+  /// patches within their chunks (find(), at() and edit() move none).
   PatchInfo& edit(const PatchKey& key);
-  /// The patch's metadata as a shared, unchanging node (the model takes a copy before it changes
-  /// it: edit()). Throws as at().
+  /// The patch's metadata, unchanging while held: the pointer holds the patch's whole chunk (the
+  /// model copies a chunk before it changes it while another holds it: edit()). For short holds;
+  /// a copy of the PatchInfo is what to keep. Throws as at().
   std::shared_ptr<const PatchInfo> shared(const PatchKey& key) const;
 
-  /// Adds a patch. Its parent must exist already (except for the root), and gets the matching
-  /// child bit. Throws Error(Conflict) when the key exists, Error(InvalidArgument) when the parent
-  /// is missing.
+  /// Adds a patch (the reference as edit()'s). Its parent must exist already (except for the
+  /// root), and gets the matching child bit. Throws Error(Conflict) when the key exists,
+  /// Error(InvalidArgument) when the parent is missing.
   PatchInfo& insert(PatchInfo info);
   /// Removes a leaf and clears its parent's child bit. Throws Error(NotFound) for a key not in the
   /// model, Error(InvalidArgument) for a patch with children or the root.
@@ -140,7 +143,7 @@ class Model {
 
   /// The patches in runs: consecutive patches in key order that the copies of a model share until
   /// one of them changes one (its copy-on-write chunks). A run's `id` stands for its content, the
-  /// same keys and nodes, for as long as it is held (nothing held elsewhere is changed in place):
+  /// same patches, for as long as it is held (nothing held elsewhere is changed in place):
   /// what memos of text derived from patches (the hierarchy's) key on.
   struct Run;
   std::vector<Run> runs() const;
@@ -170,29 +173,26 @@ class Model {
   /// entries. A depth with no measurable patch takes twice the finer depth's value.
   std::vector<double> avgGeometrySizes() const;
 
-  /// The heap bytes of this model's metadata (its chunks, their nodes and the nodes' strings; 16
-  /// bytes of allocator overhead a block), leaving out the chunks in `counted` and adding the
-  /// others to it: the bytes of several models sharing chunks, each chunk once (nodes shared
-  /// between chunks that are not are counted with each: an upper estimate). For a model no one
-  /// changes any more (a published version): each chunk keeps what it found.
+  /// The heap bytes of this model's metadata (its chunks with their patches, and what the patches
+  /// hold on the heap; 16 bytes of allocator overhead a block), leaving out the chunks in
+  /// `counted` and adding the others to it: the bytes of several models sharing chunks, each
+  /// chunk once (blocks patches in different chunks share are counted with each: an upper
+  /// estimate). For a model no one changes any more (a published version): each chunk keeps what
+  /// it found.
   std::size_t heapBytes(std::unordered_set<const void*>& counted) const;
 
  private:
   friend ModelChange modelChange(const Model& before, const Model& after);
 
-  /// A run of consecutive patches in key order. Chunks hold at most kChunkSize entries.
-  struct Entry {
-    PatchKey key;
-    std::shared_ptr<PatchInfo> node;
-  };
   struct ChunkSums;  // model.cpp
-  /// The entries, and what levels() and heapBytes() summed of them: kept when a levels() found
-  /// the chunk shared (so never changed in place again: writableChunk copies it) or heapBytes()
-  /// was asked of a model no one changes, and dropped by writableChunk.
-  struct Chunk : std::vector<Entry> {
-    using std::vector<Entry>::vector;
+  /// A run of consecutive patches in key order, held by value (at most kChunkSize), and what
+  /// levels() and heapBytes() summed of them: kept when a levels() found the chunk shared (so
+  /// never changed in place again: writableChunk copies it) or heapBytes() was asked of a model no
+  /// one changes, and dropped by writableChunk.
+  struct Chunk : std::vector<PatchInfo> {
+    using std::vector<PatchInfo>::vector;
     Chunk() = default;
-    Chunk(const Chunk& other) : std::vector<Entry>(other) {}
+    Chunk(const Chunk& other) : std::vector<PatchInfo>(other) {}
     Chunk& operator=(const Chunk&) = delete;
     ~Chunk();
     mutable std::atomic<const ChunkSums*> sums{nullptr};
@@ -210,19 +210,17 @@ class Model {
   /// The chunk's sums: kept in it (when `keep`, or found kept), or made into `made`.
   static const ChunkSums& sumsOf(const std::shared_ptr<Chunk>& chunk, bool keep,
                                  std::unique_ptr<const ChunkSums>& made);
-  /// The chunk to change: a copy of its own when another model shares it.
+  /// The chunk to change: a copy of its own when another model (or a shared() pointer) holds it.
   Chunk& writableChunk(std::size_t chunk);
-  /// The node to change: a copy of its own when another model shares it (edit()).
-  static PatchInfo& writable(std::shared_ptr<PatchInfo>& node);
 
   int gridSize_;
   std::size_t size_ = 0;
   /// The patches in key order, in chunks shared by the copies of a model until one of them changes
-  /// a chunk, and each patch's metadata shared until one of them changes the patch (copy on
-  /// write, edit()). A copy of a model of 10^6 patches copies 4,000 chunk pointers; a version a
-  /// store keeps holds the chunks and PatchInfos its change touched, and modelChange skips the
-  /// chunks two versions share. Nothing shared is changed in place, so models sharing chunks and
-  /// nodes may be read on other threads.
+  /// a chunk (copy on write, edit()). A copy of a model of 10^6 patches copies 5,500 chunk
+  /// pointers; a version a store keeps holds the chunks its change touched, and modelChange skips
+  /// the chunks two versions share. Nothing shared is changed in place, so models sharing chunks
+  /// may be read on other threads. By value rather than a pointer a patch: 56 bytes a patch less
+  /// (the pointer, its control block, the key beside it), ~80 MB at 10^6.
   Chunks chunks_;
 };
 
@@ -242,8 +240,8 @@ class Model::Patches {
     iterator(const Chunks* chunks, std::size_t chunk, std::size_t index)
         : chunks_(chunks), chunk_(chunk), index_(index) {}
     value_type operator*() const {
-      const Entry& entry = (*(*chunks_)[chunk_])[index_];
-      return {entry.key, *entry.node};
+      const PatchInfo& info = (*(*chunks_)[chunk_])[index_];
+      return {info.key, info};
     }
     iterator& operator++() {
       if (++index_ == (*chunks_)[chunk_]->size()) {
@@ -327,9 +325,9 @@ struct ModelChange {
   bool empty() const { return changed.empty() && removed.empty(); }
 };
 /// The change from `before` to `after`, by one walk of both in key order. Chunks the two share
-/// (copy on write: a version of a LiveModel and the next) are skipped whole and nodes they share
-/// compare by address, so two versions of one model cost about the chunks their change touched;
-/// models read apart (a replica's reopen) compare field by field.
+/// (copy on write: a version of a LiveModel and the next) are skipped whole, so two versions of one
+/// model cost about the chunks their change touched; models read apart (a replica's reopen) compare
+/// field by field.
 ModelChange modelChange(const Model& before, const Model& after);
 
 }  // namespace vsm::core

@@ -131,7 +131,7 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
   }
   info.dirty = false;  // the cache tracks dirtiness; the model only needs `changed_`
   changed_.insert(key);
-  store.add(model_->shared(key));
+  store.add(model_->at(key));
   const std::size_t bytes = grid->bytes();
   store.cache().put(store.id(), id, {std::move(grid), bytes}, true);
   if (texture) {

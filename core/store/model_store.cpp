@@ -30,19 +30,17 @@ LiveModel::Store::~Store() {
   }
 }
 
-void LiveModel::Store::add(std::shared_ptr<const PatchInfo> info) {
+void LiveModel::Store::add(const PatchInfo& info) {
   std::lock_guard lock(mutex_);
-  addLocked(std::move(info));
+  addLocked(info);
 }
 
-void LiveModel::Store::addLocked(std::shared_ptr<const PatchInfo> info) {
-  if (info->grid != nullptr) {  // the cache holds vertex data, within its budget; never the store
-    auto copy = std::make_shared<PatchInfo>(*info);
-    copy->grid.reset();
-    info = std::move(copy);
-  }
-  std::pair<PatchKey, std::uint64_t> id{info->key, info->version};
-  others_.insert_or_assign(std::move(id), std::move(info));
+void LiveModel::Store::addLocked(const PatchInfo& info) {
+  // A copy (the model's patch lives in a chunk of hundreds), without vertex data: the cache holds
+  // that, within its budget; never the store.
+  auto copy = std::make_shared<PatchInfo>(info);
+  copy->grid.reset();
+  others_.insert_or_assign(std::pair{info.key, info.version}, std::move(copy));
 }
 
 void LiveModel::Store::forget(const PatchKey& key, std::uint64_t version) {
@@ -55,7 +53,7 @@ void LiveModel::Store::addRevision(const Model& revision) {
   for (const auto& [key, info] : revision.patches()) {
     const PatchInfo* current = current_->find(key);
     if (current == nullptr || current->version != info.version) {
-      addLocked(revision.shared(key));
+      addLocked(info);
     }
   }
 }
@@ -64,7 +62,7 @@ void LiveModel::Store::publish(std::shared_ptr<const Model> next, const ModelCha
   std::lock_guard lock(mutex_);
   const auto keepReplaced = [&](const PatchKey& key) {
     if (current_->find(key) != nullptr) {
-      addLocked(current_->shared(key));
+      addLocked(current_->at(key));
     }
   };
   for (const PatchKey& key : change.changed) {

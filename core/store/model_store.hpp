@@ -36,8 +36,8 @@ class LiveModel::Store final : public PatchStore {
   PatchCache::ModelId id() const { return id_; }
   const std::filesystem::path& dir() const { return dir_; }
 
-  /// Makes a draft loadable: holds its node (Model::shared).
-  void add(std::shared_ptr<const PatchInfo> info);
+  /// Makes a draft loadable: holds a copy of its metadata.
+  void add(const PatchInfo& info);
   void forget(const PatchKey& key, std::uint64_t version);
   /// Makes the versions of a revision read loadable (those the current version does not hold).
   void addRevision(const Model& revision);
@@ -60,7 +60,7 @@ class LiveModel::Store final : public PatchStore {
  private:
   std::shared_ptr<const PatchInfo> lookup(const ObjectId& id) const;
   /// add() without the lock.
-  void addLocked(std::shared_ptr<const PatchInfo> info);
+  void addLocked(const PatchInfo& info);
 
   std::filesystem::path dir_;
   PatchCache& cache_;

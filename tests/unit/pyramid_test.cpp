@@ -14,6 +14,7 @@
 #include "core/pyramid/model.hpp"
 #include "core/pyramid/patch_key.hpp"
 #include "core/pyramid/reduce.hpp"
+#include "tests/unit/test_support.hpp"
 
 namespace vsm::core {
 namespace {
@@ -506,25 +507,29 @@ TEST(PatchInfo, KeepsWhatWasSetInLessRoom) {
   EXPECT_EQ(info.ownHeapBytes(), 0u);
 }
 
-TEST(Model, ACopySharesEveryPatchItsChangeDidNotTouch) {
+TEST(Model, ACopySharesEveryChunkItsChangeDidNotTouch) {
   Model model(5);
-  model.insert(infoFor(PatchKey::root()));
-  for (std::uint32_t i = 0; i < 4; ++i) {
-    model.insert(infoFor({1, i % 2, i / 2}));
-  }
-  for (std::uint32_t y = 0; y < 4; ++y) {
-    for (std::uint32_t x = 0; x < 4; ++x) {
-      model.insert(infoFor({2, x, y}));
+  for (int depth = 0; depth <= 5; ++depth) {  // 1,365 patches
+    for (std::uint32_t y = 0; y < (1u << depth); ++y) {
+      for (std::uint32_t x = 0; x < (1u << depth); ++x) {
+        model.insert(infoFor({depth, x, y}));
+      }
     }
   }
   Model copy = model;
-  copy.edit({2, 1, 1}).version = 2;
-  for (const auto& [key, info] : model.patches()) {
-    const bool touched = key == PatchKey{2, 1, 1};
-    EXPECT_EQ(model.shared(key) == copy.shared(key), !touched) << key.toString();
-  }
-  EXPECT_EQ(model.at({2, 1, 1}).version, 1u);
-  EXPECT_EQ(modelChange(model, copy).changed, (std::vector<PatchKey>{{2, 1, 1}}));
+  const PatchKey edited{5, 17, 9};
+  copy.edit(edited).version = 2;
+  const std::size_t touched = test::patchesInChunksOf(model, {edited});
+  EXPECT_GT(touched, 1u);
+  EXPECT_LE(touched, 256u);
+  EXPECT_EQ(test::sharedPatches(model, copy), model.patchCount() - touched);
+  // Held, a patch's chunk stays as it was: the next change copies it (again).
+  const std::shared_ptr<const PatchInfo> held = copy.shared(edited);
+  copy.edit(edited).version = 3;
+  EXPECT_EQ(held->version, 2u);
+  EXPECT_EQ(copy.at(edited).version, 3u);
+  EXPECT_EQ(model.at(edited).version, 1u);
+  EXPECT_EQ(modelChange(model, copy).changed, (std::vector<PatchKey>{edited}));
 }
 
 TEST(Model, ChangingAPatchMarksItDirtyAndEveryAncestorStale) {

@@ -96,7 +96,7 @@ void writeModel(const fs::path& dir, bool textured = false, int leafDepth = 2) {
     }
   }
   model.refreshStale([](const PatchInfo&) -> std::shared_ptr<const PatchGrid> { return nullptr; });
-  OpcWriter writer(dir, OpcWriter::Durability::EachFile);
+  OpcWriter writer(dir, OpcWriter::Durability::Deferred);  // a test fixture: no fsync a file
   std::map<PatchKey, std::shared_ptr<TextureTile>> tiles;
   // Deepest first, so each overview's tile comes from its children's.
   for (const auto& [key, unused] : model.patches().reversed()) {
@@ -1471,46 +1471,46 @@ TEST_F(StoreTest, PublishesWriteDeltasOverABaseAndANewBaseWhenTheChangeGrows) {
 
 // A reading opening keeps the index base it decoded: read again after another small publish over
 // the same base, it applies only the new delta to it, so its model equals the full read and shares
-// every node neither delta touched with the model it read before (and with the base).
+// every chunk neither delta touched with the model it read before (and with the base).
 TEST_F(StoreTest, AReadingOpeningReadAgainAppliesTheNewDeltaToTheBaseItKept) {
-  writeModel(dir_, false, 3);  // 85 patches
+  writeModel(dir_, false, 5);  // 1,365 patches, six chunks
   PatchCache cache(64 << 20);
   auto writer = LiveModel::open(dir_, "m", cache);
-  publishLeaf(*writer, {3, 0, 0}, 1.0, 8);  // the first base: this version in full
-  publishLeaf(*writer, {3, 7, 7}, 2.0, 8);  // a delta over it
+  publishLeaf(*writer, {5, 0, 0}, 1.0, 8);    // the first base: this version in full
+  publishLeaf(*writer, {5, 31, 31}, 2.0, 8);  // a delta over it
   const std::optional<IndexBase> base = readIndexBase(dir_ / "Patches" / "patchhierarchy.vsmidx");
   ASSERT_TRUE(base.has_value());
   auto reader = LiveModel::open(dir_, "r", cache, LiveModel::Access::Read);
-  publishLeaf(*writer, {3, 4, 2}, 3.0, 8);
+  publishLeaf(*writer, {5, 20, 10}, 3.0, 8);
   ASSERT_EQ(readIndexBase(dir_ / "Patches" / "patchhierarchy.vsmidx")->name, base->name);
   const auto before = reader->snapshot();
   const auto after = reader->reopen()->snapshot();
   expectSameModel(OpcRevision{*after->model, after->revision}, fullRead(dir_));
-  // Both deltas name 3_7_7 with its three overviews; the new one 3_4_2 and two overviews more
-  // (the root is one of the three). The other 78 are the base's nodes in both models.
-  std::size_t shared = 0;
-  for (const auto& [key, info] : after->model->patches()) {
-    if (before->model->shared(key) == after->model->shared(key)) {
-      ++shared;
-    }
+  // Both deltas name 5_31_31 with its overviews, the new one 5_20_10 with its own too: the chunks
+  // holding none of them are the base's in both models.
+  std::vector<PatchKey> changed = test::withAncestors({5, 31, 31});
+  for (const PatchKey& key : test::withAncestors({5, 20, 10})) {
+    changed.push_back(key);
   }
-  EXPECT_EQ(shared, 85u - 7u);
+  const std::size_t touched = test::patchesInChunksOf(*after->model, changed);
+  EXPECT_LT(touched, 1365u - 256u);
+  EXPECT_EQ(test::sharedPatches(*before->model, *after->model), 1365u - touched);
   // Opened anew: read from the files, it shares nothing with the first reader's.
   const auto fresh = LiveModel::open(dir_, "r2", cache, LiveModel::Access::Read)->snapshot();
-  EXPECT_NE(fresh->model->shared({3, 1, 1}), after->model->shared({3, 1, 1}));
+  EXPECT_EQ(test::sharedPatches(*fresh->model, *after->model), 0u);
 }
 
-// Kept revisions read (snapshotAt) whose indexes are deltas over one base share its nodes: eight
-// of them at 10^6 patches cost one model and their deltas, not 8 models.
-TEST_F(StoreTest, RevisionsReadOverOneIndexBaseShareItsNodes) {
-  writeModel(dir_, false, 3);  // 85 patches
+// Kept revisions read (snapshotAt) whose indexes are deltas over one base share its chunks: eight
+// of them at 10^6 patches cost one model and their deltas' chunks, not 8 models.
+TEST_F(StoreTest, RevisionsReadOverOneIndexBaseShareItsChunks) {
+  writeModel(dir_, false, 5);  // 1,365 patches, six chunks
   PatchCache cache(64 << 20);
   auto writer = LiveModel::open(dir_, "m", cache);
   const std::uint64_t v = writer->snapshot()->version;
-  publishLeaf(*writer, {3, 0, 0}, 1.0, 8);  // v + 1: the first base, this version in full
-  publishLeaf(*writer, {3, 7, 7}, 2.0, 8);  // v + 2: a delta over it
-  publishLeaf(*writer, {3, 4, 2}, 3.0, 8);  // v + 3: another
-  publishLeaf(*writer, {3, 1, 6}, 4.0, 8);  // v + 4, current: v + 2 and v + 3 are kept revisions
+  publishLeaf(*writer, {5, 0, 0}, 1.0, 8);    // v + 1: the first base, this version in full
+  publishLeaf(*writer, {5, 31, 31}, 2.0, 8);  // v + 2: a delta over it
+  publishLeaf(*writer, {5, 20, 10}, 3.0, 8);  // v + 3: another
+  publishLeaf(*writer, {5, 3, 25}, 4.0, 8);   // v + 4, current: v + 2 and v + 3 are kept
   const fs::path patches = dir_ / "Patches";
   for (const std::uint64_t n : {v + 2, v + 3}) {
     ASSERT_EQ(readIndexBase(patches / indexFileName(revisionFileName(n)))->name,
@@ -1524,13 +1524,15 @@ TEST_F(StoreTest, RevisionsReadOverOneIndexBaseShareItsNodes) {
       expectSameModel(OpcRevision{*read->model, read->revision},
                       fullRead(dir_, revisionFileName(read->version)));
     }
-    // v + 2's delta names 3_7_7 and its overviews (4), v + 3's those and 3_4_2 with two more
-    // overviews (7): the other 78 are the base's nodes in both.
-    std::size_t shared = 0;
-    for (const auto& [key, info] : three->model->patches()) {
-      shared += two->model->shared(key) == three->model->shared(key) ? 1 : 0;
+    // v + 2's delta names 5_31_31 and its overviews, v + 3's those and 5_20_10 with its own: the
+    // chunks holding none of them are the base's in both.
+    std::vector<PatchKey> changed = test::withAncestors({5, 31, 31});
+    for (const PatchKey& key : test::withAncestors({5, 20, 10})) {
+      changed.push_back(key);
     }
-    EXPECT_EQ(shared, 85u - 7u) << opening->name();
+    const std::size_t touched = test::patchesInChunksOf(*three->model, changed);
+    EXPECT_LT(touched, 1365u - 256u);
+    EXPECT_EQ(test::sharedPatches(*two->model, *three->model), 1365u - touched) << opening->name();
   }
 }
 

@@ -10,7 +10,9 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <iterator>
 #include <map>
+#include <set>
 #include <sstream>
 #include <string>
 #include <string_view>
@@ -21,6 +23,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/executor.hpp"
+#include "core/pyramid/model.hpp"
 
 namespace vsm::core::test {
 
@@ -99,6 +102,41 @@ class TempDirTest : public ::testing::Test {
 };
 
 /// The bytes of `file`.
+/// The patches `b` shares in memory with `a` (Model::shared: the same chunk, copied by neither).
+inline std::size_t sharedPatches(const core::Model& a, const core::Model& b) {
+  std::size_t shared = 0;
+  for (const auto& [key, info] : b.patches()) {
+    shared += a.find(key) != nullptr && a.shared(key) == b.shared(key) ? 1 : 0;
+  }
+  return shared;
+}
+
+/// The patches in the chunks of `model` that hold one of `keys` (Model::runOf): what a copy of
+/// the model that changed those keys shares no longer.
+inline std::size_t patchesInChunksOf(const core::Model& model,
+                                     const std::vector<core::PatchKey>& keys) {
+  std::set<const void*> chunks;
+  for (const core::PatchKey& key : keys) {
+    chunks.insert(model.runOf(key).get());
+  }
+  std::size_t patches = 0;
+  for (const core::Model::Run& run : model.runs()) {
+    if (chunks.count(run.id.get()) != 0) {
+      patches += static_cast<std::size_t>(std::distance(run.begin, run.end));
+    }
+  }
+  return patches;
+}
+
+/// `key` and its ancestors up to the root: what changing a patch changes.
+inline std::vector<core::PatchKey> withAncestors(core::PatchKey key) {
+  std::vector<core::PatchKey> keys{key};
+  for (auto parent = key.parent(); parent; parent = parent->parent()) {
+    keys.push_back(*parent);
+  }
+  return keys;
+}
+
 inline std::string readFile(const std::filesystem::path& file) {
   std::ifstream in(file, std::ios::binary);
   std::stringstream text;
