@@ -243,7 +243,7 @@ void putHead(Encoder& out, std::uint32_t format, const HierarchyStamp& stamp, co
 
 void putPatch(Encoder& out, const PatchKey& key, const PatchInfo& info) {
   out.putKey(key);
-  out.putString(info.folder == key.toString() ? std::string_view() : info.folder);
+  out.putString(info.ownFolder() ? info.folder() : std::string());
   out.putBox(info.globalBox);
   out.putBox(info.localBox);
   const bool translation = info.local2global().isTranslation();
@@ -416,10 +416,7 @@ std::optional<IndexHead> decodeHead(std::span<const std::byte> bytes, const Hier
 /// One patch of the index into `info`; false past the end or for a key out of range.
 bool decodePatch(Decoder& in, PatchInfo& info) {
   info.key = in.getKey();
-  info.folder = in.getString();
-  if (info.folder.empty()) {
-    info.folder = info.key.toString();
-  }
+  info.setFolder(in.getString());
   info.globalBox = in.getBox();
   info.localBox = in.getBox();
   if (in.get<std::uint8_t>() != 0) {
@@ -708,7 +705,7 @@ bool forEachIndexedFolder(const fs::path& hierarchyFile,
           hierarchyFile.parent_path() / indexFileName(hierarchyFile.filename().string()), nullptr);
       if (read) {
         for (const auto& [key, info] : read->model.patches()) {
-          fn(info.folder);
+          fn(info.folder());
         }
       }
       return read.has_value();
@@ -728,7 +725,7 @@ bool forEachIndexedFolder(const fs::path& hierarchyFile,
       if (!decodePatch(in, info)) {
         return false;
       }
-      fn(info.folder);
+      fn(info.folder());
     }
     return in.atEnd();
   } catch (const Error&) {

@@ -94,11 +94,10 @@ struct ParsedPatch {
 };
 
 /// Reads one Patch.xml. Grid-size dependent fields (stored rectangle) are completed by the caller.
-ParsedPatch readPatchXml(const fs::path& folderDir, const std::string& folder) {
+ParsedPatch readPatchXml(const fs::path& folderDir) {
   ParsedPatch parsed;
   PatchInfo& info = parsed.info;
   detail::PatchDetails& details = parsed.details;
-  info.folder = folder;
   const auto xmlFile = detail::findEntry(folderDir, "Patch.xml");
   if (!xmlFile) {
     corrupt(folderDir, "no Patch.xml");
@@ -206,7 +205,7 @@ ParsedPatch readPatchXml(const fs::path& folderDir, const std::string& folder) {
 
 fs::path positionsPath(const fs::path& patchesDir, const PatchInfo& info) {
   const fs::path folderDir =
-      detail::findEntry(patchesDir, info.folder).value_or(patchesDir / info.folder);
+      detail::findEntry(patchesDir, info.folder()).value_or(patchesDir / info.folder());
   return detail::findEntry(folderDir, info.positionsFile())
       .value_or(folderDir / info.positionsFile());
 }
@@ -427,8 +426,9 @@ OpcContents readOpc(const fs::path& dir, std::string_view hierarchyName) {
       corrupt(*hierarchyFile,
               "names patch '" + folder + "' but there is no folder Patches/" + folder);
     }
-    ParsedPatch patch = readPatchXml(*folderDir, folder);
+    ParsedPatch patch = readPatchXml(*folderDir);
     patch.info.key = key;
+    patch.info.setFolder(folder);
     if (const auto it = subPatches.find(folder); it != subPatches.end()) {
       for (const Quadrant q : kQuadrants) {
         const std::string& child = it->second[static_cast<int>(q)];

@@ -86,14 +86,11 @@ OpcWriter::OpcWriter(fs::path dir, Durability durability)
 
 namespace {
 
-/// Gives a patch written without a folder name its standard one, and checks the names.
-void nameFolder(PatchInfo& info) {
-  if (info.folder.empty()) {
-    info.folder = info.key.toString();
-  }
-  if (!detail::isSafeName(info.folder) || !detail::isSafeName(info.positionsFile())) {
+/// Checks that a patch's folder and positions file have plain names.
+void checkNames(const PatchInfo& info) {
+  if (!detail::isSafeName(info.folder()) || !detail::isSafeName(info.positionsFile())) {
     throw Error(ErrorCode::InvalidArgument,
-                "patch folder '" + info.folder + "' is not a plain name");
+                "patch folder '" + info.folder() + "' is not a plain name");
   }
 }
 
@@ -104,10 +101,10 @@ std::string textureEntryFor(std::string_view folder) {
 }
 
 void OpcWriter::writeTexture(PatchInfo& info, const TextureTile& tile) {
-  nameFolder(info);
-  writeFile(imagesLayerDir() / (info.folder + ".tif"), encodeTextureTiff(tile));
+  checkNames(info);
+  writeFile(imagesLayerDir() / (info.folder() + ".tif"), encodeTextureTiff(tile));
   PatchFiles files = info.files();
-  files.texture = textureEntryFor(info.folder);
+  files.texture = textureEntryFor(info.folder());
   info.setFiles(std::move(files));
 }
 
@@ -117,13 +114,13 @@ void OpcWriter::writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childre
     throw Error(ErrorCode::InvalidArgument,
                 "patch " + info.key.toString() + " has no defined vertex to write");
   }
-  nameFolder(info);
-  if (!info.textureFile().empty() && info.textureFile() != textureEntryFor(info.folder)) {
-    throw Error(ErrorCode::InvalidArgument, "patch " + info.folder + " names texture '" +
+  checkNames(info);
+  if (!info.textureFile().empty() && info.textureFile() != textureEntryFor(info.folder())) {
+    throw Error(ErrorCode::InvalidArgument, "patch " + info.folder() + " names texture '" +
                                                 info.textureFile() +
                                                 "', which this writer does not write");
   }
-  const fs::path folderDir = dir_ / info.folder;
+  const fs::path folderDir = dir_ / info.folder();
   durable::createDirectory(folderDir, durability_ == Durability::EachFile);
 
   const PatchGrid::Summary summary = grid.summarize();
@@ -216,42 +213,32 @@ fs::path OpcWriter::imagesLayerDir() {
 
 void OpcWriter::removePatchFiles(const PatchInfo& info) {
   std::error_code ec;
-  fs::remove_all(dir_ / info.folder, ec);
+  fs::remove_all(dir_ / info.folder(), ec);
   if (!info.textureFile().empty()) {
-    fs::remove(dir_.parent_path() / "Images" / std::string(kTextureLayer) / (info.folder + ".tif"),
-               ec);
+    fs::remove(
+        dir_.parent_path() / "Images" / std::string(kTextureLayer) / (info.folder() + ".tif"), ec);
   }
 }
 
 namespace {
-
-/// The name a patch has in the hierarchy: its folder, or its key for a patch not yet written.
-const std::string& hierarchyName(const PatchInfo& info, std::string& keyText) {
-  if (!info.folder.empty()) {
-    return info.folder;
-  }
-  keyText = info.key.toString();
-  return keyText;
-}
 
 /// The <item> elements of the patches with children in `run`, made at nesting `depth`, with the
 /// ids of the runs that hold their children added to `childRuns`.
 std::string runItems(const Model& model, const Model::Run& run, std::size_t depth,
                      std::vector<std::shared_ptr<const void>>& childRuns) {
   detail::XmlWriter xml(depth);
-  std::string keyText;
   for (auto it = run.begin; it != run.end; ++it) {
     const auto [key, info] = *it;
     if (info.isLeaf()) {
       continue;
     }
     xml.open("item", true);
-    xml.text("key", hierarchyName(info, keyText));
+    xml.text("key", info.folder());
     xml.open("val");
     for (const Quadrant q : kQuadrants) {
       if (info.hasChild(q)) {
         const PatchKey child = key.child(q);
-        xml.text(toString(q), hierarchyName(model.at(child), keyText));
+        xml.text(toString(q), model.at(child).folder());
         std::shared_ptr<const void> holder = model.runOf(child);
         if (childRuns.empty() || childRuns.back() != holder) {
           childRuns.push_back(std::move(holder));
@@ -300,8 +287,7 @@ HierarchyText hierarchyXml(const Model& model, const RevisionRecord* revision,
     sizes += (sizes.size() > 1 ? ", " : "") + formatDouble(size);
   }
   xml.text("AvgGeometrySizes", sizes + "]");
-  std::string keyText;
-  xml.text("RootPatch", hierarchyName(model.at(PatchKey::root()), keyText));
+  xml.text("RootPatch", model.at(PatchKey::root()).folder());
   xml.open("SubPatchMap");
   text.items =
       memo != nullptr ? memo->items(model, xml.depth()) : HierarchyMemo().items(model, xml.depth());

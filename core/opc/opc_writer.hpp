@@ -37,11 +37,11 @@ class OpcWriter {
   /// Creates `dir`/Patches when missing.
   OpcWriter(std::filesystem::path dir, Durability durability);
 
-  /// Writes all files of one patch (never one alone) into Patches/<info.folder>/, cropping
+  /// Writes all files of one patch (never one alone) into Patches/<info.folder()>/, cropping
   /// undefined border rows and columns, and updates `info` from `grid` (boxes, Local2Global,
   /// resolution, stored rectangle) as Model::describe does: the boxes hold the grid's defined
   /// vertices and `childrenBox`, the union of the children's global boxes (empty for a leaf).
-  /// An empty info.folder becomes info.key.toString(). Precondition: grid.anyDefined().
+  /// Precondition: grid.anyDefined().
   ///
   /// A textured patch (info.textureFile() names the tile writeTexture() wrote for this folder,
   /// before or after this call) also gets Coordinates.aara (V2f per stored vertex, see
@@ -51,7 +51,7 @@ class OpcWriter {
   void writePatch(PatchInfo& info, const PatchGrid& grid, Box3d childrenBox);
 
   /// Writes the texture tile of a patch as Images/Diffuse/<folder>.tif (RGBA 8-bit TIFF) and sets
-  /// info.textureFile() to name it (an empty info.folder becomes info.key.toString()).
+  /// info.textureFile() to name it.
   void writeTexture(PatchInfo& info, const TextureTile& tile);
 
   /// Removes every file writePatch wrote for `info` (its folder and its texture tile), ignoring

@@ -27,7 +27,7 @@ namespace {
 fs::path patchFile(const fs::path& dir, const PatchInfo& info, const std::string& name) {
   const fs::path patchesDir = patchesDirOf(dir);
   const fs::path folderDir =
-      detail::findEntry(patchesDir, info.folder).value_or(patchesDir / info.folder);
+      detail::findEntry(patchesDir, info.folder()).value_or(patchesDir / info.folder());
   return detail::findEntry(folderDir, name).value_or(folderDir / name);
 }
 
@@ -130,7 +130,7 @@ std::optional<std::vector<std::byte>> readFullGridPositions(const fs::path& dir,
 
 std::unique_ptr<StoredFile> openCoordinatesFile(const fs::path& dir, const PatchInfo& info) {
   if (info.coordinatesFile().empty()) {
-    throw Error(ErrorCode::NotFound, "patch " + info.folder + " has no texture coordinates");
+    throw Error(ErrorCode::NotFound, "patch " + info.folder() + " has no texture coordinates");
   }
   const fs::path path = patchFile(dir, info, info.coordinatesFile());
   std::unique_ptr<StoredFile> file = openFile(path);

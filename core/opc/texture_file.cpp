@@ -193,7 +193,7 @@ fs::path textureFileOf(const fs::path& dir, const PatchInfo& info) {
       info.textureFile().empty() ? std::nullopt : detail::findTextureFile(dir, info.textureFile());
   if (!file) {
     throw Error(ErrorCode::NotFound,
-                "patch " + info.folder + " has no texture tile" +
+                "patch " + info.folder() + " has no texture tile" +
                     (info.textureFile().empty() ? std::string()
                                                 : " ('" + info.textureFile() + "' is missing)"));
   }

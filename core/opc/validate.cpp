@@ -63,7 +63,7 @@ class Validator {
   void add(std::string where, std::string message) {
     findings_.push_back({std::move(where), std::move(message)});
   }
-  std::string where(const PatchInfo& info) const { return "Patches/" + info.folder; }
+  std::string where(const PatchInfo& info) const { return "Patches/" + info.folder(); }
 
   /// The patch's grid, read once; null (with a finding) when it cannot be read.
   const PatchGrid* grid(const PatchInfo& info) {
@@ -170,7 +170,7 @@ class Validator {
       return;
     }
     const fs::path folder =
-        detail::findEntry(c_.patchesDir, info.folder).value_or(c_.patchesDir / info.folder);
+        detail::findEntry(c_.patchesDir, info.folder()).value_or(c_.patchesDir / info.folder());
     const fs::path file =
         detail::findEntry(folder, info.coordinatesFile()).value_or(folder / info.coordinatesFile());
     AaraArray coordinates;

@@ -13,24 +13,52 @@ namespace vsm::core {
 
 const PatchFiles PatchInfo::kUntexturedFiles;
 
+template <typename Change>
+void PatchInfo::changeExtras(Change change) {
+  Extras extras = extras_ ? *extras_ : Extras{};
+  change(extras);
+  if (extras.folder.empty() && !extras.matrix && !extras.files) {
+    extras_.reset();
+  } else {
+    extras_ = std::make_shared<const Extras>(std::move(extras));
+  }
+}
+
+std::string PatchInfo::folder() const {
+  return ownFolder() ? extras_->folder : key.toString();
+}
+
+void PatchInfo::setFolder(std::string folder) {
+  if (folder == key.toString()) {
+    folder.clear();
+  }
+  if (folder != (extras_ ? extras_->folder : std::string())) {
+    changeExtras([&folder](Extras& extras) { extras.folder = std::move(folder); });
+  }
+}
+
 void PatchInfo::setLocal2Global(const Mat4d& m) {
   // Bit for bit (a -0 in a foreign OPC's linear part is kept, and written back, as it was).
   const Mat4d shift = Mat4d::translation(m.translationPart());
   if (std::memcmp(m.m.data(), shift.m.data(), sizeof m.m) == 0) {
     translation_ = m.translationPart();
-    matrix_.reset();
+    if (extras_ && extras_->matrix) {
+      changeExtras([](Extras& extras) { extras.matrix.reset(); });
+    }
   } else {
     translation_ = {};
-    matrix_ = std::make_shared<const Mat4d>(m);
+    changeExtras([&m](Extras& extras) { extras.matrix = std::make_shared<const Mat4d>(m); });
   }
 }
 
 void PatchInfo::setFiles(PatchFiles files) {
-  if (files == kUntexturedFiles) {
-    files_.reset();
-  } else {
-    files_ = std::make_shared<const PatchFiles>(std::move(files));
+  if (files == this->files()) {
+    return;
   }
+  changeExtras([&files](Extras& extras) {
+    extras.files =
+        files == kUntexturedFiles ? nullptr : std::make_shared<const PatchFiles>(std::move(files));
+  });
 }
 
 namespace {
@@ -47,10 +75,14 @@ constexpr std::size_t sharedBlock = sizeof(T) + 16 + 16;
 }  // namespace
 
 std::size_t PatchInfo::ownHeapBytes() const {
-  std::size_t bytes = heapOf(folder) + (matrix_ ? sharedBlock<Mat4d> : 0);
-  if (files_) {
-    bytes += sharedBlock<PatchFiles> + heapOf(files_->positions) + heapOf(files_->coordinates) +
-             heapOf(files_->texture);
+  if (!extras_) {
+    return 0;
+  }
+  std::size_t bytes =
+      sharedBlock<Extras> + heapOf(extras_->folder) + (extras_->matrix ? sharedBlock<Mat4d> : 0);
+  if (const auto& files = extras_->files) {
+    bytes += sharedBlock<PatchFiles> + heapOf(files->positions) + heapOf(files->coordinates) +
+             heapOf(files->texture);
   }
   return bytes;
 }
@@ -461,7 +493,7 @@ namespace {
 
 bool sameStoredPatch(const PatchInfo& a, const PatchInfo& b) {
   return &a == &b ||
-         (a.version == b.version && a.folder == b.folder && a.childMask == b.childMask &&
+         (a.version == b.version && a.folder() == b.folder() && a.childMask == b.childMask &&
           a.globalBox == b.globalBox && a.localBox == b.localBox &&
           a.local2global() == b.local2global() && a.resolution == b.resolution &&
           a.stored == b.stored && a.files() == b.files());
@@ -506,7 +538,7 @@ std::uint64_t patchDigest(const PatchInfo& info) {
   mix.add(std::uint64_t{static_cast<std::uint32_t>(info.key.depth)} << 32 | info.childMask);
   mix.add(std::uint64_t{info.key.x} << 32 | info.key.y);
   mix.add(info.version);
-  mix.add(std::string_view(info.folder));
+  mix.add(std::string_view(info.folder()));
   for (const double v : {info.globalBox.min.x, info.globalBox.min.y, info.globalBox.min.z,
                          info.globalBox.max.x, info.globalBox.max.y, info.globalBox.max.z}) {
     mix.add(v);

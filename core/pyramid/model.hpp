@@ -33,8 +33,9 @@ struct PatchFiles {
 };
 
 /// Everything known about a patch without its vertex data: always resident, so kept small (a
-/// model of 10^6 patches holds 1.4 million): Local2Global as its translation where it is one (as
-/// vsm writes it) and the file names shared where they are the usual ones.
+/// model of 10^6 patches holds 1.4 million). What vsm's own patches have in common is not stored:
+/// the folder named after the key, Local2Global a translation, the untextured file names; the
+/// rest (an edit's draft folder, a foreign OPC's names and matrices) is held behind one pointer.
 struct PatchInfo {
   PatchKey key;
   /// Bit q is set when the child in Quadrant q exists.
@@ -43,8 +44,6 @@ struct PatchInfo {
   /// be recomputed before use (and `grid`: the vertex data is in memory).
   bool dirty = false;
   bool stale = false;
-  /// Directory name under Patches/ (vsm writes key.toString(); foreign OPCs use their own names).
-  std::string folder;
   Box3d globalBox;
   Box3d localBox;
   /// Mean distance between defined grid neighbours, metres.
@@ -55,10 +54,22 @@ struct PatchInfo {
   GridRect stored;
   std::shared_ptr<const PatchGrid> grid;
 
-  Mat4d local2global() const { return matrix_ ? *matrix_ : Mat4d::translation(translation_); }
+  /// Directory name under Patches/: key.toString() unless set otherwise (an edit's draft folder,
+  /// a foreign OPC's own names).
+  std::string folder() const;
+  /// True when folder() is not key.toString().
+  bool ownFolder() const { return extras_ != nullptr && !extras_->folder.empty(); }
+  /// Set the key first: a name equal to key.toString() is not stored.
+  void setFolder(std::string folder);
+
+  Mat4d local2global() const {
+    return extras_ && extras_->matrix ? *extras_->matrix : Mat4d::translation(translation_);
+  }
   void setLocal2Global(const Mat4d& m);
 
-  const PatchFiles& files() const { return files_ ? *files_ : kUntexturedFiles; }
+  const PatchFiles& files() const {
+    return extras_ && extras_->files ? *extras_->files : kUntexturedFiles;
+  }
   const std::string& positionsFile() const { return files().positions; }
   const std::string& coordinatesFile() const { return files().coordinates; }
   const std::string& textureFile() const { return files().texture; }
@@ -68,17 +79,25 @@ struct PatchInfo {
   bool isLeaf() const { return childMask == 0; }
   bool hasChild(Quadrant q) const { return (childMask >> static_cast<int>(q)) & 1; }
 
-  /// The heap blocks this node holds of its own (its matrix and file names when it has them;
-  /// shared ones counted with each node): Model::heapBytes.
+  /// The heap blocks this patch holds (its folder name, matrix and file names when it has them;
+  /// shared ones counted with each patch): Model::heapBytes.
   std::size_t ownHeapBytes() const;
 
  private:
+  /// What a patch of vsm's own does not have; never changed once shared (set* replace it).
+  struct Extras {
+    std::string folder;                       ///< empty: key.toString()
+    std::shared_ptr<const Mat4d> matrix;      ///< null: Local2Global is translation_ alone
+    std::shared_ptr<const PatchFiles> files;  ///< null: kUntexturedFiles
+  };
   static const PatchFiles kUntexturedFiles;
+  /// extras_ replaced by a copy that `change` changed, or by null when nothing is left in it.
+  template <typename Change>
+  void changeExtras(Change change);
+
   Vec3d translation_;
-  /// Null when Local2Global is translation_ alone.
-  std::shared_ptr<const Mat4d> matrix_;
-  /// Null for kUntexturedFiles.
-  std::shared_ptr<const PatchFiles> files_;
+  /// Null for a patch of vsm's own.
+  std::shared_ptr<const Extras> extras_;
 };
 
 /// Per-depth summary of a model.

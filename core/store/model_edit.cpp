@@ -115,15 +115,15 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
   if (!texture && changed_.count(key) != 0 && !info.textureFile().empty()) {
     // This edit's earlier texture of the patch is obsolete (and may have been written already).
     store.cache().drop(store.id(), textureId);
-    fs::remove(ourTileFile(live_.dir_, info.folder));
+    fs::remove(ourTileFile(live_.dir_, info.folder()));
   }
   info.version = id.version;
-  info.folder = draftFolder(key, id.version, nonce_);
+  info.setFolder(draftFolder(key, id.version, nonce_));
   // As OpcWriter::writePatch names them: the snapshot (and the index written from it) says what
   // the files say.
-  info.setFiles(texture
-                    ? PatchFiles{"Positions.aara", "Coordinates.aara", textureEntryFor(info.folder)}
-                    : PatchFiles{});
+  info.setFiles(
+      texture ? PatchFiles{"Positions.aara", "Coordinates.aara", textureEntryFor(info.folder())}
+              : PatchFiles{});
   model_->describe(key, *grid);
   model_->markChanged(key);
   if (const auto parent = key.parent()) {

@@ -80,7 +80,7 @@ void LiveModel::Store::forgetFolders(const FolderSet& folders) {
   {
     std::lock_guard lock(mutex_);
     for (auto it = others_.begin(); it != others_.end();) {
-      if (folders.contains(it->second->folder)) {
+      if (folders.contains(it->second->folder())) {
         gone.push_back(it->first);
         it = others_.erase(it);
       } else {

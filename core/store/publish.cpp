@@ -136,12 +136,12 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   std::vector<RetiredFolder> retired;
   for (const PatchKey& key : changed_) {
     if (const PatchInfo* old = base_->model->find(key);
-        old != nullptr && old->folder != model_->at(key).folder) {
-      retired.push_back({key, old->folder});
+        old != nullptr && old->folder() != model_->at(key).folder()) {
+      retired.push_back({key, old->folder()});
     }
   }
   for (const PatchKey& key : removed_) {
-    retired.push_back({key, base_->model->at(key).folder});
+    retired.push_back({key, base_->model->at(key).folder()});
   }
   // A delta over the current index's base, or a new base when the change since it has grown.
   const std::optional<HierarchyStamp> replacedStamp = [&] {

@@ -227,7 +227,7 @@ FolderSet foldersRetiredBy(const std::vector<RetiredFolder>& retired, const Mode
   FolderSet only;
   for (const RetiredFolder& entry : retired) {
     const PatchInfo* now = latest.find(entry.key);
-    if (now == nullptr || now->folder != entry.folder) {
+    if (now == nullptr || now->folder() != entry.folder) {
       only.insert(entry.folder);
     }
   }

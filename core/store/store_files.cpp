@@ -49,19 +49,19 @@ std::optional<PatchKey> keyOfFolder(std::string_view folder) {
 
 NamedFolders::NamedFolders(const Model& model) : model_(model) {
   for (const auto& [key, info] : model.patches()) {
-    if (keyOfFolder(info.folder) != key) {
-      others_.insert(info.folder);
+    if (info.ownFolder() && keyOfFolder(info.folder()) != key) {
+      others_.insert(info.folder());
     }
   }
 }
 
 bool NamedFolders::contains(std::string_view folder) const {
   if (const std::optional<PatchKey> key = keyOfFolder(folder)) {
-    if (const PatchInfo* info = model_.find(*key); info != nullptr && info->folder == folder) {
+    if (const PatchInfo* info = model_.find(*key); info != nullptr && info->folder() == folder) {
       return true;
     }
   }
-  return others_.contains(folder);
+  return others_.contains(std::string(folder));
 }
 
 bool isOurFolderName(const std::string& name) {

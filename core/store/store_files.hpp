@@ -43,7 +43,7 @@ class NamedFolders {
 
  private:
   const Model& model_;
-  std::unordered_set<std::string_view> others_;
+  std::unordered_set<std::string> others_;
 };
 
 /// Texture tiles vsm names: "<one of our folder names>.tif" in Images/Diffuse/.

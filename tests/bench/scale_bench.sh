@@ -14,8 +14,10 @@
 #   ready-full, ready   vsmd started on a data root holding the model (and the detail), without
 #               and with the index: seconds from exec to the port file (it opens the models before
 #               it listens), and VmRSS then (empty cache; --memory-budget 64MiB up to depth 8,
-#               1GiB beyond: the budget holds the models' metadata, ~500 bytes a patch, since
-#               issue 31, and 64 MiB leaves no room beside 1.4 million patches' 700 MB);
+#               1GiB beyond: the budget holds the models' metadata, ~200 bytes a patch, and 64 MiB
+#               leaves no room beside 1.4 million patches); "RSS settled", printed below the row,
+#               is the writer's a second after its replica started (the image codec it loads just
+#               after ready is in then);
 #   merge1..N   a merge job (POST /v1/jobs, detail into the model) end to end: from the POST to
 #               the job's "succeeded" (polled every 20 ms with curl and grep; a Python per poll
 #               would add 0.3 s to each), then VmRSS; N = VSM_BENCH_MERGES (3);
@@ -172,6 +174,10 @@ for depth in $DEPTHS; do
   start_vsmd "$data" replica-$depth "$budget"
   rpid=$DPID
   rurl=$DURL
+  # Once settled: the image codec (~80 MB of OpenImageIO and what it loads) comes in on a handler
+  # thread just after ready, and the writer's leftover sweep runs.
+  sleep 1
+  rss_settled=$(rss_mb "$wpid")
   # A viewer following the model: the first version's documents, then each new version's.
   derived
   first_docs="$layer, $tileset"
@@ -197,7 +203,7 @@ for depth in $DEPTHS; do
   done
   printf '%-8s %9s %9s %7s %9s %9s %7s %s/ %s/ %s, %s\n' "$patches" "$info_full" "$info_idx" \
     "$ready_full" "$rss_full" "$ready" "$rss" "$merges" "$follows" "$layer" "$tileset"
-  echo "         (the first version's layer, tileset: $first_docs s)"
+  echo "         (the first version's layer, tileset: $first_docs s; writer RSS settled: $rss_settled MB)"
   echo "         (generated in ${gen_s} s; the replica's reopen: $(grep -o \
     'another writer published: version [0-9]* ([0-9]* ms)' "$WORK/replica-$depth.log" |
     grep -o '[0-9]* ms' | tr '\n' ' '))"

@@ -27,7 +27,6 @@ core::Model makeModel() {
     const double side = 1024.0 / (1u << key.depth);
     core::PatchInfo info;
     info.key = key;
-    info.folder = key.toString();
     info.globalBox.min = {key.x * side, key.y * side, 0.0};
     info.globalBox.max = {(key.x + 1) * side, (key.y + 1) * side, 100.0};
     info.localBox = info.globalBox;

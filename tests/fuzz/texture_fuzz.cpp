@@ -34,7 +34,6 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
                 "a tile read is within the pixel limit");
   });
   core::PatchInfo info;
-  info.folder = "0_0_0";
   info.setFiles({"Positions.aara", "", "Diffuse\\tile.tif"});
   fuzz::succeeds([&] {
     const std::vector<std::byte> png = core::readPatchTexturePng(scratch.path(), info, kMaxPixels);

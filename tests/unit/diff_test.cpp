@@ -70,7 +70,6 @@ void writeLayout(const fs::path& dir, const LeafOf& leaf) {
   OpcWriter writer(dir, OpcWriter::Durability::EachFile);
   for (const auto& [key, unused] : model.patches().reversed()) {
     PatchInfo& info = model.edit(key);
-    info.folder = key.toString();
     writer.writePatch(info, *info.grid, model.childrenBox(key));
   }
   writer.writeHierarchy(model);

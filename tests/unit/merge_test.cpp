@@ -929,7 +929,6 @@ void writeOpc(Model& model, const fs::path& dir) {
   OpcWriter writer(dir, OpcWriter::Durability::Deferred);
   for (const auto& [key, info] : model.patches()) {
     PatchInfo& mutableInfo = model.edit(key);
-    mutableInfo.folder = key.toString();
     writer.writePatch(mutableInfo, *info.grid, model.childrenBox(key));
   }
   writer.writeHierarchy(model);
@@ -1020,9 +1019,9 @@ TEST_F(MergeStoreTest, MergedModelValidatesFollowsTheDetailAndLeavesOtherFilesAl
     if (affected) {
       continue;
     }
-    EXPECT_EQ(merged.at(key).folder, info.folder);
+    EXPECT_EQ(merged.at(key).folder(), info.folder());
     for (const auto& [path, bytes] : before) {
-      if (path.rfind("Patches/" + info.folder + "/", 0) == 0) {
+      if (path.rfind("Patches/" + info.folder() + "/", 0) == 0) {
         ASSERT_TRUE(after.count(path)) << path;
         EXPECT_EQ(after.at(path), bytes) << path;
         ++untouched;

@@ -274,7 +274,7 @@ class TextureFileTest : public test::TempDirTest {
   std::vector<std::byte> pngOf(const TextureTile& tile) const {
     writeBytes(file("source.tif"), encodeTextureTiff(tile));
     PatchInfo info;
-    info.folder = "0_0_0";
+    info.setFolder("0_0_0");
     info.setFiles({"Positions.aara", "", "Diffuse\\source.tif"});
     return readPatchTexturePng(dir_, info);
   }
@@ -540,7 +540,7 @@ TEST_F(OpcStoreTest, ReadBackIsWhatWasWritten) {
   EXPECT_EQ(read.gridSize(), kSize);
   for (const auto& [key, info] : model_->patches()) {
     const PatchInfo& other = read.at(key);
-    EXPECT_EQ(other.folder, key.toString());
+    EXPECT_EQ(other.folder(), key.toString());
     EXPECT_EQ(other.childMask, info.childMask);
     EXPECT_EQ(other.globalBox, info.globalBox);
     EXPECT_EQ(other.local2global(), info.local2global());
@@ -581,7 +581,7 @@ TEST_F(OpcStoreTest, TheCoordinatesOfWholePatchesAreOneSharedFile) {
   ASSERT_NE(nw.stored, ne.stored);
   const Model read = readOpcModel(out);
   for (const auto& [key, info] : read.patches()) {
-    const fs::path file = out / "Patches" / info.folder / "Coordinates.aara";
+    const fs::path file = out / "Patches" / info.folder() / "Coordinates.aara";
     ASSERT_EQ(info.coordinatesFile(), "Coordinates.aara");
     const bool whole = info.stored == GridRect{0, 0, kSize, kSize};
     EXPECT_EQ(fs::equivalent(file, shared), whole) << key.toString();
@@ -605,7 +605,7 @@ TEST_F(OpcStoreTest, TheCoordinatesOfWholePatchesAreOneSharedFile) {
   // Another writer finds the shared file holding other bytes: it writes a new one and links NE to
   // it; the root keeps the old file, and rewriting NE left it alone.
   const fs::path rootFile =
-      out / "Patches" / model.at(PatchKey::root()).folder / "Coordinates.aara";
+      out / "Patches" / model.at(PatchKey::root()).folder() / "Coordinates.aara";
   const std::string before = readText(rootFile);
   const fs::path damaged = out / "damaged";
   writeText(damaged, "not coordinates");
@@ -618,8 +618,8 @@ TEST_F(OpcStoreTest, TheCoordinatesOfWholePatchesAreOneSharedFile) {
   }
   EXPECT_EQ(readText(rootFile), before);
   EXPECT_FALSE(fs::equivalent(rootFile, shared));
-  EXPECT_EQ(readText(out / "Patches" / ne.folder / "Coordinates.aara"), before);
-  EXPECT_TRUE(fs::equivalent(out / "Patches" / ne.folder / "Coordinates.aara", shared));
+  EXPECT_EQ(readText(out / "Patches" / ne.folder() / "Coordinates.aara"), before);
+  EXPECT_TRUE(fs::equivalent(out / "Patches" / ne.folder() / "Coordinates.aara", shared));
 }
 
 TEST_F(OpcStoreTest, UndefinedBordersAreCroppedAndTheCropRecorded) {
@@ -755,8 +755,8 @@ TEST_F(OpcStoreTest, AForeignLayoutReadsCorrectly) {
   const Model read = readOpcModel(foreign);
   ASSERT_EQ(read.patchCount(), 4u);
   EXPECT_EQ(read.gridSize(), kSize);
-  EXPECT_EQ(read.at(PatchKey::root()).folder, "root");
-  EXPECT_EQ(read.at({1, 1, 0}).folder, "b");
+  EXPECT_EQ(read.at(PatchKey::root()).folder(), "root");
+  EXPECT_EQ(read.at({1, 1, 0}).folder(), "b");
   for (const auto& [key, info] : model_->patches()) {
     const PatchGrid grid = readPatchGrid(foreign, read, read.at(key));
     ASSERT_EQ(grid.size(), kSize);
@@ -860,7 +860,7 @@ TEST_F(OpcStoreTest, AFencingTokenRoundTripsAndItsAbsenceIsValid) {
 PatchInfo named(const PatchKey& key, std::string folder) {
   PatchInfo info;
   info.key = key;
-  info.folder = std::move(folder);
+  info.setFolder(std::move(folder));
   return info;
 }
 
@@ -897,7 +897,7 @@ TEST_F(OpcStoreTest, AHierarchyMadeThroughTheMemoOfTheLastIsTheOneMadeAnew) {
       const PatchKey key = keys[random() % keys.size()];
       switch (random() % 3) {
         case 0:  // a new folder, the parent as it was
-          model.edit(key).folder = key.toString() + "-r" + std::to_string(round);
+          model.edit(key).setFolder(key.toString() + "-r" + std::to_string(round));
           break;
         case 1:
           if (key.depth > 0 && model.at(key).isLeaf()) {
@@ -974,7 +974,7 @@ TEST_F(OpcStoreTest, ValidateReportsEachBreak) {
 TEST_F(OpcStoreTest, WritingRefusesFolderNamesThatLeaveTheDirectory) {
   OpcWriter writer(opc(), OpcWriter::Durability::EachFile);
   PatchInfo info = model_->at(PatchKey::root());
-  info.folder = "../escape";
+  info.setFolder("../escape");
   EXPECT_EQ(codeOf([&] { writer.writePatch(info, *info.grid, {}); }), ErrorCode::InvalidArgument);
   EXPECT_FALSE(fs::exists(dir_ / "escape"));
 }

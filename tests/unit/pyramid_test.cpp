@@ -153,7 +153,6 @@ TEST(Reduce, RejectsChildrenOfDifferentSizes) {
 PatchInfo infoFor(const PatchKey& key) {
   PatchInfo info;
   info.key = key;
-  info.folder = key.toString();
   return info;
 }
 
@@ -455,7 +454,7 @@ TEST(Model, HeapBytesCountEveryNodeAndEachSharedChunkOnce) {
   Model copy = model;
   EXPECT_LE(copy.heapBytes(counted), 64 * sizeof(void*));
   // A change copies one chunk (its nodes counted again: an upper estimate) and the node's name.
-  copy.edit({5, 3, 3}).folder = std::string(100, 'f');
+  copy.edit({5, 3, 3}).setFolder(std::string(100, 'f'));
   const std::size_t changed = copy.heapBytes(counted);
   EXPECT_GE(changed, sizeof(PatchInfo) + 100);
   EXPECT_LE(changed, whole / 4);
@@ -465,12 +464,14 @@ TEST(Model, HeapBytesCountEveryNodeAndEachSharedChunkOnce) {
 }
 
 // A model of 10^6 patches holds 1.4 million descriptions: each keeps Local2Global as its
-// translation and shares the usual file names, and gives back exactly what was set.
+// translation, its folder as its key and the usual file names as nothing at all, and gives back
+// exactly what was set.
 TEST(PatchInfo, KeepsWhatWasSetInLessRoom) {
-  EXPECT_LE(sizeof(PatchInfo), 256u);
+  EXPECT_LE(sizeof(PatchInfo), 200u);
   PatchInfo info;
   info.key = {10, 123, 456};
-  info.folder = info.key.toString();
+  EXPECT_EQ(info.folder(), "10_123_456");
+  EXPECT_FALSE(info.ownFolder());
   EXPECT_EQ(info.local2global(), Mat4d::identity());
   EXPECT_EQ(info.files(), PatchFiles{});
   EXPECT_EQ(info.ownHeapBytes(), 0u);
@@ -505,6 +506,22 @@ TEST(PatchInfo, KeepsWhatWasSetInLessRoom) {
   EXPECT_EQ(copy.files(), textured);
   info.setFiles({});
   EXPECT_EQ(info.ownHeapBytes(), 0u);
+
+  // An edit's draft folder (or a foreign name) is kept, beside a matrix; the key's own is not.
+  info.setFolder("10_123_456-v7-0badc0de");
+  EXPECT_EQ(info.folder(), "10_123_456-v7-0badc0de");
+  EXPECT_TRUE(info.ownFolder());
+  EXPECT_GT(info.ownHeapBytes(), 0u);
+  info.setLocal2Global(general);
+  copy = info;
+  info.setFolder("10_123_456");
+  EXPECT_FALSE(info.ownFolder());
+  EXPECT_EQ(info.folder(), "10_123_456");
+  EXPECT_EQ(info.local2global(), general);
+  EXPECT_EQ(copy.folder(), "10_123_456-v7-0badc0de");
+  info.setLocal2Global(shift);
+  EXPECT_EQ(info.ownHeapBytes(), 0u);
+  EXPECT_EQ(copy.local2global(), general);
 }
 
 TEST(Model, ACopySharesEveryChunkItsChangeDidNotTouch) {

@@ -70,7 +70,6 @@ std::unique_ptr<Scene> makeScene(int size, double side,
   for (const PatchKey& key : keys) {  // parents first
     PatchInfo info;
     info.key = key;
-    info.folder = key.toString();
     scene->model.insert(info);
   }
   for (auto it = keys.rbegin(); it != keys.rend(); ++it) {  // children first

@@ -91,7 +91,6 @@ inline void writeModel(const fs::path& dir) {
   core::OpcWriter writer(dir, core::OpcWriter::Durability::EachFile);
   for (const auto& [key, patch] : model.patches()) {
     core::PatchInfo& mutableInfo = model.edit(key);
-    mutableInfo.folder = key.toString();
     writer.writePatch(mutableInfo, *patch.grid, model.childrenBox(key));
   }
   writer.writeHierarchy(model);

@@ -101,7 +101,6 @@ void writeModel(const fs::path& dir, bool textured = false, int leafDepth = 2) {
   // Deepest first, so each overview's tile comes from its children's.
   for (const auto& [key, unused] : model.patches().reversed()) {
     PatchInfo& info = model.edit(key);
-    info.folder = key.toString();
     if (textured) {
       if (key.depth == leafDepth) {
         const auto c = leafColour(key.x, key.y);
@@ -212,7 +211,7 @@ TEST_F(StoreTest, ReadersSeeTheOldVersionUntilPublishAndTheNewOneAfter) {
   EXPECT_NEAR(root->global(5, 9).z, leafData->global(4, 4).z, 1e-3);
   // A reader that took its snapshot before the publish still reads the old data...
   EXPECT_DOUBLE_EQ(leafZ(*live, *before, leaf), oldZ);
-  const std::string oldFolder = before->model->at(leaf).folder;
+  const std::string oldFolder = before->model->at(leaf).folder();
   EXPECT_TRUE(fs::exists(dir_ / "Patches" / oldFolder));
 }
 
@@ -246,7 +245,7 @@ std::set<std::string> folders(const fs::path& dir) {
 std::set<std::string> foldersOf(const Model& model) {
   std::set<std::string> names;
   for (const auto& [key, info] : model.patches()) {
-    names.insert(info.folder);
+    names.insert(info.folder());
   }
   return names;
 }
@@ -322,9 +321,9 @@ TEST_F(StoreTest, ADroppedRevisionsFoldersComeFromItsSuccessorsRecordOrFromBothT
     retired.emplace(entry.key, entry.folder);
   }
   const std::map<PatchKey, std::string> replaced = {
-      {PatchKey::root(), imported->model->at(PatchKey::root()).folder},
-      {PatchKey{1, 0, 1}, imported->model->at({1, 0, 1}).folder},
-      {PatchKey{2, 1, 2}, imported->model->at({2, 1, 2}).folder}};
+      {PatchKey::root(), imported->model->at(PatchKey::root()).folder()},
+      {PatchKey{1, 0, 1}, imported->model->at({1, 0, 1}).folder()},
+      {PatchKey{2, 1, 2}, imported->model->at({2, 1, 2}).folder()}};
   EXPECT_EQ(retired, replaced);
   imported.reset();  // a held snapshot keeps its revision's folders
 
@@ -476,7 +475,7 @@ TEST_F(StoreTest, AReaderPinnedOnADroppedRevisionReadsItUntilItLetsGo) {
   auto live = LiveModel::open(dir_, "m", cache);
   auto pinned = live->snapshot();  // the import's revision
   const std::uint64_t v = pinned->version;
-  const std::string folder = pinned->model->at({2, 0, 0}).folder;
+  const std::string folder = pinned->model->at({2, 0, 0}).folder();
   const double z = leafZ(*live, *pinned, {2, 1, 1});
   publishLeaf(*live, {2, 0, 0}, 5.0, 2);
   publishLeaf(*live, {2, 0, 0}, 6.0, 2);  // drops revision 1 while it is read
@@ -650,8 +649,8 @@ TEST_F(StoreTest, RemovingLeftoversKeepsFoldersNamedLikeAnotherPatchsKey) {
   fs::rename(patches / "swap", patches / "2_1_0");
   PatchCache cache(64 << 20);
   auto live = LiveModel::open(dir_, "m", cache);
-  ASSERT_EQ(live->snapshot()->model->at({2, 0, 0}).folder, "2_1_0");
-  ASSERT_EQ(live->snapshot()->model->at({2, 1, 0}).folder, "2_0_0");
+  ASSERT_EQ(live->snapshot()->model->at({2, 0, 0}).folder(), "2_1_0");
+  ASSERT_EQ(live->snapshot()->model->at({2, 1, 0}).folder(), "2_0_0");
   const std::set<std::string> named = folders(dir_);
   fs::create_directory(patches / "2_3_3-v9");
   live->removeLeftovers();
@@ -793,8 +792,8 @@ TEST_F(StoreTest, APatchWrittenEarlyIsOnDiskBeforePublishAndPublishedUnchanged) 
   const PatchKey early{2, 1, 1}, late{2, 2, 1};
   edit->setPositions(early, leafGrid(1, 1, 4.0));
   edit->setPositions(late, leafGrid(2, 1, 5.0));
-  const fs::path earlyFile = dir_ / "Patches" / edit->model().at(early).folder / "Positions.aara";
-  const fs::path lateFile = dir_ / "Patches" / edit->model().at(late).folder / "Positions.aara";
+  const fs::path earlyFile = dir_ / "Patches" / edit->model().at(early).folder() / "Positions.aara";
+  const fs::path lateFile = dir_ / "Patches" / edit->model().at(late).folder() / "Positions.aara";
   EXPECT_FALSE(fs::exists(earlyFile));
   edit->writeEarly(early);
   EXPECT_TRUE(fs::exists(earlyFile));
@@ -887,7 +886,7 @@ TEST_F(StoreTest, ARevisionReadThroughAnOlderOpeningStaysUntilItsReaderLetsGo) {
   PatchCache cache(64 << 20);
   std::shared_ptr<LiveModel> old = LiveModel::open(dir_, "m", cache);
   auto pinned = old->snapshot();
-  const std::string folder = pinned->model->at({2, 0, 0}).folder;
+  const std::string folder = pinned->model->at({2, 0, 0}).folder();
   std::shared_ptr<LiveModel> fresh = old->reopen();
   publishLeaf(*fresh, {2, 0, 0}, 5.0, 2);
   publishLeaf(*fresh, {2, 0, 0}, 6.0, 2);  // drops the revision `pinned` reads
@@ -943,7 +942,7 @@ TEST_F(StoreTest, AVersionPublishedAgainAfterALostPublishHasOtherFoldersAndNonce
     auto live = LiveModel::open(dir_, "m", cache);
     publishLeaf(*live, {2, 0, 0}, 5.0, 8);
     lostVersion = live->snapshot()->version;
-    lostFolder = live->snapshot()->model->at({2, 0, 0}).folder;
+    lostFolder = live->snapshot()->model->at({2, 0, 0}).folder();
     lostNonce = live->snapshot()->revision.nonce;
   }
   // The power cut: the rename of the hierarchy never reached the disk.
@@ -952,7 +951,7 @@ TEST_F(StoreTest, AVersionPublishedAgainAfterALostPublishHasOtherFoldersAndNonce
   publishLeaf(*live, {2, 0, 0}, 7.0, 8);
   const auto now = live->snapshot();
   EXPECT_EQ(now->version, lostVersion);
-  EXPECT_NE(now->model->at({2, 0, 0}).folder, lostFolder);
+  EXPECT_NE(now->model->at({2, 0, 0}).folder(), lostFolder);
   EXPECT_EQ(now->revision.nonce.size(), 8u);
   EXPECT_NE(now->revision.nonce, lostNonce);
   EXPECT_EQ(readRevisionRecord(hierarchy)->nonce, now->revision.nonce) << "recorded on disk";
@@ -1073,8 +1072,8 @@ std::set<std::string> tileFiles(const fs::path& dir) {
 std::set<std::string> namedTiles(const Model& model) {
   std::set<std::string> names;
   for (const auto& [key, info] : model.patches()) {
-    EXPECT_EQ(info.textureFile(), "Diffuse\\" + info.folder + ".tif") << key.toString();
-    names.insert(info.folder + ".tif");
+    EXPECT_EQ(info.textureFile(), "Diffuse\\" + info.folder() + ".tif") << key.toString();
+    names.insert(info.folder() + ".tif");
   }
   return names;
 }
@@ -1212,7 +1211,7 @@ TEST_F(TexturedStoreTest, EditRemovingATextureLeavesNoTileOfIt) {
   for (const auto* model : {published.get(), third.get()}) {
     for (const auto& [key, info] : model->patches()) {
       if (!info.textureFile().empty()) {
-        named.erase(info.folder + ".tif");
+        named.erase(info.folder() + ".tif");
       }
     }
   }
@@ -1260,7 +1259,7 @@ void expectSameModel(const OpcRevision& a, const OpcRevision& b) {
   for (const auto& [key, x] : a.model.patches()) {
     const PatchInfo* y = b.model.find(key);
     ASSERT_NE(y, nullptr) << key.toString();
-    EXPECT_EQ(x.folder, y->folder) << key.toString();
+    EXPECT_EQ(x.folder(), y->folder()) << key.toString();
     EXPECT_EQ(x.childMask, y->childMask) << key.toString();
     EXPECT_EQ(x.globalBox, y->globalBox) << key.toString();
     EXPECT_EQ(x.localBox, y->localBox) << key.toString();
@@ -1579,7 +1578,6 @@ TEST(OpcIndex, ADeltaOverItsBaseDecodesToTheModelItDescribes) {
     for (std::uint32_t y = 0; y < (1u << depth); ++y) {
       for (std::uint32_t x = 0; x < (1u << depth); ++x) {
         PatchInfo info = infoFor({depth, x, y});
-        info.folder = info.key.toString();
         info.resolution = 1.0 + depth;
         info.version = 1;
         base.insert(std::move(info));
@@ -1587,12 +1585,12 @@ TEST(OpcIndex, ADeltaOverItsBaseDecodesToTheModelItDescribes) {
     }
   }
   Model now = base;
-  now.edit({2, 1, 1}).folder = "2_1_1-v2-00000001";
+  now.edit({2, 1, 1}).setFolder("2_1_1-v2-00000001");
   now.edit({2, 1, 1}).version = 2;
   now.edit({1, 0, 0}).resolution = 0.25;
   now.eraseLeaf({2, 3, 3});
   PatchInfo added = infoFor({3, 0, 0});
-  added.folder = "3_0_0-v2-00000001";
+  added.setFolder("3_0_0-v2-00000001");
   added.version = 2;
   now.insert(std::move(added));
   const HierarchyStamp baseStamp{1, 10, 100, 1000};
@@ -1628,7 +1626,7 @@ TEST(OpcIndex, ADeltaOverItsBaseDecodesToTheModelItDescribes) {
 TEST(OpcIndex, TheHeadAloneHoldsTheRecordAndRetiredFoldersUnderItsOwnChecksum) {
   Model model(kSize);
   model.insert(infoFor(PatchKey::root()));
-  model.edit(PatchKey::root()).folder = "0_0_0-v2";
+  model.edit(PatchKey::root()).setFolder("0_0_0-v2");
   RevisionRecord record;
   record.parent = 6;
   record.time = "2026-12-06T04:00:00Z";
@@ -1687,7 +1685,7 @@ TEST(OpcIndex, RoundTripsAHundredThousandPatchesExactly) {
         PatchInfo info;
         info.key = {depth, x, y};
         const double u = x * 1.25 + depth, w = y * 0.75 - depth;
-        info.folder = (x + y) % 7 == 0 ? "foreign-" + info.key.toString() : info.key.toString();
+        info.setFolder((x + y) % 7 == 0 ? "foreign-" + info.key.toString() : info.key.toString());
         info.globalBox.extend(Vec3d{u, w, 0.1 * depth});
         info.globalBox.extend(Vec3d{u + 1.0 / 3, w + 2.0 / 3, 1e6 + x});
         info.localBox.extend(Vec3d{-u / 7, -w / 9, -1});
@@ -1703,7 +1701,7 @@ TEST(OpcIndex, RoundTripsAHundredThousandPatchesExactly) {
         PatchFiles files;
         if ((x + 2 * y) % 11 == 0) {
           files.coordinates = "Coordinates.aara";
-          files.texture = textureEntryFor(info.folder);
+          files.texture = textureEntryFor(info.folder());
         }
         if (x == 5) {
           files.positions = "positions.AARA";
