@@ -431,10 +431,15 @@ bool decodePatch(Decoder& in, PatchInfo& info) {
   }
   info.resolution = in.get<double>();
   info.version = in.get<std::uint64_t>();
-  info.stored.x0 = in.get<std::int32_t>();
-  info.stored.y0 = in.get<std::int32_t>();
-  info.stored.x1 = in.get<std::int32_t>();
-  info.stored.y1 = in.get<std::int32_t>();
+  GridRect stored;
+  stored.x0 = in.get<std::int32_t>();
+  stored.y0 = in.get<std::int32_t>();
+  stored.x1 = in.get<std::int32_t>();
+  stored.y1 = in.get<std::int32_t>();
+  if (!PackedRect::fits(stored)) {
+    return false;
+  }
+  info.stored = stored;
   PatchFiles files;
   files.positions = in.getString();
   if (files.positions.empty()) {

@@ -493,15 +493,16 @@ OpcContents readOpc(const fs::path& dir, std::string_view hierarchyName) {
         corrupt(file, "positions must be a 2-D grid");
       }
       const auto [x0, y0] = patch.offset.value_or(std::pair{0, 0});
-      info.stored = {x0, y0, x0 + header.sizes[0], y0 + header.sizes[1]};
-      if (info.stored.x1 > *gridSize || info.stored.y1 > *gridSize || info.stored.empty()) {
+      const GridRect stored{x0, y0, x0 + header.sizes[0], y0 + header.sizes[1]};
+      if (stored.x1 > *gridSize || stored.y1 > *gridSize || stored.empty()) {
         corrupt(file, "positions of " + std::to_string(header.sizes[0]) + " x " +
                           std::to_string(header.sizes[1]) + " at offset " + std::to_string(x0) +
                           ", " + std::to_string(y0) + " do not fit a " + std::to_string(*gridSize) +
                           " grid");
       }
+      info.stored = stored;
     } else {
-      info.stored = {0, 0, *gridSize, *gridSize};
+      info.stored = GridRect{0, 0, *gridSize, *gridSize};
     }
     if (patch.details.boxesFromData) {
       const PatchGrid grid = readPatchGrid(dir, contents.model, info);

@@ -11,16 +11,32 @@
 
 namespace vsm::core {
 
+PackedRect::PackedRect(const GridRect& rect) {
+  if (!fits(rect)) {
+    throw Error(ErrorCode::InvalidArgument, "a stored rectangle outside 0..65535");
+  }
+  x0 = static_cast<std::uint16_t>(rect.x0);
+  y0 = static_cast<std::uint16_t>(rect.y0);
+  x1 = static_cast<std::uint16_t>(rect.x1);
+  y1 = static_cast<std::uint16_t>(rect.y1);
+}
+
+bool PackedRect::fits(const GridRect& rect) {
+  constexpr int kMax = 65535;
+  return std::min({rect.x0, rect.y0, rect.x1, rect.y1}) >= 0 &&
+         std::max({rect.x0, rect.y0, rect.x1, rect.y1}) <= kMax;
+}
+
 const PatchFiles PatchInfo::kUntexturedFiles;
 
 template <typename Change>
 void PatchInfo::changeExtras(Change change) {
-  Extras extras = extras_ ? *extras_ : Extras{};
+  Extras extras = extras_ ? static_cast<const Extras&>(*extras_) : Extras{};
   change(extras);
   if (extras.folder.empty() && !extras.matrix && !extras.files) {
     extras_.reset();
   } else {
-    extras_ = std::make_shared<const Extras>(std::move(extras));
+    extras_.reset(new CountedExtras(std::move(extras)));
   }
 }
 
@@ -78,8 +94,8 @@ std::size_t PatchInfo::ownHeapBytes() const {
   if (!extras_) {
     return 0;
   }
-  std::size_t bytes =
-      sharedBlock<Extras> + heapOf(extras_->folder) + (extras_->matrix ? sharedBlock<Mat4d> : 0);
+  std::size_t bytes = sizeof(CountedExtras) + 16 + heapOf(extras_->folder) +
+                      (extras_->matrix ? sharedBlock<Mat4d> : 0);
   if (const auto& files = extras_->files) {
     bytes += sharedBlock<PatchFiles> + heapOf(files->positions) + heapOf(files->coordinates) +
              heapOf(files->texture);
@@ -248,6 +264,7 @@ void Model::eraseLeaf(const PatchKey& key) {
   Chunk& chunk = writableChunk(place.chunk);
   chunk.erase(chunk.begin() + static_cast<std::ptrdiff_t>(place.index));
   --size_;
+  grids_.erase(key);
   // An emptied chunk goes; one left small joins its successor when the two fit in one chunk, so
   // erasing leaves no trail of tiny chunks.
   if (chunk.empty()) {
@@ -348,10 +365,19 @@ void Model::describe(const PatchKey& key, const PatchGrid& grid) {
 
 void Model::setGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) {
   describe(key, *grid);
-  PatchInfo& info = edit(key);
-  info.grid = std::move(grid);
-  ++info.version;
+  ++edit(key).version;
+  attachGrid(key, std::move(grid));
   markChanged(key);
+}
+
+void Model::attachGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid) {
+  at(key);  // throws for a key not in the model
+  grids_[key] = std::move(grid);
+}
+
+std::shared_ptr<const PatchGrid> Model::grid(const PatchKey& key) const {
+  const auto it = grids_.find(key);
+  return it != grids_.end() ? it->second : nullptr;
 }
 
 void Model::markChanged(const PatchKey& key) {
@@ -376,7 +402,8 @@ void Model::refreshStale(const GridLoader& load) {
     std::array<const PatchGrid*, 4> children{};
     for (const Quadrant q : kQuadrants) {
       if (const PatchInfo* child = find(key.child(q))) {
-        held[static_cast<int>(q)] = child->grid ? child->grid : load(*child);
+        std::shared_ptr<const PatchGrid> attached = grid(child->key);
+        held[static_cast<int>(q)] = attached ? std::move(attached) : load(*child);
         children[static_cast<int>(q)] = held[static_cast<int>(q)].get();
       }
     }

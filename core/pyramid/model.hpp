@@ -5,11 +5,15 @@
 #include <cstdint>
 #include <functional>
 #include <iterator>
+#include <map>
 #include <memory>
 #include <string>
 #include <unordered_set>
 #include <utility>
 #include <vector>
+
+#include <boost/smart_ptr/intrusive_ptr.hpp>
+#include <boost/smart_ptr/intrusive_ref_counter.hpp>
 
 #include "core/grid/patch_grid.hpp"
 #include "core/pyramid/patch_key.hpp"
@@ -32,16 +36,34 @@ struct PatchFiles {
   friend bool operator==(const PatchFiles&, const PatchFiles&) = default;
 };
 
+/// A GridRect in 8 bytes (a grid has at most 2^15 + 1 vertices a side): PatchInfo::stored.
+struct PackedRect {
+  std::uint16_t x0 = 0, y0 = 0, x1 = 0, y1 = 0;
+
+  PackedRect() = default;
+  /// Both throw Error(InvalidArgument) unless every coordinate fits (fits()).
+  explicit PackedRect(const GridRect& rect);
+  PackedRect& operator=(const GridRect& rect) { return *this = PackedRect(rect); }
+  operator GridRect() const { return {x0, y0, x1, y1}; }
+  static bool fits(const GridRect& rect);
+
+  bool empty() const { return x0 >= x1 || y0 >= y1; }
+  int width() const { return x1 - x0; }
+  int height() const { return y1 - y0; }
+  friend bool operator==(const PackedRect&, const PackedRect&) = default;
+};
+
 /// Everything known about a patch without its vertex data: always resident, so kept small (a
-/// model of 10^6 patches holds 1.4 million). What vsm's own patches have in common is not stored:
-/// the folder named after the key, Local2Global a translation, the untextured file names; the
-/// rest (an edit's draft folder, a foreign OPC's names and matrices) is held behind one pointer.
+/// model of 10^6 patches holds 1.4 million, 168 bytes each). What vsm's own patches have in common
+/// is not stored: the folder named after the key, Local2Global a translation, the untextured file
+/// names; the rest (an edit's draft folder, a foreign OPC's names and matrices) is held behind one
+/// pointer. Vertex data is held apart (Model::grid, the cache).
 struct PatchInfo {
   PatchKey key;
   /// Bit q is set when the child in Quadrant q exists.
   std::uint8_t childMask = 0;
   /// States (thesis 3.4): changed and not yet written / an overview whose descendants changed, to
-  /// be recomputed before use (and `grid`: the vertex data is in memory).
+  /// be recomputed before use (and Model::grid: the vertex data is in memory).
   bool dirty = false;
   bool stale = false;
   Box3d globalBox;
@@ -51,8 +73,7 @@ struct PatchInfo {
   /// Increases whenever the patch's data changes.
   std::uint64_t version = 1;
   /// The part of the full grid stored on disk (undefined border rows/columns are cropped).
-  GridRect stored;
-  std::shared_ptr<const PatchGrid> grid;
+  PackedRect stored;
 
   /// Directory name under Patches/: key.toString() unless set otherwise (an edit's draft folder,
   /// a foreign OPC's own names).
@@ -75,7 +96,6 @@ struct PatchInfo {
   const std::string& textureFile() const { return files().texture; }
   void setFiles(PatchFiles files);
 
-  bool resident() const { return grid != nullptr; }
   bool isLeaf() const { return childMask == 0; }
   bool hasChild(Quadrant q) const { return (childMask >> static_cast<int>(q)) & 1; }
 
@@ -90,6 +110,10 @@ struct PatchInfo {
     std::shared_ptr<const Mat4d> matrix;      ///< null: Local2Global is translation_ alone
     std::shared_ptr<const PatchFiles> files;  ///< null: kUntexturedFiles
   };
+  /// Extras counted in themselves: a pointer of 8 bytes rather than a shared_ptr's 16.
+  struct CountedExtras : boost::intrusive_ref_counter<CountedExtras>, Extras {
+    explicit CountedExtras(Extras extras) : Extras(std::move(extras)) {}
+  };
   static const PatchFiles kUntexturedFiles;
   /// extras_ replaced by a copy that `change` changed, or by null when nothing is left in it.
   template <typename Change>
@@ -97,7 +121,7 @@ struct PatchInfo {
 
   Vec3d translation_;
   /// Null for a patch of vsm's own.
-  std::shared_ptr<const Extras> extras_;
+  boost::intrusive_ptr<const CountedExtras> extras_;
 };
 
 /// Per-depth summary of a model.
@@ -179,11 +203,17 @@ class Model {
   /// Records new vertex data for a patch: attaches it, updates box, resolution and version, marks
   /// the patch dirty and every ancestor stale.
   void setGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid);
+  /// Attaches vertex data to a patch and changes nothing else (its own data, read from its files).
+  /// Throws as at().
+  void attachGrid(const PatchKey& key, std::shared_ptr<const PatchGrid> grid);
+  /// The vertex data attached to `key`; null when none is (a model read from an OPC holds
+  /// none: its data is in the files and the cache).
+  std::shared_ptr<const PatchGrid> grid(const PatchKey& key) const;
   /// Marks `key` dirty and every ancestor stale.
   void markChanged(const PatchKey& key);
 
   /// Recomputes every stale overview bottom-up by reduction. `load` returns a patch's vertex data
-  /// when it is not resident.
+  /// when none is attached (grid()).
   using GridLoader = std::function<std::shared_ptr<const PatchGrid>(const PatchInfo&)>;
   void refreshStale(const GridLoader& load);
 
@@ -234,6 +264,8 @@ class Model {
 
   int gridSize_;
   std::size_t size_ = 0;
+  /// What setGrid attached, by key (empty but for models built in memory: tests, tools).
+  std::map<PatchKey, std::shared_ptr<const PatchGrid>> grids_;
   /// The patches in key order, in chunks shared by the copies of a model until one of them changes
   /// a chunk (copy on write, edit()). A copy of a model of 10^6 patches copies 5,500 chunk
   /// pointers; a version a store keeps holds the chunks its change touched, and modelChange skips

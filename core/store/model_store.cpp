@@ -36,11 +36,8 @@ void LiveModel::Store::add(const PatchInfo& info) {
 }
 
 void LiveModel::Store::addLocked(const PatchInfo& info) {
-  // A copy (the model's patch lives in a chunk of hundreds), without vertex data: the cache holds
-  // that, within its budget; never the store.
-  auto copy = std::make_shared<PatchInfo>(info);
-  copy->grid.reset();
-  others_.insert_or_assign(std::pair{info.key, info.version}, std::move(copy));
+  // A copy: the model's patch lives in a chunk of hundreds.
+  others_.insert_or_assign(std::pair{info.key, info.version}, std::make_shared<PatchInfo>(info));
 }
 
 void LiveModel::Store::forget(const PatchKey& key, std::uint64_t version) {

@@ -70,7 +70,7 @@ void writeLayout(const fs::path& dir, const LeafOf& leaf) {
   OpcWriter writer(dir, OpcWriter::Durability::EachFile);
   for (const auto& [key, unused] : model.patches().reversed()) {
     PatchInfo& info = model.edit(key);
-    writer.writePatch(info, *info.grid, model.childrenBox(key));
+    writer.writePatch(info, *model.grid(key), model.childrenBox(key));
   }
   writer.writeHierarchy(model);
 }

@@ -733,7 +733,7 @@ TEST(PyramidBuilder, TheReturnedModelIsTheOneOnDisk) {
     EXPECT_EQ(other->local2global(), info.local2global()) << key.toString();
     EXPECT_TRUE(other->globalBox.contains(info.globalBox, 1e-3)) << key.toString();
     EXPECT_TRUE(info.globalBox.contains(other->globalBox, 1e-3)) << key.toString();
-    EXPECT_FALSE(info.resident());
+    EXPECT_EQ(built.grid(key), nullptr);
     EXPECT_FALSE(info.dirty);
     EXPECT_FALSE(info.stale);
   }

@@ -115,7 +115,7 @@ class ModelAccess final : public MergeTarget {
   explicit ModelAccess(Model& model) : model_(model) {}
   const Model& model() const override { return model_; }
   std::shared_ptr<const PatchGrid> positions(const PatchKey& key) override {
-    return model_.at(key).grid;
+    return model_.grid(key);
   }
   std::shared_ptr<const TextureTile> texture(const PatchKey&) override { return nullptr; }
   void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid,
@@ -470,7 +470,7 @@ TEST(Merge, PlacesDetailWithinTheBoundAndKeepsTheModelConsistent) {
   SyntheticMerge data;
   std::map<PatchKey, std::shared_ptr<const PatchGrid>> before;
   for (const auto& [key, info] : data.a->patches()) {
-    before[key] = info.grid;
+    before[key] = data.a->grid(key);
   }
   ModelAccess target(*data.a), detail(*data.b);
   const MergeResult result = mergeModels(target, detail);
@@ -492,7 +492,7 @@ TEST(Merge, PlacesDetailWithinTheBoundAndKeepsTheModelConsistent) {
     if (key.depth != 5) {
       continue;
     }
-    const PatchGrid& g = *info.grid;
+    const PatchGrid& g = *data.a->grid(key);
     for (int y = 0; y < g.size(); ++y) {
       for (int x = 0; x < g.size(); ++x) {
         if (!g.defined(x, y)) {
@@ -517,10 +517,10 @@ TEST(Merge, PlacesDetailWithinTheBoundAndKeepsTheModelConsistent) {
     std::array<const PatchGrid*, 4> children{};
     for (const Quadrant q : kQuadrants) {
       if (const PatchInfo* c = data.a->find(key.child(q))) {
-        children[static_cast<int>(q)] = c->grid.get();
+        children[static_cast<int>(q)] = data.a->grid(c->key).get();
       }
     }
-    EXPECT_TRUE(reduce(children) == *info.grid) << key.toString();
+    EXPECT_TRUE(reduce(children) == *data.a->grid(key)) << key.toString();
   }
 
   // Neighbouring new bottom patches are watertight (up to float32 rounding of their origins).
@@ -533,9 +533,11 @@ TEST(Merge, PlacesDetailWithinTheBoundAndKeepsTheModelConsistent) {
       continue;
     }
     for (int y = 0; y < 17; ++y) {
-      ASSERT_EQ(info.grid->defined(16, y), right->grid->defined(0, y));
-      if (info.grid->defined(16, y)) {
-        EXPECT_LE((info.grid->global(16, y) - right->grid->global(0, y)).norm(), 1e-4);
+      ASSERT_EQ(data.a->grid(key)->defined(16, y), data.a->grid(right->key)->defined(0, y));
+      if (data.a->grid(key)->defined(16, y)) {
+        EXPECT_LE(
+            (data.a->grid(key)->global(16, y) - data.a->grid(right->key)->global(0, y)).norm(),
+            1e-4);
       }
     }
   }
@@ -544,7 +546,7 @@ TEST(Merge, PlacesDetailWithinTheBoundAndKeepsTheModelConsistent) {
   // back to it. Refinement is adaptive: some new patches stay leaves above the bottom level.
   std::size_t kept = 0;
   for (const auto& [leaf, k] : result.levels) {
-    const PatchGrid& now = *data.a->at(leaf).grid;
+    const PatchGrid& now = *data.a->grid(leaf);
     const PatchGrid& old = *before.at(leaf);
     for (int y = 0; y < 17; ++y) {
       for (int x = 0; x < 17; ++x) {
@@ -571,10 +573,10 @@ TEST(Merge, PlacesDetailWithinTheBoundAndKeepsTheModelConsistent) {
       affected = affected || key.isAncestorOrSelfOf(leaf);
     }
     if (!affected) {
-      EXPECT_EQ(data.a->at(key).grid, grid) << key.toString();
+      EXPECT_EQ(data.a->grid(key), grid) << key.toString();
       ++untouched;
     } else {
-      EXPECT_NE(data.a->at(key).grid, grid) << key.toString();
+      EXPECT_NE(data.a->grid(key), grid) << key.toString();
     }
   }
   EXPECT_GT(untouched, 0u);
@@ -596,7 +598,7 @@ TEST(Merge, NewPatchesComputedInParallelGiveTheModelOneThreadGives) {
   for (const auto& [key, info] : serial.a->patches()) {
     const PatchInfo* other = parallel.a->find(key);
     ASSERT_NE(other, nullptr) << key.toString();
-    EXPECT_TRUE(*other->grid == *info.grid) << key.toString();
+    EXPECT_TRUE(*parallel.a->grid(other->key) == *serial.a->grid(key)) << key.toString();
   }
 }
 
@@ -612,7 +614,7 @@ TEST(Merge, MergingTheSameDetailAgainResamplesInPlace) {
   ASSERT_EQ(first.resampledLeaves, 0u);
   std::map<PatchKey, std::shared_ptr<const PatchGrid>> once;
   for (const auto& [key, info] : data.a->patches()) {
-    once[key] = info.grid;
+    once[key] = data.a->grid(key);
   }
 
   const MergeResult second = mergeModels(target, detail);
@@ -632,7 +634,7 @@ TEST(Merge, MergingTheSameDetailAgainResamplesInPlace) {
   for (const auto& [key, info] : data.a->patches()) {
     ASSERT_TRUE(once.count(key)) << key.toString();
     EXPECT_FALSE(info.stale) << key.toString();
-    const PatchGrid& now = *info.grid;
+    const PatchGrid& now = *data.a->grid(key);
     const PatchGrid& then = *once.at(key);
     for (int y = 0; y < now.size(); ++y) {
       for (int x = 0; x < now.size(); ++x) {
@@ -660,7 +662,7 @@ TEST(Merge, DetailOutsideTheTargetIsAnErrorAndChangesNothing) {
   data.b = latticeModel({5000, 9000, 1, 0.2}, 17, 1);
   std::map<PatchKey, std::pair<std::shared_ptr<const PatchGrid>, bool>> before;
   for (const auto& [key, info] : data.a->patches()) {
-    before[key] = {info.grid, info.stale};
+    before[key] = {data.a->grid(key), info.stale};
   }
   ModelAccess target(*data.a), detail(*data.b);
   try {
@@ -672,7 +674,7 @@ TEST(Merge, DetailOutsideTheTargetIsAnErrorAndChangesNothing) {
   }
   ASSERT_EQ(data.a->patchCount(), before.size());
   for (const auto& [key, info] : data.a->patches()) {
-    EXPECT_EQ(info.grid, before[key].first) << key.toString();
+    EXPECT_EQ(data.a->grid(key), before[key].first) << key.toString();
     EXPECT_EQ(info.stale, before[key].second) << key.toString();
   }
 }
@@ -728,10 +730,10 @@ TEST(Merge, AppliesTheTransformToEveryDetailVertex) {
       if (!info.isLeaf()) {
         continue;
       }
-      auto g = std::make_shared<PatchGrid>(17, info.grid->local2global());
+      auto g = std::make_shared<PatchGrid>(17, source->grid(key)->local2global());
       for (int y = 0; y < 17; ++y) {
         for (int x = 0; x < 17; ++x) {
-          g->setGlobal(x, y, info.grid->global(x, y) + Vec3d{7, 0, 3});
+          g->setGlobal(x, y, source->grid(key)->global(x, y) + Vec3d{7, 0, 3});
         }
       }
       displaced->setGrid(key, g);
@@ -750,8 +752,8 @@ TEST(Merge, AppliesTheTransformToEveryDetailVertex) {
     }
     for (int y = 0; y < 17; ++y) {
       for (int x = 0; x < 17; ++x) {
-        const Vec3d p = info.grid->global(x, y);
-        if (info.grid->defined(x, y) && data.insideB(p, 0.01)) {
+        const Vec3d p = data.a->grid(key)->global(x, y);
+        if (data.a->grid(key)->defined(x, y) && data.insideB(p, 0.01)) {
           EXPECT_NEAR(p.z, surfaceHeight(p.x, p.y), bound);
           ++checked;
         }
@@ -804,7 +806,7 @@ std::unique_ptr<Model> withLeaves(
   }
   for (const auto& [key, info] : model.patches()) {
     if (info.isLeaf()) {
-      out->setGrid(key, leaf(*info.grid));
+      out->setGrid(key, leaf(*model.grid(key)));
     }
   }
   out->refreshStale([](const PatchInfo&) { return std::shared_ptr<const PatchGrid>(); });
@@ -835,10 +837,10 @@ double worstRecoveryError(const Model& model, const Mat4d& displacement, const M
     if (!info.isLeaf()) {
       continue;
     }
-    const int size = info.grid->size();
+    const int size = model.grid(key)->size();
     for (int y = 0; y < size; ++y) {
       for (int x = 0; x < size; ++x) {
-        const Vec3d truth = info.grid->global(x, y);
+        const Vec3d truth = model.grid(key)->global(x, y);
         worst = std::max(worst, (recovered.apply(displacement.apply(truth)) - truth).norm());
       }
     }
@@ -929,7 +931,7 @@ void writeOpc(Model& model, const fs::path& dir) {
   OpcWriter writer(dir, OpcWriter::Durability::Deferred);
   for (const auto& [key, info] : model.patches()) {
     PatchInfo& mutableInfo = model.edit(key);
-    writer.writePatch(mutableInfo, *info.grid, model.childrenBox(key));
+    writer.writePatch(mutableInfo, *model.grid(key), model.childrenBox(key));
   }
   writer.writeHierarchy(model);
 }

@@ -487,7 +487,7 @@ void writeModel(Model& model, const fs::path& dir) {
   }
   for (auto it = keys.rbegin(); it != keys.rend(); ++it) {
     PatchInfo& info = model.edit(*it);
-    writer.writePatch(info, *info.grid, model.childrenBox(*it));
+    writer.writePatch(info, *model.grid(*it), model.childrenBox(*it));
   }
   writer.writeHierarchy(model);
 }
@@ -529,7 +529,7 @@ TEST_F(OpcStoreTest, WriteReadWriteGivesIdenticalFiles) {
   Model read = readOpcModel(opc());
   ASSERT_EQ(read.patchCount(), 4u);
   for (const auto& [key, info] : read.patches()) {
-    read.edit(key).grid = std::make_shared<const PatchGrid>(readPatchGrid(opc(), read, info));
+    read.attachGrid(key, std::make_shared<const PatchGrid>(readPatchGrid(opc(), read, info)));
   }
   writeModel(read, dir_ / "b");
   EXPECT_EQ(filesUnder(opc()), filesUnder(dir_ / "b"));
@@ -546,7 +546,7 @@ TEST_F(OpcStoreTest, ReadBackIsWhatWasWritten) {
     EXPECT_EQ(other.local2global(), info.local2global());
     EXPECT_EQ(other.stored, info.stored);
     EXPECT_DOUBLE_EQ(other.resolution, info.resolution);
-    EXPECT_EQ(readPatchGrid(opc(), read, other), *info.grid) << key.toString();
+    EXPECT_EQ(readPatchGrid(opc(), read, other), *model_->grid(key)) << key.toString();
   }
 }
 
@@ -567,7 +567,7 @@ TEST_F(OpcStoreTest, TheCoordinatesOfWholePatchesAreOneSharedFile) {
     for (auto it = keys.rbegin(); it != keys.rend(); ++it) {
       PatchInfo& info = model.edit(*it);
       writer.writeTexture(info, TextureTile(textureTileSize(kSize)));
-      writer.writePatch(info, *info.grid, model.childrenBox(*it));
+      writer.writePatch(info, *model.grid(*it), model.childrenBox(*it));
     }
     writer.writeHierarchy(model);
   };
@@ -614,7 +614,7 @@ TEST_F(OpcStoreTest, TheCoordinatesOfWholePatchesAreOneSharedFile) {
     OpcWriter writer(out, OpcWriter::Durability::Deferred);
     PatchInfo& info = model.edit(ne.key);
     writer.writeTexture(info, TextureTile(textureTileSize(kSize)));
-    writer.writePatch(info, *info.grid, model.childrenBox(ne.key));
+    writer.writePatch(info, *model.grid(ne.key), model.childrenBox(ne.key));
   }
   EXPECT_EQ(readText(rootFile), before);
   EXPECT_FALSE(fs::equivalent(rootFile, shared));
@@ -762,10 +762,10 @@ TEST_F(OpcStoreTest, AForeignLayoutReadsCorrectly) {
     ASSERT_EQ(grid.size(), kSize);
     for (int y = 0; y < kSize; ++y) {
       for (int x = 0; x < kSize; ++x) {
-        ASSERT_EQ(grid.defined(x, y), info.grid->defined(x, y)) << key.toString();
+        ASSERT_EQ(grid.defined(x, y), model_->grid(key)->defined(x, y)) << key.toString();
         if (grid.defined(x, y)) {
           const Vec3d a = grid.global(x, y);
-          const Vec3d b = info.grid->global(x, y);
+          const Vec3d b = model_->grid(key)->global(x, y);
           EXPECT_LT((a - b).norm(), 1e-3) << key.toString() << " " << x << "," << y;
         }
       }
@@ -975,7 +975,8 @@ TEST_F(OpcStoreTest, WritingRefusesFolderNamesThatLeaveTheDirectory) {
   OpcWriter writer(opc(), OpcWriter::Durability::EachFile);
   PatchInfo info = model_->at(PatchKey::root());
   info.setFolder("../escape");
-  EXPECT_EQ(codeOf([&] { writer.writePatch(info, *info.grid, {}); }), ErrorCode::InvalidArgument);
+  EXPECT_EQ(codeOf([&] { writer.writePatch(info, *model_->grid(PatchKey::root()), {}); }),
+            ErrorCode::InvalidArgument);
   EXPECT_FALSE(fs::exists(dir_ / "escape"));
 }
 

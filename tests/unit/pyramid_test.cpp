@@ -467,7 +467,7 @@ TEST(Model, HeapBytesCountEveryNodeAndEachSharedChunkOnce) {
 // translation, its folder as its key and the usual file names as nothing at all, and gives back
 // exactly what was set.
 TEST(PatchInfo, KeepsWhatWasSetInLessRoom) {
-  EXPECT_LE(sizeof(PatchInfo), 200u);
+  EXPECT_LE(sizeof(PatchInfo), 168u);
   PatchInfo info;
   info.key = {10, 123, 456};
   EXPECT_EQ(info.folder(), "10_123_456");
@@ -522,6 +522,14 @@ TEST(PatchInfo, KeepsWhatWasSetInLessRoom) {
   info.setLocal2Global(shift);
   EXPECT_EQ(info.ownHeapBytes(), 0u);
   EXPECT_EQ(copy.local2global(), general);
+
+  // The stored rectangle in 8 bytes: any grid's (up to 2^15 + 1 a side), nothing past 16 bits.
+  info.stored = GridRect{0, 1, 32769, 32768};
+  EXPECT_EQ(static_cast<GridRect>(info.stored), (GridRect{0, 1, 32769, 32768}));
+  EXPECT_EQ(info.stored.width(), 32769);
+  EXPECT_THROW(info.stored = GridRect({-1, 0, 5, 5}), Error);
+  EXPECT_THROW(info.stored = GridRect({0, 0, 65536, 5}), Error);
+  EXPECT_EQ(info.stored.x1, 32769);
 }
 
 TEST(Model, ACopySharesEveryChunkItsChangeDidNotTouch) {
@@ -580,15 +588,15 @@ TEST(Model, RefreshStaleRecomputesOverviewsBottomUpFromChangedChildren) {
   EXPECT_EQ(loads, 0);  // everything needed was resident
   const PatchInfo& mid = model.at({1, 0, 0});
   const PatchInfo& root = model.at(PatchKey::root());
-  ASSERT_TRUE(mid.resident());
-  ASSERT_TRUE(root.resident());
+  ASSERT_NE(model.grid({1, 0, 0}), nullptr);
+  ASSERT_NE(model.grid(PatchKey::root()), nullptr);
   EXPECT_FALSE(mid.stale);
   EXPECT_FALSE(root.stale);
   EXPECT_TRUE(root.dirty);
   // Mid (depth 1) keeps every second lattice sample of its 9x9 union; root every fourth.
-  EXPECT_NEAR(mid.grid->global(2, 2).z, surface(4, 4).z, 1e-4);
-  EXPECT_NEAR(root.grid->global(1, 1).z, surface(4, 4).z, 1e-4);
-  EXPECT_NEAR(root.grid->global(0, 0).z, surface(0, 0).z, 1e-4);
+  EXPECT_NEAR(model.grid({1, 0, 0})->global(2, 2).z, surface(4, 4).z, 1e-4);
+  EXPECT_NEAR(model.grid(PatchKey::root())->global(1, 1).z, surface(4, 4).z, 1e-4);
+  EXPECT_NEAR(model.grid(PatchKey::root())->global(0, 0).z, surface(0, 0).z, 1e-4);
   EXPECT_TRUE(root.globalBox.contains(mid.globalBox, 1e-3));
 }
 

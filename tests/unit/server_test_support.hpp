@@ -91,7 +91,7 @@ inline void writeModel(const fs::path& dir) {
   core::OpcWriter writer(dir, core::OpcWriter::Durability::EachFile);
   for (const auto& [key, patch] : model.patches()) {
     core::PatchInfo& mutableInfo = model.edit(key);
-    writer.writePatch(mutableInfo, *patch.grid, model.childrenBox(key));
+    writer.writePatch(mutableInfo, *model.grid(key), model.childrenBox(key));
   }
   writer.writeHierarchy(model);
 }

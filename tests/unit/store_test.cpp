@@ -115,7 +115,7 @@ void writeModel(const fs::path& dir, bool textured = false, int leafDepth = 2) {
       }
       writer.writeTexture(info, *tiles[key]);
     }
-    writer.writePatch(info, *info.grid, model.childrenBox(key));
+    writer.writePatch(info, *model.grid(key), model.childrenBox(key));
   }
   writer.writeHierarchy(model);
 }
@@ -1697,7 +1697,7 @@ TEST(OpcIndex, RoundTripsAHundredThousandPatchesExactly) {
         info.setLocal2Global(local2global);
         info.resolution = 1.0 / (1 + x + y);
         info.version = 1 + (x * 31 + y) % 5;
-        info.stored = {static_cast<int>(x % 2), 0, kSize, kSize - static_cast<int>(y % 3)};
+        info.stored = GridRect{static_cast<int>(x % 2), 0, kSize, kSize - static_cast<int>(y % 3)};
         PatchFiles files;
         if ((x + 2 * y) % 11 == 0) {
           files.coordinates = "Coordinates.aara";

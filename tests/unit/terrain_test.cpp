@@ -424,11 +424,14 @@ void expectSameLayer(const TerrainLayer& a, const TerrainLayer& b, const Model& 
   EXPECT_EQ(a.maxZoom, b.maxZoom);
 }
 
-/// A loader of `grids` (or the patch's own grid) that records the keys it loads into `read`.
-TerrainGridLoader countingLoader(const GeoPyramid::Grids& grids, std::vector<PatchKey>& read) {
-  return [&grids, &read](const PatchInfo& info) -> std::shared_ptr<const PatchGrid> {
+/// A loader of what `model` has attached, else of `grids`, that records the keys it loads into
+/// `read`.
+TerrainGridLoader countingLoader(const Model& model, const GeoPyramid::Grids& grids,
+                                 std::vector<PatchKey>& read) {
+  return [&model, &grids, &read](const PatchInfo& info) -> std::shared_ptr<const PatchGrid> {
     read.push_back(info.key);
-    return info.grid != nullptr ? info.grid : grids.at(info.key);
+    std::shared_ptr<const PatchGrid> attached = model.grid(info.key);
+    return attached ? attached : grids.at(info.key);
   };
 }
 
@@ -450,8 +453,10 @@ Model withWesternHalfCut(const GeoPyramid& before, const PatchKey& leaf) {
 TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLayer) {
   const GeoPyramid before;
   std::vector<PatchKey> read;
-  const auto loaderOf = [&](const GeoPyramid::Grids& grids) { return countingLoader(grids, read); };
-  const TerrainLayer first = buildTerrainLayer(before.model, loaderOf(before.grids));
+  const auto loaderOf = [&](const Model& model, const GeoPyramid::Grids& grids) {
+    return countingLoader(model, grids, read);
+  };
+  const TerrainLayer first = buildTerrainLayer(before.model, loaderOf(before.model, before.grids));
   ASSERT_TRUE(first.heightField) << first.reason;
   EXPECT_EQ(read.size(), 22u) << "every patch, and the root once more for the height field check";
 
@@ -461,13 +466,13 @@ TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLay
   const Model after = withWesternHalfCut(before, leaf);
   read.clear();
   const TerrainLayerBase base{before.model, first};
-  const TerrainLayer incremental = buildTerrainLayer(after, loaderOf(before.grids), &base);
+  const TerrainLayer incremental = buildTerrainLayer(after, loaderOf(after, before.grids), &base);
   std::sort(read.begin(), read.end());
   read.erase(std::unique(read.begin(), read.end()), read.end());
   EXPECT_EQ(read, (std::vector<PatchKey>{PatchKey::root(), {1, 0, 1}, leaf}))
       << "the changed leaf and its ancestors only";
   read.clear();
-  const TerrainLayer full = buildTerrainLayer(after, loaderOf(before.grids));
+  const TerrainLayer full = buildTerrainLayer(after, loaderOf(after, before.grids));
   EXPECT_EQ(read.size(), 22u);
   expectSameLayer(incremental, full, after);
   EXPECT_GT(full.footprint.find(leaf)->west, first.footprint.find(leaf)->west + kSpan / 4 / 3)
@@ -476,10 +481,12 @@ TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLay
   // A base of another model (same keys, versions and folders, other boxes) is not taken.
   const GeoPyramid other(1.0001);
   read.clear();
-  const TerrainLayer unrelated = buildTerrainLayer(other.model, loaderOf(other.grids), &base);
+  const TerrainLayer unrelated =
+      buildTerrainLayer(other.model, loaderOf(other.model, other.grids), &base);
   EXPECT_EQ(read.size(), 22u);
   read.clear();
-  expectSameLayer(unrelated, buildTerrainLayer(other.model, loaderOf(other.grids)), other.model);
+  expectSameLayer(unrelated, buildTerrainLayer(other.model, loaderOf(other.model, other.grids)),
+                  other.model);
 }
 
 // The first layer of a process at 10^6 patches read every patch (minutes): footprints saved by an
@@ -487,8 +494,10 @@ TEST(TerrainLayer, ANewVersionReadsOnlyItsChangedPatchesAndGivesTheFullBuildsLay
 TEST(TerrainLayer, SavedFootprintsStandForThePatchesTheyWereSavedForAndOnlyThose) {
   const GeoPyramid before;
   std::vector<PatchKey> read;
-  const auto loaderOf = [&](const GeoPyramid::Grids& grids) { return countingLoader(grids, read); };
-  const TerrainLayer first = buildTerrainLayer(before.model, loaderOf(before.grids));
+  const auto loaderOf = [&](const Model& model, const GeoPyramid::Grids& grids) {
+    return countingLoader(model, grids, read);
+  };
+  const TerrainLayer first = buildTerrainLayer(before.model, loaderOf(before.model, before.grids));
   ASSERT_TRUE(first.heightField) << first.reason;
   const std::vector<std::byte> bytes = SavedFootprints::encode(before.model, first);
   ASSERT_EQ(bytes.size(), 24 + 21 * SavedFootprints::kRecordBytes + 8) << "21 footprints";
@@ -498,7 +507,7 @@ TEST(TerrainLayer, SavedFootprintsStandForThePatchesTheyWereSavedForAndOnlyThose
   // The same version: no patch read but the root's height field check.
   read.clear();
   const TerrainLayer again =
-      buildTerrainLayer(before.model, loaderOf(before.grids), nullptr, &saved);
+      buildTerrainLayer(before.model, loaderOf(before.model, before.grids), nullptr, &saved);
   EXPECT_EQ(read, std::vector<PatchKey>{PatchKey::root()});
   expectSameLayer(again, first, before.model);
 
@@ -507,20 +516,22 @@ TEST(TerrainLayer, SavedFootprintsStandForThePatchesTheyWereSavedForAndOnlyThose
   const PatchKey leaf{2, 1, 2};
   const Model after = withWesternHalfCut(before, leaf);
   read.clear();
-  const TerrainLayer later = buildTerrainLayer(after, loaderOf(before.grids), nullptr, &saved);
+  const TerrainLayer later =
+      buildTerrainLayer(after, loaderOf(after, before.grids), nullptr, &saved);
   std::sort(read.begin(), read.end());
   read.erase(std::unique(read.begin(), read.end()), read.end());
   EXPECT_EQ(read, (std::vector<PatchKey>{PatchKey::root(), {1, 0, 1}, leaf}));
-  expectSameLayer(later, buildTerrainLayer(after, loaderOf(before.grids)), after);
+  expectSameLayer(later, buildTerrainLayer(after, loaderOf(after, before.grids)), after);
 
   // Another model with the same keys, versions and folders but other data (its boxes differ):
   // every patch is read.
   const GeoPyramid other(1.0001);
   read.clear();
   const TerrainLayer unrelated =
-      buildTerrainLayer(other.model, loaderOf(other.grids), nullptr, &saved);
+      buildTerrainLayer(other.model, loaderOf(other.model, other.grids), nullptr, &saved);
   EXPECT_EQ(read.size(), 22u);
-  expectSameLayer(unrelated, buildTerrainLayer(other.model, loaderOf(other.grids)), other.model);
+  expectSameLayer(unrelated, buildTerrainLayer(other.model, loaderOf(other.model, other.grids)),
+                  other.model);
 
   // Damage is refused, saying what is wrong: each byte flipped in turn, a cut, another grid size.
   for (std::size_t i = 0; i < bytes.size(); i += 7) {
@@ -547,7 +558,7 @@ TEST(TerrainLayer, ByTheChangeItFollowsNewFinerLevelsAndTheirRemovalAsTheFullBui
   const GeoPyramid before;
   std::map<PatchKey, std::shared_ptr<const PatchGrid>> grids = before.grids;
   const auto load = [&](const PatchInfo& info) -> std::shared_ptr<const PatchGrid> {
-    return info.grid != nullptr ? info.grid : grids.at(info.key);
+    return grids.at(info.key);
   };
   const TerrainLayer first = buildTerrainLayer(before.model, load);
   ASSERT_TRUE(first.heightField) << first.reason;
