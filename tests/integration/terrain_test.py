@@ -498,6 +498,37 @@ class Terrain(unittest.TestCase):
         self.assertEqual(files[1], files[0], "not saved again when nothing was read")
         self.assertEqual(files[2], files[0], "saved afresh after the damage: the same bytes")
 
+        # A save that fails (the disk full as the file is created): a warning, the layer served
+        # all the same, nothing left behind, and the model as it was.
+        os.remove(saved)
+        hierarchy = os.path.join(root, JACK, "Patches", "patchhierarchy.xml")
+        with open(hierarchy, "rb") as f:
+            before = f.read()
+        arm = os.path.join(ARGS.work, "footprints.arm")
+        report = os.path.join(ARGS.work, "footprints.faults")
+        for f in (arm, report):
+            if os.path.exists(f):
+                os.remove(f)
+        daemon = harness.Daemon("--token", TOKEN, root=root,
+                                env=harness.fault_env(ARGS.lib, root, arm=arm, report=report))
+        try:
+            with open(arm, "w") as f:
+                f.write("create ENOSPC")
+            status, _, body = daemon.request("GET", path)
+            self.assertEqual(status, 200, body[:300])
+            self.assertEqual(json.loads(body), layers[0])
+        finally:
+            code = daemon.stop()
+        self.assertEqual(code, 0, daemon.log()[-2000:])
+        with open(report) as f:
+            self.assertIn("vsm-terrain-footprints.bin", f.read(), "the fault hit the save")
+        self.assertIn("terrain footprints not saved", daemon.log())
+        leftovers = [n for n in os.listdir(os.path.join(root, JACK, "Patches"))
+                     if "vsm-terrain-footprints" in n]
+        self.assertEqual(leftovers, [])
+        with open(hierarchy, "rb") as f:
+            self.assertEqual(f.read(), before)
+
     def test_terrain(self):
         prism, jack = self.dems[PRISM], self.dems[JACK]
 
@@ -688,6 +719,7 @@ def main():
     parser.add_argument("--vsmd", required=True)
     parser.add_argument("--data", required=True)
     parser.add_argument("--work", required=True)
+    parser.add_argument("--lib", required=True, help="the fault library (tests/fault)")
     ARGS, rest = parser.parse_known_args()
     harness.configure(ARGS)
     unittest.main(argv=[sys.argv[0]] + rest, verbosity=2)
