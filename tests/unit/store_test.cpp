@@ -632,6 +632,46 @@ TEST_F(StoreTest, RemovingLeftoversRemovesFoldersNoKeptRevisionNamesAndKeepsTheO
   EXPECT_FALSE(fs::exists(dir_ / "Patches" / "2_0_0"));
 }
 
+// vsm's cache files beside the hierarchy (the saved terrain footprints): only plain "vsm-*.bin"
+// names, written by the writer alone, replaced whole, and read whole or not at all past the
+// caller's bound; a refusal changes nothing.
+TEST_F(StoreTest, CacheFilesArePlainVsmNamesTheWriterReplacesAndReadersReadWithinABound) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  live->removeLeftovers();
+  std::vector<std::byte> bytes(1000);
+  for (std::size_t i = 0; i < bytes.size(); ++i) {
+    bytes[i] = static_cast<std::byte>(i * 7);
+  }
+  const auto before = filesUnder(dir_);
+  EXPECT_FALSE(live->readCacheFile("vsm-test.bin", 1 << 20).has_value()) << "none yet";
+  for (const std::string name : {"patchhierarchy.xml", "../vsm-test.bin", "vsm-a/b.bin",
+                                 "vsm-a\\b.bin", "vsm-test.txt", "test.bin", "vsm-.bin", ""}) {
+    EXPECT_EQ(codeOf([&] { live->writeCacheFile(name, bytes); }), ErrorCode::InvalidArgument)
+        << name;
+    EXPECT_EQ(codeOf([&] { live->readCacheFile(name, 1 << 20); }), ErrorCode::InvalidArgument)
+        << name;
+  }
+  EXPECT_EQ(filesUnder(dir_), before);
+
+  live->writeCacheFile("vsm-test.bin", bytes);
+  EXPECT_EQ(live->readCacheFile("vsm-test.bin", bytes.size()), bytes);
+  EXPECT_FALSE(live->readCacheFile("vsm-test.bin", bytes.size() - 1).has_value()) << "the bound";
+  auto reader = LiveModel::open(dir_, "r", cache, LiveModel::Access::Read);
+  EXPECT_EQ(reader->readCacheFile("vsm-test.bin", bytes.size()), bytes);
+  EXPECT_EQ(codeOf([&] { reader->writeCacheFile("vsm-test.bin", std::span(bytes).first(10)); }),
+            ErrorCode::Conflict);
+  EXPECT_EQ(live->readCacheFile("vsm-test.bin", bytes.size()), bytes);
+  live->writeCacheFile("vsm-test.bin", std::span(bytes).first(10));
+  EXPECT_EQ(reader->readCacheFile("vsm-test.bin", bytes.size()),
+            std::vector<std::byte>(bytes.begin(), bytes.begin() + 10));
+  // Beside the model, not in it: it validates, and the sweep leaves the file alone.
+  EXPECT_TRUE(validateOpc(dir_).empty());
+  live.reset();
+  LiveModel::open(dir_, "m", cache)->removeLeftovers();
+  EXPECT_TRUE(reader->readCacheFile("vsm-test.bin", bytes.size()).has_value());
+}
+
 // A foreign OPC may name a patch's folder like another patch's key: the sweep, which looks our
 // names up by the key they start with, keeps them (and still removes a leftover).
 TEST_F(StoreTest, RemovingLeftoversKeepsFoldersNamedLikeAnotherPatchsKey) {
