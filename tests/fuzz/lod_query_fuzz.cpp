@@ -31,7 +31,7 @@ core::Model makeModel() {
     info.globalBox.max = {(key.x + 1) * side, (key.y + 1) * side, 100.0};
     info.localBox = info.globalBox;
     info.resolution = 128.0 / (1u << key.depth);
-    info.stored = GridRect{0, 0, 9, 9};
+    info.stored = core::GridRect{0, 0, 9, 9};
     model.insert(info);
     if (key.depth < 3 || (key.depth < 8 && key.x == 0 && key.y == 0)) {
       for (const core::Quadrant q : core::kQuadrants) {
