@@ -44,6 +44,10 @@ std::string PatchInfo::folder() const {
   return ownFolder() ? extras_->folder : key.toString();
 }
 
+std::string_view PatchInfo::folder(char (&buffer)[PatchKey::kMaxText]) const {
+  return ownFolder() ? std::string_view(extras_->folder) : key.toChars(buffer);
+}
+
 void PatchInfo::setFolder(std::string folder) {
   if (folder == key.toString()) {
     folder.clear();
@@ -518,12 +522,17 @@ std::vector<double> Model::avgGeometrySizes() const {
 
 namespace {
 
+bool sameFolder(const PatchInfo& a, const PatchInfo& b) {
+  char bufferA[PatchKey::kMaxText];
+  char bufferB[PatchKey::kMaxText];
+  return a.folder(bufferA) == b.folder(bufferB);
+}
+
 bool sameStoredPatch(const PatchInfo& a, const PatchInfo& b) {
-  return &a == &b ||
-         (a.version == b.version && a.folder() == b.folder() && a.childMask == b.childMask &&
-          a.globalBox == b.globalBox && a.localBox == b.localBox &&
-          a.local2global() == b.local2global() && a.resolution == b.resolution &&
-          a.stored == b.stored && a.files() == b.files());
+  return &a == &b || (a.version == b.version && a.childMask == b.childMask && sameFolder(a, b) &&
+                      a.globalBox == b.globalBox && a.localBox == b.localBox &&
+                      a.local2global() == b.local2global() && a.resolution == b.resolution &&
+                      a.stored == b.stored && a.files() == b.files());
 }
 
 }  // namespace
@@ -565,7 +574,8 @@ std::uint64_t patchDigest(const PatchInfo& info) {
   mix.add(std::uint64_t{static_cast<std::uint32_t>(info.key.depth)} << 32 | info.childMask);
   mix.add(std::uint64_t{info.key.x} << 32 | info.key.y);
   mix.add(info.version);
-  mix.add(std::string_view(info.folder()));
+  char buffer[PatchKey::kMaxText];
+  mix.add(info.folder(buffer));
   for (const double v : {info.globalBox.min.x, info.globalBox.min.y, info.globalBox.min.z,
                          info.globalBox.max.x, info.globalBox.max.y, info.globalBox.max.z}) {
     mix.add(v);

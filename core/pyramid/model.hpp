@@ -8,6 +8,7 @@
 #include <map>
 #include <memory>
 #include <string>
+#include <string_view>
 #include <unordered_set>
 #include <utility>
 #include <vector>
@@ -78,6 +79,8 @@ struct PatchInfo {
   /// Directory name under Patches/: key.toString() unless set otherwise (an edit's draft folder,
   /// a foreign OPC's own names).
   std::string folder() const;
+  /// The same without a copy: the stored name, or the key's written into `buffer`.
+  std::string_view folder(char (&buffer)[PatchKey::kMaxText]) const;
   /// True when folder() is not key.toString().
   bool ownFolder() const { return extras_ != nullptr && !extras_->folder.empty(); }
   /// Set the key first: a name equal to key.toString() is not stored.

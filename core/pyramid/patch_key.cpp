@@ -52,8 +52,19 @@ bool PatchKey::isAncestorOrSelfOf(const PatchKey& other) const {
   return (other.x >> shift) == x && (other.y >> shift) == y;
 }
 
+std::string_view PatchKey::toChars(char (&out)[kMaxText]) const {
+  char* const end = out + kMaxText;
+  char* p = std::to_chars(out, end, depth).ptr;
+  *p++ = '_';
+  p = std::to_chars(p, end, x).ptr;
+  *p++ = '_';
+  p = std::to_chars(p, end, y).ptr;
+  return {out, static_cast<std::size_t>(p - out)};
+}
+
 std::string PatchKey::toString() const {
-  return std::to_string(depth) + '_' + std::to_string(x) + '_' + std::to_string(y);
+  char text[kMaxText];
+  return std::string(toChars(text));
 }
 
 std::optional<PatchKey> PatchKey::parse(std::string_view text) {

@@ -43,6 +43,10 @@ struct PatchKey {
 
   /// "depth_x_y", e.g. "3_5_2"; also the folder name vsm writes.
   std::string toString() const;
+  /// Room for any key's toString().
+  static constexpr std::size_t kMaxText = 40;
+  /// toString() written into `out`, without allocating (a digest of 10^6 patches' folders).
+  std::string_view toChars(char (&out)[kMaxText]) const;
   /// Inverse of toString(); nullopt on anything else (including out-of-range x or y).
   static std::optional<PatchKey> parse(std::string_view text);
 

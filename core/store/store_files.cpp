@@ -57,7 +57,9 @@ NamedFolders::NamedFolders(const Model& model) : model_(model) {
 
 bool NamedFolders::contains(std::string_view folder) const {
   if (const std::optional<PatchKey> key = keyOfFolder(folder)) {
-    if (const PatchInfo* info = model_.find(*key); info != nullptr && info->folder() == folder) {
+    char buffer[PatchKey::kMaxText];
+    if (const PatchInfo* info = model_.find(*key);
+        info != nullptr && info->folder(buffer) == folder) {
       return true;
     }
   }

@@ -24,7 +24,8 @@ std::uint64_t describedBy(const PatchInfo& info) {
     }
     h = (h ^ 0xffU) * 0x100000001b3ULL;  // a separator no name holds
   };
-  mix(info.folder());
+  char folder[PatchKey::kMaxText];
+  mix(info.folder(folder));
   mix(info.positionsFile());
   for (const Box3d& box : {info.globalBox, info.localBox}) {
     for (const double v : {box.min.x, box.min.y, box.min.z, box.max.x, box.max.y, box.max.z}) {

@@ -35,6 +35,19 @@ std::shared_ptr<PatchGrid> sampled(int size, int x0, int y0) {
   return grid;
 }
 
+TEST(PatchKey, ItsTextWrittenInPlaceIsItsString) {
+  char text[PatchKey::kMaxText];
+  EXPECT_EQ(PatchKey({3, 5, 2}).toChars(text), "3_5_2");
+  for (const PatchKey key :
+       {PatchKey::root(), PatchKey{10, 1023, 7}, PatchKey{30, 1073741823, 0}}) {
+    EXPECT_EQ(key.toChars(text), key.toString());
+    EXPECT_EQ(PatchKey::parse(key.toChars(text)), key);
+  }
+  // The longest a key can make (a damaged one's): within the room.
+  const PatchKey widest{std::numeric_limits<int>::min(), 4294967295u, 4294967295u};
+  EXPECT_EQ(widest.toChars(text), "-2147483648_4294967295_4294967295");
+}
+
 TEST(PatchKey, ParentOfRootIsEmpty) {
   EXPECT_FALSE(PatchKey::root().parent().has_value());
 }
