@@ -10,6 +10,7 @@
 
 #include "core/common/log.hpp"
 #include "core/common/random.hpp"
+#include "server/exec/pool_executor.hpp"
 #include "server/exec/work_pool.hpp"
 
 namespace vsm::server::jobs {
@@ -100,7 +101,11 @@ struct JobRegistry::Job {
 };
 
 JobRegistry::JobRegistry(exec::WorkPool& pool, JobLimits limits)
-    : pool_(pool), limits_(limits), idPrefix_(core::randomWord()) {}
+    : pool_(pool),
+      executor_(
+          std::make_unique<exec::PoolExecutor>(pool, pool.threads() - 1, lowerThreadPriority)),
+      limits_(limits),
+      idPrefix_(core::randomWord()) {}
 
 JobRegistry::~JobRegistry() = default;
 
@@ -151,6 +156,7 @@ JobStatus JobRegistry::submit(std::string type, json params, JobContext::Plan pl
     std::snprintf(id, sizeof id, "%08x%08llx", idPrefix_, static_cast<unsigned long long>(++next_));
     job->status.id = limits_.node.empty() ? std::string(id) : limits_.node + "-" + id;
     job->context->id_ = job->status.id;
+    job->context->executor_ = executor_.get();
     jobs_.emplace(job->status.id, job);
     order_.push_back(job->status.id);
     out = job->status;

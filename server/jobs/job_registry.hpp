@@ -17,11 +17,13 @@
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
+#include "core/common/executor.hpp"
 #include "core/common/progress.hpp"
 
 namespace vsm::server::exec {
+class PoolExecutor;
 class WorkPool;
-}
+}  // namespace vsm::server::exec
 
 namespace vsm::server::jobs {
 
@@ -74,6 +76,9 @@ class JobContext final : public core::Progress {
   void plan(Plan plan);
   /// The job's id (set before the work runs).
   const std::string& id() const { return id_; }
+  /// Threads the operation may run its tasks on (core::MergeOptions::executor, ...): the job's
+  /// own and the job pool's threads that are free (exec::PoolExecutor).
+  core::Executor& executor() const { return *executor_; }
 
  private:
   friend class JobRegistry;
@@ -81,6 +86,7 @@ class JobContext final : public core::Progress {
 
   std::function<void(std::string_view, double)> update_;
   std::string id_;
+  core::Executor* executor_ = nullptr;
   core::CancelToken cancel_;
   mutable std::mutex mutex_;  // guards plan_
   Plan plan_;
@@ -153,6 +159,8 @@ class JobRegistry {
   void tell(const JobStatus& status) const;
 
   exec::WorkPool& pool_;
+  /// Over pool_, lent to every job (JobContext::executor).
+  std::unique_ptr<exec::PoolExecutor> executor_;
   JobLimits limits_;
   std::function<void(const JobStatus&)> listener_;  // set before the first job
   std::uint32_t idPrefix_;

@@ -93,6 +93,7 @@ JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const s
         options.drape = drape;
         options.progress = &context;
         options.cancel = &context.cancelToken();
+        options.executor = &context.executor();
         core::importFile(input, outDir, options);
         context.report("opening", 0);
         const auto live = models.openReserved(*reservation, outDir);
@@ -133,7 +134,9 @@ JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const st
           options.registerFirst = registerFirst;
           options.progress = &context;
           options.cancel = &context.cancelToken();
+          options.merge.executor = &context.executor();
           options.publish = models.publishOptions(target, context.id());
+          options.publish.executor = &context.executor();
           const core::MergeIntoResult merged = core::mergeInto(*targetModel, *sourceModel, options);
           json result = {{"base_version", merged.baseVersion}, {"version", merged.version}};
           if (const auto& registered = merged.registration) {
@@ -183,6 +186,7 @@ JobStatus submitRestore(JobRegistry& jobs, models::ModelRegistry& models, const 
           context.report("publishing", 0);
           core::PublishOptions options = models.publishOptions(id, context.id());
           options.restoredFrom = revision;
+          options.executor = &context.executor();
           edit->publish(&context.cancelToken(), options);
           result["version"] = model->snapshot()->version;
           edit.reset();

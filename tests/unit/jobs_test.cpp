@@ -1,16 +1,20 @@
-// server/jobs: the job registry (stages, cancellation, failures, the queue's bound, cluster ids).
+// server/jobs: the job registry (stages, cancellation, failures, the queue's bound, cluster ids)
+// and the executor it lends its jobs (server/exec/pool_executor).
 #include <gtest/gtest.h>
 
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
 #include <mutex>
+#include <set>
+#include <stdexcept>
 #include <string>
 #include <thread>
 
 #include <nlohmann/json.hpp>
 
 #include "core/common/error.hpp"
+#include "server/exec/pool_executor.hpp"
 #include "server/exec/work_pool.hpp"
 #include "server/jobs/job_registry.hpp"
 #include "tests/unit/server_test_support.hpp"
@@ -157,6 +161,83 @@ TEST(JobRegistry, InAClusterJobIdsNameTheNodeAndALostLeaseCancelsButStillTakesJo
       registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json::object(); });
   EXPECT_EQ(waitFinal(registry, next.id).state, jobs::JobState::Succeeded);
   pool.join();
+}
+
+// ---- the jobs' executor -----------------------------------------------------------------------
+
+// A job lends its pool to the operation it runs: tasks run on the job's thread and on the pool's
+// free ones at once. Two tasks that each wait for the other to have started can only finish on
+// two threads.
+TEST(PoolExecutor, RunsTasksOnTheCallersThreadAndOnAFreeThreadOfThePoolAtOnce) {
+  exec::WorkPool pool("jobs", 2);
+  std::atomic<int> helperStarts{0};
+  exec::PoolExecutor executor(pool, 1, [&] { ++helperStarts; });
+  std::mutex mutex;
+  std::condition_variable cv;
+  int started = 0;
+  std::set<std::thread::id> threads;
+  bool bothStarted = true;
+  auto meet = [&] {
+    std::unique_lock lock(mutex);
+    ++started;
+    threads.insert(std::this_thread::get_id());
+    cv.notify_all();
+    // A bound, not a wait for time to pass: on one thread this would never be met.
+    bothStarted = cv.wait_for(lock, 60s, [&] { return started == 2; }) && bothStarted;
+  };
+  Gate done;
+  pool.post([&] {  // the job: on a thread of the pool, as JobRegistry runs it
+    executor.runAll({meet, meet});
+    done.open();
+  });
+  done.wait();
+  EXPECT_TRUE(bothStarted);
+  EXPECT_EQ(threads.size(), 2u);
+  EXPECT_EQ(helperStarts.load(), 1);
+}
+
+// With every thread of the pool taken, the caller runs every task itself: it never waits for a
+// helper still queued (no deadlock), and the helper, once it runs, finds nothing left to do.
+TEST(PoolExecutor, WithThePoolBusyTheCallerRunsEveryTaskAndALateHelperDoesNothing) {
+  exec::WorkPool pool("jobs", 1);
+  std::atomic<int> helperStarts{0};
+  exec::PoolExecutor executor(pool, 3, [&] { ++helperStarts; });
+  Gate release;
+  Gate done;
+  std::set<std::thread::id> threads;
+  std::thread::id jobThread;
+  pool.post([&] {
+    jobThread = std::this_thread::get_id();
+    std::vector<std::function<void()>> tasks(
+        5, [&] { threads.insert(std::this_thread::get_id()); });  // one thread: no race
+    executor.runAll(std::move(tasks));
+    done.open();
+    release.wait();
+  });
+  done.wait();
+  EXPECT_EQ(threads, std::set<std::thread::id>{jobThread});
+  release.open();
+  pool.join();  // the queued helpers run now
+  EXPECT_EQ(helperStarts.load(), 0);
+}
+
+// Every task runs even when some throw; the first exception is rethrown after all have finished.
+TEST(PoolExecutor, RethrowsTheFirstFailureAfterEveryTaskHasRun) {
+  exec::WorkPool pool("jobs", 2);
+  exec::PoolExecutor executor(pool, 1);
+  std::atomic<int> ran{0};
+  std::vector<std::function<void()>> tasks;
+  for (int i = 0; i < 8; ++i) {
+    tasks.push_back([&ran, i] {
+      ++ran;
+      if (i == 2 || i == 5) {
+        throw std::runtime_error("task failed");
+      }
+    });
+  }
+  EXPECT_THROW(executor.runAll(std::move(tasks)), std::runtime_error);
+  EXPECT_EQ(ran.load(), 8);
+  executor.runAll({});  // nothing to run: returns at once
 }
 
 }  // namespace
