@@ -30,7 +30,8 @@ struct PublishOptions {
   /// The revision whose content this one restores (0: none).
   std::uint64_t restoredFrom = 0;
   /// Writes the changed patches' files from kPublishWriters tasks on this executor at once
-  /// (encoding and writing overlap); null: on the calling thread.
+  /// (encoding and writing overlap), and the new hierarchy beside them; null: one after the other
+  /// on the calling thread.
   Executor* executor = nullptr;
   /// Called just before the commit point, after every other check: throws to refuse the commit
   /// (a cluster node that no longer holds the model's lease: Error(Conflict)). Null: no fence.
@@ -110,10 +111,11 @@ class ModelEdit {
   ///
   /// 1. refreshes stale overviews, writes every changed patch that is still in the cache, and
   ///    makes all draft files durable with the edit's FileSystemSync (its descriptor was opened
-  ///    when the edit began, so no write-back error since is missed);
+  ///    when the edit began, so no write-back error since is missed); beside the patches' writes
+  ///    (another task on options.executor), writes the new hierarchy, recording the revision
+  ///    (`options`), under a temporary name and fsyncs it;
   /// 2. keeps the base revision's hierarchy as Patches/vsm-revision-<base>.xml (when not kept
-  ///    yet), and writes the new hierarchy, recording the revision (`options`), under a temporary
-  ///    name and fsyncs it;
+  ///    yet);
   /// 3. **the commit point**, fenced: refuses (Error(Conflict)) unless the opening is still its
   ///    writer's current one, the hierarchy on disk is still the one it last read or published and
   ///    carries no fencing token newer than options.token, then calls options.fence; then renames
