@@ -101,7 +101,6 @@ class TempDirTest : public ::testing::Test {
   std::filesystem::path dir_;
 };
 
-/// The bytes of `file`.
 /// The patches `b` shares in memory with `a` (Model::shared: the same chunk, copied by neither).
 inline std::size_t sharedPatches(const core::Model& a, const core::Model& b) {
   std::size_t shared = 0;
