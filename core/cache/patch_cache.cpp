@@ -6,6 +6,7 @@
 #include <list>
 #include <mutex>
 #include <unordered_map>
+#include <unordered_set>
 #include <vector>
 
 #include "core/common/error.hpp"
@@ -84,6 +85,9 @@ struct ModelSlot {
   /// Its entries' bytes and its metadata charge.
   std::size_t residentBytes = 0;
   std::size_t metadataBytes = 0;
+  /// Its dirty entries in the table (Impl::setDirty): a flush visits these, not the whole ring
+  /// (a publish's flushers passed every entry of a full cache, 10^5 and more, for a few dozen).
+  std::unordered_set<Entry*> dirty;
 };
 
 }  // namespace
@@ -137,7 +141,19 @@ struct PatchCache::Impl {
   /// (FIFO never moves the hand, which stays at end().)
   void addToRing(Entry& e) { e.ringPos = ring.insert(clockHand, &e); }
 
+  /// The one way an entry's dirty flag changes: kept in its model's set of dirty entries while it
+  /// is in the table.
+  void setDirty(Entry& e, bool dirty) {
+    e.dirty = dirty;
+    if (dirty && !e.detached) {
+      models.at(e.id.model).dirty.insert(&e);
+    } else {
+      models.at(e.id.model).dirty.erase(&e);
+    }
+  }
+
   void remove(Entry& e) {
+    models.at(e.id.model).dirty.erase(&e);
     charge(e, -static_cast<std::ptrdiff_t>(e.bytes));
     chargeHandles(e, 0);
     if (clockHand == e.ringPos) {
@@ -157,6 +173,7 @@ struct PatchCache::Impl {
   void detach(Entry& e) {
     const auto it = entries.find(e.id);
     e.detached = true;
+    models.at(e.id.model).dirty.erase(&e);  // its value is discarded, never written back
     detached.emplace(&e, std::move(it->second));
     entries.erase(it);
   }
@@ -333,7 +350,10 @@ void PatchCache::unpin(void* entry) {
 PatchCache::ModelId PatchCache::addModel(std::string name, PatchStore& store) {
   std::lock_guard lock(impl_->mutex);
   const ModelId id = impl_->nextModel++;
-  impl_->models.emplace(id, ModelSlot{std::move(name), &store, 0, 0});
+  ModelSlot slot;
+  slot.name = std::move(name);
+  slot.store = &store;
+  impl_->models.emplace(id, std::move(slot));
   return id;
 }
 
@@ -471,7 +491,7 @@ void PatchCache::Impl::writeBackUnlocked(std::unique_lock<std::mutex>& lock, Ent
   }
   // A put() during the write-back replaces object and sets dirty again: keep it then.
   if (e.object == value.object) {
-    e.dirty = false;
+    setDirty(e, false);
     e.dirtyPasses = 0;
   }
   changed.notify_all();
@@ -595,7 +615,9 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
     if (dirty && !e.dirty) {
       e.secondChanceSpent = false;
     }
-    e.dirty = e.dirty || dirty;
+    if (dirty) {
+      impl_->setDirty(e, true);
+    }
     e.referenced = true;
     e.dirtyPasses = 0;
     return Pin(this, &e, e.object);
@@ -611,10 +633,10 @@ PatchCache::Pin PatchCache::put(ModelId model, const ObjectId& object, CacheValu
   e.bytes = value.bytes;
   e.object = std::move(value.object);
   e.pins = 1;
-  e.dirty = dirty;
   e.state = State::Resident;
   e.referenced = true;
   impl_->entries.emplace(id, std::move(owned));
+  impl_->setDirty(e, dirty);
   impl_->addToRing(e);
   impl_->charge(e, static_cast<std::ptrdiff_t>(e.bytes));
   impl_->chargeHandles(e, value.handles);
@@ -646,14 +668,11 @@ void PatchCache::flushEntries(ModelId model, const ObjectId* only) {
     }
   }
   for (;;) {
-    // One pass over the ring collects the model's dirty entries, then each is written back (the
-    // lock released meanwhile, so each is looked up again), not a pass after each write-back.
+    // The model's dirty entries collected, then each written back (the lock released meanwhile,
+    // so each is looked up again).
     std::vector<FullKey> dirty;
     bool waiting = false;
-    for (const Entry* e : impl_->ring) {
-      if (e->id.model != model || !e->dirty) {
-        continue;
-      }
+    for (const Entry* e : impl_->models.at(model).dirty) {
       if (e->state != State::Resident) {
         waiting = true;
       } else {

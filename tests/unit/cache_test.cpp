@@ -346,6 +346,40 @@ TEST(PatchCache, FlushingOneEntryWritesItAloneAndLeavesTheOthersDirty) {
   cache.removeModel(model);
 }
 
+// A publish flushes its model: the flush writes that model's dirty entries, found among a cache
+// full of clean ones and another model's dirty ones, and never an entry invalidated while pinned
+// (a discarded value: before, the flush found it in the ring, dirty, and looped on it forever).
+TEST(PatchCache, AFlushWritesItsModelsDirtyEntriesOnlyAndNeverAnInvalidatedOne) {
+  FakeStore store(8, kMiB);
+  FakeStore other(8, kMiB);
+  PatchCache cache(64 * kMiB);
+  const auto model = cache.addModel("m", store);
+  const auto otherModel = cache.addModel("o", other);
+  for (int i = 0; i < 8; ++i) {
+    cache.get(model, FakeStore::id(i));
+    cache.get(otherModel, FakeStore::id(i));
+  }
+  cache.put(model, FakeStore::id(1), {makeBlob(kMiB, 21), kMiB}, true);
+  cache.put(model, FakeStore::id(5), {makeBlob(kMiB, 25), kMiB}, true);
+  cache.put(otherModel, FakeStore::id(2), {makeBlob(kMiB, 32), kMiB}, true);
+  PatchCache::Pin discarded = cache.put(model, FakeStore::id(6), {makeBlob(kMiB, 26), kMiB}, true);
+  cache.invalidate(model, FakeStore::id(6));
+  cache.flush(model);
+  EXPECT_EQ(store.writes(), 2);
+  EXPECT_EQ(store.stored(FakeStore::key(1)), 21u);
+  EXPECT_EQ(store.stored(FakeStore::key(5)), 25u);
+  EXPECT_EQ(store.stored(FakeStore::key(6)), 1u);
+  EXPECT_EQ(other.writes(), 0);
+  cache.flush(model);  // nothing dirty any more
+  EXPECT_EQ(store.writes(), 2);
+  discarded = PatchCache::Pin();
+  cache.flush(otherModel);
+  EXPECT_EQ(other.writes(), 1);
+  EXPECT_EQ(other.stored(FakeStore::key(2)), 32u);
+  cache.removeModel(model);
+  cache.removeModel(otherModel);
+}
+
 TEST(PatchCache, InvalidateServesNewDataWhileOldPinsKeepTheirs) {
   FakeStore store(2, kMiB);
   PatchCache cache(4 * kMiB);
