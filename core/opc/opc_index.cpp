@@ -568,6 +568,41 @@ std::optional<Model> decodeBase(const Delta& delta, std::span<const std::byte> b
 /// base's, the removed ones gone. Its chunks and nodes stay shared with the base's copies wherever
 /// the delta does not reach. Nullopt when the delta does not fit the base (a child without its
 /// parent, a removed patch with children).
+/// The keys whose patches `delta` can change in the model it is applied to: its changed and
+/// removed keys and their parents (an insert or a removal changes the parent's child bits).
+std::set<PatchKey> keysTouchedBy(const Delta& delta) {
+  std::set<PatchKey> keys;
+  const auto add = [&keys](const PatchKey& key) {
+    keys.insert(key);
+    if (const std::optional<PatchKey> parent = key.parent()) {
+      keys.insert(*parent);
+    }
+  };
+  for (const PatchInfo& info : delta.changed) {
+    add(info.key);
+  }
+  for (const PatchKey& key : delta.removed) {
+    add(key);
+  }
+  return keys;
+}
+
+/// modelDigest(after), from modelDigest(before) (`beforeDigest`) and the keys at which the two
+/// can differ: each patch's digest out, the new one in (the digest is a sum).
+std::uint64_t digestByChange(const Model& before, std::uint64_t beforeDigest, const Model& after,
+                             const std::set<PatchKey>& touched) {
+  std::uint64_t digest = beforeDigest;
+  for (const PatchKey& key : touched) {
+    if (const PatchInfo* old = before.find(key)) {
+      digest -= patchDigest(*old);
+    }
+    if (const PatchInfo* now = after.find(key)) {
+      digest += patchDigest(*now);
+    }
+  }
+  return digest;
+}
+
 std::optional<Model> applyDelta(Model model, Delta& delta) {
   try {
     // In key order, so parents first: a replaced patch keeps the base's child bits, which the
@@ -630,10 +665,14 @@ std::optional<OpcRevision> decodeOpcIndexDelta(std::span<const std::byte> delta,
   return OpcRevision{std::move(*model), std::move(read->head.record)};
 }
 
-std::shared_ptr<const Model> IndexBaseMemo::find(const IndexBase& base) const {
+std::shared_ptr<const Model> IndexBaseMemo::find(const IndexBase& base,
+                                                 std::uint64_t* digest) const {
   std::lock_guard lock(mutex_);
   const bool same =
       base.name == base_.name && base.size == base_.size && base.checksum == base_.checksum;
+  if (same && digest != nullptr) {
+    *digest = digest_;
+  }
   return same ? model_ : nullptr;
 }
 
@@ -642,10 +681,13 @@ std::shared_ptr<const Model> IndexBaseMemo::model() const {
   return model_;
 }
 
-void IndexBaseMemo::keep(const IndexBase& base, std::shared_ptr<const Model> model) {
+std::uint64_t IndexBaseMemo::keep(const IndexBase& base, std::shared_ptr<const Model> model) {
+  const std::uint64_t digest = modelDigest(*model);
   std::lock_guard lock(mutex_);
   base_ = base;
   model_ = std::move(model);
+  digest_ = digest;
+  return digest;
 }
 
 bool isIndexBaseFileName(std::string_view name) {
@@ -673,23 +715,32 @@ std::optional<OpcRevision> readIndexOf(const fs::path& hierarchyFile, const fs::
       return std::nullopt;
     }
     std::optional<Model> model;
-    if (std::shared_ptr<const Model> known = memo != nullptr ? memo->find(delta->base) : nullptr) {
-      model = applyDelta(*known, *delta);  // a copy of its chunk pointers: ~1/256 of its patches
-    } else {
-      std::optional<Model> base =
-          decodeBase(*delta, MappedIndex(index.parent_path() / delta->base.name).bytes());
+    std::optional<std::uint64_t> digest;
+    std::uint64_t baseDigest = 0;
+    std::shared_ptr<const Model> known =
+        memo != nullptr ? memo->find(delta->base, &baseDigest) : nullptr;
+    std::optional<Model> base;
+    if (known == nullptr) {
+      base = decodeBase(*delta, MappedIndex(index.parent_path() / delta->base.name).bytes());
       if (base && memo != nullptr) {
-        auto kept = std::make_shared<const Model>(std::move(*base));
-        memo->keep(delta->base, kept);
-        model = applyDelta(*kept, *delta);
-      } else if (base) {
-        model = applyDelta(std::move(*base), *delta);
+        known = std::make_shared<const Model>(std::move(*base));
+        base.reset();
+        baseDigest = memo->keep(delta->base, known);
       }
+    }
+    if (known != nullptr) {
+      const std::set<PatchKey> touched = keysTouchedBy(*delta);
+      model = applyDelta(*known, *delta);  // a copy of its chunk pointers: ~1/256 of its patches
+      if (model) {
+        digest = digestByChange(*known, baseDigest, *model, touched);
+      }
+    } else if (base) {
+      model = applyDelta(std::move(*base), *delta);
     }
     if (!model) {
       return std::nullopt;
     }
-    return OpcRevision{std::move(*model), std::move(delta->head.record)};
+    return OpcRevision{std::move(*model), std::move(delta->head.record), digest};
   } catch (const Error&) {
     return std::nullopt;  // unreadable: the full read says what is wrong, if anything
   }

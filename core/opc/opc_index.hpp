@@ -157,10 +157,13 @@ std::optional<IndexedRevision> readIndexedRevision(const std::filesystem::path& 
 /// (so keeping the base costs the patches its deltas replaced). Thread-safe.
 class IndexBaseMemo {
  public:
-  /// The model of `base` when it is the one kept (name, size and checksum); null otherwise.
-  std::shared_ptr<const Model> find(const IndexBase& base) const;
-  /// Keeps `model` as the model of `base`, in place of the one kept before.
-  void keep(const IndexBase& base, std::shared_ptr<const Model> model);
+  /// The model of `base` when it is the one kept (name, size and checksum), with its
+  /// modelDigest in `digest` (when not null); null otherwise.
+  std::shared_ptr<const Model> find(const IndexBase& base, std::uint64_t* digest = nullptr) const;
+  /// Keeps `model` as the model of `base`, in place of the one kept before, with its digest
+  /// (modelDigest: computed here, once a base, so that each model read over it gets its own from
+  /// the delta alone), which it returns.
+  std::uint64_t keep(const IndexBase& base, std::shared_ptr<const Model> model);
   /// The model kept; null when none is.
   std::shared_ptr<const Model> model() const;
 
@@ -168,6 +171,7 @@ class IndexBaseMemo {
   mutable std::mutex mutex_;
   IndexBase base_;
   std::shared_ptr<const Model> model_;
+  std::uint64_t digest_ = 0;
 };
 
 /// The hierarchy `hierarchyName` of `dir` from its index, when it has a current one; nullopt when

@@ -64,8 +64,15 @@ class IndexBaseMemo;  // opc_index.hpp
 /// kept revision's) with its revision record when it has one; from its index when current, as
 /// readOpcModel, and a delta index's base from `memo` as readOpcIndex. Throws as readOpcModel.
 struct OpcRevision {
+  OpcRevision(Model m, std::optional<RevisionRecord> r,
+              std::optional<std::uint64_t> d = std::nullopt)
+      : model(std::move(m)), record(std::move(r)), digest(d) {}
+
   Model model;
   std::optional<RevisionRecord> record;
+  /// modelDigest(model) when the reader knew it by the change (a delta applied to a base whose
+  /// digest `memo` kept); nullopt: not computed.
+  std::optional<std::uint64_t> digest;
 };
 OpcRevision readOpcRevision(const std::filesystem::path& dir,
                             std::string_view hierarchyName = "patchhierarchy.xml",

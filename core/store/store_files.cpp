@@ -154,7 +154,7 @@ std::shared_ptr<ModelSnapshot> snapshotOf(OpcRevision read, const fs::path& hier
   for (const auto& [key, info] : read.model.patches()) {
     snapshot->version = std::max(snapshot->version, info.version);
   }
-  snapshot->digest = modelDigest(read.model);
+  snapshot->digest = read.digest ? *read.digest : modelDigest(read.model);
   if (read.record) {
     snapshot->revision = std::move(*read.record);
   } else {

@@ -1539,6 +1539,45 @@ TEST_F(StoreTest, AReadingOpeningReadAgainAppliesTheNewDeltaToTheBaseItKept) {
   EXPECT_EQ(test::sharedPatches(*fresh->model, *after->model), 0u);
 }
 
+// The digest of a model read over a kept base is made from the base's and the delta (a replica's
+// reopen at 10^6 summed 1.4 million patch digests): it is the full sum, after a replaced leaf, a
+// patch added below a leaf (its parent's child bits change) and that patch removed again.
+TEST_F(StoreTest, AReadingOpeningReadAgainMakesTheDigestFromTheDelta) {
+  writeModel(dir_, false, 5);
+  PatchCache cache(64 << 20);
+  auto writer = LiveModel::open(dir_, "m", cache);
+  publishLeaf(*writer, {5, 0, 0}, 1.0, 8);  // the first base
+  const std::optional<IndexBase> base = readIndexBase(dir_ / "Patches" / "patchhierarchy.vsmidx");
+  ASSERT_TRUE(base.has_value());
+  std::shared_ptr<LiveModel> reader = LiveModel::open(dir_, "r", cache, LiveModel::Access::Read);
+  EXPECT_EQ(reader->snapshot()->digest, modelDigest(*reader->snapshot()->model));
+  const auto follow = [&](const std::string& what) {
+    ASSERT_EQ(readIndexBase(dir_ / "Patches" / "patchhierarchy.vsmidx")->name, base->name) << what;
+    reader = reader->reopen();
+    const auto read = reader->snapshot();
+    EXPECT_EQ(read->version, writer->snapshot()->version) << what;
+    EXPECT_EQ(read->digest, modelDigest(*read->model)) << what;
+    EXPECT_EQ(read->digest, writer->snapshot()->digest) << what;
+  };
+  publishLeaf(*writer, {5, 31, 31}, 2.0, 8);
+  follow("a leaf replaced");
+  const std::uint64_t beforeInsert = writer->snapshot()->version;
+  {
+    auto edit = writer->beginEdit();
+    edit->setPositions({6, 0, 0}, leafGrid(0, 0, 3.0));
+    edit->publish(nullptr, publishing("insert", 8));
+  }
+  ASSERT_NE(writer->snapshot()->model->find({6, 0, 0}), nullptr);
+  follow("a patch added below a leaf");
+  {
+    auto edit = writer->beginEdit();
+    edit->restore(*writer->snapshotAt(beforeInsert));
+    edit->publish(nullptr, publishing("restore", 8));
+  }
+  ASSERT_EQ(writer->snapshot()->model->find({6, 0, 0}), nullptr);
+  follow("that patch removed");
+}
+
 // Kept revisions read (snapshotAt) whose indexes are deltas over one base share its chunks: eight
 // of them at 10^6 patches cost one model and their deltas' chunks, not 8 models.
 TEST_F(StoreTest, RevisionsReadOverOneIndexBaseShareItsChunks) {
