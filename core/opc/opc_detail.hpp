@@ -56,6 +56,8 @@ bool equalsIgnoreCase(std::string_view a, std::string_view b);
 /// match. nullopt when there is none (or `dir` cannot be listed).
 std::optional<std::filesystem::path> findEntry(const std::filesystem::path& dir,
                                                std::string_view name);
+/// findEntry's entry, or `dir`/`name` as spelled when there is none (to open and report missing).
+std::filesystem::path entryPath(const std::filesystem::path& dir, std::string_view name);
 
 /// True for a name that stays inside its directory: not empty, not ".", no "..", "/" or "\".
 bool isSafeName(std::string_view name);

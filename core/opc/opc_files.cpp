@@ -34,6 +34,11 @@ std::optional<fs::path> findEntry(const fs::path& dir, std::string_view name) {
   return found;
 }
 
+fs::path entryPath(const fs::path& dir, std::string_view name) {
+  std::optional<fs::path> found = findEntry(dir, name);
+  return found ? std::move(*found) : dir / std::string(name);
+}
+
 bool isSafeName(std::string_view name) {
   return !name.empty() && name != "." && name.find("..") == std::string_view::npos &&
          name.find('/') == std::string_view::npos && name.find('\\') == std::string_view::npos &&

@@ -204,10 +204,9 @@ ParsedPatch readPatchXml(const fs::path& folderDir) {
 }
 
 fs::path positionsPath(const fs::path& patchesDir, const PatchInfo& info) {
-  const fs::path folderDir =
-      detail::findEntry(patchesDir, info.folder()).value_or(patchesDir / info.folder());
-  return detail::findEntry(folderDir, info.positionsFile())
-      .value_or(folderDir / info.positionsFile());
+  char buffer[PatchKey::kMaxText];
+  return detail::entryPath(detail::entryPath(patchesDir, info.folder(buffer)),
+                           info.positionsFile());
 }
 
 /// Decodes a positions array into a full grid of `gridSize` at `stored`.

@@ -26,9 +26,8 @@ namespace {
 /// A file of a patch folder as readers resolve it (either letter case).
 fs::path patchFile(const fs::path& dir, const PatchInfo& info, const std::string& name) {
   const fs::path patchesDir = patchesDirOf(dir);
-  const fs::path folderDir =
-      detail::findEntry(patchesDir, info.folder()).value_or(patchesDir / info.folder());
-  return detail::findEntry(folderDir, name).value_or(folderDir / name);
+  char buffer[PatchKey::kMaxText];
+  return detail::entryPath(detail::entryPath(patchesDir, info.folder(buffer)), name);
 }
 
 std::unique_ptr<StoredFile> openFile(const fs::path& path) {

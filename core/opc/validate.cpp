@@ -169,10 +169,9 @@ class Validator {
       add(where(info), "has a texture but no <Coordinates><DiffuseColor1Coordinates>");
       return;
     }
-    const fs::path folder =
-        detail::findEntry(c_.patchesDir, info.folder()).value_or(c_.patchesDir / info.folder());
-    const fs::path file =
-        detail::findEntry(folder, info.coordinatesFile()).value_or(folder / info.coordinatesFile());
+    char buffer[PatchKey::kMaxText];
+    const fs::path file = detail::entryPath(detail::entryPath(c_.patchesDir, info.folder(buffer)),
+                                            info.coordinatesFile());
     AaraArray coordinates;
     try {
       coordinates = readAaraFile(file);
