@@ -159,10 +159,15 @@ Application::Application(Config config) : config_(std::move(config)) {
   const std::size_t cpuThreads =
       config_.threads.cpu != 0 ? config_.threads.cpu
                                : std::max<std::size_t>(1, std::thread::hardware_concurrency());
+  // A job's tasks run on its own thread and on these (JobContext::executor): one fewer than the
+  // hardware threads (at least one), a pool apart from the job pool so that tasks held up (a
+  // stalled disk) hold no thread another job needs.
+  const std::size_t helperThreads =
+      std::max<std::size_t>(2, std::thread::hardware_concurrency()) - 1;
   const DescriptorPlan descriptors =
       planDescriptors(raiseDescriptorLimit(), config_.limits.connections,
-                      cpuThreads + config_.threads.jobs + config_.threads.io, config_.limits.models,
-                      config_.threads.jobs);
+                      cpuThreads + config_.threads.jobs + helperThreads + config_.threads.io,
+                      config_.limits.models, config_.threads.jobs);
   cache_->setHandleBudget(descriptors.cachedFiles);
   if (descriptors.connections < config_.limits.connections) {
     log::warn("descriptors: the limit leaves room for " + std::to_string(descriptors.connections) +
@@ -176,6 +181,7 @@ Application::Application(Config config) : config_(std::move(config)) {
   // Merges and imports run here, a pool of its own so that they can never take the threads
   // request handlers need.
   jobPool_ = std::make_unique<exec::WorkPool>("jobs", config_.threads.jobs);
+  helperPool_ = std::make_unique<exec::WorkPool>("job-helpers", helperThreads);
   events::HubOptions hubOptions;
   hubOptions.maxSubscribers = config_.limits.eventSubscribers;
   hubOptions.maxSubscribersPerClient = config_.limits.eventSubscribersPerClient;
@@ -228,7 +234,7 @@ Application::Application(Config config) : config_(std::move(config)) {
     log::info("cluster: node " + coordinator_->node() + ", coordinator " +
               config_.cluster.coordinator);
   }
-  jobs_ = std::make_unique<jobs::JobRegistry>(*jobPool_, jobLimits);
+  jobs_ = std::make_unique<jobs::JobRegistry>(*jobPool_, *helperPool_, jobLimits);
   // Before any model opens, so that every opening is watched.
   api::connectEvents(*events_, *jobs_, *models_);
   // Staging directories of imports a crash interrupted (kept from the previous life of this
@@ -310,7 +316,7 @@ Application::Application(Config config) : config_(std::move(config)) {
     Snapshot queued{
         "vsm_pool_queued_tasks", "Tasks waiting for a thread", Type::Gauge, {"pool"}, {}};
     Snapshot active{"vsm_pool_active_tasks", "Tasks running", Type::Gauge, {"pool"}, {}};
-    for (const exec::WorkPool* pool : {cpuPool_.get(), jobPool_.get()}) {
+    for (const exec::WorkPool* pool : {cpuPool_.get(), jobPool_.get(), helperPool_.get()}) {
       threads.samples.push_back({{pool->name()}, static_cast<double>(pool->threads())});
       queued.samples.push_back({{pool->name()}, static_cast<double>(pool->queued())});
       active.samples.push_back({{pool->name()}, static_cast<double>(pool->active())});
@@ -398,7 +404,8 @@ void Application::start() {
     ready_ = stopCalls_ == 0;
   }
   log::info("ready: " + std::to_string(cpuPool_->threads()) + " handler threads, " +
-            std::to_string(jobPool_->threads()) + " job threads, " +
+            std::to_string(jobPool_->threads()) + " job threads (" +
+            std::to_string(helperPool_->threads()) + " helpers), " +
             std::to_string(config_.threads.io) + " network threads");
 }
 
@@ -467,6 +474,7 @@ void Application::shutdown() {
   // it must outlive them, so the pools are drained before any component is destroyed.
   cpuPool_->join();
   jobPool_->join();
+  helperPool_->join();  // after the jobs: none of them lends it any more
   if (coordinator_ != nullptr) {
     coordinator_->stop();  // the lease goes: the other nodes take this node's models over
   }

@@ -112,6 +112,7 @@ class Application {
   std::unique_ptr<core::PatchCache> cache_;
   std::unique_ptr<exec::WorkPool> cpuPool_;
   std::unique_ptr<exec::WorkPool> jobPool_;
+  std::unique_ptr<exec::WorkPool> helperPool_;
   /// Before the registries it hears from: it outlives their models and jobs.
   std::unique_ptr<events::EventHub> events_;
   std::unique_ptr<models::ModelRegistry> models_;

@@ -10,11 +10,10 @@ namespace vsm::server::exec {
 
 class WorkPool;
 
-/// A core::Executor over a WorkPool, for work that already runs on one of the pool's threads (a
-/// job lending its pool to the merge it runs): runAll runs the tasks on the calling thread and on
-/// up to `helpers` of the pool's threads that come free meanwhile. It never waits for a task no
-/// thread has started, so callers on every thread of the pool cannot deadlock; with the pool busy
-/// the caller runs every task itself.
+/// A core::Executor over a WorkPool of helpers (the one vsmd lends its jobs' operations): runAll
+/// runs the tasks on the calling thread and on up to `helpers` of the pool's threads that come
+/// free meanwhile. It never waits for a task no thread has started, so callers cannot deadlock,
+/// not even on the pool's own threads; with the pool busy the caller runs every task itself.
 ///
 /// Thread-safe: runAll may be called from several threads at once.
 class PoolExecutor final : public core::Executor {

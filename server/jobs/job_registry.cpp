@@ -100,10 +100,10 @@ struct JobRegistry::Job {
   std::string lane;  // empty: none
 };
 
-JobRegistry::JobRegistry(exec::WorkPool& pool, JobLimits limits)
+JobRegistry::JobRegistry(exec::WorkPool& pool, exec::WorkPool& helpers, JobLimits limits)
     : pool_(pool),
       executor_(
-          std::make_unique<exec::PoolExecutor>(pool, pool.threads() - 1, lowerThreadPriority)),
+          std::make_unique<exec::PoolExecutor>(helpers, helpers.threads(), lowerThreadPriority)),
       limits_(limits),
       idPrefix_(core::randomWord()) {}
 

@@ -77,7 +77,7 @@ class JobContext final : public core::Progress {
   /// The job's id (set before the work runs).
   const std::string& id() const { return id_; }
   /// Threads the operation may run its tasks on (core::MergeOptions::executor, ...): the job's
-  /// own and the job pool's threads that are free (exec::PoolExecutor).
+  /// own and the helper pool's threads that are free (exec::PoolExecutor).
   core::Executor& executor() const { return *executor_; }
 
  private:
@@ -115,8 +115,11 @@ struct JobLimits {
 /// runs or a callback is called.
 class JobRegistry {
  public:
-  /// `pool` must outlive the registry, and be joined before it is destroyed.
-  JobRegistry(exec::WorkPool& pool, JobLimits limits = {});
+  /// Jobs run on `pool`; the tasks they hand JobContext::executor() run on their own thread and
+  /// on `helpers`' free threads. `helpers` is a pool of its own: a job's tasks held up (a stalled
+  /// disk) then hold no thread another job needs. Both must outlive the registry, and be joined
+  /// before it is destroyed (`pool` first).
+  JobRegistry(exec::WorkPool& pool, exec::WorkPool& helpers, JobLimits limits = {});
   ~JobRegistry();
   JobRegistry(const JobRegistry&) = delete;
   JobRegistry& operator=(const JobRegistry&) = delete;
@@ -159,7 +162,7 @@ class JobRegistry {
   void tell(const JobStatus& status) const;
 
   exec::WorkPool& pool_;
-  /// Over pool_, lent to every job (JobContext::executor).
+  /// Over the helper pool, lent to every job (JobContext::executor).
   std::unique_ptr<exec::PoolExecutor> executor_;
   JobLimits limits_;
   std::function<void(const JobStatus&)> listener_;  // set before the first job

@@ -251,7 +251,8 @@ class ModelRoutes : public ::testing::Test {
   core::PatchCache cache_{64 * kMiB};
   models::ModelRegistry registry_{root_.path(), cache_};
   exec::WorkPool pool_{"jobs", 1};
-  jobs::JobRegistry jobs_{pool_};
+  exec::WorkPool helpers_{"job-helpers", 1};
+  jobs::JobRegistry jobs_{pool_, helpers_};
   http::Router router_;
   http::Pipeline pipeline_{router_, ""};
 };

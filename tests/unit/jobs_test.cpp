@@ -55,7 +55,8 @@ class Gate {
 
 TEST(JobRegistry, RunsAJobAndMapsStagesOntoOneRisingFraction) {
   exec::WorkPool pool("jobs", 1);
-  jobs::JobRegistry registry(pool);
+  exec::WorkPool helpers("job-helpers", 1);
+  jobs::JobRegistry registry(pool, helpers);
   Gate halfway;
   Gate resume;
   const auto job = registry.submit(
@@ -89,7 +90,8 @@ TEST(JobRegistry, RunsAJobAndMapsStagesOntoOneRisingFraction) {
 
 TEST(JobRegistry, CancelStopsQueuedJobsAtOnceAndRunningOnesAtTheirNextCheck) {
   exec::WorkPool pool("jobs", 1);
-  jobs::JobRegistry registry(pool);
+  exec::WorkPool helpers("job-helpers", 1);
+  jobs::JobRegistry registry(pool, helpers);
   Gate started;
   std::atomic<bool> secondRan{false};
   const auto first = registry.submit("test", json::object(), {}, [&](jobs::JobContext& context) {
@@ -120,7 +122,8 @@ TEST(JobRegistry, CancelStopsQueuedJobsAtOnceAndRunningOnesAtTheirNextCheck) {
 
 TEST(JobRegistry, FailuresKeepTheirCodeAndTheQueueIsBounded) {
   exec::WorkPool pool("jobs", 1);
-  jobs::JobRegistry registry(pool, {.active = 2, .finished = 1, .node = {}});
+  exec::WorkPool helpers("job-helpers", 1);
+  jobs::JobRegistry registry(pool, helpers, {.active = 2, .finished = 1, .node = {}});
   Gate gate;
   const auto failing = registry.submit("test", json::object(), {}, [&](jobs::JobContext&) -> json {
     gate.wait();
@@ -146,7 +149,8 @@ TEST(JobRegistry, FailuresKeepTheirCodeAndTheQueueIsBounded) {
 
 TEST(JobRegistry, InAClusterJobIdsNameTheNodeAndALostLeaseCancelsButStillTakesJobs) {
   exec::WorkPool pool("jobs", 1);
-  jobs::JobRegistry registry(pool, {.active = 4, .finished = 4, .node = "n2"});
+  exec::WorkPool helpers("job-helpers", 1);
+  jobs::JobRegistry registry(pool, helpers, {.active = 4, .finished = 4, .node = "n2"});
   Gate gate;
   const auto running = registry.submit("test", json::object(), {}, [&](jobs::JobContext& context) {
     gate.wait();
@@ -163,11 +167,49 @@ TEST(JobRegistry, InAClusterJobIdsNameTheNodeAndALostLeaseCancelsButStillTakesJo
   pool.join();
 }
 
+// A job's tasks that are held up (a stalled disk) hold its own thread and the helpers, never a
+// thread of the job pool another job needs: with them held, the next job runs and ends.
+TEST(JobRegistry, AJobsHeldTasksHoldNoThreadAnotherJobNeeds) {
+  exec::WorkPool pool("jobs", 2);
+  exec::WorkPool helpers("job-helpers", 1);
+  jobs::JobRegistry registry(pool, helpers);
+  std::mutex mutex;
+  std::condition_variable cv;
+  int held = 0;
+  bool released = false;
+  auto hold = [&] {
+    std::unique_lock lock(mutex);
+    ++held;
+    cv.notify_all();
+    cv.wait(lock, [&] { return released; });
+  };
+  const auto stalled = registry.submit("test", json::object(), {}, [&](jobs::JobContext& context) {
+    context.executor().runAll({hold, hold});
+    return json::object();
+  });
+  {
+    // A bound, not a wait for time to pass: both tasks start at once on an idle helper.
+    std::unique_lock lock(mutex);
+    ASSERT_TRUE(cv.wait_for(lock, 60s, [&] { return held == 2; }));
+  }
+  const auto next =
+      registry.submit("test", json::object(), {}, [](jobs::JobContext&) { return json::object(); });
+  EXPECT_EQ(waitFinal(registry, next.id).state, jobs::JobState::Succeeded);
+  EXPECT_EQ(registry.get(stalled.id).state, jobs::JobState::Running);
+  {
+    const std::lock_guard lock(mutex);
+    released = true;
+  }
+  cv.notify_all();
+  EXPECT_EQ(waitFinal(registry, stalled.id).state, jobs::JobState::Succeeded);
+  pool.join();
+  helpers.join();
+}
+
 // ---- the jobs' executor -----------------------------------------------------------------------
 
-// A job lends its pool to the operation it runs: tasks run on the job's thread and on the pool's
-// free ones at once. Two tasks that each wait for the other to have started can only finish on
-// two threads.
+// An operation's tasks run on the caller's thread and on the pool's free ones at once. Two tasks
+// that each wait for the other to have started can only finish on two threads.
 TEST(PoolExecutor, RunsTasksOnTheCallersThreadAndOnAFreeThreadOfThePoolAtOnce) {
   exec::WorkPool pool("jobs", 2);
   std::atomic<int> helperStarts{0};
