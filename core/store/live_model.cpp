@@ -76,10 +76,14 @@ std::map<std::uint64_t, fs::path> sweepLeftovers(const fs::path& dir, const std:
   std::map<std::string, fs::path, std::less<>> candidates;  // folder -> its path
   std::map<std::uint64_t, fs::path> kept;                   // revision -> its hierarchy file
   std::vector<fs::path> indexes;
+  // Folders named as their key, most of them: looked up at once, in key order, after the listing.
+  std::vector<PatchKey> plain;
   for (const auto& entry : fs::directory_iterator(patches)) {
     const std::string file = entry.path().filename().string();
     if (entry.is_directory()) {
-      if (!named.contains(file) && isOurFolderName(file)) {
+      if (const std::optional<PatchKey> key = NamedFolders::plainKey(file)) {
+        plain.push_back(*key);
+      } else if (!named.contains(file) && isOurFolderName(file)) {
         candidates.emplace(file, entry.path());
       }
     } else if (!entry.is_regular_file()) {
@@ -96,6 +100,13 @@ std::map<std::uint64_t, fs::path> sweepLeftovers(const fs::path& dir, const std:
       }
     }
   }
+  std::sort(plain.begin(), plain.end());
+  for (const PatchKey& key : named.unnamed(plain)) {
+    std::string folder = key.toString();
+    fs::path path = patches / folder;
+    candidates.emplace(std::move(folder), std::move(path));
+  }
+  plain = {};
   // Indexes of no kept hierarchy file.
   std::unordered_set<std::string> keptIndexes{indexFileName("patchhierarchy.xml")};
   for (const auto& [number, file] : kept) {

@@ -66,6 +66,36 @@ bool NamedFolders::contains(std::string_view folder) const {
   return others_.contains(std::string(folder));
 }
 
+std::vector<PatchKey> NamedFolders::unnamed(const std::vector<PatchKey>& keys) const {
+  std::vector<PatchKey> out;
+  const Model::Patches patches = model_.patches();
+  auto at = patches.begin();
+  char text[PatchKey::kMaxText];
+  char buffer[PatchKey::kMaxText];
+  for (const PatchKey& key : keys) {
+    while (at != patches.end() && (*at).first < key) {
+      ++at;
+    }
+    const std::string_view folder = key.toChars(text);
+    const bool named =
+        (at != patches.end() && (*at).first == key && (*at).second.folder(buffer) == folder) ||
+        others_.contains(std::string(folder));
+    if (!named) {
+      out.push_back(key);
+    }
+  }
+  return out;
+}
+
+std::optional<PatchKey> NamedFolders::plainKey(std::string_view folder) {
+  std::optional<PatchKey> key = PatchKey::parse(folder);
+  char text[PatchKey::kMaxText];
+  if (key && key->toChars(text) != folder) {
+    key.reset();
+  }
+  return key;
+}
+
 bool isOurFolderName(const std::string& name) {
   // Without a nonce: folders of edits made before nonces, still named by kept revisions.
   static const std::regex pattern("[0-9]+_[0-9]+_[0-9]+(-v[0-9]+(-[0-9a-f]{8})?)?");

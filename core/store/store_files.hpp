@@ -13,6 +13,7 @@
 #include <string>
 #include <string_view>
 #include <unordered_set>
+#include <vector>
 
 #include "core/opc/opc_reader.hpp"
 #include "core/pyramid/patch_key.hpp"
@@ -40,6 +41,12 @@ class NamedFolders {
  public:
   explicit NamedFolders(const Model& model);
   bool contains(std::string_view folder) const;
+  /// Of `keys`, sorted and each the key of a folder named exactly as the key's text ("10_3_7"),
+  /// those whose folder the model does not name: one pass over both in key order instead of a
+  /// lookup a folder (the sweep's 1.4 million at 10^6 patches).
+  std::vector<PatchKey> unnamed(const std::vector<PatchKey>& keys) const;
+  /// The key of a folder named exactly as that key's text; nullopt for any other name.
+  static std::optional<PatchKey> plainKey(std::string_view folder);
 
  private:
   const Model& model_;

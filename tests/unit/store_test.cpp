@@ -673,7 +673,8 @@ TEST_F(StoreTest, CacheFilesArePlainVsmNamesTheWriterReplacesAndReadersReadWithi
 }
 
 // A foreign OPC may name a patch's folder like another patch's key: the sweep, which looks our
-// names up by the key they start with, keeps them (and still removes a leftover).
+// names up by the key they start with, keeps them (and still removes leftovers, named as a key
+// or as a draft).
 TEST_F(StoreTest, RemovingLeftoversKeepsFoldersNamedLikeAnotherPatchsKey) {
   const fs::path patches = dir_ / "Patches";
   std::string text = test::readFile(patches / "patchhierarchy.xml");
@@ -693,6 +694,7 @@ TEST_F(StoreTest, RemovingLeftoversKeepsFoldersNamedLikeAnotherPatchsKey) {
   ASSERT_EQ(live->snapshot()->model->at({2, 1, 0}).folder(), "2_0_0");
   const std::set<std::string> named = folders(dir_);
   fs::create_directory(patches / "2_3_3-v9");
+  fs::create_directory(patches / "9_0_0");  // named as a key no patch has: a leftover as well
   live->removeLeftovers();
   EXPECT_EQ(folders(dir_), named);
 }
