@@ -139,6 +139,8 @@ derived() {  # sets layer and tileset: curl's total time for the writer's layer.
 }
 
 echo "scale bench: $(nproc) cores, load average $(cut -d' ' -f1-3 /proc/loadavg), $(date -u +%FT%TZ)"
+# The deployed units set GLIBC_TUNABLES (deploy/systemd/vsmd.service); vsmd inherits it from here.
+[[ -z ${GLIBC_TUNABLES:-} ]] || echo "GLIBC_TUNABLES=$GLIBC_TUNABLES"
 "$GEN" "$WORK/detail" 2 17 -98.49 33.49 0.75 >/dev/null
 printf '%-8s %9s %9s %7s %9s %9s %7s %s\n' patches info-full info ready-full rss-full ready rss \
   "merges (s, RSS MB after) / follow (s) / layer, tileset (s)"
