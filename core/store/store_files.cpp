@@ -56,14 +56,14 @@ NamedFolders::NamedFolders(const Model& model) : model_(model) {
 }
 
 bool NamedFolders::contains(std::string_view folder) const {
-  if (const std::optional<PatchKey> key = keyOfFolder(folder)) {
-    char buffer[PatchKey::kMaxText];
-    if (const PatchInfo* info = model_.find(*key);
-        info != nullptr && info->folder(buffer) == folder) {
-      return true;
-    }
-  }
-  return others_.contains(std::string(folder));
+  const std::optional<PatchKey> key = keyOfFolder(folder);
+  return names(key ? model_.find(*key) : nullptr, folder);
+}
+
+bool NamedFolders::names(const PatchInfo* atKey, std::string_view folder) const {
+  char buffer[PatchKey::kMaxText];
+  return (atKey != nullptr && atKey->folder(buffer) == folder) ||
+         others_.contains(std::string(folder));
 }
 
 std::vector<PatchKey> NamedFolders::unnamed(const std::vector<PatchKey>& keys) const {
@@ -71,16 +71,12 @@ std::vector<PatchKey> NamedFolders::unnamed(const std::vector<PatchKey>& keys) c
   const Model::Patches patches = model_.patches();
   auto at = patches.begin();
   char text[PatchKey::kMaxText];
-  char buffer[PatchKey::kMaxText];
   for (const PatchKey& key : keys) {
     while (at != patches.end() && (*at).first < key) {
       ++at;
     }
-    const std::string_view folder = key.toChars(text);
-    const bool named =
-        (at != patches.end() && (*at).first == key && (*at).second.folder(buffer) == folder) ||
-        others_.contains(std::string(folder));
-    if (!named) {
+    const bool found = at != patches.end() && (*at).first == key;
+    if (!names(found ? &(*at).second : nullptr, key.toChars(text))) {
       out.push_back(key);
     }
   }

@@ -49,6 +49,10 @@ class NamedFolders {
   static std::optional<PatchKey> plainKey(std::string_view folder);
 
  private:
+  /// Whether `folder` is named: by `atKey`, the patch at the key the name starts with (null for
+  /// none), or by another patch (others_).
+  bool names(const PatchInfo* atKey, std::string_view folder) const;
+
   const Model& model_;
   std::unordered_set<std::string> others_;
 };
