@@ -89,8 +89,17 @@ inline constexpr std::size_t kIndexDeltaShare = 8;
 
 /// The index files of a publish: a new base (or none) and the index beside the hierarchy.
 struct StagedIndex {
+  /// A new base written whole; or null.
   std::unique_ptr<durable::PendingFile> base;
+  /// Or the current index, a full one, that becomes the new base `adoptedAs` by a hard link (a
+  /// copy where the file system has none); empty paths when not.
+  std::filesystem::path adopted;
+  std::filesystem::path adoptedAs;
   std::unique_ptr<durable::PendingFile> index;
+
+  /// Puts the new base, if any, in place and syncs its directory: durable before `index`, which
+  /// names it, is committed. Throws Error(Io).
+  void commitBase() const;
 };
 
 /// Stages the index of the hierarchy `hierarchyFile` (staged under its temporary name: the stamp
@@ -98,9 +107,13 @@ struct StagedIndex {
 /// Patches/patchhierarchy.vsmidx: a delta over the base the current index builds on (when it is a
 /// delta describing `replaced`, the hierarchy the publish replaces, and its base is there), with
 /// the patches that differ from that base (those it recorded, and `changed`, `removed`) while they
-/// stay within 1/kIndexDeltaShare of the model; else a new base, Patches/`baseName` (a full
-/// index), and an empty delta over it. The caller commits the base and syncs Patches/ first, then
-/// the index just before the hierarchy, and syncs Patches/ after both. Throws Error(Io).
+/// stay within 1/kIndexDeltaShare of the model. When the current index is a whole full index of
+/// `replaced` (`vsm index`, a generator), it becomes the base Patches/`baseName` as it is, with a
+/// delta of `changed` and `removed` (never larger than a new base): a million-patch model's first
+/// publish writes no 250 MB base. Else a new base,
+/// Patches/`baseName` (a full index), and an empty delta over it. The caller commits the base
+/// (commitBase) first, then the index just before the hierarchy, and syncs Patches/ after both.
+/// Throws Error(Io).
 StagedIndex stagePublishedIndex(
     const std::filesystem::path& dir, const std::filesystem::path& hierarchyFile,
     const Model& model, const RevisionRecord& record, const std::vector<RetiredFolder>& retired,

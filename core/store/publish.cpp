@@ -155,11 +155,8 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   const StagedIndex index = stagePublishedIndex(
       live_.dir_, hierarchy->staged(), *model_, snapshot->revision, retired, changed_, removed_,
       replacedStamp, "vsm-index-base-" + std::to_string(version) + "-" + nonce_ + ".vsmidx");
-  if (index.base) {
-    // Durable before any index names it (a lost rename would leave a delta without its base).
-    index.base->commit();
-    durable::syncDirectory(patches);
-  }
+  // Durable before any index names it (a lost rename would leave a delta without its base).
+  index.commitBase();
   // The new version's metadata is the edit's own, shared, not copied (10^5 patches: tens of MB
   // and a tenth of a second): nothing changes it after the commit point (requireOpen).
   snapshot->model = model_;

@@ -33,6 +33,7 @@
 #               GETs both after opening and after each merge, so each new version's are made
 #               knowing the previous version's; the first version's (made from nothing) are
 #               printed below the row;
+#   medians     of the merges, follows, layers and tilesets over the N merges, below the row;
 #   restart     the writer started again after the merges: its first layer.json and tileset.json,
 #               the layer from the footprints the first process saved (Patches/
 #               vsm-terrain-footprints.bin) and the patches changed since, printed below the row.
@@ -190,6 +191,7 @@ for depth in $DEPTHS; do
   merges=""
   polled=""
   follows=""
+  merge_s=() follow_s=() layer_s=() tileset_s=()
   for i in $(seq "$MERGES"); do
     t0=$(now)
     job=$(api "$wurl" POST /v1/jobs "{\"type\":\"merge\",\"target\":\"$name\",\"source\":\"detail\"}" |
@@ -207,13 +209,20 @@ for depth in $DEPTHS; do
     status=$(api "$wurl" GET "/v1/jobs/$job")
     created=$(date -d "$(stamp created_at <<<"$status")" +%s.%N)
     finished=$(date -d "$(stamp finished_at <<<"$status")" +%s.%N)
-    merges+="$(elapsed "$created" "$finished")/$(rss_mb "$wpid") "
+    merge_s+=("$(elapsed "$created" "$finished")")
+    follow_s+=("$(elapsed "$finished" "$t2")")
+    merges+="${merge_s[-1]}/$(rss_mb "$wpid") "
     polled+="$(elapsed "$t0" "$t1") "
-    follows+="$(elapsed "$finished" "$t2") "
+    follows+="${follow_s[-1]} "
     derived
+    layer_s+=("$layer")
+    tileset_s+=("$tileset")
   done
   printf '%-8s %9s %9s %7s %9s %9s %7s %s/ %s/ %s, %s\n' "$patches" "$info_full" "$info_idx" \
     "$ready_full" "$rss_full" "$ready" "$rss" "$merges" "$follows" "$layer" "$tileset"
+  echo "         (medians over the $MERGES merges: merge $(printf '%s\n' "${merge_s[@]}" | median) s," \
+    "follow $(printf '%s\n' "${follow_s[@]}" | median) s, layer $(printf '%s\n' "${layer_s[@]}" |
+    median) s, tileset $(printf '%s\n' "${tileset_s[@]}" | median) s)"
   echo "         (the first version's layer, tileset: $first_docs s; writer RSS settled: $rss_settled MB)"
   echo "         (merges as polled: $polled)"
   echo "         (generated in ${gen_s} s; the replica's reopen: $(grep -o \

@@ -33,15 +33,23 @@ class Scenario:
 
 
 class CliMerge(Scenario):
-    def __init__(self, name, work, target, detail, outside):
+    """A merge into a copy of `target`; `indexed`: the copy gets a full index (`vsm index`), which
+    the publish adopts as its delta base (a copy's hierarchy has another inode, so the target's
+    own index would be stale)."""
+
+    def __init__(self, name, work, target, detail, outside, indexed=False):
         super().__init__(name, work)
         self.target, self.detail, self.outside = target, detail, outside
+        self.indexed = indexed
         self.copy = os.path.join(self.run_dir, "target")
         self.old = version_of(target)
 
     def reset(self):
         super().reset()
         shutil.copytree(self.target, self.copy)
+        if self.indexed:
+            subprocess.run([harness.VSM, "index", self.copy], check=True,
+                           stdout=subprocess.DEVNULL, timeout=60)
 
     def command(self):
         return [harness.VSM, "merge", self.copy, self.detail]
@@ -78,8 +86,8 @@ class CliImport(CliMerge):
 
 
 class DaemonMerge(CliMerge):
-    def __init__(self, name, work, target, detail, outside):
-        super().__init__(name, work, target, detail, outside)
+    def __init__(self, name, work, target, detail, outside, indexed=False):
+        super().__init__(name, work, target, detail, outside, indexed)
         self.root = self.run_dir
         self.log = os.path.join(self.work, "vsmd.log")
 

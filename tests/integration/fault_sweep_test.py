@@ -11,6 +11,8 @@ Jacksboro DEM as the detail, 17 x 17 patches):
 - merge: `vsm merge` in place;
 - textured: `vsm merge` in place of models imported with the NASA image;
 - vsmd: a merge job submitted to the real vsmd over HTTP, the library preloaded into vsmd.
+The merge and vsmd targets carry a full index (`vsm index`), which their publish adopts as the base
+of its delta index by a hard link; the textured target has none, so its publish writes a new base.
 
 For each: one run without a fault records every counted call (class, index, path) and the commit
 point (the rename of the new hierarchy, or of the import's staging directory). Then a run per
@@ -210,9 +212,9 @@ class FaultSweep(unittest.TestCase):
         outside = make_outside_model(ARGS.vsm, inputs, PATCH)
         scenarios = {
             "import": lambda: CliImport("import", work, detail_tif, outside),
-            "merge": lambda: CliMerge("merge", work, target, detail, outside),
+            "merge": lambda: CliMerge("merge", work, target, detail, outside, indexed=True),
             "textured": lambda: CliMerge("textured", work, ttarget, tdetail, outside),
-            "vsmd": lambda: DaemonMerge("vsmd", work, target, detail, outside),
+            "vsmd": lambda: DaemonMerge("vsmd", work, target, detail, outside, indexed=True),
         }
         failures, totals = [], []
         for name in ARGS.scenarios.split(","):

@@ -1,5 +1,7 @@
 #include <gtest/gtest.h>
 
+#include <sys/stat.h>
+
 #include <algorithm>
 #include <cmath>
 #include <cstring>
@@ -1508,6 +1510,66 @@ TEST_F(StoreTest, PublishesWriteDeltasOverABaseAndANewBaseWhenTheChangeGrows) {
   auto reopened = LiveModel::open(dir_, "m", cache);
   EXPECT_TRUE(readOpcIndex(dir_).has_value()) << "opening removed a base in use";
   EXPECT_TRUE(validateOpc(dir_).empty());
+}
+
+// A full index (`vsm index`, a generator) becomes the first publish's base as it is, a hard link
+// of the same file, not a new one written whole; a damaged one is not adopted.
+TEST_F(StoreTest, AFirstPublishOverAFullIndexAdoptsItAsItsBase) {
+  writeModel(dir_, false, 3);  // 85 patches
+  ASSERT_EQ(writeOpcIndex(dir_), 85u);
+  const fs::path patches = dir_ / "Patches";
+  const fs::path current = patches / "patchhierarchy.vsmidx";
+  const auto inodeOf = [](const fs::path& file) {
+    struct stat st {};
+    EXPECT_EQ(::stat(file.c_str(), &st), 0) << file;
+    return st.st_ino;
+  };
+  const auto fullIndex = inodeOf(current);
+  const auto fullSize = fs::file_size(current);
+  PatchCache cache(64 << 20);
+  {
+    auto live = LiveModel::open(dir_, "m", cache);
+    publishLeaf(*live, {3, 0, 0}, 1.0, 3);
+    const std::optional<IndexBase> base = readIndexBase(current);
+    ASSERT_TRUE(base.has_value()) << "the index is a delta now";
+    EXPECT_EQ(inodeOf(patches / base->name), fullIndex) << "the full index itself, not a copy";
+    EXPECT_EQ(base->size, fullSize);
+    EXPECT_LT(fs::file_size(current) * 4, fullSize);
+    ASSERT_TRUE(readOpcIndex(dir_).has_value());
+    expectSameModel(*readOpcIndex(dir_), fullRead(dir_));
+    publishLeaf(*live, {3, 7, 7}, 2.0, 3);  // still a delta over it
+    EXPECT_EQ(readIndexBase(current)->name, base->name);
+    ASSERT_TRUE(readOpcIndex(dir_).has_value());
+    expectSameModel(*readOpcIndex(dir_), fullRead(dir_));
+    for (const RevisionSummary& r : live->revisions()) {
+      if (!r.latest) {
+        const std::optional<OpcRevision> kept = readOpcIndex(dir_, revisionFileName(r.number));
+        ASSERT_TRUE(kept.has_value()) << r.number;
+        expectSameModel(*kept, fullRead(dir_, revisionFileName(r.number)));
+      }
+    }
+  }
+  auto reopened = LiveModel::open(dir_, "m", cache, LiveModel::Access::Read);
+  expectSameModel(OpcRevision{*reopened->snapshot()->model, reopened->snapshot()->revision},
+                  fullRead(dir_));
+  EXPECT_TRUE(validateOpc(dir_).empty());
+
+  // A full index whose checksum fails: a new base, written whole.
+  reopened.reset();
+  ASSERT_EQ(writeOpcIndex(dir_), 85u);
+  {
+    std::fstream f(current, std::ios::in | std::ios::out | std::ios::binary);
+    f.seekp(static_cast<std::streamoff>(fs::file_size(current) / 2));
+    f.put('\x5a');
+  }
+  const auto damaged = inodeOf(current);
+  auto live = LiveModel::open(dir_, "m", cache);  // reads the hierarchy in full
+  publishLeaf(*live, {3, 1, 1}, 3.0, 3);
+  const std::optional<IndexBase> fresh = readIndexBase(current);
+  ASSERT_TRUE(fresh.has_value());
+  EXPECT_NE(inodeOf(patches / fresh->name), damaged);
+  ASSERT_TRUE(readOpcIndex(dir_).has_value());
+  expectSameModel(*readOpcIndex(dir_), fullRead(dir_));
 }
 
 // A reading opening keeps the index base it decoded: read again after another small publish over
