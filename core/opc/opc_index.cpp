@@ -668,8 +668,9 @@ std::optional<OpcRevision> decodeOpcIndexDelta(std::span<const std::byte> delta,
 std::shared_ptr<const Model> IndexBaseMemo::find(const IndexBase& base,
                                                  std::uint64_t* digest) const {
   std::lock_guard lock(mutex_);
-  const bool same =
-      base.name == base_.name && base.size == base_.size && base.checksum == base_.checksum;
+  // By its bytes (size and checksum), not its name: an adopted base is the full index a reader
+  // may have opened from, under another name.
+  const bool same = model_ != nullptr && base.size == base_.size && base.checksum == base_.checksum;
   if (same && digest != nullptr) {
     *digest = digest_;
   }
@@ -708,7 +709,15 @@ std::optional<OpcRevision> readIndexOf(const fs::path& hierarchyFile, const fs::
     const HierarchyStamp stamp = fileStamp(hierarchyFile);
     const MappedIndex mapped(index);
     if (formatOf(mapped.bytes()) != kDeltaFormat) {
-      return decodeOpcIndex(mapped.bytes(), stamp);
+      std::optional<OpcRevision> full = decodeOpcIndex(mapped.bytes(), stamp);
+      if (full && memo != nullptr) {
+        // Kept as a base: the next publish adopts this index as its base (stagePublishedIndex),
+        // so the reader's next read applies the delta alone. The copy shares the chunks.
+        full->digest =
+            memo->keep(IndexBase{{}, mapped.bytes().size(), trailingChecksum(mapped.bytes())},
+                       std::make_shared<const Model>(full->model));
+      }
+      return full;
     }
     std::optional<Delta> delta = decodeDelta(mapped.bytes(), &stamp);
     if (!delta) {

@@ -164,14 +164,15 @@ std::optional<IndexedRevision> decodeOpcIndexHead(std::span<const std::byte> byt
 /// unreadable, damaged, or written before heads had a checksum: the caller reads the hierarchy).
 std::optional<IndexedRevision> readIndexedRevision(const std::filesystem::path& hierarchyFile);
 
-/// The last base of delta indexes a reader decoded, kept so that the next index over the same base
-/// (a replica following small publishes: LiveModel::reopen) decodes only its delta: its model
-/// is a copy of the base's, sharing the base's chunks and nodes wherever the delta does not reach
-/// (so keeping the base costs the patches its deltas replaced). Thread-safe.
+/// The last base of delta indexes a reader decoded (or the full index it read, which the next
+/// publish adopts as its base), kept so that the next index over the same base (a replica
+/// following small publishes: LiveModel::reopen) decodes only its delta: its model is a copy of
+/// the base's, sharing the base's chunks and nodes wherever the delta does not reach (so keeping
+/// the base costs the patches its deltas replaced). Thread-safe.
 class IndexBaseMemo {
  public:
-  /// The model of `base` when it is the one kept (name, size and checksum), with its
-  /// modelDigest in `digest` (when not null); null otherwise.
+  /// The model of `base` when it is the one kept (by size and checksum, whatever its name), with
+  /// its modelDigest in `digest` (when not null); null otherwise.
   std::shared_ptr<const Model> find(const IndexBase& base, std::uint64_t* digest = nullptr) const;
   /// Keeps `model` as the model of `base`, in place of the one kept before, with its digest
   /// (modelDigest: computed here, once a base, so that each model read over it gets its own from

@@ -1515,8 +1515,8 @@ TEST_F(StoreTest, PublishesWriteDeltasOverABaseAndANewBaseWhenTheChangeGrows) {
 // A full index (`vsm index`, a generator) becomes the first publish's base as it is, a hard link
 // of the same file, not a new one written whole; a damaged one is not adopted.
 TEST_F(StoreTest, AFirstPublishOverAFullIndexAdoptsItAsItsBase) {
-  writeModel(dir_, false, 3);  // 85 patches
-  ASSERT_EQ(writeOpcIndex(dir_), 85u);
+  writeModel(dir_, false, 5);  // 1,365 patches, six chunks
+  ASSERT_EQ(writeOpcIndex(dir_), 1365u);
   const fs::path patches = dir_ / "Patches";
   const fs::path current = patches / "patchhierarchy.vsmidx";
   const auto inodeOf = [](const fs::path& file) {
@@ -1527,9 +1527,20 @@ TEST_F(StoreTest, AFirstPublishOverAFullIndexAdoptsItAsItsBase) {
   const auto fullIndex = inodeOf(current);
   const auto fullSize = fs::file_size(current);
   PatchCache cache(64 << 20);
+  // A replica opened from the full index follows the adopting publish by the delta alone: its new
+  // model shares every chunk the change does not reach with the one it opened.
+  auto reader = LiveModel::open(dir_, "r", cache, LiveModel::Access::Read);
   {
     auto live = LiveModel::open(dir_, "m", cache);
-    publishLeaf(*live, {3, 0, 0}, 1.0, 3);
+    publishLeaf(*live, {5, 0, 0}, 1.0, 3);
+    const auto before = reader->snapshot();
+    const auto after = reader->reopen()->snapshot();
+    expectSameModel(OpcRevision{*after->model, after->revision}, fullRead(dir_));
+    EXPECT_EQ(after->digest, modelDigest(*after->model));
+    const std::size_t touched =
+        test::patchesInChunksOf(*after->model, test::withAncestors({5, 0, 0}));
+    EXPECT_LT(touched, 1365u - 256u);
+    EXPECT_EQ(test::sharedPatches(*before->model, *after->model), 1365u - touched);
     const std::optional<IndexBase> base = readIndexBase(current);
     ASSERT_TRUE(base.has_value()) << "the index is a delta now";
     EXPECT_EQ(inodeOf(patches / base->name), fullIndex) << "the full index itself, not a copy";
@@ -1537,7 +1548,7 @@ TEST_F(StoreTest, AFirstPublishOverAFullIndexAdoptsItAsItsBase) {
     EXPECT_LT(fs::file_size(current) * 4, fullSize);
     ASSERT_TRUE(readOpcIndex(dir_).has_value());
     expectSameModel(*readOpcIndex(dir_), fullRead(dir_));
-    publishLeaf(*live, {3, 7, 7}, 2.0, 3);  // still a delta over it
+    publishLeaf(*live, {5, 31, 31}, 2.0, 3);  // still a delta over it
     EXPECT_EQ(readIndexBase(current)->name, base->name);
     ASSERT_TRUE(readOpcIndex(dir_).has_value());
     expectSameModel(*readOpcIndex(dir_), fullRead(dir_));
@@ -1556,7 +1567,7 @@ TEST_F(StoreTest, AFirstPublishOverAFullIndexAdoptsItAsItsBase) {
 
   // A full index whose checksum fails: a new base, written whole.
   reopened.reset();
-  ASSERT_EQ(writeOpcIndex(dir_), 85u);
+  ASSERT_EQ(writeOpcIndex(dir_), 1365u);
   {
     std::fstream f(current, std::ios::in | std::ios::out | std::ios::binary);
     f.seekp(static_cast<std::streamoff>(fs::file_size(current) / 2));
@@ -1564,7 +1575,7 @@ TEST_F(StoreTest, AFirstPublishOverAFullIndexAdoptsItAsItsBase) {
   }
   const auto damaged = inodeOf(current);
   auto live = LiveModel::open(dir_, "m", cache);  // reads the hierarchy in full
-  publishLeaf(*live, {3, 1, 1}, 3.0, 3);
+  publishLeaf(*live, {5, 1, 1}, 3.0, 3);
   const std::optional<IndexBase> fresh = readIndexBase(current);
   ASSERT_TRUE(fresh.has_value());
   EXPECT_NE(inodeOf(patches / fresh->name), damaged);
