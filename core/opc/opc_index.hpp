@@ -110,10 +110,9 @@ struct StagedIndex {
 /// stay within 1/kIndexDeltaShare of the model. When the current index is a whole full index of
 /// `replaced` (`vsm index`, a generator), it becomes the base Patches/`baseName` as it is, with a
 /// delta of `changed` and `removed` (never larger than a new base): a million-patch model's first
-/// publish writes no 250 MB base. Else a new base,
-/// Patches/`baseName` (a full index), and an empty delta over it. The caller commits the base
-/// (commitBase) first, then the index just before the hierarchy, and syncs Patches/ after both.
-/// Throws Error(Io).
+/// publish writes no 250 MB base. Else a new base, Patches/`baseName` (a full index), and an
+/// empty delta over it. The caller commits the base (commitBase) first, then the index just
+/// before the hierarchy, and syncs Patches/ after both. Throws Error(Io).
 StagedIndex stagePublishedIndex(
     const std::filesystem::path& dir, const std::filesystem::path& hierarchyFile,
     const Model& model, const RevisionRecord& record, const std::vector<RetiredFolder>& retired,
