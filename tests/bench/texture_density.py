@@ -33,6 +33,7 @@ from osgeo import gdal
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "integration"))
 from check_import import read_hierarchy  # noqa: E402
+from harness import bilinear  # noqa: E402
 
 gdal.UseExceptions()
 
@@ -101,16 +102,6 @@ def luminance(rgb):
     return 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]
 
 
-def bilinear(img, x, y):
-    """`img` (bands, rows, cols) at fractional pixel-centre coordinates x, y (arrays)."""
-    x0 = np.clip(np.floor(x).astype(int), 0, img.shape[2] - 2)
-    y0 = np.clip(np.floor(y).astype(int), 0, img.shape[1] - 2)
-    fx = np.clip(x - x0, 0, 1)
-    fy = np.clip(y - y0, 0, 1)
-    return (img[:, y0, x0] * (1 - fx) * (1 - fy) + img[:, y0, x0 + 1] * fx * (1 - fy) +
-            img[:, y0 + 1, x0] * (1 - fx) * fy + img[:, y0 + 1, x0 + 1] * fx * fy)
-
-
 def measure(opc, dem_path, image_path, n):
     leaves = leaves_by_key(opc)
     depth = max(k[0] for k in leaves)
@@ -141,9 +132,8 @@ def measure(opc, dem_path, image_path, n):
     sy = (lat - dgt[3]) / dgt[5] - 0.5
     inside_x = (sx >= 0) & (sx <= dem.RasterXSize - 1)
     inside_y = (sy >= 0) & (sy <= dem.RasterYSize - 1)
-    mx = sx * per_quad - 0.5
-    my = sy * per_quad - 0.5
-    gx, gy = np.meshgrid(mx, my)
+    # In the mosaic's pixel-edge coordinates (harness.bilinear's).
+    gx, gy = np.meshgrid(sx * per_quad, sy * per_quad)
     sampled = bilinear(mosaic, gx, gy)
     covered = (sampled[3] > 254) & inside_y[:, None] & inside_x[None, :]
     # Density: opaque texels over the DEM's area per image pixel over it.

@@ -30,6 +30,8 @@ import time
 import unittest
 import urllib.parse
 
+import numpy as np
+
 # The binaries and the proto directory, from configure(): a test's command line names them.
 VSMD = None
 VSM = None
@@ -416,14 +418,15 @@ def read_raster(path):
 
 
 def bilinear(image, x, y):
-    """image (bands, rows, cols) at pixel-edge coordinates (x, y): bilinear between centres."""
-    cx, cy = x - 0.5, y - 0.5
-    x0, y0 = math.floor(cx), math.floor(cy)
+    """image (bands, rows, cols) at pixel-edge coordinates (x, y), numbers or arrays of one shape:
+    bilinear between centres, the edge pixels beyond them."""
+    cx, cy = np.asarray(x, dtype=float) - 0.5, np.asarray(y, dtype=float) - 0.5
+    x0, y0 = np.floor(cx).astype(int), np.floor(cy).astype(int)
     fx, fy = cx - x0, cy - y0
     rows, cols = image.shape[1], image.shape[2]
 
     def px(i, j):
-        return image[:, min(max(j, 0), rows - 1), min(max(i, 0), cols - 1)].astype(float)
+        return image[:, np.clip(j, 0, rows - 1), np.clip(i, 0, cols - 1)].astype(float)
 
     return ((1 - fy) * ((1 - fx) * px(x0, y0) + fx * px(x0 + 1, y0))
             + fy * ((1 - fx) * px(x0, y0 + 1) + fx * px(x0 + 1, y0 + 1)))
