@@ -11,7 +11,7 @@ a fixed-seed texture of +-40 per channel added per pixel so that it has detail a
 (the NASA image alone is 19 km a pixel, smooth at these scales). The image covers the DEM's grid
 quads, from its first sample centre to its last, so that at F = 1 a pixel is a quad. `vsm import
 dem model --texture image --patch-size N` makes the model; then, with GDAL's Python bindings and
-the hierarchy's XML only:
+the import checker's OPC reader (tests/integration/check_import.py) only:
 - the leaves' tiles are laid out as one mosaic (a leaf's key from its place in the hierarchy;
   texel (i, j) of leaf (x, y) with tiles of T texels covers DEM sample coordinates
   x * (N - 1) + (i + 0.5) * (N - 1) / T);
@@ -32,7 +32,7 @@ import numpy as np
 from osgeo import gdal
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "integration"))
-from check_import import read_hierarchy  # noqa: E402
+from check_import import Failures, read_hierarchy, walk  # noqa: E402
 from harness import bilinear  # noqa: E402
 
 gdal.UseExceptions()
@@ -70,22 +70,14 @@ def make_pair(data, work, factor):
 
 
 def leaves_by_key(opc):
-    """{(depth, x, y): folder} of the leaves, keys from their places in the hierarchy."""
+    """{(depth, x, y): folder} of the leaves, keys from their places in the hierarchy (the
+    import checker's walk, which also checks each patch's files)."""
     patches, root, children = read_hierarchy(opc)
-    offsets = {"nw": (0, 0), "ne": (1, 0), "sw": (0, 1), "se": (1, 1)}
-    keys, stack, leaves = {root: (0, 0, 0)}, [root], {}
-    while stack:
-        folder = stack.pop()
-        depth, x, y = keys[folder]
-        kids = children.get(folder)
-        if not kids:
-            leaves[(depth, x, y)] = folder
-            continue
-        for quadrant, child in kids.items():
-            dx, dy = offsets[quadrant]
-            keys[child] = (depth + 1, 2 * x + dx, 2 * y + dy)
-            stack.append(child)
-    return leaves
+    failures = Failures()
+    walked = walk(patches, root, children, failures)
+    if failures.count:
+        sys.exit("%s: %s" % (opc, "; ".join(failures.items)))
+    return {key: patch.folder for key, patch in walked.items() if patch.folder not in children}
 
 
 def box_mean(a, k):
@@ -123,7 +115,7 @@ def measure(opc, dem_path, image_path, n):
     igt = img.GetGeoTransform()
     image = img.ReadAsArray().astype(float)
     # Image pixel centres -> DEM sample coordinates (sample centres at lon = w + (s + 0.5) * dx)
-    # -> mosaic texel-centre coordinates.
+    # -> the mosaic's pixel-edge coordinates (harness.bilinear's): a DEM quad is per_quad texels.
     cols = np.arange(img.RasterXSize)
     rows = np.arange(img.RasterYSize)
     lon = igt[0] + (cols + 0.5) * igt[1]
@@ -132,7 +124,6 @@ def measure(opc, dem_path, image_path, n):
     sy = (lat - dgt[3]) / dgt[5] - 0.5
     inside_x = (sx >= 0) & (sx <= dem.RasterXSize - 1)
     inside_y = (sy >= 0) & (sy <= dem.RasterYSize - 1)
-    # In the mosaic's pixel-edge coordinates (harness.bilinear's).
     gx, gy = np.meshgrid(sx * per_quad, sy * per_quad)
     sampled = bilinear(mosaic, gx, gy)
     covered = (sampled[3] > 254) & inside_y[:, None] & inside_x[None, :]
