@@ -38,6 +38,55 @@ std::vector<float> textureCoordinates(int gridSize, int x0, int y0, int width, i
   return out;
 }
 
+int texelsPerQuadOf(int tileSize, int gridSize) {
+  const int quads = gridSize - 1;
+  if (quads < 1 || tileSize < quads || tileSize % quads != 0) {
+    return 0;
+  }
+  const int f = tileSize / quads;
+  return (f & (f - 1)) == 0 ? f : 0;
+}
+
+TextureTile resizeTile(const TextureTile& tile, int size) {
+  const int from = tile.size();
+  const int big = std::max(from, size);
+  const int small = std::min(from, size);
+  const int ratio = big / small;
+  if (big % small != 0 || (ratio & (ratio - 1)) != 0) {
+    throw Error(ErrorCode::InvalidArgument, "cannot resize a texture tile of " +
+                                                std::to_string(from) + " texels to " +
+                                                std::to_string(size));
+  }
+  TextureTile out(size);
+  if (size > from) {
+    // New texel (i, j) is centred at ((i + 0.5) / ratio - 0.5, ...) in the old texel centres.
+    for (int j = 0; j < size; ++j) {
+      const double y = (j + 0.5) / ratio - 0.5;
+      for (int i = 0; i < size; ++i) {
+        const std::array<std::uint8_t, 4> colour = sampleBilinear(tile, (i + 0.5) / ratio - 0.5, y);
+        std::copy(colour.begin(), colour.end(), out.at(i, j));
+      }
+    }
+    return out;
+  }
+  const int area = ratio * ratio;
+  for (int j = 0; j < size; ++j) {
+    for (int i = 0; i < size; ++i) {
+      int sum[TextureTile::kChannels] = {0, 0, 0, 0};
+      for (int y = j * ratio; y < (j + 1) * ratio; ++y) {
+        const std::uint8_t* row = tile.at(i * ratio, y);
+        for (int x = 0; x < ratio * TextureTile::kChannels; ++x) {
+          sum[x % TextureTile::kChannels] += row[x];
+        }
+      }
+      for (int c = 0; c < TextureTile::kChannels; ++c) {
+        out.at(i, j)[c] = static_cast<std::uint8_t>((sum[c] + area / 2) / area);
+      }
+    }
+  }
+  return out;
+}
+
 TextureTile downsampleQuadrants(const std::array<const TextureTile*, 4>& children, int size) {
   TextureTile parent(size);
   const int half = size / 2;

@@ -9,10 +9,12 @@
 namespace vsm::core {
 
 /// The texture image of one patch: size x size RGBA 8-bit texels, row-major, row 0 the top
-/// (north) row. Texel (i, j) covers the grid quad between vertices (i, j) and (i + 1, j + 1) of a
-/// patch of size + 1 vertices per side, so vertex (x, y) sits at texture coordinate
-/// (x / size, y / size) (textureCoordinate) and a parent's texel covers exactly 2 x 2 texels of one
-/// child. Alpha 0 marks texels the image does not cover.
+/// (north) row. A patch of g vertices per side has f x f texels per grid quad (f a power of two,
+/// the tile size (g - 1) f, textureTileSize): texel (i, j) covers the part of the patch between
+/// vertex coordinates (i / f, j / f) and ((i + 1) / f, (j + 1) / f), so vertex (x, y) sits at
+/// texture coordinate (x / (g - 1), y / (g - 1)) (textureCoordinate) whatever f, and a parent's
+/// texel covers exactly 2 x 2 texels of one child of the same f. Alpha 0 marks texels the image
+/// does not cover.
 ///
 /// Not thread-safe for writing; tiles are passed by value or unique_ptr between build steps.
 class TextureTile {
@@ -44,11 +46,28 @@ class TextureTile {
   std::vector<std::uint8_t> texels_;
 };
 
-/// The texture tile size of patches of `gridSize` vertices per side: one texel per grid quad
-/// (256 x 256 for 257 x 257 grids).
-inline int textureTileSize(int gridSize) {
-  return gridSize - 1;
+/// The largest texture tile an import or a merge makes: 4096 x 4096 texels (64 MiB as RGBA, in
+/// memory; the cache charges a tile's real size).
+inline constexpr int kMaxTextureTileSize = 4096;
+
+/// The texture tile size of patches of `gridSize` vertices per side with `texelsPerQuad` texels per
+/// grid quad side (a power of two): 256 x 256 for 257 x 257 grids at one texel per quad, 1024 x
+/// 1024 at four.
+inline int textureTileSize(int gridSize, int texelsPerQuad = 1) {
+  return (gridSize - 1) * texelsPerQuad;
 }
+
+/// The texels per grid quad side of a tile `tileSize` texels wide on patches of `gridSize`
+/// vertices: the power of two f with tileSize == (gridSize - 1) * f; 0 when there is none (a
+/// foreign tile in another layout, which vsm does not place).
+int texelsPerQuadOf(int tileSize, int gridSize);
+
+/// `tile` at `size` texels a side, size / tile.size() a power of two (or its inverse): smaller by
+/// box filtering (the rounded mean of each block of texels, alpha included, as
+/// downsampleQuadrants), larger by bilinear filtering (sampleBilinear at the new texels' centres,
+/// so transparent texels stay out of the colours); the same size returns a copy. Throws
+/// Error(InvalidArgument) for any other ratio.
+TextureTile resizeTile(const TextureTile& tile, int size);
 
 /// The texture coordinate of vertex index `x` (or `y`) of a grid of `gridSize` vertices: its
 /// position across the tile, 0 at the first vertex and 1 at the last (v = 0 is the top row).

@@ -68,6 +68,12 @@ struct ImportOptions {
   Drape drape = Drape::ShadedRelief;
   /// The image of Drape::Image (and only then not empty).
   std::filesystem::path texture;
+  /// Texels per grid quad side of every tile (a power of two, the tiles (patchSize - 1) times
+  /// as many texels a side, at most kMaxTextureTileSize); 0 chooses: for an image, the power of two
+  /// that keeps every image pixel (its pixel size against the grid's spacing at the grid's centre,
+  /// rounded up past a 5 % tolerance), capped by kMaxTextureTileSize; for the relief, 1. Must be 0
+  /// with Drape::None.
+  int texelsPerQuad = 0;
 };
 
 /// Builds the full pyramid of `source` (bottom patches with one line of overlap, padded with
@@ -77,9 +83,9 @@ struct ImportOptions {
 /// when complete, so no half-written model is ever left at `outDir`.
 ///
 /// Throws Error(Conflict) when outDir exists, Error(InvalidArgument) when the source has no defined
-/// sample or the patch size is invalid or `texture` is given exactly when the drape is not Image,
-/// Error(NotFound / Corrupt / InvalidArgument) for an unreadable or unplaceable texture,
-/// Error(Cancelled), or the source's errors.
+/// sample or the patch size or texelsPerQuad is invalid or `texture` is given exactly when the
+/// drape is not Image, Error(NotFound / Corrupt / InvalidArgument) for an unreadable or unplaceable
+/// texture, Error(Cancelled), or the source's errors.
 Model buildOpc(GridSource& source, const std::filesystem::path& outDir,
                const ImportOptions& options);
 

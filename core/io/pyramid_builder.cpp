@@ -118,6 +118,8 @@ struct BuildShared {
   OpcWriter& writer;
   /// What is draped over the model; null for an untextured import. Thread-safe itself.
   const TileSource* texture;
+  /// Texels per grid quad side of every tile (ImportOptions::texelsPerQuad, chosen).
+  int texelsPerQuad;
   const ImportOptions& options;
   std::mutex sourceMutex;
   std::mutex progressMutex;  // guards leavesDone and options.progress
@@ -234,8 +236,7 @@ class PyramidBuilder {
     }
     if (shared_.texture != nullptr) {
       // The parent's tile from the children's: 2 x 2 box filter, each child in its quadrant.
-      parent.texture =
-          std::make_unique<TextureTile>(downsampleQuadrants(textures, textureTileSize(size_)));
+      parent.texture = std::make_unique<TextureTile>(downsampleQuadrants(textures, tileSize()));
     }
     for (const Quadrant q : kQuadrants) {
       BuiltPatch& child = children[static_cast<int>(q)];
@@ -335,11 +336,13 @@ class PyramidBuilder {
     }
     BuiltPatch built{std::move(grid), nullptr};
     if (shared_.texture != nullptr) {
-      built.texture = std::make_unique<TextureTile>(textureTileSize(size_));
+      built.texture = std::make_unique<TextureTile>(tileSize());
       shared_.texture->fillTile(x0, y0, *built.grid, *built.texture);
     }
     return built;
   }
+
+  int tileSize() const { return textureTileSize(size_, shared_.texelsPerQuad); }
 
   /// Forgets and deletes every patch written below `key`.
   void dropSubtree(const PatchKey& key) {
@@ -410,6 +413,19 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
     throw Error(ErrorCode::InvalidArgument,
                 "an image texture needs an image file, and only an image texture takes one");
   }
+  if (options.texelsPerQuad != 0 &&
+      (options.drape == ImportOptions::Drape::None || options.texelsPerQuad < 0 ||
+       options.texelsPerQuad > kMaxTextureTileSize ||
+       texelsPerQuadOf(textureTileSize(options.patchSize, options.texelsPerQuad),
+                       options.patchSize) != options.texelsPerQuad ||
+       textureTileSize(options.patchSize, options.texelsPerQuad) > kMaxTextureTileSize)) {
+    throw Error(ErrorCode::InvalidArgument,
+                "texels per quad must be a power of two whose tiles (patch size - 1 times as many "
+                "texels a side) stay within " +
+                    std::to_string(kMaxTextureTileSize) + ", and only with a texture; not " +
+                    std::to_string(options.texelsPerQuad) + " at patch size " +
+                    std::to_string(options.patchSize));
+  }
   if (source.width() < 1 || source.height() < 1) {
     throw Error(ErrorCode::InvalidArgument, "source " + source.describe() + " has no samples");
   }
@@ -462,15 +478,22 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
     case ImportOptions::Drape::None:
       break;
   }
+  const int texelsPerQuad =
+      !texture ? 1
+               : (options.texelsPerQuad > 0 ? options.texelsPerQuad
+                                            : texture->naturalTexelsPerQuad(options.patchSize));
   if (texture) {
     // An image is worth a line of its own (where it was placed); the default relief is not.
-    (options.drape == ImportOptions::Drape::Image ? log::info : log::debug)("import: texture " +
-                                                                            texture->describe());
+    (options.drape == ImportOptions::Drape::Image ? log::info : log::debug)(
+        "import: texture " + texture->describe() + ", " + std::to_string(texelsPerQuad) + " texel" +
+        (texelsPerQuad == 1 ? "" : "s") + " per grid quad side (tiles of " +
+        std::to_string(textureTileSize(options.patchSize, texelsPerQuad)) + " texels)");
   }
   OpcWriter writer(staging.path(), OpcWriter::Durability::Deferred);
   BuildShared shared{source,
                      writer,
                      texture.get(),
+                     texelsPerQuad,
                      options,
                      {},
                      {},

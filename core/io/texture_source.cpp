@@ -99,7 +99,8 @@ std::string ShadedReliefSource::describe() const {
 
 void ShadedReliefSource::fillTile(int /*x0*/, int /*y0*/, const PatchGrid& grid,
                                   TextureTile& tile) const {
-  tile = shadedRelief(grid);
+  TextureTile relief = shadedRelief(grid);
+  tile = relief.size() == tile.size() ? std::move(relief) : resizeTile(relief, tile.size());
 }
 
 TextureSource::TextureSource(const std::filesystem::path& image, int gridWidth, int gridHeight,
@@ -190,16 +191,48 @@ std::optional<std::pair<double, double>> TextureSource::imagePoint(double gx, do
   return std::pair{xs[0], ys[0]};
 }
 
-void TextureSource::fillTile(int x0, int y0, const PatchGrid& /*grid*/, TextureTile& tile) const {
+std::optional<double> TextureSource::pixelsPerSample() const {
+  const double cx = 0.5 * (impl_->gridWidth - 1);
+  const double cy = 0.5 * (impl_->gridHeight - 1);
+  std::vector<double> xs{cx, cx + 1, cx};
+  std::vector<double> ys{cy, cy, cy + 1};
+  {
+    std::lock_guard lock(impl_->mutex);
+    impl_->toImage(xs, ys);
+  }
+  const double along = std::hypot(xs[1] - xs[0], ys[1] - ys[0]);
+  const double across = std::hypot(xs[2] - xs[0], ys[2] - ys[0]);
+  if (!std::isfinite(along) || !std::isfinite(across)) {
+    return std::nullopt;
+  }
+  return std::max(along, across);
+}
+
+int TextureSource::naturalTexelsPerQuad(int patchSize) const {
+  const std::optional<double> pixels = pixelsPerSample();
+  if (!pixels) {
+    log::warn("import: the grid's centre cannot be placed on texture " + impl_->description +
+              "; one texel per grid quad");
+    return 1;
+  }
+  int f = 1;
+  while (f < *pixels / 1.05 && textureTileSize(patchSize, 2 * f) <= kMaxTextureTileSize) {
+    f *= 2;
+  }
+  return f;
+}
+
+void TextureSource::fillTile(int x0, int y0, const PatchGrid& grid, TextureTile& tile) const {
   const Impl& m = *impl_;
   const int t = tile.size();
+  const double f = static_cast<double>(texelsPerQuadOf(t, grid.size()));
   const std::size_t n = static_cast<std::size_t>(t) * t;
   std::vector<double> xs(n);
   std::vector<double> ys(n);
   for (int j = 0; j < t; ++j) {
     for (int i = 0; i < t; ++i) {
-      xs[static_cast<std::size_t>(j) * t + i] = x0 + i + 0.5;
-      ys[static_cast<std::size_t>(j) * t + i] = y0 + j + 0.5;
+      xs[static_cast<std::size_t>(j) * t + i] = x0 + (i + 0.5) / f;
+      ys[static_cast<std::size_t>(j) * t + i] = y0 + (j + 0.5) / f;
     }
   }
   {

@@ -21,16 +21,22 @@ class TileSource {
   virtual ~TileSource() = default;
   /// One line for logs.
   virtual std::string describe() const = 0;
-  /// Fills the tile of the bottom patch `grid` whose vertex (0, 0) is grid sample (x0, y0): texel
-  /// (i, j) covers the quad between its vertices (i, j) and (i + 1, j + 1).
+  /// The texels per grid quad side that keep the source's detail on patches of `patchSize`
+  /// vertices (ImportOptions::texelsPerQuad's choice).
+  virtual int naturalTexelsPerQuad(int patchSize) const = 0;
+  /// Fills the tile of the bottom patch `grid` whose vertex (0, 0) is grid sample (x0, y0), with
+  /// f = tile.size() / (grid.size() - 1) texels per quad side: texel (i, j) covers the part of the
+  /// patch between vertex coordinates (i / f, j / f) and ((i + 1) / f, (j + 1) / f).
   /// Throws Error(Io / Corrupt) when the source cannot be read.
   virtual void fillTile(int x0, int y0, const PatchGrid& grid, TextureTile& tile) const = 0;
 };
 
 /// The shaded relief of the surface itself (shadedRelief), for imports without an image.
+/// One texel per quad is its nature (a finer tile is the relief upsampled: resizeTile).
 class ShadedReliefSource final : public TileSource {
  public:
   std::string describe() const override;
+  int naturalTexelsPerQuad(int /*patchSize*/) const override { return 1; }
   void fillTile(int x0, int y0, const PatchGrid& grid, TextureTile& tile) const override;
 };
 
@@ -64,9 +70,17 @@ class TextureSource final : public TileSource {
   /// grid point (gx, gy) (sample coordinates). nullopt when the point cannot be transformed.
   std::optional<std::pair<double, double>> imagePoint(double gx, double gy) const;
 
-  /// Texel (i, j) takes the colour at grid point (x0 + i + 0.5, y0 + j + 0.5), the centre of the
-  /// quad it covers (the grid's positions are not used). Throws Error(Io / Corrupt) when the image
-  /// cannot be read.
+  /// The image's pixels per grid sample at the grid's centre (the longer of its steps along the
+  /// grid's rows and columns); nullopt when that point cannot be placed on the image.
+  std::optional<double> pixelsPerSample() const;
+  /// The power of two f with f >= pixelsPerSample() / 1.05, capped where the tile would exceed
+  /// kMaxTextureTileSize; 1 when the centre cannot be placed.
+  int naturalTexelsPerQuad(int patchSize) const override;
+
+  /// Texel (i, j) takes the colour at grid point (x0 + (i + 0.5) / f, y0 + (j + 0.5) / f), the
+  /// centre of the part of the patch it covers (the grid's positions are not used). Where the
+  /// image is finer than the texels GDAL first averages it to at most twice their resolution.
+  /// Throws Error(Io / Corrupt) when the image cannot be read.
   void fillTile(int x0, int y0, const PatchGrid& grid, TextureTile& tile) const override;
 
  private:

@@ -110,11 +110,12 @@ struct MergeResult {
 /// 3. reducing: every stale overview, from the new levels up to the root, is recomputed by
 ///    reduction. Patches outside the matched leaves' subtrees and their ancestors are not touched.
 ///
-/// Every patch the merge writes gets a texture tile (vsm's layout: one texel per grid quad,
-/// textureTileSize), so the result stays complete for PRo3D (OPC.md): a texel of a new level-k
-/// patch takes B's texture where B has a textured surface under the texel's centre (located as
-/// the vertices are, and sampled bilinearly in B's tile at that point of B's grid), else a's
-/// texture bilinearly upsampled (a's texel-to-quad mapping holds on every level of the
+/// Every patch the merge writes gets a texture tile (vsm's layout: a power of two texels per grid
+/// quad side, textureTileSize; a new patch takes the finer of a's and B's there, so each model's
+/// imagery keeps its own resolution), so the result stays complete for PRo3D (OPC.md): a texel
+/// of a new level-k patch takes B's texture where B has a textured surface under the texel's centre
+/// (located as the vertices are, and sampled bilinearly in B's tile at that point of B's grid),
+/// else a's texture bilinearly upsampled (a's texel-to-quad mapping holds on every level of the
 /// subdivision), else the new patch's own shaded relief (shadedRelief); a new patch above level k
 /// that stays a leaf takes a's texture upsampled, else its shaded relief; every recomputed
 /// overview gets its children's tiles downsampled (ModelEdit::refreshStale).
@@ -125,8 +126,9 @@ struct MergeResult {
 /// the B cells within reach of its new patch (SurfaceCaster clipped to the patch's reach: about
 /// 300 B per B cell there, caster_bench's figure, e.g. 20 MB for 257 x 257 patches of B at the
 /// new level's spacing) and up to kMergeBatch
-/// finished new patches (grid and texture tile, about 1 MB each at 257 x 257) until they are
-/// inserted, in the order a single thread would insert them.
+/// finished new patches (grid and texture tile, about 1 MB each at 257 x 257 and one texel per
+/// quad, 16 MB more at four) until they are inserted, in the order a single thread would insert
+/// them.
 ///
 /// The target is not published: the caller publishes the edit (or discards it on error).
 ///

@@ -28,81 +28,102 @@ struct Placed {
   double x = 0, y = 0;
 };
 
-/// A's texture tile of a patch when it is in vsm's layout (one texel per grid quad); null
-/// otherwise (none, or a foreign tile of another size, which the merge cannot place).
+/// A patch's texture tile when it is in vsm's layout (a power of two texels per grid quad side:
+/// texelsPerQuadOf); null otherwise (none, or a foreign tile of another size, which the merge
+/// cannot place).
 std::shared_ptr<const TextureTile> textureOf(PatchSource& source, const PatchKey& key) {
   std::shared_ptr<const TextureTile> tile = source.texture(key);
-  if (tile && tile->size() != textureTileSize(source.model().gridSize())) {
+  if (tile && texelsPerQuadOf(tile->size(), source.model().gridSize()) == 0) {
     log::warn("merge: texture of patch " + key.toString() + " is " + std::to_string(tile->size()) +
-              " texels wide, not one per grid quad; it is not carried");
+              " texels wide, not a power of two per grid quad; it is not carried");
     return nullptr;
   }
   return tile;
 }
 
-/// The texture of new patch (i, j) of `level` below a's leaf, whose vertices are `grid`: per
-/// texel, B's texture where a textured part of B lies at the texel's centre (level k only,
-/// `detail` given, with `normals`: the patch's vertices' normals, and `onDetail`: where on B each
-/// vertex of the patch was placed), else
-/// a's tile upsampled (`aTile`, may be null), else the patch's own shaded relief (so every patch a
-/// merge writes has a tile, whichever model had none).
-std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, int level,
-                                                std::uint32_t i, std::uint32_t j,
-                                                const PatchGrid& grid, const TextureTile* aTile,
-                                                const SurfaceCaster* detail, double search,
-                                                const std::vector<Vec3d>& normals,
-                                                const std::vector<Placed>& onDetail,
-                                                const std::vector<const TextureTile*>& bTiles) {
+/// The texture of new patch (i, j) of `level` below a's leaf, whose vertices are `grid`, with as
+/// many texels per quad as the finer of a's tile and the B tiles it takes texels from (so each
+/// model's imagery keeps its own resolution), capped at kMaxTextureTileSize. Per texel: B's
+/// texture where a textured part of B lies at the texel's centre (level k only, `detail` given,
+/// with `normals`: the patch's vertices' normals, `onDetail`: where on B each vertex of the patch
+/// was placed, and `bTiles` the tiles of B's grids, of `detailGridSize` vertices), else a's tile
+/// upsampled (`aTile`, may be null), else the patch's own shaded relief (so every patch a merge
+/// writes has a tile, whichever model had none).
+std::shared_ptr<const TextureTile> placeTexture(
+    const Subdivider& subdivider, int level, std::uint32_t i, std::uint32_t j,
+    const PatchGrid& grid, const TextureTile* aTile, const SurfaceCaster* detail, double search,
+    const std::vector<Vec3d>& normals, const std::vector<Placed>& onDetail,
+    const std::vector<const TextureTile*>& bTiles, int detailGridSize) {
   const bool fromDetail =
       detail != nullptr && level == subdivider.k() &&
       std::any_of(bTiles.begin(), bTiles.end(), [](const TextureTile* t) { return t != nullptr; });
   if (aTile == nullptr && !fromDetail) {
     return std::make_shared<TextureTile>(shadedRelief(grid));
   }
+  const int quads = grid.size() - 1;
+  const int aTexels = aTile != nullptr ? texelsPerQuadOf(aTile->size(), grid.size()) : 1;
+  int texels = aTexels;
+  if (fromDetail) {
+    for (const TextureTile* t : bTiles) {
+      if (t != nullptr) {
+        texels = std::max(texels, texelsPerQuadOf(t->size(), detailGridSize));
+      }
+    }
+  }
+  while (textureTileSize(grid.size(), texels) > kMaxTextureTileSize && texels > 1) {
+    texels /= 2;
+  }
   // The shaded relief is made only when some texel is left without colour (rarely, where B's
   // texture covers the patch).
-  auto tile = std::make_shared<TextureTile>(textureTileSize(grid.size()));
+  auto tile = std::make_shared<TextureTile>(textureTileSize(grid.size(), texels));
   bool uncoloured = false;
   const int size = tile->size();
   const auto n = static_cast<std::size_t>(grid.size());
   const double scale = std::ldexp(1.0, level);
-  // Texel (p, q) covers the quad between vertices (p, q) and (p + 1, q + 1) of the patch, union
-  // vertices (u0 + p, v0 + q) and (u0 + p + 1, v0 + q + 1) of level k.
-  const std::int64_t u0 = std::int64_t{i} * size;
-  const std::int64_t v0 = std::int64_t{j} * size;
-  // B's colour at the texel's centre. Where the four corners lie on one grid of B, its
-  // parameter there is the mean of theirs (exact where B's cells and the quad are parallelograms,
-  // otherwise off by the second order of the texel's size: a fraction of a texel far below what
-  // rounding the colour keeps). Elsewhere (B's border, the seams between its grids) the centre
-  // of the quad on a's surface (it lies in one cell of a, so the mean of its corners is its
-  // bilinear centre) is cast onto B along the quad's normal (the cross product of its diagonals).
+  // Texel (p, q) lies in the quad between vertices (p / f, q / f) and (p / f + 1, q / f + 1) of
+  // the patch (f = texels), union vertices (u0 + p / f, v0 + q / f) and one more of level k, at
+  // (sx, sy) across it.
+  const std::int64_t u0 = std::int64_t{i} * quads;
+  const std::int64_t v0 = std::int64_t{j} * quads;
+  // B's colour at the texel's centre. Where the four corners of its quad lie on one grid of B,
+  // its parameter there is the bilinear mean of theirs (exact where B's cells and the quad are
+  // parallelograms, otherwise off by the second order of the quad's size: a fraction of a texel
+  // far below what rounding the colour keeps). Elsewhere (B's border, the seams between its
+  // grids) the texel's centre on a's surface (it lies in one cell of a, so the bilinear mean of
+  // its corners) is cast onto B along the mean of the corners' normals.
   auto detailColour = [&](int p, int q) -> std::array<std::uint8_t, 4> {
-    const std::size_t corner = static_cast<std::size_t>(q) * n + static_cast<std::size_t>(p);
-    const Placed* c[4] = {&onDetail[corner], &onDetail[corner + 1], &onDetail[corner + n],
-                          &onDetail[corner + n + 1]};
+    const int qx = p / texels;
+    const int qy = q / texels;
+    const double sx = ((p % texels) + 0.5) / texels;
+    const double sy = ((q % texels) + 0.5) / texels;
+    const double w[4] = {(1 - sx) * (1 - sy), sx * (1 - sy), (1 - sx) * sy, sx * sy};
+    const std::size_t corner = static_cast<std::size_t>(qy) * n + static_cast<std::size_t>(qx);
+    const std::size_t corners[4] = {corner, corner + 1, corner + n, corner + n + 1};
     std::uint32_t b = 0;
     double x = 0, y = 0;
-    if (std::all_of(std::begin(c), std::end(c), [&](const Placed* h) {
-          return h->grid != kNotPlaced && h->grid == c[0]->grid;
+    if (std::all_of(std::begin(corners), std::end(corners), [&](std::size_t c) {
+          return onDetail[c].grid != kNotPlaced && onDetail[c].grid == onDetail[corner].grid;
         })) {
-      b = c[0]->grid;
-      for (const Placed* h : c) {
-        x += h->x * 0.25;
-        y += h->y * 0.25;
+      b = onDetail[corner].grid;
+      for (int c = 0; c < 4; ++c) {
+        x += onDetail[corners[c]].x * w[c];
+        y += onDetail[corners[c]].y * w[c];
       }
     } else {
-      // Along the mean of the corners' normals, scaled so the ray's ends are the means of the
-      // corners' ray ends: inside the caster's clip, as those are.
-      const Vec3d p00 = subdivider.interpolate(u0 + p, v0 + q);
-      const Vec3d p10 = subdivider.interpolate(u0 + p + 1, v0 + q);
-      const Vec3d p01 = subdivider.interpolate(u0 + p, v0 + q + 1);
-      const Vec3d p11 = subdivider.interpolate(u0 + p + 1, v0 + q + 1);
-      const Vec3d normal =
-          (normals[corner] + normals[corner + 1] + normals[corner + n] + normals[corner + n + 1]) *
-          0.25;
+      // Along the weighted mean of the corners' normals, scaled so the ray's ends are the
+      // weighted means of the corners' ray ends: inside the caster's clip, as those are.
+      const Vec3d at[4] = {subdivider.interpolate(u0 + qx, v0 + qy),
+                           subdivider.interpolate(u0 + qx + 1, v0 + qy),
+                           subdivider.interpolate(u0 + qx, v0 + qy + 1),
+                           subdivider.interpolate(u0 + qx + 1, v0 + qy + 1)};
+      Vec3d centre = at[0] * w[0];
+      Vec3d normal = normals[corners[0]] * w[0];
+      for (int c = 1; c < 4; ++c) {
+        centre = centre + at[c] * w[c];
+        normal = normal + normals[corners[c]] * w[c];
+      }
       const double reach = search * normal.norm();
-      const std::optional<CastHit> hit =
-          detail->cast(CastRay{(p00 + p10 + p01 + p11) * 0.25, normal, -reach, reach});
+      const std::optional<CastHit> hit = detail->cast(CastRay{centre, normal, -reach, reach});
       if (!hit) {
         return {0, 0, 0, 0};
       }
@@ -111,7 +132,9 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
       y = hit->y;
     }
     if (const TextureTile* t = bTiles[b]) {
-      return sampleBilinear(*t, x - 0.5, y - 0.5);
+      // (x, y) in B's vertex coordinates; its texel centres are at (x f_B - 0.5, y f_B - 0.5).
+      const double f = texelsPerQuadOf(t->size(), detailGridSize);
+      return sampleBilinear(*t, x * f - 0.5, y * f - 0.5);
     }
     return {0, 0, 0, 0};
   };
@@ -122,8 +145,10 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
         colour = detailColour(p, q);
       }
       if (colour[3] == 0 && aTile != nullptr) {
-        colour = sampleBilinear(*aTile, (static_cast<double>(u0 + p) + 0.5) / scale - 0.5,
-                                (static_cast<double>(v0 + q) + 0.5) / scale - 0.5);
+        // The texel's centre in a's vertex coordinates, then in a's texel centres.
+        const double ax = (static_cast<double>(u0) + (p + 0.5) / texels) / scale;
+        const double ay = (static_cast<double>(v0) + (q + 0.5) / texels) / scale;
+        colour = sampleBilinear(*aTile, ax * aTexels - 0.5, ay * aTexels - 0.5);
       }
       if (colour[3] != 0) {
         std::copy(colour.begin(), colour.end(), tile->at(p, q));
@@ -137,7 +162,8 @@ std::shared_ptr<const TextureTile> placeTexture(const Subdivider& subdivider, in
     for (int q = 0; q < size; ++q) {
       for (int p = 0; p < size; ++p) {
         if (tile->at(p, q)[3] == 0) {
-          std::copy(relief.at(p, q), relief.at(p, q) + 4, tile->at(p, q));
+          const std::uint8_t* shade = relief.at(p / texels, q / texels);
+          std::copy(shade, shade + 4, tile->at(p, q));
         }
       }
     }
@@ -435,8 +461,9 @@ class Placing {
     out.firstDefined = *first;
     out.grid =
         std::make_shared<const PatchGrid>(gridFromGlobal(target_.model().gridSize(), positions));
-    out.texture = placeTexture(*subdivider, leaf.level, leaf.i, leaf.j, *out.grid,
-                               work.aTexture.get(), surface, search, normals, onDetail, tiles);
+    out.texture =
+        placeTexture(*subdivider, leaf.level, leaf.i, leaf.j, *out.grid, work.aTexture.get(),
+                     surface, search, normals, onDetail, tiles, detail_.model().gridSize());
   }
 
   /// Inserts a computed new leaf (in plan order). A refined patch goes in, as a placeholder, just

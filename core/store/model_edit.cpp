@@ -97,10 +97,10 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
                                                 std::to_string(grid->size()) + " instead of " +
                                                 std::to_string(model_->gridSize()));
   }
-  if (texture && texture->size() != textureTileSize(model_->gridSize())) {
+  if (texture && texelsPerQuadOf(texture->size(), model_->gridSize()) == 0) {
     throw Error(ErrorCode::InvalidArgument,
                 "patch " + key.toString() + " has a texture tile of " +
-                    std::to_string(texture->size()) + " texels instead of " +
+                    std::to_string(texture->size()) + " texels, not a power of two times " +
                     std::to_string(textureTileSize(model_->gridSize())));
   }
   if (model_->find(key) == nullptr) {
@@ -173,8 +173,8 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
     }
     std::shared_ptr<const PatchGrid> parent;
     std::shared_ptr<const TextureTile> parentTexture;
-    // A child without a tile of this model's size (none, or a foreign one of another size)
-    // counts with its shaded relief, computed while its grid is held anyway.
+    // A child without a tile in vsm's layout (none, or a foreign one of another size) counts
+    // with its shaded relief, computed while its grid is held anyway.
     std::array<std::optional<TextureTile>, 4> reliefs;
     {
       std::array<PatchCache::Pin, 4> pins;
@@ -193,8 +193,10 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
       parent = std::make_shared<const PatchGrid>(reduce(children));
     }
     {
-      // The parent's tile from its children's, one at a time as the grids.
-      const int size = textureTileSize(model_->gridSize());
+      // The parent's tile from its children's, one at a time as the grids, with as many texels
+      // per quad as the finest of them (a coarser child's tile is upsampled to it).
+      const int gridSize = model_->gridSize();
+      int size = textureTileSize(gridSize);
       std::array<PatchCache::Pin, 4> pins;
       std::array<const TextureTile*, 4> children{};
       for (const Quadrant q : kQuadrants) {
@@ -205,8 +207,10 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
         }
         if (!reliefs[i]) {
           pins[i] = texture(child);
-          if (pins[i].get<TextureTile>()->size() == size) {
-            children[i] = pins[i].get<TextureTile>().get();
+          const TextureTile* tile = pins[i].get<TextureTile>().get();
+          if (texelsPerQuadOf(tile->size(), gridSize) != 0) {
+            children[i] = tile;
+            size = std::max(size, tile->size());
             continue;
           }
           pins[i] = {};
@@ -214,6 +218,12 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
           reliefs[i].emplace(shadedRelief(*grid.get<PatchGrid>()));
         }
         children[i] = &*reliefs[i];
+      }
+      std::array<std::optional<TextureTile>, 4> resized;
+      for (int i = 0; i < 4; ++i) {
+        if (children[i] != nullptr && children[i]->size() != size) {
+          children[i] = &resized[i].emplace(resizeTile(*children[i], size));
+        }
       }
       parentTexture = std::make_shared<const TextureTile>(downsampleQuadrants(children, size));
     }

@@ -80,7 +80,8 @@ class ModelEdit {
 
   /// Adds a patch (its parent must exist already) or replaces a patch's data, with its texture
   /// tile or without one (null). Marks the patch changed and every ancestor stale. Throws
-  /// Error(InvalidArgument) for a wrong grid or tile size or a missing parent,
+  /// Error(InvalidArgument) for a wrong grid size, a tile not in vsm's layout (texelsPerQuadOf) or
+  /// a missing parent,
   /// Error(ResourceExhausted) when the budget is full of pinned data.
   void setPositions(const PatchKey& key, std::shared_ptr<const PatchGrid> grid,
                     std::shared_ptr<const TextureTile> texture = nullptr);
@@ -94,9 +95,10 @@ class ModelEdit {
   void writeEarly(const PatchKey& key);
 
   /// Recomputes every stale overview bottom-up by reduction, holding one parent's children at a
-  /// time; its texture tile is downsampled from the children's (downsampleQuadrants), a child
-  /// without a tile of its own size (none, or a foreign one of another size) counting with its
-  /// shaded relief (shadedRelief), so every overview an edit writes has a tile.
+  /// time; its texture tile is downsampled from the children's (downsampleQuadrants) with as many
+  /// texels per quad as the finest child's (coarser ones upsampled: resizeTile), a child without
+  /// a tile in vsm's layout (none, or a foreign one: texelsPerQuadOf) counting with its shaded
+  /// relief (shadedRelief), so every overview an edit writes has a tile.
   void refreshStale(const CancelToken* cancel = nullptr);
 
   /// Makes this edit's content that of `from`, a kept revision of the same model

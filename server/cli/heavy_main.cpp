@@ -30,6 +30,7 @@
 #include "core/diff/diff_picture.hpp"
 #include "core/diff/revision_diff.hpp"
 #include "core/durable/durable_io.hpp"
+#include "core/grid/texture_tile.hpp"
 #include "core/io/geotiff.hpp"
 #include "core/io/grid_source.hpp"
 #include "core/merge/merge.hpp"
@@ -164,6 +165,12 @@ int runImport(const std::vector<std::string_view>& args) {
         throw UsageError{"--patch-size must be 2^n+1, e.g. 65, 129 or 257"};
       }
       options.patchSize = static_cast<int>(*value);
+    } else if (args[i] == "--texels-per-quad") {
+      const auto value = parseInteger(optionValue(args, i));
+      if (!value || *value < 1 || *value > kMaxTextureTileSize || (*value & (*value - 1)) != 0) {
+        throw UsageError{"--texels-per-quad must be a power of two: 1, 2, 4, ..."};
+      }
+      options.texelsPerQuad = static_cast<int>(*value);
     } else if (args[i] == "--texture") {
       if (i + 1 >= args.size()) {
         throw UsageError{"--texture needs an image or 'none'"};

@@ -10,13 +10,17 @@ both with 65 x 65 patches. `vsm merge A B --out M`, `vsm validate M`, then with 
 (a) files: every patch of M names Coordinates.aara and Diffuse\\<folder>.tif, the tiles in
     Images/Diffuse are exactly the ones named (the replaced patches' old tiles are gone);
 (b) every patch M shares with A (same folder) has the same tile bytes as in A;
-(c) in M's deepest patches, every sampled texel whose quad centre (mean of its four corner
-    vertices, converted to lon/lat) lies inside B's raster is the gradient image at that lon/lat
+(c) in M's deepest patches, every sampled texel whose centre (the bilinear mean of its quad's
+    four corner vertices, converted to lon/lat) lies inside B's raster is the gradient image at that lon/lat
     (bilinear between pixel centres) within GRADIENT_TOLERANCE, and far from A's image there for
     many of them (so (c) fails if the merge kept A's texture);
 (d) texels of the new patches outside B match the NASA image at their lon/lat within
     IMAGE_TOLERANCE (A's texture upsampled);
-(e) every parent texel is the mean of the 2 x 2 child texels it covers (within rounding);
+(e) every parent has as many texels per grid quad as its finest child, and each of its texels
+    is the mean of the 2 x 2 texels it covers of a child with as many (within rounding);
+(g) B's image is finer than B's grid (1.27 pixels per sample), so B's tiles have 2 texels per
+    quad, and every new leaf that takes texels from B has at least as many (issue 28: each
+    model's imagery keeps its own resolution; A's are 1 per quad);
 (f) merges mixing textured and untextured models still give every patch they write a tile and
     coordinates (check_import.check_pro3d): A untextured (`--texture none`, as a foreign OPC
     without Images/) with B textured: every patch the merge wrote, B's image inside B and grey
@@ -45,7 +49,7 @@ from model_states import REVISION_FILE, reachable_folders  # noqa: E402
 gdal.UseExceptions()
 
 N = 65                     # vertices per patch side
-TILE = N - 1               # texels per tile side
+QUADS = N - 1              # grid quads per patch side; a tile has QUADS * f texels a side
 GRADIENT_SIZE = (512, 384)  # columns, rows of B's image
 GRADIENT_TOLERANCE = 2.0   # 8-bit units: three roundings of a linear ramp (image, B's tile, merge)
 IMAGE_TOLERANCE = 3.0      # A's tile (the image at A's quad centres) upsampled vs. the image
@@ -66,9 +70,13 @@ def gradient_image(path):
 
 
 def read_tile(opc, folder):
+    """The tile's texels (band, row, column) and f, its texels per grid quad side: a power of two
+    (the tile QUADS * f texels a side)."""
     ds = gdal.Open(os.path.join(opc, "Images", "Diffuse", folder + ".tif"))
-    assert (ds.RasterXSize, ds.RasterYSize) == (TILE, TILE), folder
-    return ds.ReadAsArray().astype(float)
+    size = ds.RasterXSize
+    f = size // QUADS
+    assert ds.RasterYSize == size and size == QUADS * f and f & (f - 1) == 0, (folder, size)
+    return ds.ReadAsArray().astype(float), f
 
 
 def digest(path):
@@ -76,12 +84,16 @@ def digest(path):
         return hashlib.sha256(f.read()).hexdigest()
 
 
-def texel_lonlat(patch, i, j):
-    """lon, lat of the centre of texel (i, j): the mean of its quad's four corners."""
-    corners = patch.grid[j:j + 2, i:i + 2].reshape(4, 3)
+def texel_lonlat(patch, i, j, f):
+    """lon, lat of the centre of texel (i, j) of a tile of f texels per quad side: the bilinear
+    mean of its quad's four corners at the texel's centre."""
+    qx, qy = i // f, j // f
+    corners = patch.grid[qy:qy + 2, qx:qx + 2].reshape(4, 3)
     if np.isnan(corners).any():
         return None
-    c = corners.mean(axis=0)
+    sx, sy = (i % f + 0.5) / f, (j % f + 0.5) / f
+    w = np.array([(1 - sx) * (1 - sy), sx * (1 - sy), (1 - sx) * sy, sx * sy])
+    c = w @ corners
     lon, lat, _ = ecef_to_geodetic(c[0], c[1], c[2])
     return float(lon), float(lat)
 
@@ -112,10 +124,10 @@ def check_mixed(args, textured_a, textured_b, failures):
     for key, patch in m_patches.items():
         if patch.folder not in written or m_children[key]:
             continue
-        tile = read_tile(merged, patch.folder)
-        for j in range(0, TILE, 5):
-            for i in range(0, TILE, 5):
-                if texel_lonlat(patch, i, j) is None:
+        tile, f = read_tile(merged, patch.folder)
+        for j in range(0, QUADS * f, 5):
+            for i in range(0, QUADS * f, 5):
+                if texel_lonlat(patch, i, j, f) is None:
                     continue
                 r, g, b, a = tile[:, j, i]
                 if a != 255:
@@ -213,15 +225,21 @@ class TextureMerge(unittest.TestCase):
 
         max_depth = max(k[0] for k in m_patches)
         inside = outside = differs = 0
+        coarse_inside = []  # new leaves with texels from B at fewer texels per quad than B's
+        b_texels = read_tile(detail, "0_0_0")[1]
+        if b_texels < 2:
+            failures.add("B's %dx%d image over its 403x344 samples got %d texel per quad, not 2" %
+                         (GRADIENT_SIZE[0], GRADIENT_SIZE[1], b_texels))
         worst_inside = worst_outside = 0.0
         for key in new_keys:
             if m_children[key]:
                 continue
             patch = m_patches[key]
-            tile = read_tile(merged, patch.folder)
-            for j in range(0, TILE, 7):
-                for i in range(0, TILE, 7):
-                    at = texel_lonlat(patch, i, j)
+            tile, f = read_tile(merged, patch.folder)
+            inside_before = inside
+            for j in range(0, QUADS * f, 7):
+                for i in range(0, QUADS * f, 7):
+                    at = texel_lonlat(patch, i, j, f)
                     if at is None:
                         continue
                     lon, lat = at
@@ -250,14 +268,21 @@ class TextureMerge(unittest.TestCase):
                             failures.add("%s texel (%d, %d) at %.5f, %.5f: %s, A's image %s" %
                                          (patch.folder, i, j, lon, lat, got, expected))
                         outside += 1
+            if inside > inside_before and f < b_texels:
+                coarse_inside.append((patch.folder, f))
+        if coarse_inside:
+            failures.add("%d new leaves take B's image at fewer texels per quad than B's %d: %s" %
+                         (len(coarse_inside), b_texels, coarse_inside[:5]))
         if inside < 500 or differs < inside // 2:
             failures.add("only %d texels checked inside B (%d of them unlike A's image)" %
                          (inside, differs))
         if outside < 100:
             failures.add("only %d texels checked outside B" % outside)
 
-        # (e) parents: each texel the mean of the 2 x 2 child texels it covers.
-        parents = 0
+        # (e) parents: as many texels per quad as their finest child; each texel the mean of the
+        # 2 x 2 texels it covers of a child of that many (a coarser child is upsampled first: the
+        # unit tests check that).
+        parents = upsampled = 0
         tiles = {}
 
         def tile_of(key):
@@ -265,14 +290,21 @@ class TextureMerge(unittest.TestCase):
                 tiles[key] = read_tile(merged, m_patches[key].folder)
             return tiles[key]
 
-        half = TILE // 2
         for key, children in m_children.items():
             if not children or m_patches[key].folder in a_folders:
                 continue
-            parent = tile_of(key)
+            parent, f = tile_of(key)
+            finest = max(tile_of(child_key)[1] for child_key in children.values())
+            if f != finest:
+                failures.add("%s: %d texels per quad, its finest child %d" %
+                             (m_patches[key].folder, f, finest))
+            half = QUADS * f // 2
             for q, child_key in children.items():
                 qx, qy = QUADRANTS[q]
-                c = tile_of(child_key)
+                c, child_f = tile_of(child_key)
+                if child_f != f:
+                    upsampled += 1
+                    continue
                 mean = (c[:, 0::2, 0::2] + c[:, 0::2, 1::2] + c[:, 1::2, 0::2] + c[:, 1::2, 1::2]) / 4
                 got = parent[:, qy * half:(qy + 1) * half, qx * half:(qx + 1) * half]
                 if not np.all(np.abs(got - mean) <= 0.5 + 1e-9):
@@ -284,9 +316,10 @@ class TextureMerge(unittest.TestCase):
 
         summary = (
             "texture merge: %d patches (%d new, %d shared byte-identical), %d texels inside B within "
-            "%.2f of B's image (%d unlike A's), %d outside within %.2f of A's image, %d parent "
-            "quadrants exact" % (len(m_patches), len(new_keys), len(shared), inside, worst_inside,
-                                 differs, outside, worst_outside, parents) + "; " + mixed)
+            "%.2f of B's image (%d unlike A's, B at %d texels per quad), %d outside within %.2f of "
+            "A's image, %d parent quadrants exact (%d from coarser children)" %
+            (len(m_patches), len(new_keys), len(shared), inside, worst_inside, differs, b_texels,
+             outside, worst_outside, parents, upsampled) + "; " + mixed)
         failures.assert_none(self, summary)
 
 

@@ -162,10 +162,61 @@ vsm::core::TextureTile patternTile(int size, int seed) {
 
 }  // namespace
 
-TEST(TextureTile, TileSizeIsOneTexelPerGridQuad) {
+TEST(TextureTile, TileSizeIsAPowerOfTwoTexelsPerGridQuad) {
   EXPECT_EQ(vsm::core::textureTileSize(257), 256);
   EXPECT_EQ(vsm::core::textureTileSize(65), 64);
   EXPECT_EQ(vsm::core::textureTileSize(3), 2);
+  EXPECT_EQ(vsm::core::textureTileSize(257, 4), 1024);
+  EXPECT_EQ(vsm::core::texelsPerQuadOf(256, 257), 1);
+  EXPECT_EQ(vsm::core::texelsPerQuadOf(1024, 257), 4);
+  EXPECT_EQ(vsm::core::texelsPerQuadOf(4096, 257), 16);
+  // Foreign layouts: not a multiple, not a power of two, smaller than the grid.
+  EXPECT_EQ(vsm::core::texelsPerQuadOf(1000, 257), 0);
+  EXPECT_EQ(vsm::core::texelsPerQuadOf(768, 257), 0);
+  EXPECT_EQ(vsm::core::texelsPerQuadOf(128, 257), 0);
+}
+
+TEST(TextureTile, ResizingDownAveragesBlocksAndUpInterpolates) {
+  using vsm::core::TextureTile;
+  // 8 x 8 texels in 4 x 4 blocks of one colour each, two of their texels different.
+  TextureTile tile(8);
+  for (int j = 0; j < 8; ++j) {
+    for (int i = 0; i < 8; ++i) {
+      std::uint8_t* t = tile.at(i, j);
+      t[0] = static_cast<std::uint8_t>(40 * (i / 4) + 10);
+      t[1] = static_cast<std::uint8_t>(80 * (j / 4) + 20);
+      t[2] = 7;
+      t[3] = 255;
+    }
+  }
+  tile.at(0, 0)[2] = 7 + 16 * 3;  // block (0, 0): blue sums to 16 * 7 + 48
+  const TextureTile two = vsm::core::resizeTile(tile, 2);
+  EXPECT_EQ(two.at(1, 0)[0], 50);
+  EXPECT_EQ(two.at(0, 1)[1], 100);
+  EXPECT_EQ(two.at(0, 0)[2], 10);  // 7 + 48 / 16
+  EXPECT_EQ(two.at(1, 1)[2], 7);
+  EXPECT_EQ(two.at(1, 1)[3], 255);
+
+  // Up by 4: texel (i, j) is centred at ((i + 0.5) / 4 - 0.5, ...) in the small tile's texel
+  // centres; texel 3 at 0.375 between the columns 10 and 50, so 25; the border clamps.
+  const TextureTile up = vsm::core::resizeTile(two, 8);
+  EXPECT_EQ(up.at(3, 0)[0], 25);
+  EXPECT_EQ(up.at(0, 0)[0], 10);
+  EXPECT_EQ(up.at(7, 7)[0], 50);
+  EXPECT_EQ(up.at(7, 7)[3], 255);
+  // Transparent texels stay out: an all-transparent tile stays transparent, and a texel next to
+  // a transparent one takes the opaque colour alone.
+  TextureTile half(2);
+  std::uint8_t* opaque = half.at(0, 0);
+  opaque[0] = 90;
+  opaque[3] = 255;
+  const TextureTile halfUp = vsm::core::resizeTile(half, 4);
+  EXPECT_EQ(halfUp.at(1, 1)[0], 90);
+  EXPECT_EQ(halfUp.at(1, 1)[3], 255);
+  EXPECT_TRUE(vsm::core::resizeTile(TextureTile(2), 8).transparent());
+  // Only powers of two.
+  EXPECT_THROW(vsm::core::resizeTile(tile, 6), vsm::core::Error);
+  EXPECT_THROW(vsm::core::resizeTile(two, 6), vsm::core::Error);
 }
 
 TEST(TextureTile, RejectsOddOrTinySizes) {

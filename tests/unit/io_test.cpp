@@ -1025,6 +1025,7 @@ TEST(TexturedImport, EveryPatchGetsATileCoordinatesAndXmlAsOpcSays) {
   options.patchSize = 5;
   options.drape = ImportOptions::Drape::Image;
   options.texture = dir / "plain.tif";
+  options.texelsPerQuad = 1;  // the image's 1.8 pixels per sample would choose 2
   const Model model = importFile(dir / "dem.tif", dir / "opc", options);
   EXPECT_EQ(model.patchCount(), 5u);
   for (const auto& [key, info] : model.patches()) {
@@ -1062,6 +1063,89 @@ TEST(TexturedImport, EveryPatchGetsATileCoordinatesAndXmlAsOpcSays) {
   EXPECT_EQ(static_cast<unsigned char>(texture->png[1]), 'P');
   EXPECT_EQ(texture->texcoords.size(), 5u * 5u * 2u);
   EXPECT_FLOAT_EQ(texture->texcoords[(4 * 5 + 4) * 2], 1.0f);
+}
+
+TEST(TexturedImport, TilesKeepEveryPixelOfAFinerImage) {
+  TempDir dir;
+  // 9 x 9 samples with 5 x 5 patches, an image of 36 x 36 pixels stretched over them: 4 pixels
+  // per sample, so 4 x 4 texels per grid quad, tiles of 16 texels.
+  makeRaster(dir / "dem.tif", RasterSpec(9, 9, {10.0, 0.01, 0, 47.0, 0, -0.01}),
+             std::vector<double>(81, 5.0));
+  const int side = 36;
+  auto pixel = [](int x, int y) {
+    return std::array<int, 3>{x * 7, y * 7, (x + y) % 2 * 255};  // a checkerboard in blue
+  };
+  {
+    GDALAllRegister();
+    GDALDriver* driver = GetGDALDriverManager()->GetDriverByName("GTiff");
+    GDALDatasetUniquePtr ds(
+        driver->Create((dir / "fine.tif").c_str(), side, side, 3, GDT_Byte, nullptr));
+    ASSERT_TRUE(ds);
+    std::vector<std::uint8_t> pixels(static_cast<std::size_t>(side) * side * 3);
+    for (int y = 0; y < side; ++y) {
+      for (int x = 0; x < side; ++x) {
+        for (int c = 0; c < 3; ++c) {
+          pixels[(static_cast<std::size_t>(y) * side + x) * 3 + c] =
+              static_cast<std::uint8_t>(pixel(x, y)[c]);
+        }
+      }
+    }
+    ASSERT_EQ(ds->RasterIO(GF_Write, 0, 0, side, side, pixels.data(), side, side, GDT_Byte, 3,
+                           nullptr, 3, side * 3, 1, nullptr),
+              CE_None);
+  }
+  ImportOptions options;
+  options.patchSize = 5;
+  options.drape = ImportOptions::Drape::Image;
+  options.texture = dir / "fine.tif";
+  importFile(dir / "dem.tif", dir / "opc", options);
+  EXPECT_TRUE(validateOpc(dir / "opc").empty());
+  const fs::path images = dir / "opc" / "Images" / "Diffuse";
+  const TextureTile root = readTextureTile(images / "0_0_0.tif");
+  const TextureTile se = readTextureTile(images / "1_1_1.tif");
+  ASSERT_EQ(root.size(), 16);
+  ASSERT_EQ(se.size(), 16);
+  // Texel (i, j) of the leaf at sample (4, 4) is centred at grid point (4 + (i + 0.5) / 4, ...):
+  // grid edge coordinate + 0.5, times 4 pixels per sample: the centre of pixel (18 + i, 18 + j).
+  for (int j = 0; j < 16; ++j) {
+    for (int i = 0; i < 16; ++i) {
+      for (int c = 0; c < 3; ++c) {
+        ASSERT_EQ(se.at(i, j)[c], pixel(18 + i, 18 + j)[c]) << i << ", " << j << ", " << c;
+      }
+      ASSERT_EQ(se.at(i, j)[3], 255);
+    }
+  }
+  // The root's texel (8 + i, 8 + j) is the mean of that leaf's 2 x 2 texels.
+  for (int c = 0; c < 4; ++c) {
+    const double mean = (se.at(2, 4)[c] + se.at(3, 4)[c] + se.at(2, 5)[c] + se.at(3, 5)[c]) / 4.0;
+    EXPECT_NEAR(root.at(9, 10)[c], mean, 0.5);
+  }
+
+  // Asked for fewer: 2 texels per quad.
+  options.texelsPerQuad = 2;
+  importFile(dir / "dem.tif", dir / "opc2", options);
+  EXPECT_EQ(readTextureTile(dir / "opc2" / "Images" / "Diffuse" / "1_1_1.tif").size(), 8);
+  // The relief at 2 texels per quad: its own tiles upsampled.
+  options.drape = ImportOptions::Drape::ShadedRelief;
+  options.texture.clear();
+  importFile(dir / "dem.tif", dir / "relief2", options);
+  const TextureTile relief = readTextureTile(dir / "relief2" / "Images" / "Diffuse" / "1_1_1.tif");
+  EXPECT_EQ(relief.size(), 8);
+  EXPECT_FALSE(relief.transparent());
+
+  // Not a power of two, too many for the tile size cap, or without a texture: refused, nothing
+  // written.
+  for (const int bad : {3, -2, 2048, 1 << 30}) {
+    options.texelsPerQuad = bad;
+    EXPECT_EQ(codeOf([&] { importFile(dir / "dem.tif", dir / "bad", options); }),
+              ErrorCode::InvalidArgument)
+        << bad;
+  }
+  options.texelsPerQuad = 2;
+  options.drape = ImportOptions::Drape::None;
+  EXPECT_EQ(codeOf([&] { importFile(dir / "dem.tif", dir / "bad", options); }),
+            ErrorCode::InvalidArgument);
+  EXPECT_FALSE(fs::exists(dir / "bad"));
 }
 
 TEST(TexturedImport, AMissingTextureFailsAndLeavesNothingBehind) {

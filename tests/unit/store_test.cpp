@@ -1185,6 +1185,44 @@ TEST_F(TexturedStoreTest, EditCarriesTexturesIntoNewTilesAndOverviewsAndDropsThe
             (std::array<std::uint8_t, 4>{250, 0, 0, 255}));
 }
 
+TEST_F(TexturedStoreTest, OverviewsTakeTheFinestChildsTexelsPerQuad) {
+  PatchCache cache(64 << 20);
+  auto live = LiveModel::open(dir_, "m", cache);
+  const PatchKey leaf{2, 3, 1};
+  // Four texels per quad: every 4 x 4 block one texel of the leaf's one-per-quad layout, the
+  // top left texel of each block red, the rest white.
+  auto fine = std::make_shared<TextureTile>(textureTileSize(kSize, 4));
+  for (int j = 0; j < fine->size(); ++j) {
+    for (int i = 0; i < fine->size(); ++i) {
+      std::uint8_t* t = fine->at(i, j);
+      const bool corner = i % 4 == 0 && j % 4 == 0;
+      t[0] = 255, t[1] = corner ? 0 : 255, t[2] = corner ? 0 : 255, t[3] = 255;
+    }
+  }
+  {
+    auto edit = live->beginEdit();
+    edit->setPositions(leaf, leafGrid(3, 1, 2.0), fine);
+    edit->publish();
+  }
+  PatchCache fresh(64 << 20);
+  auto reopened = LiveModel::open(dir_, "m2", fresh, LiveModel::Access::Read);
+  const auto snapshot = reopened->snapshot();
+  EXPECT_EQ(reopened->texture(*snapshot, leaf).get<TextureTile>()->size(), 4 * (kSize - 1));
+  // (1, 1, 0) and the root take four texels per quad. The fine leaf's quadrant of (1, 1, 0) keeps
+  // half its resolution: a 2 x 2 block, one red corner and three white texels, per texel.
+  const PatchCache::Pin parent = reopened->texture(*snapshot, {1, 1, 0});
+  const int size = 4 * (kSize - 1);
+  ASSERT_EQ(parent.get<TextureTile>()->size(), size);
+  EXPECT_EQ(texel(parent, size / 2 + 2, size / 2 + 2),
+            (std::array<std::uint8_t, 4>{255, 191, 191, 255}));
+  EXPECT_EQ(texel(parent, size / 2 + 3, size / 2 + 2),
+            (std::array<std::uint8_t, 4>{255, 255, 255, 255}));
+  // The one-per-quad leaves upsampled: a uniform leaf stays its colour.
+  const auto nw = leafColour(2, 0);
+  EXPECT_EQ(texel(parent, 5, 7), (std::array<std::uint8_t, 4>{nw[0], nw[1], nw[2], 255}));
+  EXPECT_EQ(reopened->texture(*snapshot, PatchKey::root()).get<TextureTile>()->size(), size);
+}
+
 // (The edit's drafts may leave .vsm-shared/, the one Coordinates.aara of whole patches that any
 // later writer links to: a file no version names.)
 TEST_F(TexturedStoreTest, DiscardedEditAndWrongTileSizeLeaveTheTilesAsTheyWere) {
