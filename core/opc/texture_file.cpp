@@ -200,6 +200,38 @@ fs::path textureFileOf(const fs::path& dir, const PatchInfo& info) {
   return *file;
 }
 
+/// The tile for a glTF: JPEG (quality 90) where no texel is transparent, the alpha channel left
+/// out; else PNG, the image as it is.
+void encodeForGlb(const Image& image, PatchTexture& texture) {
+  const int channels = image.channels;
+  const std::size_t texels = static_cast<std::size_t>(image.width) * image.height;
+  bool opaque = true;
+  if (channels == 2 || channels == 4) {
+    for (std::size_t i = 0; i < texels && opaque; ++i) {
+      opaque = image.pixels[i * channels + channels - 1] == 255;
+    }
+  }
+  if (!opaque) {
+    texture.image =
+        encodeImage("tile.png", image.pixels.data(), image.width, image.height, channels);
+    texture.mimeType = "image/png";
+    return;
+  }
+  const int colours = channels < 3 ? 1 : 3;
+  std::vector<std::uint8_t> pixels;
+  const std::uint8_t* data = image.pixels.data();
+  if (colours != channels) {
+    pixels.resize(texels * colours);
+    for (std::size_t i = 0; i < texels; ++i) {
+      std::copy_n(image.pixels.data() + i * channels, colours, pixels.data() + i * colours);
+    }
+    data = pixels.data();
+  }
+  texture.image = encodeImage("tile.jpg", data, image.width, image.height, colours,
+                              {{"Compression", "jpeg:90"}});
+  texture.mimeType = "image/jpeg";
+}
+
 }  // namespace
 
 TextureTile readPatchTextureTile(const fs::path& dir, const PatchInfo& info,
@@ -228,7 +260,14 @@ std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& m
     return std::nullopt;
   }
   PatchTexture texture;
-  texture.png = readPatchTexturePng(dir, info, maxPixels);
+  {
+    const fs::path file = textureFileOf(dir, info);
+    const Image image = readImage(file, maxPixels);
+    if (image.fileChannels > 4) {
+      throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has more than 4 channels");
+    }
+    encodeForGlb(image, texture);
+  }
 
   const int n = model.gridSize();
   const GridRect& r = info.stored;

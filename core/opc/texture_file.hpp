@@ -80,17 +80,19 @@ std::vector<std::byte> readPatchCoordinates(const std::filesystem::path& dir,
 
 /// The texture of one patch, ready for a GLB.
 struct PatchTexture {
-  /// The tile as a PNG file.
-  std::vector<std::byte> png;
+  /// The tile as a JPEG file (quality 90, without alpha) when every texel is opaque, else as a
+  /// PNG file: `mimeType` says which.
+  std::vector<std::byte> image;
+  std::string mimeType;
   /// (u, v) per vertex of the full gridSize x gridSize grid (cropped borders: 0), as
   /// GlbOptions::texcoords wants them.
   std::vector<float> texcoords;
 };
 
-/// Reads the texture of a patch of the OPC at `dir` (its tile converted to PNG through OpenImageIO
-/// and its Coordinates.aara expanded to the full grid); nullopt when `info` names no texture.
-/// Throws Error(NotFound) when a named file is missing, Error(Corrupt) when it cannot be decoded,
-/// when the coordinates are not V2f/V2d of the stored positions' size.
+/// Reads the texture of a patch of the OPC at `dir` (its tile converted to JPEG or PNG through
+/// OpenImageIO and its Coordinates.aara expanded to the full grid); nullopt when `info` names no
+/// texture. Throws Error(NotFound) when a named file is missing, Error(Corrupt) when it cannot be
+/// decoded, when the coordinates are not V2f/V2d of the stored positions' size.
 std::optional<PatchTexture> readPatchTexture(const std::filesystem::path& dir, const Model& model,
                                              const PatchInfo& info,
                                              std::uint64_t maxPixels = kDefaultTexturePixels);

@@ -454,13 +454,14 @@ std::shared_ptr<const EncodedCache::Body> PatchData::glb(const ModelRegistry::Se
     // A cache miss reads the disk here, and the encoding is CPU work. The pin is released before
     // the snapshot.
     const core::PatchCache::Pin pin = served.live->positions(snapshot, info.key);
-    // The patch's texture tile (converted to PNG) and coordinates, read from disk.
+    // The patch's texture tile (as JPEG, or PNG where it has transparent texels) and
+    // coordinates, read from disk.
     const std::optional<core::PatchTexture> texture = core::readPatchTexture(
         served.live->dir(), *snapshot.model, info, served.live->texturePixels());
     core::GlbOptions options;
     options.compression = compression;
     if (texture) {
-      options.texture = {texture->png, "image/png"};
+      options.texture = {texture->image, texture->mimeType};
       options.texcoords = texture->texcoords;
       options.baseColor = {1.0, 1.0, 1.0, 1.0};  // the texture's own colours
     }

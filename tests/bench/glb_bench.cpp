@@ -1,13 +1,13 @@
 // Benchmark (not a test): the 3D Tiles content of real models as vsmd encodes it, uncompressed
 // (float32, `?compress=none`) against compressed (KHR_mesh_quantization + EXT_meshopt_compression,
-// the default): bytes per tile, total and geometry only (the GLB without its embedded PNG
+// the default): bytes per tile, total and geometry only (the GLB without its embedded image
 // texture), and the time encodeGlb takes per tile.
 //
 //   glb_bench <opc-dir>... [--repeat N]
 //
 // Every patch of every model is read once (positions through the cache, texture tile and
 // coordinates as tiles_routes.cpp reads them), then encoded N times each way; the time per tile is
-// the median of its N encodings, so disk reads and PNG conversion are not counted.
+// the median of its N encodings, so disk reads and image conversion are not counted.
 #include <algorithm>
 #include <chrono>
 #include <cstdio>
@@ -107,10 +107,10 @@ int main(int argc, char** argv) {
         GlbOptions options;
         std::size_t image = 0;
         if (texture) {
-          options.texture = {texture->png, "image/png"};
+          options.texture = {texture->image, texture->mimeType};
           options.texcoords = texture->texcoords;
           options.baseColor = {1.0, 1.0, 1.0, 1.0};
-          image = (texture->png.size() + 3) & ~std::size_t{3};  // padded in the BIN chunk
+          image = (texture->image.size() + 3) & ~std::size_t{3};  // padded in the BIN chunk
         }
         textureBytes += image;
         vertices += grid.vertexCount();
@@ -131,8 +131,10 @@ int main(int argc, char** argv) {
                                           static_cast<double>(plainGlb.size() - image));
         }
       }
-      std::printf("%s: %zu patches, %zu grid vertices, %zu B of embedded PNG textures\n",
-                  dir.c_str(), snapshot->model->patches().size(), vertices, textureBytes);
+      std::printf(
+          "%s: %zu patches, %zu grid vertices, %zu B of embedded textures (JPEG, or PNG with "
+          "alpha)\n",
+          dir.c_str(), snapshot->model->patches().size(), vertices, textureBytes);
       print("uncompressed", plain);
       print("compressed", packed);
       std::printf(

@@ -1056,11 +1056,14 @@ TEST(TexturedImport, EveryPatchGetsATileCoordinatesAndXmlAsOpcSays) {
   EXPECT_NEAR(nw.at(0, 0)[0], expected, 1.0);
   EXPECT_NEAR(nw.at(0, 0)[1], expected, 1.0);
 
-  // The served form: PNG bytes and full-grid coordinates.
+  // The served form: image bytes and full-grid coordinates.
   const auto texture = readPatchTexture(dir / "opc", read, read.at(PatchKey::root()));
   ASSERT_TRUE(texture);
-  ASSERT_GE(texture->png.size(), 8u);
-  EXPECT_EQ(static_cast<unsigned char>(texture->png[1]), 'P');
+  // An opaque tile goes as JPEG.
+  ASSERT_GE(texture->image.size(), 8u);
+  EXPECT_EQ(texture->mimeType, "image/jpeg");
+  EXPECT_EQ(static_cast<unsigned char>(texture->image[0]), 0xFF);
+  EXPECT_EQ(static_cast<unsigned char>(texture->image[1]), 0xD8);
   EXPECT_EQ(texture->texcoords.size(), 5u * 5u * 2u);
   EXPECT_FLOAT_EQ(texture->texcoords[(4 * 5 + 4) * 2], 1.0f);
 }

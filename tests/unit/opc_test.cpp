@@ -323,6 +323,41 @@ TEST_F(TextureFileTest, AWholeTileWithTransparentTexelsReadsBackAsWrittenAndIsLe
   EXPECT_EQ(texelsOf(readTextureTile(path)), before);
 }
 
+TEST_F(TextureFileTest, AGlbTakesAnOpaqueTileAsJpegAndOneWithTransparentTexelsAsPng) {
+  Model model(5);
+  PatchInfo info;
+  info.setFolder("0_0_0");
+  info.setFiles({"Positions.aara", "", "Diffuse\\source.tif"});
+  info.stored = GridRect{0, 0, 5, 5};
+  // Opaque: JPEG of the colours, which reads back within JPEG's error.
+  TextureTile tile(4);
+  for (int y = 0; y < 4; ++y) {
+    for (int x = 0; x < 4; ++x) {
+      std::uint8_t* t = tile.at(x, y);
+      t[0] = static_cast<std::uint8_t>(60 + 10 * x), t[1] = 90, t[2] = 120, t[3] = 255;
+    }
+  }
+  writeBytes(file("source.tif"), encodeTextureTiff(tile));
+  auto texture = readPatchTexture(dir_, model, info);
+  ASSERT_TRUE(texture);
+  EXPECT_EQ(texture->mimeType, "image/jpeg");
+  const fs::path jpeg = writeBytes(file("back.jpg"), texture->image);
+  const TextureTile back = readTextureTile(jpeg);
+  ASSERT_EQ(back.size(), 4);
+  for (int x = 0; x < 4; ++x) {
+    EXPECT_NEAR(back.at(x, 2)[0], 60 + 10 * x, 6) << x;
+    EXPECT_NEAR(back.at(x, 2)[2], 120, 6) << x;
+  }
+  // One transparent texel: PNG, texel for texel.
+  tile.at(1, 1)[0] = tile.at(1, 1)[1] = tile.at(1, 1)[2] = tile.at(1, 1)[3] = 0;
+  writeBytes(file("source.tif"), encodeTextureTiff(tile));
+  texture = readPatchTexture(dir_, model, info);
+  ASSERT_TRUE(texture);
+  EXPECT_EQ(texture->mimeType, "image/png");
+  EXPECT_EQ(texelsOf(readTextureTile(writeBytes(file("back.png"), texture->image))),
+            texelsOf(tile));
+}
+
 TEST_F(TextureFileTest, APngNamedTifReadsByItsFirstBytes) {
   const TextureTile tile = sampleTile();
   const std::vector<std::byte> png = pngOf(tile);

@@ -1207,7 +1207,13 @@ TEST_F(TexturedStoreTest, OverviewsTakeTheFinestChildsTexelsPerQuad) {
   PatchCache fresh(64 << 20);
   auto reopened = LiveModel::open(dir_, "m2", fresh, LiveModel::Access::Read);
   const auto snapshot = reopened->snapshot();
+  const auto textureBytes = [&fresh] {
+    return fresh.stats().residentByCategory[static_cast<std::size_t>(MemoryCategory::Textures)];
+  };
+  const std::size_t before = textureBytes();
   EXPECT_EQ(reopened->texture(*snapshot, leaf).get<TextureTile>()->size(), 4 * (kSize - 1));
+  // The budget charges the tile's real size: 16 times a one-per-quad tile's.
+  EXPECT_EQ(textureBytes() - before, std::size_t{4 * (kSize - 1)} * 4 * (kSize - 1) * 4);
   // (1, 1, 0) and the root take four texels per quad. The fine leaf's quadrant of (1, 1, 0) keeps
   // half its resolution: a 2 x 2 block, one red corner and three white texels, per texel.
   const PatchCache::Pin parent = reopened->texture(*snapshot, {1, 1, 0});
