@@ -46,6 +46,7 @@ import harness  # noqa: E402
 from browser_support import (PALETTE, Raster, assert_not_blank, colour_counts,  # noqa: E402
                              dem_points, load_page, overlay_mask, screen_samples)
 from harness import Daemon  # noqa: E402
+from texel_density import box_mean, luminance, make_pair  # noqa: E402
 
 ARGS = None
 MODEL = "merged"
@@ -69,6 +70,14 @@ TEXTURE_CLOSE = 24
 TEXTURE_SHARE = 0.95
 TEXTURE_MEAN = 8.0
 TEXTURE_SPREAD = 0.15
+# Issue 28's pair: a PRISM crop (west, north, east, south) with the NASA image 4x finer, as
+# FINE (the texels the image asks for, 4 per grid quad) and COARSE (--texels-per-quad 1); the
+# screenshots' high-pass energy of FINE must exceed COARSE's ENERGY_RATIO times (seen: 49 times
+# in the viewer, 45 in CesiumJS with maximumScreenSpaceError 2).
+FINE_WINDOW = (-90.0, 39.0, -82.0, 33.0)
+FINE = "prism-fine"
+COARSE = "prism-coarse"
+ENERGY_RATIO = 4.0
 # The image is averaged over +-TEXTURE_BOX degrees around each point (about a texel of the levels
 # the view loads, 4 DEM quads of 2.5 arc-minutes).
 TEXTURE_BOX = 0.1
@@ -119,6 +128,15 @@ class Browser(unittest.TestCase):
             shutil.copytree(ARGS.model, os.path.join(root, MODEL))
             shutil.copytree(ARGS.textured_model, os.path.join(root, TEXTURED))
             shutil.copytree(ARGS.untextured_model, os.path.join(root, UNTEXTURED))
+            # Issue 28: a PRISM crop under an image 4x finer than its DEM (texel_density.py's
+            # pair), at the texels the image asks for and at one per grid quad.
+            pair = os.path.join(ARGS.screenshots, "texel-pair")
+            shutil.rmtree(pair, ignore_errors=True)
+            os.makedirs(pair)
+            dem, image = make_pair(ARGS.dem, ARGS.image, pair, "prism", 4, FINE_WINDOW)
+            for name, options in ((FINE, ()), (COARSE, ("--texels-per-quad", "1"))):
+                harness.import_dem(dem, os.path.join(root, name), 65, "--texture", image,
+                                   *options)
 
         os.makedirs(ARGS.screenshots, exist_ok=True)
         cls.daemon = Daemon("--set", "threads.cpu=2", "--viewer-dir", ARGS.viewer,
@@ -285,6 +303,45 @@ class Browser(unittest.TestCase):
         assert_not_blank(self, pixels, "cesium-textured")
         self.check_texture("cesium-textured", report, pixels)
 
+    def high_pass_energy(self, report, pixels, name):
+        """The mean square of the screenshot's luminance minus its 3 x 3 box mean, over the drawn
+        pixels (unlike the top left corner's background) away from the model's outline and the
+        page's overlays."""
+        import numpy
+        drawn = numpy.abs(pixels.astype(int) - pixels[2, 2].astype(int)).sum(axis=2) > 24
+        inner = box_mean(drawn.astype(float), 9) > 0.999
+        inner &= ~overlay_mask(report["state"], pixels.shape)
+        lum = luminance(pixels.astype(float).transpose(2, 0, 1))
+        high = lum - box_mean(lum, 3)
+        self.assertGreater(int(inner.sum()), 0.05 * inner.size, name)
+        energy = float((high[inner] ** 2).mean())
+        print("%s: high-pass energy %.2f over %d pixels" % (name, energy, int(inner.sum())),
+              file=sys.stderr)
+        return energy
+
+    def test_finer_texels_show_in_the_viewer_and_in_cesium(self):
+        """Issue 28: the model whose tiles keep an image 4x finer than its DEM shows that detail
+        (the screenshot's high-pass energy) well above the same model at one texel per quad, in
+        the viewer and in CesiumJS, both loading every tile without errors."""
+        energies = {}
+        for model in (FINE, COARSE):
+            report, pixels = self.load_viewer_top(model, "texture", "viewer-" + model)
+            self.assertEqual(report["state"]["textured"], report["state"]["loaded"])
+            energies["viewer", model] = self.high_pass_energy(report, pixels, "viewer-" + model)
+            report, pixels = self.load("/viewer/cesium.html?model=%s&view=top&unlit=1&error=2"
+                                       % model, "vsmCesium", "cesium-" + model)
+            state = report["state"]
+            self.assertIsNone(state["error"], state)
+            self.assertEqual(state["failed"], 0, self.why(state["errors"]))
+            self.assertTrue(state["idle"], state)
+            assert_not_blank(self, pixels, "cesium-" + model)
+            energies["cesium", model] = self.high_pass_energy(report, pixels, "cesium-" + model)
+        Browser.texture_numbers["high-pass energy"] = {
+            "%s %s" % key: round(value, 2) for key, value in energies.items()}
+        for viewer in ("viewer", "cesium"):
+            self.assertGreater(energies[viewer, FINE], ENERGY_RATIO * energies[viewer, COARSE],
+                               (viewer, energies))
+
     def test_the_viewer_files_are_served_safely_with_types_and_etags(self):
         d = self.daemon
         status, headers, body = d.request("GET", "/viewer")
@@ -329,6 +386,7 @@ def main():
     global ARGS
     parser = argparse.ArgumentParser()
     parser.add_argument("--vsmd", required=True)
+    parser.add_argument("--vsm", required=True, help="imports issue 28's pair")
     parser.add_argument("--model", required=True, help="the merged OPC (copied into the data root)")
     parser.add_argument("--textured-model", required=True,
                         help="PRISM imported with --texture conus_visible_earth.tif")
