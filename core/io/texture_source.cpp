@@ -36,6 +36,57 @@ struct TransformDeleter {
 /// averaged down by GDAL (memory stays a few tiles, whatever the image size).
 constexpr int kMaxWindowPerTexel = 2;
 
+/// The colours at image points (xs[k], ys[k]) (pixel-edge coordinates; NaN: left as they are)
+/// into RGBA texels `out`, bilinear between the pixel centres of `buffer`: the image window from
+/// (wx0, wy0), read scaled by (scaleX, scaleY) into bw x bh pixels of Bands bytes (grey, grey and
+/// alpha, RGB or RGBA); points beyond its edge pixels take them.
+template <int Bands>
+void sampleWindow(const std::vector<double>& xs, const std::vector<double>& ys, int wx0, int wy0,
+                  double scaleX, double scaleY, const std::uint8_t* buffer, int bw, int bh,
+                  std::uint8_t* out) {
+  const std::size_t rowBytes = static_cast<std::size_t>(bw) * Bands;
+  for (std::size_t k = 0; k < xs.size(); ++k) {
+    if (std::isnan(xs[k])) {
+      continue;
+    }
+    // Buffer pixel-centre coordinates: centres at integers.
+    const double cx = (xs[k] - wx0) * scaleX - 0.5;
+    const double cy = (ys[k] - wy0) * scaleY - 0.5;
+    const double floorX = std::floor(cx);
+    const double floorY = std::floor(cy);
+    const auto fx = static_cast<float>(cx - floorX);
+    const auto fy = static_cast<float>(cy - floorY);
+    const int ix = static_cast<int>(floorX);
+    const int iy = static_cast<int>(floorY);
+    const std::size_t x0 = static_cast<std::size_t>(std::clamp(ix, 0, bw - 1)) * Bands;
+    const std::size_t x1 = static_cast<std::size_t>(std::clamp(ix + 1, 0, bw - 1)) * Bands;
+    const std::uint8_t* row0 =
+        buffer + static_cast<std::size_t>(std::clamp(iy, 0, bh - 1)) * rowBytes;
+    const std::uint8_t* row1 =
+        buffer + static_cast<std::size_t>(std::clamp(iy + 1, 0, bh - 1)) * rowBytes;
+    const float w00 = (1 - fx) * (1 - fy);
+    const float w10 = fx * (1 - fy);
+    const float w01 = (1 - fx) * fy;
+    const float w11 = fx * fy;
+    std::uint8_t v[Bands];
+    for (int b = 0; b < Bands; ++b) {
+      // The weights sum to 1, so the sum stays in [0, 255] (to float rounding): + 0.5 rounds.
+      v[b] = static_cast<std::uint8_t>(w00 * row0[x0 + b] + w10 * row0[x1 + b] +
+                                       w01 * row1[x0 + b] + w11 * row1[x1 + b] + 0.5f);
+    }
+    std::uint8_t* texel = out + k * TextureTile::kChannels;
+    if constexpr (Bands <= 2) {
+      texel[0] = texel[1] = texel[2] = v[0];
+      texel[3] = Bands == 2 ? v[Bands - 1] : 255;
+    } else {
+      texel[0] = v[0];
+      texel[1] = v[1];
+      texel[2] = v[2];
+      texel[3] = Bands == 4 ? v[Bands - 1] : 255;
+    }
+  }
+}
+
 }  // namespace
 
 struct TextureSource::Impl {
@@ -290,44 +341,20 @@ void TextureSource::fillTile(int x0, int y0, const PatchGrid& grid, TextureTile&
     }
   }
 
-  const auto pixel = [&](int bx, int by) {
-    bx = std::clamp(bx, 0, bw - 1);
-    by = std::clamp(by, 0, bh - 1);
-    return buffer.data() + (static_cast<std::size_t>(by) * bw + bx) * bands;
-  };
-  for (std::size_t k = 0; k < n; ++k) {
-    if (std::isnan(xs[k])) {
-      continue;
-    }
-    // Buffer pixel-centre coordinates: centres at integers.
-    const double cx = (xs[k] - wx0) * scaleX - 0.5;
-    const double cy = (ys[k] - wy0) * scaleY - 0.5;
-    const int ix = static_cast<int>(std::floor(cx));
-    const int iy = static_cast<int>(std::floor(cy));
-    const double fx = cx - ix;
-    const double fy = cy - iy;
-    const std::uint8_t* p00 = pixel(ix, iy);
-    const std::uint8_t* p10 = pixel(ix + 1, iy);
-    const std::uint8_t* p01 = pixel(ix, iy + 1);
-    const std::uint8_t* p11 = pixel(ix + 1, iy + 1);
-    double rgba[4] = {0, 0, 0, 255};
-    for (int b = 0; b < bands; ++b) {
-      rgba[b] =
-          (1 - fy) * ((1 - fx) * p00[b] + fx * p10[b]) + fy * ((1 - fx) * p01[b] + fx * p11[b]);
-    }
-    std::uint8_t* out = tile.texels().data() + k * TextureTile::kChannels;
-    const auto byte = [](double v) {
-      return static_cast<std::uint8_t>(std::clamp(std::lround(v), 0L, 255L));
-    };
-    if (bands <= 2) {
-      out[0] = out[1] = out[2] = byte(rgba[0]);
-      out[3] = bands == 2 ? byte(rgba[1]) : 255;
-    } else {
-      out[0] = byte(rgba[0]);
-      out[1] = byte(rgba[1]);
-      out[2] = byte(rgba[2]);
-      out[3] = bands == 4 ? byte(rgba[3]) : 255;
-    }
+  std::uint8_t* out = tile.texels().data();
+  switch (bands) {
+    case 1:
+      sampleWindow<1>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
+      break;
+    case 2:
+      sampleWindow<2>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
+      break;
+    case 3:
+      sampleWindow<3>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
+      break;
+    default:
+      sampleWindow<4>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
+      break;
   }
 }
 
