@@ -25,6 +25,15 @@ bool TextureTile::transparent() const {
   return true;
 }
 
+bool TextureTile::opaque() const {
+  for (std::size_t i = 3; i < texels_.size(); i += kChannels) {
+    if (texels_[i] != 255) {
+      return false;
+    }
+  }
+  return true;
+}
+
 std::vector<float> textureCoordinates(int gridSize, int x0, int y0, int width, int height) {
   std::vector<float> out(static_cast<std::size_t>(width) * height * 2);
   float* p = out.data();

@@ -40,6 +40,8 @@ class TextureTile {
 
   /// True when no texel is opaque at all (nothing of the image falls on the tile).
   bool transparent() const;
+  /// True when every texel is opaque (alpha 255).
+  bool opaque() const;
 
  private:
   int size_;

@@ -22,9 +22,9 @@ inline constexpr std::string_view kTextureLayer = "Diffuse";
 /// on a thread of its own meanwhile. Throws Error(Internal) when it cannot be loaded.
 void loadImageCodec();
 
-/// A tile as an RGBA 8-bit TIFF file (associated alpha, strips of 32 rows, deflate level 1 with the
-/// horizontal predictor), written with libtiff (tiff_tile.cpp). Throws Error(Internal) when
-/// libtiff fails.
+/// A tile as an 8-bit TIFF file: RGB when every texel is opaque, else RGBA (associated alpha);
+/// strips of 32 rows, deflate level 1 with the horizontal predictor; written with libtiff
+/// (tiff_tile.cpp). Throws Error(Internal) when libtiff fails.
 std::vector<std::byte> encodeTextureTiff(const TextureTile& tile);
 
 /// How hard a PNG is compressed: OpenImageIO's defaults (zlib level 6, libpng choosing a filter

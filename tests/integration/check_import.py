@@ -104,6 +104,19 @@ def numbers(text):
                                          text, flags=re.IGNORECASE)]
 
 
+def read_tile(path):
+    """A texture tile as (4, rows, cols) floats, RGBA: vsm writes RGB where every texel is opaque
+    and RGBA elsewhere; a file without alpha reads as alpha 255, a grey one as R = G = B."""
+    t = gdal.Open(path).ReadAsArray().astype(float)
+    if t.ndim == 2:
+        t = t[None]
+    if t.shape[0] < 3:
+        t = np.concatenate([t[:1], t[:1], t[:1], t[1:]])
+    if t.shape[0] == 3:
+        t = np.concatenate([t, np.full((1,) + t.shape[1:], 255.0)])
+    return t
+
+
 def read_aara(path):
     """(type name, sizes, elements as float64 array of shape (rows, cols, 3))."""
     type_name, sizes, values = harness.read_aara(path)

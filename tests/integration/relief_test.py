@@ -36,7 +36,7 @@ from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import harness  # noqa: E402
-from check_import import QUADRANTS, Failures, check_pro3d, read_hierarchy  # noqa: E402
+from check_import import QUADRANTS, Failures, check_pro3d, read_hierarchy, read_tile  # noqa: E402
 
 gdal.UseExceptions()
 
@@ -87,7 +87,7 @@ def leaves_and_tiles(opc):
         folder, key = stack.pop()
         patch = ET.parse(os.path.join(patches_dir, folder, "Patch.xml")).getroot().find("Patch")
         entry = patch.find("Textures")[0].text.strip().replace("\\", "/")
-        tiles[key] = gdal.Open(os.path.join(opc, "Images", entry)).ReadAsArray().astype(float)
+        tiles[key] = read_tile(os.path.join(opc, "Images", entry))
         kids[key] = {}
         for q, child in children.get(folder, {}).items():
             qx, qy = QUADRANTS[q]

@@ -24,7 +24,7 @@ import sys
 import numpy as np
 from osgeo import gdal
 
-from check_import import Failures, read_hierarchy, walk
+from check_import import Failures, read_hierarchy, read_tile, walk
 from harness import bilinear
 
 gdal.UseExceptions()
@@ -119,13 +119,10 @@ def measure(opc, dem_path, image_path, n, depth=None, levels=0, exclude=None):
     rows = max(k[2] for k in chosen) - y0 + 1
     mosaic = np.zeros((4, rows * tile, cols * tile))
     for (_, x, y), folder in chosen.items():
-        t = gdal.Open(os.path.join(opc, "Images", "Diffuse", folder + ".tif")).ReadAsArray()
+        t = read_tile(os.path.join(opc, "Images", "Diffuse", folder + ".tif"))
         if t.shape[1] != tile:
             sys.exit("%s: leaves at depth %d with tiles of %d and %d texels" %
                      (opc, depth, tile, t.shape[1]))
-        t = t.astype(float)
-        if t.shape[0] == 3:
-            t = np.concatenate([t, np.full((1,) + t.shape[1:], 255.0)])
         mosaic[:, (y - y0) * tile:(y - y0 + 1) * tile, (x - x0) * tile:(x - x0 + 1) * tile] = t
     dem = gdal.Open(dem_path)
     dgt = dem.GetGeoTransform()

@@ -41,6 +41,7 @@ from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import harness  # noqa: E402
+import check_import  # noqa: E402
 from check_import import QUADRANTS, Failures, check_pro3d, ecef_to_geodetic  # noqa: E402
 from harness import bilinear  # noqa: E402
 from merge_check import load  # noqa: E402
@@ -76,7 +77,7 @@ def read_tile(opc, folder):
     size = ds.RasterXSize
     f = size // QUADS
     assert ds.RasterYSize == size and size == QUADS * f and f & (f - 1) == 0, (folder, size)
-    return ds.ReadAsArray().astype(float), f
+    return check_import.read_tile(os.path.join(opc, "Images", "Diffuse", folder + ".tif")), f
 
 
 def digest(path):

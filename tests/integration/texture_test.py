@@ -35,7 +35,7 @@ from osgeo import gdal
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import harness  # noqa: E402
-from check_import import read_hierarchy  # noqa: E402
+from check_import import read_hierarchy, read_tile  # noqa: E402
 from harness import Daemon, bilinear, read_aara  # noqa: E402
 
 gdal.UseExceptions()
@@ -145,7 +145,7 @@ class Texture(unittest.TestCase):
             self.assertIn(ds.RasterCount, (3, 4), ds.RasterCount)
             self.assertTrue(all(ds.GetRasterBand(b + 1).DataType == gdal.GDT_Byte
                        for b in range(ds.RasterCount)))
-            tiles[folder] = ds.ReadAsArray().astype(float)
+            tiles[folder] = read_tile(texture_file)
 
             depth, kx, ky = [int(v) for v in folder.split("_")]
             if folder not in children:  # a leaf: texels against the source image

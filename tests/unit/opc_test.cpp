@@ -14,6 +14,7 @@
 
 #include "core/common/error.hpp"
 #include "core/opc/aara.hpp"
+#include "core/opc/image_codec.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/opc/stored_file.hpp"
@@ -301,6 +302,25 @@ TEST_F(TextureFileTest, ATiffReadsUnderItsOwnExtensionInAnyCaseOrUnderAnother) {
     const fs::path path = writeBytes(file(name), encodeTextureTiff(tile));
     EXPECT_EQ(texelsOf(readTextureTile(path)), texelsOf(tile)) << name;
   }
+}
+
+TEST_F(TextureFileTest, AnOpaqueTileIsStoredAsRgbAndOneWithTransparentTexelsAsRgba) {
+  const auto channelsOf = [](const fs::path& path) {
+    image::Image image;
+    std::string error;
+    EXPECT_EQ(image::codec().read("tiff", path.string(), 1 << 20, image, error),
+              image::Codec::Status::Ok)
+        << error;
+    return image.fileChannels;
+  };
+  TextureTile tile = sampleTile();
+  const fs::path rgb = writeBytes(file("opaque.tif"), encodeTextureTiff(tile));
+  EXPECT_EQ(channelsOf(rgb), 3);
+  EXPECT_EQ(texelsOf(readTextureTile(rgb)), texelsOf(tile));
+  tile.at(3, 2)[0] = tile.at(3, 2)[1] = tile.at(3, 2)[2] = tile.at(3, 2)[3] = 0;
+  const fs::path rgba = writeBytes(file("holed.tif"), encodeTextureTiff(tile));
+  EXPECT_EQ(channelsOf(rgba), 4);
+  EXPECT_EQ(texelsOf(readTextureTile(rgba)), texelsOf(tile));
 }
 
 TEST_F(TextureFileTest, AWholeTileWithTransparentTexelsReadsBackAsWrittenAndIsLeftAsItWas) {
