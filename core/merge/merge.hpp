@@ -1,5 +1,6 @@
 #pragma once
 
+#include <algorithm>
 #include <cstddef>
 #include <map>
 #include <memory>
@@ -68,6 +69,17 @@ struct MergeOptions {
 /// the detail surface each task samples from, a bound on the merge's working set beside the
 /// cache (see mergeModels).
 inline constexpr std::size_t kMergeBatch = 16;
+/// The bytes a batch's finished new patches may hold beside the cache: kMergeBatch patches of
+/// 257 x 257 vertices with four texels per quad (0.8 MB of grid, 4.2 MB of tile each).
+inline constexpr std::size_t kMergeBatchBytes = std::size_t{80} << 20;
+
+/// New patches per batch when a finished one (grid and texture tile) holds `patchBytes`: as many
+/// as kMergeBatchBytes holds, at most kMergeBatch and at least 2 (tiles of 4096 texels a side,
+/// 64 MiB, go two at a time).
+inline std::size_t mergeBatch(std::size_t patchBytes) {
+  const std::size_t fit = kMergeBatchBytes / std::max<std::size_t>(patchBytes, 1);
+  return std::clamp<std::size_t>(fit, 2, kMergeBatch);
+}
 
 struct MergeResult {
   /// Bottom patches of the target placed on the detail (given new levels, or resampled in place).
@@ -125,10 +137,10 @@ struct MergeResult {
 /// the current matched leaf (a's vertices in double, 24 B each), per running task one caster of
 /// the B cells within reach of its new patch (SurfaceCaster clipped to the patch's reach: about
 /// 300 B per B cell there, caster_bench's figure, e.g. 20 MB for 257 x 257 patches of B at the
-/// new level's spacing) and up to kMergeBatch
-/// finished new patches (grid and texture tile, about 1 MB each at 257 x 257 and one texel per
-/// quad, 16 MB more at four) until they are inserted, in the order a single thread would insert
-/// them.
+/// new level's spacing) and the finished new patches of a batch until they are inserted, in the
+/// order a single thread would insert them: kMergeBatch of them, fewer where their tiles are
+/// large (mergeBatch: kMergeBatchBytes, 80 MiB, or two patches; a patch of 257 x 257 is about
+/// 1 MB at one texel per quad, 5 MB at four, 68 MB at sixteen).
 ///
 /// The target is not published: the caller publishes the edit (or discards it on error).
 ///

@@ -212,6 +212,18 @@ class Placing {
 
   void run() {
     const std::size_t count = matched_.matches.size();
+    // What a finished new patch holds, to size the batches (mergeBatch): a grid and a tile as
+    // large as the larger of a's first matched leaf's and B's root's, then the largest seen.
+    const std::size_t gridBytes = static_cast<std::size_t>(target_.model().gridSize()) *
+                                  target_.model().gridSize() * 3 * sizeof(float);
+    std::size_t patchBytes = gridBytes;
+    if (const auto root = textureOf(detail_, PatchKey::root())) {
+      // B's tile at A's grid size: a new patch takes B's texels per quad.
+      const int texels = texelsPerQuadOf(root->size(), detail_.model().gridSize());
+      const auto side = static_cast<std::size_t>(
+          std::min(textureTileSize(target_.model().gridSize(), texels), kMaxTextureTileSize));
+      patchBytes = gridBytes + side * side * TextureTile::kChannels;
+    }
     std::size_t next = 0;
     std::vector<PatchKey> finished;  // the last batch's new leaves, stored early by the next
     std::deque<std::unique_ptr<MatchWork>> open;
@@ -219,6 +231,9 @@ class Placing {
       checkCancelled(options_);
       if (open.empty()) {
         open.push_back(start(next++));
+        if (const TextureTile* a = open.back()->aTexture.get()) {
+          patchBytes = std::max(patchBytes, gridBytes + a->bytes());
+        }
         plan(*open.back());
         continue;
       }
@@ -229,7 +244,7 @@ class Placing {
       };
       std::vector<Item> items;
       for (const std::unique_ptr<MatchWork>& work : open) {
-        while (work->dispatched < work->leaves.size() && items.size() < kMergeBatch) {
+        while (work->dispatched < work->leaves.size() && items.size() < mergeBatch(patchBytes)) {
           items.push_back({work.get(), work->dispatched++});
         }
       }
@@ -254,6 +269,9 @@ class Placing {
       runTasks(options_.executor, std::move(tasks));
       for (std::size_t t = 0; t < items.size(); ++t) {
         MatchWork& work = *items[t].work;
+        if (computed[t].texture) {
+          patchBytes = std::max(patchBytes, gridBytes + computed[t].texture->bytes());
+        }
         if (computed[t].grid) {
           insert(work, work.leaves[items[t].leaf], computed[t], finished);
         }

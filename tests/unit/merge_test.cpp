@@ -147,6 +147,19 @@ bool sameBits(const Vec3d& a, const Vec3d& b) {
 // tests below rely on too), points in their grids' vertex space, B's border within the tolerance
 // (outer border, seams between grids, holes), cells with one corner undefined.
 
+TEST(MergeBatch, HoldsAtMostItsBytesOfFinishedPatchesAndAtLeastTwo) {
+  using vsm::core::mergeBatch;
+  // A 257 x 257 grid and its tile at 1, 4, 8 and 16 texels per quad.
+  const std::size_t grid = std::size_t{257} * 257 * 12;
+  const auto patch = [grid](std::size_t side) { return grid + side * side * 4; };
+  EXPECT_EQ(mergeBatch(patch(256)), vsm::core::kMergeBatch);
+  EXPECT_EQ(mergeBatch(patch(1024)), vsm::core::kMergeBatch);
+  EXPECT_EQ(mergeBatch(patch(2048)), 4u);  // 80 MiB / 17.6 MB
+  EXPECT_LE(mergeBatch(patch(2048)) * patch(2048), vsm::core::kMergeBatchBytes);
+  EXPECT_EQ(mergeBatch(patch(4096)), 2u);
+  EXPECT_EQ(mergeBatch(0), vsm::core::kMergeBatch);
+}
+
 TEST(SurfaceSampler, ReproducesAnalyticSurfaceOnRotatedGridWithinBound) {
   // B: 3 x 3 patches of 17 x 17 on a lattice rotated by 30 degrees, spacing 4 m / 5.3.
   const Lattice b{1000, 2000, 4.0 / 5.3, std::numbers::pi / 6};
