@@ -98,35 +98,38 @@ TextureTile resizeTile(const TextureTile& tile, int size) {
 
 TextureTile downsampleQuadrants(const std::array<const TextureTile*, 4>& children, int size) {
   TextureTile parent(size);
-  const int half = size / 2;
   for (int q = 0; q < 4; ++q) {
-    const TextureTile* child = children[q];
-    if (child == nullptr) {
-      continue;
-    }
-    if (child->size() != size) {
-      throw Error(ErrorCode::InvalidArgument, "child texture tile of size " +
-                                                  std::to_string(child->size()) + ", expected " +
-                                                  std::to_string(size));
-    }
-    // Quadrant order nw, ne, sw, se: bit 0 is east, bit 1 south.
-    const int offsetX = (q & 1) * half;
-    const int offsetY = (q >> 1) * half;
-    for (int j = 0; j < half; ++j) {
-      const std::uint8_t* top = child->at(0, 2 * j);
-      const std::uint8_t* bottom = child->at(0, 2 * j + 1);
-      std::uint8_t* out = parent.at(offsetX, offsetY + j);
-      for (int i = 0; i < half; ++i) {
-        for (int c = 0; c < TextureTile::kChannels; ++c) {
-          const int k = 2 * i * TextureTile::kChannels + c;
-          const int sum = top[k] + top[k + TextureTile::kChannels] + bottom[k] +
-                          bottom[k + TextureTile::kChannels];
-          out[i * TextureTile::kChannels + c] = static_cast<std::uint8_t>((sum + 2) / 4);
-        }
-      }
+    if (children[q] != nullptr) {
+      downsampleQuadrant(*children[q], q, parent);
     }
   }
   return parent;
+}
+
+void downsampleQuadrant(const TextureTile& child, int quadrant, TextureTile& parent) {
+  const int size = parent.size();
+  if (child.size() != size) {
+    throw Error(ErrorCode::InvalidArgument, "child texture tile of size " +
+                                                std::to_string(child.size()) + ", expected " +
+                                                std::to_string(size));
+  }
+  const int half = size / 2;
+  // Quadrant order nw, ne, sw, se: bit 0 is east, bit 1 south.
+  const int offsetX = (quadrant & 1) * half;
+  const int offsetY = (quadrant >> 1) * half;
+  for (int j = 0; j < half; ++j) {
+    const std::uint8_t* top = child.at(0, 2 * j);
+    const std::uint8_t* bottom = child.at(0, 2 * j + 1);
+    std::uint8_t* out = parent.at(offsetX, offsetY + j);
+    for (int i = 0; i < half; ++i) {
+      for (int c = 0; c < TextureTile::kChannels; ++c) {
+        const int k = 2 * i * TextureTile::kChannels + c;
+        const int sum = top[k] + top[k + TextureTile::kChannels] + bottom[k] +
+                        bottom[k + TextureTile::kChannels];
+        out[i * TextureTile::kChannels + c] = static_cast<std::uint8_t>((sum + 2) / 4);
+      }
+    }
+  }
 }
 
 std::array<std::uint8_t, 4> sampleBilinear(const TextureTile& tile, double x, double y) {

@@ -87,6 +87,11 @@ std::vector<float> textureCoordinates(int gridSize, int x0, int y0, int width, i
 /// channel, alpha included). Precondition: the present children have size `size`.
 TextureTile downsampleQuadrants(const std::array<const TextureTile*, 4>& children, int size);
 
+/// One child's part of downsampleQuadrants: `child` at half resolution into quadrant `quadrant`
+/// (Quadrant's order: nw, ne, sw, se) of `parent`, the rest of `parent` left as it is. Throws
+/// Error(InvalidArgument) unless both have the same size.
+void downsampleQuadrant(const TextureTile& child, int quadrant, TextureTile& parent);
+
 /// The colour of `tile` at (x, y) in texel-centre coordinates (texel (i, j) is centred at (i, j);
 /// in a patch's grid, vertex coordinates minus 0.5), bilinearly filtered over the up to four
 /// nearest texels that are not transparent, their weights re-normalised; positions outside the

@@ -168,8 +168,17 @@ struct BuiltPatch {
   explicit operator bool() const { return grid != nullptr; }
 };
 
-/// The depth-first build of one subtree. Holds at most the finished siblings on the path from its
-/// top to the current patch (at most 4 per level) plus one source window. Builders of disjoint
+/// A parent being built: its children's grids (null where a child is missing) and, in a textured
+/// import, its own tile, downsampled from each child's as that child is added (the child's tile
+/// is then written and freed: the tiles held are one per level, whatever their size).
+struct Parent {
+  std::array<std::unique_ptr<PatchGrid>, 4> grids;
+  std::unique_ptr<TextureTile> texture;
+};
+
+/// The depth-first build of one subtree. Holds at most the finished siblings' grids on the path
+/// from its top to the current patch (at most 4 per level), one texture tile per level, plus one
+/// source window. Builders of disjoint
 /// subtrees may run concurrently; each reads through a handle of its own when the source can
 /// reopen itself (GridSource::reopen), else through the shared one under a lock.
 class PyramidBuilder {
@@ -203,49 +212,55 @@ class PyramidBuilder {
     if (key.depth == depth_) {
       return readBottom(key);
     }
-    std::array<BuiltPatch, 4> children;
+    Parent parent;
     for (const Quadrant q : kQuadrants) {
       const PatchKey child = key.child(q);
       if (inside(child)) {
-        children[static_cast<int>(q)] = build(child);
+        BuiltPatch built = build(child);
+        if (built) {
+          write(child, *built.grid, built.texture.get());
+          add(parent, q, std::move(built));
+        }
       }
     }
-    return combine(key, children);
+    return combine(key, parent);
   }
 
-  /// The parent of `children` (built by this builder or adopted from others) by reduction;
-  /// writes the children. Null, and the subtree dropped, when nothing of it can be shown.
-  BuiltPatch combine(const PatchKey& key, std::array<BuiltPatch, 4>& children) {
+  /// Adds a written child to `parent`: its tile downsampled into its quadrant of the parent's
+  /// (then freed), its grid kept for the reduction.
+  void add(Parent& parent, Quadrant q, BuiltPatch child) const {
+    if (child.texture) {
+      if (!parent.texture) {
+        parent.texture = std::make_unique<TextureTile>(tileSize());
+      }
+      // 2 x 2 box filter, the child in its quadrant.
+      downsampleQuadrant(*child.texture, static_cast<int>(q), *parent.texture);
+    }
+    parent.grids[static_cast<int>(q)] = std::move(child.grid);
+  }
+
+  /// The patch of `parent`'s children (built by this builder or adopted from others, written) by
+  /// reduction, with its tile. Null, and the subtree dropped, when nothing of it can be shown.
+  BuiltPatch combine(const PatchKey& key, Parent& parent) {
     std::array<const PatchGrid*, 4> present{};
-    std::array<const TextureTile*, 4> textures{};
     for (int q = 0; q < 4; ++q) {
-      present[q] = children[q].grid.get();
-      textures[q] = children[q].texture.get();
+      present[q] = parent.grids[q].get();
     }
     if (std::all_of(present.begin(), present.end(), [](const PatchGrid* g) { return !g; })) {
       return {};
     }
-    BuiltPatch parent;
-    parent.grid = std::make_unique<PatchGrid>(reduce(present));
-    if (!parent.grid->anyDefined()) {
+    BuiltPatch built;
+    built.grid = std::make_unique<PatchGrid>(reduce(present));
+    parent.grids = {};
+    if (!built.grid->anyDefined()) {
       // Every defined child vertex sits between the vertices this level keeps (isolated samples
       // in an empty area). A patch needs a defined vertex to be written and must exist for its
       // children to be reachable, so this subtree cannot be stored.
       dropSubtree(key);
       return {};
     }
-    if (shared_.texture != nullptr) {
-      // The parent's tile from the children's: 2 x 2 box filter, each child in its quadrant.
-      parent.texture = std::make_unique<TextureTile>(downsampleQuadrants(textures, tileSize()));
-    }
-    for (const Quadrant q : kQuadrants) {
-      BuiltPatch& child = children[static_cast<int>(q)];
-      if (child) {
-        write(key.child(q), *child.grid, child.texture.get());
-        child = {};
-      }
-    }
-    return parent;
+    built.texture = std::move(parent.texture);
+    return built;
   }
 
   /// Hands back this builder's own handle of the source (its subtree is built); null when it
@@ -516,14 +531,24 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
       }
     }
     std::vector<std::optional<PyramidBuilder>> subtrees(tops.size());
-    std::vector<BuiltPatch> results(tops.size());
+    // The tops' parents, each top added by its task (writing the top's tile and freeing it).
+    std::map<PatchKey, Parent> level;
+    for (const PatchKey& top : tops) {
+      level.try_emplace(*top.parent());
+    }
+    std::mutex levelMutex;  // guards the Parents in `level`
     SourceHandles handles(source);
     std::vector<std::function<void()>> tasks;
     for (std::size_t i = 0; i < tops.size(); ++i) {
       tasks.emplace_back([&, i] {
-        subtrees[i].emplace(shared, handles.take());
-        results[i] = subtrees[i]->build(tops[i]);
-        handles.give(subtrees[i]->releaseSource());
+        PyramidBuilder& subtree = subtrees[i].emplace(shared, handles.take());
+        BuiltPatch built = subtree.build(tops[i]);
+        handles.give(subtree.releaseSource());
+        if (built) {
+          subtree.write(tops[i], *built.grid, built.texture.get());
+          std::lock_guard lock(levelMutex);
+          subtree.add(level.at(*tops[i].parent()), tops[i].quadrant(), std::move(built));
+        }
         // What the subtree wrote goes to disk while the other tasks compute: syncfs blocks this
         // thread only, and leaves the commit's syncfs below next to nothing (it took 0.3-0.6 s,
         // mostly the metadata of ~5,000 new files, with the cores idle).
@@ -531,33 +556,25 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
       });
     }
     options.executor->runAll(std::move(tasks));
-    std::map<PatchKey, BuiltPatch> level;
-    for (std::size_t i = 0; i < tops.size(); ++i) {
-      builder.adopt(*subtrees[i]);
-      if (results[i]) {
-        level.emplace(tops[i], std::move(results[i]));
-      }
+    for (std::optional<PyramidBuilder>& subtree : subtrees) {
+      builder.adopt(*subtree);
     }
     // Up to the root, one level at a time.
     for (int depth = split - 1; depth >= 0; --depth) {
-      std::map<PatchKey, BuiltPatch> parents;
-      for (auto& [key, patch] : level) {
-        parents.try_emplace(*key.parent());
-      }
-      for (auto& [parentKey, parent] : parents) {
-        std::array<BuiltPatch, 4> children;
-        for (const Quadrant q : kQuadrants) {
-          if (const auto it = level.find(parentKey.child(q)); it != level.end()) {
-            children[static_cast<int>(q)] = std::move(it->second);
-          }
+      std::map<PatchKey, Parent> parents;
+      for (auto& [key, parent] : level) {
+        BuiltPatch built = builder.combine(key, parent);
+        if (!built) {
+          continue;
         }
-        parent = builder.combine(parentKey, children);
+        if (depth == 0) {
+          root = std::move(built);
+          break;
+        }
+        builder.write(key, *built.grid, built.texture.get());
+        builder.add(parents[*key.parent()], key.quadrant(), std::move(built));
       }
-      std::erase_if(parents, [](const auto& entry) { return !entry.second; });
       level = std::move(parents);
-    }
-    if (const auto it = level.find(PatchKey::root()); it != level.end()) {
-      root = std::move(it->second);
     }
   } else {
     root = builder.build(PatchKey::root());

@@ -36,6 +36,11 @@ struct TransformDeleter {
 /// averaged down by GDAL (memory stays a few tiles, whatever the image size).
 constexpr int kMaxWindowPerTexel = 2;
 
+/// A tile is filled in bands of this many texel rows, each from its own image window: the
+/// coordinates and the window of one band stay a few MB, whatever the tile's size (a whole
+/// 4096-texel tile's were 268 MB of coordinates and up to 256 MB of window).
+constexpr int kBandRows = 64;
+
 /// The colours at image points (xs[k], ys[k]) (pixel-edge coordinates; NaN: left as they are)
 /// into RGBA texels `out`, bilinear between the pixel centres of `buffer`: the image window from
 /// (wx0, wy0), read scaled by (scaleX, scaleY) into bw x bh pixels of Bands bytes (grey, grey and
@@ -103,6 +108,90 @@ struct TextureSource::Impl {
   std::unique_ptr<OGRCoordinateTransformation, TransformDeleter> transform;  // guarded by mutex
   std::string description;
   mutable std::mutex mutex;  // guards dataset and transform (neither is thread-safe)
+
+  /// Texel rows [j0, j1) of `tile` (f texels per quad side, bottom patch at grid sample (x0, y0);
+  /// TextureSource::fillTile), left as they are (transparent) outside the image.
+  void fillRows(int x0, int y0, double f, int j0, int j1, TextureTile& tile) const {
+    const int t = tile.size();
+    const std::size_t n = static_cast<std::size_t>(t) * (j1 - j0);
+    std::vector<double> xs(n);
+    std::vector<double> ys(n);
+    for (int j = j0; j < j1; ++j) {
+      for (int i = 0; i < t; ++i) {
+        xs[static_cast<std::size_t>(j - j0) * t + i] = x0 + (i + 0.5) / f;
+        ys[static_cast<std::size_t>(j - j0) * t + i] = y0 + (j + 0.5) / f;
+      }
+    }
+    {
+      std::unique_lock lock(mutex, std::defer_lock);
+      if (georeferenced) {
+        lock.lock();
+      }
+      toImage(xs, ys);
+    }
+
+    // The image window the texels fall in (pixel-edge coordinates), one pixel of margin for the
+    // bilinear neighbours.
+    double minX = std::numeric_limits<double>::infinity(), minY = minX;
+    double maxX = -minX, maxY = -minX;
+    for (std::size_t k = 0; k < n; ++k) {
+      if (std::isnan(xs[k]) || xs[k] < 0 || ys[k] < 0 || xs[k] > imageWidth ||
+          ys[k] > imageHeight) {
+        xs[k] = std::numeric_limits<double>::quiet_NaN();  // outside the image: transparent
+        continue;
+      }
+      minX = std::min(minX, xs[k]);
+      maxX = std::max(maxX, xs[k]);
+      minY = std::min(minY, ys[k]);
+      maxY = std::max(maxY, ys[k]);
+    }
+    if (!(minX <= maxX)) {
+      return;
+    }
+    const int wx0 = std::max(0, static_cast<int>(std::floor(minX)) - 1);
+    const int wy0 = std::max(0, static_cast<int>(std::floor(minY)) - 1);
+    const int wx1 = std::min(imageWidth, static_cast<int>(std::ceil(maxX)) + 1);
+    const int wy1 = std::min(imageHeight, static_cast<int>(std::ceil(maxY)) + 1);
+    const int ww = std::max(1, wx1 - wx0);
+    const int wh = std::max(1, wy1 - wy0);
+    const int bw = std::min(ww, kMaxWindowPerTexel * t);
+    const int bh = std::min(wh, kMaxWindowPerTexel * (j1 - j0));
+    const double scaleX = static_cast<double>(bw) / ww;
+    const double scaleY = static_cast<double>(bh) / wh;
+    std::vector<std::uint8_t> buffer(static_cast<std::size_t>(bw) * bh * bands);
+    {
+      std::lock_guard lock(mutex);
+      GdalMessagesToLog quiet;
+      CPLErrorReset();
+      GDALRasterIOExtraArg extra;
+      INIT_RASTERIO_EXTRA_ARG(extra);
+      extra.eResampleAlg = (bw < ww || bh < wh) ? GRIORA_Average : GRIORA_NearestNeighbour;
+      std::array<int, 4> bandList{1, 2, 3, 4};
+      if (dataset->RasterIO(GF_Read, wx0, wy0, ww, wh, buffer.data(), bw, bh, GDT_Byte, bands,
+                            bandList.data(), bands, static_cast<GSpacing>(bw) * bands, 1,
+                            &extra) != CE_None) {
+        throw Error(CPLGetLastErrorNo() == CPLE_FileIO ? ErrorCode::Io : ErrorCode::Corrupt,
+                    "cannot read texture '" + path.string() + "': " + lastGdalMessage());
+      }
+    }
+
+    std::uint8_t* out =
+        tile.texels().data() + static_cast<std::size_t>(j0) * t * TextureTile::kChannels;
+    switch (bands) {
+      case 1:
+        sampleWindow<1>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
+        break;
+      case 2:
+        sampleWindow<2>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
+        break;
+      case 3:
+        sampleWindow<3>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
+        break;
+      default:
+        sampleWindow<4>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
+        break;
+    }
+  }
 
   /// Image pixel coordinates of grid points (in place: xs, ys in, out); NaN where not placeable.
   /// Caller holds the mutex when georeferenced.
@@ -274,87 +363,11 @@ int TextureSource::naturalTexelsPerQuad(int patchSize) const {
 }
 
 void TextureSource::fillTile(int x0, int y0, const PatchGrid& grid, TextureTile& tile) const {
-  const Impl& m = *impl_;
   const int t = tile.size();
   const double f = static_cast<double>(texelsPerQuadOf(t, grid.size()));
-  const std::size_t n = static_cast<std::size_t>(t) * t;
-  std::vector<double> xs(n);
-  std::vector<double> ys(n);
-  for (int j = 0; j < t; ++j) {
-    for (int i = 0; i < t; ++i) {
-      xs[static_cast<std::size_t>(j) * t + i] = x0 + (i + 0.5) / f;
-      ys[static_cast<std::size_t>(j) * t + i] = y0 + (j + 0.5) / f;
-    }
-  }
-  {
-    std::unique_lock lock(m.mutex, std::defer_lock);
-    if (m.georeferenced) {
-      lock.lock();
-    }
-    m.toImage(xs, ys);
-  }
-
-  // The image window the texels fall in (pixel-edge coordinates), one pixel of margin for the
-  // bilinear neighbours.
-  double minX = std::numeric_limits<double>::infinity(), minY = minX;
-  double maxX = -minX, maxY = -minX;
-  for (std::size_t k = 0; k < n; ++k) {
-    if (std::isnan(xs[k]) || xs[k] < 0 || ys[k] < 0 || xs[k] > m.imageWidth ||
-        ys[k] > m.imageHeight) {
-      xs[k] = std::numeric_limits<double>::quiet_NaN();  // outside the image: transparent
-      continue;
-    }
-    minX = std::min(minX, xs[k]);
-    maxX = std::max(maxX, xs[k]);
-    minY = std::min(minY, ys[k]);
-    maxY = std::max(maxY, ys[k]);
-  }
   std::fill(tile.texels().begin(), tile.texels().end(), std::uint8_t{0});
-  if (!(minX <= maxX)) {
-    return;
-  }
-  const int wx0 = std::max(0, static_cast<int>(std::floor(minX)) - 1);
-  const int wy0 = std::max(0, static_cast<int>(std::floor(minY)) - 1);
-  const int wx1 = std::min(m.imageWidth, static_cast<int>(std::ceil(maxX)) + 1);
-  const int wy1 = std::min(m.imageHeight, static_cast<int>(std::ceil(maxY)) + 1);
-  const int ww = std::max(1, wx1 - wx0);
-  const int wh = std::max(1, wy1 - wy0);
-  const int bw = std::min(ww, kMaxWindowPerTexel * t);
-  const int bh = std::min(wh, kMaxWindowPerTexel * t);
-  const double scaleX = static_cast<double>(bw) / ww;
-  const double scaleY = static_cast<double>(bh) / wh;
-  const int bands = m.bands;
-  std::vector<std::uint8_t> buffer(static_cast<std::size_t>(bw) * bh * bands);
-  {
-    std::lock_guard lock(m.mutex);
-    GdalMessagesToLog quiet;
-    CPLErrorReset();
-    GDALRasterIOExtraArg extra;
-    INIT_RASTERIO_EXTRA_ARG(extra);
-    extra.eResampleAlg = (bw < ww || bh < wh) ? GRIORA_Average : GRIORA_NearestNeighbour;
-    std::array<int, 4> bandList{1, 2, 3, 4};
-    if (m.dataset->RasterIO(GF_Read, wx0, wy0, ww, wh, buffer.data(), bw, bh, GDT_Byte, bands,
-                            bandList.data(), bands, static_cast<GSpacing>(bw) * bands, 1,
-                            &extra) != CE_None) {
-      throw Error(CPLGetLastErrorNo() == CPLE_FileIO ? ErrorCode::Io : ErrorCode::Corrupt,
-                  "cannot read texture '" + m.path.string() + "': " + lastGdalMessage());
-    }
-  }
-
-  std::uint8_t* out = tile.texels().data();
-  switch (bands) {
-    case 1:
-      sampleWindow<1>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
-      break;
-    case 2:
-      sampleWindow<2>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
-      break;
-    case 3:
-      sampleWindow<3>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
-      break;
-    default:
-      sampleWindow<4>(xs, ys, wx0, wy0, scaleX, scaleY, buffer.data(), bw, bh, out);
-      break;
+  for (int j0 = 0; j0 < t; j0 += kBandRows) {
+    impl_->fillRows(x0, y0, f, j0, std::min(t, j0 + kBandRows), tile);
   }
 }
 
