@@ -11,13 +11,16 @@ texel_density.py (GDAL and the import checker's OPC reader; none of vsm's code):
     image 2x finer, B = Jacksboro (3") with its own image 2x finer than B. In the merged model A's
     leaves outside B (B's box and a margin left out) against A's image, and the deepest leaves
     (B's area) against B's image, each with density >= 0.8 and r >= 0.75; the control, B imported
-    at one texel per quad, fails the correlation on B's side.
+    at one texel per quad, fails the correlation on B's side;
+(d) memory: an import with tiles of 4096 texels (--texels-per-quad 16, 64 MiB a tile) peaks below
+    TILE_BOUND tiles' worth of RSS.
 
 Run by ctest:  texture_density_test.py --vsm build/server/cli/vsm --data ../shared/data --work <dir>
 """
 
 import argparse
 import os
+import subprocess
 import shutil
 import sys
 import unittest
@@ -32,6 +35,7 @@ gdal.UseExceptions()
 
 N = 65
 WINDOW = (-90.0, 39.0, -82.0, 33.0)  # a crop of PRISM around Jacksboro (-84.2 E, 36.4 N)
+TILE_BOUND = 10  # LargeTiles: peak RSS in 4096-texel RGBA tiles (seen: 7)
 DENSITY = 0.8
 CORRELATION = 0.75
 ARGS = None
@@ -93,6 +97,41 @@ class TextureDensity(unittest.TestCase):
         m = measure(coarse, dem_a, image_b, N, depth=deepest, levels=deepest - a_depth)
         print("control, B at one texel per quad: %s" % m, flush=True)
         self.assertLess(m.r, CORRELATION)
+
+
+class LargeTiles(unittest.TestCase):
+    def test_an_import_with_the_largest_tiles_holds_a_few_of_them(self):
+        """Tiles of 4096 texels (64 MiB each in memory) stream through the import: a 513 x 513 crop
+        of PRISM at --texels-per-quad 16 (four leaves and the root) peaks below TILE_BOUND tiles'
+        worth (before the tiles streamed, the coordinates of one tile alone were 268 MB a worker)."""
+        work = os.path.join(ARGS.work, "large-tiles")
+        shutil.rmtree(work, ignore_errors=True)
+        os.makedirs(work)
+        dem = os.path.join(work, "dem.tif")
+        gdal.Translate(dem, os.path.join(ARGS.data, "PRISMelevation.tif"),
+                       srcWin=[300, 100, 513, 513])
+        opc = os.path.join(work, "model")
+        # This import's own peak (wait4: its rusage alone; vsm execs vsm-heavy in place).
+        log = os.path.join(work, "import.log")
+        with open(log, "w") as stderr:
+            process = subprocess.Popen(
+                [harness.VSM, "import", dem, opc, "--patch-size", "257", "--texture",
+                 os.path.join(ARGS.data, "conus_visible_earth.tif"), "--texels-per-quad", "16"],
+                stdout=subprocess.DEVNULL, stderr=stderr)
+            try:
+                _, status, usage = os.wait4(process.pid, 0)
+            finally:
+                process.returncode = 0  # reaped above: Popen must not wait for it again
+        with open(log) as f:
+            self.assertEqual(os.waitstatus_to_exitcode(status), 0, f.read()[-2000:])
+        peak = usage.ru_maxrss  # KiB
+        tiles = sorted(os.listdir(os.path.join(opc, "Images", "Diffuse")))
+        self.assertEqual(len(tiles), 5, tiles)
+        self.assertEqual(gdal.Open(os.path.join(opc, "Images", "Diffuse", tiles[0])).RasterXSize,
+                         4096)
+        print("import with 4096-texel tiles: peak RSS %.0f MB" % (peak / 1024), flush=True)
+        self.assertLess(peak * 1024, TILE_BOUND * 4096 * 4096 * 4)
+        harness.vsm("validate", opc, check=True)
 
 
 def main():
