@@ -194,7 +194,8 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
     }
     {
       // The parent's tile from its children's, one at a time as the grids, with as many texels
-      // per quad as the finest of them (a coarser child's tile is upsampled to it).
+      // per quad as the finest of them (a coarser child's tile is upsampled to it), at most
+      // kMaxTextureTileSize texels a side.
       const int gridSize = model_->gridSize();
       int size = textureTileSize(gridSize);
       std::array<PatchCache::Pin, 4> pins;
@@ -219,6 +220,8 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
         }
         children[i] = &*reliefs[i];
       }
+      // A finer foreign tile is brought down to the largest tile vsm makes.
+      size = std::min(size, std::max(kMaxTextureTileSize, textureTileSize(gridSize)));
       std::array<std::optional<TextureTile>, 4> resized;
       for (int i = 0; i < 4; ++i) {
         if (children[i] != nullptr && children[i]->size() != size) {

@@ -96,7 +96,8 @@ class ModelEdit {
 
   /// Recomputes every stale overview bottom-up by reduction, holding one parent's children at a
   /// time; its texture tile is downsampled from the children's (downsampleQuadrants) with as many
-  /// texels per quad as the finest child's (coarser ones upsampled: resizeTile), a child without
+  /// texels per quad as the finest child's (coarser ones upsampled: resizeTile; at most
+  /// kMaxTextureTileSize texels a side, a finer foreign tile downsampled), a child without
   /// a tile in vsm's layout (none, or a foreign one: texelsPerQuadOf) counting with its shaded
   /// relief (shadedRelief), so every overview an edit writes has a tile.
   void refreshStale(const CancelToken* cancel = nullptr);
