@@ -191,6 +191,11 @@ int runImport(const std::vector<std::string_view>& args) {
   if (positional.size() != 2) {
     throw UsageError{"import needs <input> and <out-dir>"};
   }
+  if (options.drape == ImportOptions::Drape::None && options.texelsPerQuad != 0) {
+    throw UsageError{
+        "--texels-per-quad needs a texture (an image or the default relief), not "
+        "--texture none"};
+  }
   if (options.drape == ImportOptions::Drape::None) {
     std::fprintf(stderr,
                  "vsm: warning: --texture none: the model gets no Images/ and no texture "

@@ -108,6 +108,25 @@ class CliErrors(unittest.TestCase):
         self.assertIn("2^n+1", result.stderr)
         self.assertFalse(os.path.exists(out))
 
+    def test_texels_per_quad_must_be_a_power_of_two_with_a_texture(self):
+        dem = os.path.join(ARGS.data, "jacksboro_fault_dem.tif")
+        out = work("bad-texels")
+        for value in ("3", "0", "-4", "x", "8192"):
+            result = vsm("import", dem, out, "--patch-size", "65", "--texels-per-quad", value)
+            self.assertEqual(result.returncode, 2, (value, result.stderr))
+            self.assertIn("power of two", result.stderr)
+            self.assertFalse(os.path.exists(out), value)
+        # No texture takes no texels.
+        result = vsm("import", dem, out, "--patch-size", "65", "--texels-per-quad", "2",
+                     "--texture", "none")
+        self.assertEqual(result.returncode, 2, result.stderr)
+        self.assertIn("--texels-per-quad needs a texture", result.stderr)
+        self.assertFalse(os.path.exists(out))
+        # 4096 is a power of two, but its tiles (64 x 4096 texels) exceed the cap.
+        result = vsm("import", dem, out, "--patch-size", "65", "--texels-per-quad", "4096")
+        self.assert_one_line_error(result, "texels per quad", "4096")
+        self.assertFalse(os.path.exists(out))
+
     def test_info_of_a_directory_without_opc_fails_cleanly(self):
         out = work("empty-dir")
         os.makedirs(out)
