@@ -1,8 +1,9 @@
-// Fuzz target: texture file reading through our OpenImageIO wrapper (readTextureTile and the
-// PNG conversion the server sends), with a pixel limit: what a file's header claims is checked
-// before pixels are allocated. Inputs are written to Images/Diffuse/tile.tif: OpenImageIO's TIFF
-// reader sees every input, and when it refuses one, the DDS, PNG or JPEG reader sees it if its
-// first bytes are of that format; no other reader is ever tried (other formats are refused).
+// Fuzz target: texture file reading through our OpenImageIO wrapper (readTextureTile, the PNG
+// conversion the texture route sends and the JPEG or PNG a GLB carries), with a pixel limit: what a
+// file's header claims is checked before pixels are allocated. Inputs are written to
+// Images/Diffuse/tile.tif: OpenImageIO's TIFF reader sees every input, and when it refuses one, the
+// DDS, PNG or JPEG reader sees it if its first bytes are of that format; no other reader is ever
+// tried (other formats are refused).
 #include <cstddef>
 #include <cstdint>
 #include <vector>
@@ -38,6 +39,15 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   fuzz::succeeds([&] {
     const std::vector<std::byte> png = core::readPatchTexturePng(scratch.path(), info, kMaxPixels);
     fuzz::check(png.size() >= 8, "a PNG has its signature");
+  });
+  // The GLB's form: JPEG where every texel is opaque, else PNG.
+  static const core::Model model(5);
+  info.stored = core::GridRect{0, 0, 5, 5};
+  fuzz::succeeds([&] {
+    const auto texture = core::readPatchTexture(scratch.path(), model, info, kMaxPixels);
+    fuzz::check(texture && texture->image.size() >= 8 &&
+                    (texture->mimeType == "image/jpeg" || texture->mimeType == "image/png"),
+                "a GLB texture is a JPEG or a PNG");
   });
   return 0;
 }
