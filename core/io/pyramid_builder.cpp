@@ -178,9 +178,9 @@ struct Parent {
 
 /// The depth-first build of one subtree. Holds at most the finished siblings' grids on the path
 /// from its top to the current patch (at most 4 per level), one texture tile per level, plus one
-/// source window. Builders of disjoint
-/// subtrees may run concurrently; each reads through a handle of its own when the source can
-/// reopen itself (GridSource::reopen), else through the shared one under a lock.
+/// source window. Builders of disjoint subtrees may run concurrently; each reads through a handle
+/// of its own when the source can reopen itself (GridSource::reopen), else through the shared one
+/// under a lock.
 class PyramidBuilder {
  public:
   PyramidBuilder(BuildShared& shared, std::unique_ptr<GridSource> own)
@@ -216,27 +216,32 @@ class PyramidBuilder {
     for (const Quadrant q : kQuadrants) {
       const PatchKey child = key.child(q);
       if (inside(child)) {
-        BuiltPatch built = build(child);
-        if (built) {
-          write(child, *built.grid, built.texture.get());
-          add(parent, q, std::move(built));
-        }
+        add(parent, child, build(child));
       }
     }
     return combine(key, parent);
   }
 
-  /// Adds a written child to `parent`: its tile downsampled into its quadrant of the parent's
-  /// (then freed), its grid kept for the reduction.
-  void add(Parent& parent, Quadrant q, BuiltPatch child) const {
-    if (child.texture) {
+  /// Writes the built patch `key` (nothing when it is empty) and adds it to its `parent`: its
+  /// tile downsampled into its quadrant of the parent's (then freed), its grid kept for the
+  /// reduction. `parentMutex`, when given, guards `parent` (the write runs outside it).
+  void add(Parent& parent, const PatchKey& key, BuiltPatch built,
+           std::mutex* parentMutex = nullptr) {
+    if (!built) {
+      return;
+    }
+    write(key, *built.grid, built.texture.get());
+    std::unique_lock lock =
+        parentMutex != nullptr ? std::unique_lock(*parentMutex) : std::unique_lock<std::mutex>();
+    const int q = static_cast<int>(key.quadrant());
+    if (built.texture) {
       if (!parent.texture) {
         parent.texture = std::make_unique<TextureTile>(tileSize());
       }
       // 2 x 2 box filter, the child in its quadrant.
-      downsampleQuadrant(*child.texture, static_cast<int>(q), *parent.texture);
+      downsampleQuadrant(*built.texture, q, *parent.texture);
     }
-    parent.grids[static_cast<int>(q)] = std::move(child.grid);
+    parent.grids[q] = std::move(built.grid);
   }
 
   /// The patch of `parent`'s children (built by this builder or adopted from others, written) by
@@ -428,12 +433,10 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
     throw Error(ErrorCode::InvalidArgument,
                 "an image texture needs an image file, and only an image texture takes one");
   }
-  if (options.texelsPerQuad != 0 &&
-      (options.drape == ImportOptions::Drape::None || options.texelsPerQuad < 0 ||
-       options.texelsPerQuad > kMaxTextureTileSize ||
-       texelsPerQuadOf(textureTileSize(options.patchSize, options.texelsPerQuad),
-                       options.patchSize) != options.texelsPerQuad ||
-       textureTileSize(options.patchSize, options.texelsPerQuad) > kMaxTextureTileSize)) {
+  if (const int f = options.texelsPerQuad;
+      f != 0 &&
+      (options.drape == ImportOptions::Drape::None || f < 0 || (f & (f - 1)) != 0 ||
+       f > kMaxTextureTileSize || textureTileSize(options.patchSize, f) > kMaxTextureTileSize)) {
     throw Error(ErrorCode::InvalidArgument,
                 "texels per quad must be a power of two whose tiles (patch size - 1 times as many "
                 "texels a side) stay within " +
@@ -544,11 +547,7 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
         PyramidBuilder& subtree = subtrees[i].emplace(shared, handles.take());
         BuiltPatch built = subtree.build(tops[i]);
         handles.give(subtree.releaseSource());
-        if (built) {
-          subtree.write(tops[i], *built.grid, built.texture.get());
-          std::lock_guard lock(levelMutex);
-          subtree.add(level.at(*tops[i].parent()), tops[i].quadrant(), std::move(built));
-        }
+        subtree.add(level.at(*tops[i].parent()), tops[i], std::move(built), &levelMutex);
         // What the subtree wrote goes to disk while the other tasks compute: syncfs blocks this
         // thread only, and leaves the commit's syncfs below next to nothing (it took 0.3-0.6 s,
         // mostly the metadata of ~5,000 new files, with the cores idle).
@@ -571,8 +570,7 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
           root = std::move(built);
           break;
         }
-        builder.write(key, *built.grid, built.texture.get());
-        builder.add(parents[*key.parent()], key.quadrant(), std::move(built));
+        builder.add(parents[*key.parent()], key, std::move(built));
       }
       level = std::move(parents);
     }
