@@ -200,6 +200,17 @@ fs::path textureFileOf(const fs::path& dir, const PatchInfo& info) {
   return *file;
 }
 
+/// The image of the tile a patch names, as it is (at most 4 channels: the served forms hold no
+/// more); throws as readPatchTexturePng.
+Image readPatchImage(const fs::path& dir, const PatchInfo& info, std::uint64_t maxPixels) {
+  const fs::path file = textureFileOf(dir, info);
+  Image image = readImage(file, maxPixels);
+  if (image.fileChannels > 4) {
+    throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has more than 4 channels");
+  }
+  return image;
+}
+
 /// The tile for a glTF: JPEG (quality 90) where no texel is transparent, the alpha channel left
 /// out; else PNG, the image as it is.
 void encodeForGlb(const Image& image, PatchTexture& texture) {
@@ -241,11 +252,7 @@ TextureTile readPatchTextureTile(const fs::path& dir, const PatchInfo& info,
 
 std::vector<std::byte> readPatchTexturePng(const fs::path& dir, const PatchInfo& info,
                                            std::uint64_t maxPixels) {
-  const fs::path file = textureFileOf(dir, info);
-  const Image image = readImage(file, maxPixels);
-  if (image.fileChannels > 4) {
-    throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has more than 4 channels");
-  }
+  const Image image = readPatchImage(dir, info, maxPixels);
   // PNG holds 1 to 4 channels of 8 bits: the image as it is.
   return encodeImage("tile.png", image.pixels.data(), image.width, image.height, image.channels);
 }
@@ -260,14 +267,7 @@ std::optional<PatchTexture> readPatchTexture(const fs::path& dir, const Model& m
     return std::nullopt;
   }
   PatchTexture texture;
-  {
-    const fs::path file = textureFileOf(dir, info);
-    const Image image = readImage(file, maxPixels);
-    if (image.fileChannels > 4) {
-      throw Error(ErrorCode::Corrupt, "texture '" + file.string() + "' has more than 4 channels");
-    }
-    encodeForGlb(image, texture);
-  }
+  encodeForGlb(readPatchImage(dir, info, maxPixels), texture);
 
   const int n = model.gridSize();
   const GridRect& r = info.stored;
