@@ -47,6 +47,14 @@ std::vector<float> textureCoordinates(int gridSize, int x0, int y0, int width, i
   return out;
 }
 
+int maxTexelsPerQuad(int gridSize) {
+  int f = 1;
+  while (textureTileSize(gridSize, 2 * f) <= kMaxTextureTileSize) {
+    f *= 2;
+  }
+  return f;
+}
+
 int texelsPerQuadOf(int tileSize, int gridSize) {
   const int quads = gridSize - 1;
   if (quads < 1 || tileSize < quads || tileSize % quads != 0) {

@@ -59,6 +59,10 @@ inline int textureTileSize(int gridSize, int texelsPerQuad = 1) {
   return (gridSize - 1) * texelsPerQuad;
 }
 
+/// The most texels per grid quad side vsm gives patches of `gridSize` vertices: the largest power
+/// of two whose tiles stay within kMaxTextureTileSize, and 1 where even those do not.
+int maxTexelsPerQuad(int gridSize);
+
 /// The texels per grid quad side of a tile `tileSize` texels wide on patches of `gridSize`
 /// vertices: the power of two f with tileSize == (gridSize - 1) * f; 0 when there is none (a
 /// foreign tile in another layout, which vsm does not place).

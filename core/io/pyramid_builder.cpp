@@ -434,9 +434,8 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
                 "an image texture needs an image file, and only an image texture takes one");
   }
   if (const int f = options.texelsPerQuad;
-      f != 0 &&
-      (options.drape == ImportOptions::Drape::None || f < 0 || (f & (f - 1)) != 0 ||
-       f > kMaxTextureTileSize || textureTileSize(options.patchSize, f) > kMaxTextureTileSize)) {
+      f != 0 && (options.drape == ImportOptions::Drape::None || f < 0 || (f & (f - 1)) != 0 ||
+                 f > maxTexelsPerQuad(options.patchSize))) {
     throw Error(ErrorCode::InvalidArgument,
                 "texels per quad must be a power of two whose tiles (patch size - 1 times as many "
                 "texels a side) stay within " +

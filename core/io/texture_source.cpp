@@ -356,7 +356,7 @@ int TextureSource::naturalTexelsPerQuad(int patchSize) const {
     return 1;
   }
   int f = 1;
-  while (f < *pixels / 1.05 && textureTileSize(patchSize, 2 * f) <= kMaxTextureTileSize) {
+  while (f < *pixels / 1.05 && 2 * f <= maxTexelsPerQuad(patchSize)) {
     f *= 2;
   }
   return f;

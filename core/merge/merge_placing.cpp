@@ -70,9 +70,7 @@ std::shared_ptr<const TextureTile> placeTexture(
       }
     }
   }
-  while (textureTileSize(grid.size(), texels) > kMaxTextureTileSize && texels > 1) {
-    texels /= 2;
-  }
+  texels = std::min(texels, maxTexelsPerQuad(grid.size()));
   // The shaded relief is made only when some texel is left without colour (rarely, where B's
   // texture covers the patch).
   auto tile = std::make_shared<TextureTile>(textureTileSize(grid.size(), texels));
@@ -219,9 +217,10 @@ class Placing {
     std::size_t patchBytes = gridBytes;
     if (const auto root = textureOf(detail_, PatchKey::root())) {
       // B's tile at A's grid size: a new patch takes B's texels per quad.
-      const int texels = texelsPerQuadOf(root->size(), detail_.model().gridSize());
-      const auto side = static_cast<std::size_t>(
-          std::min(textureTileSize(target_.model().gridSize(), texels), kMaxTextureTileSize));
+      const int gridSize = target_.model().gridSize();
+      const int texels = std::min(texelsPerQuadOf(root->size(), detail_.model().gridSize()),
+                                  maxTexelsPerQuad(gridSize));
+      const auto side = static_cast<std::size_t>(textureTileSize(gridSize, texels));
       patchBytes = gridBytes + side * side * TextureTile::kChannels;
     }
     std::size_t next = 0;

@@ -221,7 +221,7 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
         children[i] = &*reliefs[i];
       }
       // A finer foreign tile is brought down to the largest tile vsm makes.
-      size = std::min(size, std::max(kMaxTextureTileSize, textureTileSize(gridSize)));
+      size = std::min(size, textureTileSize(gridSize, maxTexelsPerQuad(gridSize)));
       std::array<std::optional<TextureTile>, 4> resized;
       for (int i = 0; i < 4; ++i) {
         if (children[i] != nullptr && children[i]->size() != size) {

@@ -170,6 +170,11 @@ TEST(TextureTile, TileSizeIsAPowerOfTwoTexelsPerGridQuad) {
   EXPECT_EQ(vsm::core::texelsPerQuadOf(256, 257), 1);
   EXPECT_EQ(vsm::core::texelsPerQuadOf(1024, 257), 4);
   EXPECT_EQ(vsm::core::texelsPerQuadOf(4096, 257), 16);
+  // The cap: tiles of at most 4096 texels, or one texel per quad where even that is more.
+  EXPECT_EQ(vsm::core::maxTexelsPerQuad(257), 16);
+  EXPECT_EQ(vsm::core::maxTexelsPerQuad(65), 64);
+  EXPECT_EQ(vsm::core::maxTexelsPerQuad(4097), 1);
+  EXPECT_EQ(vsm::core::maxTexelsPerQuad(8193), 1);
   // Foreign layouts: not a multiple, not a power of two, smaller than the grid.
   EXPECT_EQ(vsm::core::texelsPerQuadOf(1000, 257), 0);
   EXPECT_EQ(vsm::core::texelsPerQuadOf(768, 257), 0);
