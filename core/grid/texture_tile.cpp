@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <string>
 
 #include "core/common/error.hpp"
@@ -116,15 +117,23 @@ TextureTile downsampleQuadrants(const std::array<const TextureTile*, 4>& childre
 
 void downsampleQuadrant(const TextureTile& child, int quadrant, TextureTile& parent) {
   const int size = parent.size();
-  if (child.size() != size) {
-    throw Error(ErrorCode::InvalidArgument, "child texture tile of size " +
-                                                std::to_string(child.size()) + ", expected " +
-                                                std::to_string(size));
+  if (child.size() != size && 2 * child.size() != size) {
+    throw Error(ErrorCode::InvalidArgument,
+                "child texture tile of size " + std::to_string(child.size()) + ", expected " +
+                    std::to_string(size) + " or " + std::to_string(size / 2));
   }
   const int half = size / 2;
   // Quadrant order nw, ne, sw, se: bit 0 is east, bit 1 south.
   const int offsetX = (quadrant & 1) * half;
   const int offsetY = (quadrant >> 1) * half;
+  if (child.size() == half) {
+    // Twice the child's texels per quad: the child as it is.
+    const std::size_t rowBytes = static_cast<std::size_t>(half) * TextureTile::kChannels;
+    for (int j = 0; j < half; ++j) {
+      std::memcpy(parent.at(offsetX, offsetY + j), child.at(0, j), rowBytes);
+    }
+    return;
+  }
   for (int j = 0; j < half; ++j) {
     const std::uint8_t* top = child.at(0, 2 * j);
     const std::uint8_t* bottom = child.at(0, 2 * j + 1);

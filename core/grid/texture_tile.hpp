@@ -92,8 +92,9 @@ std::vector<float> textureCoordinates(int gridSize, int x0, int y0, int width, i
 TextureTile downsampleQuadrants(const std::array<const TextureTile*, 4>& children, int size);
 
 /// One child's part of downsampleQuadrants: `child` at half resolution into quadrant `quadrant`
-/// (Quadrant's order: nw, ne, sw, se) of `parent`, the rest of `parent` left as it is. Throws
-/// Error(InvalidArgument) unless both have the same size.
+/// (Quadrant's order: nw, ne, sw, se) of `parent`, the rest of `parent` left as it is; or, when
+/// `parent` is twice the child's size (twice its texels per quad: the level above a hidden one,
+/// thesis 5.2), the child's texels as they are. Throws Error(InvalidArgument) for other sizes.
 void downsampleQuadrant(const TextureTile& child, int quadrant, TextureTile& parent);
 
 /// The colour of `tile` at (x, y) in texel-centre coordinates (texel (i, j) is centred at (i, j);

@@ -74,6 +74,13 @@ struct ImportOptions {
   /// rounded up past a 5 % tolerance), capped by kMaxTextureTileSize; for the relief, 1. Must be 0
   /// with Drape::None.
   int texelsPerQuad = 0;
+  /// Hidden levels (thesis 5.2, core/opc/README.md "Hidden levels"): when above texelsPerQuad's
+  /// value (chosen or given), the levels OPC readers see end where the tiles hold this many texels
+  /// per quad side (a power of two, tiles within kMaxTextureTileSize): the levels below, down to
+  /// the source's full resolution, are named only in a second hierarchy file, and each level above
+  /// a hidden one has its children's tiles side by side. 0 (or not above): every level is seen.
+  /// Needs a texture.
+  int visibleTexelsPerQuad = 0;
 };
 
 /// Builds the full pyramid of `source` (bottom patches with one line of overlap, padded with

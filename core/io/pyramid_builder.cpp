@@ -118,8 +118,12 @@ struct BuildShared {
   OpcWriter& writer;
   /// What is draped over the model; null for an untextured import. Thread-safe itself.
   const TileSource* texture;
-  /// Texels per grid quad side of every tile (ImportOptions::texelsPerQuad, chosen).
+  /// Texels per grid quad side of the bottom patches' tiles (ImportOptions::texelsPerQuad, chosen).
   int texelsPerQuad;
+  /// How many levels above the bottom are hidden (ImportOptions::visibleTexelsPerQuad): those
+  /// and the bottom one are named only in the second hierarchy file, and each parent of a hidden
+  /// level has twice its children's texels per quad (their tiles side by side).
+  int hiddenLevels;
   const ImportOptions& options;
   std::mutex sourceMutex;
   std::mutex progressMutex;  // guards leavesDone and options.progress
@@ -192,6 +196,7 @@ class PyramidBuilder {
         width_(shared.source.width()),
         height_(shared.source.height()),
         depth_(bottomDepth(size_, width_, height_)),
+        visibleDepth_(std::max(0, depth_ - shared.hiddenLevels)),
         window_(static_cast<std::size_t>(size_) * static_cast<std::size_t>(size_)) {}
 
   /// Number of bottom patches holding a cell of the source.
@@ -236,9 +241,9 @@ class PyramidBuilder {
     const int q = static_cast<int>(key.quadrant());
     if (built.texture) {
       if (!parent.texture) {
-        parent.texture = std::make_unique<TextureTile>(tileSize());
+        parent.texture = std::make_unique<TextureTile>(tileSize(key.depth - 1));
       }
-      // 2 x 2 box filter, the child in its quadrant.
+      // 2 x 2 box filter, the child in its quadrant (above a hidden level: the child as it is).
       downsampleQuadrant(*built.texture, q, *parent.texture);
     }
     parent.grids[q] = std::move(built.grid);
@@ -292,6 +297,7 @@ class PyramidBuilder {
   void write(const PatchKey& key, const PatchGrid& grid, const TextureTile* texture) {
     PatchInfo info;
     info.key = key;
+    info.hidden = key.depth > visibleDepth_;
     Box3d children;
     for (const Quadrant q : kQuadrants) {
       if (const auto it = boxes_.find(key.child(q)); it != boxes_.end()) {
@@ -356,13 +362,17 @@ class PyramidBuilder {
     }
     BuiltPatch built{std::move(grid), nullptr};
     if (shared_.texture != nullptr) {
-      built.texture = std::make_unique<TextureTile>(tileSize());
+      built.texture = std::make_unique<TextureTile>(tileSize(depth_));
       shared_.texture->fillTile(x0, y0, *built.grid, *built.texture);
     }
     return built;
   }
 
-  int tileSize() const { return textureTileSize(size_, shared_.texelsPerQuad); }
+  /// The tile size at `depth`: the bottom's texels per quad, doubled for each hidden level below.
+  int tileSize(int depth) const {
+    return textureTileSize(size_,
+                           shared_.texelsPerQuad << std::min(depth_ - depth, shared_.hiddenLevels));
+  }
 
   /// Forgets and deletes every patch written below `key`.
   void dropSubtree(const PatchKey& key) {
@@ -389,6 +399,7 @@ class PyramidBuilder {
   int width_;
   int height_;
   int depth_;
+  int visibleDepth_;           // the deepest level OPC readers see
   std::vector<Vec3d> window_;  // one source window, reused
   std::vector<PatchInfo> written_;
   /// Global boxes of written patches whose parent is not written yet.
@@ -442,6 +453,15 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
                     std::to_string(kMaxTextureTileSize) + ", and only with a texture; not " +
                     std::to_string(options.texelsPerQuad) + " at patch size " +
                     std::to_string(options.patchSize));
+  }
+  if (const int k = options.visibleTexelsPerQuad;
+      k != 0 && (options.drape == ImportOptions::Drape::None || k < 0 || (k & (k - 1)) != 0 ||
+                 k > maxTexelsPerQuad(options.patchSize))) {
+    throw Error(ErrorCode::InvalidArgument,
+                "visible texels per quad must be a power of two whose tiles (patch size - 1 times "
+                "as many texels a side) stay within " +
+                    std::to_string(kMaxTextureTileSize) + ", and only with a texture; not " +
+                    std::to_string(k) + " at patch size " + std::to_string(options.patchSize));
   }
   if (source.width() < 1 || source.height() < 1) {
     throw Error(ErrorCode::InvalidArgument, "source " + source.describe() + " has no samples");
@@ -506,11 +526,29 @@ Model buildOpc(GridSource& source, const fs::path& outDir, const ImportOptions& 
         (texelsPerQuad == 1 ? "" : "s") + " per grid quad side (tiles of " +
         std::to_string(textureTileSize(options.patchSize, texelsPerQuad)) + " texels)");
   }
+  // Hidden levels: as many as doublings take the bottom's texels per quad to the visible ones.
+  int hiddenLevels = 0;
+  while ((texelsPerQuad << hiddenLevels) < options.visibleTexelsPerQuad) {
+    ++hiddenLevels;
+  }
+  if (hiddenLevels > 0) {
+    log::info("import: " + std::to_string(hiddenLevels) + " hidden level" +
+              (hiddenLevels == 1 ? "" : "s") + " below the " +
+              std::to_string(options.visibleTexelsPerQuad) +
+              " texels per quad side OPC readers see (tiles of " +
+              std::to_string(textureTileSize(options.patchSize, options.visibleTexelsPerQuad)) +
+              " texels there)");
+  } else if (options.visibleTexelsPerQuad > 0) {
+    log::info("import: no hidden level: the tiles hold " + std::to_string(texelsPerQuad) +
+              " texels per quad side already, not fewer than the " +
+              std::to_string(options.visibleTexelsPerQuad) + " visible ones asked for");
+  }
   OpcWriter writer(staging.path(), OpcWriter::Durability::Deferred);
   BuildShared shared{source,
                      writer,
                      texture.get(),
                      texelsPerQuad,
+                     hiddenLevels,
                      options,
                      {},
                      {},

@@ -90,6 +90,8 @@ struct OpcContents {
   Model model;
   std::filesystem::path patchesDir;
   std::filesystem::path hierarchyFile;
+  /// The second hierarchy file, naming the hidden levels (core/opc/README.md), when there is one.
+  std::optional<std::filesystem::path> hiddenFile;
   std::vector<double> avgGeometrySizes;
   bool hasHierarchyExtension = false;
   /// The hierarchy's <Vsm><Revision> record, when it has one.
@@ -101,10 +103,11 @@ struct OpcContents {
   std::vector<std::filesystem::path> hierarchyCaches;
 };
 
-/// The reader behind readOpcModel, of the hierarchy file `hierarchyName` under Patches/; throws as
-/// readOpcModel does.
+/// The reader behind readOpcModel, of the hierarchy file `hierarchyName` under Patches/ and the
+/// second file it names (hidden levels) unless `withHidden` is false (what other OPC readers see);
+/// throws as readOpcModel does.
 OpcContents readOpc(const std::filesystem::path& dir,
-                    std::string_view hierarchyName = "patchhierarchy.xml");
+                    std::string_view hierarchyName = "patchhierarchy.xml", bool withHidden = true);
 
 /// Float32 rounding of one stored coordinate of `grid`, in global units: half an ulp of its
 /// largest local coordinate (2^-24 x maxAbsLocal), scaled by the linear part of Local2Global.

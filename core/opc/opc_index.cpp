@@ -246,8 +246,9 @@ void putPatch(Encoder& out, const PatchKey& key, const PatchInfo& info) {
   out.putString(info.ownFolder() ? info.folder() : std::string());
   out.putBox(info.globalBox);
   out.putBox(info.localBox);
+  // Bit 0: Local2Global is a translation; bit 1: the patch is a hidden level's.
   const bool translation = info.local2global().isTranslation();
-  out.put(static_cast<std::uint8_t>(translation));
+  out.put(static_cast<std::uint8_t>((translation ? 1 : 0) | (info.hidden ? 2 : 0)));
   if (translation) {
     const Vec3d t = info.local2global().translationPart();
     out.put(t.x);
@@ -419,7 +420,12 @@ bool decodePatch(Decoder& in, PatchInfo& info) {
   info.setFolder(in.getString());
   info.globalBox = in.getBox();
   info.localBox = in.getBox();
-  if (in.get<std::uint8_t>() != 0) {
+  const auto flags = in.get<std::uint8_t>();
+  if (flags > 3) {
+    return false;
+  }
+  info.hidden = (flags & 2) != 0;
+  if ((flags & 1) != 0) {
     const Vec3d t{in.get<double>(), in.get<double>(), in.get<double>()};
     info.setLocal2Global(Mat4d::translation(t));
   } else {

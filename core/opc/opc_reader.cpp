@@ -14,6 +14,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
+#include "core/common/random.hpp"
 #include "core/common/text.hpp"
 #include "core/opc/aara.hpp"
 #include "core/opc/opc_detail.hpp"
@@ -23,6 +24,9 @@ namespace vsm::core {
 namespace fs = std::filesystem;
 
 namespace {
+
+constexpr std::string_view kHiddenPrefix = "vsm-hidden-";
+constexpr std::string_view kHiddenSuffix = ".xml";
 
 [[noreturn]] void corrupt(const fs::path& where, const std::string& message) {
   throw Error(ErrorCode::Corrupt, where.string() + ": " + message);
@@ -293,41 +297,17 @@ struct ParsedHierarchy {
   std::optional<int> gridSize;
   bool hasExtension = false;
   std::optional<RevisionRecord> revision;
+  /// The second hierarchy file (<Vsm><HiddenLevels>), when there is one, and the parents whose
+  /// items it holds (their children are hidden).
+  std::optional<fs::path> hiddenFile;
+  std::set<std::string> hiddenParents;
 };
 
-std::uint64_t revisionNumber(const fs::path& file, const pugi::xml_node& node,
-                             std::string_view name) {
-  const pugi::xml_node element = childCi(node, name);
-  if (!element) {
-    return 0;
-  }
-  const auto n = parseInteger(textOf(element));
-  if (!n || *n < 0) {
-    corrupt(file,
-            "<Revision><" + std::string(name) + "> is not a count: '" + textOf(element) + "'");
-  }
-  return static_cast<std::uint64_t>(*n);
-}
-
-ParsedHierarchy parseHierarchy(const fs::path& file) {
-  const pugi::xml_document doc = parseXml(file);
-  const pugi::xml_node hierarchy = childCi(childCi(doc, "Aardvark"), "PatchHierarchy");
-  if (!hierarchy) {
-    corrupt(file, "no <Aardvark><PatchHierarchy> element");
-  }
-  ParsedHierarchy parsed;
-  if (const pugi::xml_node sizes = childCi(hierarchy, "AvgGeometrySizes")) {
-    const auto values = parseNumberList(textOf(sizes));
-    if (!values) {
-      corrupt(file, "<AvgGeometrySizes> is not a list of numbers");
-    }
-    parsed.avgSizes = *values;
-  }
-  parsed.rootFolder = textOf(childCi(hierarchy, "RootPatch"));
-  if (parsed.rootFolder.empty()) {
-    corrupt(file, "no <RootPatch>");
-  }
-  for (pugi::xml_node item : childCi(hierarchy, "SubPatchMap").children()) {
+/// The <item> elements of `subPatchMap` (in `file`) into `parsed`; `hidden`: they are the second
+/// hierarchy file's.
+void readItems(const fs::path& file, const pugi::xml_node& subPatchMap, bool hidden,
+               ParsedHierarchy& parsed) {
+  for (pugi::xml_node item : subPatchMap.children()) {
     if (item.type() != pugi::node_element || !equalsIgnoreCase(item.name(), "item")) {
       continue;
     }
@@ -349,7 +329,45 @@ ParsedHierarchy parseHierarchy(const fs::path& file) {
     if (!parsed.subPatches.emplace(key, children).second) {
       corrupt(file, "patch '" + key + "' has two <item> entries");
     }
+    if (hidden) {
+      parsed.hiddenParents.insert(key);
+    }
   }
+}
+
+std::uint64_t revisionNumber(const fs::path& file, const pugi::xml_node& node,
+                             std::string_view name) {
+  const pugi::xml_node element = childCi(node, name);
+  if (!element) {
+    return 0;
+  }
+  const auto n = parseInteger(textOf(element));
+  if (!n || *n < 0) {
+    corrupt(file,
+            "<Revision><" + std::string(name) + "> is not a count: '" + textOf(element) + "'");
+  }
+  return static_cast<std::uint64_t>(*n);
+}
+
+ParsedHierarchy parseHierarchy(const fs::path& file, bool withHidden = true) {
+  const pugi::xml_document doc = parseXml(file);
+  const pugi::xml_node hierarchy = childCi(childCi(doc, "Aardvark"), "PatchHierarchy");
+  if (!hierarchy) {
+    corrupt(file, "no <Aardvark><PatchHierarchy> element");
+  }
+  ParsedHierarchy parsed;
+  if (const pugi::xml_node sizes = childCi(hierarchy, "AvgGeometrySizes")) {
+    const auto values = parseNumberList(textOf(sizes));
+    if (!values) {
+      corrupt(file, "<AvgGeometrySizes> is not a list of numbers");
+    }
+    parsed.avgSizes = *values;
+  }
+  parsed.rootFolder = textOf(childCi(hierarchy, "RootPatch"));
+  if (parsed.rootFolder.empty()) {
+    corrupt(file, "no <RootPatch>");
+  }
+  readItems(file, childCi(hierarchy, "SubPatchMap"), false, parsed);
   if (!isSafeName(parsed.rootFolder)) {
     corrupt(file, "patch name '" + parsed.rootFolder + "' is not a plain folder name");
   }
@@ -388,12 +406,30 @@ ParsedHierarchy parseHierarchy(const fs::path& file) {
     }
     parsed.revision = std::move(record);
   }
+  if (const pugi::xml_node hidden = childCi(vsm, "HiddenLevels"); hidden && withHidden) {
+    const std::string name = textOf(hidden);
+    if (!isHiddenHierarchyFileName(name)) {
+      corrupt(file, "<HiddenLevels> names '" + name + "', not a file vsm-hidden-<hex>.xml");
+    }
+    const fs::path hiddenFile = file.parent_path() / name;
+    std::error_code ec;
+    if (!fs::is_regular_file(hiddenFile, ec)) {
+      corrupt(file, "<HiddenLevels> names '" + name + "', which is missing");
+    }
+    const pugi::xml_document hiddenDoc = parseXml(hiddenFile);
+    const pugi::xml_node levels = childCi(childCi(hiddenDoc, "Aardvark"), "VsmHiddenLevels");
+    if (!levels) {
+      corrupt(hiddenFile, "no <Aardvark><VsmHiddenLevels> element");
+    }
+    readItems(hiddenFile, childCi(levels, "SubPatchMap"), true, parsed);
+    parsed.hiddenFile = hiddenFile;
+  }
   return parsed;
 }
 
 }  // namespace
 
-OpcContents readOpc(const fs::path& dir, std::string_view hierarchyName) {
+OpcContents readOpc(const fs::path& dir, std::string_view hierarchyName, bool withHidden) {
   std::error_code ec;
   if (!fs::is_directory(dir, ec)) {
     throw Error(ErrorCode::NotFound, "no OPC at '" + dir.string() + "' (not a directory)");
@@ -404,7 +440,7 @@ OpcContents readOpc(const fs::path& dir, std::string_view hierarchyName) {
     throw Error(ErrorCode::NotFound,
                 "no OPC at '" + dir.string() + "' (no Patches/" + std::string(hierarchyName) + ")");
   }
-  ParsedHierarchy hierarchy = parseHierarchy(*hierarchyFile);
+  ParsedHierarchy hierarchy = parseHierarchy(*hierarchyFile, withHidden);
   const std::vector<double>& avgSizes = hierarchy.avgSizes;
   const std::string& rootFolder = hierarchy.rootFolder;
   const auto& subPatches = hierarchy.subPatches;
@@ -412,9 +448,14 @@ OpcContents readOpc(const fs::path& dir, std::string_view hierarchyName) {
   // Walk from the root; keys come from the position in the tree.
   std::vector<std::pair<PatchKey, ParsedPatch>> parsed;
   std::set<std::string> seen;
-  std::deque<std::pair<PatchKey, std::string>> queue{{PatchKey::root(), rootFolder}};
+  struct Queued {
+    PatchKey key;
+    std::string folder;
+    bool hidden;
+  };
+  std::deque<Queued> queue{{PatchKey::root(), rootFolder, false}};
   while (!queue.empty()) {
-    auto [key, folder] = queue.front();
+    auto [key, folder, hidden] = queue.front();
     queue.pop_front();
     if (!seen.insert(folder).second) {
       corrupt(*hierarchyFile,
@@ -428,7 +469,14 @@ OpcContents readOpc(const fs::path& dir, std::string_view hierarchyName) {
     ParsedPatch patch = readPatchXml(*folderDir);
     patch.info.key = key;
     patch.info.setFolder(folder);
+    patch.info.hidden = hidden;
     if (const auto it = subPatches.find(folder); it != subPatches.end()) {
+      // A hidden patch's children are hidden too: its item must be the second file's.
+      const bool hiddenChildren = hierarchy.hiddenParents.count(folder) != 0;
+      if (hidden && !hiddenChildren) {
+        corrupt(*hierarchyFile,
+                "patch '" + folder + "' is a hidden level's, but its <item> is in this file");
+      }
       for (const Quadrant q : kQuadrants) {
         const std::string& child = it->second[static_cast<int>(q)];
         if (!child.empty()) {
@@ -436,7 +484,7 @@ OpcContents readOpc(const fs::path& dir, std::string_view hierarchyName) {
             corrupt(*hierarchyFile, "the hierarchy is deeper than " +
                                         std::to_string(PatchKey::kMaxDepth) + " levels");
           }
-          queue.emplace_back(key.child(q), child);
+          queue.push_back({key.child(q), child, hiddenChildren});
         }
       }
     }
@@ -476,6 +524,7 @@ OpcContents readOpc(const fs::path& dir, std::string_view hierarchyName) {
   OpcContents contents{Model(*gridSize),
                        patchesDir,
                        *hierarchyFile,
+                       hierarchy.hiddenFile,
                        avgSizes,
                        hierarchy.hasExtension,
                        hierarchy.revision,
@@ -571,7 +620,22 @@ OpcRevision readOpcRevision(const fs::path& dir, std::string_view hierarchyName,
 }
 
 std::optional<RevisionRecord> readRevisionRecord(const fs::path& hierarchyFile) {
-  return detail::parseHierarchy(hierarchyFile).revision;
+  return detail::parseHierarchy(hierarchyFile, false).revision;
+}
+
+std::string hiddenHierarchyFileName() {
+  return std::string(kHiddenPrefix) + randomHex() + randomHex() + std::string(kHiddenSuffix);
+}
+
+bool isHiddenHierarchyFileName(std::string_view name) {
+  if (!name.starts_with(kHiddenPrefix) || !name.ends_with(kHiddenSuffix)) {
+    return false;
+  }
+  const std::string_view digits =
+      name.substr(kHiddenPrefix.size(), name.size() - kHiddenPrefix.size() - kHiddenSuffix.size());
+  return digits.size() == 16 && std::all_of(digits.begin(), digits.end(), [](char c) {
+           return (c >= '0' && c <= '9') || (c >= 'a' && c <= 'f');
+         });
 }
 
 void forEachNamedFolder(const fs::path& hierarchyFile,

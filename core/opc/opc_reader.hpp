@@ -91,6 +91,14 @@ using FolderSet = std::set<std::string, std::less<>>;
 void forEachNamedFolder(const std::filesystem::path& hierarchyFile,
                         const std::function<void(std::string_view)>& fn);
 
+/// A new name for a model's second hierarchy file, which names its hidden levels
+/// (core/opc/README.md, "Hidden levels"): "vsm-hidden-<16 hex digits>.xml", random, so that a file
+/// once written is never replaced in place.
+std::string hiddenHierarchyFileName();
+
+/// True for a name hiddenHierarchyFileName gives.
+bool isHiddenHierarchyFileName(std::string_view name);
+
 /// `dir`/Patches in whatever letter case it exists. Throws Error(NotFound) when there is none.
 std::filesystem::path patchesDirOf(const std::filesystem::path& dir);
 

@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <optional>
 #include <string_view>
 #include <unordered_set>
 #include <utility>
@@ -16,6 +17,7 @@
 
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
+#include "core/common/random.hpp"
 #include "core/durable/durable_io.hpp"
 #include "core/opc/aara.hpp"
 #include "core/opc/opc_detail.hpp"
@@ -222,6 +224,60 @@ void OpcWriter::removePatchFiles(const PatchInfo& info) {
 
 namespace {
 
+/// True when the children of `info` (a patch with children) are a hidden level's: its <item> is
+/// in the second hierarchy file, not in patchhierarchy.xml.
+bool hiddenChildren(const Model& model, const PatchKey& key, const PatchInfo& info) {
+  for (const Quadrant q : kQuadrants) {
+    if (info.hasChild(q)) {
+      return model.at(key.child(q)).hidden;
+    }
+  }
+  return false;
+}
+
+/// The <item> element of `info`, a patch with children, as OPC.md writes it; the ids of the runs
+/// that hold its children added to `childRuns` when given.
+void writeItem(detail::XmlWriter& xml, const Model& model, const PatchKey& key,
+               const PatchInfo& info, std::vector<std::shared_ptr<const void>>* childRuns) {
+  xml.open("item", true);
+  xml.text("key", info.folder());
+  xml.open("val");
+  for (const Quadrant q : kQuadrants) {
+    if (info.hasChild(q)) {
+      const PatchKey child = key.child(q);
+      xml.text(toString(q), model.at(child).folder());
+      if (childRuns != nullptr) {
+        std::shared_ptr<const void> holder = model.runOf(child);
+        if (childRuns->empty() || childRuns->back() != holder) {
+          childRuns->push_back(std::move(holder));
+        }
+      }
+    }
+  }
+  xml.close();
+  xml.close();
+}
+
+/// The second hierarchy file of a model with hidden levels (core/opc/README.md, "Hidden levels"):
+/// the <item> elements of every patch whose children are hidden, in key order. Its name is new
+/// for every file written (never replaced in place: the hierarchy naming it is the commit point).
+struct HiddenHierarchy {
+  std::string name;
+  std::string text;
+};
+
+HiddenHierarchy hiddenHierarchyXml(const Model& model) {
+  detail::XmlWriter xml = startAardvark("VsmHiddenLevels");
+  xml.open("SubPatchMap");
+  for (const auto& [key, info] : model.patches()) {
+    if (!info.isLeaf() && hiddenChildren(model, key, info)) {
+      writeItem(xml, model, key, info, nullptr);
+    }
+  }
+  xml.close();
+  return {hiddenHierarchyFileName(), std::move(xml).finish()};
+}
+
 /// The <item> elements of the patches with children in `run`, made at nesting `depth`, with the
 /// ids of the runs that hold their children added to `childRuns`.
 std::string runItems(const Model& model, const Model::Run& run, std::size_t depth,
@@ -229,24 +285,9 @@ std::string runItems(const Model& model, const Model::Run& run, std::size_t dept
   detail::XmlWriter xml(depth);
   for (auto it = run.begin; it != run.end; ++it) {
     const auto [key, info] = *it;
-    if (info.isLeaf()) {
-      continue;
+    if (!info.isLeaf() && !hiddenChildren(model, key, info)) {
+      writeItem(xml, model, key, info, &childRuns);
     }
-    xml.open("item", true);
-    xml.text("key", info.folder());
-    xml.open("val");
-    for (const Quadrant q : kQuadrants) {
-      if (info.hasChild(q)) {
-        const PatchKey child = key.child(q);
-        xml.text(toString(q), model.at(child).folder());
-        std::shared_ptr<const void> holder = model.runOf(child);
-        if (childRuns.empty() || childRuns.back() != holder) {
-          childRuns.push_back(std::move(holder));
-        }
-      }
-    }
-    xml.close();
-    xml.close();
   }
   return std::move(xml).finish();
 }
@@ -257,6 +298,8 @@ struct HierarchyText {
   std::string head;
   std::vector<std::shared_ptr<const std::string>> items;
   std::string tail;
+  /// The second hierarchy file this one names, when the model has hidden levels.
+  std::optional<HiddenHierarchy> hidden;
 
   std::vector<std::span<const std::byte>> pieces() const {
     std::vector<std::span<const std::byte>> all{bytesOf(head)};
@@ -281,10 +324,24 @@ HierarchyText hierarchyXml(const Model& model, const RevisionRecord* revision,
     throw Error(ErrorCode::InvalidArgument, "cannot write the hierarchy of an empty model");
   }
   HierarchyText text;
+  // The levels OPC readers see: those holding a patch that is not hidden (hidden levels are the
+  // deepest, under every visible leaf).
+  const std::vector<LevelSummary> levels = model.levels();
+  std::size_t visibleLevels = levels.size();
+  while (visibleLevels > 1 &&
+         levels[visibleLevels - 1].hidden == levels[visibleLevels - 1].patches) {
+    --visibleLevels;
+  }
+  const bool hasHidden =
+      std::any_of(levels.begin(), levels.end(), [](const LevelSummary& l) { return l.hidden > 0; });
+  if (hasHidden) {
+    text.hidden = hiddenHierarchyXml(model);
+  }
   detail::XmlWriter xml = startAardvark("PatchHierarchy");
   std::string sizes = "[";
-  for (const double size : model.avgGeometrySizes()) {
-    sizes += (sizes.size() > 1 ? ", " : "") + formatDouble(size);
+  const std::vector<double> allSizes = model.avgGeometrySizes();  // the deepest level's first
+  for (std::size_t i = allSizes.size() - visibleLevels; i < allSizes.size(); ++i) {
+    sizes += (sizes.size() > 1 ? ", " : "") + formatDouble(allSizes[i]);
   }
   xml.text("AvgGeometrySizes", sizes + "]");
   xml.text("RootPatch", model.at(PatchKey::root()).folder());
@@ -298,6 +355,9 @@ HierarchyText hierarchyXml(const Model& model, const RevisionRecord* revision,
   xml.open("Vsm");
   xml.text("GridSize", std::to_string(model.gridSize()));
   xml.text("FormatVersion", "1");
+  if (text.hidden) {
+    xml.text("HiddenLevels", text.hidden->name);
+  }
   if (revision != nullptr) {
     xml.open("Revision");
     xml.text("Parent", std::to_string(revision->parent));
@@ -386,7 +446,13 @@ std::unique_ptr<durable::PendingFile> stageHierarchy(const fs::path& dir, const 
                                                      std::string_view fileName,
                                                      HierarchyMemo* memo) {
   const HierarchyText text = hierarchyXml(model, revision, memo);
-  return std::make_unique<durable::PendingFile>(patchesDirOf(dir) / fileName, text.pieces());
+  const fs::path patches = patchesDirOf(dir);
+  if (text.hidden) {
+    // Durable under its final name before the hierarchy naming it can be committed; until then
+    // no hierarchy names it (a leftover after a crash: core/store's sweep removes it).
+    durable::writeFileAtomically(patches / text.hidden->name, bytesOf(text.hidden->text));
+  }
+  return std::make_unique<durable::PendingFile>(patches / fileName, text.pieces());
 }
 
 void finishHierarchy(const fs::path& dir) {
@@ -406,7 +472,11 @@ void OpcWriter::writeHierarchy(const Model& model) {
     stageHierarchy(dir_.parent_path(), model)->commit();
     finishHierarchy(dir_.parent_path());
   } else {
-    writeFile(dir_ / "patchhierarchy.xml", bytesOf(hierarchyXml(model, nullptr, nullptr).joined()));
+    const HierarchyText text = hierarchyXml(model, nullptr, nullptr);
+    if (text.hidden) {
+      writeFile(dir_ / text.hidden->name, bytesOf(text.hidden->text));
+    }
+    writeFile(dir_ / "patchhierarchy.xml", bytesOf(text.joined()));
   }
 }
 

@@ -86,8 +86,42 @@ class Validator {
     for (const std::string& folder : c_.unreachableItems) {
       add(c_.hierarchyFile.string(), "<item> for '" + folder + "' is not reachable from the root");
     }
+    if (c_.hiddenFile) {
+      checkVisibleView();
+    }
     for (const fs::path& cache : c_.hierarchyCaches) {
       add(cache.string(), "another reader's hierarchy.cache would hide patchhierarchy.xml");
+    }
+  }
+
+  /// With hidden levels: what other OPC readers see, the hierarchy file alone, is a whole model
+  /// by itself, and exactly the patches that are not hidden.
+  void checkVisibleView() {
+    const std::string where = c_.hierarchyFile.string();
+    try {
+      const detail::OpcContents visible =
+          detail::readOpc(dir_, c_.hierarchyFile.filename().string(), false);
+      for (const std::string& folder : visible.unreachableItems) {
+        add(where, "<item> for '" + folder + "' is not reachable from the root without " +
+                       c_.hiddenFile->filename().string());
+      }
+      std::size_t seen = 0;
+      for (const auto& [key, info] : c_.model.patches()) {
+        const PatchInfo* alone = visible.model.find(key);
+        seen += alone != nullptr ? 1 : 0;
+        if ((alone != nullptr) == info.hidden) {
+          add(where, "patch " + key.toString() + " is " + (info.hidden ? "hidden" : "visible") +
+                         " but " + (alone != nullptr ? "" : "not ") +
+                         "in the hierarchy other OPC readers see");
+        }
+      }
+      if (seen != visible.model.patchCount()) {
+        add(where, "names patches the full hierarchy does not reach");
+      }
+    } catch (const Error& e) {
+      add(where, std::string("the hierarchy other OPC readers see, without the hidden levels, "
+                             "is not a model: ") +
+                     e.what());
     }
   }
 
@@ -304,11 +338,18 @@ class Validator {
 
   void checkAvgGeometrySizes() {
     const std::vector<double>& sizes = c_.avgGeometrySizes;
-    const int depth = c_.model.maxDepth();
+    // The levels OPC readers see: hidden levels are not theirs.
+    int depth = 0;
+    for (const LevelSummary& level : c_.model.levels()) {
+      if (level.patches > level.hidden) {
+        depth = level.depth;
+      }
+    }
     const std::string where = c_.hierarchyFile.string();
     if (sizes.size() < static_cast<std::size_t>(depth + 1)) {
       add(where, "AvgGeometrySizes has " + std::to_string(sizes.size()) +
-                     " entries; the deepest leaf needs " + std::to_string(depth + 1));
+                     " entries; the deepest leaf OPC readers see needs " +
+                     std::to_string(depth + 1));
       return;
     }
     for (int d = 0; d <= depth; ++d) {

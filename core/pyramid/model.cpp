@@ -145,6 +145,7 @@ struct Model::ChunkSums {
     int depth = 0;
     std::size_t patches = 0;
     std::size_t leaves = 0;
+    std::size_t hidden = 0;
     std::size_t measured = 0;
     Box3d bounds;
     std::int64_t nanometres = 0;  // the measured resolutions' sum (< 2^63: 256 of <= 1e7 m each)
@@ -437,6 +438,7 @@ std::vector<LevelSummary> Model::levels() const {
       const auto d = static_cast<std::size_t>(part.depth);
       levels[d].patches += part.patches;
       levels[d].leaves += part.leaves;
+      levels[d].hidden += part.hidden;
       levels[d].bounds.extend(part.bounds);
       nanometres[d] += part.nanometres;
       measured[d] += part.measured;
@@ -494,6 +496,7 @@ Model::ChunkSums Model::summarise(const Chunk& chunk) {
     ChunkSums::Level& level = sums.levels.back();
     ++level.patches;
     level.leaves += info.isLeaf() ? 1 : 0;
+    level.hidden += info.hidden ? 1 : 0;
     level.bounds.extend(info.globalBox);
     if (info.resolution > 0) {  // NaN is not
       level.nanometres += std::llround(std::min(info.resolution, 1e7) * 1e9);
@@ -531,10 +534,11 @@ bool sameFolder(const PatchInfo& a, const PatchInfo& b) {
 }
 
 bool sameStoredPatch(const PatchInfo& a, const PatchInfo& b) {
-  return &a == &b || (a.version == b.version && a.childMask == b.childMask && sameFolder(a, b) &&
-                      a.globalBox == b.globalBox && a.localBox == b.localBox &&
-                      a.local2global() == b.local2global() && a.resolution == b.resolution &&
-                      a.stored == b.stored && a.files() == b.files());
+  return &a == &b ||
+         (a.version == b.version && a.childMask == b.childMask && a.hidden == b.hidden &&
+          sameFolder(a, b) && a.globalBox == b.globalBox && a.localBox == b.localBox &&
+          a.local2global() == b.local2global() && a.resolution == b.resolution &&
+          a.stored == b.stored && a.files() == b.files());
 }
 
 }  // namespace

@@ -67,6 +67,10 @@ struct PatchInfo {
   /// be recomputed before use (and Model::grid: the vertex data is in memory).
   bool dirty = false;
   bool stale = false;
+  /// A hidden level's patch (thesis 5.2, core/opc/README.md "Hidden levels"): named only in the
+  /// model's second hierarchy file, which other OPC readers do not read. Its parent's item is
+  /// there too; its own children are hidden as well.
+  bool hidden = false;
   Box3d globalBox;
   Box3d localBox;
   /// Mean distance between defined grid neighbours, metres.
@@ -132,6 +136,8 @@ struct LevelSummary {
   int depth = 0;
   std::size_t patches = 0;
   std::size_t leaves = 0;
+  /// Patches of a hidden level (PatchInfo::hidden); 0 in a summary read from an index.
+  std::size_t hidden = 0;
   Box3d bounds;
   /// Mean of the patches' resolutions at this depth (metres), each taken in whole nanometres, so
   /// that it is exactly the same however the sum is grouped.

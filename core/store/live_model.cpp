@@ -426,6 +426,17 @@ std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
     throw Error(ErrorCode::Conflict, "model '" + name_ + "' is being changed by another job");
   }
   checkCurrent(onDisk);
+  {
+    // Edits would not keep a hidden level (thesis 5.2) where the new detail does not cover it,
+    // so none is begun: the model stays as it is.
+    const std::vector<LevelSummary> levels = snapshot()->model->levels();
+    if (std::any_of(levels.begin(), levels.end(), [](const LevelSummary& l) { return l.hidden; })) {
+      throw Error(ErrorCode::Conflict,
+                  "model '" + name_ +
+                      "' has hidden levels (vsm import --visible-texels-per-quad); merging into "
+                      "and restoring such a model are not supported yet");
+    }
+  }
   writer_->editing = true;
   try {
     return std::unique_ptr<ModelEdit>(new ModelEdit(*this, snapshot()));

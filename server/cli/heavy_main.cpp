@@ -171,6 +171,12 @@ int runImport(const std::vector<std::string_view>& args) {
         throw UsageError{"--texels-per-quad must be a power of two: 1, 2, 4, ..."};
       }
       options.texelsPerQuad = static_cast<int>(*value);
+    } else if (args[i] == "--visible-texels-per-quad") {
+      const auto value = parseInteger(optionValue(args, i));
+      if (!value || *value < 1 || *value > kMaxTextureTileSize || (*value & (*value - 1)) != 0) {
+        throw UsageError{"--visible-texels-per-quad must be a power of two: 2, 4, 8, ..."};
+      }
+      options.visibleTexelsPerQuad = static_cast<int>(*value);
     } else if (args[i] == "--texture") {
       if (i + 1 >= args.size()) {
         throw UsageError{"--texture needs an image or 'none'"};
@@ -191,10 +197,11 @@ int runImport(const std::vector<std::string_view>& args) {
   if (positional.size() != 2) {
     throw UsageError{"import needs <input> and <out-dir>"};
   }
-  if (options.drape == ImportOptions::Drape::None && options.texelsPerQuad != 0) {
-    throw UsageError{
-        "--texels-per-quad needs a texture (an image or the default relief), not "
-        "--texture none"};
+  if (options.drape == ImportOptions::Drape::None &&
+      (options.texelsPerQuad != 0 || options.visibleTexelsPerQuad != 0)) {
+    throw UsageError{std::string(options.texelsPerQuad != 0 ? "--texels-per-quad"
+                                                            : "--visible-texels-per-quad") +
+                     " needs a texture (an image or the default relief), not --texture none"};
   }
   if (options.drape == ImportOptions::Drape::None) {
     std::fprintf(stderr,

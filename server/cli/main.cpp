@@ -88,6 +88,20 @@ void printInfo(const fs::path& dir, int gridSize, int depth,
   std::printf("patch size  %d x %d vertices\n", gridSize, gridSize);
   std::printf("depth       %d (%zu levels)\n", depth, levels.size());
   std::printf("patches     %zu (%zu leaves)\n", patches, leaves);
+  std::size_t hidden = 0;
+  int firstHidden = -1;
+  for (const auto& level : levels) {
+    hidden += level.hidden;
+    if (level.hidden == level.patches && level.patches > 0 && firstHidden < 0) {
+      firstHidden = level.depth;
+    }
+  }
+  if (hidden > 0 && firstHidden > 0) {
+    std::printf("hidden      %zu patches, depth %d and below: OPC viewers see depth 0 to %d\n",
+                hidden, firstHidden, firstHidden - 1);
+  } else if (hidden > 0) {
+    std::printf("hidden      %zu patches, which OPC viewers do not see\n", hidden);
+  }
   std::printf("bounds      %s\n", formatBox(bounds).c_str());
   if (bytes) {
     std::printf("bytes       %s on disk\n",

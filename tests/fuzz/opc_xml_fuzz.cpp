@@ -1,8 +1,10 @@
 // Fuzz target: Patches/patchhierarchy.xml and Patch.xml parsing (readOpcModel, then validateOpc).
 //
 // Input: the hierarchy, then a line "%%", then a Patch.xml that every patch folder holds (without
-// the line, the input is both). The folders of a quadtree three levels deep (d_x_y, as vsm names
-// them) exist, each with a real 9 x 9 V3f Positions.aara and V2f Coordinates.aara.
+// the line, the input is both), then optionally another line "%%" and the second hierarchy file
+// of hidden levels, Patches/vsm-hidden-0123456789abcdef.xml (core/opc/README.md). The folders of a
+// quadtree three levels deep (d_x_y, as vsm names them) exist, each with a real 9 x 9 V3f
+// Positions.aara and V2f Coordinates.aara.
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -46,6 +48,7 @@ struct Opc {
   fs::path dir = scratch.path() / "opc";
   fs::path hierarchy = dir / "Patches" / "patchhierarchy.xml";
   fs::path patchXml = dir / "Patches" / "patch.xml.shared";
+  fs::path hidden = dir / "Patches" / "vsm-hidden-0123456789abcdef.xml";
 
   Opc() {
     const std::vector<std::byte> positions = gridFile(core::AaraType::V3f, 3);
@@ -71,9 +74,16 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
   const std::string_view input(reinterpret_cast<const char*>(data), size);
   const std::size_t split = input.find("\n%%\n");
   const std::string_view hierarchy = input.substr(0, split);
-  const std::string_view patch = split == std::string_view::npos ? input : input.substr(split + 4);
+  std::string_view patch = split == std::string_view::npos ? input : input.substr(split + 4);
+  std::string_view hidden;
+  if (const std::size_t second = patch.find("\n%%\n");
+      split != std::string_view::npos && second != std::string_view::npos) {
+    hidden = patch.substr(second + 4);
+    patch = patch.substr(0, second);
+  }
   fuzz::writeFile(opc.hierarchy, hierarchy.data(), hierarchy.size());
   fuzz::writeFile(opc.patchXml, patch.data(), patch.size());
+  fuzz::writeFile(opc.hidden, hidden.data(), hidden.size());
 
   const bool read = fuzz::succeeds([&] {
     const core::Model model = core::readOpcModel(opc.dir);

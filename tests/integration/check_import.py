@@ -125,16 +125,38 @@ def read_aara(path):
     return type_name, tuple(sizes), values.astype(np.float64)
 
 
-def read_hierarchy(opc, name="patchhierarchy.xml"):
+def read_items(sub_patch_map, children):
+    """The <item> elements of a SubPatchMap into {folder: {quadrant: child folder}}."""
+    for item in sub_patch_map:
+        key = child_ci(item, "key").text.strip()
+        if key in children:
+            raise ValueError("patch %s has two <item> elements" % key)
+        children[key] = {c.tag.lower(): c.text.strip() for c in child_ci(item, "val")}
+
+
+def hidden_file(opc, name="patchhierarchy.xml"):
+    """The second hierarchy file a hierarchy names (<Vsm><HiddenLevels>: vsm's hidden levels,
+    thesis 5.2), or None."""
+    patches = find_ci(opc, "Patches")
+    ph = child_ci(ET.parse(find_ci(patches, name)).getroot(), "PatchHierarchy")
+    vsm = child_ci(ph, "Vsm")
+    hidden = child_ci(vsm, "HiddenLevels") if vsm is not None else None
+    return None if hidden is None else os.path.join(patches, hidden.text.strip())
+
+
+def read_hierarchy(opc, name="patchhierarchy.xml", hidden=False):
     """(Patches dir, root folder, {folder: {quadrant: child folder}}) of the hierarchy file
-    `name` (the current one, or a kept revision's "vsm-revision-N.xml")."""
+    `name` (the current one, or a kept revision's "vsm-revision-N.xml"): what other OPC readers
+    see, or with `hidden` the items of the second file it names too (every level)."""
     patches = find_ci(opc, "Patches")
     root = ET.parse(find_ci(patches, name)).getroot()
     ph = child_ci(root, "PatchHierarchy")
     children = {}
-    for item in child_ci(ph, "SubPatchMap"):
-        key = child_ci(item, "key").text.strip()
-        children[key] = {c.tag.lower(): c.text.strip() for c in child_ci(item, "val")}
+    read_items(child_ci(ph, "SubPatchMap"), children)
+    second = hidden_file(opc, name) if hidden else None
+    if second is not None:
+        levels = child_ci(ET.parse(second).getroot(), "VsmHiddenLevels")
+        read_items(child_ci(levels, "SubPatchMap"), children)
     return patches, child_ci(ph, "RootPatch").text.strip(), children
 
 
@@ -514,7 +536,7 @@ def main():
 def check(raster_path, opc):
     failures = Failures()
     raster = Raster(raster_path)
-    patches_dir, root_folder, children = read_hierarchy(opc)
+    patches_dir, root_folder, children = read_hierarchy(opc, hidden=True)
     patches = walk(patches_dir, root_folder, children, failures)
     children_of = {}
     for key, patch in patches.items():

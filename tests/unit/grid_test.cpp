@@ -278,6 +278,22 @@ TEST(TextureTile, ParentTexelIsTheMeanOfItsTwoByTwoChildTexels) {
   }
 }
 
+TEST(TextureTile, AParentTwiceTheChildsSizeHoldsItsTexelsAsTheyAre) {
+  const vsm::core::TextureTile child = patternTile(4, 7);
+  vsm::core::TextureTile parent(8);
+  vsm::core::downsampleQuadrant(child, 2, parent);  // sw
+  for (int j = 0; j < 8; ++j) {
+    for (int i = 0; i < 8; ++i) {
+      for (int c = 0; c < 4; ++c) {
+        const int expected = i < 4 && j >= 4 ? child.at(i, j - 4)[c] : 0;
+        EXPECT_EQ(parent.at(i, j)[c], expected) << i << "," << j << " channel " << c;
+      }
+    }
+  }
+  vsm::core::TextureTile other(16);
+  EXPECT_THROW(vsm::core::downsampleQuadrant(child, 0, other), vsm::core::Error);
+}
+
 TEST(TextureTile, MissingChildLeavesItsQuadrantTransparent) {
   const vsm::core::TextureTile nw = patternTile(4, 5);
   const vsm::core::TextureTile parent =

@@ -15,6 +15,7 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <iterator>
 #include <limits>
 #include <map>
 #include <optional>
@@ -32,6 +33,8 @@
 #include "core/io/grid_source.hpp"
 #include "core/io/texture_source.hpp"
 #include "core/opc/aara.hpp"
+#include "core/opc/opc_detail.hpp"
+#include "core/opc/opc_index.hpp"
 #include "core/opc/opc_reader.hpp"
 #include "core/opc/opc_writer.hpp"
 #include "core/opc/texture_file.hpp"
@@ -737,6 +740,94 @@ TEST(PyramidBuilder, TheReturnedModelIsTheOneOnDisk) {
     EXPECT_FALSE(info.dirty);
     EXPECT_FALSE(info.stale);
   }
+}
+
+TEST(PyramidBuilder, HiddenLevelsAreNamedOnlyInTheSecondFileAndReadBackByVsm) {
+  TempDir dir;
+  SyntheticSource source(300, 200);
+  ImportOptions options = withPatchSize(33);
+  options.visibleTexelsPerQuad = 4;  // the relief has 1: the two deepest levels are hidden
+  const Model built = buildOpc(source, dir / "opc", options);
+  ASSERT_EQ(built.maxDepth(), 4);
+  const Model read = readOpcModel(dir / "opc");
+  ASSERT_EQ(read.patchCount(), built.patchCount());
+  std::size_t hidden = 0;
+  for (const auto& [key, info] : built.patches()) {
+    EXPECT_EQ(info.hidden, key.depth > 2) << key.toString();
+    EXPECT_EQ(read.at(key).hidden, info.hidden) << key.toString();
+    hidden += info.hidden ? 1 : 0;
+    // Tiles: 32 texels a side at the bottom, doubled up to the visible leaves, then 128.
+    const int texels = 32 << std::min(4 - key.depth, 2);
+    EXPECT_EQ(readPatchTextureTile(dir / "opc", read.at(key)).size(), texels) << key.toString();
+  }
+  ASSERT_GT(hidden, 0u);
+  // What other readers see: the hierarchy alone, which names no hidden patch.
+  const detail::OpcContents visible = detail::readOpc(dir / "opc", "patchhierarchy.xml", false);
+  EXPECT_EQ(visible.model.patchCount(), built.patchCount() - hidden);
+  EXPECT_EQ(visible.model.maxDepth(), 2);
+  EXPECT_TRUE(visible.unreachableItems.empty());
+  EXPECT_TRUE(validateOpc(dir / "opc").empty());
+  // The index keeps the flag.
+  const HierarchyStamp stamp = fileStamp(dir / "opc" / "Patches" / "patchhierarchy.xml");
+  const std::optional<OpcRevision> decoded =
+      decodeOpcIndex(encodeOpcIndex(stamp, read, nullptr), stamp);
+  ASSERT_TRUE(decoded);
+  for (const auto& [key, info] : read.patches()) {
+    EXPECT_EQ(decoded->model.at(key).hidden, info.hidden) << key.toString();
+  }
+}
+
+/// The whole text of a file.
+std::string fileText(const fs::path& file) {
+  std::ifstream in(file);
+  return {std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+}
+
+TEST(PyramidBuilder, TheSecondHierarchyFileMustBeOursAndHoldEveryHiddenItem) {
+  TempDir dir;
+  SyntheticSource source(300, 200);
+  ImportOptions options = withPatchSize(33);
+  options.visibleTexelsPerQuad = 4;  // depths 3 and 4 hidden
+  ASSERT_EQ(buildOpc(source, dir / "opc", options).maxDepth(), 4);
+  const fs::path hierarchy = dir / "opc" / "Patches" / "patchhierarchy.xml";
+  const std::string text = fileText(hierarchy);
+  const std::size_t at = text.find("<HiddenLevels>");
+  ASSERT_NE(at, std::string::npos);
+  const std::size_t end = text.find("</HiddenLevels>", at);
+  const std::string named = text.substr(at + 14, end - at - 14);
+  EXPECT_TRUE(isHiddenHierarchyFileName(named)) << named;
+  const auto write = [&](const fs::path& file, const std::string& bytes) {
+    std::ofstream(file, std::ios::trunc) << bytes;
+  };
+  // <HiddenLevels> names a file of ours beside the hierarchy, which exists.
+  for (const std::string& bad : {std::string("../patchhierarchy.xml"), std::string("x.xml"),
+                                 std::string("vsm-hidden-0123456789abcdeg.xml"),
+                                 std::string("vsm-hidden-0123456789abcdef.xml")}) {
+    write(hierarchy, text.substr(0, at + 14) + bad + text.substr(end));
+    EXPECT_EQ(codeOf([&] { readOpcModel(dir / "opc"); }), ErrorCode::Corrupt) << bad;
+    EXPECT_FALSE(validateOpc(dir / "opc").empty()) << bad;
+  }
+  // Without it, the model is what other readers see: three levels.
+  write(hierarchy, text.substr(0, at) + text.substr(end + 15));
+  EXPECT_EQ(readOpcModel(dir / "opc").maxDepth(), 2);
+  write(hierarchy, text);
+  // A hidden patch's item (depth 3, whose children are at 4) in the file other readers see.
+  const fs::path second = dir / "opc" / "Patches" / named;
+  const std::string hiddenText = fileText(second);
+  const std::size_t item = hiddenText.find("<item><key>3_");
+  ASSERT_NE(item, std::string::npos);
+  const std::size_t itemEnd = hiddenText.find("</item>", item) + 7;
+  const std::string moved = hiddenText.substr(item, itemEnd - item);
+  const std::size_t map = text.find("</SubPatchMap>");
+  write(hierarchy, text.substr(0, map) + moved + text.substr(map));
+  write(second, hiddenText.substr(0, item) + hiddenText.substr(itemEnd));
+  EXPECT_EQ(codeOf([&] { readOpcModel(dir / "opc"); }), ErrorCode::Corrupt);
+  EXPECT_FALSE(validateOpc(dir / "opc").empty());
+  // The same item in both files.
+  write(second, hiddenText);
+  EXPECT_EQ(codeOf([&] { readOpcModel(dir / "opc"); }), ErrorCode::Corrupt);
+  write(hierarchy, text);
+  EXPECT_TRUE(validateOpc(dir / "opc").empty());
 }
 
 TEST(PyramidBuilder, QuartersBuiltConcurrentlyWriteTheSameFilesAsASerialBuild) {

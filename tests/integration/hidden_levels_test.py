@@ -1,0 +1,218 @@
+#!/usr/bin/python3
+"""Hidden levels (issue 28, thesis 5.2): `vsm import --visible-texels-per-quad 4` of PRISM with its
+shaded relief at one texel per quad, checked with our own XML, .aara and TIFF readers
+(check_import.py), none of vsm's code:
+
+- what other OPC readers see, patchhierarchy.xml alone, is a whole model as OPC.md asks (every
+  patch it names has its coordinates and its tile; AvgGeometrySizes covers its levels) that ends
+  two levels above the DEM's resolution, where the tiles hold 4 texels per quad;
+- the levels below are named in the second file patchhierarchy.xml names (<Vsm><HiddenLevels>),
+  and with them every DEM sample is a leaf vertex, every parent the reduction of its children
+  (check_import.check);
+- each tile of a level above a hidden one is its children's tiles side by side, texel for texel;
+  above the visible leaves, tiles are 2 x 2 means as before;
+- `vsm validate` passes, before and after `vsm index`; a missing second file is a clear error
+  from `vsm validate` and `vsm info`;
+- the real vsmd serves every level (hierarchy, a hidden leaf's positions) and refuses a merge into
+  the model with a clear error, leaving every file as it was.
+
+Run by ctest:  hidden_levels_test.py --vsm build/server/cli/vsm --vsmd build/server/vsmd
+               --data ../shared/data --work <dir>"""
+
+import argparse
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import unittest
+import xml.etree.ElementTree as ET
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import check_import  # noqa: E402
+import harness  # noqa: E402
+from check_import import QUADRANTS, child_ci, hidden_file, read_hierarchy, read_tile  # noqa: E402
+
+ARGS = None
+PATCH_SIZE = 65
+VISIBLE = 4  # texels per quad side OPC readers see; the relief has 1 at the DEM's resolution
+HIDDEN_LEVELS = 2
+
+
+def keys_of(root_folder, children):
+    """{(depth, x, y): folder} of a hierarchy, walked from the root."""
+    found = {}
+    stack = [(root_folder, (0, 0, 0))]
+    while stack:
+        folder, key = stack.pop()
+        found[key] = folder
+        for quadrant, child in children.get(folder, {}).items():
+            qx, qy = QUADRANTS[quadrant]
+            stack.append((child, (key[0] + 1, 2 * key[1] + qx, 2 * key[2] + qy)))
+    return found
+
+
+def digest(opc):
+    """SHA-256 of every file under `opc` by relative path."""
+    out = {}
+    for base, _, files in os.walk(opc):
+        for name in files:
+            path = os.path.join(base, name)
+            with open(path, "rb") as f:
+                out[os.path.relpath(path, opc)] = hashlib.sha256(f.read()).hexdigest()
+    return out
+
+
+class HiddenLevels(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        shutil.rmtree(ARGS.work, ignore_errors=True)
+        os.makedirs(ARGS.work)
+        cls.dem = os.path.join(ARGS.data, "PRISMelevation.tif")
+        cls.opc = os.path.join(ARGS.work, "prism")
+        harness.import_dem(cls.dem, cls.opc, PATCH_SIZE, "--visible-texels-per-quad",
+                           str(VISIBLE))
+        cls.patches, root, cls.visible_children = read_hierarchy(cls.opc)
+        cls.visible = keys_of(root, cls.visible_children)
+        _, _, cls.all_children = read_hierarchy(cls.opc, hidden=True)
+        cls.all = keys_of(root, cls.all_children)
+        cls.depth = max(k[0] for k in cls.all)
+
+    def tile(self, key):
+        return read_tile(os.path.join(self.opc, "Images", "Diffuse", self.all[key] + ".tif"))
+
+    def test_a_what_opc_readers_see(self):
+        """The hierarchy alone: a whole model down to 4 texels per quad, as OPC.md asks."""
+        failures = check_import.Failures()
+        checked = check_import.check_pro3d(self.opc, failures)
+        failures.assert_none(self)
+        self.assertEqual(checked, len(self.visible))
+        visible_depth = max(k[0] for k in self.visible)
+        self.assertEqual(visible_depth, self.depth - HIDDEN_LEVELS, (visible_depth, self.depth))
+        # Its leaves are the visible depth's patches, each with tiles of 4 texels per quad.
+        for key, folder in self.visible.items():
+            if folder not in self.visible_children:
+                self.assertEqual(key[0], visible_depth, key)
+                self.assertEqual(self.tile(key).shape[1:], ((PATCH_SIZE - 1) * VISIBLE,) * 2, key)
+        # AvgGeometrySizes: one entry per level it names, not the hidden ones.
+        ph = child_ci(ET.parse(os.path.join(self.patches, "patchhierarchy.xml")).getroot(),
+                      "PatchHierarchy")
+        sizes = check_import.numbers(child_ci(ph, "AvgGeometrySizes").text)
+        self.assertEqual(len(sizes), visible_depth + 1, sizes)
+        # No hidden patch's folder in the file other readers read.
+        text = open(os.path.join(self.patches, "patchhierarchy.xml")).read()
+        for key, folder in self.all.items():
+            if key not in self.visible:
+                self.assertNotIn(">%s<" % folder, text)
+        print("hidden: OPC readers see %d patches, depth 0-%d; vsm %d, depth 0-%d"
+              % (len(self.visible), visible_depth, len(self.all), self.depth))
+
+    def test_b_every_sample_a_leaf_vertex(self):
+        """With the second file: the DEM's full resolution, every parent by reduction."""
+        self.assertIsNotNone(hidden_file(self.opc))
+        self.assertGreater(len(self.all), len(self.visible))
+        failures, summary = check_import.check(self.dem, self.opc)
+        failures.assert_none(self)
+        print("hidden: " + summary)
+
+    def test_c_tiles_above_hidden_levels_are_their_childrens(self):
+        """Each level above a hidden one holds its children's texels as they are; above the
+        visible leaves, 2 x 2 means."""
+        exact = means = 0
+        for key, folder in sorted(self.all.items()):
+            kids = self.all_children.get(folder, {})
+            if not kids:
+                continue
+            parent = self.tile(key).astype(np.int32)
+            size = parent.shape[1]
+            for quadrant in kids:
+                qx, qy = QUADRANTS[quadrant]
+                child = self.tile((key[0] + 1, 2 * key[1] + qx, 2 * key[2] + qy)).astype(np.int32)
+                if key[0] + 1 > self.depth - HIDDEN_LEVELS:  # a hidden child
+                    self.assertEqual(child.shape[1] * 2, size, (key, quadrant))
+                    half = child.shape[1]
+                    part = parent[:, qy * half:(qy + 1) * half, qx * half:(qx + 1) * half]
+                    np.testing.assert_array_equal(part[:3], child[:3], err_msg=str((key, quadrant)))
+                    exact += 1
+                else:
+                    self.assertEqual(child.shape[1], size, (key, quadrant))
+                    half = size // 2
+                    mean = (child[:, 0::2, 0::2] + child[:, 1::2, 0::2] + child[:, 0::2, 1::2] +
+                            child[:, 1::2, 1::2] + 2) // 4
+                    part = parent[:, qy * half:(qy + 1) * half, qx * half:(qx + 1) * half]
+                    np.testing.assert_array_equal(part[:3], mean[:3], err_msg=str((key, quadrant)))
+                    means += 1
+        self.assertGreater(exact, 0)
+        self.assertGreater(means, 0)
+        print("hidden: %d quadrants as their child's texels, %d as 2 x 2 means" % (exact, means))
+
+    def test_d_validate_index_and_damage(self):
+        """vsm validate before and after vsm index; without the second file, clear errors."""
+        copy = os.path.join(ARGS.work, "prism-copy")
+        shutil.rmtree(copy, ignore_errors=True)
+        shutil.copytree(self.opc, copy)
+        for step in ("imported", "indexed"):
+            if step == "indexed":
+                harness.vsm("index", copy, check=True)
+            out = harness.vsm("validate", copy)
+            self.assertEqual(out.returncode, 0, (step, out.stdout[-2000:], out.stderr[-2000:]))
+        # The second file gone: vsm validate (which reads in full) says which, as does vsm info
+        # of a model without a current index (with one, info reads the index alone).
+        damaged = os.path.join(ARGS.work, "prism-damaged")
+        shutil.rmtree(damaged, ignore_errors=True)
+        shutil.copytree(self.opc, damaged)
+        for opc in (copy, damaged):
+            os.remove(hidden_file(opc))
+        for command in (["validate", copy], ["validate", damaged], ["info", damaged]):
+            out = harness.vsm(*command)
+            self.assertNotEqual(out.returncode, 0, command)
+            self.assertIn("HiddenLevels", out.stdout + out.stderr, command)
+            self.assertIn("missing", out.stdout + out.stderr, command)
+
+    def test_e_vsmd_serves_every_level_and_refuses_a_merge(self):
+        """vsmd's hierarchy reaches the hidden leaves and serves their data; a merge into the
+        model fails with a clear error and changes no file."""
+        root = os.path.join(ARGS.work, "vsmd")
+        shutil.rmtree(root, ignore_errors=True)
+        os.makedirs(root)
+        model = os.path.join(root, "prism")
+        shutil.copytree(self.opc, model)
+        harness.import_dem(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
+                           os.path.join(root, "jack"), PATCH_SIZE)
+        before = digest(model)
+        daemon = harness.Daemon(root=root)
+        try:
+            served = {tuple(int(v) for v in k.split("_")) for k in daemon.keys("prism")}
+            self.assertEqual(served, set(self.all))
+            hidden_leaf = max(self.all)
+            status, _, body = daemon.request(
+                "GET", "/v1/models/prism/patches/%d_%d_%d/positions" % hidden_leaf)
+            self.assertEqual(status, 200, body[:200])
+            job = daemon.submit({"type": "merge", "target": "prism", "source": "jack"})
+            job = daemon.wait_job(job["id"])
+            self.assertEqual(job["state"], "failed", job)
+            self.assertIn("hidden levels", job["error"]["message"], job)
+        finally:
+            self.assertEqual(daemon.stop(timeout=30), 0)
+        after = digest(model)
+        for files in (before, after):
+            files.pop(".vsm-writer.lock", None)  # the holder's pid
+        self.assertEqual(before, after)
+
+
+def main():
+    global ARGS
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--vsm", required=True)
+    parser.add_argument("--vsmd", required=True)
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--work", required=True)
+    ARGS, rest = parser.parse_known_args()
+    harness.configure(ARGS)
+    unittest.main(argv=[sys.argv[0], *rest], verbosity=2)
+
+
+if __name__ == "__main__":
+    main()
