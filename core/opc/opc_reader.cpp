@@ -1,7 +1,9 @@
 // Reading OPC directories: the hierarchy, every Patch.xml and the patches' vertex data.
 #include "core/opc/opc_reader.hpp"
 
+#include <fcntl.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cctype>
@@ -625,6 +627,32 @@ std::optional<RevisionRecord> readRevisionRecord(const fs::path& hierarchyFile) 
 
 std::string hiddenHierarchyFileName() {
   return std::string(kHiddenPrefix) + randomHex() + randomHex() + std::string(kHiddenSuffix);
+}
+
+std::optional<std::string> hiddenHierarchyNamedBy(const fs::path& hierarchyFile) {
+  constexpr std::size_t kTail = 4096;
+  const int fd = ::open(hierarchyFile.c_str(), O_RDONLY | O_CLOEXEC);
+  if (fd < 0) {
+    return std::nullopt;
+  }
+  struct stat st {};
+  std::string tail;
+  if (::fstat(fd, &st) == 0) {
+    const auto size = static_cast<std::size_t>(st.st_size);
+    const std::size_t from = size > kTail ? size - kTail : 0;
+    tail.resize(size - from);
+    const ssize_t n = ::pread(fd, tail.data(), tail.size(), static_cast<off_t>(from));
+    tail.resize(n > 0 ? static_cast<std::size_t>(n) : 0);
+  }
+  ::close(fd);
+  constexpr std::string_view open = "<HiddenLevels>";
+  const std::size_t at = tail.rfind(open);
+  const std::size_t end = at == std::string::npos ? at : tail.find("</HiddenLevels>", at);
+  if (end == std::string::npos) {
+    return std::nullopt;
+  }
+  std::string name = tail.substr(at + open.size(), end - at - open.size());
+  return isHiddenHierarchyFileName(name) ? std::optional(std::move(name)) : std::nullopt;
 }
 
 bool isHiddenHierarchyFileName(std::string_view name) {

@@ -99,6 +99,12 @@ std::string hiddenHierarchyFileName();
 /// True for a name hiddenHierarchyFileName gives.
 bool isHiddenHierarchyFileName(std::string_view name);
 
+/// The second hierarchy file a hierarchy file of vsm's names (<Vsm><HiddenLevels>), read from its
+/// last 4 kB, where vsm writes its elements (a few kB whatever the model's size); nullopt when it
+/// names none there, or the file cannot be read. For removing files no hierarchy names any more,
+/// not for reading a model (readOpcModel follows the element wherever it is).
+std::optional<std::string> hiddenHierarchyNamedBy(const std::filesystem::path& hierarchyFile);
+
 /// `dir`/Patches in whatever letter case it exists. Throws Error(NotFound) when there is none.
 std::filesystem::path patchesDirOf(const std::filesystem::path& dir);
 

@@ -224,17 +224,6 @@ void OpcWriter::removePatchFiles(const PatchInfo& info) {
 
 namespace {
 
-/// True when the children of `info` (a patch with children) are a hidden level's: its <item> is
-/// in the second hierarchy file, not in patchhierarchy.xml.
-bool hiddenChildren(const Model& model, const PatchKey& key, const PatchInfo& info) {
-  for (const Quadrant q : kQuadrants) {
-    if (info.hasChild(q)) {
-      return model.at(key.child(q)).hidden;
-    }
-  }
-  return false;
-}
-
 /// The <item> element of `info`, a patch with children, as OPC.md writes it; the ids of the runs
 /// that hold its children added to `childRuns` when given.
 void writeItem(detail::XmlWriter& xml, const Model& model, const PatchKey& key,
@@ -270,7 +259,7 @@ HiddenHierarchy hiddenHierarchyXml(const Model& model) {
   detail::XmlWriter xml = startAardvark("VsmHiddenLevels");
   xml.open("SubPatchMap");
   for (const auto& [key, info] : model.patches()) {
-    if (!info.isLeaf() && hiddenChildren(model, key, info)) {
+    if (model.childrenHidden(key)) {
       writeItem(xml, model, key, info, nullptr);
     }
   }
@@ -285,7 +274,7 @@ std::string runItems(const Model& model, const Model::Run& run, std::size_t dept
   detail::XmlWriter xml(depth);
   for (auto it = run.begin; it != run.end; ++it) {
     const auto [key, info] = *it;
-    if (!info.isLeaf() && !hiddenChildren(model, key, info)) {
+    if (!info.isLeaf() && !model.childrenHidden(key)) {
       writeItem(xml, model, key, info, &childRuns);
     }
   }
@@ -332,9 +321,7 @@ HierarchyText hierarchyXml(const Model& model, const RevisionRecord* revision,
          levels[visibleLevels - 1].hidden == levels[visibleLevels - 1].patches) {
     --visibleLevels;
   }
-  const bool hasHidden =
-      std::any_of(levels.begin(), levels.end(), [](const LevelSummary& l) { return l.hidden > 0; });
-  if (hasHidden) {
+  if (model.hasHiddenLevels()) {
     text.hidden = hiddenHierarchyXml(model);
   }
   detail::XmlWriter xml = startAardvark("PatchHierarchy");

@@ -509,6 +509,18 @@ Model::ChunkSums Model::summarise(const Chunk& chunk) {
   return sums;
 }
 
+bool Model::hasHiddenLevels() const {
+  const std::vector<LevelSummary> summary = levels();
+  return std::any_of(summary.begin(), summary.end(),
+                     [](const LevelSummary& level) { return level.hidden > 0; });
+}
+
+bool Model::childrenHidden(const PatchKey& key) const {
+  const PatchInfo& info = at(key);
+  return !info.isLeaf() &&
+         at(key.child(static_cast<Quadrant>(std::countr_zero(info.childMask)))).hidden;
+}
+
 std::vector<double> Model::avgGeometrySizes() const {
   const auto summary = levels();
   std::vector<double> sizes(summary.size(), 0);

@@ -227,6 +227,11 @@ class Model {
   void refreshStale(const GridLoader& load);
 
   std::vector<LevelSummary> levels() const;
+  /// True when some patch is a hidden level's (PatchInfo::hidden; from levels()).
+  bool hasHiddenLevels() const;
+  /// True when the patch `key` has children and they are a hidden level's: its <item> belongs in
+  /// the second hierarchy file (a patch's children are all hidden or all not).
+  bool childrenHidden(const PatchKey& key) const;
   /// OPC's AvgGeometrySizes: mean edge length per depth, finest first, root last; maxDepth()+1
   /// entries. A depth with no measurable patch takes twice the finer depth's value.
   std::vector<double> avgGeometrySizes() const;

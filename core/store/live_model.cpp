@@ -76,6 +76,7 @@ std::map<std::uint64_t, fs::path> sweepLeftovers(const fs::path& dir, const std:
   std::map<std::string, fs::path, std::less<>> candidates;  // folder -> its path
   std::map<std::uint64_t, fs::path> kept;                   // revision -> its hierarchy file
   std::vector<fs::path> indexes;
+  std::set<std::string> hiddenFiles;  // second hierarchy files (hidden levels)
   // Folders named as their key, most of them: looked up at once, in key order, after the listing.
   std::vector<PatchKey> plain;
   for (const auto& entry : fs::directory_iterator(patches)) {
@@ -92,6 +93,8 @@ std::map<std::uint64_t, fs::path> sweepLeftovers(const fs::path& dir, const std:
       orphans.push_back(entry.path());
     } else if (isIndexFileName(file)) {
       indexes.push_back(entry.path());
+    } else if (isHiddenHierarchyFileName(file)) {
+      hiddenFiles.insert(file);
     } else if (const std::optional<std::uint64_t> number = revisionOfFile(file)) {
       if (*number > current.version) {
         orphans.push_back(entry.path());
@@ -169,6 +172,18 @@ std::map<std::uint64_t, fs::path> sweepLeftovers(const fs::path& dir, const std:
   for (auto* left : {&candidates, &tileCandidates}) {
     for (auto& [folder, path] : *left) {
       orphans.push_back(std::move(path));
+    }
+  }
+  // Second hierarchy files no kept hierarchy names (a publish interrupted before its commit, or a
+  // dropped revision's when the removal failed).
+  if (!hiddenFiles.empty()) {
+    std::vector<fs::path> hierarchies{patches / "patchhierarchy.xml"};
+    for (const auto& [number, file] : kept) {
+      hierarchies.push_back(file);
+    }
+    if (const std::size_t removed = removeUnnamedHiddenFiles(patches, hiddenFiles, hierarchies)) {
+      log::info("model=" + name + " removed " + std::to_string(removed) +
+                " leftover second hierarchy file" + (removed == 1 ? "" : "s"));
     }
   }
   for (const fs::path& orphan : orphans) {
@@ -426,17 +441,6 @@ std::unique_ptr<ModelEdit> LiveModel::beginEdit() {
     throw Error(ErrorCode::Conflict, "model '" + name_ + "' is being changed by another job");
   }
   checkCurrent(onDisk);
-  {
-    // Edits would not keep a hidden level (thesis 5.2) where the new detail does not cover it,
-    // so none is begun: the model stays as it is.
-    const std::vector<LevelSummary> levels = snapshot()->model->levels();
-    if (std::any_of(levels.begin(), levels.end(), [](const LevelSummary& l) { return l.hidden; })) {
-      throw Error(ErrorCode::Conflict,
-                  "model '" + name_ +
-                      "' has hidden levels (vsm import --visible-texels-per-quad); merging into "
-                      "and restoring such a model are not supported yet");
-    }
-  }
   writer_->editing = true;
   try {
     return std::unique_ptr<ModelEdit>(new ModelEdit(*this, snapshot()));

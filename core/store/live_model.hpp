@@ -264,8 +264,11 @@ class LiveModel {
   /// the current one, `current`, keeping each whose successor is younger than `keepSeconds` and
   /// each in `readElsewhere` (with the ones after it: folders are dropped oldest first).
   /// Failures are logged, not thrown.
+  /// `hiddenFiles`: second hierarchy files that may no longer be named (the replaced hierarchy's),
+  /// removed with the dropped revisions' when no kept hierarchy names them.
   void dropRevisions(const ModelSnapshot& current, unsigned keep, std::chrono::seconds keepSeconds,
-                     const std::set<std::uint64_t>& readElsewhere = {});
+                     const std::set<std::uint64_t>& readElsewhere = {},
+                     std::set<std::string> hiddenFiles = {});
   /// `indexBases`: the memo of a reading opening being read again (reopen()); null for a first
   /// opening (a reading one makes its own) and for a writer's, which keeps none.
   static std::unique_ptr<LiveModel> load(const std::filesystem::path& dir, std::string name,

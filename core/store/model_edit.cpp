@@ -106,6 +106,7 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
   if (model_->find(key) == nullptr) {
     PatchInfo info;
     info.key = key;
+    info.hidden = hiddenForNew(key);
     model_->insert(std::move(info));
   }
   const ObjectId id = draftId(key);
@@ -138,6 +139,47 @@ void ModelEdit::setPositions(const PatchKey& key, std::shared_ptr<const PatchGri
     const std::size_t textureBytes = texture->bytes();
     store.cache().put(store.id(), textureId, {std::move(texture), textureBytes}, true);
   }
+}
+
+bool ModelEdit::hiddenForNew(const PatchKey& key) {
+  // Hidden levels stay where they are (thesis 5.2, Figure 5.2): below a hidden patch, and beside
+  // hidden siblings, a new patch is hidden; under a visible leaf, it is hidden in a model that has
+  // hidden levels (the detail joins them, and what other readers see keeps its leaves).
+  const std::optional<PatchKey> parent = key.parent();
+  if (!parent) {
+    return false;
+  }
+  const PatchInfo& up = model_->at(*parent);
+  if (up.hidden) {
+    return true;
+  }
+  for (const Quadrant q : kQuadrants) {
+    if (const PatchInfo* sibling = model_->find(parent->child(q))) {
+      return sibling->hidden;
+    }
+  }
+  return visibleTexelsPerQuad() != 0;
+}
+
+int ModelEdit::visibleTexelsPerQuad() {
+  if (!visibleTexelsPerQuad_) {
+    // The texels per quad of the visible leaves, the patches whose children are hidden: what an
+    // import with hidden levels gave them (--visible-texels-per-quad), read off one of their tiles.
+    visibleTexelsPerQuad_ = 0;
+    if (base_->model->hasHiddenLevels()) {
+      for (const auto& [key, info] : base_->model->patches()) {
+        if (info.hidden || !base_->model->childrenHidden(key)) {
+          continue;
+        }
+        if (const PatchCache::Pin pin = live_.texture(*base_, key)) {
+          visibleTexelsPerQuad_ =
+              texelsPerQuadOf(pin.get<TextureTile>()->size(), model_->gridSize());
+        }
+        break;
+      }
+    }
+  }
+  return *visibleTexelsPerQuad_;
 }
 
 void ModelEdit::writeEarly(const PatchKey& key) {
@@ -228,7 +270,18 @@ void ModelEdit::refreshStale(const CancelToken* cancel) {
           children[i] = &resized[i].emplace(resizeTile(*children[i], size));
         }
       }
-      parentTexture = std::make_shared<const TextureTile>(downsampleQuadrants(children, size));
+      // Above a hidden level, twice the children's texels per quad (their tiles side by side, as
+      // the import made them) up to the visible leaves' (core/opc/README.md, "Hidden levels").
+      const int visible = visibleTexelsPerQuad();
+      const bool sideBySide = visible != 0 && model_->childrenHidden(key) &&
+                              2 * texelsPerQuadOf(size, gridSize) <= visible;
+      TextureTile tile(sideBySide ? 2 * size : size);
+      for (int i = 0; i < 4; ++i) {
+        if (children[i] != nullptr) {
+          downsampleQuadrant(*children[i], i, tile);
+        }
+      }
+      parentTexture = std::make_shared<const TextureTile>(std::move(tile));
     }
     setPositions(key, std::move(parent), std::move(parentTexture));
     model_->edit(key).stale = false;
@@ -287,9 +340,11 @@ void ModelEdit::restore(const ModelSnapshot& from, const CancelToken* cancel) {
     }
     setPositions(key, std::move(grid), std::move(texture));
   }
-  // Every overview is `from`'s own now: none is recomputed.
+  // Every overview is `from`'s own now: none is recomputed. Hidden levels are `from`'s too.
   for (const auto& [key, info] : target.patches()) {
-    model_->edit(key).stale = false;
+    PatchInfo& edited = model_->edit(key);
+    edited.stale = false;
+    edited.hidden = info.hidden;
   }
 }
 

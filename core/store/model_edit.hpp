@@ -159,6 +159,11 @@ class ModelEdit {
   /// Keeps the base's hierarchy (and its index) as Patches/`baseName`, durable: a hard link where
   /// the file system allows, else a copy. Throws Error(Io).
   void keepBaseHierarchy(const std::filesystem::path& patches, const std::string& baseName);
+  /// Whether a patch this edit adds at `key` is a hidden level's (its parent exists).
+  bool hiddenForNew(const PatchKey& key);
+  /// The texels per quad of the base's visible leaves (the patches whose children are hidden),
+  /// read off one of their tiles once; 0 without hidden levels.
+  int visibleTexelsPerQuad();
 
   LiveModel& live_;
   /// Opened when the edit begins: syncfs on it reports every write-back error since.
@@ -172,6 +177,7 @@ class ModelEdit {
   /// ancestors stale): where refreshStale looks, instead of at every patch of the model.
   std::set<PatchKey> staleParents_;
   bool published_ = false;
+  std::optional<int> visibleTexelsPerQuad_;
   /// This edit's own: in its draft folders' names and its revision record.
   std::string nonce_;
 };

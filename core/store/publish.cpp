@@ -133,6 +133,12 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
   if (!fs::exists(patches / baseName)) {
     keepBaseHierarchy(patches, baseName);
   }
+  // The base's second hierarchy file (hidden levels): named by the kept revision when that is a
+  // link, else by nothing once the new hierarchy replaces the base's (removed in step 6).
+  std::set<std::string> replacedHidden;
+  if (std::optional<std::string> hidden = hiddenHierarchyNamedBy(patches / "patchhierarchy.xml")) {
+    replacedHidden.insert(std::move(*hidden));
+  }
   // Its index (opc_index.hpp), for the staged file's stamp, which the rename keeps: committed just
   // before the hierarchy, both made durable by the one sync of Patches/ in step 4. A crash between
   // the two renames leaves the old hierarchy with an index of another stamp: read in full once.
@@ -244,7 +250,8 @@ void ModelEdit::publish(const CancelToken* cancel, const PublishOptions& options
     tellObserver(live_.name_, "asking which revisions others read",
                  [&] { readElsewhere = options.readElsewhere(); });
   }
-  live_.dropRevisions(*snapshot, options.keepRevisions, options.keepSeconds, readElsewhere);
+  live_.dropRevisions(*snapshot, options.keepRevisions, options.keepSeconds, readElsewhere,
+                      std::move(replacedHidden));
   if (!options.deferFolderRemoval) {
     live_.removeRetiredFolders();
   }

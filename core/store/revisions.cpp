@@ -279,7 +279,8 @@ bool baseNamedBy(const fs::path& patches, const IndexBase& base,
 
 void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
                               std::chrono::seconds keepSeconds,
-                              const std::set<std::uint64_t>& readElsewhere) {
+                              const std::set<std::uint64_t>& readElsewhere,
+                              std::set<std::string> hiddenFiles) {
   const Model& latest = *current.model;
   const std::time_t now = std::time(nullptr);
   const fs::path patches = patchesDirOf(dir_);
@@ -334,6 +335,10 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
               ? foldersRetiredBy(*next->retired, latest)
               : foldersOnlyIn(oldest->second,
                               nextFile != files.end() ? nextFile->second : fs::path(), latest);
+      // Its second hierarchy file goes with it, below, unless another hierarchy names it.
+      if (std::optional<std::string> hidden = hiddenHierarchyNamedBy(oldest->second)) {
+        hiddenFiles.insert(std::move(*hidden));
+      }
       // The file first: a crash after it leaves folders no kept revision names, which the next
       // open removes; never a listed revision without its folders.
       if (::unlink(oldest->second.c_str()) != 0 && errno != ENOENT) {
@@ -369,6 +374,13 @@ void LiveModel::dropRevisions(const ModelSnapshot& current, unsigned keep,
       for (LiveModel* opening : writer_->openings) {
         opening->holdRemoval(number, removal);
       }
+    }
+    if (!hiddenFiles.empty()) {
+      std::vector<fs::path> kept{patches / "patchhierarchy.xml"};
+      for (const auto& [number, file] : files) {
+        kept.push_back(file);
+      }
+      removeUnnamedHiddenFiles(patches, hiddenFiles, kept);
     }
     std::lock_guard lock(writer_->mutex);
     writer_->revisionFiles = std::move(files);

@@ -2,12 +2,14 @@
 
 #include <dirent.h>
 #include <sys/stat.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cctype>
 #include <cerrno>
 #include <charconv>
 #include <cstdio>
+#include <cstring>
 #include <ctime>
 #include <memory>
 #include <regex>
@@ -15,6 +17,8 @@
 
 #include "core/common/log.hpp"
 #include "core/common/random.hpp"
+#include "core/durable/durable_io.hpp"
+#include "core/opc/opc_reader.hpp"
 #include "core/opc/texture_file.hpp"
 #include "core/store/live_model.hpp"
 
@@ -122,6 +126,33 @@ std::optional<std::uint64_t> revisionOfFile(std::string_view name) {
     return std::nullopt;
   }
   return number;
+}
+
+std::size_t removeUnnamedHiddenFiles(const fs::path& patches,
+                                     const std::set<std::string>& candidates,
+                                     const std::vector<fs::path>& hierarchies) {
+  std::set<std::string> unnamed = candidates;
+  for (const fs::path& hierarchy : hierarchies) {
+    if (unnamed.empty()) {
+      break;
+    }
+    if (const std::optional<std::string> named = hiddenHierarchyNamedBy(hierarchy)) {
+      unnamed.erase(*named);
+    }
+  }
+  std::size_t removed = 0;
+  for (const std::string& name : unnamed) {
+    if (::unlink((patches / name).c_str()) == 0) {
+      ++removed;
+    } else if (errno != ENOENT) {
+      log::warn("cannot remove " + (patches / name).string() + ", which no hierarchy names: " +
+                std::strerror(errno) + " (retried at the next open)");
+    }
+  }
+  if (removed > 0) {
+    durable::syncDirectory(patches);
+  }
+  return removed;
 }
 
 std::map<std::uint64_t, fs::path> revisionFiles(const fs::path& patches) {

@@ -70,6 +70,14 @@ std::optional<std::uint64_t> revisionOfFile(std::string_view name);
 /// The kept revision files under `patches` by revision number ("vsm-revision-<n>.xml").
 std::map<std::uint64_t, std::filesystem::path> revisionFiles(const std::filesystem::path& patches);
 
+/// Removes each second hierarchy file (hidden levels, core/opc/README.md) of `candidates` (names
+/// under `patches`) that none of `hierarchies` names any more (hiddenHierarchyNamedBy), and syncs
+/// `patches` after a removal. Returns how many it removed; a failed removal is logged (the next
+/// open's sweep retries it).
+std::size_t removeUnnamedHiddenFiles(const std::filesystem::path& patches,
+                                     const std::set<std::string>& candidates,
+                                     const std::vector<std::filesystem::path>& hierarchies);
+
 /// Now, UTC, ISO 8601 to the second.
 std::string utcNow();
 

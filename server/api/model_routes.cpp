@@ -61,6 +61,9 @@ json nodeJson(const core::Model& model, const core::PatchInfo& info, int levels)
                {"version", info.version},
                {"leaf", info.isLeaf()},
                {"child_count", std::popcount(static_cast<unsigned>(info.childMask))}};
+  if (info.hidden) {
+    node["hidden"] = true;
+  }
   if (levels != 0 && !info.isLeaf()) {
     json children = json::array();
     for (const core::Quadrant q : core::kQuadrants) {

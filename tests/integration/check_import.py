@@ -379,6 +379,64 @@ def patch_size(patches, raster, depth):
     return intervals + 1
 
 
+def check_leaf(patch, key, raster, n, failures, stats, coverage):
+    """One leaf at the raster's resolution: every vertex the sample (c, r) of its place, defined
+    exactly where the sample is, within the float32 rounding or 1 cm; the samples it holds
+    counted in `coverage`."""
+    c0, r0 = key[1] * (n - 1), key[2] * (n - 1)
+    w = max(0, min(n, raster.width - c0))
+    h = max(0, min(n, raster.height - r0))
+    grid = patch.grid
+    defined = ~np.isnan(grid[:, :, 0])
+    inside = np.zeros((n, n), dtype=bool)
+    inside[:h, :w] = True
+    padding = defined & ~inside
+    if padding.any():
+        j, i = np.argwhere(padding)[0]
+        failures.add("%s: vertex %d,%d beyond the raster is defined (%d such)" %
+                     (patch.folder, i, j, int(padding.sum())))
+    if w == 0 or h == 0:
+        return
+    heights = raster.heights[r0:r0 + h, c0:c0 + w]
+    sample_defined = ~np.isnan(heights)
+    here = defined[:h, :w]
+    mismatch = here != sample_defined
+    if mismatch.any():
+        j, i = np.argwhere(mismatch)[0]
+        failures.add("%s: vertex %d,%d (sample %d,%d) is %s but the sample is %s (%d such)" %
+                     (patch.folder, i, j, c0 + i, r0 + j,
+                      "defined" if here[j, i] else "undefined",
+                      "defined" if sample_defined[j, i] else "no-data", int(mismatch.sum())))
+    both = here & sample_defined
+    coverage[r0:r0 + h, c0:c0 + w] += both
+    stats["samples"] += int(both.sum())
+    if not both.any():
+        return
+    g = grid[:h, :w][both]
+    lon, lat, hgt = ecef_to_geodetic(g[:, 0], g[:, 1], g[:, 2])
+    lon_c = raster.lon[r0:r0 + h, c0:c0 + w][both]
+    lat_c = raster.lat[r0:r0 + h, c0:c0 + w][both]
+    tolerance = max(0.01, patch.rounding)
+    m, nu = radii(lat_c)
+    north = np.radians(lat - lat_c) * m
+    east = np.radians((lon - lon_c + 180.0) % 360.0 - 180.0) * nu * np.cos(np.radians(lat_c))
+    up = hgt - heights[both]
+    # The tolerance in degrees, per axis: the same metres over the local radii of curvature.
+    lat_tol = np.degrees(tolerance / m)
+    lon_tol = np.degrees(tolerance / (nu * np.maximum(np.cos(np.radians(lat_c)), 1e-12)))
+    bad = (np.abs(lat - lat_c) > lat_tol) | \
+          (np.abs((lon - lon_c + 180.0) % 360.0 - 180.0) > lon_tol) | (np.abs(up) > tolerance)
+    stats["horizontal"] = max(stats["horizontal"], float(np.hypot(north, east).max()))
+    stats["vertical"] = max(stats["vertical"], float(np.abs(up).max()))
+    if bad.any():
+        k = int(np.argmax(bad))
+        j, i = np.argwhere(both)[k]
+        failures.add("%s: vertex %d,%d (sample %d,%d) is %.4f m east, %.4f m north, %.4f m up "
+                     "of its pixel centre and height (tolerance %.4f m; %d such)" %
+                     (patch.folder, i, j, c0 + i, r0 + j, east[k], north[k], up[k], tolerance,
+                      int(bad.sum())))
+
+
 def check_leaves(patches, children_of, raster, n, depth, failures, stats):
     coverage = np.zeros((raster.height, raster.width), dtype=np.int32)
     for key, patch in sorted(patches.items()):
@@ -388,58 +446,7 @@ def check_leaves(patches, children_of, raster, n, depth, failures, stats):
             failures.add("%s: leaf at depth %d, but the pyramid is %d deep" %
                          (patch.folder, key[0], depth))
             continue
-        c0, r0 = key[1] * (n - 1), key[2] * (n - 1)
-        w = max(0, min(n, raster.width - c0))
-        h = max(0, min(n, raster.height - r0))
-        grid = patch.grid
-        defined = ~np.isnan(grid[:, :, 0])
-        inside = np.zeros((n, n), dtype=bool)
-        inside[:h, :w] = True
-        padding = defined & ~inside
-        if padding.any():
-            j, i = np.argwhere(padding)[0]
-            failures.add("%s: vertex %d,%d beyond the raster is defined (%d such)" %
-                         (patch.folder, i, j, int(padding.sum())))
-        if w == 0 or h == 0:
-            continue
-        heights = raster.heights[r0:r0 + h, c0:c0 + w]
-        sample_defined = ~np.isnan(heights)
-        here = defined[:h, :w]
-        mismatch = here != sample_defined
-        if mismatch.any():
-            j, i = np.argwhere(mismatch)[0]
-            failures.add("%s: vertex %d,%d (sample %d,%d) is %s but the sample is %s (%d such)" %
-                         (patch.folder, i, j, c0 + i, r0 + j,
-                          "defined" if here[j, i] else "undefined",
-                          "defined" if sample_defined[j, i] else "no-data", int(mismatch.sum())))
-        both = here & sample_defined
-        coverage[r0:r0 + h, c0:c0 + w] += both
-        stats["samples"] += int(both.sum())
-        if not both.any():
-            continue
-        g = grid[:h, :w][both]
-        lon, lat, hgt = ecef_to_geodetic(g[:, 0], g[:, 1], g[:, 2])
-        lon_c = raster.lon[r0:r0 + h, c0:c0 + w][both]
-        lat_c = raster.lat[r0:r0 + h, c0:c0 + w][both]
-        tolerance = max(0.01, patch.rounding)
-        m, nu = radii(lat_c)
-        north = np.radians(lat - lat_c) * m
-        east = np.radians((lon - lon_c + 180.0) % 360.0 - 180.0) * nu * np.cos(np.radians(lat_c))
-        up = hgt - heights[both]
-        # The tolerance in degrees, per axis: the same metres over the local radii of curvature.
-        lat_tol = np.degrees(tolerance / m)
-        lon_tol = np.degrees(tolerance / (nu * np.maximum(np.cos(np.radians(lat_c)), 1e-12)))
-        bad = (np.abs(lat - lat_c) > lat_tol) | \
-              (np.abs((lon - lon_c + 180.0) % 360.0 - 180.0) > lon_tol) | (np.abs(up) > tolerance)
-        stats["horizontal"] = max(stats["horizontal"], float(np.hypot(north, east).max()))
-        stats["vertical"] = max(stats["vertical"], float(np.abs(up).max()))
-        if bad.any():
-            k = int(np.argmax(bad))
-            j, i = np.argwhere(both)[k]
-            failures.add("%s: vertex %d,%d (sample %d,%d) is %.4f m east, %.4f m north, %.4f m up "
-                         "of its pixel centre and height (tolerance %.4f m; %d such)" %
-                         (patch.folder, i, j, c0 + i, r0 + j, east[k], north[k], up[k], tolerance,
-                          int(bad.sum())))
+        check_leaf(patch, key, raster, n, failures, stats, coverage)
     missing = ~np.isnan(raster.heights) & (coverage == 0)
     if missing.any():
         r, c = np.argwhere(missing)[0]

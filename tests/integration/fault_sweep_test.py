@@ -10,6 +10,9 @@ Jacksboro DEM as the detail, 17 x 17 patches):
 - import: `vsm import` of the detail crop;
 - merge: `vsm merge` in place;
 - textured: `vsm merge` in place of models imported with the NASA image;
+- hidden: `vsm merge` in place of a target with hidden levels (`--visible-texels-per-quad 4`):
+  its second hierarchy file commits with the hierarchy (a version is told by that file's
+  content, and one no kept hierarchy names is an orphan);
 - vsmd: a merge job submitted to the real vsmd over HTTP, the library preloaded into vsmd.
 The merge and vsmd targets carry a full index (`vsm index`), which their publish adopts as the base
 of its delta index by a hard link; the textured target has none, so its publish writes a new base.
@@ -201,19 +204,22 @@ class FaultSweep(unittest.TestCase):
         target_tif = crop(prism, os.path.join(inputs, "target.tif"), -84.8, 36.8, -83.8, 35.8)
         detail_tif = crop(jack, os.path.join(inputs, "detail.tif"), -84.40, 36.44, -84.36, 36.40)
 
-        def imported(tif, name, texture=False):
+        def imported(tif, name, texture=False, hidden=False):
             out = os.path.join(inputs, name)
             extra = ["--texture", image] if texture else []
+            extra += ["--visible-texels-per-quad", "4"] if hidden else []
             harness.import_dem(tif, out, PATCH, *extra)
             return out
 
         target, detail = imported(target_tif, "target"), imported(detail_tif, "detail")
         ttarget, tdetail = imported(target_tif, "ttarget", True), imported(detail_tif, "tdetail", True)
+        htarget = imported(target_tif, "htarget", hidden=True)
         outside = make_outside_model(ARGS.vsm, inputs, PATCH)
         scenarios = {
             "import": lambda: CliImport("import", work, detail_tif, outside),
             "merge": lambda: CliMerge("merge", work, target, detail, outside, indexed=True),
             "textured": lambda: CliMerge("textured", work, ttarget, tdetail, outside),
+            "hidden": lambda: CliMerge("hidden", work, htarget, detail, outside),
             "vsmd": lambda: DaemonMerge("vsmd", work, target, detail, outside, indexed=True),
         }
         failures, totals = [], []
@@ -236,7 +242,7 @@ def main():
     parser.add_argument("--lib", required=True)
     parser.add_argument("--data", required=True)
     parser.add_argument("--work", required=True)
-    parser.add_argument("--scenarios", default="import,merge,textured,vsmd")
+    parser.add_argument("--scenarios", default="import,merge,textured,hidden,vsmd")
     parser.add_argument("--window", type=int, default=6)
     parser.add_argument("--samples", type=int, default=5)
     ARGS, rest = parser.parse_known_args()

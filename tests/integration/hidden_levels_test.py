@@ -13,8 +13,10 @@ shaded relief at one texel per quad, checked with our own XML, .aara and TIFF re
   above the visible leaves, tiles are 2 x 2 means as before;
 - `vsm validate` passes, before and after `vsm index`; a missing second file is a clear error
   from `vsm validate` and `vsm info`;
-- the real vsmd serves every level (hierarchy, a hidden leaf's positions) and refuses a merge into
-  the model with a clear error, leaving every file as it was.
+- two merges of Jacksboro by the real vsmd keep what other readers see whole and unchanged in
+  structure, and every PRISM sample outside the replaced leaf a vertex of a leaf at PRISM's
+  resolution (Figure 5.2: hidden detail the merge does not cover is kept); untouched patches'
+  files are the same bytes; dropping a revision drops its second file.
 
 Run by ctest:  hidden_levels_test.py --vsm build/server/cli/vsm --vsmd build/server/vsmd
                --data ../shared/data --work <dir>"""
@@ -171,9 +173,13 @@ class HiddenLevels(unittest.TestCase):
             self.assertIn("HiddenLevels", out.stdout + out.stderr, command)
             self.assertIn("missing", out.stdout + out.stderr, command)
 
-    def test_e_vsmd_serves_every_level_and_refuses_a_merge(self):
-        """vsmd's hierarchy reaches the hidden leaves and serves their data; a merge into the
-        model fails with a clear error and changes no file."""
+    def test_e_a_merge_keeps_the_hidden_levels_it_does_not_cover(self):
+        """Jacksboro merged into the model twice by the real vsmd (keep_revisions 2): every level
+        served; what other readers see keeps its levels and stays whole; every PRISM sample outside
+        the replaced leaf is still a vertex of a leaf at PRISM's resolution, checked against the
+        raster (Figure 5.2: uncovered hidden detail is kept, not refilled from coarser levels); the
+        untouched patches' files are the same bytes; a second file is left exactly for each kept
+        hierarchy."""
         root = os.path.join(ARGS.work, "vsmd")
         shutil.rmtree(root, ignore_errors=True)
         os.makedirs(root)
@@ -182,24 +188,112 @@ class HiddenLevels(unittest.TestCase):
         harness.import_dem(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
                            os.path.join(root, "jack"), PATCH_SIZE)
         before = digest(model)
-        daemon = harness.Daemon(root=root)
+        # A second file no hierarchy names (as a publish killed before its commit leaves): the
+        # first edit's sweep removes it.
+        stray = os.path.join(model, "Patches", "vsm-hidden-00000000deadbeef.xml")
+        shutil.copy(hidden_file(model), stray)
+        daemon = harness.Daemon(root=root, config={"keep_revisions": 2,
+                                                   "keep_revisions_seconds": 0})
         try:
-            served = {tuple(int(v) for v in k.split("_")) for k in daemon.keys("prism")}
-            self.assertEqual(served, set(self.all))
-            hidden_leaf = max(self.all)
-            status, _, body = daemon.request(
-                "GET", "/v1/models/prism/patches/%d_%d_%d/positions" % hidden_leaf)
-            self.assertEqual(status, 200, body[:200])
-            job = daemon.submit({"type": "merge", "target": "prism", "source": "jack"})
-            job = daemon.wait_job(job["id"])
-            self.assertEqual(job["state"], "failed", job)
-            self.assertIn("hidden levels", job["error"]["message"], job)
+            for merge in range(2):
+                job = daemon.submit({"type": "merge", "target": "prism", "source": "jack"})
+                job = daemon.wait_job(job["id"])
+                self.assertEqual(job["state"], "succeeded", job)
+                status, _, tree = daemon.get_json("/v1/models/prism/hierarchy")
+                self.assertEqual(status, 200, tree)
+                nodes = list(harness.walk(tree["root"]))
+                served = {tuple(int(v) for v in node["key"].split("_")) for node in nodes}
+                # Marked hidden: exactly the patches below the levels other readers see.
+                self.assertEqual({tuple(int(v) for v in node["key"].split("_")) for node in nodes
+                                  if node.get("hidden")},
+                                 {k for k in served if k[0] > self.depth - HIDDEN_LEVELS})
+                hidden_leaf = max(k for k in served if k[0] == self.depth)
+                status, _, body = daemon.request(
+                    "GET", "/v1/models/prism/patches/%d_%d_%d/positions" % hidden_leaf)
+                self.assertEqual(status, 200, body[:200])
         finally:
             self.assertEqual(daemon.stop(timeout=30), 0)
+
+        # What other readers see: the same patches, still a whole model.
+        _, root_folder, children = read_hierarchy(model)
+        self.assertEqual(set(keys_of(root_folder, children)), set(self.visible))
+        failures = check_import.Failures()
+        check_import.check_pro3d(model, failures)
+        failures.assert_none(self)
+        visible_depth = self.depth - HIDDEN_LEVELS
+        for key, folder in keys_of(root_folder, children).items():
+            if key[0] == visible_depth:  # the visible leaves keep 4 texels per quad
+                tile = read_tile(os.path.join(model, "Images", "Diffuse", folder + ".tif"))
+                self.assertEqual(tile.shape[1:], ((PATCH_SIZE - 1) * VISIBLE,) * 2, key)
+        self.assertFalse(os.path.exists(stray))
+        # vsm's view: the served keys are the files' (second file followed), deeper where B is.
+        patches_dir, root_folder, children = read_hierarchy(model, hidden=True)
+        merged = keys_of(root_folder, children)
+        self.assertEqual(served, set(merged))
+        self.assertGreater(max(k[0] for k in merged), self.depth)
+        # Tiles of the parents the merges made: their children's side by side (twice the texels
+        # per quad) while that stays within the visible 4, else at their finest child's.
+        side = PATCH_SIZE - 1
+        by_key = {}
+        for key, folder in merged.items():
+            by_key[key] = read_tile(os.path.join(model, "Images", "Diffuse", folder + ".tif"))
+        checked = 0
+        for key, folder in merged.items():
+            kids = children.get(folder, {})
+            if key[0] < visible_depth or not kids:
+                continue
+            finest = max(by_key[(key[0] + 1, 2 * key[1] + QUADRANTS[q][0],
+                                 2 * key[2] + QUADRANTS[q][1])].shape[1] for q in kids)
+            expected = 2 * finest if 2 * finest // side <= VISIBLE else finest
+            self.assertEqual(by_key[key].shape[1], expected, key)
+            checked += 1
+        self.assertGreater(checked, len(self.visible_children))
+        # Every leaf at PRISM's resolution holds its raster samples; together, every sample but
+        # those of the leaves the merge replaced.
+        raster = check_import.Raster(self.dem)
+        n = PATCH_SIZE
+        coverage = np.zeros((raster.height, raster.width), dtype=np.int32)
+        stats = {"samples": 0, "horizontal": 0.0, "vertical": 0.0}
+        replaced = np.zeros_like(coverage, dtype=bool)
+        kept = 0
+        for key, folder in merged.items():
+            if key[0] != self.depth:
+                continue
+            c0, r0 = key[1] * (n - 1), key[2] * (n - 1)
+            if folder in children:  # replaced: B's detail below it
+                replaced[r0:r0 + n, c0:c0 + n] = True
+                continue
+            patch = check_import.Patch(patches_dir, folder, key)
+            patch.expand(n)
+            check_import.check_leaf(patch, key, raster, n, failures, stats, coverage)
+            kept += 1
+        failures.assert_none(self)
+        self.assertGreater(kept, 0)
+        self.assertTrue(replaced.any())
+        missing = ~np.isnan(raster.heights) & (coverage == 0) & ~replaced
+        self.assertFalse(missing.any(), np.argwhere(missing)[:5])
+        # Untouched patches: the same files.
         after = digest(model)
-        for files in (before, after):
-            files.pop(".vsm-writer.lock", None)  # the holder's pid
-        self.assertEqual(before, after)
+        untouched = [name for name in before
+                     if name.startswith("Patches/") and name.count("/") == 2 and
+                     name.split("/")[1] in merged.values()]
+        self.assertGreater(len(untouched), 0)
+        for name in untouched:
+            self.assertEqual(after.get(name), before[name], name)
+        # One second file per kept hierarchy (the current one and revision 2; revision 1's went
+        # with it), each named by its hierarchy.
+        hierarchies = [n for n in os.listdir(patches_dir) if n == "patchhierarchy.xml" or
+                       (n.startswith("vsm-revision-") and n.endswith(".xml"))]
+        self.assertEqual(sorted(hierarchies), ["patchhierarchy.xml", "vsm-revision-2.xml"])
+        named = {os.path.basename(hidden_file(model, h)) for h in hierarchies}
+        present = {n for n in os.listdir(patches_dir) if n.startswith("vsm-hidden-")}
+        self.assertEqual(present, named)
+        self.assertEqual(len(present), 2)
+        out = harness.vsm("validate", model)
+        self.assertEqual(out.returncode, 0, out.stdout[-2000:] + out.stderr[-2000:])
+        print("hidden: after 2 merges, %d leaves at PRISM's resolution hold their %d samples "
+              "exactly; %d untouched files the same bytes" % (kept, stats["samples"],
+                                                               len(untouched)))
 
 
 def main():

@@ -34,7 +34,8 @@ fsync-bound and the kernel's write-back is part of what is tested).
 --vsmd <vsmd>: the merge runs as a job of the real vsmd (data root: the copy and the detail),
 which is SIGKILLed instead; the delays count from the job's acceptance, the "publishing" anchor
 is the job's stage seen by polling. --crops <data>: small target and detail models cropped from
-the real DEMs, instead of --target and --detail (100 kills in a few minutes).
+the real DEMs, instead of --target and --detail (100 kills in a few minutes); with
+--hidden-levels, the target is imported with hidden levels (--visible-texels-per-quad 4).
 
 Exit 0 printing a summary; exit 1 listing the failures.
 """
@@ -176,15 +177,17 @@ class DaemonMerge:
             return rc, end, "job %s\n%s" % (self.state, f.read()[-2000:])
 
 
-def make_crops(vsm, data, work):
-    """PRISM around Jacksboro and a corner of the Jacksboro DEM, imported with 17 x 17 patches."""
+def make_crops(vsm, data, work, target_options=()):
+    """PRISM around Jacksboro and a corner of the Jacksboro DEM, imported with 17 x 17 patches
+    (the target with `target_options` besides)."""
     made = []
-    for name, dem, window in (("target", "PRISMelevation.tif", (-84.8, 36.8, -83.8, 35.8)),
-                              ("detail", "jacksboro_fault_dem.tif", (-84.4, 36.44, -84.36, 36.40))):
+    for name, dem, window, extra in (
+            ("target", "PRISMelevation.tif", (-84.8, 36.8, -83.8, 35.8), list(target_options)),
+            ("detail", "jacksboro_fault_dem.tif", (-84.4, 36.44, -84.36, 36.40), [])):
         tif = crop(os.path.join(data, dem), os.path.join(work, name + ".tif"), *window)
         out = os.path.join(work, name)
         shutil.rmtree(out, ignore_errors=True)
-        subprocess.run([vsm, "import", tif, out, "--patch-size", "17"], check=True,
+        subprocess.run([vsm, "import", tif, out, "--patch-size", "17", *extra], check=True,
                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         made.append(out)
     return made
@@ -208,7 +211,9 @@ class MergeKill(unittest.TestCase):
 
         os.makedirs(ARGS.work, exist_ok=True)
         if ARGS.crops is not None:
-            ARGS.target, ARGS.detail = make_crops(ARGS.vsm, ARGS.crops, ARGS.work)
+            ARGS.target, ARGS.detail = make_crops(
+                ARGS.vsm, ARGS.crops, ARGS.work,
+                ["--visible-texels-per-quad", "4"] if ARGS.hidden_levels else [])
             ARGS.patch_size = 17
         scratch_parent = ARGS.scratch
         if scratch_parent is None:
@@ -418,6 +423,9 @@ def main():
     parser.add_argument("--crops", metavar="DATA",
                         help="make small target and detail models from crops of the real DEMs "
                         "in DATA (17 x 17 patches) instead of --target and --detail")
+    parser.add_argument("--hidden-levels", action="store_true",
+                        help="with --crops: the target has hidden levels (--visible-texels-per-quad "
+                             "4), whose second hierarchy file commits with the hierarchy")
     parser.add_argument("--work", required=True)
     parser.add_argument("--scratch", help="where the copies go (default: /dev/shm if writable, "
                         "else --work)")

@@ -9,7 +9,7 @@ import subprocess
 import numpy as np
 from osgeo import gdal
 
-from check_import import Failures, find_ci, read_hierarchy
+from check_import import Failures, find_ci, hidden_file, read_hierarchy
 from harness import write_raster
 from merge_check import NONCE, folder_digest
 
@@ -28,6 +28,10 @@ INDEX_BASE = re.compile(r"vsm-index-base-[0-9]+-[0-9a-f]{8}\.vsmidx")
 PARENT = re.compile(rb"<Revision>\s*<Parent>([0-9]+)</Parent>")
 VERSIONED = re.compile(r"[0-9]+_[0-9]+_[0-9]+-v([0-9]+)(?:-[0-9a-f]{8})?")
 REVISION_RECORD = re.compile(rb"<Revision>.*?</Revision>", re.S)
+# The second hierarchy file of hidden levels (core/opc/README.md): a new random name per write, so
+# a version is told by its content.
+HIDDEN_LEVELS = re.compile(rb"<HiddenLevels>([^<]*)</HiddenLevels>")
+HIDDEN_FILE = re.compile(r"vsm-hidden-[0-9a-f]{16}\.xml")
 LOCK = ".vsm-writer.lock"
 
 
@@ -50,8 +54,8 @@ def digest_tree(root):
 
 
 def reachable_folders(opc, name="patchhierarchy.xml"):
-    """The folders the hierarchy file `name` reaches from its root."""
-    _, root, children = read_hierarchy(opc, name)
+    """The folders the hierarchy file `name` reaches from its root (hidden levels included)."""
+    _, root, children = read_hierarchy(opc, name, hidden=True)
     reachable = set()
     stack = [root]
     while stack:
@@ -85,7 +89,13 @@ def version_of(opc):
     with open(find_ci(patches_dir, "patchhierarchy.xml"), "rb") as f:
         text = f.read()
     reachable = reachable_folders(opc)
-    hierarchy = (NONCE.sub(rb"\1", REVISION_RECORD.sub(b"", text)),
+
+    def hidden_digest(match):
+        with open(os.path.join(patches_dir, match.group(1).decode()), "rb") as f:
+            return b"<HiddenLevels>%s</HiddenLevels>" % hashlib.sha256(
+                NONCE.sub(rb"\1", f.read())).hexdigest().encode()
+
+    hierarchy = (NONCE.sub(rb"\1", HIDDEN_LEVELS.sub(hidden_digest, REVISION_RECORD.sub(b"", text))),
                  revision_list(patches_dir, text, reachable))
     kept = set()
     for name in os.listdir(patches_dir):
@@ -101,10 +111,13 @@ def version_of(opc):
         with open(os.path.join(patches_dir, index), "rb") as f:
             named_bases |= {m.decode() for m in
                             re.findall(INDEX_BASE.pattern.encode(), f.read(1 << 20))}
+    named_hidden = {os.path.basename(hidden_file(opc, e) or "") for e in entries
+                    if e.lower() == "patchhierarchy.xml" or REVISION_FILE.fullmatch(e)}
     orphans = sorted(e for e in entries
                      if e not in reachable | kept and e.lower() != "patchhierarchy.xml"
                      and not REVISION_FILE.fullmatch(e) and e not in indexes
-                     and not (INDEX_BASE.fullmatch(e) and e in named_bases))
+                     and not (INDEX_BASE.fullmatch(e) and e in named_bases)
+                     and not (HIDDEN_FILE.fullmatch(e) and e in named_hidden))
     tiles = os.path.join(opc, "Images", "Diffuse")
     if os.path.isdir(tiles):
         orphans += ["Images/Diffuse/" + t for t in sorted(os.listdir(tiles))
