@@ -208,9 +208,10 @@ class HiddenLevels(unittest.TestCase):
                                   if node.get("hidden")},
                                  {k for k in served if k[0] > self.depth - HIDDEN_LEVELS})
                 hidden_leaf = max(k for k in served if k[0] == self.depth)
-                status, _, body = daemon.request(
-                    "GET", "/v1/models/prism/patches/%d_%d_%d/positions" % hidden_leaf)
-                self.assertEqual(status, 200, body[:200])
+                for route in ("patches/%d_%d_%d/positions", "3dtiles/%d_%d_%d.glb"):
+                    status, _, body = daemon.request(
+                        "GET", "/v1/models/prism/" + route % hidden_leaf, timeout=60)
+                    self.assertEqual(status, 200, (route, body[:200]))
         finally:
             self.assertEqual(daemon.stop(timeout=30), 0)
 
