@@ -265,10 +265,10 @@ http::Response postModel(const ModelContext& c, const http::Request& request) {
     return withCache(std::move(response), http::cache_control::kNoStore);
   }
   const fs::path input = models::resolveInside(c.models.dataRoot(), *body.import);
-  const jobs::JobStatus job =
-      jobs::submitImport(c.jobs, c.models, id, input, body.patchSize,
-                         body.untextured ? core::ImportOptions::Drape::None
-                                         : core::ImportOptions::Drape::ShadedRelief);
+  const jobs::JobStatus job = jobs::submitImport(
+      c.jobs, c.models, id, input, body.patchSize,
+      body.untextured ? core::ImportOptions::Drape::None : core::ImportOptions::Drape::ShadedRelief,
+      body.visibleTexelsPerQuad);
   http::Response response = http::jsonResponse(202, jobs::toJson(job));
   response.set("Location", "/v1/jobs/" + job.id);
   return response;

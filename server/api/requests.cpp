@@ -174,7 +174,8 @@ ModelRequest parseModelRequest(const http::Request& request) {
                 R"('source' must be an object: {"path": ...} or {"import": ..., "patch_size": N})");
   }
   for (const auto& [key, value] : source->items()) {
-    if (key != "path" && key != "import" && key != "patch_size" && key != "texture") {
+    if (key != "path" && key != "import" && key != "patch_size" && key != "texture" &&
+        key != "visible_texels_per_quad") {
       throw Error(ErrorCode::InvalidArgument, "unknown member 'source." + key.substr(0, 64) + "'");
     }
   }
@@ -183,8 +184,10 @@ ModelRequest parseModelRequest(const http::Request& request) {
     throw Error(ErrorCode::InvalidArgument, "'source' needs exactly one of 'path' and 'import'");
   }
   if (byPath) {
-    if (source->contains("patch_size") || source->contains("texture")) {
-      throw Error(ErrorCode::InvalidArgument, "'patch_size' and 'texture' go with 'import' only");
+    if (source->contains("patch_size") || source->contains("texture") ||
+        source->contains("visible_texels_per_quad")) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "'patch_size', 'texture' and 'visible_texels_per_quad' go with 'import' only");
     }
     out.path = stringMember(*source, "path");
     return out;
@@ -195,6 +198,14 @@ ModelRequest parseModelRequest(const http::Request& request) {
     }
     const auto value = size->get<std::int64_t>();
     out.patchSize = value < 0 || value > 1'000'000 ? -1 : static_cast<int>(value);
+  }
+  if (const auto k = source->find("visible_texels_per_quad"); k != source->end()) {
+    if (!k->is_number_integer()) {
+      throw Error(ErrorCode::InvalidArgument,
+                  "'visible_texels_per_quad' must be an integer (a power of two)");
+    }
+    const auto value = k->get<std::int64_t>();
+    out.visibleTexelsPerQuad = value < 0 || value > 1'000'000 ? -1 : static_cast<int>(value);
   }
   if (const auto texture = source->find("texture"); texture != source->end()) {
     if (!texture->is_string() || (*texture != "relief" && *texture != "none")) {

@@ -49,6 +49,9 @@ struct ModelRequest {
   /// With `import`: "texture": "relief" (the default, the surface's shaded relief) or "none" (no
   /// texture; PRo3D will not open the model). True for "none".
   bool untextured = false;
+  /// With `import`: "visible_texels_per_quad" (hidden levels below it; 0 when absent), checked by
+  /// the import's submission (jobs::submitImport); -1 when it is out of any range.
+  int visibleTexelsPerQuad = 0;
 };
 /// Throws core::Error(InvalidArgument) naming the first wrong member, as http::jsonBody does for
 /// a body that is not JSON.

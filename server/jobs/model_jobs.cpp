@@ -4,6 +4,7 @@
 #include <system_error>
 
 #include "core/common/error.hpp"
+#include "core/grid/texture_tile.hpp"
 #include "core/io/grid_source.hpp"
 #include "core/merge/merge_into.hpp"
 #include "core/store/live_model.hpp"
@@ -59,7 +60,8 @@ json writingModel(models::ModelRegistry& models, const std::string& id, Write&& 
 }  // namespace
 
 JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const std::string& id,
-                       const fs::path& input, int patchSize, core::ImportOptions::Drape drape) {
+                       const fs::path& input, int patchSize, core::ImportOptions::Drape drape,
+                       int visibleTexelsPerQuad) {
   if (drape == core::ImportOptions::Drape::Image) {
     throw Error(ErrorCode::InvalidArgument, "an import job drapes no image");
   }
@@ -67,6 +69,15 @@ JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const s
   if (patchSize < 3 || patchSize > 4097 || ((patchSize - 1) & (patchSize - 2)) != 0) {
     throw Error(ErrorCode::InvalidArgument,
                 "patch_size must be 2^n + 1 between 3 and 4097, not " + std::to_string(patchSize));
+  }
+  if (const int k = visibleTexelsPerQuad;
+      k != 0 && (drape == core::ImportOptions::Drape::None || k < 0 || (k & (k - 1)) != 0 ||
+                 k > core::maxTexelsPerQuad(patchSize))) {
+    throw Error(ErrorCode::InvalidArgument,
+                "visible_texels_per_quad must be a power of two whose tiles ((patch_size - 1) "
+                "times as many texels a side) stay within " +
+                    std::to_string(core::kMaxTextureTileSize) + " texels, with a texture; not " +
+                    std::to_string(k) + " at patch_size " + std::to_string(patchSize));
   }
   // Taken before anything is checked on disk, so two imports of one id cannot both pass.
   auto reservation = std::make_shared<models::ModelRegistry::Lease>(models.reserve(id));
@@ -84,27 +95,31 @@ JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const s
                  {"import", fs::relative(input, models.dataRoot()).generic_string()},
                  {"patch_size", patchSize},
                  {"texture", drape == core::ImportOptions::Drape::None ? "none" : "relief"}};
+  if (visibleTexelsPerQuad != 0) {
+    params["visible_texels_per_quad"] = visibleTexelsPerQuad;
+  }
   JobContext::Plan plan = {{"import", 0.95}, {"opening", 0.05}};
-  return jobs.submit(
-      "import", std::move(params), std::move(plan),
-      [&models, reservation, id, input, outDir, patchSize, drape](JobContext& context) {
-        core::ImportOptions options;
-        options.patchSize = patchSize;
-        options.drape = drape;
-        options.progress = &context;
-        options.cancel = &context.cancelToken();
-        options.executor = &context.executor();
-        core::importFile(input, outDir, options);
-        context.report("opening", 0);
-        const auto live = models.openReserved(*reservation, outDir);
-        context.report("opening", 1);
-        const auto snapshot = live->snapshot();
-        return json{{"model", id},
-                    {"version", snapshot->version},
-                    {"patches", snapshot->model->patchCount()},
-                    {"depth", snapshot->model->maxDepth()},
-                    {"grid_size", snapshot->model->gridSize()}};
-      });
+  return jobs.submit("import", std::move(params), std::move(plan),
+                     [&models, reservation, id, input, outDir, patchSize, drape,
+                      visibleTexelsPerQuad](JobContext& context) {
+                       core::ImportOptions options;
+                       options.patchSize = patchSize;
+                       options.drape = drape;
+                       options.visibleTexelsPerQuad = visibleTexelsPerQuad;
+                       options.progress = &context;
+                       options.cancel = &context.cancelToken();
+                       options.executor = &context.executor();
+                       core::importFile(input, outDir, options);
+                       context.report("opening", 0);
+                       const auto live = models.openReserved(*reservation, outDir);
+                       context.report("opening", 1);
+                       const auto snapshot = live->snapshot();
+                       return json{{"model", id},
+                                   {"version", snapshot->version},
+                                   {"patches", snapshot->model->patchCount()},
+                                   {"depth", snapshot->model->maxDepth()},
+                                   {"grid_size", snapshot->model->gridSize()}};
+                     });
 }
 
 JobStatus submitMerge(JobRegistry& jobs, models::ModelRegistry& models, const std::string& target,

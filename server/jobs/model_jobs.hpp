@@ -15,11 +15,15 @@ namespace vsm::server::jobs {
 /// (importFile) and `drape` (ShadedRelief or None), which is then opened as model `id`. The id is
 /// reserved until the job ends.
 ///
-/// Throws core::Error(InvalidArgument) for a bad id or patch size, Conflict when the id is open
+/// `visibleTexelsPerQuad`: hidden levels below it (ImportOptions::visibleTexelsPerQuad; 0: none).
+///
+/// Throws core::Error(InvalidArgument) for a bad id, patch size or visible texels per quad
+/// (a power of two whose tiles stay within kMaxTextureTileSize, and not with Drape::None),
+/// Conflict when the id is open
 /// or reserved or <data root>/<id> exists, Unavailable when the job queue is full.
 JobStatus submitImport(JobRegistry& jobs, models::ModelRegistry& models, const std::string& id,
                        const std::filesystem::path& input, int patchSize,
-                       core::ImportOptions::Drape drape);
+                       core::ImportOptions::Drape drape, int visibleTexelsPerQuad = 0);
 
 /// Submits a merge of the open model `source` (the detail) into the open model `target`
 /// (DESIGN.md section 3): target->beginEdit(), registerModels() when `registerFirst`,

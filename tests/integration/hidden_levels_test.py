@@ -297,6 +297,30 @@ class HiddenLevels(unittest.TestCase):
                                                                len(untouched)))
 
 
+    def test_f_an_import_job_makes_hidden_levels(self):
+        """POST /v1/models with "visible_texels_per_quad": 4 gives the model the CLI gives (the
+        same patches, the same ones hidden), and the job says what it was asked."""
+        root = os.path.join(ARGS.work, "vsmd-import")
+        shutil.rmtree(root, ignore_errors=True)
+        os.makedirs(root)
+        shutil.copy(self.dem, os.path.join(root, "prism.tif"))
+        daemon = harness.Daemon(root=root)
+        try:
+            job = daemon.submit({"id": "prism", "source": {
+                "import": "prism.tif", "patch_size": PATCH_SIZE,
+                "visible_texels_per_quad": VISIBLE}}, path="/v1/models")
+            self.assertEqual(job["params"]["visible_texels_per_quad"], VISIBLE)
+            job = daemon.wait_job(job["id"])
+            self.assertEqual(job["state"], "succeeded", job)
+        finally:
+            self.assertEqual(daemon.stop(timeout=30), 0)
+        opc = os.path.join(root, "prism")
+        _, root_folder, children = read_hierarchy(opc)
+        self.assertEqual(set(keys_of(root_folder, children)), set(self.visible))
+        _, root_folder, children = read_hierarchy(opc, hidden=True)
+        self.assertEqual(set(keys_of(root_folder, children)), set(self.all))
+
+
 def main():
     global ARGS
     parser = argparse.ArgumentParser()

@@ -310,7 +310,18 @@ class Models(unittest.TestCase):
                      b'{"id": "x", "source": {"import": "rasters/prism.tif", "patch_size": 64}}',
                      b'{"id": "x", "source": {"import": "rasters/prism.tif", "texture": "nasa"}}',
                      b'{"id": "x", "source": {"import": "rasters/prism.tif", "texture": false}}',
-                     b'{"id": "x", "source": {"path": "jacksboro", "texture": "none"}}'):
+                     b'{"id": "x", "source": {"path": "jacksboro", "texture": "none"}}',
+                     b'{"id": "x", "source": {"path": "jacksboro", "visible_texels_per_quad": 4}}',
+                     b'{"id": "x", "source": {"import": "rasters/prism.tif", '
+                     b'"visible_texels_per_quad": 3}}',
+                     b'{"id": "x", "source": {"import": "rasters/prism.tif", '
+                     b'"visible_texels_per_quad": "4"}}',
+                     b'{"id": "x", "source": {"import": "rasters/prism.tif", '
+                     b'"visible_texels_per_quad": 32}}',
+                     b'{"id": "x", "source": {"import": "rasters/prism.tif", '
+                     b'"visible_texels_per_quad": -4}}',
+                     b'{"id": "x", "source": {"import": "rasters/prism.tif", "texture": "none", '
+                     b'"visible_texels_per_quad": 4}}'):
             status, _, data = self.daemon.request("POST", "/v1/models", body=body,
                                                   headers={**JSON, **AUTH})
             self.assert_error(status, data, 400, "invalid_argument")
