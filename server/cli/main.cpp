@@ -58,7 +58,16 @@ int runInfo(std::vector<std::string_view> args) {
     throw UsageError{"info needs <opc> [--bytes]"};
   }
   const fs::path dir(args[0]);
-  if (const std::optional<OpcSummary> summary = readOpcIndexSummary(dir)) {
+  // The index's head counts no hidden patches: a model with hidden levels (its hierarchy names a
+  // second file, read from its last 4 kB) is read whole, from its index when current.
+  const std::optional<std::string> hidden = [&]() -> std::optional<std::string> {
+    try {
+      return hiddenHierarchyNamedBy(patchesDirOf(dir) / "patchhierarchy.xml");
+    } catch (const Error&) {
+      return std::nullopt;  // no Patches/: readOpcModel says so below
+    }
+  }();
+  if (const std::optional<OpcSummary> summary = hidden ? std::nullopt : readOpcIndexSummary(dir)) {
     // The index's head: a few kB, whatever the model's size (issue 31: < 50 ms at 10^6 patches).
     std::size_t leaves = 0;
     int depth = -1;

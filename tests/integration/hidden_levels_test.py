@@ -160,6 +160,11 @@ class HiddenLevels(unittest.TestCase):
                 harness.vsm("index", copy, check=True)
             out = harness.vsm("validate", copy)
             self.assertEqual(out.returncode, 0, (step, out.stdout[-2000:], out.stderr[-2000:]))
+            # vsm info counts the hidden patches, from the files or from the index.
+            info = harness.vsm("info", copy, check=True).stdout
+            self.assertIn("hidden      %d patches, depth %d and below" %
+                          (len(self.all) - len(self.visible), self.depth - HIDDEN_LEVELS + 1),
+                          info)
         # The second file gone: vsm validate (which reads in full) says which, as does vsm info
         # of a model without a current index (with one, info reads the index alone).
         damaged = os.path.join(ARGS.work, "prism-damaged")
