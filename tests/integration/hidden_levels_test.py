@@ -326,6 +326,50 @@ class HiddenLevels(unittest.TestCase):
         self.assertEqual(set(keys_of(root_folder, children)), set(self.all))
 
 
+    def test_g_a_restore_brings_back_the_hidden_levels(self):
+        """A merge, then a restore of the import (revision 1) by the real vsmd: the same
+        patches, the same ones hidden, each hidden leaf's positions the import's bytes, both
+        hierarchy files readable."""
+        root = os.path.join(ARGS.work, "vsmd-restore")
+        shutil.rmtree(root, ignore_errors=True)
+        os.makedirs(root)
+        shutil.copytree(self.opc, os.path.join(root, "prism"))
+        harness.import_dem(os.path.join(ARGS.data, "jacksboro_fault_dem.tif"),
+                           os.path.join(root, "jack"), PATCH_SIZE)
+
+        def state(daemon):
+            status, _, tree = daemon.get_json("/v1/models/prism/hierarchy")
+            self.assertEqual(status, 200, tree)
+            return {node["key"]: bool(node.get("hidden")) for node in harness.walk(tree["root"])}
+
+        daemon = harness.Daemon(root=root)
+        try:
+            before = state(daemon)
+            leaves = [k for k in before if int(k.split("_")[0]) == self.depth][:8]
+            positions = {k: daemon.request("GET", "/v1/models/prism/patches/%s/positions" % k)[2]
+                         for k in leaves}
+            job = daemon.wait_job(daemon.submit({"type": "merge", "target": "prism",
+                                                 "source": "jack"})["id"])
+            self.assertEqual(job["state"], "succeeded", job)
+            self.assertNotEqual(state(daemon), before)
+            job = daemon.wait_job(daemon.submit({}, path="/v1/models/prism/revisions/1/restore")
+                                  ["id"])
+            self.assertEqual(job["state"], "succeeded", job)
+            self.assertEqual(state(daemon), before)
+            for key, data in positions.items():
+                self.assertEqual(
+                    daemon.request("GET", "/v1/models/prism/patches/%s/positions" % key)[2], data)
+        finally:
+            self.assertEqual(daemon.stop(timeout=30), 0)
+        model = os.path.join(root, "prism")
+        _, root_folder, children = read_hierarchy(model)
+        self.assertEqual(set(keys_of(root_folder, children)), set(self.visible))
+        _, root_folder, children = read_hierarchy(model, hidden=True)
+        self.assertEqual(set(keys_of(root_folder, children)), set(self.all))
+        out = harness.vsm("validate", model)
+        self.assertEqual(out.returncode, 0, out.stdout[-2000:] + out.stderr[-2000:])
+
+
 def main():
     global ARGS
     parser = argparse.ArgumentParser()
