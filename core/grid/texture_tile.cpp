@@ -26,13 +26,15 @@ bool TextureTile::transparent() const {
   return true;
 }
 
-bool TextureTile::opaque() const {
-  for (std::size_t i = 3; i < texels_.size(); i += kChannels) {
-    if (texels_[i] != 255) {
-      return false;
+int TextureTile::storedChannels() const {
+  bool grey = true;
+  for (std::size_t i = 0; i < texels_.size(); i += kChannels) {
+    if (texels_[i + 3] != 255) {
+      return kChannels;
     }
+    grey = grey && texels_[i] == texels_[i + 1] && texels_[i] == texels_[i + 2];
   }
-  return true;
+  return grey ? 1 : 3;
 }
 
 std::vector<float> textureCoordinates(int gridSize, int x0, int y0, int width, int height) {

@@ -40,8 +40,9 @@ class TextureTile {
 
   /// True when no texel is opaque at all (nothing of the image falls on the tile).
   bool transparent() const;
-  /// True when every texel is opaque (alpha 255).
-  bool opaque() const;
+  /// The channels a file needs to hold this tile exactly: 4 (RGBA) when a texel is not opaque,
+  /// else 1 when every texel is grey (R = G = B: the shaded relief), else 3 (RGB).
+  int storedChannels() const;
 
  private:
   int size_;

@@ -109,10 +109,11 @@ std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
     throw fail();
   }
   const int size = tile.size();
-  // An opaque tile (every texel's alpha 255: most of them) goes without its alpha channel: a
-  // quarter less to compress and to store.
-  const bool opaque = tile.opaque();
-  const int channels = opaque ? 3 : TextureTile::kChannels;
+  // An opaque tile (every texel's alpha 255: most of them) goes without its alpha channel, a
+  // quarter less to compress and to store; a grey one (the shaded relief) as one channel, a third
+  // of RGB (PRo3D's loader reads it as luminance and its renderer shows it grey).
+  const int channels = tile.storedChannels();
+  const bool opaque = channels < TextureTile::kChannels;
   const std::uint16_t extra[] = {EXTRASAMPLE_ASSOCALPHA};
   const std::size_t rowBytes = static_cast<std::size_t>(size) * channels;
   bool ok = TIFFSetField(tiff, TIFFTAG_IMAGEWIDTH, size) == 1 &&
@@ -121,7 +122,8 @@ std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
             TIFFSetField(tiff, TIFFTAG_SAMPLESPERPIXEL, channels) == 1 &&
             (opaque || TIFFSetField(tiff, TIFFTAG_EXTRASAMPLES, 1, extra) == 1) &&
             TIFFSetField(tiff, TIFFTAG_SAMPLEFORMAT, SAMPLEFORMAT_UINT) == 1 &&
-            TIFFSetField(tiff, TIFFTAG_PHOTOMETRIC, PHOTOMETRIC_RGB) == 1 &&
+            TIFFSetField(tiff, TIFFTAG_PHOTOMETRIC,
+                         channels == 1 ? PHOTOMETRIC_MINISBLACK : PHOTOMETRIC_RGB) == 1 &&
             TIFFSetField(tiff, TIFFTAG_PLANARCONFIG, PLANARCONFIG_CONTIG) == 1 &&
             TIFFSetField(tiff, TIFFTAG_ORIENTATION, ORIENTATION_TOPLEFT) == 1 &&
             TIFFSetField(tiff, TIFFTAG_ROWSPERSTRIP, kRowsPerStrip) == 1 &&
@@ -138,8 +140,14 @@ std::vector<std::byte> encodeTextureTiff(const TextureTile& tile) {
     if (opaque) {
       const std::uint8_t* from = texels + static_cast<std::size_t>(row) * size * 4;
       const std::size_t count = static_cast<std::size_t>(rows) * size;
-      for (std::size_t i = 0; i < count; ++i) {
-        std::memcpy(rgb.data() + 3 * i, from + 4 * i, 3);
+      if (channels == 1) {
+        for (std::size_t i = 0; i < count; ++i) {
+          rgb[i] = from[4 * i];
+        }
+      } else {
+        for (std::size_t i = 0; i < count; ++i) {
+          std::memcpy(rgb.data() + 3 * i, from + 4 * i, 3);
+        }
       }
       data = rgb.data();
     }

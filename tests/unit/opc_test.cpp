@@ -304,7 +304,7 @@ TEST_F(TextureFileTest, ATiffReadsUnderItsOwnExtensionInAnyCaseOrUnderAnother) {
   }
 }
 
-TEST_F(TextureFileTest, AnOpaqueTileIsStoredAsRgbAndOneWithTransparentTexelsAsRgba) {
+TEST_F(TextureFileTest, AnOpaqueTileIsStoredAsRgbAGreyOneAsGreyAndOneWithTransparentTexelsAsRgba) {
   const auto channelsOf = [](const fs::path& path) {
     image::Image image;
     std::string error;
@@ -314,6 +314,13 @@ TEST_F(TextureFileTest, AnOpaqueTileIsStoredAsRgbAndOneWithTransparentTexelsAsRg
     return image.fileChannels;
   };
   TextureTile tile = sampleTile();
+  TextureTile grey = tile;
+  for (std::size_t i = 0; i < grey.texels().size(); i += 4) {
+    grey.texels()[i + 1] = grey.texels()[i + 2] = grey.texels()[i];
+  }
+  const fs::path luminance = writeBytes(file("grey.tif"), encodeTextureTiff(grey));
+  EXPECT_EQ(channelsOf(luminance), 1);
+  EXPECT_EQ(texelsOf(readTextureTile(luminance)), texelsOf(grey));
   const fs::path rgb = writeBytes(file("opaque.tif"), encodeTextureTiff(tile));
   EXPECT_EQ(channelsOf(rgb), 3);
   EXPECT_EQ(texelsOf(readTextureTile(rgb)), texelsOf(tile));
