@@ -82,6 +82,13 @@ class HiddenLevels(unittest.TestCase):
         cls.all = keys_of(root, cls.all_children)
         cls.depth = max(k[0] for k in cls.all)
 
+    def assert_the_imports_levels(self, opc):
+        """`opc` has the CLI import's patches: the same seen by other readers, the same in all."""
+        _, root_folder, children = read_hierarchy(opc)
+        self.assertEqual(set(keys_of(root_folder, children)), set(self.visible))
+        _, root_folder, children = read_hierarchy(opc, hidden=True)
+        self.assertEqual(set(keys_of(root_folder, children)), set(self.all))
+
     def tile(self, key):
         return read_tile(os.path.join(self.opc, "Images", "Diffuse", self.all[key] + ".tif"))
 
@@ -319,12 +326,7 @@ class HiddenLevels(unittest.TestCase):
             self.assertEqual(job["state"], "succeeded", job)
         finally:
             self.assertEqual(daemon.stop(timeout=30), 0)
-        opc = os.path.join(root, "prism")
-        _, root_folder, children = read_hierarchy(opc)
-        self.assertEqual(set(keys_of(root_folder, children)), set(self.visible))
-        _, root_folder, children = read_hierarchy(opc, hidden=True)
-        self.assertEqual(set(keys_of(root_folder, children)), set(self.all))
-
+        self.assert_the_imports_levels(os.path.join(root, "prism"))
 
     def test_g_a_restore_brings_back_the_hidden_levels(self):
         """A merge, then a restore of the import (revision 1) by the real vsmd: the same
@@ -362,10 +364,7 @@ class HiddenLevels(unittest.TestCase):
         finally:
             self.assertEqual(daemon.stop(timeout=30), 0)
         model = os.path.join(root, "prism")
-        _, root_folder, children = read_hierarchy(model)
-        self.assertEqual(set(keys_of(root_folder, children)), set(self.visible))
-        _, root_folder, children = read_hierarchy(model, hidden=True)
-        self.assertEqual(set(keys_of(root_folder, children)), set(self.all))
+        self.assert_the_imports_levels(model)
         out = harness.vsm("validate", model)
         self.assertEqual(out.returncode, 0, out.stdout[-2000:] + out.stderr[-2000:])
 
