@@ -313,15 +313,10 @@ HierarchyText hierarchyXml(const Model& model, const RevisionRecord* revision,
     throw Error(ErrorCode::InvalidArgument, "cannot write the hierarchy of an empty model");
   }
   HierarchyText text;
-  // The levels OPC readers see: those holding a patch that is not hidden (hidden levels are the
-  // deepest, under every visible leaf).
+  // The levels OPC readers see: down to the deepest holding a patch that is not hidden.
   const std::vector<LevelSummary> levels = model.levels();
-  std::size_t visibleLevels = levels.size();
-  while (visibleLevels > 1 &&
-         levels[visibleLevels - 1].hidden == levels[visibleLevels - 1].patches) {
-    --visibleLevels;
-  }
-  if (model.hasHiddenLevels()) {
+  const auto visibleLevels = static_cast<std::size_t>(deepestVisibleDepth(levels)) + 1;
+  if (anyHidden(levels)) {
     text.hidden = hiddenHierarchyXml(model);
   }
   detail::XmlWriter xml = startAardvark("PatchHierarchy");

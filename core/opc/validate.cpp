@@ -339,12 +339,7 @@ class Validator {
   void checkAvgGeometrySizes() {
     const std::vector<double>& sizes = c_.avgGeometrySizes;
     // The levels OPC readers see: hidden levels are not theirs.
-    int depth = 0;
-    for (const LevelSummary& level : c_.model.levels()) {
-      if (level.patches > level.hidden) {
-        depth = level.depth;
-      }
-    }
+    const int depth = deepestVisibleDepth(c_.model.levels());
     const std::string where = c_.hierarchyFile.string();
     if (sizes.size() < static_cast<std::size_t>(depth + 1)) {
       add(where, "AvgGeometrySizes has " + std::to_string(sizes.size()) +

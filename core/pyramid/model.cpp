@@ -509,10 +509,23 @@ Model::ChunkSums Model::summarise(const Chunk& chunk) {
   return sums;
 }
 
-bool Model::hasHiddenLevels() const {
-  const std::vector<LevelSummary> summary = levels();
-  return std::any_of(summary.begin(), summary.end(),
+int deepestVisibleDepth(const std::vector<LevelSummary>& levels) {
+  int depth = 0;
+  for (const LevelSummary& level : levels) {
+    if (level.patches > level.hidden) {
+      depth = std::max(depth, level.depth);
+    }
+  }
+  return depth;
+}
+
+bool anyHidden(const std::vector<LevelSummary>& levels) {
+  return std::any_of(levels.begin(), levels.end(),
                      [](const LevelSummary& level) { return level.hidden > 0; });
+}
+
+bool Model::hasHiddenLevels() const {
+  return anyHidden(levels());
 }
 
 bool Model::childrenHidden(const PatchKey& key) const {

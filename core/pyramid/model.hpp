@@ -146,6 +146,13 @@ struct LevelSummary {
   double finestLeaf = 0;
 };
 
+/// The deepest level of `levels` (Model::levels) holding a patch that is not hidden: the last
+/// level other OPC readers see (hidden levels lie below the visible leaves); 0 for none.
+int deepestVisibleDepth(const std::vector<LevelSummary>& levels);
+
+/// True when a level of `levels` holds a hidden patch.
+bool anyHidden(const std::vector<LevelSummary>& levels);
+
 /// The pyramid: a quadtree of patches with one root, up to four children per patch, empty patches
 /// omitted, and variable depth (a leaf is the actual surface at its place, every patch above it an
 /// overview). Holds metadata and states; vertex data is attached per patch when resident.
@@ -227,7 +234,7 @@ class Model {
   void refreshStale(const GridLoader& load);
 
   std::vector<LevelSummary> levels() const;
-  /// True when some patch is a hidden level's (PatchInfo::hidden; from levels()).
+  /// True when some patch is a hidden level's (PatchInfo::hidden): anyHidden(levels()).
   bool hasHiddenLevels() const;
   /// True when the patch `key` has children and they are a hidden level's: its <item> belongs in
   /// the second hierarchy file (a patch's children are all hidden or all not).

@@ -98,16 +98,12 @@ void printInfo(const fs::path& dir, int gridSize, int depth,
   std::printf("depth       %d (%zu levels)\n", depth, levels.size());
   std::printf("patches     %zu (%zu leaves)\n", patches, leaves);
   std::size_t hidden = 0;
-  int firstHidden = -1;
   for (const auto& level : levels) {
     hidden += level.hidden;
-    if (level.hidden == level.patches && level.patches > 0 && firstHidden < 0) {
-      firstHidden = level.depth;
-    }
   }
-  if (hidden > 0 && firstHidden > 0) {
+  if (const int visible = deepestVisibleDepth(levels); hidden > 0 && visible < depth) {
     std::printf("hidden      %zu patches, depth %d and below: OPC viewers see depth 0 to %d\n",
-                hidden, firstHidden, firstHidden - 1);
+                hidden, visible + 1, visible);
   } else if (hidden > 0) {
     std::printf("hidden      %zu patches, which OPC viewers do not see\n", hidden);
   }
