@@ -193,9 +193,17 @@ std::size_t ModelRegistry::openAll() {
     try {
       open(id, resolved);
       skipped_.erase(id);
+      retrying_.erase(id);
       ++opened;
     } catch (const Error& e) {
-      if (e.code() == ErrorCode::NotFound) {
+      if (e.code() == ErrorCode::Io || e.code() == ErrorCode::Unavailable) {
+        // Perhaps transient (a disk's read error, a file being replaced): tried again at the next
+        // call, whatever the hierarchy's stamp, and said once until it opens.
+        skipped_.erase(id);
+        if (retrying_.insert(id).second) {
+          log::warn("model=" + id + " not opened yet: " + e.what() + " (tried again)");
+        }
+      } else if (e.code() == ErrorCode::NotFound) {
         log::info("data root: skipping '" + id + "' (no OPC hierarchy)");
       } else if (e.code() != ErrorCode::Conflict || atLimit()) {
         // Conflict: opened or imported meanwhile, or no room left

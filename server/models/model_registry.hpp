@@ -81,7 +81,9 @@ class ModelRegistry {
   /// Opens every directory directly under the data root whose name is a valid id, that holds an
   /// OPC (metadata only) and that is not open yet. A directory that fails to open is logged and
   /// skipped; called again (a cluster node discovers models other nodes imported), it tries such a
-  /// directory again, silently, only once its hierarchy file changed. Returns the number opened.
+  /// directory again, silently, only once its hierarchy file changed, except after an I/O error
+  /// (Io, Unavailable: a disk's transient read error), which it tries at every call until the
+  /// model opens. Returns the number opened.
   /// For one caller at a time.
   std::size_t openAll();
   /// At most `max` models open, being opened or reserved at once (limits.models): each writable
@@ -268,8 +270,10 @@ class ModelRegistry {
   std::function<void(const Publication&)> onPublished_;  // set before any model is opened
   /// setWriter()'s own state: models whose last change of role failed (logged once).
   std::set<std::string, std::less<>> roleFailed_;
-  /// openAll()'s own state: directories it skipped, with their hierarchy file as it was then.
+  /// openAll()'s own state: directories it skipped, with their hierarchy file as it was then, and
+  /// those that failed with an I/O error, tried at every call (their warning said once).
   std::map<std::string, std::optional<core::HierarchyStamp>, std::less<>> skipped_;
+  std::set<std::string, std::less<>> retrying_;
   /// The newest fencing token (takeover) seen per model id, guarded by mutex_.
   TakeoverBook takeovers_;
   std::atomic<std::uint64_t> followsRefused_{0};

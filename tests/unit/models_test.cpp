@@ -103,6 +103,27 @@ TEST(ModelRegistry, OpensEveryOpcUnderTheRootAndSkipsTheRest) {
   EXPECT_EQ(codeOf([&] { registry.get("bad.id"); }), ErrorCode::NotFound);
 }
 
+TEST(ModelRegistry, AModelThatFailedToOpenWithAnIoErrorIsTriedAgainAtTheNextScan) {
+  // A read error while the hierarchy stays the same (a disk's transient EIO; here a Patch.xml
+  // that reads as a directory, EISDIR): the next openAll opens the model once it reads again,
+  // though its hierarchy file did not change (a cluster node rescans every 500 ms).
+  const DataRoot root;
+  writeModel(root.path() / "m");
+  const fs::path patchXml = root.path() / "m" / "Patches" / "0_0_0" / "Patch.xml";
+  const fs::path aside = root.path() / "Patch.xml.aside";
+  fs::rename(patchXml, aside);
+  fs::create_directory(patchXml);
+  core::PatchCache cache(64 * kMiB);
+  models::ModelRegistry registry(root.path(), cache);
+  EXPECT_EQ(codeOf([&] { core::readOpcModel(root.path() / "m"); }), ErrorCode::Io);
+  EXPECT_EQ(registry.openAll(), 0u);
+  EXPECT_EQ(registry.openAll(), 0u);
+  fs::remove(patchXml);
+  fs::rename(aside, patchXml);
+  EXPECT_EQ(registry.openAll(), 1u);
+  EXPECT_EQ(registry.get("m")->snapshot()->model->patchCount(), 20u);
+}
+
 TEST(ModelRegistry, IdsAndDirectoriesAreOpenOnceAndLeasesBlockClosing) {
   const DataRoot root;
   writeModel(root.path() / "m");
