@@ -1,7 +1,6 @@
 // Reading OPC directories: the hierarchy, every Patch.xml and the patches' vertex data.
 #include "core/opc/opc_reader.hpp"
 
-#include <fcntl.h>
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -13,6 +12,7 @@
 #include <deque>
 #include <pugixml.hpp>
 #include <set>
+#include <span>
 
 #include "core/common/error.hpp"
 #include "core/common/numbers.hpp"
@@ -631,18 +631,30 @@ std::string hiddenHierarchyFileName() {
 
 std::optional<std::string> hiddenHierarchyNamedBy(const fs::path& hierarchyFile) {
   constexpr std::size_t kTail = 4096;
-  const int fd = ::open(hierarchyFile.c_str(), O_RDONLY | O_CLOEXEC);
-  if (fd < 0) {
-    return std::nullopt;
+  int fd = -1;
+  try {
+    fd = detail::openForReading(hierarchyFile);
+  } catch (const Error& e) {
+    if (e.code() == ErrorCode::NotFound) {
+      return std::nullopt;  // no such hierarchy: it names nothing
+    }
+    throw;
   }
-  struct stat st {};
   std::string tail;
-  if (::fstat(fd, &st) == 0) {
+  try {
+    struct stat st {};
+    if (::fstat(fd, &st) != 0) {
+      throwIoError("cannot stat", hierarchyFile.string(), errno);
+    }
     const auto size = static_cast<std::size_t>(st.st_size);
     const std::size_t from = size > kTail ? size - kTail : 0;
     tail.resize(size - from);
-    const ssize_t n = ::pread(fd, tail.data(), tail.size(), static_cast<off_t>(from));
-    tail.resize(n > 0 ? static_cast<std::size_t>(n) : 0);
+    tail.resize(detail::readAt(fd, from,
+                               std::as_writable_bytes(std::span(tail.data(), tail.size())),
+                               hierarchyFile.string()));
+  } catch (...) {
+    ::close(fd);
+    throw;
   }
   ::close(fd);
   constexpr std::string_view open = "<HiddenLevels>";

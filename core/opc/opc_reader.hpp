@@ -101,8 +101,9 @@ bool isHiddenHierarchyFileName(std::string_view name);
 
 /// The second hierarchy file a hierarchy file of vsm's names (<Vsm><HiddenLevels>), read from its
 /// last 4 kB, where vsm writes its elements (a few kB whatever the model's size); nullopt when it
-/// names none there, or the file cannot be read. For removing files no hierarchy names any more,
-/// not for reading a model (readOpcModel follows the element wherever it is).
+/// names none there or does not exist. For removing files no hierarchy names any more, not for
+/// reading a model (readOpcModel follows the element wherever it is). Throws Error(Io /
+/// Unavailable) when it cannot be read: a file a hierarchy still names is never taken for unnamed.
 std::optional<std::string> hiddenHierarchyNamedBy(const std::filesystem::path& hierarchyFile);
 
 /// `dir`/Patches in whatever letter case it exists. Throws Error(NotFound) when there is none.

@@ -73,7 +73,8 @@ std::map<std::uint64_t, std::filesystem::path> revisionFiles(const std::filesyst
 /// Removes each second hierarchy file (hidden levels, core/opc/README.md) of `candidates` (names
 /// under `patches`) that none of `hierarchies` names any more (hiddenHierarchyNamedBy), and syncs
 /// `patches` after a removal. Returns how many it removed; a failed removal is logged (the next
-/// open's sweep retries it).
+/// open's sweep retries it). Throws Error(Io) when a hierarchy cannot be read, before removing
+/// anything.
 std::size_t removeUnnamedHiddenFiles(const std::filesystem::path& patches,
                                      const std::set<std::string>& candidates,
                                      const std::vector<std::filesystem::path>& hierarchies);

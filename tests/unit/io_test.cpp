@@ -799,6 +799,12 @@ TEST(PyramidBuilder, TheSecondHierarchyFileMustBeOursAndHoldEveryHiddenItem) {
   const auto write = [&](const fs::path& file, const std::string& bytes) {
     std::ofstream(file, std::ios::trunc) << bytes;
   };
+  // The name as read from the hierarchy's tail (for removing unnamed files): none for a missing
+  // hierarchy, an error (never "none") for one that cannot be read.
+  EXPECT_EQ(hiddenHierarchyNamedBy(hierarchy), std::optional<std::string>(named));
+  EXPECT_EQ(hiddenHierarchyNamedBy(dir / "opc" / "Patches" / "missing.xml"), std::nullopt);
+  EXPECT_EQ(codeOf([&] { hiddenHierarchyNamedBy(dir / "opc" / "Patches" / "0_0_0"); }),
+            ErrorCode::Io);
   // <HiddenLevels> names a file of ours beside the hierarchy, which exists.
   for (const std::string& bad : {std::string("../patchhierarchy.xml"), std::string("x.xml"),
                                  std::string("vsm-hidden-0123456789abcdeg.xml"),
